@@ -1,0 +1,25 @@
+# The ROS 2 PyPI wheels export *__rosidl_generator_py targets whose include directories point at
+# the wheel build machine (/opt/python/cp311-cp311/...). CMake refuses to configure a target that
+# links them, so replace those entries by this interpreter's Python and NumPy include directories.
+# Harmless on a regular ROS 2 install: nothing there contains /opt/python/.
+function(lego_loam_fix_wheel_include_dirs)
+  if(CMAKE_VERSION VERSION_LESS 3.21)
+    return()
+  endif()
+  find_package(Python3 REQUIRED COMPONENTS Interpreter Development.Module NumPy)
+  get_directory_property(_imported IMPORTED_TARGETS)
+  foreach(_target IN LISTS _imported)
+    get_target_property(_dirs ${_target} INTERFACE_INCLUDE_DIRECTORIES)
+    if(NOT _dirs OR NOT "${_dirs}" MATCHES "/opt/python/")
+      continue()
+    endif()
+    set(_kept "")
+    foreach(_dir IN LISTS _dirs)
+      if(NOT _dir MATCHES "/opt/python/")
+        list(APPEND _kept "${_dir}")
+      endif()
+    endforeach()
+    list(APPEND _kept ${Python3_INCLUDE_DIRS} ${Python3_NumPy_INCLUDE_DIRS})
+    set_target_properties(${_target} PROPERTIES INTERFACE_INCLUDE_DIRECTORIES "${_kept}")
+  endforeach()
+endfunction()

@@ -1,0 +1,65 @@
+"""The ``lego_loam_py`` command: bag tools, simulator, offline runs and evaluation.
+
+    lego_loam_py play BAG [--rate R] [--topics T ...]     replay a bag over DDS with /clock
+    lego_loam_py record [TOPIC ...|--all] [-o OUT]        record topics into a ROS 2 bag
+
+ROS arguments (remappings, parameters) go after ``--ros-args``, as for any ROS 2 executable.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Sequence
+
+from lego_loam_py import __version__
+
+__all__ = ['main', 'build_parser']
+
+
+def _split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
+    """(our arguments, rclpy arguments); rclpy gets '--ros-args ...' up to a closing '--'."""
+    if '--ros-args' not in argv:
+        return argv, []
+    i = argv.index('--ros-args')
+    rest = argv[i:]
+    end = rest.index('--') if '--' in rest else len(rest)
+    return argv[:i] + rest[end + 1:], rest[:end]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from lego_loam_py.bag import player, recorder
+
+    parser = argparse.ArgumentParser(
+        prog='lego_loam_py', description='LeGO-LOAM for ROS 2 in Python: tools around the four nodes.',
+        epilog='ROS arguments go after --ros-args. Nodes: ros2 run lego_loam_py <imageProjection|'
+               'featureAssociation|mapOptimization|transformFusion>.')
+    parser.add_argument('--version', action='version', version=f'lego_loam_py {__version__}')
+    commands = parser.add_subparsers(dest='command', metavar='COMMAND', required=True)
+
+    play = commands.add_parser('play', help='replay a ROS 1 or ROS 2 bag over DDS, publishing /clock',
+                               description='Replay a ROS 1 (.bag) or ROS 2 (.db3/.mcap) bag over DDS, publishing '
+                                           '/clock. ROS 1 messages are converted to their ROS 2 types.')
+    player.add_arguments(play)
+    play.set_defaults(handler=player.main)
+
+    record = commands.add_parser('record', help='record topics into a ROS 2 bag (mcap by default)',
+                                 description='Record topics into a ROS 2 bag, custom message types (CloudInfo) '
+                                             'included. Ctrl-C finishes the bag cleanly.')
+    recorder.add_arguments(record)
+    record.set_defaults(handler=recorder.main)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ours, ros_args = _split_ros_args(argv)
+    args = build_parser().parse_args(ours)
+    args.ros_args = ['lego_loam_py', *ros_args]
+    try:
+        return int(args.handler(args) or 0)
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,178 @@
+"""Frames, axes and angle conventions of LeGO-LOAM, in one place (reference/LEGO_LOAM.md §5).
+
+Two axis conventions meet in LeGO-LOAM:
+
+* **lidar axes** (REP-103): x forward, y left, z up. Input clouds, ``base_link`` and ``map`` use them.
+* **LOAM camera axes**: x left, y up, z forward, i.e. ``(x_c, y_c, z_c) = (y_l, z_l, x_l)``. Everything inside
+  featureAssociation / mapOptimization / transformFusion and every published pose (``camera_init``,
+  ``camera``, ``laser_odom``, ``aft_mapped``) uses them.
+
+Poses are 4x4 homogeneous matrices ``T`` mapping child coordinates into parent coordinates
+(``p_parent = R p_child + t``), as a TF transform parent->child does. The original stores rotations as
+Euler triples (rx, ry, rz) in camera axes composed as ``R = Ry(ry) Rx(rx) Rz(rz)``; in lidar terms these are
+(pitch, yaw, roll). The six-vector ``(rx, ry, rz, tx, ty, tz)`` is the original's ``transformSum`` /
+``transformTobeMapped`` layout. Quaternions are (x, y, z, w), as in ROS messages.
+
+The TF tree of the original launch file::
+
+    map --(static)--> camera_init --> camera --(static)--> base_link
+
+where ``map -> camera_init`` turns camera axes into lidar axes and ``camera -> base_link`` does the reverse.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+__all__ = [
+    'MAP_FRAME', 'CAMERA_INIT_FRAME', 'CAMERA_FRAME', 'BASE_LINK_FRAME', 'LASER_ODOM_FRAME',
+    'AFT_MAPPED_FRAME', 'LIDAR_TO_CAMERA', 'CAMERA_TO_LIDAR', 'lidar_to_camera', 'camera_to_lidar',
+    'rot_x', 'rot_y', 'rot_z', 'euler_to_matrix', 'matrix_to_euler', 'quaternion_to_matrix',
+    'matrix_to_quaternion', 'euler_to_quaternion', 'quaternion_to_euler', 'make_pose', 'pose6_to_matrix',
+    'matrix_to_pose6', 'invert_pose', 'camera_pose_to_lidar', 'lidar_pose_to_camera',
+    'MAP_T_CAMERA_INIT', 'CAMERA_T_BASE_LINK', 'transform_points', 'wrap_angle',
+]
+
+# Frame ids, without the original's leading slashes (invalid in tf2).
+MAP_FRAME = 'map'
+CAMERA_INIT_FRAME = 'camera_init'
+CAMERA_FRAME = 'camera'
+BASE_LINK_FRAME = 'base_link'
+LASER_ODOM_FRAME = 'laser_odom'
+AFT_MAPPED_FRAME = 'aft_mapped'
+
+# p_camera = LIDAR_TO_CAMERA @ p_lidar, i.e. (x_c, y_c, z_c) = (y_l, z_l, x_l).
+LIDAR_TO_CAMERA = np.array([[0.0, 1.0, 0.0],
+                            [0.0, 0.0, 1.0],
+                            [1.0, 0.0, 0.0]])
+CAMERA_TO_LIDAR = LIDAR_TO_CAMERA.T.copy()
+
+
+def lidar_to_camera(points: np.ndarray) -> np.ndarray:
+    """(..., 3) lidar-axes coordinates -> camera axes (a new array)."""
+    return np.asarray(points)[..., [1, 2, 0]]
+
+
+def camera_to_lidar(points: np.ndarray) -> np.ndarray:
+    """(..., 3) camera-axes coordinates -> lidar axes (a new array)."""
+    return np.asarray(points)[..., [2, 0, 1]]
+
+
+def rot_x(angle: float) -> np.ndarray:
+    """Rotation about x by ``angle`` [rad] (right-handed)."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def euler_to_matrix(rx: float, ry: float, rz: float) -> np.ndarray:
+    """LOAM Euler angles [rad] (camera axes) -> rotation ``Ry(ry) @ Rx(rx) @ Rz(rz)``.
+
+    In lidar axes the same rotation is the usual ZYX ``Rz(yaw=ry) Ry(pitch=rx) Rx(roll=rz)``.
+    """
+    return rot_y(ry) @ rot_x(rx) @ rot_z(rz)
+
+
+def matrix_to_euler(rotation: np.ndarray) -> tuple[float, float, float]:
+    """Inverse of :func:`euler_to_matrix`: (rx, ry, rz) [rad] with rx in [-pi/2, pi/2]."""
+    r = np.asarray(rotation)
+    rx = float(np.arcsin(np.clip(-r[1, 2], -1.0, 1.0)))
+    ry = float(np.arctan2(r[0, 2], r[2, 2]))
+    rz = float(np.arctan2(r[1, 0], r[1, 1]))
+    return rx, ry, rz
+
+
+def quaternion_to_matrix(quaternion: np.ndarray) -> np.ndarray:
+    """(x, y, z, w) -> 3x3 rotation (the quaternion is normalised first)."""
+    return Rotation.from_quat(np.asarray(quaternion, dtype=float)).as_matrix()
+
+
+def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
+    """3x3 rotation -> (x, y, z, w) with w >= 0."""
+    q = Rotation.from_matrix(np.asarray(rotation, dtype=float)).as_quat()
+    return -q if q[3] < 0 else q
+
+
+def euler_to_quaternion(rx: float, ry: float, rz: float) -> np.ndarray:
+    """The quaternion the original publishes for LOAM Euler angles (camera axes), as (x, y, z, w).
+
+    The original builds it as tf RPY(roll=rz, pitch=-rx, yaw=-ry) with components shuffled to
+    (-q.y, -q.z, q.x, q.w); that is exactly the quaternion of ``Ry(ry) Rx(rx) Rz(rz)``.
+    """
+    return matrix_to_quaternion(euler_to_matrix(rx, ry, rz))
+
+
+def quaternion_to_euler(quaternion: np.ndarray) -> tuple[float, float, float]:
+    """Inverse of :func:`euler_to_quaternion`: LOAM (rx, ry, rz) [rad] from a published quaternion."""
+    return matrix_to_euler(quaternion_to_matrix(quaternion))
+
+
+def make_pose(rotation: np.ndarray | None = None, translation: np.ndarray | None = None) -> np.ndarray:
+    """4x4 homogeneous pose from a 3x3 rotation and a translation (identity parts when omitted)."""
+    pose = np.eye(4)
+    if rotation is not None:
+        pose[:3, :3] = rotation
+    if translation is not None:
+        pose[:3, 3] = translation
+    return pose
+
+
+def pose6_to_matrix(pose6: np.ndarray) -> np.ndarray:
+    """The original's six-vector (rx, ry, rz, tx, ty, tz) -> 4x4 pose (p_world = R p + t)."""
+    rx, ry, rz, tx, ty, tz = (float(v) for v in pose6)
+    return make_pose(euler_to_matrix(rx, ry, rz), (tx, ty, tz))
+
+
+def matrix_to_pose6(pose: np.ndarray) -> np.ndarray:
+    """4x4 pose -> six-vector (rx, ry, rz, tx, ty, tz)."""
+    return np.array([*matrix_to_euler(pose[:3, :3]), *pose[:3, 3]])
+
+
+def invert_pose(pose: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 pose."""
+    inverse = np.eye(4)
+    rotation_t = pose[:3, :3].T
+    inverse[:3, :3] = rotation_t
+    inverse[:3, 3] = -rotation_t @ pose[:3, 3]
+    return inverse
+
+
+_CAMERA_TO_LIDAR_4 = make_pose(CAMERA_TO_LIDAR)
+_LIDAR_TO_CAMERA_4 = make_pose(LIDAR_TO_CAMERA)
+
+
+def camera_pose_to_lidar(pose_camera: np.ndarray) -> np.ndarray:
+    """A pose between two camera-axes frames (e.g. camera in camera_init) -> the same motion in lidar
+    axes (base_link in map): ``A T A^-1`` with ``A`` the camera->lidar axis change."""
+    return _CAMERA_TO_LIDAR_4 @ pose_camera @ _LIDAR_TO_CAMERA_4
+
+
+def lidar_pose_to_camera(pose_lidar: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`camera_pose_to_lidar`."""
+    return _LIDAR_TO_CAMERA_4 @ pose_lidar @ _CAMERA_TO_LIDAR_4
+
+
+# Static transforms of the original run.launch (parent -> child poses):
+#   map -> camera_init: yaw 90 deg, roll 90 deg, i.e. camera_init axes expressed in lidar axes;
+#   camera -> base_link: yaw -90 deg, pitch -90 deg, i.e. lidar axes expressed in camera axes.
+MAP_T_CAMERA_INIT = make_pose(CAMERA_TO_LIDAR)
+CAMERA_T_BASE_LINK = make_pose(LIDAR_TO_CAMERA)
+
+
+def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 pose to (N, 3) points: ``R p + t``."""
+    return np.asarray(points) @ pose[:3, :3].T + pose[:3, 3]
+
+
+def wrap_angle(angle: np.ndarray | float) -> np.ndarray | float:
+    """Angle(s) wrapped into [-pi, pi)."""
+    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi

@@ -1,0 +1,420 @@
+"""All parameters of lego_loam_py in one typed structure.
+
+Every tunable value of the original LeGO-LOAM (``utility.h`` and the numbers hard-coded in its .cpp files,
+reference/LEGO_LOAM.md §2.1-§2.2) has a named field here, grouped by the node that uses it. The defaults
+reproduce the original's VLP-16 configuration exactly.
+
+Parameters come from a ROS 2 style YAML file (``ros__parameters`` layout, one file for all four nodes)::
+
+    /**:
+      ros__parameters:
+        sensor:
+          preset: HDL-32E
+        image_projection:
+          segment_theta: 1.0472
+
+A sensor preset fills the geometry fields of ``sensor`` (rows, columns, resolutions, ground rows); any of
+those fields given explicitly overrides the preset. Unknown keys and values of the wrong type raise
+:class:`ParameterError` naming the key.
+
+Units: lengths in metres, times in seconds, angles in degrees unless a field's comment says radians (the
+original's ``segmentTheta`` is kept in radians, as in ``utility.h``).
+"""
+from __future__ import annotations
+
+import difflib
+import math
+import typing
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import yaml
+
+__all__ = [
+    'ParameterError', 'SensorParams', 'ImageProjectionParams', 'FeatureAssociationParams',
+    'MapOptimizationParams', 'LoopClosureParams', 'Params', 'SENSOR_PRESETS', 'load_params',
+    'params_from_mapping', 'flatten', 'read_params_file', 'default_params_file',
+]
+
+
+class ParameterError(ValueError):
+    """A parameter file or override is invalid; the message names the offending key."""
+
+
+@dataclass(frozen=True)
+class SensorParams:
+    """Lidar geometry, input topics and per-point fields."""
+
+    preset: str = 'VLP-16'             # one of SENSOR_PRESETS; fills the geometry fields below
+    n_scan: int = 16                   # rows of the range image (beams)
+    horizon_scan: int = 1800           # columns of the range image
+    ang_res_x: float = 0.2             # horizontal resolution [deg]
+    ang_res_y: float = 2.0             # vertical resolution [deg] (only without the ring field)
+    ang_bottom: float = 15.1           # offset of the lowest beam below horizontal [deg] (without ring)
+    ground_scan_ind: int = 7           # rows 0..ground_scan_ind-1 (and the row above) may be ground
+    scan_period: float = 0.1           # sweep duration [s]
+    use_cloud_ring: bool = True        # row from the ring field; falls back to elevation when absent
+    ring_field: str = 'ring'           # name of the beam index field
+    time_field: str = 'time'           # name of the per-point time field [s since sweep start]
+    sensor_minimum_range: float = 1.0  # closer returns are dropped [m]
+    sensor_mount_angle: float = 0.0    # expected ground slope in the ground test [deg]
+    point_cloud_topic: str = '/velodyne_points'
+    imu_topic: str = '/imu/data'       # empty string: do not subscribe to an IMU
+
+    @property
+    def segment_alpha_x(self) -> float:
+        """Horizontal angle between neighbouring columns [rad]."""
+        return math.radians(self.ang_res_x)
+
+    @property
+    def segment_alpha_y(self) -> float:
+        """Vertical angle between neighbouring rows [rad]."""
+        return math.radians(self.ang_res_y)
+
+
+# Geometry of the sensor blocks of utility.h (reference §2.3) plus the HDL-64E values the original's
+# author suggested (issue #12, ang_res_y as 26.9/63). Keys are the values accepted by ``sensor.preset``.
+SENSOR_PRESETS: dict[str, dict[str, Any]] = {
+    'VLP-16': dict(n_scan=16, horizon_scan=1800, ang_res_x=0.2, ang_res_y=2.0, ang_bottom=15.0 + 0.1,
+                   ground_scan_ind=7),
+    'HDL-32E': dict(n_scan=32, horizon_scan=1800, ang_res_x=360.0 / 1800, ang_res_y=41.33 / 31,
+                    ang_bottom=30.67, ground_scan_ind=20),
+    'VLS-128': dict(n_scan=128, horizon_scan=1800, ang_res_x=0.2, ang_res_y=0.3, ang_bottom=25.0,
+                    ground_scan_ind=10),
+    'HDL-64E': dict(n_scan=64, horizon_scan=1800, ang_res_x=0.2, ang_res_y=26.9 / 63, ang_bottom=24.9,
+                    ground_scan_ind=50),
+    'OS1-16': dict(n_scan=16, horizon_scan=1024, ang_res_x=360.0 / 1024, ang_res_y=33.2 / 15,
+                   ang_bottom=16.6 + 0.1, ground_scan_ind=7),
+    'OS1-64': dict(n_scan=64, horizon_scan=1024, ang_res_x=360.0 / 1024, ang_res_y=33.2 / 63,
+                   ang_bottom=16.6 + 0.1, ground_scan_ind=15),
+}
+_PRESET_FIELDS = ('n_scan', 'horizon_scan', 'ang_res_x', 'ang_res_y', 'ang_bottom', 'ground_scan_ind')
+
+
+@dataclass(frozen=True)
+class ImageProjectionParams:
+    """Range image, ground removal and segmentation (imageProjection.cpp)."""
+
+    ground_slope_threshold: float = 10.0  # |slope - mount angle| <= this marks ground [deg]
+    segment_theta: float = 60.0 / 180.0 * math.pi  # BFS join criterion beta > theta [rad]
+    segment_valid_point_num: int = 5      # small cluster kept if >= this many points ...
+    segment_valid_line_num: int = 3       # ... over >= this many rows
+    segment_min_cluster_size: int = 30    # a cluster this large is always kept
+    ring_index_margin: int = 5            # start/end ring index margins in the segmented cloud
+    outlier_column_stride: int = 5        # outliers published for columns % stride == 0
+    ground_column_stride: int = 5         # ground thinning: keep columns % stride == 0 ...
+    ground_edge_columns: int = 5          # ... and the first/last columns of the image
+
+
+@dataclass(frozen=True)
+class FeatureAssociationParams:
+    """Feature extraction and scan-to-scan odometry (featureAssociation.cpp)."""
+
+    system_delay: int = 0                 # scans ignored at start-up (declared, unused by the original)
+    imu_que_length: int = 200             # IMU ring buffer length
+    gravity: float = 9.81                 # [m/s^2]
+    use_point_time: bool = False          # relative point time from the time field instead of azimuth
+    sync_tolerance: float = 0.05          # |stamp difference| among the three inputs [s]
+    skip_frame_num: int = 1               # publish to mapping every (skip_frame_num + 1)-th scan
+    smoothness_half_window: int = 5       # +-5 neighbours in the curvature
+    occlusion_column_gap: int = 10        # neighbours closer than this many columns are compared
+    occlusion_depth_jump: float = 0.3     # [m]
+    parallel_beam_ratio: float = 0.02     # both neighbour range jumps > ratio * range
+    sections_total: int = 6               # sub-regions per ring
+    edge_threshold: float = 0.1           # curvature > -> edge candidate
+    surf_threshold: float = 0.1           # curvature < -> flat candidate
+    edge_feature_num: int = 2             # sharp features per sub-region
+    less_edge_feature_num: int = 20       # less-sharp features per sub-region (including the sharp)
+    surf_feature_num: int = 4             # flat features per sub-region
+    suppress_half_window: int = 5         # neighbours marked as picked around a feature
+    suppress_column_jump: int = 10        # ... unless the column jumps by more than this
+    less_flat_leaf_size: float = 0.2      # voxel leaf of the less-flat cloud [m]
+    nearest_feature_search_sq_dist: float = 25.0  # correspondence gate [m^2]
+    ring_search_window: float = 2.5       # rings searched for the 2nd/3rd correspondence point
+    max_iterations: int = 25              # Gauss-Newton iterations per stage
+    reassociate_every: int = 5            # correspondences recomputed every n iterations
+    weight_gain: float = 1.8              # s = 1 - gain * |d|
+    min_weight: float = 0.1               # correspondences with s <= this are dropped
+    step_scale: float = 0.05              # Gauss-Newton right-hand side scale
+    degeneracy_threshold: float = 10.0    # eigenvalues below are degenerate directions
+    convergence_rotation: float = 0.1     # [deg]
+    convergence_translation: float = 0.1  # [cm]
+    min_correspondences: int = 10         # per iteration
+    min_last_corner_points: int = 10      # odometry skipped below
+    min_last_surf_points: int = 100       # odometry skipped below
+
+
+@dataclass(frozen=True)
+class MapOptimizationParams:
+    """Scan-to-map optimisation, keyframes and the pose graph (mapOptmization.cpp)."""
+
+    mapping_process_interval: float = 0.3  # minimum time between two mapping steps [s]
+    sync_tolerance: float = 0.005          # |stamp difference| among the four inputs [s]
+    corner_leaf_size: float = 0.2          # voxel leaves [m]
+    surf_leaf_size: float = 0.4
+    outlier_leaf_size: float = 0.4
+    surrounding_keyframe_search_radius: float = 50.0  # submap radius [m]
+    surrounding_keyframe_search_num: int = 50         # submap size with loop closure on [keyframes]
+    surrounding_keypose_leaf_size: float = 1.0
+    knn: int = 5                            # neighbours per correspondence
+    knn_max_sq_dist: float = 1.0            # the k-th neighbour must be closer [m^2]
+    edge_eigen_ratio: float = 3.0           # line if lambda1 > ratio * lambda2
+    line_half_length: float = 0.1           # line points = centroid +- this * direction [m]
+    plane_max_residual: float = 0.2         # every neighbour within this of the plane [m]
+    weight_gain: float = 0.9                # s = 1 - gain * |d|
+    min_weight: float = 0.1
+    max_iterations: int = 10
+    min_correspondences: int = 50
+    min_corner_map_points: int = 10         # map must have more than this
+    min_surf_map_points: int = 100
+    degeneracy_threshold: float = 100.0
+    convergence_rotation: float = 0.05      # [deg]
+    convergence_translation: float = 0.05   # [cm]
+    imu_blend_weight: float = 0.002         # roll/pitch <- (1 - w) * estimate + w * IMU
+    keyframe_distance: float = 0.3          # new keyframe after moving this far [m]
+    isam_relinearize_threshold: float = 0.01
+    isam_relinearize_skip: int = 1
+    # Diagonal variances (roll, pitch, yaw, x, y, z) of the prior and odometry factors.
+    prior_noise_variances: tuple[float, ...] = (1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-6)
+    odometry_noise_variances: tuple[float, ...] = (1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-6)
+    global_map_visualization_search_radius: float = 500.0  # [m]
+    global_map_keypose_leaf_size: float = 1.0
+    global_map_leaf_size: float = 0.4
+    global_map_publish_period: float = 5.0  # [s] (the original's 0.2 Hz thread)
+    file_directory: str = '/tmp/'           # where maps and trajectories are saved
+    save_map_on_shutdown: bool = True
+
+
+@dataclass(frozen=True)
+class LoopClosureParams:
+    """ICP loop closure (mapOptmization.cpp, off by default as in the original)."""
+
+    loop_closure_enable_flag: bool = False
+    history_keyframe_search_radius: float = 7.0   # candidate search radius [m]
+    history_keyframe_search_num: int = 25         # target submap = candidate +- this many keyframes
+    history_keyframe_fitness_score: float = 0.3   # ICP fitness gate (mean squared NN distance) [m^2]
+    history_keyframe_leaf_size: float = 0.4
+    time_gap: float = 30.0                        # candidate must be older than this [s]
+    period: float = 1.0                           # loop detection period [s]
+    icp_max_correspondence_distance: float = 100.0
+    icp_max_iterations: int = 100
+    icp_transformation_epsilon: float = 1e-6
+    icp_euclidean_fitness_epsilon: float = 1e-6
+    icp_ransac_iterations: int = 0
+
+
+@dataclass(frozen=True)
+class Params:
+    """Every parameter of the four nodes; ``Params()`` is the original's VLP-16 configuration."""
+
+    sensor: SensorParams = field(default_factory=SensorParams)
+    image_projection: ImageProjectionParams = field(default_factory=ImageProjectionParams)
+    feature_association: FeatureAssociationParams = field(default_factory=FeatureAssociationParams)
+    map_optimization: MapOptimizationParams = field(default_factory=MapOptimizationParams)
+    loop_closure: LoopClosureParams = field(default_factory=LoopClosureParams)
+
+    def to_flat(self) -> dict[str, Any]:
+        """``{'section.name': value}`` for every parameter (tuples become lists, as ROS stores them)."""
+        out = {}
+        for section in fields(self):
+            group = getattr(self, section.name)
+            for f in fields(group):
+                value = getattr(group, f.name)
+                out[f'{section.name}.{f.name}'] = list(value) if isinstance(value, tuple) else value
+        return out
+
+    def replace(self, **flat_overrides: Any) -> 'Params':
+        """A copy with ``section__name=value`` overrides applied and validated (handy in tests)."""
+        overrides = {k.replace('__', '.'): v for k, v in flat_overrides.items()}
+        merged = self.to_flat()
+        if 'sensor.preset' in overrides:  # a new preset brings its own geometry unless given explicitly
+            for name in _PRESET_FIELDS:
+                merged.pop(f'sensor.{name}')
+        merged.update(overrides)
+        return params_from_mapping(merged)
+
+
+# --------------------------------------------------------------------------------------------- loading
+
+def _sections() -> dict[str, type]:
+    return {f.name: f.default_factory for f in fields(Params)}  # type: ignore[misc]
+
+
+def _field_types(cls: type) -> dict[str, Any]:
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in fields(cls)}
+
+
+_VALID_KEYS: list[str] = [f'{s}.{n}' for s, cls in _sections().items() for n in _field_types(cls)]
+
+
+def flatten(tree: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
+    """Nested mapping -> ``{'a.b.c': value}`` (ROS 2 turns nested YAML into dotted names the same way)."""
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        if not isinstance(key, str):
+            raise ParameterError(f'parameter name {key!r} under {prefix or "the root"!r} is not a string')
+        name = f'{prefix}{key}'
+        if isinstance(value, Mapping):
+            out.update(flatten(value, name + '.'))
+        else:
+            out[name] = value
+    return out
+
+
+def _coerce(key: str, value: Any, annotation: Any) -> Any:
+    """Check ``value`` against the field type; ints are accepted for floats, nothing else is converted."""
+    def wrong(expected: str) -> ParameterError:
+        return ParameterError(f"parameter '{key}' must be {expected}, got {value!r} ({type(value).__name__})")
+
+    if annotation is bool:
+        if not isinstance(value, bool):
+            raise wrong('a boolean')
+        return value
+    if annotation is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise wrong('an integer')
+        return value
+    if annotation is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise wrong('a number')
+        value = float(value)
+        if not math.isfinite(value):
+            raise wrong('a finite number')
+        return value
+    if annotation is str:
+        if not isinstance(value, str):
+            raise wrong('a string')
+        return value
+    if typing.get_origin(annotation) is tuple:
+        if not isinstance(value, Sequence) or isinstance(value, str):
+            raise wrong('a list of numbers')
+        return tuple(_coerce(f'{key}[{i}]', v, float) for i, v in enumerate(value))
+    raise TypeError(f'unsupported parameter type {annotation!r} for {key}')  # programming error
+
+
+def _unknown_key_error(key: str) -> ParameterError:
+    close = difflib.get_close_matches(key, _VALID_KEYS, n=1, cutoff=0.6)
+    hint = f" (did you mean '{close[0]}'?)" if close else ''
+    return ParameterError(f"unknown parameter '{key}'{hint}")
+
+
+def params_from_mapping(values: Mapping[str, Any], apply_preset: bool = True) -> Params:
+    """Build :class:`Params` from flat dotted names or a nested mapping, on top of the defaults.
+
+    With ``apply_preset`` the geometry of ``sensor.preset`` is applied first and explicit ``sensor.*``
+    geometry keys override it.
+    """
+    flat = flatten(values)
+    sections = _sections()
+    grouped: dict[str, dict[str, Any]] = {name: {} for name in sections}
+    for key, value in flat.items():
+        section, _, name = key.partition('.')
+        if section not in sections or name not in _field_types(sections[section]):
+            raise _unknown_key_error(key)
+        grouped[section][name] = _coerce(key, value, _field_types(sections[section])[name])
+
+    sensor_values = grouped['sensor']
+    if apply_preset:
+        preset = sensor_values.get('preset', SensorParams.preset)
+        if preset not in SENSOR_PRESETS:
+            raise ParameterError(f"parameter 'sensor.preset' must be one of {sorted(SENSOR_PRESETS)}, "
+                                 f'got {preset!r}')
+        sensor_values = {**SENSOR_PRESETS[preset], **sensor_values}
+    built = {name: cls(**grouped[name]) for name, cls in sections.items() if name != 'sensor'}
+    params = Params(sensor=SensorParams(**sensor_values), **built)
+    _validate(params)
+    return params
+
+
+def _validate(p: Params) -> None:
+    def need(condition: bool, key: str, message: str) -> None:
+        if not condition:
+            raise ParameterError(f"parameter '{key}' {message}")
+
+    s = p.sensor
+    need(s.preset in SENSOR_PRESETS, 'sensor.preset', f'must be one of {sorted(SENSOR_PRESETS)}')
+    need(s.n_scan > 0, 'sensor.n_scan', 'must be positive')
+    need(s.horizon_scan > 0, 'sensor.horizon_scan', 'must be positive')
+    need(s.ang_res_x > 0, 'sensor.ang_res_x', 'must be positive')
+    need(s.ang_res_y > 0, 'sensor.ang_res_y', 'must be positive')
+    need(0 < s.ground_scan_ind < s.n_scan, 'sensor.ground_scan_ind', 'must lie in 1..n_scan-1')
+    need(s.scan_period > 0, 'sensor.scan_period', 'must be positive')
+    need(s.sensor_minimum_range >= 0, 'sensor.sensor_minimum_range', 'must not be negative')
+    need(s.point_cloud_topic != '', 'sensor.point_cloud_topic', 'must not be empty')
+    ip = p.image_projection
+    need(0 < ip.segment_theta < math.pi, 'image_projection.segment_theta', 'must lie in (0, pi) radians')
+    need(ip.outlier_column_stride > 0, 'image_projection.outlier_column_stride', 'must be positive')
+    need(ip.ground_column_stride > 0, 'image_projection.ground_column_stride', 'must be positive')
+    fa = p.feature_association
+    need(fa.sections_total > 0, 'feature_association.sections_total', 'must be positive')
+    need(fa.skip_frame_num >= 0, 'feature_association.skip_frame_num', 'must not be negative')
+    need(fa.less_flat_leaf_size > 0, 'feature_association.less_flat_leaf_size', 'must be positive')
+    need(fa.imu_que_length > 0, 'feature_association.imu_que_length', 'must be positive')
+    need(fa.reassociate_every > 0, 'feature_association.reassociate_every', 'must be positive')
+    mo = p.map_optimization
+    for name in ('corner_leaf_size', 'surf_leaf_size', 'outlier_leaf_size', 'surrounding_keypose_leaf_size',
+                 'global_map_keypose_leaf_size', 'global_map_leaf_size', 'global_map_publish_period'):
+        need(getattr(mo, name) > 0, f'map_optimization.{name}', 'must be positive')
+    for name in ('prior_noise_variances', 'odometry_noise_variances'):
+        value = getattr(mo, name)
+        need(len(value) == 6 and all(v > 0 for v in value), f'map_optimization.{name}',
+             'must be 6 positive variances (roll, pitch, yaw, x, y, z)')
+    need(mo.knn >= 3, 'map_optimization.knn', 'must be at least 3')
+    lc = p.loop_closure
+    need(lc.period > 0, 'loop_closure.period', 'must be positive')
+    need(lc.history_keyframe_leaf_size > 0, 'loop_closure.history_keyframe_leaf_size', 'must be positive')
+
+
+def read_params_file(path: str | Path, node_name: str | None = None) -> dict[str, Any]:
+    """Flat ``{'section.name': value}`` from a ROS 2 parameter file.
+
+    Sections for ``/**`` apply to every node; a section named after the node (with or without a leading
+    slash) applies on top. Without ``node_name`` all sections are merged in file order.
+    """
+    path = Path(path)
+    try:
+        document = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ParameterError(f'cannot read parameter file {path}: {exc.strerror}') from exc
+    except yaml.YAMLError as exc:
+        raise ParameterError(f'parameter file {path} is not valid YAML: {exc}') from exc
+    if document is None:
+        return {}
+    if not isinstance(document, Mapping):
+        raise ParameterError(f'parameter file {path}: expected a mapping of node names at the top level')
+    merged: dict[str, Any] = {}
+    for node_key, content in document.items():
+        name = str(node_key).lstrip('/')
+        if node_name is not None and name not in ('**', node_name.lstrip('/')):
+            continue
+        if not isinstance(content, Mapping) or 'ros__parameters' not in content:
+            raise ParameterError(f"parameter file {path}: section '{node_key}' has no 'ros__parameters'")
+        parameters = content['ros__parameters'] or {}
+        if not isinstance(parameters, Mapping):
+            raise ParameterError(f"parameter file {path}: '{node_key}.ros__parameters' must be a mapping")
+        merged.update(flatten(parameters))
+    return merged
+
+
+def default_params_file() -> Path:
+    """``config/params.yaml`` of the source tree (an installed copy lives in share/lego_loam_py/config)."""
+    return Path(__file__).resolve().parents[2] / 'config' / 'params.yaml'
+
+
+def load_params(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None,
+                node_name: str | None = None) -> Params:
+    """Parameters from a ROS 2 YAML file (or the defaults when ``path`` is None) plus overrides."""
+    values: dict[str, Any] = {}
+    if path is not None:
+        values.update(read_params_file(path, node_name))
+    if overrides:
+        values.update(flatten(overrides))
+    try:
+        return params_from_mapping(values)
+    except ParameterError as exc:
+        if path is not None:
+            raise ParameterError(f'{path}: {exc}') from None
+        raise
+

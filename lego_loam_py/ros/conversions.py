@@ -1,0 +1,133 @@
+"""ROS 2 message <-> core data conversions: the only place that touches message internals.
+
+PointCloud2 goes through :mod:`lego_loam_py.core.pointcloud` (any layout, zero-copy reads, one memcpy for
+writes: ``array.array.frombytes``; assigning an ndarray to ``msg.data`` would iterate per element).
+"""
+from __future__ import annotations
+
+import array
+from typing import Sequence
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Quaternion, TransformStamped
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import PointCloud2
+from sensor_msgs.msg import PointField as PointFieldMsg
+from std_msgs.msg import Header
+
+from lego_loam_py.core.frames import matrix_to_quaternion, quaternion_to_matrix
+from lego_loam_py.core.pointcloud import CloudBuffer, PointField, array_to_cloud, cloud_to_array
+
+__all__ = [
+    'stamp_to_ns', 'ns_to_stamp', 'make_header', 'cloud_msg_to_buffer', 'cloud_msg_to_array',
+    'array_to_cloud_msg', 'pose_to_odometry', 'odometry_to_pose', 'pose_to_transform',
+    'numpy_to_array',
+]
+
+
+def stamp_to_ns(stamp: Time) -> int:
+    """builtin_interfaces/Time -> integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def ns_to_stamp(ns: int) -> Time:
+    """Integer nanoseconds -> builtin_interfaces/Time (floor division keeps nanosec in [0, 1e9))."""
+    sec, nanosec = divmod(int(ns), 1_000_000_000)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def make_header(stamp: Time | int, frame_id: str) -> Header:
+    """Header from a Time message or integer nanoseconds."""
+    return Header(stamp=ns_to_stamp(stamp) if isinstance(stamp, int) else stamp, frame_id=frame_id)
+
+
+def numpy_to_array(values: np.ndarray, typecode: str) -> array.array:
+    """ndarray -> array.array with one memcpy (message sequence fields accept array.array directly)."""
+    out = array.array(typecode)
+    out.frombytes(np.ascontiguousarray(values, dtype=np.dtype(typecode).newbyteorder('=')).tobytes())
+    return out
+
+
+def cloud_msg_to_buffer(msg: PointCloud2) -> CloudBuffer:
+    """The layout and bytes of a PointCloud2 message (no copy of the data)."""
+    return CloudBuffer(
+        fields=[PointField(f.name, int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields],
+        point_step=int(msg.point_step), width=int(msg.width), height=int(msg.height),
+        row_step=int(msg.row_step), is_bigendian=bool(msg.is_bigendian), is_dense=bool(msg.is_dense),
+        data=msg.data)
+
+
+def cloud_msg_to_array(msg: PointCloud2, flatten: bool = True) -> np.ndarray:
+    """Structured array viewing the message's data (raises CloudLayoutError on an invalid layout)."""
+    return cloud_to_array(cloud_msg_to_buffer(msg), flatten=flatten)
+
+
+def array_to_cloud_msg(points: np.ndarray, header: Header, width: int | None = None, height: int = 1,
+                       is_dense: bool | None = None) -> PointCloud2:
+    """PointCloud2 carrying a structured array (layout taken from its dtype)."""
+    buf = array_to_cloud(points, width=width, height=height, is_dense=is_dense)
+    msg = PointCloud2(check_fields=False)
+    msg.header = header
+    msg.height, msg.width = buf.height, buf.width
+    msg.fields = [PointFieldMsg(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count)
+                  for f in buf.fields]
+    msg.is_bigendian = buf.is_bigendian
+    msg.point_step = buf.point_step
+    msg.row_step = buf.row_step
+    data = array.array('B')
+    data.frombytes(memoryview(buf.data))
+    msg.data = data
+    msg.is_dense = buf.is_dense
+    return msg
+
+
+def pose_to_odometry(pose: np.ndarray, header: Header, child_frame_id: str,
+                     twist_angular: Sequence[float] | None = None,
+                     twist_linear: Sequence[float] | None = None) -> Odometry:
+    """nav_msgs/Odometry with the pose of ``child_frame_id`` in ``header.frame_id`` (4x4 matrix).
+
+    The twist fields are filled only when given (mapOptimization uses them to carry a pose, as the
+    original does).
+    """
+    msg = Odometry()
+    msg.header = header
+    msg.child_frame_id = child_frame_id
+    q = matrix_to_quaternion(pose[:3, :3])
+    p = msg.pose.pose
+    p.position.x, p.position.y, p.position.z = (float(v) for v in pose[:3, 3])
+    p.orientation = Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
+    if twist_angular is not None:
+        a = msg.twist.twist.angular
+        a.x, a.y, a.z = (float(v) for v in twist_angular)
+    if twist_linear is not None:
+        lin = msg.twist.twist.linear
+        lin.x, lin.y, lin.z = (float(v) for v in twist_linear)
+    return msg
+
+
+def odometry_to_pose(msg: Odometry) -> np.ndarray:
+    """4x4 pose of an Odometry message (raises ValueError for non-finite or zero quaternions)."""
+    p = msg.pose.pose
+    q = np.array([p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w])
+    t = np.array([p.position.x, p.position.y, p.position.z])
+    if not (np.isfinite(q).all() and np.isfinite(t).all()):
+        raise ValueError('odometry pose is not finite')
+    if np.linalg.norm(q) < 1e-6:
+        raise ValueError('odometry orientation quaternion has zero norm')
+    pose = np.eye(4)
+    pose[:3, :3] = quaternion_to_matrix(q)
+    pose[:3, 3] = t
+    return pose
+
+
+def pose_to_transform(pose: np.ndarray, stamp: Time | int, parent: str, child: str) -> TransformStamped:
+    """TransformStamped parent->child carrying the pose of ``child`` in ``parent``."""
+    msg = TransformStamped()
+    msg.header = make_header(stamp, parent)
+    msg.child_frame_id = child
+    q = matrix_to_quaternion(pose[:3, :3])
+    tr = msg.transform
+    tr.translation.x, tr.translation.y, tr.translation.z = (float(v) for v in pose[:3, 3])
+    tr.rotation = Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
+    return msg

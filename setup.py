@@ -1,0 +1,42 @@
+"""lego_loam_py: LeGO-LOAM lidar odometry and mapping for ROS 2, in Python (ament_python package)."""
+import os
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'lego_loam_py'
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def _files(pattern):
+    return sorted(os.path.relpath(p, HERE) for p in glob(os.path.join(HERE, pattern)))
+
+
+# Installed next to the Python package (install.sh links the same list for editable installs).
+DATA_FILES = [
+    # ament index marker and manifest: `ros2 run` and get_package_share_directory find the package.
+    ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
+    (f'share/{PACKAGE}', ['package.xml']),
+    (f'share/{PACKAGE}/config', _files('config/*.yaml') + _files('config/*.xml') + _files('config/*.rviz')),
+    (f'share/{PACKAGE}/launch', _files('launch/*.launch.py')),
+]
+
+CONSOLE_SCRIPTS = [
+    f'{PACKAGE} = {PACKAGE}.cli:main',
+]
+
+if __name__ == '__main__':
+    setup(
+        name=PACKAGE,
+        version='0.1.0',
+        description='LeGO-LOAM lidar odometry and mapping for ROS 2, in Python: a drop-in replacement for '
+                    'the C++ original',
+        license='BSD-3-Clause',
+        python_requires='>=3.10',
+        packages=find_packages(include=[PACKAGE, f'{PACKAGE}.*']),
+        data_files=DATA_FILES,
+        # ROS dependencies (rclpy, messages) come from ROS itself and are declared in package.xml.
+        install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'rosbags', 'tqdm'],
+        zip_safe=True,
+        entry_points={'console_scripts': CONSOLE_SCRIPTS},
+    )
