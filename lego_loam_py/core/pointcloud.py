@@ -173,7 +173,7 @@ def array_to_cloud(points: np.ndarray, width: int | None = None, height: int = 1
     if is_dense is None:
         is_dense = True
         if all(has_field(points, n) for n in 'xyz') and points.size:
-            is_dense = bool(np.isfinite(xyz_array(points)).all())
+            is_dense = all(bool(np.isfinite(points[n]).all()) for n in 'xyz')
     return CloudBuffer(fields=fields, point_step=point_step, width=int(width), height=int(height),
                        row_step=int(width) * point_step, is_bigendian=bigendian, is_dense=is_dense, data=data)
 

@@ -67,7 +67,8 @@ def array_to_cloud_msg(points: np.ndarray, header: Header, width: int | None = N
                        is_dense: bool | None = None) -> PointCloud2:
     """PointCloud2 carrying a structured array (layout taken from its dtype)."""
     buf = array_to_cloud(points, width=width, height=height, is_dense=is_dense)
-    msg = PointCloud2(check_fields=False)
+    # Field checks stay on: with them, an array.array is stored as is; without, it is copied again.
+    msg = PointCloud2(check_fields=True)
     msg.header = header
     msg.height, msg.width = buf.height, buf.width
     msg.fields = [PointFieldMsg(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count)

@@ -1,0 +1,91 @@
+"""Shared fixtures: isolated DDS domains, child processes that are always reaped, the shared data."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.support.domains import DomainLease
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get('LEGO_LOAM_SHARED', REPO.parent / 'shared'))
+
+
+@pytest.fixture
+def ros_domain(monkeypatch):
+    """A ROS_DOMAIN_ID no other test run on this machine uses; exported for child processes."""
+    with DomainLease() as domain_id:
+        monkeypatch.setenv('ROS_DOMAIN_ID', str(domain_id))
+        monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+        yield domain_id
+
+
+@pytest.fixture
+def rclpy_context(ros_domain):
+    """An initialised rclpy context of its own on the test's domain; shut down afterwards."""
+    import rclpy
+    from rclpy.context import Context
+
+    context = Context()
+    rclpy.init(context=context, domain_id=ros_domain)
+    yield context
+    rclpy.try_shutdown(context=context)
+
+
+class Processes:
+    """Child processes started by a test, each in its own process group; all are ended at teardown."""
+
+    def __init__(self):
+        self.started: list[subprocess.Popen] = []
+
+    def start(self, args, **kwargs) -> subprocess.Popen:
+        kwargs.setdefault('stdout', subprocess.PIPE)
+        kwargs.setdefault('stderr', subprocess.PIPE)
+        kwargs.setdefault('text', True)
+        proc = subprocess.Popen([str(a) for a in args], start_new_session=True, **kwargs)
+        self.started.append(proc)
+        return proc
+
+    def python(self, *args, **kwargs) -> subprocess.Popen:
+        return self.start([sys.executable, *args], **kwargs)
+
+    def stop(self, proc: subprocess.Popen, sig=signal.SIGINT, timeout: float = 10.0):
+        """Signal the process (group) and wait; SIGKILL if it does not exit in time. Returns (out, err)."""
+        if proc.poll() is None:
+            try:
+                os.killpg(proc.pid, sig)
+            except ProcessLookupError:
+                pass
+        try:
+            return proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            return proc.communicate()
+
+    def cleanup(self):
+        for proc in self.started:
+            if proc.poll() is None:
+                self.stop(proc, signal.SIGKILL, timeout=5.0)
+
+
+@pytest.fixture
+def processes():
+    procs = Processes()
+    yield procs
+    procs.cleanup()
+
+
+@pytest.fixture(scope='session')
+def shared_data() -> Path:
+    """../shared/data; missing data fails when LEGO_LOAM_REQUIRE_SHARED=1 (CI), skips otherwise."""
+    path = SHARED / 'data'
+    if not path.is_dir():
+        message = f'shared data not found at {path} (set LEGO_LOAM_SHARED)'
+        if os.environ.get('LEGO_LOAM_REQUIRE_SHARED') == '1':
+            pytest.fail(message)
+        pytest.skip(message)
+    return path

@@ -1,0 +1,117 @@
+"""Over DDS, between processes: CloudInfo intact, latched /tf_static for late subscribers, `ros2 run`."""
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.support.ros import spin_until, wait_for_line
+from tests.support.samples import cloud_info_arrays
+
+REPO = Path(__file__).resolve().parents[1]
+VENV_BIN = Path(sys.executable).parent
+
+
+def test_cloud_info_between_processes(rclpy_context, processes):
+    import rclpy
+    from cloud_msgs.msg import CloudInfo
+
+    from lego_loam_py.ros import qos
+
+    publisher = processes.python('-m', 'tests.support.publisher', 'cloud_info', cwd=REPO)
+    wait_for_line(publisher, 'ready')
+    node = rclpy.create_node('cloud_info_listener', context=rclpy_context)
+    received = []
+    node.create_subscription(CloudInfo, '/segmented_cloud_info', received.append, qos.reliable(1))
+    assert spin_until(rclpy_context, node, lambda: received, timeout=20), 'no CloudInfo received'
+    msg = received[0]
+    expected = cloud_info_arrays()
+    assert msg.header.frame_id == 'velodyne'
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (1_600_000_000, 250_000_000)
+    assert np.array_equal(np.frombuffer(msg.start_ring_index, np.int32), expected['start_ring_index'])
+    assert np.array_equal(np.frombuffer(msg.end_ring_index, np.int32), expected['end_ring_index'])
+    assert np.float32(msg.start_orientation) == expected['start_orientation']
+    assert np.float32(msg.end_orientation) == expected['end_orientation']
+    assert np.float32(msg.orientation_diff) == expected['orientation_diff']
+    assert np.array_equal(np.array(msg.segmented_cloud_ground_flag, bool), expected['segmented_cloud_ground_flag'])
+    assert np.array_equal(np.frombuffer(msg.segmented_cloud_col_ind, np.uint32), expected['segmented_cloud_col_ind'])
+    assert np.array_equal(np.frombuffer(msg.segmented_cloud_range, np.float32), expected['segmented_cloud_range'])
+    node.destroy_node()
+
+
+def test_tf_static_reaches_a_late_subscriber(rclpy_context, processes):
+    import rclpy
+    from tf2_msgs.msg import TFMessage
+
+    from lego_loam_py.core import frames
+    from lego_loam_py.ros import qos
+
+    publisher = processes.python('-m', 'tests.support.publisher', 'tf_static', cwd=REPO)
+    wait_for_line(publisher, 'ready')
+    time.sleep(1.5)  # the transforms were sent long before this subscriber exists
+    node = rclpy.create_node('late_tf_listener', context=rclpy_context)
+    received = []
+    node.create_subscription(TFMessage, '/tf_static', received.append, qos.latched())
+    assert spin_until(rclpy_context, node, lambda: received, timeout=20), 'no /tf_static received'
+    transforms = {(t.header.frame_id, t.child_frame_id): t for t in received[-1].transforms}
+    assert set(transforms) == {('map', 'camera_init'), ('camera', 'base_link')}
+    for key, expected in [(('map', 'camera_init'), frames.MAP_T_CAMERA_INIT),
+                          (('camera', 'base_link'), frames.CAMERA_T_BASE_LINK)]:
+        r = transforms[key].transform.rotation
+        assert np.allclose(frames.quaternion_to_matrix([r.x, r.y, r.z, r.w]), expected[:3, :3])
+        assert transforms[key].header.stamp.nanosec == 42
+    node.destroy_node()
+
+
+def test_tf2_msgs_type_hash_is_the_official_one():
+    """The TFMessage built into the venv (or a real ROS install's) has Kilted's type hash."""
+    import json
+
+    from ament_index_python.packages import get_package_share_directory
+    from rosbags.typesys import Stores, get_typestore
+
+    expected = get_typestore(Stores.ROS2_KILTED).hash_rihs01('tf2_msgs/msg/TFMessage')
+    installed = Path(get_package_share_directory('tf2_msgs'), 'msg', 'TFMessage.json')
+    hashes = json.loads(installed.read_text())['type_hashes']
+    assert {h['type_name']: h['hash_string'] for h in hashes}['tf2_msgs/msg/TFMessage'] == expected
+
+
+def ros2(*args, **kwargs):
+    return subprocess.run([str(VENV_BIN / 'ros2'), *args], capture_output=True, text=True, timeout=60, **kwargs)
+
+
+def test_ros2_run_prints_usage_of_the_cli():
+    result = ros2('run', 'lego_loam_py', 'lego_loam_py', 'play', '--help')
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith('usage: lego_loam_py play') and '--rate' in result.stdout
+
+
+def test_ros2_run_unknown_executable_and_package_fail_clearly():
+    result = ros2('run', 'lego_loam_py', 'nosuch')
+    assert result.returncode == 1 and 'No executable found' in result.stderr
+    result = ros2('run', 'nosuch_package', 'x')
+    assert result.returncode == 1 and "Package 'nosuch_package' not found" in result.stderr
+    result = ros2('run', 'lego_loam_py')
+    assert result.returncode == 2 and 'required' in result.stderr
+
+
+def test_every_console_script_is_in_the_ros_layout():
+    from importlib.metadata import distribution
+
+    libdir = Path(sys.prefix, 'lib', 'lego_loam_py')
+    scripts = {ep.name for ep in distribution('lego_loam_py').entry_points if ep.group == 'console_scripts'}
+    assert scripts and scripts <= {p.name for p in libdir.iterdir()}
+    assert Path(sys.prefix, 'share', 'ament_index', 'resource_index', 'packages', 'lego_loam_py').exists()
+    from ament_index_python.packages import get_package_share_directory
+    share = Path(get_package_share_directory('lego_loam_py'))
+    assert (share / 'package.xml').is_file() and (share / 'config' / 'params.yaml').is_file()
+
+
+@pytest.mark.parametrize('command', [['--help'], ['play', '--help'], ['record', '--help']])
+def test_cli_help(command):
+    result = subprocess.run([str(VENV_BIN / 'lego_loam_py'), *command], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and result.stdout.startswith('usage: lego_loam_py')

@@ -1,0 +1,128 @@
+"""Frames and angles: axis swaps, the LOAM Euler convention, quaternions, poses, the static transforms."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from lego_loam_py.core import frames as F
+
+angles = st.floats(-np.pi, np.pi, allow_nan=False)
+half_pi = st.floats(-np.pi / 2 + 1e-3, np.pi / 2 - 1e-3, allow_nan=False)
+
+
+def tf_rpy_quaternion(roll, pitch, yaw):
+    """tf::createQuaternionMsgFromRollPitchYaw: fixed-axis roll about x, pitch about y, yaw about z."""
+    return Rotation.from_euler('xyz', [roll, pitch, yaw]).as_quat()
+
+
+def tf_get_rpy(q):
+    """tf::Matrix3x3(q).getRPY -> (roll, pitch, yaw)."""
+    return Rotation.from_quat(q).as_euler('xyz')
+
+
+def test_axis_swap_by_hand():
+    lidar = np.array([[1.0, 2.0, 3.0]])          # x fwd, y left, z up
+    camera = F.lidar_to_camera(lidar)
+    assert camera.tolist() == [[2.0, 3.0, 1.0]]  # x_c = y_l (left), y_c = z_l (up), z_c = x_l (forward)
+    assert F.camera_to_lidar(camera).tolist() == lidar.tolist()
+    assert np.allclose(F.LIDAR_TO_CAMERA @ lidar[0], camera[0])
+    # Ahead of the sensor is +z in camera axes; the deskew azimuth -atan2(x_c, z_c) of a point to the
+    # left (+y lidar) is -90 deg.
+    left = F.lidar_to_camera(np.array([0.0, 1.0, 0.0]))
+    assert np.isclose(-np.arctan2(left[0], left[2]), -np.pi / 2)
+
+
+def test_elementary_rotations_are_right_handed():
+    assert np.allclose(F.rot_z(np.pi / 2) @ [1, 0, 0], [0, 1, 0])
+    assert np.allclose(F.rot_x(np.pi / 2) @ [0, 1, 0], [0, 0, 1])
+    assert np.allclose(F.rot_y(np.pi / 2) @ [0, 0, 1], [1, 0, 0])
+
+
+@settings(max_examples=300)
+@given(rx=half_pi, ry=angles, rz=angles)
+def test_euler_round_trip(rx, ry, rz):
+    R = F.euler_to_matrix(rx, ry, rz)
+    assert np.allclose(R @ R.T, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0)
+    assert np.allclose(F.matrix_to_euler(R), (rx, ry, rz), atol=1e-9)
+
+
+@settings(max_examples=300)
+@given(rx=half_pi, ry=angles, rz=angles)
+def test_loam_euler_is_zyx_in_lidar_axes(rx, ry, rz):
+    """Ry(ry) Rx(rx) Rz(rz) in camera axes equals Rz(yaw=ry) Ry(pitch=rx) Rx(roll=rz) in lidar axes."""
+    camera = F.euler_to_matrix(rx, ry, rz)
+    lidar = F.CAMERA_TO_LIDAR @ camera @ F.LIDAR_TO_CAMERA
+    assert np.allclose(lidar, F.rot_z(ry) @ F.rot_y(rx) @ F.rot_x(rz))
+
+
+@settings(max_examples=300)
+@given(rx=half_pi, ry=angles, rz=angles)
+def test_published_quaternion_matches_the_originals_formula(rx, ry, rz):
+    """The original publishes (-q0.y, -q0.z, q0.x, q0.w) with q0 = RPY(rz, -rx, -ry)."""
+    q0 = tf_rpy_quaternion(rz, -rx, -ry)
+    original = np.array([-q0[1], -q0[2], q0[0], q0[3]])
+    ours = F.euler_to_quaternion(rx, ry, rz)
+    assert np.allclose(ours, original, atol=1e-9) or np.allclose(ours, -original, atol=1e-9)
+    # The original's reader: tf quaternion (q.z, -q.x, -q.y, q.w) -> getRPY -> rx=-pitch, ry=-yaw, rz=roll.
+    roll, pitch, yaw = tf_get_rpy([ours[2], -ours[0], -ours[1], ours[3]])
+    assert np.allclose(F.wrap_angle(np.array([-pitch, -yaw, roll]) - [rx, ry, rz]), 0, atol=1e-9)
+    assert np.allclose(F.quaternion_to_euler(ours), (rx, ry, rz), atol=1e-9)
+
+
+@settings(max_examples=200)
+@given(rx=half_pi, ry=angles, rz=angles, t=st.lists(st.floats(-10, 10), min_size=3, max_size=3))
+def test_pose6_round_trip_and_inverse(rx, ry, rz, t):
+    v = [rx, ry, rz, *t]
+    T = F.pose6_to_matrix(v)
+    assert np.allclose(F.matrix_to_pose6(T), v, atol=1e-9)
+    assert np.allclose(T @ F.invert_pose(T), np.eye(4), atol=1e-12)
+    p = np.array([[1.0, -2.0, 3.0]])
+    assert np.allclose(F.transform_points(T, p)[0], T[:3, :3] @ p[0] + T[:3, 3])
+
+
+def test_pose_composition_order():
+    """T_ab @ T_bc maps c-coordinates into a: a point 1 m ahead of c, with c 2 m ahead of b turned 90 deg."""
+    T_ab = F.make_pose(F.rot_z(np.pi / 2), [2.0, 0.0, 0.0])
+    T_bc = F.make_pose(np.eye(3), [1.0, 0.0, 0.0])
+    assert np.allclose(F.transform_points(T_ab @ T_bc, [[1.0, 0.0, 0.0]]), [[2.0, 2.0, 0.0]])
+
+
+def test_static_transforms_match_the_launch_file():
+    """run.launch: map->camera_init 0 0 0 1.570795 0 1.570795; camera->base_link 0 0 0 -1.570795 -1.570795 0
+    (static_transform_publisher args x y z yaw pitch roll)."""
+    def launch(yaw, pitch, roll):
+        return Rotation.from_euler('ZYX', [yaw, pitch, roll]).as_matrix()
+
+    assert np.allclose(F.MAP_T_CAMERA_INIT[:3, :3], launch(1.570795, 0, 1.570795), atol=1e-5)
+    assert np.allclose(F.CAMERA_T_BASE_LINK[:3, :3], launch(-1.570795, -1.570795, 0), atol=1e-5)
+    # map -> camera_init -> (identity) camera -> base_link is the identity at the start.
+    assert np.allclose(F.MAP_T_CAMERA_INIT @ F.CAMERA_T_BASE_LINK, np.eye(4))
+
+
+@settings(max_examples=200)
+@given(rx=half_pi, ry=angles, rz=angles, t=st.lists(st.floats(-50, 50), min_size=3, max_size=3))
+def test_camera_pose_to_lidar_agrees_with_the_tf_chain(rx, ry, rz, t):
+    """base_link in map = map->camera_init * camera_init->camera * camera->base_link."""
+    camera = F.make_pose(F.euler_to_matrix(rx, ry, rz), t)
+    chain = F.MAP_T_CAMERA_INIT @ camera @ F.CAMERA_T_BASE_LINK
+    lidar = F.camera_pose_to_lidar(camera)
+    assert np.allclose(lidar, chain)
+    assert np.allclose(F.lidar_pose_to_camera(lidar), camera)
+    # The translation (tx, ty, tz) in camera axes is (tz, tx, ty) in lidar axes.
+    assert np.allclose(lidar[:3, 3], [t[2], t[0], t[1]])
+
+
+def test_quaternion_helpers_round_trip():
+    for q in Rotation.random(50, random_state=1).as_quat():
+        R = F.quaternion_to_matrix(q)
+        back = F.matrix_to_quaternion(R)
+        assert back[3] >= 0 and (np.allclose(back, q) or np.allclose(back, -q))
+    with pytest.raises(ValueError):
+        F.quaternion_to_matrix([0.0, 0.0, 0.0, 0.0])
+
+
+def test_wrap_angle():
+    assert np.allclose(F.wrap_angle(np.array([3 * np.pi, -3 * np.pi / 2, 0.1])), [-np.pi, np.pi / 2, 0.1])
