@@ -1,19 +1,32 @@
 """The ``lego_loam_py`` command: bag tools, simulator, offline runs and evaluation.
 
-    lego_loam_py play BAG [--rate R] [--topics T ...]     replay a bag over DDS with /clock
-    lego_loam_py record [TOPIC ...|--all] [-o OUT]        record topics into a ROS 2 bag
-
-ROS arguments (remappings, parameters) go after ``--ros-args``, as for any ROS 2 executable.
+Each command lives in its own module with ``add_arguments(parser)`` and ``main(args) -> int``; the table
+below lists them. ROS arguments (remappings, parameters) go after ``--ros-args``, as for any ROS 2
+executable.
 """
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from typing import Sequence
 
 from lego_loam_py import __version__
 
-__all__ = ['main', 'build_parser']
+__all__ = ['main', 'build_parser', 'COMMANDS']
+
+# (command, module, one-line help, description)
+COMMANDS = [
+    ('play', 'lego_loam_py.bag.player', 'replay a ROS 1 or ROS 2 bag over DDS, publishing /clock',
+     'Replay a ROS 1 (.bag) or ROS 2 (.db3/.mcap) bag over DDS, publishing /clock. ROS 1 messages are converted '
+     'to their ROS 2 types.'),
+    ('record', 'lego_loam_py.bag.recorder', 'record topics into a ROS 2 bag (mcap by default)',
+     'Record topics into a ROS 2 bag, custom message types (CloudInfo) included. Ctrl-C finishes the bag '
+     'cleanly.'),
+    # simulate: (the simulator registers here)
+    # view: (the scan viewer registers here)
+    # convert: (the recording converter registers here)
+]
 
 
 def _split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
@@ -27,26 +40,17 @@ def _split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from lego_loam_py.bag import player, recorder
-
     parser = argparse.ArgumentParser(
         prog='lego_loam_py', description='LeGO-LOAM for ROS 2 in Python: tools around the four nodes.',
         epilog='ROS arguments go after --ros-args. Nodes: ros2 run lego_loam_py <imageProjection|'
                'featureAssociation|mapOptimization|transformFusion>.')
     parser.add_argument('--version', action='version', version=f'lego_loam_py {__version__}')
     commands = parser.add_subparsers(dest='command', metavar='COMMAND', required=True)
-
-    play = commands.add_parser('play', help='replay a ROS 1 or ROS 2 bag over DDS, publishing /clock',
-                               description='Replay a ROS 1 (.bag) or ROS 2 (.db3/.mcap) bag over DDS, publishing '
-                                           '/clock. ROS 1 messages are converted to their ROS 2 types.')
-    player.add_arguments(play)
-    play.set_defaults(handler=player.main)
-
-    record = commands.add_parser('record', help='record topics into a ROS 2 bag (mcap by default)',
-                                 description='Record topics into a ROS 2 bag, custom message types (CloudInfo) '
-                                             'included. Ctrl-C finishes the bag cleanly.')
-    recorder.add_arguments(record)
-    record.set_defaults(handler=recorder.main)
+    for name, module_name, summary, description in COMMANDS:
+        module = importlib.import_module(module_name)
+        sub = commands.add_parser(name, help=summary, description=description)
+        module.add_arguments(sub)
+        sub.set_defaults(handler=module.main)
     return parser
 
 

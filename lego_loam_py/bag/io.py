@@ -22,7 +22,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.interfaces import (Connection, Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
                                 QosTime)
 from rosbags.rosbag1 import Writer as Writer1
-from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
@@ -247,12 +247,13 @@ class BagReader:
 class BagWriter:
     """Writes a ROS 2 bag (``storage`` 'mcap' or 'sqlite3') or, with ``ros1=True``, a ROS 1 bag.
 
+    ``compress`` stores mcap chunks zstd-compressed (readable by rosbag2 and rosbags alike).
     Use as a context manager; the bag is complete once :meth:`close` ran. Message objects for
     :meth:`write_msg` come from :attr:`typestore` (``writer.types['sensor_msgs/msg/Imu']``).
     """
 
     def __init__(self, path: str | Path, storage: str = 'mcap', ros1: bool = False,
-                 extra_types: Iterable[str] = (CLOUD_INFO_MSG_TYPE,)):
+                 extra_types: Iterable[str] = (CLOUD_INFO_MSG_TYPE,), compress: bool = False):
         self.path = Path(path)
         self.ros1 = ros1
         if self.path.exists():
@@ -266,6 +267,9 @@ class BagWriter:
                 raise BagError(f"unknown storage '{storage}' (use mcap or sqlite3)")
             self.typestore = ros2_typestore(extra_types)
             self._writer = Writer2(self.path, version=8, storage_plugin=plugins[storage])
+            if compress:  # zstd chunks inside the mcap / sqlite3 file, as rosbag2's storage compression
+                self._writer.set_compression(CompressionMode.STORAGE if storage == 'mcap' else CompressionMode.FILE,
+                                             CompressionFormat.ZSTD)
         self._connections: dict[str, Connection] = {}
         self._writer.open()
 

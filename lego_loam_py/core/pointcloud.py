@@ -19,7 +19,7 @@ import numpy as np
 __all__ = [
     'CloudLayoutError', 'PointField', 'CloudBuffer', 'DATATYPE_TO_NUMPY', 'NUMPY_TO_DATATYPE',
     'dtype_from_fields', 'fields_from_dtype', 'cloud_to_array', 'array_to_cloud', 'xyz_array',
-    'VELODYNE_POINT_DTYPE', 'velodyne_points', 'has_field',
+    'VELODYNE_POINT_DTYPE', 'VELODYNE_PACKED_DTYPE', 'velodyne_points', 'has_field',
 ]
 
 # sensor_msgs/PointField datatype constants.
@@ -205,11 +205,21 @@ VELODYNE_POINT_DTYPE = np.dtype({
 })
 
 
+# The ROS 1 velodyne_pointcloud driver's packed PointcloudXYZIRT (the golden bags use it): x, y, z,
+# intensity float32 at 0/4/8/12, ring uint16 at 16, time float32 at 18, point_step 22.
+VELODYNE_PACKED_DTYPE = np.dtype({
+    'names': ['x', 'y', 'z', 'intensity', 'ring', 'time'],
+    'formats': ['<f4', '<f4', '<f4', '<f4', '<u2', '<f4'],
+    'offsets': [0, 4, 8, 12, 16, 18],
+    'itemsize': 22,
+})
+
+
 def velodyne_points(xyz: np.ndarray, intensity: np.ndarray | None = None, ring: np.ndarray | None = None,
-                    time: np.ndarray | None = None) -> np.ndarray:
+                    time: np.ndarray | None = None, dtype: np.dtype = VELODYNE_POINT_DTYPE) -> np.ndarray:
     """Structured array in the velodyne driver's layout from plain arrays (missing fields are 0)."""
     xyz = np.asarray(xyz)
-    out = np.zeros(len(xyz), dtype=VELODYNE_POINT_DTYPE)
+    out = np.zeros(len(xyz), dtype=dtype)
     out['x'], out['y'], out['z'] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     if intensity is not None:
         out['intensity'] = intensity
