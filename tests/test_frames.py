@@ -46,7 +46,7 @@ def test_elementary_rotations_are_right_handed():
 def test_euler_round_trip(rx, ry, rz):
     R = F.euler_to_matrix(rx, ry, rz)
     assert np.allclose(R @ R.T, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0)
-    assert np.allclose(F.matrix_to_euler(R), (rx, ry, rz), atol=1e-9)
+    assert np.allclose(F.wrap_angle(np.subtract(F.matrix_to_euler(R), (rx, ry, rz))), 0, atol=1e-9)
 
 
 @settings(max_examples=300)
@@ -69,15 +69,16 @@ def test_published_quaternion_matches_the_originals_formula(rx, ry, rz):
     # The original's reader: tf quaternion (q.z, -q.x, -q.y, q.w) -> getRPY -> rx=-pitch, ry=-yaw, rz=roll.
     roll, pitch, yaw = tf_get_rpy([ours[2], -ours[0], -ours[1], ours[3]])
     assert np.allclose(F.wrap_angle(np.array([-pitch, -yaw, roll]) - [rx, ry, rz]), 0, atol=1e-9)
-    assert np.allclose(F.quaternion_to_euler(ours), (rx, ry, rz), atol=1e-9)
+    assert np.allclose(F.wrap_angle(np.subtract(F.quaternion_to_euler(ours), (rx, ry, rz))), 0, atol=1e-9)
 
 
 @settings(max_examples=200)
 @given(rx=half_pi, ry=angles, rz=angles, t=st.lists(st.floats(-10, 10), min_size=3, max_size=3))
 def test_pose6_round_trip_and_inverse(rx, ry, rz, t):
-    v = [rx, ry, rz, *t]
+    v = np.array([rx, ry, rz, *t])
     T = F.pose6_to_matrix(v)
-    assert np.allclose(F.matrix_to_pose6(T), v, atol=1e-9)
+    back = F.matrix_to_pose6(T)
+    assert np.allclose(F.wrap_angle(back[:3] - v[:3]), 0, atol=1e-9) and np.allclose(back[3:], v[3:])
     assert np.allclose(T @ F.invert_pose(T), np.eye(4), atol=1e-12)
     p = np.array([[1.0, -2.0, 3.0]])
     assert np.allclose(F.transform_points(T, p)[0], T[:3, :3] @ p[0] + T[:3, 3])
