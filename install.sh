@@ -72,7 +72,7 @@ stamp_inputs() {
   [ "$MODE" = wheels ] || echo "ros=${ROS_DISTRO:-} prefix=${AMENT_PREFIX_PATH:-}"
   cd "$ROOT"
   sha256sum install.sh setup.py setup.cfg package.xml requirements/*.txt config/fastdds_loopback.xml \
-    $(find cloud_msgs vendor -type f | sort)
+    $(find cloud_msgs vendor lego_loam_py/core/native -type f | sort)
   find config launch resource -type f 2>/dev/null | sort   # data files are linked by name
 }
 STAMP_FILE="$VENV/.lego_loam_py_install_stamp"
@@ -94,11 +94,12 @@ say "installing into $VENV ($MODE mode); log: $LOG"
 # ------------------------------------------------------------------------------- system libraries
 # open3d's wheel links libGL, libX11, libusb and libgomp. Install them from Debian when missing.
 ensure_system_libraries() {
-  local missing=() lib pkg pair
+  local missing=() lib pkg pair known
+  known="$(ldconfig -p 2>/dev/null || true)"   # read once: `ldconfig -p | grep -q` fails under pipefail
   for pair in libGL.so.1:libgl1 libEGL.so.1:libegl1 libX11.so.6:libx11-6 libusb-1.0.so.0:libusb-1.0-0 \
               libgomp.so.1:libgomp1 libidn2.so.0:libidn2-0 libudev.so.1:libudev1; do
     lib="${pair%%:*}"; pkg="${pair##*:}"
-    if ! ldconfig -p 2>/dev/null | grep -qF "$lib"; then missing+=("$pkg"); fi
+    if ! grep -qF "$lib" <<<"$known"; then missing+=("$pkg"); fi
   done
   [ ${#missing[@]} -eq 0 ] && return 0
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
@@ -166,8 +167,13 @@ fi
 # ------------------------------------------------------------------------------ interface packages
 build_interface() {  # $1 = package source dir, $2 = name
   local src="$1" name="$2" build="$VENV/var/build/$2"
+  local stamp
+  stamp="$(cd "$src" && find . -type f | sort | xargs sha256sum | sha256sum | cut -d' ' -f1)-$MODE"
+  if [ "$FORCE" = 0 ] && [ -f "$build.stamp" ] && [ "$(cat "$build.stamp")" = "$stamp" ]; then
+    return 0  # built from these very sources already
+  fi
   say "building interface package $name"
-  rm -rf "$build"
+  rm -rf "$build" "$build.stamp"
   (
     export AMENT_PREFIX_PATH="$VENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
     local prefix_path="$VENV"
@@ -177,6 +183,7 @@ build_interface() {  # $1 = package source dir, $2 = name
     run cmake --build "$build" -j "$(nproc 2>/dev/null || echo 2)"
     run cmake --install "$build"
   )
+  echo "$stamp" > "$build.stamp"
 }
 # Importability is checked in a clean child so that a stale module of the venv does not count.
 importable() { "$VPY" -c "import $1" >/dev/null 2>&1; }

@@ -2,7 +2,7 @@
 import os
 from glob import glob
 
-from setuptools import find_packages, setup
+from setuptools import Extension, find_packages, setup
 
 PACKAGE = 'lego_loam_py'
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -21,8 +21,16 @@ DATA_FILES = [
     (f'share/{PACKAGE}/launch', _files('launch/*.launch.py')),
 ]
 
+# Optional C helper: libm's atan2f on arrays, for bit-exact range-image columns (lego_loam_py/core/libm.py
+# falls back to NumPy when it cannot be built).
+EXT_MODULES = [
+    Extension(f'{PACKAGE}.core._libm_compat', [f'{PACKAGE}/core/native/libm_compat.c'], libraries=['m'],
+              extra_compile_args=['-O2', '-fno-fast-math'], optional=True),
+]
+
 CONSOLE_SCRIPTS = [
     f'{PACKAGE} = {PACKAGE}.cli:main',
+    f'imageProjection = {PACKAGE}.ros.image_projection_node:main',
 ]
 
 if __name__ == '__main__':
@@ -35,6 +43,7 @@ if __name__ == '__main__':
         python_requires='>=3.10',
         packages=find_packages(include=[PACKAGE, f'{PACKAGE}.*']),
         data_files=DATA_FILES,
+        ext_modules=EXT_MODULES,
         # ROS dependencies (rclpy, messages) come from ROS itself and are declared in package.xml.
         install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'rosbags', 'tqdm'],
         zip_safe=True,

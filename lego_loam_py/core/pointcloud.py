@@ -19,7 +19,8 @@ import numpy as np
 __all__ = [
     'CloudLayoutError', 'PointField', 'CloudBuffer', 'DATATYPE_TO_NUMPY', 'NUMPY_TO_DATATYPE',
     'dtype_from_fields', 'fields_from_dtype', 'cloud_to_array', 'array_to_cloud', 'xyz_array',
-    'VELODYNE_POINT_DTYPE', 'VELODYNE_PACKED_DTYPE', 'velodyne_points', 'has_field',
+    'VELODYNE_POINT_DTYPE', 'VELODYNE_PACKED_DTYPE', 'velodyne_points', 'has_field', 'POINT_XYZI_DTYPE',
+    'xyzi_points', 'xyzi_array',
 ]
 
 # sensor_msgs/PointField datatype constants.
@@ -213,6 +214,34 @@ VELODYNE_PACKED_DTYPE = np.dtype({
     'offsets': [0, 4, 8, 12, 16, 18],
     'itemsize': 22,
 })
+
+
+# PCL's PointXYZI as pcl::toROSMsg publishes it (what every LeGO-LOAM topic carries): x, y, z float32 at
+# 0/4/8, intensity float32 at 16, point_step 32.
+POINT_XYZI_DTYPE = np.dtype({
+    'names': ['x', 'y', 'z', 'intensity'],
+    'formats': ['<f4', '<f4', '<f4', '<f4'],
+    'offsets': [0, 4, 8, 16],
+    'itemsize': 32,
+})
+
+
+def xyzi_points(values: np.ndarray) -> np.ndarray:
+    """(N, 4) x, y, z, intensity -> structured array in PCL's PointXYZI layout."""
+    values = np.asarray(values, dtype=np.float32).reshape(-1, 4)
+    out = np.zeros(len(values), dtype=POINT_XYZI_DTYPE)
+    out['x'], out['y'], out['z'], out['intensity'] = values.T
+    return out
+
+
+def xyzi_array(points: np.ndarray) -> np.ndarray:
+    """Structured cloud with x, y, z and intensity (any types) -> float32 (N, 4)."""
+    out = np.empty((points.size, 4), dtype=np.float32)
+    out[:, :3] = xyz_array(points, np.float32)
+    if not has_field(points, 'intensity'):
+        raise CloudLayoutError(f"the cloud has no 'intensity' field (fields: {points.dtype.names})")
+    out[:, 3] = points.reshape(-1)['intensity']
+    return out
 
 
 def velodyne_points(xyz: np.ndarray, intensity: np.ndarray | None = None, ring: np.ndarray | None = None,

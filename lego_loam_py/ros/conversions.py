@@ -17,12 +17,14 @@ from sensor_msgs.msg import PointField as PointFieldMsg
 from std_msgs.msg import Header
 
 from lego_loam_py.core.frames import matrix_to_quaternion, quaternion_to_matrix
-from lego_loam_py.core.pointcloud import CloudBuffer, PointField, array_to_cloud, cloud_to_array
+from lego_loam_py.core.image_projection import CloudInfo as CloudInfoData
+from lego_loam_py.core.pointcloud import (CloudBuffer, PointField, array_to_cloud, cloud_to_array, xyzi_array,
+                                          xyzi_points)
 
 __all__ = [
     'stamp_to_ns', 'ns_to_stamp', 'make_header', 'cloud_msg_to_buffer', 'cloud_msg_to_array',
     'array_to_cloud_msg', 'pose_to_odometry', 'odometry_to_pose', 'pose_to_transform',
-    'numpy_to_array',
+    'numpy_to_array', 'xyzi_to_cloud_msg', 'cloud_msg_to_xyzi', 'cloud_info_to_msg', 'cloud_info_from_msg',
 ]
 
 
@@ -81,6 +83,48 @@ def array_to_cloud_msg(points: np.ndarray, header: Header, width: int | None = N
     msg.data = data
     msg.is_dense = buf.is_dense
     return msg
+
+
+def xyzi_to_cloud_msg(values: np.ndarray, header: Header, is_dense: bool = True) -> PointCloud2:
+    """(N, 4) float32 x, y, z, intensity -> PointCloud2 in PCL's PointXYZI layout (as the original publishes)."""
+    return array_to_cloud_msg(xyzi_points(values), header, is_dense=is_dense)
+
+
+def cloud_msg_to_xyzi(msg: PointCloud2) -> np.ndarray:
+    """PointCloud2 with x, y, z, intensity (any layout) -> float32 (N, 4)."""
+    return xyzi_array(cloud_msg_to_array(msg))
+
+
+def cloud_info_to_msg(info: CloudInfoData, header: Header):
+    """cloud_msgs/CloudInfo from the core's CloudInfo (arrays as long as the segmented cloud)."""
+    from cloud_msgs.msg import CloudInfo
+
+    msg = CloudInfo(check_fields=True)  # with checks on, array.array values are stored without a copy
+    msg.header = header
+    msg.start_ring_index = numpy_to_array(info.start_ring_index, 'i')
+    msg.end_ring_index = numpy_to_array(info.end_ring_index, 'i')
+    msg.start_orientation = float(info.start_orientation)
+    msg.end_orientation = float(info.end_orientation)
+    msg.orientation_diff = float(info.orientation_diff)
+    msg.segmented_cloud_col_ind = numpy_to_array(info.segmented_cloud_col_ind, 'I')
+    msg.segmented_cloud_range = numpy_to_array(info.segmented_cloud_range, 'f')
+    # bool[] is a list; checking 20k elements costs milliseconds and they are bools by construction.
+    msg._check_fields = False
+    msg.segmented_cloud_ground_flag = np.asarray(info.segmented_cloud_ground_flag, dtype=bool).tolist()
+    msg._check_fields = True
+    return msg
+
+
+def cloud_info_from_msg(msg) -> CloudInfoData:
+    """The core's CloudInfo from a cloud_msgs/CloudInfo message (copies of the arrays)."""
+    return CloudInfoData(
+        start_ring_index=np.array(msg.start_ring_index, dtype=np.int32),
+        end_ring_index=np.array(msg.end_ring_index, dtype=np.int32),
+        start_orientation=np.float32(msg.start_orientation), end_orientation=np.float32(msg.end_orientation),
+        orientation_diff=np.float32(msg.orientation_diff),
+        segmented_cloud_ground_flag=np.array(msg.segmented_cloud_ground_flag, dtype=bool),
+        segmented_cloud_col_ind=np.array(msg.segmented_cloud_col_ind, dtype=np.uint32),
+        segmented_cloud_range=np.array(msg.segmented_cloud_range, dtype=np.float32))
 
 
 def pose_to_odometry(pose: np.ndarray, header: Header, child_frame_id: str,

@@ -1,12 +1,19 @@
-"""Start-up and shutdown shared by every executable: rclpy init, clear parameter errors, clean exit."""
+"""Start-up and shutdown shared by every executable: rclpy init, clear parameter errors, clean exit.
+
+SIGINT and SIGTERM stop the executor while the ROS context is still valid, so a node's ``on_shutdown``
+hook can still log, publish and save (mapOptimization writes its map there) before rclpy shuts down.
+"""
 from __future__ import annotations
 
+import signal
 import sys
+import threading
 from typing import Callable, Sequence
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 
 from lego_loam_py.core.params import ParameterError
 
@@ -14,11 +21,13 @@ __all__ = ['run_node']
 
 
 def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, threads: int = 1) -> int:
-    """Create the node, spin until Ctrl-C / SIGTERM / shutdown, then run its ``on_shutdown`` hook.
+    """Create the node, spin until Ctrl-C / SIGTERM, run its ``on_shutdown`` hook, shut down.
 
     Returns the process exit code: 0 after a normal shutdown, 2 for invalid parameters.
     """
-    rclpy.init(args=list(sys.argv if args is None else args))
+    rclpy.init(args=list(sys.argv if args is None else args), signal_handler_options=SignalHandlerOptions.NO)
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     node = None
     try:
         try:
@@ -29,7 +38,8 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, thr
         executor = MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
         executor.add_node(node)
         try:
-            executor.spin()
+            while not stop.is_set() and rclpy.ok():
+                executor.spin_once(timeout_sec=0.1)
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         finally:
@@ -38,7 +48,11 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, thr
     finally:
         if node is not None:
             hook = getattr(node, 'on_shutdown', None)
-            if hook is not None:
-                hook()
-            node.destroy_node()
+            try:
+                if hook is not None:
+                    hook()
+            finally:
+                node.destroy_node()
         rclpy.try_shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

@@ -1,0 +1,117 @@
+"""The ``imageProjection`` node: /velodyne_points -> segmented cloud, CloudInfo and outliers.
+
+Subscribes the lidar topic with best-effort QoS (accepts reliable and best-effort drivers) and depth 1, like
+the original's queue of 1: when processing falls behind, the latest scan wins. Publishes, stamped with the
+input stamp, in frame ``base_link`` (the lidar frame; CloudInfo keeps the input header):
+
+* always: /segmented_cloud, /segmented_cloud_info, /outlier_cloud
+* while subscribed: /full_cloud_projected, /full_cloud_info, /ground_cloud, /segmented_cloud_pure
+
+Bad clouds (invalid layout, no x/y/z, nothing valid, wrong sensor) are dropped with a throttled warning.
+"""
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+from cloud_msgs.msg import CloudInfo
+from sensor_msgs.msg import PointCloud2
+
+from lego_loam_py.core.frames import BASE_LINK_FRAME
+from lego_loam_py.core.image_projection import ImageProjection, InputError, prepare_input
+from lego_loam_py.core.pointcloud import CloudLayoutError
+from lego_loam_py.ros import qos
+from lego_loam_py.ros.conversions import cloud_info_to_msg, cloud_msg_to_array, make_header, xyzi_to_cloud_msg
+from lego_loam_py.ros.node_base import LegoLoamNode
+from lego_loam_py.ros.runtime import run_node
+
+__all__ = ['ImageProjectionNode', 'main']
+
+
+class ImageProjectionNode(LegoLoamNode):
+    def __init__(self, **kwargs):
+        super().__init__('imageProjection', **kwargs)
+        self.core = ImageProjection(self.params)
+        topic = self.params.sensor.point_cloud_topic
+        self.create_subscription(PointCloud2, topic, self.on_cloud, qos.sensor_input(1))
+        out = qos.reliable(1)
+        self.pub_segmented = self.create_publisher(PointCloud2, '/segmented_cloud', out)
+        self.pub_info = self.create_publisher(CloudInfo, '/segmented_cloud_info', out)
+        self.pub_outlier = self.create_publisher(PointCloud2, '/outlier_cloud', out)
+        self.pub_full = self.create_publisher(PointCloud2, '/full_cloud_projected', out)
+        self.pub_full_info = self.create_publisher(PointCloud2, '/full_cloud_info', out)
+        self.pub_ground = self.create_publisher(PointCloud2, '/ground_cloud', out)
+        self.pub_pure = self.create_publisher(PointCloud2, '/segmented_cloud_pure', out)
+        s = self.params.sensor
+        rows_from = f"the '{s.ring_field}' field" if s.use_cloud_ring else 'the elevation angle'
+        self.get_logger().info(f'imageProjection: {topic} -> /segmented_cloud; {s.preset} range image '
+                               f'{s.n_scan}x{s.horizon_scan}, rows from {rows_from}')
+
+    def on_cloud(self, msg: PointCloud2) -> None:
+        start = time.perf_counter()
+        self.count('clouds_in')
+        try:
+            points = cloud_msg_to_array(msg)
+            data = prepare_input(points, self.params)
+            if data.xyz.shape[0] == 0:
+                raise InputError('the cloud has no valid point')
+        except (CloudLayoutError, InputError) as exc:
+            self.count('clouds_dropped')
+            self.warn('bad_cloud', f'dropping cloud stamped {msg.header.stamp.sec}.{msg.header.stamp.nanosec:09d} '
+                                   f'from {msg.header.frame_id!r}: {exc}')
+            return
+        except Exception:  # never let one message take the node down
+            self.count('clouds_dropped')
+            self.error('cloud_exception', 'unexpected error while reading a cloud; dropped')
+            return
+        self._check_sensor(points, data)
+        try:
+            result = self.core.process(data)
+        except InputError as exc:
+            self.count('clouds_dropped')
+            self.warn('bad_cloud', f'dropping cloud: {exc}')
+            return
+        except Exception:
+            self.count('clouds_dropped')
+            self.error('process_exception', 'unexpected error in imageProjection; scan dropped')
+            return
+        header = make_header(msg.header.stamp, BASE_LINK_FRAME)
+        self.pub_segmented.publish(xyzi_to_cloud_msg(result.segmented_cloud, header))
+        self.pub_info.publish(cloud_info_to_msg(result.cloud_info, msg.header))
+        self.pub_outlier.publish(xyzi_to_cloud_msg(result.outlier_cloud, header))
+        if self.pub_full.get_subscription_count():
+            self.pub_full.publish(xyzi_to_cloud_msg(result.full_cloud, header, is_dense=False))
+        if self.pub_full_info.get_subscription_count():
+            self.pub_full_info.publish(xyzi_to_cloud_msg(result.full_info_cloud, header, is_dense=False))
+        if self.pub_ground.get_subscription_count():
+            self.pub_ground.publish(xyzi_to_cloud_msg(result.ground_cloud, header))
+        if self.pub_pure.get_subscription_count():
+            self.pub_pure.publish(xyzi_to_cloud_msg(result.segmented_cloud_pure, header))
+        self.count('clouds_out')
+        self.record_time('scan', time.perf_counter() - start)
+
+    def _check_sensor(self, points: np.ndarray, data) -> None:
+        """Throttled hints when the cloud does not look like the configured sensor."""
+        s = self.params.sensor
+        names = points.dtype.names or ()
+        if s.use_cloud_ring and s.ring_field not in names:
+            self.warn('no_ring', f"the cloud has no '{s.ring_field}' field: rows come from the elevation angle "
+                                 f'(set sensor.use_cloud_ring: false to silence this)')
+        if data.ring is not None and data.ring.size:
+            highest = int(data.ring.max())
+            if highest >= s.n_scan:
+                share = np.count_nonzero(data.ring >= s.n_scan) / data.ring.size
+                self.warn('ring_range', f'{share:.0%} of the points have {s.ring_field} >= {s.n_scan} (up to '
+                                        f'{highest}) and are dropped: is sensor.preset ({s.preset}) right?')
+        if data.dropped_non_finite:
+            self.warn('non_finite', f'{data.dropped_non_finite} points with NaN/inf coordinates dropped',
+                      period=60.0)
+
+
+def main(args=None) -> int:
+    return run_node(ImageProjectionNode, args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
