@@ -25,7 +25,9 @@ COMMANDS = [
      'cleanly.'),
     # simulate: (the simulator registers here)
     # view: (the scan viewer registers here)
-    # convert: (the recording converter registers here)
+    ('convert', 'lego_loam_py.bag.convert', 'convert Velodyne/Ouster pcaps or raw-packet bags into PointCloud2 bags',
+     'Convert a real recording (Velodyne VLP-16 pcap, single or dual return; Ouster pcap + metadata JSON; ROS 1/2 bag '
+     'of velodyne_msgs/VelodyneScan raw packets) into a bag of PointCloud2 sweeps with ring and per-point time.'),
 ]
 
 
