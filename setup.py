@@ -31,6 +31,7 @@ EXT_MODULES = [
 CONSOLE_SCRIPTS = [
     f'{PACKAGE} = {PACKAGE}.cli:main',
     f'imageProjection = {PACKAGE}.ros.image_projection_node:main',
+    f'featureAssociation = {PACKAGE}.ros.feature_association_node:main',
 ]
 
 if __name__ == '__main__':

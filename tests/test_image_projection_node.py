@@ -74,9 +74,15 @@ def test_golden_bag_over_dds_gives_the_originals_outputs(shared_data, rclpy_cont
                               golden[f's{k}_segmented_cloud_col_ind'][:len(segmented)])
         assert np.array_equal(np.frombuffer(info.start_ring_index, np.int32), golden[f's{k}_start_ring_index'])
         assert np.float32(info.orientation_diff) == golden[f's{k}_orientation_diff']
-    # The PointCloud2 layout is PCL's PointXYZI, as the original publishes.
+    # The PointCloud2 layout is PCL's PointXYZI, as the original publishes; the input's per-point time rides
+    # in its padding for featureAssociation's use_point_time.
     fields = [(f.name, f.offset) for f in got['/segmented_cloud'][0].fields]
-    assert fields == [('x', 0), ('y', 4), ('z', 8), ('intensity', 16)]
+    assert fields == [('x', 0), ('y', 4), ('z', 8), ('intensity', 16), ('time', 20)]
+    assert [(f.name, f.offset) for f in got['/outlier_cloud'][0].fields] == [('x', 0), ('y', 4), ('z', 8),
+                                                                           ('intensity', 16)]
+    from lego_loam_py.ros.conversions import cloud_msg_to_array
+    times = cloud_msg_to_array(got['/segmented_cloud'][0])['time']
+    assert 0 <= times.min() and times.max() <= 0.051  # the 20 Hz recording's sweeps last 50 ms
     node.destroy_node()
 
 

@@ -27,7 +27,7 @@ from scipy.spatial.transform import Rotation
 __all__ = [
     'MAP_FRAME', 'CAMERA_INIT_FRAME', 'CAMERA_FRAME', 'BASE_LINK_FRAME', 'LASER_ODOM_FRAME',
     'AFT_MAPPED_FRAME', 'LIDAR_TO_CAMERA', 'CAMERA_TO_LIDAR', 'lidar_to_camera', 'camera_to_lidar',
-    'rot_x', 'rot_y', 'rot_z', 'euler_to_matrix', 'matrix_to_euler', 'quaternion_to_matrix',
+    'rot_x', 'rot_y', 'rot_z', 'euler_to_matrix', 'euler_to_matrices', 'matrix_to_euler', 'quaternion_to_matrix',
     'matrix_to_quaternion', 'euler_to_quaternion', 'quaternion_to_euler', 'make_pose', 'pose6_to_matrix',
     'matrix_to_pose6', 'invert_pose', 'camera_pose_to_lidar', 'lidar_pose_to_camera',
     'MAP_T_CAMERA_INIT', 'CAMERA_T_BASE_LINK', 'transform_points', 'wrap_angle',
@@ -80,6 +80,24 @@ def euler_to_matrix(rx: float, ry: float, rz: float) -> np.ndarray:
     In lidar axes the same rotation is the usual ZYX ``Rz(yaw=ry) Ry(pitch=rx) Rx(roll=rz)``.
     """
     return rot_y(ry) @ rot_x(rx) @ rot_z(rz)
+
+
+def euler_to_matrices(rx: np.ndarray, ry: np.ndarray, rz: np.ndarray) -> np.ndarray:
+    """Vectorised :func:`euler_to_matrix`: (n,) angle arrays -> (n, 3, 3) rotations ``Ry Rx Rz``."""
+    rx, ry, rz = (np.asarray(a, dtype=float).reshape(-1) for a in (rx, ry, rz))
+    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
+    out = np.empty((len(rx), 3, 3))
+    # Ry(ry) @ Rx(rx) @ Rz(rz), expanded.
+    out[:, 0, 0] = cy * cz + sy * sx * sz
+    out[:, 0, 1] = -cy * sz + sy * sx * cz
+    out[:, 0, 2] = sy * cx
+    out[:, 1, 0] = cx * sz
+    out[:, 1, 1] = cx * cz
+    out[:, 1, 2] = -sx
+    out[:, 2, 0] = -sy * cz + cy * sx * sz
+    out[:, 2, 1] = sy * sz + cy * sx * cz
+    out[:, 2, 2] = cy * cx
+    return out
 
 
 def matrix_to_euler(rotation: np.ndarray) -> tuple[float, float, float]:

@@ -57,6 +57,7 @@ class ProjectionInput:
     xyz: np.ndarray               # float32 (n, 3) [m], all finite
     ring: np.ndarray | None       # int64 (n,) or None (rows from the elevation angle)
     dropped_non_finite: int = 0   # points removed because x, y or z was NaN/inf
+    time: np.ndarray | None = None  # float32 (n,) [s since the sweep start] when the cloud has it
 
 
 @dataclass
@@ -74,6 +75,7 @@ class SegmentationResult:
     ground_mask: np.ndarray           # bool (N_SCAN, H)
     label_image: np.ndarray           # int32 (N_SCAN, H): -1 ground/empty, 999999 outlier, >= 1 segment
     stats: dict = field(default_factory=dict)
+    segmented_time: np.ndarray | None = None  # float32 (M,) per-point time of the segmented cloud [s]
 
 
 def prepare_input(points: np.ndarray, params: Params) -> ProjectionInput:
@@ -99,11 +101,19 @@ def prepare_input(points: np.ndarray, params: Params) -> ProjectionInput:
             finite &= np.isfinite(ring)
             ring = np.where(finite, ring, 0)
         ring = ring.astype(np.int64)
+    time = None
+    time_field = params.sensor.time_field
+    if time_field and time_field in names and flat[time_field].ndim == 1:
+        time = flat[time_field].astype(_F32)
+        if time_field == 't' and np.issubdtype(flat[time_field].dtype, np.integer):
+            time = (flat[time_field] * 1e-9).astype(_F32)  # Ouster: ns since the scan start
+        finite &= np.isfinite(time)
     dropped = int(flat.size - np.count_nonzero(finite))
     if dropped:
         xyz = xyz[finite]
         ring = ring[finite] if ring is not None else None
-    return ProjectionInput(xyz=xyz, ring=ring, dropped_non_finite=dropped)
+        time = time[finite] if time is not None else None
+    return ProjectionInput(xyz=xyz, ring=ring, dropped_non_finite=dropped, time=time)
 
 
 class ImageProjection:
@@ -193,6 +203,10 @@ class ImageProjection:
         full_info[pixel, 3] = rng[winner]
         filled = np.zeros(n * h, dtype=bool)
         filled[pixel] = True
+        self._time_image = None
+        if data.time is not None:
+            self._time_image = np.zeros(n * h, dtype=_F32)
+            self._time_image[pixel] = data.time[winner]
 
         ground = self.ground(full, filled)
         labels = self.segment(range_image, filled, ground)
@@ -316,7 +330,9 @@ class ImageProjection:
             non_finite=data.dropped_non_finite, projected=int(np.count_nonzero(filled)),
             ground=int(np.count_nonzero(ground)), segments=int(labels[pure_index].max(initial=0)),
             segmented=len(segmented_index), outliers=len(outlier_index))
+        segmented_time = self._time_image[segmented_index] if self._time_image is not None else None
         return SegmentationResult(
+            segmented_time=segmented_time,
             segmented_cloud=full[segmented_index], cloud_info=info, outlier_cloud=full[outlier_index],
             ground_cloud=full[ground_index], segmented_cloud_pure=pure, full_cloud=full,
             full_info_cloud=full_info, range_image=range_image.reshape(n, h),

@@ -114,7 +114,10 @@ class FeatureAssociationParams:
     system_delay: int = 0                 # scans ignored at start-up (declared, unused by the original)
     imu_que_length: int = 200             # IMU ring buffer length
     gravity: float = 9.81                 # [m/s^2]
-    use_point_time: bool = False          # relative point time from the time field instead of azimuth
+    # Relative time of each point in the sweep (for deskewing): 'azimuth' (from the point's azimuth, modulo
+    # the sweep), 'point_time' (the cloud's time field; azimuth when absent) or 'original' (the original's
+    # unwrapping, which times the first quarter of the sweep of most rings as the sweep's end; bit-exact).
+    relative_time_source: str = 'azimuth'
     sync_tolerance: float = 0.05          # |stamp difference| among the three inputs [s]
     skip_frame_num: int = 1               # publish to mapping every (skip_frame_num + 1)-th scan
     smoothness_half_window: int = 5       # +-5 neighbours in the curvature
@@ -348,6 +351,8 @@ def _validate(p: Params) -> None:
     need(ip.outlier_column_stride > 0, 'image_projection.outlier_column_stride', 'must be positive')
     need(ip.ground_column_stride > 0, 'image_projection.ground_column_stride', 'must be positive')
     fa = p.feature_association
+    need(fa.relative_time_source in ('azimuth', 'point_time', 'original'), 'feature_association.relative_time_source',
+         "must be 'azimuth', 'point_time' or 'original'")
     need(fa.sections_total > 0, 'feature_association.sections_total', 'must be positive')
     need(fa.skip_frame_num >= 0, 'feature_association.skip_frame_num', 'must not be negative')
     need(fa.less_flat_leaf_size > 0, 'feature_association.less_flat_leaf_size', 'must be positive')

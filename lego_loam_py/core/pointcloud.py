@@ -20,7 +20,7 @@ __all__ = [
     'CloudLayoutError', 'PointField', 'CloudBuffer', 'DATATYPE_TO_NUMPY', 'NUMPY_TO_DATATYPE',
     'dtype_from_fields', 'fields_from_dtype', 'cloud_to_array', 'array_to_cloud', 'xyz_array',
     'VELODYNE_POINT_DTYPE', 'VELODYNE_PACKED_DTYPE', 'velodyne_points', 'has_field', 'POINT_XYZI_DTYPE',
-    'xyzi_points', 'xyzi_array',
+    'POINT_XYZIT_DTYPE', 'xyzi_points', 'xyzi_array',
 ]
 
 # sensor_msgs/PointField datatype constants.
@@ -226,11 +226,23 @@ POINT_XYZI_DTYPE = np.dtype({
 })
 
 
-def xyzi_points(values: np.ndarray) -> np.ndarray:
-    """(N, 4) x, y, z, intensity -> structured array in PCL's PointXYZI layout."""
+# The same with a per-point time [s since the sweep start] in PointXYZI's padding (offset 20): readers that
+# look fields up by name (PCL, rviz, the original's nodes) see a plain PointXYZI.
+POINT_XYZIT_DTYPE = np.dtype({
+    'names': ['x', 'y', 'z', 'intensity', 'time'],
+    'formats': ['<f4', '<f4', '<f4', '<f4', '<f4'],
+    'offsets': [0, 4, 8, 16, 20],
+    'itemsize': 32,
+})
+
+
+def xyzi_points(values: np.ndarray, time: np.ndarray | None = None) -> np.ndarray:
+    """(N, 4) x, y, z, intensity (and optional (N,) time) -> PCL PointXYZI layout (+ time at offset 20)."""
     values = np.asarray(values, dtype=np.float32).reshape(-1, 4)
-    out = np.zeros(len(values), dtype=POINT_XYZI_DTYPE)
+    out = np.zeros(len(values), dtype=POINT_XYZI_DTYPE if time is None else POINT_XYZIT_DTYPE)
     out['x'], out['y'], out['z'], out['intensity'] = values.T
+    if time is not None:
+        out['time'] = time
     return out
 
 

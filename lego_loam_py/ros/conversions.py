@@ -85,9 +85,11 @@ def array_to_cloud_msg(points: np.ndarray, header: Header, width: int | None = N
     return msg
 
 
-def xyzi_to_cloud_msg(values: np.ndarray, header: Header, is_dense: bool = True) -> PointCloud2:
-    """(N, 4) float32 x, y, z, intensity -> PointCloud2 in PCL's PointXYZI layout (as the original publishes)."""
-    return array_to_cloud_msg(xyzi_points(values), header, is_dense=is_dense)
+def xyzi_to_cloud_msg(values: np.ndarray, header: Header, is_dense: bool = True,
+                      time: np.ndarray | None = None) -> PointCloud2:
+    """(N, 4) float32 x, y, z, intensity -> PointCloud2 in PCL's PointXYZI layout (as the original publishes),
+    with a ``time`` field in the layout's padding when ``time`` is given."""
+    return array_to_cloud_msg(xyzi_points(values, time), header, is_dense=is_dense)
 
 
 def cloud_msg_to_xyzi(msg: PointCloud2) -> np.ndarray:

@@ -77,7 +77,7 @@ class ImageProjectionNode(LegoLoamNode):
             self.error('process_exception', 'unexpected error in imageProjection; scan dropped')
             return
         header = make_header(msg.header.stamp, BASE_LINK_FRAME)
-        self.pub_segmented.publish(xyzi_to_cloud_msg(result.segmented_cloud, header))
+        self.pub_segmented.publish(xyzi_to_cloud_msg(result.segmented_cloud, header, time=result.segmented_time))
         self.pub_info.publish(cloud_info_to_msg(result.cloud_info, msg.header))
         self.pub_outlier.publish(xyzi_to_cloud_msg(result.outlier_cloud, header))
         if self.pub_full.get_subscription_count():

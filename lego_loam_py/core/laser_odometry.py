@@ -1,0 +1,492 @@
+"""Scan-to-scan odometry of featureAssociation (reference §5.3, §6.2 steps 5-10, quirks §8.1, §8.10, §8.11).
+
+Conventions (LOAM camera axes: x left, y up, z forward). The motion over one sweep is the six-vector
+``transform_cur = (rx, ry, rz, tx, ty, tz)`` with ``R(θ) = Rz(rz) Rx(rx) Ry(ry)``: a point measured at
+relative time ``s`` of the sweep maps to the sweep-start frame as ``p_start = R(sθ)^T (p - s t)``
+(linear interpolation of the motion = deskewing without IMU). The previous sweep's features are expressed
+in its end frame, which is the current sweep's start frame, so registering the current features against
+them estimates ``θ``. The accumulated pose ``transform_sum`` uses the world convention
+``R = Ry(ry) Rx(rx) Rz(rz)`` (:func:`lego_loam_py.core.frames.euler_to_matrix`); each sweep composes
+``W_{k+1} = W_k · T(θ)^-1``.
+
+Registration is the original's two-step Gauss-Newton: planes from flat (ground) points fix
+``(rx, rz, ty)``, then lines from sharp points fix ``(ry, tx, tz)``. Each step moves 5 % of the full
+Gauss-Newton step, correspondences are re-associated every 5 iterations and weighted from iteration 5 on,
+directions whose eigenvalue is below the threshold on the first iteration are frozen, and iterations stop
+when the update is below 0.1 deg and 0.1 cm. ``transform_cur`` is not reset between sweeps, which is the
+constant-velocity prior. Jacobians are the analytic derivatives of ``R(θ)^T (p - t)`` with respect to the
+active parameters at the full ``θ`` (as the original, which does not scale them by ``s``).
+
+Correspondence search follows the original: nearest neighbour in the last cloud (KD-tree), then the
+nearest point on the same ring and on another ring within ±2.5 rings, scanning the ring-ordered last cloud
+outwards from the nearest neighbour; the forward scan is bounded by the *current* feature count (quirk 8.1,
+kept by default because fixing it changes results; ``fix_scan_bound`` removes it).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from lego_loam_py.core.frames import euler_to_matrix, matrix_to_euler, rot_x, rot_y, rot_z
+from lego_loam_py.core.params import Params
+
+__all__ = ['sweep_rotation', 'sweep_angles', 'transform_to_start', 'transform_to_end', 'plane_jacobian_rows',
+           'LaserOdometry', 'OdometryStats', 'accumulate', 'CornerCorrespondences', 'SurfCorrespondences',
+           'find_surf_correspondences', 'find_corner_correspondences', 'ring_of']
+
+_F32 = np.float32
+_GX = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # d/da Rx(a) = Rx(a) @ _GX
+_GY = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+_GZ = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+
+
+def sweep_rotation(rx: float, ry: float, rz: float) -> np.ndarray:
+    """``R(θ) = Rz(rz) Rx(rx) Ry(ry)`` of a sweep motion."""
+    return rot_z(rz) @ rot_x(rx) @ rot_y(ry)
+
+
+def sweep_angles(rotation: np.ndarray) -> tuple[float, float, float]:
+    """Inverse of :func:`sweep_rotation`: (rx, ry, rz) with rx in [-pi/2, pi/2]."""
+    rx = math.asin(max(-1.0, min(1.0, float(rotation[2, 1]))))
+    ry = math.atan2(-rotation[2, 0], rotation[2, 2])
+    rz = math.atan2(-rotation[0, 1], rotation[1, 1])
+    return rx, ry, rz
+
+
+def ring_of(intensity: np.ndarray) -> np.ndarray:
+    """C ``int()`` of the intensity (truncation toward zero): the ring stored in the integer part."""
+    return np.trunc(intensity).astype(np.int64)
+
+
+def relative_time_of(intensity: np.ndarray) -> np.ndarray:
+    """``s = 10 * (intensity - int(intensity))`` in float32, the fraction of the sweep a point was measured at."""
+    intensity = np.asarray(intensity, dtype=_F32)
+    return _F32(10) * (intensity - np.trunc(intensity).astype(_F32))
+
+
+def transform_to_start(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
+    """Map (n, 4) points (camera axes, intensity = ring + 0.1 s) to the sweep start: ``R(sθ)^T (p - s t)``."""
+    s = relative_time_of(points[:, 3]).astype(np.float64)
+    theta = s[:, None] * np.asarray(transform, dtype=np.float64)[None, :]
+    p = points[:, :3].astype(np.float64) - theta[:, 3:]
+    cz, sz = np.cos(theta[:, 2]), np.sin(theta[:, 2])
+    cx, sx = np.cos(theta[:, 0]), np.sin(theta[:, 0])
+    cy, sy = np.cos(theta[:, 1]), np.sin(theta[:, 1])
+    # R^T = Ry(-ry) Rx(-rx) Rz(-rz), applied right to left, per point.
+    x1 = cz * p[:, 0] + sz * p[:, 1]
+    y1 = -sz * p[:, 0] + cz * p[:, 1]
+    z1 = p[:, 2]
+    y2 = cx * y1 + sx * z1
+    z2 = -sx * y1 + cx * z1
+    out = np.empty((len(points), 4), dtype=_F32)
+    out[:, 0] = cy * x1 - sy * z2
+    out[:, 1] = y2
+    out[:, 2] = sy * x1 + cy * z2
+    out[:, 3] = points[:, 3]
+    return out
+
+
+def transform_to_end(points: np.ndarray, transform: np.ndarray,
+                     imu_correction: np.ndarray | None = None, imu_shift: np.ndarray | None = None) -> np.ndarray:
+    """Re-project a sweep's points to its end: to the start with :func:`transform_to_start`, then
+    ``p_end = R(θ) p_start + t``; with an IMU, then ``C (p_end - shift)`` (``C`` = IMU rotation from the end
+    attitude back, see :class:`FeatureAssociation`). The intensity becomes the ring (``int``)."""
+    start = transform_to_start(points, transform)
+    rotation = sweep_rotation(*transform[:3])
+    end = start[:, :3].astype(np.float64) @ rotation.T + np.asarray(transform[3:], dtype=np.float64)
+    if imu_correction is not None:
+        shift = np.zeros(3) if imu_shift is None else np.asarray(imu_shift, dtype=np.float64)
+        end = (end - shift) @ np.asarray(imu_correction).T
+    out = np.empty((len(points), 4), dtype=_F32)
+    out[:, :3] = end
+    out[:, 3] = np.trunc(points[:, 3])
+    return out
+
+
+def start_jacobian(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
+    """(n, 3, 6): derivative of ``R(θ)^T (p - t)`` w.r.t. (rx, ry, rz, tx, ty, tz) at the full ``θ``."""
+    rx, ry, rz = (float(v) for v in transform[:3])
+    t = np.asarray(transform[3:], dtype=np.float64)
+    Ry_, Rx_, Rz_ = rot_y(-ry), rot_x(-rx), rot_z(-rz)
+    q = points[:, :3].astype(np.float64) - t
+    d_rx = Ry_ @ (-Rx_ @ _GX) @ Rz_   # d/drx of Ry(-ry) Rx(-rx) Rz(-rz)
+    d_ry = (-Ry_ @ _GY) @ Rx_ @ Rz_
+    d_rz = Ry_ @ Rx_ @ (-Rz_ @ _GZ)
+    rotation_t = Ry_ @ Rx_ @ Rz_
+    jac = np.empty((len(points), 3, 6))
+    jac[:, :, 0] = q @ d_rx.T
+    jac[:, :, 1] = q @ d_ry.T
+    jac[:, :, 2] = q @ d_rz.T
+    jac[:, :, 3:] = -rotation_t[None, :, :]
+    return jac
+
+
+def plane_jacobian_rows(points: np.ndarray, coeff: np.ndarray, transform: np.ndarray, active: list[int]) -> np.ndarray:
+    """Rows of the Gauss-Newton matrix: ``coeff_xyz · d p_start / d θ_active`` for each point."""
+    jac = start_jacobian(points, transform)[:, :, active]
+    return np.einsum('ni,nij->nj', coeff[:, :3].astype(np.float64), jac)
+
+
+def accumulate(transform_sum: np.ndarray, transform_cur: np.ndarray, imu_shift: np.ndarray | None = None) -> np.ndarray:
+    """``W_new = W · T(θ)^-1``: the accumulated pose after a sweep, as six-vectors (world convention).
+
+    ``imu_shift`` (camera axes, sweep-start frame) is subtracted from the sweep translation first, as the
+    original does with the IMU's non-linear shift.
+    """
+    world = euler_to_matrix(*transform_sum[:3])
+    sweep = sweep_rotation(*transform_cur[:3])
+    rotation = world @ sweep.T
+    t_cur = np.asarray(transform_cur[3:], dtype=np.float64)
+    if imu_shift is not None:
+        t_cur = t_cur - imu_shift
+    translation = np.asarray(transform_sum[3:], dtype=np.float64) - rotation @ t_cur
+    return np.array([*matrix_to_euler(rotation), *translation])
+
+
+# ----------------------------------------------------------------------------------- correspondences
+
+@dataclass
+class SurfCorrespondences:
+    index1: np.ndarray   # nearest point in the last cloud (or -1), per current flat point
+    index2: np.ndarray   # nearest on the same ring (or -1)
+    index3: np.ndarray   # nearest on a neighbouring ring (or -1)
+
+
+@dataclass
+class CornerCorrespondences:
+    index1: np.ndarray
+    index2: np.ndarray
+
+
+def _ragged(lo: np.ndarray, hi: np.ndarray):
+    """(owner, position) of every integer in the half-open windows [lo, hi)."""
+    lengths = np.maximum(hi - lo, 0)
+    total = int(lengths.sum())
+    owner = np.repeat(np.arange(len(lo)), lengths)
+    starts = np.cumsum(lengths) - lengths
+    position = np.arange(total) - np.repeat(starts, lengths) + np.repeat(lo, lengths)
+    return owner, position
+
+
+def _best_in_windows(query: np.ndarray, cloud: np.ndarray, owner: np.ndarray, position: np.ndarray,
+                     mask: np.ndarray, n_queries: int, limit: float, prefer_last: bool):
+    """Per query, the masked window point with the smallest squared distance below ``limit``.
+
+    Ties keep the point the original's loop meets first: the lowest position when scanning forwards, the
+    highest when scanning backwards (``prefer_last``). Returns (index or -1, squared distance or limit).
+    """
+    best_index = np.full(n_queries, -1, dtype=np.int64)
+    best_dist = np.full(n_queries, _F32(limit), dtype=_F32)
+    if len(owner) == 0:
+        return best_index, best_dist
+    owner, position = owner[mask], position[mask]
+    if len(owner) == 0:
+        return best_index, best_dist
+    diff = cloud[position, :3] - query[owner, :3]
+    dist = (diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1] + diff[:, 2] * diff[:, 2]).astype(_F32)
+    keep = dist < _F32(limit)
+    owner, position, dist = owner[keep], position[keep], dist[keep]
+    if len(owner) == 0:
+        return best_index, best_dist
+    tie_key = -position if prefer_last else position
+    order = np.lexsort((tie_key, dist, owner))
+    first = np.concatenate(([True], owner[order][1:] != owner[order][:-1]))
+    chosen = order[first]
+    best_index[owner[chosen]] = position[chosen]
+    best_dist[owner[chosen]] = dist[chosen]
+    return best_index, best_dist
+
+
+def _next_above(rings: np.ndarray, n_rings: int) -> np.ndarray:
+    """(n_rings + 3, N + 1): first index >= j whose ring exceeds r, for thresholds r = -1 .. n_rings + 1."""
+    n = len(rings)
+    thresholds = np.arange(-1, n_rings + 2)
+    above = rings[None, :] > thresholds[:, None]
+    index = np.where(above, np.arange(n)[None, :], n)
+    out = np.full((len(thresholds), n + 1), n, dtype=np.int64)
+    out[:, :n] = np.minimum.accumulate(index[:, ::-1], axis=1)[:, ::-1]
+    return out
+
+
+def _prev_below(rings: np.ndarray, n_rings: int) -> np.ndarray:
+    """(n_rings + 3, N + 1): last index <= j - 1 ... stored at j: last index < j whose ring is below r
+    (or -1), for thresholds r = -1 .. n_rings + 1."""
+    n = len(rings)
+    thresholds = np.arange(-1, n_rings + 2)
+    below = rings[None, :] < thresholds[:, None]
+    index = np.where(below, np.arange(n)[None, :], -1)
+    out = np.full((len(thresholds), n + 1), -1, dtype=np.int64)
+    out[:, 1:] = np.maximum.accumulate(index, axis=1)
+    return out
+
+
+class _LastCloud:
+    """A 'last' feature cloud with its KD-tree and ring look-ups."""
+
+    def __init__(self, points: np.ndarray, n_rings: int):
+        self.points = points
+        self.rings = ring_of(points[:, 3])
+        self.tree = cKDTree(points[:, :3].astype(np.float64)) if len(points) else None
+        low = int(self.rings.min(initial=0))
+        high = int(self.rings.max(initial=0))
+        self._offset = -min(low, 0) + 3
+        span = max(high, n_rings) + self._offset + 3
+        shifted = self.rings + self._offset
+        self._next_above = _next_above(shifted, span)
+        self._prev_below = _prev_below(shifted, span)
+
+    def window(self, closest: np.ndarray, scan: np.ndarray, window: float, forward_bound: int):
+        """Forward [closest+1, hi) and backward (lo, closest-1] index windows of the original's scans."""
+        n = len(self.points)
+        limit = int(math.floor(window))       # int(ring) > scan + 2.5  <=>  ring > scan + floor(2.5)
+        up = np.clip(scan + limit + self._offset + 1, 0, self._next_above.shape[0] - 1)
+        down = np.clip(scan - limit + self._offset + 1, 0, self._prev_below.shape[0] - 1)
+        hi = self._next_above[up, np.minimum(closest + 1, n)]
+        hi = np.minimum(hi, forward_bound)
+        lo = self._prev_below[down, closest]  # last index < closest whose ring < scan - 2
+        return np.maximum(hi, closest + 1), lo
+
+
+def find_surf_correspondences(points_start: np.ndarray, last: _LastCloud, params: Params,
+                              forward_bound: int) -> SurfCorrespondences:
+    """The original's plane correspondences for flat points already mapped to the sweep start."""
+    fa = params.feature_association
+    n = len(points_start)
+    index1 = np.full(n, -1, dtype=np.int64)
+    index2, index3 = index1.copy(), index1.copy()
+    if n == 0 or last.tree is None:
+        return SurfCorrespondences(index1, index2, index3)
+    dist, nearest = last.tree.query(points_start[:, :3].astype(np.float64), k=1)
+    found = dist.astype(np.float64) ** 2 < fa.nearest_feature_search_sq_dist
+    q = np.flatnonzero(found)
+    closest = nearest[q]
+    scan = last.rings[closest]
+    hi, lo = last.window(closest, scan, fa.ring_search_window, forward_bound)
+    limit = fa.nearest_feature_search_sq_dist
+    query = points_start[q]
+    # Forward: same-or-lower ring -> point 2, higher ring -> point 3.
+    owner, position = _ragged(closest + 1, hi)
+    same = last.rings[position] <= scan[owner]
+    f2, d2 = _best_in_windows(query, last.points, owner, position, same, len(q), limit, False)
+    f3, d3 = _best_in_windows(query, last.points, owner, position, ~same, len(q), limit, False)
+    # Backward (from closest-1 down): same-or-higher ring -> point 2, lower ring -> point 3.
+    owner, position = _ragged(lo + 1, closest)
+    same = last.rings[position] >= scan[owner]
+    b2, e2 = _best_in_windows(query, last.points, owner, position, same, len(q), limit, True)
+    b3, e3 = _best_in_windows(query, last.points, owner, position, ~same, len(q), limit, True)
+    index1[q] = closest
+    index2[q] = np.where(e2 < d2, b2, f2)
+    index3[q] = np.where(e3 < d3, b3, f3)
+    return SurfCorrespondences(index1, index2, index3)
+
+
+def find_corner_correspondences(points_start: np.ndarray, last: _LastCloud, params: Params,
+                                forward_bound: int) -> CornerCorrespondences:
+    """The original's line correspondences for sharp points already mapped to the sweep start."""
+    fa = params.feature_association
+    n = len(points_start)
+    index1 = np.full(n, -1, dtype=np.int64)
+    index2 = index1.copy()
+    if n == 0 or last.tree is None:
+        return CornerCorrespondences(index1, index2)
+    dist, nearest = last.tree.query(points_start[:, :3].astype(np.float64), k=1)
+    found = dist.astype(np.float64) ** 2 < fa.nearest_feature_search_sq_dist
+    q = np.flatnonzero(found)
+    closest = nearest[q]
+    scan = last.rings[closest]
+    hi, lo = last.window(closest, scan, fa.ring_search_window, forward_bound)
+    limit = fa.nearest_feature_search_sq_dist
+    query = points_start[q]
+    owner, position = _ragged(closest + 1, hi)
+    f2, d2 = _best_in_windows(query, last.points, owner, position, last.rings[position] > scan[owner], len(q),
+                              limit, False)
+    owner, position = _ragged(lo + 1, closest)
+    b2, e2 = _best_in_windows(query, last.points, owner, position, last.rings[position] < scan[owner], len(q),
+                              limit, True)
+    index1[q] = closest
+    index2[q] = np.where(e2 < d2, b2, f2)
+    return CornerCorrespondences(index1, index2)
+
+
+def plane_coefficients(p_start: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray):
+    """Unit normal (n, 3) and signed distance (n,) of points to the planes through a, b, c (float32)."""
+    ab, ac = (b - a).astype(_F32), (c - a).astype(_F32)
+    pa = ab[:, 1] * ac[:, 2] - ac[:, 1] * ab[:, 2]
+    pb = ab[:, 2] * ac[:, 0] - ac[:, 2] * ab[:, 0]
+    pc = ab[:, 0] * ac[:, 1] - ac[:, 0] * ab[:, 1]
+    pd = -(pa * a[:, 0] + pb * a[:, 1] + pc * a[:, 2])
+    with np.errstate(invalid='ignore', divide='ignore'):
+        ps = np.sqrt(pa * pa + pb * pb + pc * pc)
+        normal = np.stack([pa / ps, pb / ps, pc / ps], axis=1)
+        pd = pd / ps
+    distance = normal[:, 0] * p_start[:, 0] + normal[:, 1] * p_start[:, 1] + normal[:, 2] * p_start[:, 2] + pd
+    return normal, distance
+
+
+def line_coefficients(p: np.ndarray, a: np.ndarray, b: np.ndarray):
+    """Unit direction (n, 3) from the line through a, b towards p, and the distance (n,) (float32)."""
+    p, a, b = (v[:, :3].astype(_F32) for v in (p, a, b))
+    pa, pb, ab = p - a, p - b, a - b
+    # Cross product (p - a) x (p - b): its norm is twice the triangle area.
+    cross = np.cross(pa, pb)
+    area = np.linalg.norm(cross, axis=1)
+    length = np.linalg.norm(ab, axis=1)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        # The gradient of the distance w.r.t. p: (a - b) x (pa x pb) / (|pa x pb| |a - b|).
+        gradient = np.cross(ab, cross) / (area * length)[:, None]
+        distance = area / length
+    return gradient.astype(_F32), distance.astype(_F32)
+
+
+# ----------------------------------------------------------------------------------------- the solver
+
+@dataclass
+class OdometryStats:
+    surf_iterations: int = 0
+    corner_iterations: int = 0
+    surf_correspondences: int = 0
+    corner_correspondences: int = 0
+    surf_degenerate: bool = False
+    corner_degenerate: bool = False
+    skipped: str = ''
+    extra: dict = field(default_factory=dict)
+
+
+class _Stage:
+    """Degeneracy state of one Gauss-Newton stage (kept across scans, as the original's members)."""
+
+    def __init__(self):
+        self.projection = np.eye(3)
+        self.degenerate = False
+
+    def step(self, a: np.ndarray, b: np.ndarray, iteration: int, threshold: float) -> np.ndarray:
+        ata = a.T @ a
+        atb = a.T @ b
+        try:
+            x = np.linalg.solve(ata, atb)
+        except np.linalg.LinAlgError:
+            x = np.linalg.lstsq(ata, atb, rcond=None)[0]
+        if iteration == 0:
+            values, vectors = np.linalg.eigh(ata)           # ascending
+            keep = np.ones(3, dtype=bool)
+            self.degenerate = False
+            for i in range(3):                              # from the smallest up to the first >= threshold
+                if values[i] < threshold:
+                    keep[i] = False
+                    self.degenerate = True
+                else:
+                    break
+            self.projection = vectors @ np.diag(keep.astype(float)) @ vectors.T
+        if self.degenerate:
+            x = self.projection @ x
+        return x
+
+
+class LaserOdometry:
+    """Two-stage scan-to-scan registration; call :meth:`register` once per sweep."""
+
+    SURF_PARAMS = [0, 2, 4]     # rx, rz, ty
+    CORNER_PARAMS = [1, 3, 5]   # ry, tx, tz
+
+    def __init__(self, params: Params, fix_scan_bound: bool = False):
+        self.params = params
+        self.fix_scan_bound = fix_scan_bound
+        self.transform_cur = np.zeros(6)
+        self._surf_stage = _Stage()
+        self._corner_stage = _Stage()
+        self.last_corner: _LastCloud | None = None
+        self.last_surf: _LastCloud | None = None
+
+    def set_last(self, corner: np.ndarray, surf: np.ndarray) -> None:
+        """New 'last' clouds; KD-trees are rebuilt only when they are big enough, as in the original."""
+        fa = self.params.feature_association
+        n_rings = self.params.sensor.n_scan
+        self.last_corner_count, self.last_surf_count = len(corner), len(surf)
+        if self.last_corner is None or (len(corner) > fa.min_last_corner_points and
+                                        len(surf) > fa.min_last_surf_points):
+            self.last_corner = _LastCloud(corner, n_rings)
+            self.last_surf = _LastCloud(surf, n_rings)
+
+    def register(self, sharp: np.ndarray, flat: np.ndarray) -> OdometryStats:
+        """Refine ``transform_cur`` from the sweep's sharp and flat points (camera axes, ring + 0.1 s)."""
+        fa = self.params.feature_association
+        stats = OdometryStats()
+        if self.last_corner is None or self.last_corner_count < fa.min_last_corner_points or \
+                self.last_surf_count < fa.min_last_surf_points:
+            stats.skipped = 'too few points in the last clouds'
+            return stats
+        for iteration in range(fa.max_iterations):
+            stats.surf_iterations = iteration + 1
+            if iteration % fa.reassociate_every == 0:
+                bound = len(self.last_surf.points) if self.fix_scan_bound else len(flat)
+                surf_match = find_surf_correspondences(transform_to_start(flat, self.transform_cur), self.last_surf,
+                                                       self.params, bound)
+            a, b = self._surf_rows(flat, surf_match, iteration)
+            stats.surf_correspondences = len(b)
+            if len(b) < fa.min_correspondences:
+                continue
+            x = self._surf_stage.step(a, b, iteration, fa.degeneracy_threshold)
+            stats.surf_degenerate = self._surf_stage.degenerate
+            if not self._apply(x, self.SURF_PARAMS, rotation_rows=[0, 1], translation_rows=[2]):
+                break
+        for iteration in range(fa.max_iterations):
+            stats.corner_iterations = iteration + 1
+            if iteration % fa.reassociate_every == 0:
+                bound = len(self.last_corner.points) if self.fix_scan_bound else len(sharp)
+                corner_match = find_corner_correspondences(transform_to_start(sharp, self.transform_cur),
+                                                           self.last_corner, self.params, bound)
+            a, b = self._corner_rows(sharp, corner_match, iteration)
+            stats.corner_correspondences = len(b)
+            if len(b) < fa.min_correspondences:
+                continue
+            x = self._corner_stage.step(a, b, iteration, fa.degeneracy_threshold)
+            stats.corner_degenerate = self._corner_stage.degenerate
+            if not self._apply(x, self.CORNER_PARAMS, rotation_rows=[0], translation_rows=[1, 2]):
+                break
+        return stats
+
+    def _apply(self, x: np.ndarray, active: list[int], rotation_rows: list[int], translation_rows: list[int]) -> bool:
+        """Add the step; False when converged (update below the thresholds)."""
+        fa = self.params.feature_association
+        self.transform_cur[active] += x
+        self.transform_cur[~np.isfinite(self.transform_cur)] = 0.0
+        delta_r = math.sqrt(sum(math.degrees(x[i]) ** 2 for i in rotation_rows))
+        delta_t = math.sqrt(sum((x[i] * 100.0) ** 2 for i in translation_rows))
+        return not (delta_r < fa.convergence_rotation and delta_t < fa.convergence_translation)
+
+    def _weights(self, distance: np.ndarray, scale: np.ndarray, iteration: int) -> np.ndarray:
+        fa = self.params.feature_association
+        if iteration < fa.reassociate_every:
+            return np.ones(len(distance), dtype=_F32)
+        return (1.0 - fa.weight_gain * np.abs(distance.astype(np.float64)) / scale).astype(_F32)
+
+    def _surf_rows(self, flat: np.ndarray, match: SurfCorrespondences, iteration: int):
+        fa = self.params.feature_association
+        usable = np.flatnonzero((match.index2 >= 0) & (match.index3 >= 0))
+        points = flat[usable]
+        p_start = transform_to_start(points, self.transform_cur)
+        last = self.last_surf.points
+        normal, distance = plane_coefficients(p_start, last[match.index1[usable]], last[match.index2[usable]],
+                                              last[match.index3[usable]])
+        norm = np.sqrt(np.sqrt((p_start[:, :3].astype(np.float64) ** 2).sum(axis=1)))
+        weight = self._weights(distance, norm, iteration)
+        ok = (weight > fa.min_weight) & (distance != 0) & np.isfinite(distance)
+        coeff = np.concatenate([normal[ok] * weight[ok, None], (weight[ok] * distance[ok])[:, None]], axis=1)
+        rows = plane_jacobian_rows(points[ok], coeff, self.transform_cur, self.SURF_PARAMS)
+        return rows, -fa.step_scale * coeff[:, 3].astype(np.float64)
+
+    def _corner_rows(self, sharp: np.ndarray, match: CornerCorrespondences, iteration: int):
+        fa = self.params.feature_association
+        usable = np.flatnonzero(match.index2 >= 0)
+        points = sharp[usable]
+        p_start = transform_to_start(points, self.transform_cur)
+        last = self.last_corner.points
+        gradient, distance = line_coefficients(p_start, last[match.index1[usable]], last[match.index2[usable]])
+        weight = self._weights(distance, np.ones(len(distance)), iteration)
+        ok = (weight > fa.min_weight) & np.isfinite(distance) & np.isfinite(gradient).all(axis=1)
+        coeff = np.concatenate([gradient[ok] * weight[ok, None], (weight[ok] * distance[ok])[:, None]], axis=1)
+        rows = plane_jacobian_rows(points[ok], coeff, self.transform_cur, self.CORNER_PARAMS)
+        return rows, -fa.step_scale * coeff[:, 3].astype(np.float64)
