@@ -32,6 +32,8 @@ CONSOLE_SCRIPTS = [
     f'{PACKAGE} = {PACKAGE}.cli:main',
     f'imageProjection = {PACKAGE}.ros.image_projection_node:main',
     f'featureAssociation = {PACKAGE}.ros.feature_association_node:main',
+    f'mapOptimization = {PACKAGE}.ros.map_optimization_node:main',
+    f'transformFusion = {PACKAGE}.ros.transform_fusion_node:main',
 ]
 
 if __name__ == '__main__':

@@ -1,0 +1,105 @@
+"""Files users keep: trajectories (TUM) and point clouds (PCD), written atomically.
+
+Every writer writes to a temporary file in the target directory and renames it over the target
+(``os.replace`` is atomic on POSIX), so a reader, or a crash mid-write, only ever sees the previous complete
+file or the new complete one.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+__all__ = ['write_tum_atomic', 'read_tum', 'tum_lines', 'write_pcd_atomic', 'read_pcd', 'atomic_path']
+
+
+class atomic_path:
+    """Context manager yielding a temporary path beside ``target``; renamed onto it on success."""
+
+    def __init__(self, target: str | Path, suffix: str | None = None):
+        self.target = Path(target)
+        self.suffix = self.target.suffix if suffix is None else suffix
+
+    def __enter__(self) -> Path:
+        self.target.parent.mkdir(parents=True, exist_ok=True)
+        handle, name = tempfile.mkstemp(prefix=f'.{self.target.stem}.', suffix=f'.tmp{self.suffix}',
+                                        dir=self.target.parent)
+        os.close(handle)
+        self.temporary = Path(name)
+        return self.temporary
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            with open(self.temporary, 'rb') as f:
+                os.fsync(f.fileno())
+            os.replace(self.temporary, self.target)
+        else:
+            self.temporary.unlink(missing_ok=True)
+
+
+def tum_lines(stamps_ns: np.ndarray, poses: np.ndarray) -> str:
+    """TUM text ``timestamp tx ty tz qx qy qz qw`` for (N,) ns stamps and (N, 4, 4) poses."""
+    stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+    poses = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
+    quats = Rotation.from_matrix(poses[:, :3, :3]).as_quat() if len(poses) else np.zeros((0, 4))
+    lines = []
+    for stamp, pose, q in zip(stamps_ns, poses, quats):
+        sec, nsec = divmod(int(stamp), 1_000_000_000)
+        t = pose[:3, 3]
+        lines.append(f'{sec}.{nsec:09d} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}')
+    return '\n'.join(lines) + ('\n' if lines else '')
+
+
+def write_tum_atomic(path: str | Path, stamps_ns: np.ndarray, poses: np.ndarray) -> Path:
+    """Write a TUM trajectory (stamps in ns, 4x4 poses) atomically; returns the path."""
+    with atomic_path(path) as temporary:
+        temporary.write_text(tum_lines(stamps_ns, poses))
+    return Path(path)
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps [ns] int64 (N,), poses (N, 4, 4)) from a TUM file (comments and blank lines skipped)."""
+    stamps, poses = [], []
+    for line in Path(path).read_text().splitlines():
+        line = line.strip()
+        if not line or line.startswith('#'):
+            continue
+        parts = line.split()
+        if len(parts) != 8:
+            raise ValueError(f'{path}: a TUM line has 8 values, got {len(parts)}: {line!r}')
+        whole, _, fraction = parts[0].partition('.')
+        stamps.append(int(whole) * 1_000_000_000 + int((fraction + '000000000')[:9]))
+        values = np.array([float(v) for v in parts[1:]])
+        pose = np.eye(4)
+        pose[:3, :3] = Rotation.from_quat(values[3:]).as_matrix()
+        pose[:3, 3] = values[:3]
+        poses.append(pose)
+    return np.array(stamps, dtype=np.int64), np.array(poses).reshape(-1, 4, 4)
+
+
+def write_pcd_atomic(path: str | Path, points: np.ndarray) -> Path:
+    """Write (N, 3) or (N, 4: x, y, z, intensity) points as a binary PCD (open3d) atomically."""
+    import open3d as o3d
+
+    points = np.asarray(points, dtype=np.float32)
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(points[:, :3])))
+    if points.shape[1] > 3:
+        cloud.point['intensity'] = o3d.core.Tensor(np.ascontiguousarray(points[:, 3:4]))
+    with atomic_path(path, suffix='.pcd') as temporary:
+        if not o3d.t.io.write_point_cloud(str(temporary), cloud, write_ascii=False, compressed=False):
+            raise OSError(f'open3d could not write {temporary}')
+    return Path(path)
+
+
+def read_pcd(path: str | Path) -> np.ndarray:
+    """(N, 3) or (N, 4) float32 points of a PCD file (intensity when present)."""
+    import open3d as o3d
+
+    cloud = o3d.t.io.read_point_cloud(str(path))
+    xyz = cloud.point['positions'].numpy().astype(np.float32)
+    if 'intensity' in cloud.point:
+        return np.concatenate([xyz, cloud.point['intensity'].numpy().reshape(-1, 1).astype(np.float32)], axis=1)
+    return xyz

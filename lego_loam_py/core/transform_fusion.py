@@ -1,0 +1,31 @@
+"""transformFusion: the 10 Hz odometry corrected by the latest mapping result (reference §6.4).
+
+``T_mapped = T_aft · T_bef^-1 · T_sum``: the odometry pose ``T_sum`` of every scan, moved by the correction
+the last mapping step found (``T_aft`` is the optimised pose of the odometry pose ``T_bef``). Poses are
+4x4 matrices in camera_init (LOAM camera axes).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from lego_loam_py.core.frames import invert_pose
+
+__all__ = ['TransformFusion']
+
+
+class TransformFusion:
+    def __init__(self):
+        self.correction = np.eye(4)   # T_aft · T_bef^-1
+        self.mapped_steps = 0
+
+    def on_mapped(self, aft: np.ndarray, bef: np.ndarray) -> None:
+        """A mapping result: the optimised pose ``aft`` of the odometry pose ``bef`` (4x4 each)."""
+        self.correction = aft @ invert_pose(bef)
+        self.mapped_steps += 1
+
+    def integrate(self, odometry: np.ndarray) -> np.ndarray:
+        """The map-corrected pose of an odometry pose (4x4)."""
+        return self.correction @ odometry
+
+    def reset(self) -> None:
+        self.__init__()

@@ -1,0 +1,99 @@
+"""The four nodes as separate processes over DDS on a golden bag: mapping and fusion equal the original."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from tests.support.ros import spin_until
+
+BIN = Path(sys.executable).parent
+GOLDEN_BAG = 'vlp16_static_indoor_20hz'
+NODES = ('imageProjection', 'featureAssociation', 'mapOptimization', 'transformFusion')
+
+
+def odometry_rows(messages):
+    return np.array([[m.pose.pose.position.x, m.pose.pose.position.y, m.pose.pose.position.z,
+                      m.pose.pose.orientation.x, m.pose.pose.orientation.y, m.pose.pose.orientation.z,
+                      m.pose.pose.orientation.w] for m in messages])
+
+
+def test_mapping_and_fusion_over_dds_equal_the_original(shared_data, tmp_path, rclpy_context, processes):
+    import rclpy
+    from nav_msgs.msg import Odometry
+    from std_srvs.srv import Trigger
+    from tf2_msgs.msg import TFMessage
+
+    from lego_loam_py.core.io import read_pcd, read_tum
+    from lego_loam_py.ros import qos
+    from lego_loam_py.ros.conversions import stamp_to_ns
+
+    golden = np.load(shared_data / 'golden' / f'{GOLDEN_BAG}.npz')
+    stamps = golden['stamps'].tolist()
+    maps = tmp_path / 'maps'
+    params = tmp_path / 'params.yaml'
+    params.write_text('/**:\n  ros__parameters:\n    feature_association:\n      relative_time_source: original\n'
+                      f'    map_optimization:\n      file_directory: {maps}\n')
+    node = rclpy.create_node('pipeline_listener', context=rclpy_context)
+    mapped, integrated, static = [], [], []
+    node.create_subscription(Odometry, '/aft_mapped_to_init', mapped.append, qos.reliable(100))
+    node.create_subscription(Odometry, '/integrated_to_init', integrated.append, qos.reliable(100))
+    node.create_subscription(TFMessage, '/tf_static', static.append, qos.latched())
+    procs = {name: processes.start([BIN / name, '--ros-args', '--params-file', params]) for name in NODES}
+    ready = spin_until(rclpy_context, node, lambda: node.count_publishers('/aft_mapped_to_init') > 0 and
+                       node.count_publishers('/integrated_to_init') > 0 and
+                       node.count_publishers('/segmented_cloud') > 0 and
+                       node.count_publishers('/laser_odom_to_init') > 0
+                       or any(p.poll() is not None for p in procs.values()), 30)
+    for name, p in procs.items():
+        assert p.poll() is None, f'{name} exited: {p.communicate()[1]}'
+    assert ready
+    spin_until(rclpy_context, node, lambda: False, 0.5)
+    player = processes.start([BIN / 'lego_loam_py', 'play', shared_data / 'golden' / f'{GOLDEN_BAG}_ros2',
+                              '--rate', '0.5', '--wait-for-subscribers', '20', '--no-progress'])
+    expected_mapped = golden['aft_mapped_to_init_stamps'].tolist()
+    done = spin_until(rclpy_context, node, lambda: len(integrated) >= len(stamps) - 1 and
+                      len(mapped) >= len(expected_mapped), timeout=90)
+    assert player.wait(timeout=30) == 0
+    assert done, f'{len(integrated)} integrated, {len(mapped)} mapped'
+
+    # /aft_mapped_to_init: the original's steps (every 0.3 s of input), poses and the twist-carried pose.
+    assert [stamp_to_ns(m.header.stamp) for m in mapped] == [int(round(s / 1000)) * 1000 for s in expected_mapped] \
+        or np.abs(np.array([stamp_to_ns(m.header.stamp) for m in mapped]) - np.array(expected_mapped)).max() < 1000
+    assert {(m.header.frame_id, m.child_frame_id) for m in mapped} == {('camera_init', 'aft_mapped')}
+    ours = odometry_rows(mapped)
+    assert np.abs(ours[:, :3] - golden['aft_mapped_to_init'][:, :3]).max() < 1e-5
+    assert np.abs(np.abs(ours[:, 3:]) - np.abs(golden['aft_mapped_to_init'][:, 3:])).max() < 1e-6
+    # /integrated_to_init: one per odometry message, the original's fused poses.
+    assert [stamp_to_ns(m.header.stamp) for m in integrated] == golden['integrated_to_init_stamps'].tolist()
+    assert {(m.header.frame_id, m.child_frame_id) for m in integrated} == {('camera_init', 'camera')}
+    ours = odometry_rows(integrated)
+    assert np.abs(ours[:, :3] - golden['integrated_to_init'][:, :3]).max() < 1e-5
+    assert np.abs(np.abs(ours[:, 3:]) - np.abs(golden['integrated_to_init'][:, 3:])).max() < 1e-6
+    # The original's static transforms, latched.
+    assert {(t.header.frame_id, t.child_frame_id) for m in static for t in m.transforms} >= \
+        {('map', 'camera_init'), ('camera', 'base_link')}
+
+    # Saving: the service writes the maps and the trajectory atomically.
+    client = node.create_client(Trigger, 'save_map')
+    assert client.wait_for_service(timeout_sec=10)
+    future = client.call_async(Trigger.Request())
+    assert spin_until(rclpy_context, node, future.done, 30)
+    assert future.result().success, future.result().message
+    for name in ('global_map.pcd', 'corner_map.pcd', 'surface_map.pcd', 'trajectory.pcd', 'trajectory.tum',
+                 'trajectory_camera_init.tum'):
+        assert (maps / name).is_file(), name
+    cloud = read_pcd(maps / 'global_map.pcd')
+    assert cloud.shape[1] == 4 and len(cloud) > 300  # one keyframe: the sensor stands still
+    tum_stamps, tum_poses = read_tum(maps / 'trajectory.tum')
+    assert len(tum_stamps) >= 1 and np.isfinite(tum_poses).all()
+    assert not [p for p in maps.iterdir() if '.tmp' in p.name]
+    # Ctrl-C: every node exits cleanly; mapOptimization saves on the way out.
+    (maps / 'global_map.pcd').unlink()
+    for name, p in procs.items():
+        _, err = processes.stop(p)
+        assert p.returncode == 0, f'{name}: {err}'
+        assert 'Traceback' not in err, f'{name}: {err}'
+    assert (maps / 'global_map.pcd').is_file()
+    node.destroy_node()
