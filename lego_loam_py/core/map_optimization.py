@@ -211,6 +211,9 @@ class MapOptimization:
         isam_params = gtsam.ISAM2Params()
         isam_params.setRelinearizeThreshold(mo.isam_relinearize_threshold)
         isam_params.relinearizeSkip = mo.isam_relinearize_skip
+        # QR, not gtsam's default Cholesky: with the original's tiny variances (1e-8 m^2) Cholesky declares the
+        # system indeterminate once the keyframes are some 50 m from the origin; QR stays well-conditioned.
+        isam_params.setFactorization('QR')
         self.isam = gtsam.ISAM2(isam_params)
         self._prior_noise = gtsam.noiseModel.Diagonal.Variances(np.asarray(mo.prior_noise_variances, dtype=float))
         self._odometry_noise = gtsam.noiseModel.Diagonal.Variances(np.asarray(mo.odometry_noise_variances, dtype=float))
@@ -312,13 +315,24 @@ class MapOptimization:
         return corner, surf
 
     def _scan_to_map(self, corner_map, surf_map, corner_ds, surf_ds, step: MappingStep) -> None:
+        self.transform_tobe = self.register_to_map(corner_map, surf_map, corner_ds, surf_ds, self.transform_tobe, step)
+
+    def register_to_map(self, corner_map: np.ndarray, surf_map: np.ndarray, corner_ds: np.ndarray,
+                        surf_ds: np.ndarray, initial: np.ndarray, step: MappingStep | None = None) -> np.ndarray:
+        """Scan-to-map Gauss-Newton from ``initial`` (pose six-vector); returns the optimised pose.
+
+        ``corner_ds`` / ``surf_ds`` are the scan's downsampled features in its sensor frame, the maps are in the
+        world (camera axes). ``step`` (optional) receives iteration and correspondence counts.
+        """
         mo = self.params.map_optimization
+        step = step if step is not None else MappingStep(0, initial, initial, False, 0)
+        pose = np.asarray(initial, dtype=float).copy()
         corner_tree = cKDTree(corner_map[:, :3].astype(np.float64))
         surf_tree = cKDTree(surf_map[:, :3].astype(np.float64))
         step.optimised = True
         for iteration in range(mo.max_iterations):
             step.iterations = iteration + 1
-            world = pose6_to_matrix(self.transform_tobe)
+            world = pose6_to_matrix(pose)
             corner_world = transform_points(world, corner_ds[:, :3].astype(np.float64)).astype(_F32)
             surf_world = transform_points(world, surf_ds[:, :3].astype(np.float64)).astype(_F32)
             ci, cc = edge_correspondences(corner_world, corner_tree, corner_map, self.params)
@@ -328,7 +342,7 @@ class MapOptimization:
             step.correspondences = len(coeff)
             if len(coeff) < mo.min_correspondences:
                 break  # nothing would change in the next iterations
-            a = map_jacobian_rows(points, coeff, self.transform_tobe)
+            a = map_jacobian_rows(points, coeff, pose)
             b = -coeff[:, 3]
             ata, atb = a.T @ a, a.T @ b
             try:
@@ -342,11 +356,12 @@ class MapOptimization:
                 x = self._degeneracy.projection @ x
             if not np.isfinite(x).all():
                 break
-            self.transform_tobe = self.transform_tobe + x
+            pose = pose + x
             delta_r = math.degrees(math.sqrt(float(x[0] ** 2 + x[1] ** 2 + x[2] ** 2)))
             delta_t = math.sqrt(float(((x[3:] * 100.0) ** 2).sum()))
             if delta_r < mo.convergence_rotation and delta_t < mo.convergence_translation:
                 break
+        return pose
 
     def _transform_update(self, stamp_ns: int) -> None:
         mo = self.params.map_optimization
@@ -389,8 +404,7 @@ class MapOptimization:
             values.insert(k, pose_to)
         self.isam.update(graph, values)
         self.isam.update()
-        estimate = self.isam.calculateEstimate()
-        latest = self._pose6_of(estimate.atPose3(k))
+        latest = self._pose6_of(self.isam.calculateEstimatePose3(k))
         self.keyframes.append(Keyframe(k, stamp_ns, latest, corner_ds, surf_ds, outlier_ds))
         self._positions = np.vstack([self._positions, latest[3:]])
         if k > 0:
@@ -458,21 +472,30 @@ class MapOptimization:
         accepted = converged and fitness <= lc.history_keyframe_fitness_score
         loop = LoopResult(candidate.latest, candidate.candidate, fitness, converged, accepted, correction)
         if accepted:
-            gtsam = self._gtsam
             with self.lock:
                 latest_pose = pose6_to_matrix(self.keyframes[candidate.latest].pose6)
-                corrected = self._gtsam_pose(matrix_to_pose6(correction @ latest_pose))
-                target_pose = self._gtsam_pose(self.keyframes[candidate.candidate].pose6)
-                noise = gtsam.noiseModel.Diagonal.Variances(np.full(6, max(fitness, 1e-12)))
-                graph = gtsam.NonlinearFactorGraph()
-                graph.add(gtsam.BetweenFactorPose3(candidate.latest, candidate.candidate,
-                                                   corrected.between(target_pose), noise))
-                self.isam.update(graph, gtsam.Values())
-                self.isam.update()
-                self.loop_closed = True
-                self._correct_poses()
+                corrected = correction @ latest_pose
+                target_pose = pose6_to_matrix(self.keyframes[candidate.candidate].pose6)
+                self.add_loop_factor(candidate.latest, candidate.candidate, invert_pose(corrected) @ target_pose,
+                                     np.full(6, max(fitness, 1e-12)))
         self.loops.append(loop)
         return loop
+
+    def add_loop_factor(self, latest: int, candidate: int, relative: np.ndarray, variances: np.ndarray) -> None:
+        """Add the constraint 'keyframe ``candidate`` seen from keyframe ``latest`` is ``relative``' (4x4,
+        camera axes) with diagonal variances (rot, rot, rot, x, y, z in lidar axes, as the original), update
+        iSAM2 and move every keyframe to the new estimate."""
+        gtsam = self._gtsam
+        with self.lock:
+            lidar = camera_pose_to_lidar(relative)
+            between = gtsam.Pose3(gtsam.Rot3(lidar[:3, :3]), lidar[:3, 3].copy())
+            graph = gtsam.NonlinearFactorGraph()
+            graph.add(gtsam.BetweenFactorPose3(latest, candidate, between,
+                                               gtsam.noiseModel.Diagonal.Variances(np.asarray(variances, float))))
+            self.isam.update(graph, gtsam.Values())
+            self.isam.update()
+            self.loop_closed = True
+            self._correct_poses()
 
     # ------------------------------------------------------------------------------- maps and saving
     def keyframe_poses(self) -> np.ndarray:

@@ -1,0 +1,223 @@
+"""mapOptimization core: line/plane fitting, Jacobians, scan-to-map recovery, iSAM2 loop correction,
+keyframes and the surrounding map, golden parity, saving."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
+from lego_loam_py.core.frames import euler_to_quaternion, pose6_to_matrix, transform_points
+from lego_loam_py.core.image_projection import ImageProjection, ProjectionInput, prepare_input
+from lego_loam_py.core.map_optimization import (MapOptimization, edge_correspondences, map_jacobian_rows,
+                                                plane_correspondences, transform_cloud)
+from lego_loam_py.core.params import Params
+from lego_loam_py.core.voxel import voxel_downsample
+from tests.support.sweeps import room_world, sweep
+
+PARAMS = Params()
+
+
+def cloud(points) -> np.ndarray:
+    points = np.asarray(points, dtype=np.float32)
+    return np.concatenate([points, np.zeros((len(points), 1), np.float32)], axis=1)
+
+
+def test_edge_fit_by_hand():
+    """Map points on the vertical line x = 1, z = 2 (camera axes): a query 0.3 m off it gets distance 0.3 and
+    the unit gradient pointing away from the line."""
+    line = cloud([[1.0, y, 2.0] for y in np.linspace(-0.4, 0.4, 9)])
+    query = cloud([[1.3, 0.05, 2.0]])
+    index, coeff = edge_correspondences(query, cKDTree(line[:, :3]), line, PARAMS)
+    assert list(index) == [0]
+    weight = 1 - 0.9 * 0.3
+    assert coeff[0, 3] == pytest.approx(weight * 0.3, rel=1e-4)
+    assert np.allclose(coeff[0, :3] / weight, [1.0, 0.0, 0.0], atol=1e-4)
+    # A square grid of points on a plane is not a line: rejected by the eigenvalue test.
+    grid = np.stack(np.meshgrid(np.linspace(-0.3, 0.3, 7), np.linspace(-0.3, 0.3, 7)), -1).reshape(-1, 2)
+    plane = cloud(np.column_stack([1.0 + grid[:, 0], grid[:, 1], np.full(len(grid), 2.0)]))
+    assert len(edge_correspondences(cloud([[1.0, 0.0, 2.1]]), cKDTree(plane[:, :3]), plane, PARAMS)[0]) == 0
+
+
+def test_plane_fit_by_hand():
+    rng = np.random.default_rng(1)
+    floor = cloud(np.column_stack([rng.uniform(-0.5, 0.5, 50), np.full(50, -1.5), rng.uniform(4, 5, 50)]))
+    query = cloud([[0.0, -1.2, 4.5]])
+    index, coeff = plane_correspondences(query, cKDTree(floor[:, :3]), floor, PARAMS)
+    assert list(index) == [0]
+    distance = coeff[0, 3] / (1 - 0.9 * 0.3 / math.sqrt(np.linalg.norm([0, -1.2, 4.5])))
+    assert abs(distance) == pytest.approx(0.3, rel=1e-3)
+    assert np.allclose(np.abs(coeff[0, :3]) / np.linalg.norm(coeff[0, :3]), [0, 1, 0], atol=1e-6)
+    # Neighbours off the plane by more than 0.2 m invalidate it: a checkerboard of two levels 0.5 m apart.
+    grid = np.stack(np.meshgrid(np.arange(-3, 4) * 0.3, np.arange(-3, 4) * 0.3), -1).reshape(-1, 2)
+    level = np.where((np.round(grid[:, 0] / 0.3) + np.round(grid[:, 1] / 0.3)) % 2 == 0, -1.5, -1.0)
+    bumpy = cloud(np.column_stack([grid[:, 0], level, 4.5 + grid[:, 1]]))
+    assert len(plane_correspondences(cloud([[0.0, -1.25, 4.5]]), cKDTree(bumpy[:, :3]), bumpy, PARAMS)[0]) == 0
+
+
+@pytest.mark.parametrize('seed', range(3))
+def test_map_jacobian_matches_finite_differences(seed):
+    rng = np.random.default_rng(seed)
+    pose = rng.normal(0, [0.2, 1.0, 0.2, 5, 1, 5])
+    points = cloud(rng.normal(0, 10, (30, 3)))
+    coeff = np.concatenate([rng.normal(size=(30, 3)), rng.normal(size=(30, 1))], axis=1)
+    rows = map_jacobian_rows(points, coeff, pose)
+
+    def residual(p):
+        return np.einsum('ni,ni->n', coeff[:, :3], transform_points(pose6_to_matrix(p), points[:, :3].astype(float)))
+
+    for k in range(6):
+        step = np.zeros(6)
+        step[k] = 1e-6
+        numeric = (residual(pose + step) - residual(pose - step)) / 2e-6
+        assert np.allclose(rows[:, k], numeric, atol=1e-5), k
+
+
+def features_of(scene, pose):
+    params = PARAMS.replace(feature_association__relative_time_source='point_time')
+    r = ImageProjection(params).process(prepare_input(sweep(scene, pose), params))
+    fa = FeatureAssociation(params)
+    return fa.extractor.extract(fa.prepare_points(ScanInput(0, r.segmented_cloud, r.cloud_info, r.outlier_cloud,
+                                                            r.segmented_time)), r.cloud_info)
+
+
+def test_scan_registered_to_a_map_of_itself_under_a_known_offset_is_recovered():
+    scene = room_world(seed=2)
+    f = features_of(scene, np.eye(4))
+    mo = MapOptimization(PARAMS)
+    corner_map = voxel_downsample(f.less_sharp, 0.2)
+    surf_map = voxel_downsample(f.less_flat, 0.4)
+    corner_ds, surf_ds = corner_map.copy(), surf_map.copy()
+    truth = np.zeros(6)
+    start = np.array([0.01, math.radians(2.0), -0.01, 0.15, -0.05, 0.2])   # offset of the initial guess
+    pose = mo.register_to_map(corner_map, surf_map, corner_ds, surf_ds, start)
+    assert np.abs(pose[3:] - truth[3:]).max() < 0.01
+    assert math.degrees(np.abs(pose[:3] - truth[:3]).max()) < 0.05
+
+
+def test_isam2_loop_factor_corrects_a_drifted_chain():
+    """A square loop driven with odometry that over-turns: one loop factor pulls the chain back."""
+    mo = MapOptimization(PARAMS)
+    true_poses, drifted = [], []
+    truth = np.eye(4)
+    belief = np.eye(4)
+    empty = np.zeros((0, 4), np.float32)
+    for k in range(40):
+        step = np.eye(4)
+        turn = math.pi / 2 if k % 10 == 9 else 0.0
+        step[:3, :3] = pose6_to_matrix([0, turn, 0, 0, 0, 0])[:3, :3]
+        step[2, 3] = 2.0                                   # 2 m forward (camera z)
+        truth = truth @ step
+        noisy = step.copy()
+        noisy[:3, :3] = pose6_to_matrix([0, turn + math.radians(1.5), 0, 0, 0, 0])[:3, :3]  # 1.5 deg over-turn
+        belief = belief @ noisy
+        true_poses.append(truth.copy())
+        mo.transform_aft = mo.transform_tobe = np.array([*__import__('lego_loam_py.core.frames', fromlist=['x'])
+                                                        .matrix_to_euler(belief[:3, :3]), *belief[:3, 3]])
+        assert mo._save_keyframe(k, empty, empty, empty)
+        drifted.append(pose6_to_matrix(mo.keyframes[-1].pose6))
+    error_before = np.linalg.norm(drifted[-1][:3, 3] - true_poses[-1][:3, 3])
+    # The last keyframe is back at the first one's place: tell the graph so.
+    relative = np.linalg.inv(true_poses[-1]) @ true_poses[0]
+    mo.add_loop_factor(39, 0, relative, np.full(6, 1e-4))
+    corrected = [pose6_to_matrix(kf.pose6) for kf in mo.keyframes]
+    error_after = np.linalg.norm(corrected[-1][:3, 3] - true_poses[-1][:3, 3])
+    assert error_before > 5.0 and error_after < 0.5 * error_before
+    mean_before = np.mean([np.linalg.norm(d[:3, 3] - t[:3, 3]) for d, t in zip(drifted, true_poses)])
+    mean_after = np.mean([np.linalg.norm(c[:3, 3] - t[:3, 3]) for c, t in zip(corrected, true_poses)])
+    assert mean_after < 0.6 * mean_before
+
+
+def moved(x: float) -> np.ndarray:
+    pose = np.eye(4)
+    pose[0, 3] = x          # forward (lidar x)
+    return pose
+
+
+def test_keyframes_every_0_3_m_and_the_surrounding_map():
+    scene = room_world(seed=8)
+    mo = MapOptimization(PARAMS)
+    added = []
+    for k in range(8):
+        f = features_of(scene, moved(0.16 * k))
+        odometry = np.array([0, 0, 0, 0, 0, 0.16 * k])     # the odometry agrees: 16 cm per step (camera z)
+        step = mo.process(k * 400_000_000, odometry, f.less_sharp, f.less_flat, np.zeros((0, 4), np.float32))
+        added.append(step.keyframe_added)
+        assert abs(step.transform_aft[5] - 0.16 * k) < 0.03
+    assert added == [True, False, True, False, True, False, True, False]
+    assert len(mo.keyframes) == 4
+    ids = mo._surrounding_ids()
+    # The original picks keyframes through a 1 m voxel grid of their positions and truncates the averaged
+    # index of each voxel (quirk 8.5): compute that independently.
+    positions = np.array([kf.pose6[3:] for kf in mo.keyframes])
+    cells = np.floor(positions / 1.0) - np.floor(positions.min(axis=0) / 1.0)
+    expected = sorted({int(np.mean([i for i in range(4) if (cells[i] == cell).all()])) for cell in cells})
+    assert ids == expected and set(mo._world_cache) <= set(ids)
+    # Steps closer than mapping_process_interval are skipped.
+    assert mo.process(7 * 400_000_000 + 200_000_000, np.zeros(6), f.less_sharp, f.less_flat,
+                      np.zeros((0, 4), np.float32)) is None
+
+
+def test_surrounding_map_radius_and_recent_modes():
+    mo = MapOptimization(PARAMS)
+    empty = np.zeros((0, 4), np.float32)
+    for k in range(60):
+        mo.transform_aft = mo.transform_tobe = np.array([0, 0, 0, 0, 0, 2.0 * k])
+        mo._save_keyframe(k, empty, empty, empty)
+    mo.current_position = np.array([0, 0, 0.0])
+    ids = mo._surrounding_ids()
+    assert max(ids) <= 25 and min(ids) == 0              # within 50 m
+    loop_mode = MapOptimization(PARAMS.replace(loop_closure__loop_closure_enable_flag=True))
+    loop_mode.keyframes, loop_mode._positions = mo.keyframes, mo._positions
+    assert loop_mode._surrounding_ids() == list(range(10, 60))   # the last 50
+
+
+def test_map_equals_the_originals_on_golden_data(shared_data):
+    params = PARAMS.replace(feature_association__relative_time_source='original')
+    g = np.load(shared_data / 'golden' / 'vlp16_static_indoor_20hz.npz')
+    ip, fa, mo = ImageProjection(params), FeatureAssociation(params), MapOptimization(params)
+    ours = []
+    for k in range(len(g['stamps'])):
+        inp = g[f's{k}_input']
+        r = ip.process(ProjectionInput(xyz=inp[:, :3].copy(), ring=inp[:, 4].astype(np.int64)))
+        res = fa.process(ScanInput(int(g['stamps'][k]), r.segmented_cloud, r.cloud_info, r.outlier_cloud))
+        if res.outlier_last is not None:
+            step = mo.process(res.stamp_ns, res.transform_sum, res.corner_last, res.surf_last, res.outlier_last)
+            if step is not None:
+                ours.append([*step.transform_aft[3:], *euler_to_quaternion(*step.transform_aft[:3])])
+    theirs = g['aft_mapped_to_init']
+    ours = np.array(ours)
+    assert ours.shape == theirs.shape
+    assert np.abs(ours[:, :3] - theirs[:, :3]).max() < 1e-5
+    assert np.abs(np.abs(ours[:, 3:]) - np.abs(theirs[:, 3:])).max() < 1e-6
+
+
+def test_save_writes_complete_files_atomically(tmp_path):
+    from lego_loam_py.core.io import read_pcd, read_tum
+    scene = room_world(seed=9)
+    mo = MapOptimization(PARAMS)
+    for k in range(4):
+        f = features_of(scene, moved(0.4 * k))
+        mo.process(k * 400_000_000, np.array([0, 0, 0, 0, 0, 0.4 * k]), f.less_sharp, f.less_flat,
+                   np.zeros((0, 4), np.float32))
+    written = mo.save(tmp_path)
+    assert set(written) == {'global_map', 'corner_map', 'surface_map', 'trajectory', 'trajectory_tum',
+                            'trajectory_camera_init_tum'}
+    stamps, poses = read_tum(written['trajectory_tum'])
+    assert len(stamps) == len(mo.keyframes) == 4
+    # REP-103 map axes: the 0.4 m steps along camera z are steps along x.
+    assert np.allclose(poses[:, :3, 3], [[0.4 * k, 0, 0] for k in range(4)], atol=0.05)
+    points = read_pcd(written['global_map'])
+    assert len(points) > 500 and points.shape[1] == 4
+    # The floor (1.5 m below the sensor) is at z = -1.5 in the map frame.
+    assert abs(np.percentile(points[:, 2], 5) + 1.5) < 0.3
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(p.name for p in written.values())
+
+
+def test_transform_cloud_is_the_world_convention():
+    pose = np.array([0.1, 0.5, -0.2, 1.0, 2.0, 3.0])
+    points = cloud([[1.0, 0.0, 0.0], [0.0, 0.0, 5.0]])
+    assert np.allclose(transform_cloud(points, pose)[:, :3],
+                       transform_points(pose6_to_matrix(pose), points[:, :3].astype(float)), atol=1e-5)
