@@ -23,8 +23,13 @@ COMMANDS = [
     ('record', 'lego_loam_py.bag.recorder', 'record topics into a ROS 2 bag (mcap by default)',
      'Record topics into a ROS 2 bag, custom message types (CloudInfo) included. Ctrl-C finishes the bag '
      'cleanly.'),
-    # simulate: (the simulator registers here)
-    # view: (the scan viewer registers here)
+    ('simulate', 'lego_loam_py.sim.cli', 'simulate a lidar + IMU recording of a scenario, with ground truth',
+     'Simulate a VLP-16 (or another preset) and a 9-axis IMU in a procedural world by ray casting: campus loop, forest '
+     'trail, indoor corridor or aggressive drive. Writes a ROS 2 (mcap/db3) or ROS 1 bag with /velodyne_points and '
+     '/imu/data, plus ground truth (TUM), per-point labels and the parameters beside it. Seeded and reproducible.'),
+    ('view', 'lego_loam_py.sim.render', 'top-down PNG of one scan of a bag',
+     'Render one PointCloud2 scan of any bag (simulated or real) as a top-down PNG, coloured by height, intensity, '
+     'ring or (simulated bags) per-point label.'),
     ('convert', 'lego_loam_py.bag.convert', 'convert Velodyne/Ouster pcaps or raw-packet bags into PointCloud2 bags',
      'Convert a real recording (Velodyne VLP-16 pcap, single or dual return; Ouster pcap + metadata JSON; ROS 1/2 bag '
      'of velodyne_msgs/VelodyneScan raw packets) into a bag of PointCloud2 sweeps with ring and per-point time.'),

@@ -1,0 +1,189 @@
+"""Files beside a bag: ground truth, per-point labels, the generating parameters and a note.
+
+For a ROS 2 bag directory ``P`` the sidecar files live inside it (``P/ground_truth.tum``); for a ROS 1 bag
+file ``P.bag`` they sit next to it with the bag's stem as prefix (``P.ground_truth.tum``):
+
+==========================  ======================================================================================
+``ground_truth.tum``        lidar pose at every sweep start (= the cloud's header stamp), relative to the first
+                            one (first pose = identity), REP-103 axes (x forward, y left, z up). TUM format:
+                            ``timestamp tx ty tz qx qy qz qw``, timestamp in seconds with nanosecond digits.
+``ground_truth_dense.tum``  the same trajectory at every IMU stamp (for deskewing and IMU checks).
+``labels.npz``              ``s{k}``: uint32 label of every point of scan k, in message order (0 none,
+                            1 ground, >= 2 object id); ``stamps``: int64 header stamps [ns]; ``classes``: JSON
+                            array, ``classes[id]`` = class name of each id.
+``scenario.yaml``           every parameter (scenario, seed, sensor, noise, drawn biases, layout, ...), the
+                            world pose of the first ground-truth pose, statistics.
+``README.md``               how the bag was produced, with the exact command.
+==========================  ======================================================================================
+
+:func:`sidecar_path` and :func:`load_ground_truth` find these beside any bag; the pipeline's demo and
+evaluation use them.
+"""
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from scipy.spatial.transform import Rotation
+
+__all__ = ['GROUND_TRUTH', 'GROUND_TRUTH_DENSE', 'LABELS', 'SCENARIO', 'NOTE', 'sidecar_path', 'write_tum',
+           'read_tum', 'load_ground_truth', 'relative_poses', 'LabelWriter', 'Labels', 'load_labels',
+           'load_scenario', 'write_yaml']
+
+GROUND_TRUTH = 'ground_truth.tum'
+GROUND_TRUTH_DENSE = 'ground_truth_dense.tum'
+LABELS = 'labels.npz'
+SCENARIO = 'scenario.yaml'
+NOTE = 'README.md'
+
+
+def sidecar_path(bag_path: str | Path, name: str) -> Path:
+    """Where the sidecar ``name`` of a bag lives: inside a ROS 2 bag directory, or ``<stem>.<name>`` next
+    to a ROS 1 ``.bag`` file. A ``.db3``/``.mcap`` file inside a ROS 2 bag directory stands for that
+    directory. The bag need not exist yet."""
+    path = Path(bag_path).expanduser()
+    if path.suffix == '.bag':
+        return path.with_name(f'{path.stem}.{name}')
+    if path.suffix in ('.db3', '.mcap') and (path.parent / 'metadata.yaml').is_file():
+        return path.parent / name
+    return path / name
+
+
+def _format_stamp(stamp_ns: int) -> str:
+    stamp_ns = int(stamp_ns)
+    return f'{stamp_ns // 1_000_000_000}.{stamp_ns % 1_000_000_000:09d}'
+
+
+def _parse_stamp(text: str) -> int:
+    whole, _, fraction = text.partition('.')
+    sign = -1 if whole.startswith('-') else 1
+    return sign * (abs(int(whole)) * 1_000_000_000 + int((fraction + '000000000')[:9] or 0))
+
+
+def relative_poses(poses: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) poses expressed relative to the first one (``inv(T_0) T_k``)."""
+    first_inverse = np.linalg.inv(poses[0])
+    return np.einsum('ij,njk->nik', first_inverse, poses)
+
+
+def write_tum(path: str | Path, stamps_ns: np.ndarray, poses: np.ndarray) -> None:
+    """TUM trajectory file: ``timestamp tx ty tz qx qy qz qw`` per line (quaternion with qw >= 0)."""
+    quaternions = Rotation.from_matrix(poses[:, :3, :3]).as_quat()
+    quaternions[quaternions[:, 3] < 0] *= -1.0
+    lines = [f'{_format_stamp(s)} {t[0]:.9f} {t[1]:.9f} {t[2]:.9f} {q[0]:.12f} {q[1]:.12f} {q[2]:.12f} {q[3]:.12f}'
+             for s, t, q in zip(stamps_ns, poses[:, :3, 3], quaternions)]
+    Path(path).write_text('# timestamp tx ty tz qx qy qz qw\n' + '\n'.join(lines) + '\n')
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps [ns] int64 (N,), poses (N, 4, 4)) of a TUM trajectory file."""
+    stamps, rows = [], []
+    for line in Path(path).read_text().splitlines():
+        line = line.strip()
+        if not line or line.startswith('#'):
+            continue
+        parts = line.split()
+        if len(parts) != 8:
+            raise ValueError(f'{path}: a TUM line needs 8 values, got {len(parts)}: {line!r}')
+        stamps.append(_parse_stamp(parts[0]))
+        rows.append([float(v) for v in parts[1:]])
+    values = np.array(rows, dtype=float).reshape(-1, 7)
+    poses = np.tile(np.eye(4), (len(values), 1, 1))
+    if len(values):
+        poses[:, :3, :3] = Rotation.from_quat(values[:, 3:]).as_matrix()
+        poses[:, :3, 3] = values[:, :3]
+    return np.array(stamps, dtype=np.int64), poses
+
+
+def load_ground_truth(bag_path: str | Path, dense: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
+    """Ground truth beside a bag: (stamps [ns] int64 (N,), lidar poses (N, 4, 4) relative to the first),
+    or None when the bag has none. ``dense`` selects the IMU-rate file."""
+    path = sidecar_path(bag_path, GROUND_TRUTH_DENSE if dense else GROUND_TRUTH)
+    if not path.is_file():
+        return None
+    return read_tum(path)
+
+
+def load_scenario(bag_path: str | Path) -> dict[str, Any] | None:
+    """The scenario.yaml beside a bag, or None."""
+    path = sidecar_path(bag_path, SCENARIO)
+    if not path.is_file():
+        return None
+    return yaml.safe_load(path.read_text())
+
+
+def write_yaml(path: str | Path, data: dict[str, Any]) -> None:
+    Path(path).write_text(yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=110))
+
+
+# ------------------------------------------------------------------------------------------------ labels
+
+_ZIP_DATE = (1980, 1, 1, 0, 0, 0)   # fixed member dates: identical inputs give identical files
+
+
+class LabelWriter:
+    """Streams per-scan label arrays into an .npz (a zip of .npy members, readable by ``np.load``) without
+    holding them all in memory."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self._zip = zipfile.ZipFile(self.path, 'w', compression=zipfile.ZIP_DEFLATED, compresslevel=6)
+        self._count = 0
+
+    def _write_array(self, name: str, array: np.ndarray) -> None:
+        buffer = io.BytesIO()
+        array = np.asarray(array)
+        np.lib.format.write_array(buffer, array if array.ndim == 0 else np.ascontiguousarray(array),
+                                  allow_pickle=False)
+        info = zipfile.ZipInfo(f'{name}.npy', date_time=_ZIP_DATE)
+        info.compress_type = zipfile.ZIP_DEFLATED
+        self._zip.writestr(info, buffer.getvalue(), compresslevel=6)
+
+    def add_scan(self, labels: np.ndarray) -> None:
+        """Labels of the next scan (key ``s{k}``)."""
+        self._write_array(f's{self._count}', np.asarray(labels, dtype=np.uint32))
+        self._count += 1
+
+    def close(self, stamps_ns: np.ndarray, classes: list[str] | tuple[str, ...]) -> None:
+        self._write_array('stamps', np.asarray(stamps_ns, dtype=np.int64))
+        self._write_array('classes', np.array(json.dumps(list(classes))))
+        self._zip.close()
+
+    def abort(self) -> None:
+        self._zip.close()
+
+
+class Labels:
+    """Read access to a labels.npz: ``labels[k]`` is scan k's uint32 array."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self._npz = np.load(self.path, allow_pickle=False)
+        self.stamps = self._npz['stamps']
+        self.classes: list[str] = json.loads(str(self._npz['classes'].reshape(-1)[0]))
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    def __getitem__(self, scan: int) -> np.ndarray:
+        if not 0 <= scan < len(self):
+            raise IndexError(f'scan {scan} out of range (0..{len(self) - 1})')
+        return self._npz[f's{scan}']
+
+    def class_names(self, labels: np.ndarray) -> np.ndarray:
+        """Class name of each label value."""
+        return np.asarray(self.classes, dtype=object)[labels]
+
+    def close(self) -> None:
+        self._npz.close()
+
+
+def load_labels(bag_path: str | Path) -> Labels | None:
+    """The labels.npz beside a bag, or None."""
+    path = sidecar_path(bag_path, LABELS)
+    return Labels(path) if path.is_file() else None

@@ -1,0 +1,344 @@
+"""The simulator's driver: a scenario -> a bag with /velodyne_points and /imu/data, plus its sidecar files.
+
+Timing: simulation time t = 0 is header stamp :data:`START_STAMP_NS`. Sweep k starts at ``k * scan_period``
+(its cloud's header stamp) and is recorded at its end (bag time = stamp + scan_period, as a driver
+publishes it); IMU sample j is stamped and recorded at ``j / imu_rate``, from t = 0 to the end of the last
+sweep, so every sweep is covered by IMU data recorded before its cloud.
+
+Determinism: every random draw comes from a generator seeded by (seed, purpose, index) -- the scenery, the
+IMU biases, each sweep's lidar noise, each sweep's IMU noise -- and nothing depends on the wall clock, so the
+same configuration always gives byte-identical messages and sidecar files.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import shutil
+import sys
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lego_loam_py import __version__
+
+__all__ = ['SimConfig', 'SimResult', 'simulate', 'cached_scenario', 'cache_root', 'START_STAMP_NS',
+           'SIM_VERSION', 'LAYOUTS', 'CLOUD_TOPIC', 'IMU_TOPIC', 'LIDAR_FRAME', 'IMU_FRAME']
+
+SIM_VERSION = 1                              # bump whenever the same configuration would give other data
+START_STAMP_NS = 1_700_000_000_000_000_000   # header stamp of t = 0 (2023-11-14T22:13:20Z)
+CLOUD_TOPIC, IMU_TOPIC = '/velodyne_points', '/imu/data'
+LIDAR_FRAME, IMU_FRAME = 'velodyne', 'imu_link'
+LAYOUTS = ('driver', 'packed')   # VELODYNE_POINT_DTYPE (ROS 2 driver, 32 B) / VELODYNE_PACKED_DTYPE (22 B)
+STORAGES = ('mcap', 'sqlite3')
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Everything that determines a simulated recording."""
+
+    scenario: str
+    duration: float | None = None                 # [s]; None: the scenario's default (one full lap)
+    seed: int = 0
+    preset: str = 'VLP-16'
+    imu_rate: float = 200.0                       # [Hz]
+    storage: str = 'mcap'                         # ROS 2 storage: mcap or sqlite3
+    ros1: bool = False                            # write a ROS 1 .bag instead
+    layout: str = 'driver'                        # point layout: driver (32 B) or packed (22 B)
+    compress: bool = False                        # zstd chunks (ROS 2 mcap / sqlite3 file)
+    imu_extrinsic_rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)   # IMU axes in the lidar frame [deg]
+    ideal: bool = False                           # no noise, no bias, no dropped returns
+
+    def validate(self) -> 'SimConfig':
+        from lego_loam_py.core.params import SENSOR_PRESETS
+        from lego_loam_py.sim.scenarios import SCENARIOS
+        if self.scenario not in SCENARIOS:
+            raise ValueError(f"unknown scenario '{self.scenario}' (known: {', '.join(SCENARIOS)})")
+        if self.preset not in SENSOR_PRESETS:
+            raise ValueError(f"unknown sensor preset '{self.preset}' (known: {', '.join(SENSOR_PRESETS)})")
+        if self.layout not in LAYOUTS:
+            raise ValueError(f"unknown layout '{self.layout}' (use {' or '.join(LAYOUTS)})")
+        if self.storage not in STORAGES:
+            raise ValueError(f"unknown storage '{self.storage}' (use {' or '.join(STORAGES)})")
+        if self.duration is not None and not self.duration > 0:
+            raise ValueError(f'duration must be positive, got {self.duration}')
+        if not 1.0 <= self.imu_rate <= 2000.0:
+            raise ValueError(f'imu rate must be within 1..2000 Hz, got {self.imu_rate}')
+        if len(self.imu_extrinsic_rpy) != 3:
+            raise ValueError('the IMU extrinsic needs roll, pitch and yaw')
+        return replace(self, imu_extrinsic_rpy=tuple(float(a) for a in self.imu_extrinsic_rpy),
+                       seed=int(self.seed), imu_rate=float(self.imu_rate))
+
+    def to_dict(self) -> dict[str, Any]:
+        out = asdict(self)
+        out['imu_extrinsic_rpy'] = list(self.imu_extrinsic_rpy)
+        return out
+
+    def command(self, output: str | Path) -> str:
+        """The ``lego_loam_py simulate`` command line that reproduces this configuration."""
+        parts = ['lego_loam_py', 'simulate', self.scenario, '-o', str(output)]
+        if self.duration is not None:
+            parts += ['--duration', f'{self.duration:g}']
+        parts += ['--seed', str(self.seed)]
+        if self.preset != 'VLP-16':
+            parts += ['--preset', self.preset]
+        if self.imu_rate != 200.0:
+            parts += ['--imu-rate', f'{self.imu_rate:g}']
+        if self.ros1:
+            parts.append('--ros1')
+        elif self.storage != 'mcap':
+            parts += ['--storage', self.storage]
+        if self.layout != 'driver':
+            parts += ['--layout', self.layout]
+        if self.compress:
+            parts.append('--compress')
+        if any(self.imu_extrinsic_rpy):
+            parts += ['--imu-extrinsic-rpy', *(f'{a:g}' for a in self.imu_extrinsic_rpy)]
+        if self.ideal:
+            parts.append('--ideal')
+        return ' '.join(parts)
+
+    def cache_key(self) -> str:
+        """Hash of the configuration and the simulator version (names the cache entry)."""
+        text = json.dumps({'sim_version': SIM_VERSION, **self.to_dict()}, sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+@dataclass
+class SimResult:
+    """What :func:`simulate` wrote."""
+
+    bag_path: Path
+    scans: int
+    imu_messages: int
+    points: int
+    duration: float                     # [s] simulated (scans x scan period)
+    facts: dict = field(default_factory=dict)
+
+
+def _point_dtype(layout: str) -> np.dtype:
+    from lego_loam_py.core.pointcloud import VELODYNE_PACKED_DTYPE, VELODYNE_POINT_DTYPE
+    return VELODYNE_PACKED_DTYPE if layout == 'packed' else VELODYNE_POINT_DTYPE
+
+
+def _bag_output_path(config: SimConfig, output: str | Path) -> Path:
+    path = Path(output).expanduser()
+    if config.ros1 and path.suffix != '.bag':
+        path = path.with_name(path.name + '.bag')
+    return path
+
+
+def _imu_message(types: dict, header: Any, sample: tuple, covariances: dict) -> Any:
+    orientation, gyro, accel = sample
+    vector = types['geometry_msgs/msg/Vector3']
+    return types['sensor_msgs/msg/Imu'](
+        header=header,
+        orientation=types['geometry_msgs/msg/Quaternion'](x=float(orientation[0]), y=float(orientation[1]),
+                                                          z=float(orientation[2]), w=float(orientation[3])),
+        orientation_covariance=covariances['orientation'],
+        angular_velocity=vector(x=float(gyro[0]), y=float(gyro[1]), z=float(gyro[2])),
+        angular_velocity_covariance=covariances['angular_velocity'],
+        linear_acceleration=vector(x=float(accel[0]), y=float(accel[1]), z=float(accel[2])),
+        linear_acceleration_covariance=covariances['linear_acceleration'])
+
+
+def _note(config: SimConfig, bag_name: str, result: 'SimResult', description: str) -> str:
+    command = config.command(bag_name)
+    kind = 'ROS 1 bag' if config.ros1 else f'ROS 2 bag ({config.storage}{", zstd-compressed" if config.compress else ""})'
+    layout = ("the ROS 1 velodyne driver's packed XYZIRT layout (22 bytes)" if config.layout == 'packed' else
+              "the ROS 2 velodyne driver's PointXYZIRT layout (32 bytes)")
+    ideal = ' Ideal sensors: no noise, no bias, no dropped returns.' if config.ideal else ''
+    return f"""# {bag_name}: simulated `{config.scenario}` scenario
+
+{description[0].upper() + description[1:]}.
+
+Produced by the lego_loam_py simulator (lego_loam_py {__version__}, simulator version {SIM_VERSION}) with
+
+```bash
+{command}
+```
+
+The same command always produces byte-identical messages (seeded; no wall-clock input).
+
+* {kind}, {result.duration:.1f} s: `{CLOUD_TOPIC}` (sensor_msgs/PointCloud2, frame `{LIDAR_FRAME}`,
+  {config.preset}, {result.scans} sweeps at 10 Hz, {result.points} points; fields x y z intensity ring time in
+  {layout}; header stamp = sweep start) and `{IMU_TOPIC}` (sensor_msgs/Imu, frame `{IMU_FRAME}`,
+  {config.imu_rate:g} Hz, {result.imu_messages} messages).{ideal}
+* `ground_truth.tum`: lidar pose at each sweep start relative to the first (TUM, REP-103 axes);
+  `ground_truth_dense.tum`: the same at every IMU stamp.
+* `labels.npz`: per-point labels of every scan (0 none, 1 ground, >= 2 object id; `classes` names them).
+* `scenario.yaml`: every parameter, the drawn IMU biases, the world pose of the first ground-truth pose,
+  statistics.
+"""
+
+
+def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> SimResult:
+    """Run the simulation ``config`` and write the bag ``output`` with its sidecar files.
+
+    ``output`` is a ROS 2 bag directory (must not exist) or, with ``config.ros1``, a ``.bag`` file (the
+    suffix is added when missing). Returns what was written.
+    """
+    from tqdm import tqdm
+
+    from lego_loam_py.bag.io import BagWriter, make_cloud_msg
+    from lego_loam_py.sim import output as sidecars
+    from lego_loam_py.sim.imu import ImuModel, ImuNoise
+    from lego_loam_py.sim.lidar import LidarModel, simulate_sweep
+    from lego_loam_py.sim.scenarios import build_world, scenario_rng
+
+    config = config.validate()
+    bag_path = _bag_output_path(config, output)
+    if bag_path.exists():
+        raise FileExistsError(f'{bag_path} exists already; choose another output (bags are never overwritten)')
+    world = build_world(config.scenario, config.seed)
+    lidar = LidarModel.from_preset(config.preset, ideal=config.ideal)
+    imu = ImuModel(rate=config.imu_rate, noise=ImuNoise.none() if config.ideal else ImuNoise(),
+                   extrinsic_rpy_deg=config.imu_extrinsic_rpy)
+    period_ns = int(round(lidar.scan_period * 1e9))
+    duration = world.default_duration if config.duration is None else config.duration
+    n_scans = max(1, int(math.floor(duration / lidar.scan_period + 1e-9)))
+    end_ns = n_scans * period_ns
+    imu_period = 1e9 / imu.rate
+    imu_offsets_ns = np.round(np.arange(int(math.floor(end_ns / imu_period + 1e-9)) + 1) * imu_period).astype(np.int64)
+    biases = imu.draw_biases(scenario_rng(config.seed, 'imu-bias'))
+    covariances = imu.covariances()
+    dtype = _point_dtype(config.layout)
+
+    bag_path.parent.mkdir(parents=True, exist_ok=True)
+    sweep_offsets_ns = np.arange(n_scans, dtype=np.int64) * period_ns
+    total_points = 0
+    labels_path = sidecars.sidecar_path(bag_path, sidecars.LABELS)
+    label_writer = None
+    with BagWriter(bag_path, storage=config.storage, ros1=config.ros1, compress=config.compress) as bag:
+        types = bag.types
+        bag.add_topic(CLOUD_TOPIC, 'sensor_msgs/msg/PointCloud2')
+        bag.add_topic(IMU_TOPIC, 'sensor_msgs/msg/Imu')
+        label_writer = sidecars.LabelWriter(labels_path)
+        imu_index = 0
+        try:
+            with tqdm(total=n_scans, unit='scan', disable=not progress, file=sys.stderr,
+                      desc=f'simulate {config.scenario}') as bar:
+                for k in range(n_scans):
+                    sweep_end = int(sweep_offsets_ns[k] + period_ns)
+                    # IMU samples up to and including the end of this sweep, recorded before its cloud.
+                    stop = int(np.searchsorted(imu_offsets_ns, sweep_end, side='right'))
+                    if stop > imu_index:
+                        times_ns = imu_offsets_ns[imu_index:stop]
+                        samples = imu.measure(world.trajectory, times_ns / 1e9, biases,
+                                              None if config.ideal else scenario_rng(config.seed, 'imu-noise', k))
+                        for j, stamp in enumerate(times_ns):
+                            absolute = START_STAMP_NS + int(stamp)
+                            header = bag.header(absolute, IMU_FRAME, seq=imu_index + j)
+                            message = _imu_message(types, header, (samples.orientation[j], samples.angular_velocity[j],
+                                                                   samples.linear_acceleration[j]), covariances)
+                            bag.write_msg(IMU_TOPIC, absolute, message)
+                        imu_index = stop
+                    sweep = simulate_sweep(lidar, world.scene, world.trajectory, sweep_offsets_ns[k] / 1e9,
+                                           None if config.ideal else scenario_rng(config.seed, 'lidar', k), dtype)
+                    header = bag.header(START_STAMP_NS + int(sweep_offsets_ns[k]), LIDAR_FRAME, seq=k)
+                    bag.write_msg(CLOUD_TOPIC, START_STAMP_NS + sweep_end, make_cloud_msg(types, header, sweep.points))
+                    label_writer.add_scan(sweep.labels)
+                    total_points += len(sweep.points)
+                    bar.update(1)
+        except BaseException:
+            label_writer.abort()
+            raise
+
+    label_writer.close(START_STAMP_NS + sweep_offsets_ns, world.scene.classes)
+    # Ground truth: lidar poses relative to the first sweep start (t = 0, also the first IMU stamp).
+    poses = world.trajectory.matrices(sweep_offsets_ns / 1e9)
+    dense = world.trajectory.matrices(imu_offsets_ns / 1e9)
+    first = poses[0].copy()
+    sidecars.write_tum(sidecars.sidecar_path(bag_path, sidecars.GROUND_TRUTH), START_STAMP_NS + sweep_offsets_ns,
+                       sidecars.relative_poses(poses))
+    dense_relative = np.einsum('ij,njk->nik', np.linalg.inv(first), dense)
+    sidecars.write_tum(sidecars.sidecar_path(bag_path, sidecars.GROUND_TRUTH_DENSE), START_STAMP_NS + imu_offsets_ns,
+                       dense_relative)
+    result = SimResult(bag_path, n_scans, len(imu_offsets_ns), total_points, n_scans * lidar.scan_period,
+                       dict(world.facts))
+    from scipy.spatial.transform import Rotation
+    first_quaternion = Rotation.from_matrix(first[:3, :3]).as_quat()
+    if first_quaternion[3] < 0:
+        first_quaternion = -first_quaternion
+    travelled = np.linalg.norm(np.diff(dense[:, :3, 3], axis=0), axis=1).sum()
+    sidecars.write_yaml(sidecars.sidecar_path(bag_path, sidecars.SCENARIO), {
+        'generator': f'lego_loam_py {__version__} simulator version {SIM_VERSION}',
+        'command': config.command(bag_path.name),
+        'config': config.to_dict(),
+        'scenario': {'name': world.name, 'description': world.description, 'seed': config.seed,
+                     'default_duration_s': world.default_duration, **world.facts},
+        'recording': {'scans': n_scans, 'duration_s': round(n_scans * lidar.scan_period, 6),
+                      'imu_messages': len(imu_offsets_ns), 'points': total_points,
+                      'mean_points_per_scan': round(total_points / n_scans, 1),
+                      'distance_travelled_m': round(float(travelled), 3),
+                      'start_stamp_ns': START_STAMP_NS,
+                      'topics': {CLOUD_TOPIC: {'type': 'sensor_msgs/msg/PointCloud2', 'frame_id': LIDAR_FRAME,
+                                               'layout': config.layout, 'point_step': int(dtype.itemsize)},
+                                 IMU_TOPIC: {'type': 'sensor_msgs/msg/Imu', 'frame_id': IMU_FRAME}},
+                      'bag_time': 'clouds at sweep end (stamp + scan period), IMU at its stamp'},
+        'lidar': lidar.describe(),
+        'imu': imu.describe(biases),
+        'ground_truth': {
+            'file': sidecars.GROUND_TRUTH, 'dense_file': sidecars.GROUND_TRUTH_DENSE,
+            'frame': 'lidar (REP-103: x forward, y left, z up) relative to its pose at the first sweep start',
+            'world': 'gravity-aligned simulator world, z up',
+            'world_T_first': {'translation': [round(float(v), 9) for v in first[:3, 3]],
+                              'quaternion_xyzw': [round(float(v), 12) for v in first_quaternion]},
+        },
+        'labels': {'file': sidecars.LABELS, 'values': '0 none (clutter, unlabeled), 1 ground, >= 2 object id',
+                   'objects': len(world.scene.classes) - 2,
+                   'classes': sorted(set(world.scene.classes[2:]))},
+    })
+    sidecars.sidecar_path(bag_path, sidecars.NOTE).write_text(_note(config, bag_path.name, result, world.description))
+    return result
+
+
+# ------------------------------------------------------------------------------------------------- cache
+
+def cache_root() -> Path:
+    """Base of lego_loam_py's caches: ``$LEGO_LOAM_CACHE``, else ``$XDG_CACHE_HOME/lego_loam_py``, else
+    ``~/.cache/lego_loam_py``. Simulated scenarios go to its ``sim/`` folder."""
+    if os.environ.get('LEGO_LOAM_CACHE'):
+        return Path(os.environ['LEGO_LOAM_CACHE']).expanduser()
+    base = os.environ.get('XDG_CACHE_HOME') or str(Path.home() / '.cache')
+    return Path(base).expanduser() / 'lego_loam_py'
+
+
+def cached_scenario(name: str, duration: float | None = None, seed: int = 0, progress: bool = False,
+                    **options: Any) -> Path:
+    """Path of the bag of scenario ``name`` (``duration`` [s], ``seed``, further :class:`SimConfig` fields in
+    ``options``), generated into the cache on first use and reused afterwards.
+
+    The entry is ``<cache_root()>/sim/<name>-<hash of the configuration>``: the ROS 2 bag directory itself
+    (or, for ``ros1=True``, a folder holding ``<name>.bag``). Generation writes to a temporary folder that
+    is renamed when complete, so an interrupted run never leaves a half-written entry behind.
+    """
+    config = SimConfig(scenario=name, duration=duration, seed=seed, **options).validate()
+    folder = cache_root() / 'sim'
+    entry = folder / f'{name}-{config.cache_key()}'
+
+    def bag_in(directory: Path) -> Path:
+        return directory / f'{name}.bag' if config.ros1 else directory
+
+    if (entry / 'README.md').is_file() or (config.ros1 and bag_in(entry).is_file()):
+        return bag_in(entry)
+    folder.mkdir(parents=True, exist_ok=True)
+    temporary = folder / f'.{entry.name}.tmp{os.getpid()}'
+    if temporary.exists():
+        shutil.rmtree(temporary)
+    try:
+        if config.ros1:
+            temporary.mkdir()
+        simulate(config, bag_in(temporary), progress=progress)
+        try:
+            os.rename(temporary, entry)
+        except OSError:
+            if not entry.exists():   # another process finished first otherwise
+                raise
+    finally:
+        if temporary.exists():
+            shutil.rmtree(temporary, ignore_errors=True)
+    return bag_in(entry)
