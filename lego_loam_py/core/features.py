@@ -126,16 +126,12 @@ class FeatureExtractor:
         start_ring = info.start_ring_index.astype(np.int64)
         end_ring = info.end_ring_index.astype(np.int64)
 
+        # How far a pick suppresses its neighbours: up to suppress_half_window points each way, stopping
+        # before the first column jump larger than suppress_column_jump (precomputed for every point).
+        forward, backward = _suppression_extents(columns, fa.suppress_half_window, fa.suppress_column_jump)
+
         def suppress(index: int) -> None:
-            picked[index] = True
-            for step in (1, -1):
-                for offset in range(1, fa.suppress_half_window + 1):
-                    j = index + step * offset
-                    if j < 0 or j >= n:
-                        break
-                    if abs(columns[j] - columns[j - step]) > fa.suppress_column_jump:
-                        break
-                    picked[j] = True
+            picked[index - backward[index]:index + forward[index] + 1] = True
 
         for ring in range(len(start_ring)):
             ring_less_flat = []
@@ -154,7 +150,7 @@ class FeatureExtractor:
                 order = ind[np.argsort(curvature[ind], kind='stable')]
                 # Edges: the unsorted element ep first, then from the largest curvature down.
                 edge_order = np.concatenate(([ep], order[::-1]))
-                edge_order = edge_order[is_edge_candidate[edge_order]]
+                edge_order = edge_order[is_edge_candidate[edge_order]].tolist()
                 count = 0
                 for k in edge_order:
                     if picked[k]:
@@ -172,7 +168,7 @@ class FeatureExtractor:
                     suppress(k)
                 # Flats: from the smallest curvature up, the unsorted element ep last.
                 flat_order = np.concatenate((order, [ep]))
-                flat_order = flat_order[is_flat_candidate[flat_order]]
+                flat_order = flat_order[is_flat_candidate[flat_order]].tolist()
                 count = 0
                 for k in flat_order:
                     if picked[k]:
@@ -198,3 +194,19 @@ class FeatureExtractor:
                             less_flat=less_flat, sharp_index=sharp_index, less_sharp_index=less_sharp_index,
                             flat_index=flat_index)
 
+
+
+def _suppression_extents(columns: np.ndarray, half_window: int, column_jump: int) -> tuple[np.ndarray, np.ndarray]:
+    """(forward, backward) numbers of neighbours a pick at each index marks: the original walks l = 1..w
+    (and -1..-w) and stops at the first |col[k+l] - col[k+l-1]| > jump."""
+    n = len(columns)
+    jump = np.zeros(n + 1, dtype=bool)          # jump[j]: between point j-1 and j
+    jump[1:n] = np.abs(np.diff(columns)) > column_jump
+    jump[0] = jump[n] = True                    # the array ends stop the walk too
+    index = np.arange(n + 1)
+    next_jump = np.minimum.accumulate(np.where(jump, index, n + 1)[::-1])[::-1]   # first jump at >= j
+    last_jump = np.maximum.accumulate(np.where(jump, index, -1))                  # last jump at <= j
+    k = np.arange(n)
+    forward = np.minimum(half_window, next_jump[np.minimum(k + 1, n)] - k - 1)
+    backward = np.minimum(half_window, k - last_jump[k])
+    return forward.astype(np.int64), backward.astype(np.int64)

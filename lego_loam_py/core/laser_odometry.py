@@ -191,10 +191,17 @@ def _best_in_windows(query: np.ndarray, cloud: np.ndarray, owner: np.ndarray, po
     owner, position, dist = owner[keep], position[keep], dist[keep]
     if len(owner) == 0:
         return best_index, best_dist
-    tie_key = -position if prefer_last else position
-    order = np.lexsort((tie_key, dist, owner))
-    first = np.concatenate(([True], owner[order][1:] != owner[order][:-1]))
-    chosen = order[first]
+    # The windows arrive grouped by owner with ascending positions: per owner, the minimum distance, then the
+    # first (forward scan) or last (backward scan) position reaching it.
+    starts = np.flatnonzero(np.concatenate(([True], owner[1:] != owner[:-1])))
+    minimum = np.minimum.reduceat(dist, starts)
+    lengths = np.diff(np.append(starts, len(owner)))
+    at_minimum = np.flatnonzero(dist == np.repeat(minimum, lengths))
+    block = np.searchsorted(starts, at_minimum, side='right') - 1
+    if prefer_last:
+        chosen = at_minimum[np.concatenate((block[1:] != block[:-1], [True]))]
+    else:
+        chosen = at_minimum[np.concatenate(([True], block[1:] != block[:-1]))]
     best_index[owner[chosen]] = position[chosen]
     best_dist[owner[chosen]] = dist[chosen]
     return best_index, best_dist
