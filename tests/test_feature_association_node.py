@@ -38,8 +38,8 @@ def test_odometry_for_every_scan_over_dds_equals_the_original(shared_data, tmp_p
 
     golden = np.load(shared_data / 'golden' / f'{GOLDEN_BAG}.npz')
     stamps = golden['stamps'].tolist()
-    params = tmp_path / 'original.yaml'
-    params.write_text('/**:\n  ros__parameters:\n    feature_association:\n      relative_time_source: original\n')
+    from lego_loam_py.core.params import default_params_file
+    params = default_params_file().parent / 'original.yaml'
     node = rclpy.create_node('fa_listener', context=rclpy_context)
     odometry, tf, last = [], [], {t: [] for t in LAST_TOPICS}
     node.create_subscription(Odometry, '/laser_odom_to_init', odometry.append, qos.reliable(100))

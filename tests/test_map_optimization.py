@@ -13,7 +13,7 @@ from lego_loam_py.core.frames import euler_to_quaternion, pose6_to_matrix, trans
 from lego_loam_py.core.image_projection import ImageProjection, ProjectionInput, prepare_input
 from lego_loam_py.core.map_optimization import (MapOptimization, edge_correspondences, map_jacobian_rows,
                                                 plane_correspondences, transform_cloud)
-from lego_loam_py.core.params import Params
+from lego_loam_py.core.params import Params, default_params_file, load_params
 from lego_loam_py.core.voxel import voxel_downsample
 from tests.support.sweeps import room_world, sweep
 
@@ -175,7 +175,7 @@ def test_surrounding_map_radius_and_recent_modes():
 
 
 def test_map_equals_the_originals_on_golden_data(shared_data):
-    params = PARAMS.replace(feature_association__relative_time_source='original')
+    params = load_params(default_params_file().parent / 'original.yaml')
     g = np.load(shared_data / 'golden' / 'vlp16_static_indoor_20hz.npz')
     ip, fa, mo = ImageProjection(params), FeatureAssociation(params), MapOptimization(params)
     ours = []

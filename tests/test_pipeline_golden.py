@@ -33,14 +33,16 @@ def test_mapping_and_fusion_over_dds_equal_the_original(shared_data, tmp_path, r
     stamps = golden['stamps'].tolist()
     maps = tmp_path / 'maps'
     params = tmp_path / 'params.yaml'
-    params.write_text('/**:\n  ros__parameters:\n    feature_association:\n      relative_time_source: original\n'
-                      f'    map_optimization:\n      file_directory: {maps}\n')
+    params.write_text(f'/**:\n  ros__parameters:\n    map_optimization:\n      file_directory: {maps}\n')
+    from lego_loam_py.core.params import default_params_file
+    original = default_params_file().parent / 'original.yaml'
     node = rclpy.create_node('pipeline_listener', context=rclpy_context)
     mapped, integrated, static = [], [], []
     node.create_subscription(Odometry, '/aft_mapped_to_init', mapped.append, qos.reliable(100))
     node.create_subscription(Odometry, '/integrated_to_init', integrated.append, qos.reliable(100))
     node.create_subscription(TFMessage, '/tf_static', static.append, qos.latched())
-    procs = {name: processes.start([BIN / name, '--ros-args', '--params-file', params]) for name in NODES}
+    procs = {name: processes.start([BIN / name, '--ros-args', '--params-file', original, '--params-file', params])
+             for name in NODES}
     ready = spin_until(rclpy_context, node, lambda: node.count_publishers('/aft_mapped_to_init') > 0 and
                        node.count_publishers('/integrated_to_init') > 0 and
                        node.count_publishers('/segmented_cloud') > 0 and

@@ -24,16 +24,18 @@ twice). Translation keeps the original's constant-velocity guess corrected by th
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from lego_loam_py.core.features import FeatureExtractor, ScanFeatures
-from lego_loam_py.core.frames import euler_to_matrix, lidar_to_camera, make_pose, matrix_to_euler
+from lego_loam_py.core.frames import (euler_to_matrix, invert_pose, lidar_to_camera, make_pose, matrix_to_euler,
+                                      matrix_to_pose6)
 from lego_loam_py.core.image_projection import CloudInfo
 from lego_loam_py.core.imu import ImuBuffer, imu_world_rotation
 from lego_loam_py.core.laser_odometry import (LaserOdometry, OdometryStats, accumulate, sweep_angles,
-                                              sweep_rotation, transform_to_end)
+                                              sweep_rotation, transform_to_end, transform_to_start)
 from lego_loam_py.core.libm import atan2f
 from lego_loam_py.core.params import Params
 
@@ -110,13 +112,19 @@ class FeatureAssociation:
         self.params = params
         fa = params.feature_association
         self.extractor = FeatureExtractor(params)
-        self.odometry = LaserOdometry(params, fix_scan_bound=fix_scan_bound)
+        # The sweep-start model minimises R((1+s)θ)^T (p - (1+s) t) and needs its exact derivative; the original
+        # model keeps the original's rows (derivative at the full θ).
+        self.odometry = LaserOdometry(params, fix_scan_bound=fix_scan_bound,
+                                      exact_jacobian=fa.odometry_model == 'sweep_start')
         self.imu = ImuBuffer(fa.imu_que_length, fa.gravity, params.sensor.scan_period)
         self.transform_sum = np.zeros(6)
         self.initialized = False
         self.frame_count = fa.skip_frame_num
         self._previous_used_imu = False
         self._last_full_motion = np.zeros(6)   # sweep motion as a full (IMU-free) six-vector
+        self._world_pose = np.eye(4)          # sweep-start model: pose of the current sweep start
+        self._previous_attitude: dict | None = None
+        self._first_features = None
         self.scans = 0
 
     def reset(self) -> None:
@@ -142,31 +150,189 @@ class FeatureAssociation:
         return out
 
     def process(self, scan: ScanInput) -> FeatureAssociationResult:
-        import time as _time
+        """Features and odometry of one scan (see the module docstring)."""
+        if self.params.feature_association.odometry_model == 'original':
+            return self._process_original(scan)
+        return self._process_sweep_start(scan)
 
+    def _finish(self, scan: ScanInput, features, corner_last, surf_last, outlier_last, initialized, imu_used,
+                stats, timings) -> FeatureAssociationResult:
+        """Publication decision (every skip_frame_num + 1 scans after the first) and the result."""
+        fa = self.params.feature_association
+        if initialized:
+            return FeatureAssociationResult(scan.stamp_ns, features, self.transform_sum.copy(), corner_last,
+                                            surf_last, None, True, imu_used, None, timings)
+        self.frame_count += 1
+        publish = self.frame_count >= fa.skip_frame_num + 1
+        if publish:
+            self.frame_count = 0
+        return FeatureAssociationResult(scan.stamp_ns, features, self.transform_sum.copy(),
+                                        corner_last if publish else None, surf_last if publish else None,
+                                        outlier_last if publish else None, False, imu_used, stats, timings)
+
+    def _process_sweep_start(self, scan: ScanInput) -> FeatureAssociationResult:
+        """The default model: poses and 'last' clouds at the sweep start (header stamp).
+
+        The previous sweep's less-sharp / less-flat features, deskewed to its start, are the reference. The
+        current sweep's sharp / flat points are mapped into that frame with ``(1 + s) θ`` (constant motion
+        over both sweeps; ``θ`` = motion over one sweep in the original's six-vector convention), so the whole
+        displacement between the sweep starts is observed, not only the distortion within a sweep. With an
+        IMU, points are first rotated into the reference orientation with its attitude and ``θ`` keeps only
+        the rotation the IMU missed.
+        """
         timings = {}
-        t0 = _time.perf_counter()
+        t0 = time.perf_counter()
         points = self.prepare_points(scan)
         rel = 10.0 * (points[:, 3].astype(np.float64) - np.trunc(points[:, 3]))
-        imu = self._imu_deskew(points, rel, scan.stamp_ns) if len(points) else None
-        t1 = _time.perf_counter()
+        attitude = self._imu_attitudes(rel, scan.stamp_ns) if len(points) else None
+        t1 = time.perf_counter()
         features = self.extractor.extract(points, scan.info)
-        t2 = _time.perf_counter()
+        t2 = time.perf_counter()
         timings['deskew'] = (t1 - t0) * 1e3
         timings['features'] = (t2 - t1) * 1e3
         self.scans += 1
-        fa = self.params.feature_association
+        odometry = self.odometry
+        if not self.initialized:
+            if attitude is not None:
+                self.transform_sum[0] += attitude['pitch_start']
+                self.transform_sum[2] += attitude['roll_start']
+            self._world_pose = make_pose(euler_to_matrix(*self.transform_sum[:3]))
+            motion = np.eye(4)
+            corner_last = self._deskew_to_start(features.less_sharp, features.less_sharp_index, motion, attitude, points)
+            surf_last = self._deskew_to_start(features.less_flat, None, motion, attitude, points)
+            odometry.set_last(corner_last, surf_last)
+            self._previous_attitude = attitude
+            self._first_features = (features, points, attitude)   # re-deskewed once the motion is known
+            self.initialized = True
+            return self._finish(scan, features, corner_last, surf_last, None, True, attitude is not None, None, timings)
+        previous = self._previous_attitude
+        use_imu = attitude is not None and previous is not None
+        to_reference = previous['r_start'].T if use_imu else None
+        sharp = self._registration_input(features.sharp, features.sharp_index, to_reference, attitude)
+        flat = self._registration_input(features.flat, features.flat_index, to_reference, attitude)
+        if use_imu:
+            odometry.transform_cur[:3] = 0.0   # the IMU explains the rotation; only what it missed is left
+        stats = odometry.register(sharp, flat)
+        if self._first_features is not None:
+            # The first reference was deskewed without knowing the motion (the sensor may already be moving):
+            # deskew it with the motion just found and register again, twice (once the motion is known).
+            first, first_points, first_attitude = self._first_features
+            self._first_features = None
+            for _ in range(2):
+                guess = odometry.transform_cur.copy()
+                first_motion = invert_pose(make_pose(sweep_rotation(*guess[:3]), guess[3:]))
+                if use_imu:
+                    first_motion = first_motion @ make_pose(previous['r_start'].T @ attitude['r_start'])
+                odometry.set_last(
+                    self._deskew_to_start(first.less_sharp, first.less_sharp_index, first_motion, first_attitude,
+                                          first_points),
+                    self._deskew_to_start(first.less_flat, None, first_motion, first_attitude, first_points))
+                stats = odometry.register(sharp, flat)
+        t3 = time.perf_counter()
+        timings['odometry'] = (t3 - t2) * 1e3
+        theta = odometry.transform_cur
+        motion = invert_pose(make_pose(sweep_rotation(*theta[:3]), theta[3:]))
+        if use_imu:
+            motion = motion @ make_pose(previous['r_start'].T @ attitude['r_start'])
+        self._world_pose = self._world_pose @ motion
+        self.transform_sum = matrix_to_pose6(self._world_pose)
+        corner_last = self._deskew_to_start(features.less_sharp, features.less_sharp_index, motion, attitude, points)
+        surf_last = self._deskew_to_start(features.less_flat, None, motion, attitude, points)
+        odometry.set_last(corner_last, surf_last)
+        self._previous_attitude = attitude
+        outlier = self._outlier_at_start(scan, motion, attitude)
+        timings['total'] = (time.perf_counter() - t0) * 1e3
+        return self._finish(scan, features, corner_last, surf_last, outlier, False, use_imu, stats, timings)
+
+    def _registration_input(self, cloud: np.ndarray, index: np.ndarray, to_reference: np.ndarray | None,
+                            attitude: dict | None) -> np.ndarray:
+        """Current-sweep points for the registration: rotated into the reference orientation with the IMU
+        (when used) and timed ``1 + s`` (the reference is the previous sweep's start)."""
+        out = cloud.copy()
+        if to_reference is not None:
+            rotation = np.einsum('ij,njk->nik', to_reference, attitude['r_points'][index])
+            out[:, :3] = np.einsum('nij,nj->ni', rotation, cloud[:, :3].astype(np.float64)).astype(_F32)
+        ring = np.trunc(cloud[:, 3]).astype(np.float64)
+        s = 10.0 * (cloud[:, 3].astype(np.float64) - ring)
+        out[:, 3] = (ring + 0.1 * (1.0 + s)).astype(_F32)
+        return out
+
+    def _deskew_to_start(self, cloud: np.ndarray, index: np.ndarray | None, motion: np.ndarray,
+                         attitude: dict | None, points: np.ndarray) -> np.ndarray:
+        """Features of this sweep in its start frame, assuming the sweep moved by ``motion`` (4x4, pose of the
+        next sweep start): the IMU rotation (when there is one) and ``s`` times the translation, else the
+        original's interpolation of the six-vector. The intensity becomes the ring."""
+        ring = np.trunc(cloud[:, 3]).astype(np.float64)
+        s = 10.0 * (cloud[:, 3].astype(np.float64) - ring)
+        out = np.empty_like(cloud)
+        out[:, 3] = ring.astype(_F32)
+        if attitude is not None and index is not None:
+            relative = np.einsum('ij,njk->nik', attitude['r_start'].T, attitude['r_points'][index])
+            rotated = np.einsum('nij,nj->ni', relative, cloud[:, :3].astype(np.float64))
+        elif attitude is not None:   # voxel centroids (less-flat): attitude at each point's own time
+            rotated = np.einsum('nij,nj->ni', self._relative_attitudes(attitude, s), cloud[:, :3].astype(np.float64))
+        else:
+            theta = _motion_to_theta(motion)
+            out[:, :3] = transform_to_start(cloud, theta)[:, :3]
+            return out
+        out[:, :3] = (rotated + s[:, None] * motion[:3, 3][None, :]).astype(_F32)
+        return out
+
+    def _relative_attitudes(self, attitude: dict, s: np.ndarray) -> np.ndarray:
+        state = self.imu.interpolate(attitude['t_start'] + s * self.params.sensor.scan_period)
+        rotations = imu_world_rotation(state.roll, state.pitch, state.yaw)
+        return np.einsum('ij,njk->nik', attitude['r_start'].T, rotations)
+
+    def _outlier_at_start(self, scan: ScanInput, motion: np.ndarray, attitude: dict | None) -> np.ndarray:
+        """The outlier cloud in camera axes, deskewed to the sweep start like the features."""
+        outlier = np.empty_like(scan.outlier)
+        outlier[:, :3] = lidar_to_camera(scan.outlier[:, :3])
+        if len(outlier) == 0:
+            outlier[:, 3] = scan.outlier[:, 3]
+            return outlier
+        rel = relative_time_from_azimuth(scan.outlier, scan.info).astype(np.float64)
+        timed = outlier.copy()
+        timed[:, 3] = (np.trunc(scan.outlier[:, 3]) + 0.1 * rel).astype(_F32)
+        deskewed = self._deskew_to_start(timed, None, motion, attitude, timed)
+        deskewed[:, 3] = scan.outlier[:, 3]
+        return deskewed
+
+    def _imu_attitudes(self, rel: np.ndarray, stamp_ns: int) -> dict | None:
+        """IMU attitude (camera axes) at the sweep start and at every point's time, or None when the IMU does
+        not cover the sweep."""
+        period = self.params.sensor.scan_period
+        t_start = stamp_ns * 1e-9
+        if not self.imu.covers(t_start, t_start + period):
+            return None
+        state = self.imu.interpolate(np.concatenate(([t_start], t_start + rel * period)))
+        rotations = imu_world_rotation(state.roll, state.pitch, state.yaw)
+        return dict(t_start=t_start, r_start=rotations[0], r_points=rotations[1:], roll_start=float(state.roll[0]),
+                    pitch_start=float(state.pitch[0]))
+
+    def _process_original(self, scan: ScanInput) -> FeatureAssociationResult:
+        """The original's model: registration against the previous features moved to that sweep's end."""
+        timings = {}
+        t0 = time.perf_counter()
+        points = self.prepare_points(scan)
+        rel = 10.0 * (points[:, 3].astype(np.float64) - np.trunc(points[:, 3]))
+        imu = self._imu_deskew(points, rel, scan.stamp_ns) if len(points) else None
+        t1 = time.perf_counter()
+        features = self.extractor.extract(points, scan.info)
+        t2 = time.perf_counter()
+        timings['deskew'] = (t1 - t0) * 1e3
+        timings['features'] = (t2 - t1) * 1e3
+        self.scans += 1
         if not self.initialized:
             self.odometry.set_last(features.less_sharp, features.less_flat)
             if imu is not None:
                 self.transform_sum[0] += imu['pitch_start']
                 self.transform_sum[2] += imu['roll_start']
             self.initialized = True
-            return FeatureAssociationResult(scan.stamp_ns, features, self.transform_sum.copy(), features.less_sharp,
-                                            features.less_flat, None, True, imu is not None, None, timings)
+            return self._finish(scan, features, features.less_sharp, features.less_flat, None, True,
+                                imu is not None, None, timings)
         self._initial_guess(imu)
         stats = self.odometry.register(features.sharp, features.flat)
-        t3 = _time.perf_counter()
+        t3 = time.perf_counter()
         timings['odometry'] = (t3 - t2) * 1e3
         theta = self.odometry.transform_cur.copy()
         shift_end = imu['shift_end'] if imu is not None else None
@@ -179,18 +345,12 @@ class FeatureAssociation:
         corner_last = transform_to_end(features.less_sharp, theta, correction, shift_end)
         surf_last = transform_to_end(features.less_flat, theta, correction, shift_end)
         self.odometry.set_last(corner_last, surf_last)
-        self.frame_count += 1
-        publish = self.frame_count >= fa.skip_frame_num + 1
-        outlier_last = None
-        if publish:
-            self.frame_count = 0
-            outlier_last = np.empty_like(scan.outlier)
-            outlier_last[:, :3] = lidar_to_camera(scan.outlier[:, :3])
-            outlier_last[:, 3] = scan.outlier[:, 3]
-        timings['total'] = (_time.perf_counter() - t0) * 1e3
-        return FeatureAssociationResult(scan.stamp_ns, features, self.transform_sum.copy(),
-                                        corner_last if publish else None, surf_last if publish else None,
-                                        outlier_last, False, imu is not None, stats, timings)
+        outlier_last = np.empty_like(scan.outlier)   # the original does not deskew the outliers (quirk 8.9)
+        outlier_last[:, :3] = lidar_to_camera(scan.outlier[:, :3])
+        outlier_last[:, 3] = scan.outlier[:, 3]
+        timings['total'] = (time.perf_counter() - t0) * 1e3
+        return self._finish(scan, features, corner_last, surf_last, outlier_last, False, imu is not None, stats,
+                            timings)
 
     # ----------------------------------------------------------------------------------------- IMU
     def add_imu(self, stamp_s: float, orientation_xyzw, angular_velocity, linear_acceleration) -> str | None:
@@ -206,15 +366,17 @@ class FeatureAssociation:
         if not self.imu.covers(t_start, t_end):
             return None
         point_times = t_start + rel * period
-        state = self.imu.interpolate(np.concatenate(([point_times[0], t_end], point_times)))
+        # The start attitude is the IMU's at the sweep start (s = 0). The original takes the segmented cloud's
+        # first point, which is ordered by ring and column and therefore lies behind the sensor, mid-sweep.
+        state = self.imu.interpolate(np.concatenate(([t_start, t_end], point_times)))
         rotations = imu_world_rotation(state.roll, state.pitch, state.yaw)
         r_start, r_end, r_points = rotations[0], rotations[1], rotations[2:]
         v_start = state.velocity[0]
-        dt = point_times - point_times[0]
+        dt = point_times - t_start
         shift = (state.shift[2:] - state.shift[0] - v_start[None, :] * dt[:, None]) @ r_start   # R_S^T (.)
         relative = np.einsum('ij,njk->nik', r_start.T, r_points)
         points[:, :3] = (np.einsum('nij,nj->ni', relative, points[:, :3].astype(np.float64)) + shift).astype(_F32)
-        shift_end = r_start.T @ (state.shift[1] - state.shift[0] - v_start * (t_end - point_times[0]))
+        shift_end = r_start.T @ (state.shift[1] - state.shift[0] - v_start * period)
         velocity_change = r_start.T @ (state.velocity[1] - v_start)
         return dict(roll_start=float(state.roll[0]), pitch_start=float(state.pitch[0]), delta_end=r_start.T @ r_end,
                     shift_end=shift_end, velocity_change=velocity_change)
@@ -240,3 +402,9 @@ class FeatureAssociation:
         full_rotation = imu['delta_end'].T @ sweep_rotation(*theta[:3])
         full_translation = imu['delta_end'].T @ (theta[3:] - imu['shift_end'])
         self._last_full_motion = np.array([*sweep_angles(full_rotation), *full_translation])
+
+
+def _motion_to_theta(motion: np.ndarray) -> np.ndarray:
+    """Six-vector θ (sweep convention) of a sweep whose end is at pose ``motion``: ``T(θ) = motion^-1``."""
+    forward = invert_pose(motion)
+    return np.array([*sweep_angles(forward[:3, :3]), *forward[:3, 3]])

@@ -124,10 +124,51 @@ def start_jacobian(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
     return jac
 
 
-def plane_jacobian_rows(points: np.ndarray, coeff: np.ndarray, transform: np.ndarray, active: list[int]) -> np.ndarray:
-    """Rows of the Gauss-Newton matrix: ``coeff_xyz · d p_start / d θ_active`` for each point."""
-    jac = start_jacobian(points, transform)[:, :, active]
-    return np.einsum('ni,nij->nj', coeff[:, :3].astype(np.float64), jac)
+def plane_jacobian_rows(points: np.ndarray, coeff: np.ndarray, transform: np.ndarray, active: list[int],
+                        exact: bool = False) -> np.ndarray:
+    """Rows of the Gauss-Newton matrix: ``coeff_xyz · d p_start / d θ_active`` for each point.
+
+    ``exact`` differentiates the residual actually minimised, ``R(sθ)^T (p - s t)``: ``s · J(sθ)``. Without
+    it, the original's rows: ``J(θ)``, the derivative at the full motion whatever the point's time.
+    """
+    if not exact:
+        jac = start_jacobian(points, transform)[:, :, active]
+        return np.einsum('ni,nij->nj', coeff[:, :3].astype(np.float64), jac)
+    s = relative_time_of(points[:, 3]).astype(np.float64)
+    rows = np.empty((len(points), len(active)))
+    # Points share few distinct times in practice? No: evaluate per point with a vectorised rotation.
+    jac = _start_jacobian_scaled(points, transform, s)[:, :, active]
+    rows[:] = np.einsum('ni,nij->nj', coeff[:, :3].astype(np.float64), jac)
+    return rows
+
+
+def _start_jacobian_scaled(points: np.ndarray, transform: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """(n, 3, 6): d/dθ of ``R(sθ)^T (p - s t)`` for per-point fractions ``s`` (vectorised over points)."""
+    theta = s[:, None] * np.asarray(transform, dtype=np.float64)[None, :]
+    cx, sx = np.cos(theta[:, 0]), np.sin(theta[:, 0])
+    cy, sy = np.cos(theta[:, 1]), np.sin(theta[:, 1])
+    cz, sz = np.cos(theta[:, 2]), np.sin(theta[:, 2])
+    n = len(points)
+    zero, one = np.zeros(n), np.ones(n)
+
+    def stack(rows):
+        return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+
+    # Rotations by minus the angles (the transpose's factors) and their derivatives w.r.t. the angles.
+    Ry_ = stack([[cy, zero, -sy], [zero, one, zero], [sy, zero, cy]])
+    Rx_ = stack([[one, zero, zero], [zero, cx, sx], [zero, -sx, cx]])
+    Rz_ = stack([[cz, sz, zero], [-sz, cz, zero], [zero, zero, one]])
+    dRy_ = stack([[-sy, zero, -cy], [zero, zero, zero], [cy, zero, -sy]])   # d/dry of Ry(-ry)
+    dRx_ = stack([[zero, zero, zero], [zero, -sx, cx], [zero, -cx, -sx]])   # d/drx of Rx(-rx)
+    dRz_ = stack([[-sz, cz, zero], [-cz, -sz, zero], [zero, zero, zero]])   # d/drz of Rz(-rz)
+    q = points[:, :3].astype(np.float64) - theta[:, 3:]
+    jac = np.empty((n, 3, 6))
+    mul = np.matmul
+    jac[:, :, 0] = mul(mul(Ry_, mul(dRx_, Rz_)), q[..., None])[..., 0] * s[:, None]
+    jac[:, :, 1] = mul(mul(dRy_, mul(Rx_, Rz_)), q[..., None])[..., 0] * s[:, None]
+    jac[:, :, 2] = mul(mul(Ry_, mul(Rx_, dRz_)), q[..., None])[..., 0] * s[:, None]
+    jac[:, :, 3:] = -mul(Ry_, mul(Rx_, Rz_)) * s[:, None, None]
+    return jac
 
 
 def accumulate(transform_sum: np.ndarray, transform_cur: np.ndarray, imu_shift: np.ndarray | None = None) -> np.ndarray:
@@ -398,9 +439,10 @@ class LaserOdometry:
     SURF_PARAMS = [0, 2, 4]     # rx, rz, ty
     CORNER_PARAMS = [1, 3, 5]   # ry, tx, tz
 
-    def __init__(self, params: Params, fix_scan_bound: bool = False):
+    def __init__(self, params: Params, fix_scan_bound: bool = False, exact_jacobian: bool = False):
         self.params = params
         self.fix_scan_bound = fix_scan_bound
+        self.exact_jacobian = exact_jacobian
         self.transform_cur = np.zeros(6)
         self._surf_stage = _Stage()
         self._corner_stage = _Stage()
@@ -482,7 +524,7 @@ class LaserOdometry:
         weight = self._weights(distance, norm, iteration)
         ok = (weight > fa.min_weight) & (distance != 0) & np.isfinite(distance)
         coeff = np.concatenate([normal[ok] * weight[ok, None], (weight[ok] * distance[ok])[:, None]], axis=1)
-        rows = plane_jacobian_rows(points[ok], coeff, self.transform_cur, self.SURF_PARAMS)
+        rows = plane_jacobian_rows(points[ok], coeff, self.transform_cur, self.SURF_PARAMS, self.exact_jacobian)
         return rows, -fa.step_scale * coeff[:, 3].astype(np.float64)
 
     def _corner_rows(self, sharp: np.ndarray, match: CornerCorrespondences, iteration: int):
@@ -495,5 +537,5 @@ class LaserOdometry:
         weight = self._weights(distance, np.ones(len(distance)), iteration)
         ok = (weight > fa.min_weight) & np.isfinite(distance) & np.isfinite(gradient).all(axis=1)
         coeff = np.concatenate([gradient[ok] * weight[ok, None], (weight[ok] * distance[ok])[:, None]], axis=1)
-        rows = plane_jacobian_rows(points[ok], coeff, self.transform_cur, self.CORNER_PARAMS)
+        rows = plane_jacobian_rows(points[ok], coeff, self.transform_cur, self.CORNER_PARAMS, self.exact_jacobian)
         return rows, -fa.step_scale * coeff[:, 3].astype(np.float64)

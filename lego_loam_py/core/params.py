@@ -118,6 +118,11 @@ class FeatureAssociationParams:
     # the sweep), 'point_time' (the cloud's time field; azimuth when absent) or 'original' (the original's
     # unwrapping, which times the first quarter of the sweep of most rings as the sweep's end; bit-exact).
     relative_time_source: str = 'azimuth'
+    # Scan-to-scan model: 'sweep_start' registers the previous sweep's features, deskewed to that sweep's
+    # start, against the current sweep mapped there with (1 + s) times the motion (stable, poses at the
+    # header stamps); 'original' registers against the previous features moved to their sweep's end (the
+    # C++'s scheme: poses are those of the sweep end; with exact timing it is only marginally stable).
+    odometry_model: str = 'sweep_start'
     sync_tolerance: float = 0.05          # |stamp difference| among the three inputs [s]
     skip_frame_num: int = 1               # publish to mapping every (skip_frame_num + 1)-th scan
     smoothness_half_window: int = 5       # +-5 neighbours in the curvature
@@ -353,6 +358,8 @@ def _validate(p: Params) -> None:
     fa = p.feature_association
     need(fa.relative_time_source in ('azimuth', 'point_time', 'original'), 'feature_association.relative_time_source',
          "must be 'azimuth', 'point_time' or 'original'")
+    need(fa.odometry_model in ('sweep_start', 'original'), 'feature_association.odometry_model',
+         "must be 'sweep_start' or 'original'")
     need(fa.sections_total > 0, 'feature_association.sections_total', 'must be positive')
     need(fa.skip_frame_num >= 0, 'feature_association.skip_frame_num', 'must not be negative')
     need(fa.less_flat_leaf_size > 0, 'feature_association.less_flat_leaf_size', 'must be positive')

@@ -1,0 +1,73 @@
+"""Accuracy on the simulator's ground truth: odometry alone and the whole pipeline, per scenario.
+
+    .venv/bin/python benchmarks/accuracy.py [--scenarios campus forest corridor aggressive] [--configs ...]
+                                            [--bags bags/campus_8s ...] [--odometry-only] [--loop-closure]
+
+Scenarios are generated into the cache on first use (lego_loam_py.sim.simulator.cached_scenario). For each
+bag and configuration the offline runner (the same cores as the nodes) is run with and without the IMU and
+evo's metrics are printed: ATE RMSE (SE(3)-aligned), RPE over 10 m, end-point error and drift.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from lego_loam_py.core.params import Params  # noqa: E402
+from lego_loam_py.evaluation import evaluate  # noqa: E402
+from lego_loam_py.offline import run_bag  # noqa: E402
+from lego_loam_py.sim.output import load_ground_truth  # noqa: E402
+
+CONFIGS = {
+    'default': {},
+    'original': dict(feature_association__relative_time_source='original', feature_association__odometry_model='original',
+                     feature_association__step_scale=0.05),
+    'sweep_start_step0.05': dict(feature_association__step_scale=0.05),
+    'sweep_start_step1': dict(feature_association__step_scale=1.0),
+}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--scenarios', nargs='*', default=['campus', 'forest', 'corridor', 'aggressive'])
+    parser.add_argument('--bags', nargs='*', default=[], help='bags with ground truth beside them (instead of scenarios)')
+    parser.add_argument('--configs', nargs='*', default=['default'], choices=sorted(CONFIGS))
+    parser.add_argument('--imu', choices=['both', 'on', 'off'], default='both')
+    parser.add_argument('--odometry-only', action='store_true', help='skip mapOptimization')
+    parser.add_argument('--loop-closure', action='store_true', help='enable loop closure (mapping runs)')
+    args = parser.parse_args()
+    bags = [Path(b) for b in args.bags]
+    if not bags:
+        from lego_loam_py.sim.simulator import cached_scenario
+        bags = [cached_scenario(name) for name in args.scenarios]
+    imu_modes = {'both': [False, True], 'on': [True], 'off': [False]}[args.imu]
+    print(f'{"bag":<28s} {"config":<22s} {"imu":<4s} {"what":<9s} {"ATE m":>7s} {"RPE %":>7s} {"end m":>7s} '
+          f'{"drift %":>8s} {"rot deg":>8s} {"path m":>7s} {"x RT":>6s}')
+    for bag in bags:
+        ground_truth = load_ground_truth(bag)
+        name = bag.name if bag.name != bag.parent.name else bag.parent.name
+        for config in args.configs:
+            overrides = dict(CONFIGS[config])
+            if args.loop_closure:
+                overrides['loop_closure__loop_closure_enable_flag'] = True
+            params = Params().replace(**overrides)
+            for imu in imu_modes:
+                start = time.perf_counter()
+                result = run_bag(bag, params, imu_topic=None if imu else '', progress=False,
+                                 mapping=not args.odometry_only)
+                realtime = result.bag_duration / (time.perf_counter() - start)
+                rows = [('odometry', result.trajectory(which='odometry'))]
+                if not args.odometry_only:
+                    rows.append(('mapped', result.trajectory(which='integrated')))
+                for what, estimate in rows:
+                    m = evaluate(ground_truth, estimate)
+                    print(f'{name[:28]:<28s} {config:<22s} {"on" if imu else "off":<4s} {what:<9s} {m.ate_rmse_m:7.3f} '
+                          f'{m.rpe_percent:7.2f} {m.end_point_error_m:7.3f} {m.drift_percent:8.2f} '
+                          f'{m.rotation_end_error_deg:8.2f} {m.path_length_m:7.1f} {realtime:6.2f}', flush=True)
+
+
+if __name__ == '__main__':
+    main()

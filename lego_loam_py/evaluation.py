@@ -1,0 +1,148 @@
+"""Trajectory accuracy against ground truth (with evo) and the plots the demo and ``lego_loam_py eval`` draw.
+
+Metrics (all on trajectories in REP-103 axes, associated by timestamp):
+
+* **ATE**: absolute trajectory error after an SE(3) alignment (Umeyama, no scale) of the estimate onto the
+  ground truth: RMSE, mean, median, max of the translation error [m];
+* **RPE**: relative pose error over segments of a given length (``delta`` metres of path), translation
+  part, as a percentage of the segment length (KITTI style) and in metres;
+* **end-point error** and **drift**: distance between the estimated and true last pose, with both
+  trajectories expressed relative to their first pose (no alignment), and that distance over the path
+  length [%]; for loops this is also the "return to start" error of the LeGO-LOAM paper (Table V).
+"""
+from __future__ import annotations
+
+import copy
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ['TrajectoryMetrics', 'evaluate', 'path_length', 'plot_trajectories', 'relative_to_first']
+
+
+@dataclass
+class TrajectoryMetrics:
+    matched_poses: int
+    path_length_m: float
+    ate_rmse_m: float
+    ate_mean_m: float
+    ate_median_m: float
+    ate_max_m: float
+    rpe_percent: float            # mean translational RPE over `rpe_delta_m` segments, % of segment length
+    rpe_delta_m: float
+    rpe_rmse_m: float
+    end_point_error_m: float
+    drift_percent: float
+    rotation_end_error_deg: float
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    def summary(self) -> str:
+        return (f'ATE RMSE {self.ate_rmse_m:.3f} m (max {self.ate_max_m:.3f} m) over {self.matched_poses} poses, '
+                f'{self.path_length_m:.1f} m of path; RPE {self.rpe_percent:.2f} % over {self.rpe_delta_m:g} m; '
+                f'end point {self.end_point_error_m:.3f} m = {self.drift_percent:.2f} % drift, '
+                f'{self.rotation_end_error_deg:.2f} deg')
+
+
+def path_length(poses: np.ndarray) -> float:
+    """Length [m] of the polyline through the positions of (N, 4, 4) poses."""
+    positions = np.asarray(poses)[:, :3, 3]
+    return float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum()) if len(positions) > 1 else 0.0
+
+
+def relative_to_first(poses: np.ndarray) -> np.ndarray:
+    """Poses expressed relative to the first one (first = identity)."""
+    poses = np.asarray(poses, dtype=float)
+    return np.linalg.inv(poses[0])[None] @ poses if len(poses) else poses
+
+
+def _trajectory(stamps_ns: np.ndarray, poses: np.ndarray):
+    from evo.core.trajectory import PoseTrajectory3D
+    return PoseTrajectory3D(poses_se3=list(np.asarray(poses, dtype=float)),
+                            timestamps=np.asarray(stamps_ns, dtype=np.int64) * 1e-9)
+
+
+def _associate(ref_stamps, ref_poses, est_stamps, est_poses, max_diff: float):
+    from evo.core import sync
+    return sync.associate_trajectories(_trajectory(ref_stamps, ref_poses), _trajectory(est_stamps, est_poses),
+                                       max_diff=max_diff)
+
+
+def evaluate(ground_truth: tuple[np.ndarray, np.ndarray], estimate: tuple[np.ndarray, np.ndarray],
+             rpe_delta_m: float = 10.0, max_time_diff: float = 0.01) -> TrajectoryMetrics:
+    """Metrics of ``estimate`` = (stamps [ns], (N, 4, 4) poses) against ``ground_truth`` (same form)."""
+    from evo.core import metrics
+    from evo.core.units import Unit
+
+    ref, est = _associate(*ground_truth, *estimate, max_diff=max_time_diff)
+    if ref.num_poses < 2:
+        raise ValueError(f'only {ref.num_poses} poses of the estimate match the ground truth in time')
+    ref_poses = np.array(ref.poses_se3)
+    est_poses = np.array(est.poses_se3)
+    length = path_length(ref_poses)
+    # End point, both relative to their first pose: the drift of dead reckoning.
+    ref_rel, est_rel = relative_to_first(ref_poses), relative_to_first(est_poses)
+    end_error = float(np.linalg.norm(ref_rel[-1, :3, 3] - est_rel[-1, :3, 3]))
+    rotation_error = ref_rel[-1, :3, :3].T @ est_rel[-1, :3, :3]
+    rotation_end_deg = float(np.degrees(np.arccos(np.clip((np.trace(rotation_error) - 1) / 2, -1.0, 1.0))))
+
+    aligned = copy.deepcopy(est)
+    aligned.align(ref, correct_scale=False)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, aligned))
+    stats = ape.get_all_statistics()
+
+    delta = min(rpe_delta_m, max(length / 2, 1e-6))
+    try:
+        rpe = metrics.RPE(metrics.PoseRelation.translation_part, delta=delta, delta_unit=Unit.meters,
+                          rel_delta_tol=0.2, all_pairs=True)
+        rpe.process_data((ref, est))
+        rpe_rmse = float(rpe.get_statistic(metrics.StatisticsType.rmse))
+        rpe_percent = float(np.mean(rpe.error) / delta * 100.0)
+    except Exception:  # evo raises when no segment of that length exists (very short runs)
+        rpe_rmse, rpe_percent = float('nan'), float('nan')
+    return TrajectoryMetrics(
+        matched_poses=int(ref.num_poses), path_length_m=length, ate_rmse_m=float(stats['rmse']),
+        ate_mean_m=float(stats['mean']), ate_median_m=float(stats['median']), ate_max_m=float(stats['max']),
+        rpe_percent=rpe_percent, rpe_delta_m=float(delta), rpe_rmse_m=rpe_rmse, end_point_error_m=end_error,
+        drift_percent=float(end_error / length * 100.0) if length > 0 else float('nan'),
+        rotation_end_error_deg=rotation_end_deg)
+
+
+def plot_trajectories(path: str | Path, trajectories: dict[str, np.ndarray], map_points: np.ndarray | None = None,
+                      title: str = '') -> Path:
+    """PNG of trajectories ((N, 4, 4) poses in REP-103 axes, by name) seen from above, over a map's points
+    (N, 3+) coloured by height."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    from lego_loam_py.core.io import atomic_path
+
+    figure, axes = plt.subplots(figsize=(9, 9), dpi=110)
+    if map_points is not None and len(map_points):
+        pts = np.asarray(map_points)
+        if len(pts) > 400_000:
+            pts = pts[np.random.default_rng(0).choice(len(pts), 400_000, replace=False)]
+        z = pts[:, 2]
+        lo, hi = np.percentile(z, [2, 98])
+        axes.scatter(pts[:, 0], pts[:, 1], c=np.clip(z, lo, hi), s=0.2, cmap='gray_r', alpha=0.6, linewidths=0)
+    colours = ['tab:green', 'tab:red', 'tab:blue', 'tab:orange', 'tab:purple']
+    for (name, poses), colour in zip(trajectories.items(), colours):
+        xy = np.asarray(poses)[:, :2, 3]
+        axes.plot(xy[:, 0], xy[:, 1], '-', color=colour, linewidth=1.6, label=name)
+        axes.plot(xy[0, 0], xy[0, 1], 'o', color=colour, markersize=5)
+    axes.set_aspect('equal')
+    axes.set_xlabel('x [m] (map, REP-103)')
+    axes.set_ylabel('y [m]')
+    axes.grid(True, linewidth=0.3)
+    axes.legend(loc='best')
+    if title:
+        axes.set_title(title)
+    figure.tight_layout()
+    with atomic_path(path, suffix='.png') as temporary:
+        figure.savefig(temporary)
+    plt.close(figure)
+    return Path(path)

@@ -1,0 +1,270 @@
+"""``lego_loam_py run BAG``: the four nodes' cores in one process, without DDS, as fast as the machine goes.
+
+Messages are taken in recording order, as a replay delivers them: IMU samples go to featureAssociation and
+mapOptimization, each cloud goes through imageProjection -> featureAssociation -> transformFusion, and the
+'last' clouds to mapOptimization, whose result corrects the fused poses of the following scans (in the
+running system /aft_mapped_to_init of a scan arrives after that scan's /integrated_to_init). Loop closure,
+when enabled, runs every ``loop_closure.period`` seconds of bag time. The outputs are those of the demo:
+trajectories (TUM, REP-103 and camera_init axes), maps (PCD), a PNG and a summary with the accuracy against
+the ground truth found beside the bag.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lego_loam_py.bag.io import BagError, BagReader, cloud_msg_to_array
+from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
+from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix
+from lego_loam_py.core.image_projection import ImageProjection, InputError, prepare_input
+from lego_loam_py.core.io import write_tum_atomic
+from lego_loam_py.core.map_optimization import MapOptimization
+from lego_loam_py.core.params import ParameterError, Params, load_params
+from lego_loam_py.core.pointcloud import CloudLayoutError
+from lego_loam_py.core.transform_fusion import TransformFusion
+
+__all__ = ['RunResult', 'run_bag', 'write_outputs', 'add_arguments', 'main']
+
+
+@dataclass
+class RunResult:
+    """Everything a run produced; poses are 4x4 in camera_init (LOAM camera axes)."""
+
+    stamps: list[int] = field(default_factory=list)            # scans with an odometry pose
+    integrated: list[np.ndarray] = field(default_factory=list)  # /integrated_to_init
+    odometry: list[np.ndarray] = field(default_factory=list)    # /laser_odom_to_init
+    mapped_stamps: list[int] = field(default_factory=list)
+    mapped: list[np.ndarray] = field(default_factory=list)      # /aft_mapped_to_init
+    timings_ms: dict[str, list[float]] = field(default_factory=dict)
+    counts: dict[str, int] = field(default_factory=dict)
+    wall_time: float = 0.0
+    bag_duration: float = 0.0
+    mapper: MapOptimization | None = None
+    pose_time_offset_ns: int = 0   # the original odometry model's pose of scan k is the sensor's at k + one sweep
+
+    def count(self, name: str, amount: int = 1) -> None:
+        self.counts[name] = self.counts.get(name, 0) + amount
+
+    def time(self, name: str, ms: float) -> None:
+        self.timings_ms.setdefault(name, []).append(ms)
+
+    def trajectory(self, axes: str = 'map', which: str = 'integrated') -> tuple[np.ndarray, np.ndarray]:
+        """(stamps [ns] of the sensor poses, poses) of the fused ('integrated') or odometry ('odometry')
+        trajectory; ``axes`` 'map' (REP-103) or 'camera_init'. Stamps include the model's pose time offset."""
+        poses = np.array(self.integrated if which == 'integrated' else self.odometry).reshape(-1, 4, 4)
+        if axes == 'map':
+            poses = np.array([camera_pose_to_lidar(p) for p in poses]).reshape(-1, 4, 4)
+        return np.array(self.stamps, dtype=np.int64) + self.pose_time_offset_ns, poses
+
+
+def run_bag(bag: str | Path, params: Params, *, cloud_topic: str | None = None, imu_topic: str | None = None,
+            max_scans: int | None = None, progress: bool = True, mapping: bool = True) -> RunResult:
+    """Run the pipeline over a bag and return what it produced (``mapping=False``: odometry only)."""
+    cloud_topic = cloud_topic or params.sensor.point_cloud_topic
+    imu_topic = params.sensor.imu_topic if imu_topic is None else imu_topic
+    ip, fa = ImageProjection(params), FeatureAssociation(params)
+    mo, fusion = MapOptimization(params), TransformFusion()
+    result = RunResult(mapper=mo if mapping else None)
+    if params.feature_association.odometry_model == 'original':
+        result.pose_time_offset_ns = int(round(params.sensor.scan_period * 1e9))
+    lc = params.loop_closure
+    next_loop_check = None
+    start = time.perf_counter()
+    with BagReader(bag) as reader:
+        topics = reader.topics()
+        if cloud_topic not in topics:
+            raise BagError(f'{bag}: no {cloud_topic} topic (topics: {", ".join(sorted(topics)) or "none"})')
+        wanted = [cloud_topic] + ([imu_topic] if imu_topic and imu_topic in topics else [])
+        total = reader.topic_counts().get(cloud_topic, 0)
+        result.bag_duration = reader.duration
+        bar = None
+        if progress:
+            from tqdm import tqdm
+            bar = tqdm(total=min(total, max_scans or total), unit='scan', desc='run', file=sys.stderr,
+                       dynamic_ncols=True, mininterval=0.5)
+        try:
+            for message in reader.messages(topics=wanted):
+                msg = reader.deserialize(message)
+                stamp = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+                if message.topic != cloud_topic:
+                    o, w, a = msg.orientation, msg.angular_velocity, msg.linear_acceleration
+                    sample = (stamp * 1e-9, (o.x, o.y, o.z, o.w), (w.x, w.y, w.z), (a.x, a.y, a.z))
+                    if fa.add_imu(*sample) is not None:
+                        result.count('imu_rejected')
+                    mo.imu.add(*sample)
+                    continue
+                result.count('scans_in')
+                if max_scans is not None and result.counts['scans_in'] > max_scans:
+                    break
+                _one_scan(msg, stamp, params, ip, fa, mo if mapping else None, fusion, result)
+                if mapping and lc.loop_closure_enable_flag:
+                    if next_loop_check is None:
+                        next_loop_check = stamp + int(lc.period * 1e9)
+                    elif stamp >= next_loop_check:
+                        next_loop_check = stamp + int(lc.period * 1e9)
+                        t = time.perf_counter()
+                        candidate = mo.detect_loop()
+                        if candidate is not None:
+                            loop = mo.close_loop(candidate)
+                            result.count('loops_closed' if loop.accepted else 'loops_rejected')
+                        result.time('loop_closure', (time.perf_counter() - t) * 1e3)
+                if bar is not None:
+                    bar.update(1)
+        finally:
+            if bar is not None:
+                bar.close()
+    result.wall_time = time.perf_counter() - start
+    result.counts['keyframes'] = len(mo.keyframes) if mapping else 0
+    return result
+
+
+def _one_scan(msg, stamp: int, params: Params, ip, fa, mo, fusion, result: RunResult) -> None:
+    t0 = time.perf_counter()
+    try:
+        points = cloud_msg_to_array(msg)
+        data = prepare_input(points, params)
+        segmentation = ip.process(data)
+    except (CloudLayoutError, InputError) as exc:
+        result.count('scans_dropped')
+        print(f'warning: scan at {stamp * 1e-9:.3f} s dropped: {exc}', file=sys.stderr)
+        return
+    t1 = time.perf_counter()
+    result.time('imageProjection', (t1 - t0) * 1e3)
+    features = fa.process(ScanInput(stamp, segmentation.segmented_cloud, segmentation.cloud_info,
+                                    segmentation.outlier_cloud, segmentation.segmented_time))
+    t2 = time.perf_counter()
+    result.time('featureAssociation', (t2 - t1) * 1e3)
+    result.count('scans_processed')
+    if features.imu_used:
+        result.count('scans_with_imu')
+    if not features.initialized:
+        odometry = features.pose
+        result.stamps.append(stamp)
+        result.odometry.append(odometry)
+        result.integrated.append(fusion.integrate(odometry))
+    if mo is not None and features.corner_last is not None and features.outlier_last is not None:
+        step = mo.process(stamp, features.transform_sum, features.corner_last, features.surf_last,
+                          features.outlier_last)
+        if step is not None:
+            result.time('mapOptimization', (time.perf_counter() - t2) * 1e3)
+            result.count('mapping_steps')
+            aft, bef = pose6_to_matrix(step.transform_aft), pose6_to_matrix(step.transform_bef)
+            fusion.on_mapped(aft, bef)
+            result.mapped_stamps.append(stamp)
+            result.mapped.append(aft)
+
+
+def _timing_table(timings: dict[str, list[float]]) -> dict[str, dict[str, float]]:
+    return {name: dict(median=float(np.median(v)), p95=float(np.percentile(v, 95)), mean=float(np.mean(v)),
+                       count=len(v)) for name, v in timings.items() if v}
+
+
+def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, poses_camera_init: np.ndarray,
+                  mapper: MapOptimization | None, summary: dict, params: Params) -> dict:
+    """Trajectories, maps, PNG and summary.json into ``out_dir``; adds the accuracy to ``summary`` when a
+    ground truth sits beside the bag. Returns the summary."""
+    from lego_loam_py.evaluation import evaluate, path_length, plot_trajectories
+    from lego_loam_py.sim.output import load_ground_truth
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    poses_camera_init = np.asarray(poses_camera_init).reshape(-1, 4, 4)
+    poses_map = np.array([camera_pose_to_lidar(p) for p in poses_camera_init]).reshape(-1, 4, 4)
+    write_tum_atomic(out / 'trajectory.tum', stamps, poses_map)
+    write_tum_atomic(out / 'trajectory_camera_init.tum', stamps, poses_camera_init)
+    summary['trajectory_length_m'] = path_length(poses_map)
+    map_points = None
+    if mapper is not None and mapper.keyframes:
+        saved = mapper.save(out / 'map')
+        summary['map_files'] = {k: str(v) for k, v in saved.items()}
+        from lego_loam_py.core.io import read_pcd
+        map_points = read_pcd(saved['global_map'])
+    ground_truth = load_ground_truth(bag)
+    trajectories = {'lego_loam_py': poses_map}
+    if ground_truth is not None and len(stamps) > 1:
+        gt_stamps, gt_poses = ground_truth
+        try:
+            metrics = evaluate((gt_stamps, gt_poses), (stamps, poses_map))
+            summary['accuracy'] = metrics.as_dict()
+        except ValueError as exc:
+            summary['accuracy_error'] = str(exc)
+        # Show the ground truth in the estimate's frame (both start at identity at the first scan).
+        first = np.argmin(np.abs(gt_stamps - stamps[0]))
+        trajectories = {'ground truth': np.linalg.inv(gt_poses[first])[None] @ gt_poses, **trajectories}
+    summary['png'] = str(plot_trajectories(out / 'trajectory.png', trajectories, map_points,
+                                           title=f'{Path(bag).name}: trajectory over the map (top view)'))
+    (out / 'summary.json').write_text(json.dumps(summary, indent=2, default=float))
+    return summary
+
+
+def format_summary(summary: dict) -> str:
+    lines = [f"bag: {summary['bag']}"]
+    c = summary.get('counts', {})
+    lines.append(f"scans in {c.get('scans_in', 0)}, processed {c.get('scans_processed', 0)}, dropped "
+                 f"{c.get('scans_dropped', 0)}; mapping steps {c.get('mapping_steps', 0)}, keyframes "
+                 f"{c.get('keyframes', 0)}, IMU used on {c.get('scans_with_imu', 0)} scans")
+    for name, t in summary.get('timings_ms', {}).items():
+        lines.append(f"  {name:<20s} median {t['median']:7.1f} ms   p95 {t['p95']:7.1f} ms   (n={t['count']})")
+    if 'realtime_factor' in summary:
+        lines.append(f"{summary['bag_duration_s']:.1f} s of data in {summary['wall_time_s']:.1f} s: "
+                     f"{summary['realtime_factor']:.2f}x real time")
+    lines.append(f"trajectory length {summary.get('trajectory_length_m', 0.0):.1f} m")
+    if 'accuracy' in summary:
+        from lego_loam_py.evaluation import TrajectoryMetrics
+        lines.append('accuracy vs ground truth: ' + TrajectoryMetrics(**summary['accuracy']).summary())
+    elif 'accuracy_error' in summary:
+        lines.append(f"accuracy: {summary['accuracy_error']}")
+    else:
+        lines.append('no ground truth beside the bag')
+    return '\n'.join(lines)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('bag', help='ROS 1 .bag or ROS 2 bag directory with PointCloud2 (and optionally Imu)')
+    parser.add_argument('-o', '--output', default=None, help='output directory (default: output/<bag name>)')
+    parser.add_argument('--params-file', default=None, help='ROS 2 parameter file (default: built-in defaults)')
+    parser.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
+                        help='override one parameter, e.g. -p loop_closure.loop_closure_enable_flag:=true')
+    parser.add_argument('--no-imu', action='store_true', help='ignore the IMU topic')
+    parser.add_argument('--max-scans', type=int, default=None, help='stop after this many scans')
+    parser.add_argument('--no-progress', action='store_true', help='no progress bar')
+
+
+def parse_overrides(items: list[str]) -> dict:
+    import yaml
+    out = {}
+    for item in items:
+        if ':=' not in item:
+            raise ParameterError(f"parameter override '{item}' must look like name:=value")
+        name, value = item.split(':=', 1)
+        out[name.strip()] = yaml.safe_load(value)
+    return out
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        params = load_params(args.params_file, parse_overrides(args.param))
+    except ParameterError as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 2
+    out = Path(args.output or Path('output') / Path(args.bag).resolve().name)
+    try:
+        result = run_bag(args.bag, params, imu_topic='' if args.no_imu else None, max_scans=args.max_scans,
+                         progress=not args.no_progress)
+    except BagError as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 1
+    stamps, _ = result.trajectory()
+    summary = dict(bag=str(args.bag), mode='offline', counts=result.counts, timings_ms=_timing_table(result.timings_ms),
+                   wall_time_s=result.wall_time, bag_duration_s=result.bag_duration,
+                   realtime_factor=result.bag_duration / result.wall_time if result.wall_time > 0 else float('nan'))
+    summary = write_outputs(out, args.bag, stamps, np.array(result.integrated), result.mapper, summary, params)
+    print(format_summary(summary))
+    print(f'outputs in {out}/: trajectory.tum, trajectory_camera_init.tum, map/*.pcd, trajectory.png, summary.json')
+    return 0
