@@ -33,6 +33,13 @@ COMMANDS = [
     ('convert', 'lego_loam_py.bag.convert', 'convert Velodyne/Ouster pcaps or raw-packet bags into PointCloud2 bags',
      'Convert a real recording (Velodyne VLP-16 pcap, single or dual return; Ouster pcap + metadata JSON; ROS 1/2 bag '
      'of velodyne_msgs/VelodyneScan raw packets) into a bag of PointCloud2 sweeps with ring and per-point time.'),
+    ('run', 'lego_loam_py.offline', 'run the pipeline on a bag in one process, without DDS (offline mode)',
+     'Run imageProjection, featureAssociation, mapOptimization and transformFusion on a bag in one process, as '
+     'fast as the machine goes; writes the trajectory (TUM, REP-103 and camera_init axes), the map (PCD), a PNG '
+     'and a summary with the accuracy against a ground truth found beside the bag.'),
+    ('eval', 'lego_loam_py.evaluation', 'accuracy of a trajectory against ground truth (ATE, RPE, drift) with evo',
+     'Compare an estimated TUM trajectory with a ground truth (a TUM file, or the ground_truth.tum beside a '
+     'bag): ATE after SE(3) alignment, RPE over segments, end-point error and drift; optional plot.'),
 ]
 
 

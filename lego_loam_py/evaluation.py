@@ -146,3 +146,46 @@ def plot_trajectories(path: str | Path, trajectories: dict[str, np.ndarray], map
         figure.savefig(temporary)
     plt.close(figure)
     return Path(path)
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument('estimate', help='estimated trajectory (TUM; REP-103 axes, e.g. trajectory.tum of a run)')
+    parser.add_argument('ground_truth', nargs='?', default=None,
+                        help='ground-truth TUM file, or a bag with ground_truth.tum beside it')
+    parser.add_argument('--bag', default=None, help='take the ground truth from beside this bag')
+    parser.add_argument('--delta', type=float, default=10.0, help='RPE segment length [m] (default 10)')
+    parser.add_argument('--max-time-diff', type=float, default=0.01, help='association tolerance [s]')
+    parser.add_argument('--plot', default=None, help='write a PNG of both trajectories (top view)')
+    parser.add_argument('--json', default=None, help='write the metrics as JSON')
+
+
+def main(args) -> int:
+    import json
+    import sys
+
+    from lego_loam_py.core.io import read_tum
+    from lego_loam_py.sim.output import load_ground_truth
+
+    source = args.bag or args.ground_truth
+    if source is None:
+        print('error: give a ground-truth TUM file or --bag', file=sys.stderr)
+        return 2
+    try:
+        estimate = read_tum(args.estimate)
+        path = Path(source)
+        ground_truth = read_tum(path) if path.is_file() and path.suffix != '.bag' else load_ground_truth(path)
+        if ground_truth is None:
+            print(f'error: no ground truth beside {source}', file=sys.stderr)
+            return 1
+        metrics = evaluate(ground_truth, estimate, rpe_delta_m=args.delta, max_time_diff=args.max_time_diff)
+    except (OSError, ValueError) as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 1
+    print(metrics.summary())
+    if args.json:
+        Path(args.json).write_text(json.dumps(metrics.as_dict(), indent=2))
+    if args.plot:
+        first = int(np.argmin(np.abs(ground_truth[0] - estimate[0][0])))
+        aligned_truth = relative_to_first(ground_truth[1][first:])
+        print(f'plot: {plot_trajectories(args.plot, {"ground truth": aligned_truth, "estimate": relative_to_first(estimate[1])})}')
+    return 0

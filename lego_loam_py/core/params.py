@@ -144,7 +144,7 @@ class FeatureAssociationParams:
     reassociate_every: int = 5            # correspondences recomputed every n iterations
     weight_gain: float = 1.8              # s = 1 - gain * |d|
     min_weight: float = 0.1               # correspondences with s <= this are dropped
-    step_scale: float = 0.05              # Gauss-Newton right-hand side scale
+    step_scale: float = 1.0               # Gauss-Newton step scale (the original: 0.05, see config/original.yaml)
     degeneracy_threshold: float = 10.0    # eigenvalues below are degenerate directions
     convergence_rotation: float = 0.1     # [deg]
     convergence_translation: float = 0.1  # [cm]

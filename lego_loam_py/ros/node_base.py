@@ -1,6 +1,8 @@
 """What every lego_loam_py node shares: typed parameters, throttled warnings, timing statistics."""
 from __future__ import annotations
 
+import json
+import os
 import re
 import time
 import traceback
@@ -66,5 +68,24 @@ class LegoLoamNode(Node):
         counters = ', '.join(f'{k}={v}' for k, v in sorted(self.counters.items()))
         return '; '.join(parts + ([counters] if counters else [])) or 'no data'
 
+    def statistics(self) -> dict:
+        """Counters and timing percentiles (ms) of this node, for tools and reports."""
+        timings = {}
+        for name, values in self.timings_ms.items():
+            if values:
+                v = np.asarray(values)
+                timings[name] = dict(median=float(np.median(v)), p95=float(np.percentile(v, 95)),
+                                     mean=float(v.mean()), count=int(len(v)))
+        return dict(node=self.get_name(), counters=dict(self.counters), timings_ms=timings)
+
     def on_shutdown(self) -> None:
         self.get_logger().info(f'{self.get_name()} statistics: {self.timing_summary()}')
+        # Tools (the demo, benchmarks) collect the statistics of every node through this directory.
+        directory = os.environ.get('LEGO_LOAM_PY_STATS_DIR')
+        if directory:
+            try:
+                from lego_loam_py.core.io import atomic_path
+                with atomic_path(os.path.join(directory, f'{self.get_name()}.json'), suffix='.json') as path:
+                    path.write_text(json.dumps(self.statistics(), indent=2))
+            except OSError as exc:
+                self.get_logger().warning(f'could not write statistics to {directory}: {exc}')
