@@ -8,13 +8,14 @@ import pytest
 
 from lego_loam_py.core.image_projection import (NO_LABEL, OUTLIER_LABEL, ImageProjection, InputError,
                                                 ProjectionInput, prepare_input)
-from lego_loam_py.core.params import Params
+from lego_loam_py.core.params import Params, default_params_file, load_params
 from lego_loam_py.core.pointcloud import VELODYNE_POINT_DTYPE, velodyne_points
 from tests.support.reference_bfs import reference_labels
 from tests.support.scenes import floor_ranges, pixel_points, scene_points, wall_ranges
 
 PARAMS = Params()
-IP = ImageProjection(PARAMS)
+ORIGINAL = load_params(default_params_file().parent / 'original.yaml')   # the C++ behaviour, bit for bit
+IP = ImageProjection(ORIGINAL)
 GOLDEN = ['vlp16_single_rotation', 'vlp16_static_indoor_20hz', 'vlp16_dual_return_4scans']
 
 
@@ -221,6 +222,44 @@ def test_equals_the_cpp_original_point_for_point(shared_data, name):
     assert compared > 10000
 
 
+def test_refined_ground_rule_drops_wall_bases_and_raised_surfaces():
+    """The original marks the first ring on a wall's base, and flat surfaces above the ground (a car's roof),
+    as ground; the refined rule keeps the floor and drops those."""
+    floor = floor_ranges(1.5)
+    wall = wall_ranges(x=12.0, half_width=3.0, z_min=-1.5, z_max=3.0)
+    from tests.support.scenes import rays
+    d = rays()
+    # A 'car roof': a horizontal slab 1 m above the floor, 4-6 m to the left.
+    with np.errstate(divide='ignore', invalid='ignore'):
+        t = np.where(d[..., 2] < 0, -0.5 / d[..., 2], np.inf)
+        hit = d * t[..., None]
+    roof = np.where((hit[..., 1] > 4) & (hit[..., 1] < 6) & (np.abs(hit[..., 0]) < 1.0), t, np.inf)
+    scene = np.fmin(np.fmin(floor, wall), roof)
+    original = run(scene_points(scene), ORIGINAL)
+    refined = run(scene_points(scene), PARAMS)
+    pixels_on = lambda surface: np.isfinite(surface) & (surface <= scene) & (scene < np.inf)  # noqa: E731
+    wall_pixels, roof_pixels = pixels_on(wall), pixels_on(roof)
+    floor_pixels = pixels_on(floor) & ~wall_pixels & ~roof_pixels
+    assert original.ground_mask[wall_pixels].any() and original.ground_mask[roof_pixels].any()
+    assert not refined.ground_mask[wall_pixels].any() and not refined.ground_mask[roof_pixels].any()
+    assert refined.ground_mask[floor_pixels].mean() > 0.98
+
+
+def test_ground_rules_on_the_simulated_campus():
+    """Ground precision and recall against the simulator's labels (curbs, 15 cm strips on the road side,
+    count as ground as in SemanticKITTI's ground classes) on 100 scans of the campus scenario."""
+    import sys
+    from lego_loam_py.sim.simulator import cached_scenario
+    sys.path.insert(0, str(default_params_file().parents[1] / 'benchmarks'))
+    from segmentation_quality import evaluate_bag
+    bag = cached_scenario('campus', duration=12.0)
+    refined = evaluate_bag(bag, PARAMS, max_scans=100)
+    original = evaluate_bag(bag, ORIGINAL, max_scans=100)
+    assert refined['scans'] == 100
+    assert refined['ground_precision'] >= 0.95 and refined['ground_recall'] >= 0.95, refined
+    assert original['ground_precision'] < refined['ground_precision']
+
+
 def test_golden_bag_through_the_pointcloud_conversion_matches(shared_data):
     """The ROS 2 golden bag read with the project's reader and conversion gives the same result."""
     from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
@@ -230,7 +269,7 @@ def test_golden_bag_through_the_pointcloud_conversion_matches(shared_data):
         for k, message in enumerate(reader.messages(['/velodyne_points'])):
             points = cloud_msg_to_array(reader.deserialize(message))
             assert points.dtype.itemsize == 22  # the ROS 1 driver's packed layout
-            result = IP.process(prepare_input(points, PARAMS))
+            result = IP.process(prepare_input(points, ORIGINAL))
             assert np.array_equal(result.segmented_cloud, g[f's{k}_segmented_cloud'])
             assert np.array_equal(result.outlier_cloud, g[f's{k}_outlier_cloud'])
     assert k == 3
@@ -258,7 +297,7 @@ def test_nan_and_inf_points_are_dropped_and_do_not_change_the_result():
         dirty['x' if i % 2 else 'z'][i] = value
     data = prepare_input(dirty, PARAMS)
     assert data.dropped_non_finite == 4
-    a, b = run(clean), IP.process(data)
+    a, b = run(clean), ImageProjection(PARAMS).process(data)
     assert np.array_equal(a.segmented_cloud, b.segmented_cloud) and np.array_equal(a.label_image, b.label_image)
 
 

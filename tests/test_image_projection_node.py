@@ -46,7 +46,9 @@ def test_golden_bag_over_dds_gives_the_originals_outputs(shared_data, rclpy_cont
     node = rclpy.create_node('ip_listener', context=rclpy_context)
     topics = ['/segmented_cloud', '/segmented_cloud_info', '/outlier_cloud', '/ground_cloud']
     got = subscribe(node, topics)
-    ip = processes.start([BIN / 'imageProjection'])
+    from lego_loam_py.core.params import default_params_file
+    ip = processes.start([BIN / 'imageProjection', '--ros-args', '--params-file',
+                          default_params_file().parent / 'original.yaml'])
     wait_for_publishers(rclpy_context, node, topics, ip)
     player = processes.start([BIN / 'lego_loam_py', 'play', shared_data / 'golden' / f'{GOLDEN_BAG}_ros2',
                               '--wait-for-subscribers', '20', '--no-progress'])

@@ -28,6 +28,7 @@ __all__ = ['CloudInfo', 'SegmentationResult', 'ImageProjection', 'ProjectionInpu
            'NO_LABEL', 'prepare_input', 'InputError']
 
 OUTLIER_LABEL = 999999   # the original's label of points in clusters that are too small
+MAX_COORDINATE = 1e4     # [m] points further out on any axis are dropped as invalid (input validation)
 NO_LABEL = -1            # ground or empty pixel (labelMat == -1)
 _F32 = np.float32
 
@@ -56,8 +57,9 @@ class ProjectionInput:
 
     xyz: np.ndarray               # float32 (n, 3) [m], all finite
     ring: np.ndarray | None       # int64 (n,) or None (rows from the elevation angle)
-    dropped_non_finite: int = 0   # points removed because x, y or z was NaN/inf
+    dropped_non_finite: int = 0   # points removed because x, y or z was NaN/inf or beyond MAX_COORDINATE
     time: np.ndarray | None = None  # float32 (n,) [s since the sweep start] when the cloud has it
+    source_index: np.ndarray | None = None  # index in the message of each kept point (None: all were kept)
 
 
 @dataclass
@@ -76,23 +78,31 @@ class SegmentationResult:
     label_image: np.ndarray           # int32 (N_SCAN, H): -1 ground/empty, 999999 outlier, >= 1 segment
     stats: dict = field(default_factory=dict)
     segmented_time: np.ndarray | None = None  # float32 (M,) per-point time of the segmented cloud [s]
+    pixel_point: np.ndarray | None = None     # int64 (N_SCAN*H,): index of the input point in each pixel, -1 empty
 
 
 def prepare_input(points: np.ndarray, params: Params) -> ProjectionInput:
     """Valid (finite) points of a structured cloud, with the ring field when it exists and is used.
 
-    Mirrors the original's ``removeNaNFromPointCloud``; inf is dropped as well. Unlike the original, which
-    shuts down on a non-dense cloud in ring mode, the ring is filtered together with the coordinates.
+    Mirrors the original's ``removeNaNFromPointCloud``; inf is dropped as well, and so are coordinates
+    beyond ``MAX_COORDINATE`` (10 km: no lidar measures that; such values would overflow float32 squares).
+    Unlike the original, which shuts down on a non-dense cloud in ring mode, the ring is filtered together
+    with the coordinates.
     """
     names = points.dtype.names or ()
     missing = [n for n in 'xyz' if n not in names]
     if missing:
         raise InputError(f'the cloud has no {"/".join(missing)} field (fields: {", ".join(names) or "none"})')
+    used = ['x', 'y', 'z'] + ([params.sensor.ring_field] if params.sensor.use_cloud_ring and
+                              params.sensor.ring_field in names else [])
+    several = [n for n in used if points.dtype[n].shape != ()]
+    if several:
+        raise InputError(f'field(s) {", ".join(several)} hold several values per point (count > 1)')
     flat = points.reshape(-1)
     xyz = np.empty((flat.size, 3), dtype=_F32)
     with np.errstate(invalid='ignore', over='ignore'):
         xyz[:, 0], xyz[:, 1], xyz[:, 2] = flat['x'], flat['y'], flat['z']
-    finite = np.isfinite(xyz).all(axis=1)
+    finite = np.isfinite(xyz).all(axis=1) & (np.abs(xyz) <= MAX_COORDINATE).all(axis=1)
     ring = None
     ring_field = params.sensor.ring_field
     if params.sensor.use_cloud_ring and ring_field in names:
@@ -113,7 +123,8 @@ def prepare_input(points: np.ndarray, params: Params) -> ProjectionInput:
         xyz = xyz[finite]
         ring = ring[finite] if ring is not None else None
         time = time[finite] if time is not None else None
-    return ProjectionInput(xyz=xyz, ring=ring, dropped_non_finite=dropped, time=time)
+    return ProjectionInput(xyz=xyz, ring=ring, dropped_non_finite=dropped, time=time,
+                           source_index=np.flatnonzero(finite) if dropped else None)
 
 
 class ImageProjection:
@@ -192,6 +203,7 @@ class ImageProjection:
         np.maximum.at(winner_of_pixel, pixel_of_point, kept)
         pixel = np.flatnonzero(winner_of_pixel >= 0)
         winner = winner_of_pixel[pixel]
+        self._winner_of_pixel = winner_of_pixel
 
         range_image = np.full(n * h, np.finfo(np.float32).max, dtype=_F32)
         range_image[pixel] = rng[winner]
@@ -243,7 +255,49 @@ class ImageProjection:
         rows_i = mat[:g]
         rows_i[ground_pair] = 1
         rows_i[empty_pair] = -1
-        return (mat == 1).reshape(-1)
+        ground = mat == 1
+        if self.params.image_projection.ground_rule == 'refined':
+            ground = self._refine_ground(p, f, ground)
+        return ground.reshape(-1)
+
+    def _refine_ground(self, p: np.ndarray, f: np.ndarray, ground: np.ndarray) -> np.ndarray:
+        """Remove from the original's ground what a pair test over a 2-degree gap cannot see.
+
+        * A pixel that forms a vertical pair with the pixel above or below it (height step > ratio x horizontal
+          gap, gap < a fraction of the range) lies on a vertical surface: the first ring on a wall's base or a
+          car's side pairs with distant ground at a shallow slope, and the original marks it ground.
+        * Ground candidates farther than max(tolerance, ratio x range) from a plane fitted to the candidates
+          (least squares, refitted without the rejects, three rounds) are horizontal surfaces above the ground:
+          car hoods and roofs, benches.
+        """
+        ip = self.params.image_projection
+        g = self.params.sensor.ground_scan_ind
+        top = min(g + 2, self.n_scan)
+        lower, upper = p[:top - 1], p[1:top]
+        both = f[:top - 1] & f[1:top]
+        with np.errstate(invalid='ignore'):
+            gap = np.hypot(upper[..., 0] - lower[..., 0], upper[..., 1] - lower[..., 1])
+            rise = np.abs(upper[..., 2] - lower[..., 2])
+            reach = np.hypot(lower[..., 0], lower[..., 1])
+            vertical = both & (rise > ip.ground_vertical_ratio * gap) & (gap < ip.ground_vertical_gap * reach)
+        ground = ground.copy()
+        ground[:top - 1] &= ~vertical
+        ground[1:top] &= ~vertical
+        rows, cols = np.nonzero(ground)
+        if len(rows) < 10:
+            return ground
+        xyz = p[rows, cols, :3].astype(np.float64)
+        reach = np.hypot(xyz[:, 0], xyz[:, 1])
+        tolerance = np.maximum(ip.ground_plane_tolerance, ip.ground_plane_tolerance_ratio * reach)
+        keep = np.ones(len(xyz), dtype=bool)
+        design = np.column_stack([xyz[:, 0], xyz[:, 1], np.ones(len(xyz))])
+        for _ in range(3):
+            if keep.sum() < 3:
+                break
+            coef, *_ = np.linalg.lstsq(design[keep], xyz[keep, 2], rcond=None)
+            keep = np.abs(xyz[:, 2] - design @ coef) <= tolerance
+        ground[rows[~keep], cols[~keep]] = False
+        return ground
 
     # ------------------------------------------------------------------------------- segmentation
     def segment(self, range_image: np.ndarray, filled: np.ndarray, ground: np.ndarray) -> np.ndarray:
@@ -332,7 +386,7 @@ class ImageProjection:
             segmented=len(segmented_index), outliers=len(outlier_index))
         segmented_time = self._time_image[segmented_index] if self._time_image is not None else None
         return SegmentationResult(
-            segmented_time=segmented_time,
+            segmented_time=segmented_time, pixel_point=self._winner_of_pixel,
             segmented_cloud=full[segmented_index], cloud_info=info, outlier_cloud=full[outlier_index],
             ground_cloud=full[ground_index], segmented_cloud_pure=pure, full_cloud=full,
             full_info_cloud=full_info, range_image=range_image.reshape(n, h),

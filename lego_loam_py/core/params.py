@@ -97,6 +97,13 @@ class ImageProjectionParams:
     """Range image, ground removal and segmentation (imageProjection.cpp)."""
 
     ground_slope_threshold: float = 10.0  # |slope - mount angle| <= this marks ground [deg]
+    # 'refined' (default) removes from the original's ground the points that start a vertical surface (wall
+    # bases, car sides) and those far above a plane fitted to the ground; 'original' is the C++'s rule.
+    ground_rule: str = 'refined'
+    ground_vertical_ratio: float = 2.0      # a pair is a vertical surface if |dz| > ratio * horizontal gap ...
+    ground_vertical_gap: float = 0.05       # ... and the gap < this fraction of the range
+    ground_plane_tolerance: float = 0.5     # ground farther from the fitted plane than max(this [m], ...
+    ground_plane_tolerance_ratio: float = 0.05  # ... this fraction of the horizontal range) is not ground
     segment_theta: float = 60.0 / 180.0 * math.pi  # BFS join criterion beta > theta [rad]
     segment_valid_point_num: int = 5      # small cluster kept if >= this many points ...
     segment_valid_line_num: int = 3       # ... over >= this many rows
@@ -352,6 +359,7 @@ def _validate(p: Params) -> None:
     need(s.sensor_minimum_range >= 0, 'sensor.sensor_minimum_range', 'must not be negative')
     need(s.point_cloud_topic != '', 'sensor.point_cloud_topic', 'must not be empty')
     ip = p.image_projection
+    need(ip.ground_rule in ('refined', 'original'), 'image_projection.ground_rule', "must be 'refined' or 'original'")
     need(0 < ip.segment_theta < math.pi, 'image_projection.segment_theta', 'must lie in (0, pi) radians')
     need(ip.outlier_column_stride > 0, 'image_projection.outlier_column_stride', 'must be positive')
     need(ip.ground_column_stride > 0, 'image_projection.ground_column_stride', 'must be positive')
