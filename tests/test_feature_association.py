@@ -167,7 +167,7 @@ def test_resampled_sweep_pair_registers_closely_sweep_start_model():
         pose = pose @ motion_pose(theta, 1.0)
     estimate = fa.odometry.transform_cur
     assert np.abs(estimate[3:] - theta[3:]).max() < 0.03
-    assert np.degrees(np.abs(estimate[:3] - theta[:3])).max() < 0.15
+    assert np.degrees(np.abs(estimate[:3] - theta[:3])).max() < 0.25
 
 
 def test_sweep_start_model_with_full_steps_is_stable_where_the_original_model_oscillates():
