@@ -105,12 +105,22 @@ def plane_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: n
     ok = distance[:, -1] ** 2 < mo.knn_max_sq_dist
     used = np.flatnonzero(ok)
     neighbours = map_points[index[used], :3].astype(np.float64)          # (m, k, 3)
-    # Least-squares plane n·x = -1 through the neighbours (normal equations of A n = -1).
-    ata = np.einsum('mki,mkj->mij', neighbours, neighbours)
-    atb = -neighbours.sum(axis=1)
-    solvable = np.abs(np.linalg.det(ata)) > 1e-12
-    used, neighbours, ata, atb = used[solvable], neighbours[solvable], ata[solvable], atb[solvable]
-    normal = np.linalg.solve(ata, atb[..., None])[..., 0]
+    # Least-squares plane n·x = -1 through the neighbours: the normal equations (A^T A) n = -A^T 1, solved in
+    # closed form (Cramer's rule on the symmetric 3x3 systems, vectorised over all points).
+    xx, yy, zz = (np.einsum('mk,mk->m', neighbours[..., i], neighbours[..., i]) for i in range(3))
+    xy = np.einsum('mk,mk->m', neighbours[..., 0], neighbours[..., 1])
+    xz = np.einsum('mk,mk->m', neighbours[..., 0], neighbours[..., 2])
+    yz = np.einsum('mk,mk->m', neighbours[..., 1], neighbours[..., 2])
+    b = -neighbours.sum(axis=1)
+    c00, c01, c02 = yy * zz - yz * yz, xz * yz - xy * zz, xy * yz - xz * yy
+    c11, c12, c22 = xx * zz - xz * xz, xy * xz - xx * yz, xx * yy - xy * xy
+    det = xx * c00 + xy * c01 + xz * c02
+    solvable = np.abs(det) > 1e-12
+    with np.errstate(divide='ignore', invalid='ignore'):
+        normal = np.stack([c00 * b[:, 0] + c01 * b[:, 1] + c02 * b[:, 2],
+                           c01 * b[:, 0] + c11 * b[:, 1] + c12 * b[:, 2],
+                           c02 * b[:, 0] + c12 * b[:, 1] + c22 * b[:, 2]], axis=1) / det[:, None]
+    used, neighbours, normal = used[solvable], neighbours[solvable], normal[solvable]
     norm = np.linalg.norm(normal, axis=1)
     normal /= norm[:, None]
     offset = 1.0 / norm
