@@ -135,40 +135,40 @@ def plane_jacobian_rows(points: np.ndarray, coeff: np.ndarray, transform: np.nda
         jac = start_jacobian(points, transform)[:, :, active]
         return np.einsum('ni,nij->nj', coeff[:, :3].astype(np.float64), jac)
     s = relative_time_of(points[:, 3]).astype(np.float64)
-    rows = np.empty((len(points), len(active)))
-    # Points share few distinct times in practice? No: evaluate per point with a vectorised rotation.
-    jac = _start_jacobian_scaled(points, transform, s)[:, :, active]
-    rows[:] = np.einsum('ni,nij->nj', coeff[:, :3].astype(np.float64), jac)
-    return rows
+    return _scaled_rows(points, coeff[:, :3].astype(np.float64), transform, s)[:, active]
 
 
-def _start_jacobian_scaled(points: np.ndarray, transform: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """(n, 3, 6): d/dθ of ``R(sθ)^T (p - s t)`` for per-point fractions ``s`` (vectorised over points)."""
+def _scaled_rows(points: np.ndarray, coeff: np.ndarray, transform: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """(n, 6): ``coeff · d/dθ [R(sθ)^T (p - s t)]`` for per-point fractions ``s``, written out per component.
+
+    ``R(sθ)^T = Ry(-s ry) Rx(-s rx) Rz(-s rz)``; with ``u = Rz q``, ``v = Rx u`` (``q = p - s t``) the rotation
+    derivatives are ``s Ry Rx dRz q``, ``s Ry dRx u`` and ``s dRy v``; the translation ones ``-s R^T e_k``,
+    dotted with ``coeff``: ``-s (Rz^T Rx^T Ry^T coeff)_k``. No per-point 3x3 matrices are built.
+    """
     theta = s[:, None] * np.asarray(transform, dtype=np.float64)[None, :]
     cx, sx = np.cos(theta[:, 0]), np.sin(theta[:, 0])
     cy, sy = np.cos(theta[:, 1]), np.sin(theta[:, 1])
     cz, sz = np.cos(theta[:, 2]), np.sin(theta[:, 2])
-    n = len(points)
-    zero, one = np.zeros(n), np.ones(n)
-
-    def stack(rows):
-        return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
-
-    # Rotations by minus the angles (the transpose's factors) and their derivatives w.r.t. the angles.
-    Ry_ = stack([[cy, zero, -sy], [zero, one, zero], [sy, zero, cy]])
-    Rx_ = stack([[one, zero, zero], [zero, cx, sx], [zero, -sx, cx]])
-    Rz_ = stack([[cz, sz, zero], [-sz, cz, zero], [zero, zero, one]])
-    dRy_ = stack([[-sy, zero, -cy], [zero, zero, zero], [cy, zero, -sy]])   # d/dry of Ry(-ry)
-    dRx_ = stack([[zero, zero, zero], [zero, -sx, cx], [zero, -cx, -sx]])   # d/drx of Rx(-rx)
-    dRz_ = stack([[-sz, cz, zero], [-cz, -sz, zero], [zero, zero, zero]])   # d/drz of Rz(-rz)
-    q = points[:, :3].astype(np.float64) - theta[:, 3:]
-    jac = np.empty((n, 3, 6))
-    mul = np.matmul
-    jac[:, :, 0] = mul(mul(Ry_, mul(dRx_, Rz_)), q[..., None])[..., 0] * s[:, None]
-    jac[:, :, 1] = mul(mul(dRy_, mul(Rx_, Rz_)), q[..., None])[..., 0] * s[:, None]
-    jac[:, :, 2] = mul(mul(Ry_, mul(Rx_, dRz_)), q[..., None])[..., 0] * s[:, None]
-    jac[:, :, 3:] = -mul(Ry_, mul(Rx_, Rz_)) * s[:, None, None]
-    return jac
+    qx, qy, qz = (points[:, k].astype(np.float64) - theta[:, 3 + k] for k in range(3))
+    ux, uy, uz = cz * qx + sz * qy, -sz * qx + cz * qy, qz          # Rz(-rz) q
+    vx, vy, vz = ux, cx * uy + sx * uz, -sx * uy + cx * uz          # Rx(-rx) u
+    ax, ay, az = coeff[:, 0], coeff[:, 1], coeff[:, 2]
+    # coeff^T Ry: the row vector that turns a vector w into coeff · (Ry w).
+    bx, by, bz = ax * cy + az * sy, ay, -ax * sy + az * cy
+    # coeff^T Ry Rx: the same for Ry Rx w.
+    cx_, cy_, cz_ = bx, by * cx - bz * sx, by * sx + bz * cx
+    rows = np.empty((len(points), 6))
+    # d/drx: coeff · Ry dRx u, dRx(-rx) u = (0, -sx uy + cx uz, -cx uy - sx uz)
+    rows[:, 0] = by * (-sx * uy + cx * uz) + bz * (-cx * uy - sx * uz)
+    # d/dry: coeff · dRy v, dRy(-ry) v = (-sy vx - cy vz, 0, cy vx - sy vz)
+    rows[:, 1] = ax * (-sy * vx - cy * vz) + az * (cy * vx - sy * vz)
+    # d/drz: coeff · Ry Rx dRz q, dRz(-rz) q = (-sz qx + cz qy, -cz qx - sz qy, 0)
+    rows[:, 2] = cx_ * (-sz * qx + cz * qy) + cy_ * (-cz * qx - sz * qy)
+    # d/dt: -coeff · Ry Rx Rz e_k = -(coeff^T Ry Rx Rz)_k
+    rows[:, 3] = -(cx_ * cz - cy_ * sz)
+    rows[:, 4] = -(cx_ * sz + cy_ * cz)
+    rows[:, 5] = -cz_
+    return rows * s[:, None]
 
 
 def accumulate(transform_sum: np.ndarray, transform_cur: np.ndarray, imu_shift: np.ndarray | None = None) -> np.ndarray:
@@ -374,17 +374,26 @@ def plane_coefficients(p_start: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.
     return normal, distance
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of (n, 3) arrays, the same operations as ``np.cross`` without its overhead."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.result_type(a, b))
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
 def line_coefficients(p: np.ndarray, a: np.ndarray, b: np.ndarray):
     """Unit direction (n, 3) from the line through a, b towards p, and the distance (n,) (float32)."""
     p, a, b = (v[:, :3].astype(_F32) for v in (p, a, b))
     pa, pb, ab = p - a, p - b, a - b
     # Cross product (p - a) x (p - b): its norm is twice the triangle area.
-    cross = np.cross(pa, pb)
+    cross = _cross(pa, pb)
     area = np.linalg.norm(cross, axis=1)
     length = np.linalg.norm(ab, axis=1)
     with np.errstate(invalid='ignore', divide='ignore'):
         # The gradient of the distance w.r.t. p: (a - b) x (pa x pb) / (|pa x pb| |a - b|).
-        gradient = np.cross(ab, cross) / (area * length)[:, None]
+        gradient = _cross(ab, cross) / (area * length)[:, None]
         distance = area / length
     return gradient.astype(_F32), distance.astype(_F32)
 
@@ -529,7 +538,7 @@ class LaserOdometry:
                     x = stage.step(rows, -values, 0 if first else 1, fa.degeneracy_threshold)
                     first = False
                     setattr(stats, f'{kind}_degenerate', stage.degenerate)
-                    x = self._shorten(x, active, residual)
+                    x = self._shorten(x, active, residual, float(np.square(values).sum()))
                     converged = not self._apply(x, active, *(([0, 1], [2]) if kind == 'surf' else ([0], [1, 2])))
                     if converged:
                         break
@@ -602,10 +611,10 @@ class LaserOdometry:
 
         return residual
 
-    def _shorten(self, x: np.ndarray, active: list[int], residual, halvings: int = 4) -> np.ndarray:
-        """The largest of x, x/2, x/4, ... that does not increase the block's cost (0 if none)."""
+    def _shorten(self, x: np.ndarray, active: list[int], residual, reference: float, halvings: int = 4) -> np.ndarray:
+        """The largest of x, x/2, x/4, ... that does not increase the block's cost (``reference``, the cost at
+        the current estimate) (0 if none)."""
         start = self.transform_cur.copy()
-        reference = float(np.square(residual(start)).sum())
         step = np.asarray(x, dtype=float)
         for _ in range(halvings + 1):
             trial = start.copy()
