@@ -27,6 +27,9 @@ CONFIGS = {
                      feature_association__step_scale=0.05),
     'sweep_start_step0.05': dict(feature_association__step_scale=0.05),
     'sweep_start_step1': dict(feature_association__step_scale=1.0),
+    'imu_prior_0': dict(feature_association__imu_rotation_prior=0.0),
+    'imu_prior_1e5': dict(feature_association__imu_rotation_prior=1e5),
+    'imu_prior_1e6': dict(feature_association__imu_rotation_prior=1e6),
 }
 
 

@@ -136,6 +136,25 @@ def test_known_transform_is_recovered_with_full_gauss_newton_steps():
     assert stats.corner_correspondences > 50 and stats.surf_correspondences > 20
 
 
+def test_rotation_prior_holds_the_rotation_the_imu_measured():
+    """With an IMU the sweep-start registration estimates only the rotation the IMU missed; the prior weight
+    decides how firmly that residual stays at zero. No prior: the lidar recovers the full 3 degrees; a very
+    strong prior keeps the rotation at zero; a moderate one lands in between."""
+    theta = np.array([0.0, math.radians(3.0), 0.0, 0.02, 0.0, -0.3])
+    features = static_features()
+    moved = moved_by_model(features.sharp, theta), moved_by_model(features.flat, theta)
+    yaw = {}
+    for weight in (0.0, 1e3, 1e9):
+        odometry = LaserOdometry(PARAMS.replace(feature_association__step_scale=1.0), exact_jacobian=True)
+        odometry.rotation_prior = weight
+        odometry.set_last(features.less_sharp, features.less_flat)
+        odometry.register(*moved)
+        yaw[weight] = math.degrees(odometry.transform_cur[1])
+    assert abs(yaw[0.0] - 3.0) < 0.05
+    assert abs(yaw[1e9]) < 0.01
+    assert 0.5 < yaw[1e3] < 2.5
+
+
 def test_resampled_sweep_pair_registers_closely_original_model():
     """Two real sweeps (different samples of the world, motion during the second): the original's model
     (registration against the previous sweep moved to its end) lands within a few centimetres; its robust

@@ -212,6 +212,7 @@ class FeatureAssociation:
         flat = self._registration_input(features.flat, features.flat_index, to_reference, attitude)
         if use_imu:
             odometry.transform_cur[:3] = 0.0   # the IMU explains the rotation; only what it missed is left
+        odometry.rotation_prior = self.params.feature_association.imu_rotation_prior if use_imu else 0.0
         stats = odometry.register(sharp, flat)
         if self._first_features is not None:
             # The first reference was deskewed without knowing the motion (the sensor may already be moving):

@@ -457,6 +457,9 @@ class LaserOdometry:
         self._corner_stage = _Stage()
         self.last_corner: _LastCloud | None = None
         self.last_surf: _LastCloud | None = None
+        # Weight of a prior holding the sweep rotation at zero [m^2/rad^2] (0: none): with an IMU the
+        # registration only estimates the rotation the IMU missed, see FeatureAssociation.
+        self.rotation_prior = 0.0
 
     def set_last(self, corner: np.ndarray, surf: np.ndarray) -> None:
         """New 'last' clouds; KD-trees are rebuilt only when they are big enough, as in the original."""
@@ -532,8 +535,8 @@ class LaserOdometry:
                 for _ in range(min(fa.reassociate_every, fa.max_iterations - iterations)):
                     iterations += 1
                     rows, values = residual(self.transform_cur, jacobian=True)
-                    setattr(stats, f'{kind}_correspondences', len(values))
-                    if len(values) < fa.min_correspondences:
+                    setattr(stats, f'{kind}_correspondences', residual.points)
+                    if residual.points < fa.min_correspondences:
                         break
                     x = stage.step(rows, -values, 0 if first else 1, fa.degeneracy_threshold)
                     first = False
@@ -601,14 +604,24 @@ class LaserOdometry:
         if sides is not None:
             sides = sides[keep]
 
+        # The rotation prior: sqrt(w) * angle for each active rotation parameter, appended to the residuals.
+        prior_columns = [k for k, parameter in enumerate(active) if parameter < 3] if self.rotation_prior > 0 else []
+        prior_rows = np.zeros((len(prior_columns), len(active)))
+        prior_rows[np.arange(len(prior_columns)), prior_columns] = math.sqrt(self.rotation_prior)
+        prior_parameters = [active[k] for k in prior_columns]
+
         def residual(theta: np.ndarray, jacobian: bool = False):
             direction, distance, _ = evaluate(theta)
             values = weight * distance
+            if prior_parameters:
+                values = np.concatenate([values, math.sqrt(self.rotation_prior) * np.asarray(theta)[prior_parameters]])
             if not jacobian:
                 return values
-            coeff = np.concatenate([direction * weight[:, None], values[:, None]], axis=1)
-            return plane_jacobian_rows(selected, coeff, theta, active, exact=True), values
+            coeff = np.concatenate([direction * weight[:, None], (weight * distance)[:, None]], axis=1)
+            rows = plane_jacobian_rows(selected, coeff, theta, active, exact=True)
+            return (np.concatenate([rows, prior_rows]) if prior_parameters else rows), values
 
+        residual.points = len(selected)
         return residual
 
     def _shorten(self, x: np.ndarray, active: list[int], residual, reference: float, halvings: int = 4) -> np.ndarray:

@@ -152,6 +152,11 @@ class FeatureAssociationParams:
     weight_gain: float = 1.8              # s = 1 - gain * |d|
     min_weight: float = 0.1               # correspondences with s <= this are dropped
     step_scale: float = 1.0               # Gauss-Newton step scale (the original: 0.05, see config/original.yaml)
+    # sweep_start model with an IMU: the rotation the IMU measured between two sweeps is held with a prior of
+    # this weight [m^2/rad^2] (compared with the sum of squared point residuals in m); 0 leaves it to the lidar.
+    # Scan-to-scan matching has a small scene-dependent yaw bias (0.01 deg/scan on the simulated campus) that an
+    # attitude-measuring IMU does not have; lower this for an IMU whose heading drifts fast.
+    imu_rotation_prior: float = 1e6
     degeneracy_threshold: float = 10.0    # eigenvalues below are degenerate directions
     convergence_rotation: float = 0.1     # [deg]
     convergence_translation: float = 0.1  # [cm]
