@@ -2,7 +2,8 @@
 
 Messages are published as serialized CDR (no deserialization for ROS 2 bags), paced by their recording
 time divided by the rate factor. /clock carries the bag time: before every message and at ``clock_hz`` in
-between, so nodes with ``use_sim_time`` follow the bag.
+between, so nodes with ``use_sim_time`` follow the bag. ``--loop`` plays the bag again and again, like
+``rosbag play -l``: stamps and /clock jump back to the bag's start at every repetition.
 """
 from __future__ import annotations
 
@@ -36,6 +37,7 @@ class PlayStats:
     wall_time: float = 0.0
     bag_time: float = 0.0
     interrupted: bool = False
+    loops: int = 0   # complete plays of the bag
 
 
 def _parse_remaps(remaps: list[str]) -> dict[str, str]:
@@ -51,10 +53,14 @@ def _parse_remaps(remaps: list[str]) -> dict[str, str]:
 def play(node: Node, reader: BagReader, *, topics: list[str] | None = None, rate: float = 1.0,
          start_offset: float = 0.0, clock_hz: float = 100.0, publish_clock: bool = True,
          remaps: dict[str, str] | None = None, wait_for_subscribers: float = 0.0, depth: int = 100,
-         progress: bool = True, stop: threading.Event | None = None) -> PlayStats:
-    """Publish the bag's messages on ``node``; returns what was published. Blocks until done or ``stop``."""
+         progress: bool = True, stop: threading.Event | None = None, loops: int = 1) -> PlayStats:
+    """Publish the bag's messages on ``node``; returns what was published. Blocks until done or ``stop``.
+
+    ``loops``: how many times the bag is played (0: until ``stop``)."""
     if rate <= 0:
         raise ValueError('rate must be positive')
+    if loops < 0:
+        raise ValueError('loops must be 0 (forever) or positive')
     stop = stop or threading.Event()
     remaps = remaps or {}
     stats = PlayStats()
@@ -86,8 +92,8 @@ def play(node: Node, reader: BagReader, *, topics: list[str] | None = None, rate
     bar = None
     if progress:
         from tqdm import tqdm
-        bar = tqdm(total=total, unit='msg', desc='play', file=sys.stderr, dynamic_ncols=True,
-                   mininterval=0.5)
+        bar = tqdm(total=total * loops if loops else None, unit='msg', desc='play', file=sys.stderr,
+                   dynamic_ncols=True, mininterval=0.5)
     clock_period = 1.0 / clock_hz if clock_hz > 0 else float('inf')
 
     def publish_clock_at(bag_ns: int) -> None:
@@ -98,33 +104,48 @@ def play(node: Node, reader: BagReader, *, topics: list[str] | None = None, rate
     bag_start = None
     last_clock = -1.0
     last_stamp = start
+    bag_span = 0.0
     try:
-        for message in reader.messages(topics=list(publishers), start=start):
-            if stop.is_set():
-                stats.interrupted = True
-                break
-            if bag_start is None:
-                bag_start = message.timestamp
-                publish_clock_at(bag_start)
-                last_clock = time.monotonic()
-            target = wall_start + (message.timestamp - bag_start) / 1e9 / rate
-            while not stop.is_set():
-                now = time.monotonic()
-                if now >= target:
+        while not stop.is_set() and (loops == 0 or stats.loops < loops):
+            loop_wall_start = time.monotonic()
+            bag_start = None
+            published_in_loop = 0
+            for message in reader.messages(topics=list(publishers), start=start):
+                if stop.is_set():
+                    stats.interrupted = True
                     break
-                if now - last_clock >= clock_period:
-                    publish_clock_at(bag_start + int((now - wall_start) * rate * 1e9))
-                    last_clock = now
-                time.sleep(min(target - now, clock_period))
-            if stop.is_set():
-                stats.interrupted = True
+                if bag_start is None:
+                    bag_start = message.timestamp
+                    publish_clock_at(bag_start)
+                    last_clock = time.monotonic()
+                target = loop_wall_start + (message.timestamp - bag_start) / 1e9 / rate
+                while not stop.is_set():
+                    now = time.monotonic()
+                    if now >= target:
+                        break
+                    if now - last_clock >= clock_period:
+                        publish_clock_at(bag_start + int((now - loop_wall_start) * rate * 1e9))
+                        last_clock = now
+                    time.sleep(min(target - now, clock_period))
+                if stop.is_set():
+                    stats.interrupted = True
+                    break
+                publish_clock_at(message.timestamp)
+                publishers[message.topic].publish(message.data)
+                stats.published[message.topic] = stats.published.get(message.topic, 0) + 1
+                last_stamp = message.timestamp
+                published_in_loop += 1
+                if bar is not None:
+                    bar.update(1)
+            if bag_start is not None:
+                bag_span += (last_stamp - bag_start) / 1e9
+            if stats.interrupted:
                 break
-            publish_clock_at(message.timestamp)
-            publishers[message.topic].publish(message.data)
-            stats.published[message.topic] = stats.published.get(message.topic, 0) + 1
-            last_stamp = message.timestamp
-            if bar is not None:
-                bar.update(1)
+            stats.loops += 1
+            if published_in_loop == 0:
+                break   # nothing to play: never spin on an empty selection
+        if stop.is_set() and (loops == 0 or stats.loops < loops):
+            stats.interrupted = True
     finally:
         if bar is not None:
             bar.close()
@@ -135,7 +156,7 @@ def play(node: Node, reader: BagReader, *, topics: list[str] | None = None, rate
         except Exception:  # not supported by every RMW
             pass
     stats.wall_time = time.monotonic() - wall_start
-    stats.bag_time = (last_stamp - (bag_start or last_stamp)) / 1e9
+    stats.bag_time = bag_span
     return stats
 
 
@@ -152,6 +173,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='SEC',
                         help='before playing, wait up to SEC seconds until every topic has a subscriber')
     parser.add_argument('--qos-depth', type=int, default=100, help='publisher queue depth (default 100)')
+    parser.add_argument('-l', '--loop', type=int, nargs='?', const=0, default=1, metavar='N',
+                        help='play the bag N times (without N: until interrupted), like rosbag play -l; '
+                             'stamps and /clock jump back to the start at every repetition')
     parser.add_argument('--no-progress', action='store_true', help='no progress bar')
     parser.add_argument('-q', '--quiet', action='store_true', help='no summary at the end')
 
@@ -168,6 +192,9 @@ def main(args: argparse.Namespace) -> int:
     except BagError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
+    if args.loop < 0:
+        print('error: --loop N needs N >= 1 (or no N: forever)', file=sys.stderr)
+        return 2
     stop = threading.Event()
     rclpy.init(args=getattr(args, 'ros_args', None), signal_handler_options=SignalHandlerOptions.NO)
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -176,7 +203,7 @@ def main(args: argparse.Namespace) -> int:
         stats = play(node, reader, topics=args.topics, rate=args.rate, start_offset=args.start_offset,
                      clock_hz=args.clock, publish_clock=not args.no_clock, remaps=remaps,
                      wait_for_subscribers=args.wait_for_subscribers, depth=args.qos_depth,
-                     progress=not args.no_progress, stop=stop)
+                     progress=not args.no_progress, stop=stop, loops=args.loop)
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
@@ -189,6 +216,7 @@ def main(args: argparse.Namespace) -> int:
         count = sum(stats.published.values())
         rate = count / stats.wall_time if stats.wall_time > 0 else 0.0
         state = 'interrupted' if stats.interrupted else 'done'
-        print(f'{state}: {count} messages on {len(stats.published)} topics, {stats.bag_time:.2f} s of bag in '
+        loops = f' ({stats.loops} plays)' if stats.loops > 1 else ''
+        print(f'{state}: {count} messages on {len(stats.published)} topics, {stats.bag_time:.2f} s of bag{loops} in '
               f'{stats.wall_time:.2f} s ({rate:.1f} msg/s)', file=sys.stderr)
     return 0

@@ -7,8 +7,12 @@ frame (LOAM camera axes), and shift, velocity and gyro angles integrated with co
 between samples. The IMU is assumed axis-aligned with the lidar unless ``imu_to_lidar`` says otherwise.
 
 Robustness (deviations from the original, which would corrupt its ring buffer): samples with non-finite
-values or a zero quaternion, older than or equal in time to the newest sample are rejected with a reason;
-after a gap longer than one sweep the integration restarts (velocity 0) instead of using stale slots.
+values, a quaternion that is not of unit length (zero, or off by more than 10 %), an angular velocity above
+100 rad/s or an acceleration above 1000 m/s^2 (no IMU measures that: garbage), older than or equal in time
+to the newest sample are rejected with a reason; a sample more than ``reset_after`` (1 s) older than the
+newest one means the source restarted (a bag looped): the buffer is cleared and starts again from it
+(``resets`` counts these); after a gap longer than one sweep the integration restarts (velocity 0) instead of
+using stale slots.
 
 All arrays are in chronological order. Units: s, rad, m, m/s, m/s^2. Axes: camera axes (x left, y up,
 z forward) for world vectors; ``angle`` integrates the raw gyro in lidar axes (x, y, z).
@@ -22,7 +26,11 @@ from scipy.spatial.transform import Rotation
 
 from lego_loam_py.core.frames import euler_to_matrices
 
-__all__ = ['ImuBuffer', 'ImuState', 'imu_world_rotation']
+__all__ = ['ImuBuffer', 'ImuState', 'imu_world_rotation', 'MAX_ANGULAR_VELOCITY', 'MAX_ACCELERATION']
+
+MAX_ANGULAR_VELOCITY = 100.0   # [rad/s] anything faster is garbage (gyros saturate at 35-70 rad/s)
+MAX_ACCELERATION = 1000.0      # [m/s^2] about 100 g (accelerometers saturate at 16-200 g)
+QUATERNION_NORM_TOLERANCE = 0.1
 
 
 def imu_world_rotation(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
@@ -46,11 +54,13 @@ class ImuBuffer:
     """Bounded ring of processed IMU samples (``capacity`` = the original's imuQueLength)."""
 
     def __init__(self, capacity: int = 200, gravity: float = 9.81, scan_period: float = 0.1,
-                 imu_to_lidar: np.ndarray | None = None):
+                 imu_to_lidar: np.ndarray | None = None, reset_after: float = 1.0):
         self.capacity = int(capacity)
         self.gravity = float(gravity)
         self.scan_period = float(scan_period)
         self.imu_to_lidar = None if imu_to_lidar is None else np.asarray(imu_to_lidar, dtype=float)
+        self.reset_after = float(reset_after)
+        self.resets = 0
         self._time = np.zeros(0)
         self._rpy = np.zeros((0, 3))
         self._velocity = np.zeros((0, 3))
@@ -66,7 +76,10 @@ class ImuBuffer:
         return self._time
 
     def clear(self) -> None:
-        self.__init__(self.capacity, self.gravity, self.scan_period, self.imu_to_lidar)
+        """Forget every sample (the rejection and reset counters are kept)."""
+        rejected, resets = self.rejected, self.resets
+        self.__init__(self.capacity, self.gravity, self.scan_period, self.imu_to_lidar, self.reset_after)
+        self.rejected, self.resets = rejected, resets
 
     def _reject(self, reason: str) -> str:
         self.rejected[reason] = self.rejected.get(reason, 0) + 1
@@ -77,10 +90,23 @@ class ImuBuffer:
         q = np.asarray(orientation_xyzw, dtype=float)
         gyro = np.asarray(angular_velocity, dtype=float)
         acc = np.asarray(linear_acceleration, dtype=float)
+        if q.shape != (4,) or gyro.shape != (3,) or acc.shape != (3,):
+            return self._reject('malformed sample')
         if not (np.isfinite(stamp) and np.isfinite(q).all() and np.isfinite(gyro).all() and np.isfinite(acc).all()):
             return self._reject('non-finite value')
-        if np.linalg.norm(q) < 1e-6:
+        scale = float(np.abs(q).max())
+        norm = scale * float(np.linalg.norm(q / scale)) if scale > 0 else 0.0   # no overflow for huge values
+        if norm < 1e-6:
             return self._reject('zero-norm orientation quaternion (the IMU must provide orientation)')
+        if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+            return self._reject('orientation quaternion is not of unit length')
+        if not (np.abs(gyro) <= MAX_ANGULAR_VELOCITY).all():
+            return self._reject(f'angular velocity beyond {MAX_ANGULAR_VELOCITY:g} rad/s')
+        if not (np.abs(acc) <= MAX_ACCELERATION).all():
+            return self._reject(f'acceleration beyond {MAX_ACCELERATION:g} m/s^2')
+        if len(self._time) and stamp < self._time[-1] - self.reset_after:
+            self.clear()   # the source restarted (a bag looped): start again from this sample
+            self.resets += 1
         if len(self._time) and stamp <= self._time[-1]:
             return self._reject('stamp not newer than the previous sample (out of order or duplicate)')
         rotation = Rotation.from_quat(q / np.linalg.norm(q))

@@ -7,17 +7,23 @@ file or the new complete one.
 from __future__ import annotations
 
 import os
+import re
 import tempfile
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-__all__ = ['write_tum_atomic', 'read_tum', 'tum_lines', 'write_pcd_atomic', 'read_pcd', 'atomic_path']
+__all__ = ['write_tum_atomic', 'read_tum', 'tum_lines', 'write_pcd_atomic', 'read_pcd', 'atomic_path',
+           'remove_stale_temporaries']
 
 
 class atomic_path:
-    """Context manager yielding a temporary path beside ``target``; renamed onto it on success."""
+    """Context manager yielding a temporary path beside ``target``; renamed onto it on success.
+
+    The temporary file is ``.<stem>.<pid>.<random>.tmp<suffix>``: a process killed while writing (SIGKILL,
+    power loss) leaves it behind, and :func:`remove_stale_temporaries` recognises it by its dead writer.
+    """
 
     def __init__(self, target: str | Path, suffix: str | None = None):
         self.target = Path(target)
@@ -25,7 +31,7 @@ class atomic_path:
 
     def __enter__(self) -> Path:
         self.target.parent.mkdir(parents=True, exist_ok=True)
-        handle, name = tempfile.mkstemp(prefix=f'.{self.target.stem}.', suffix=f'.tmp{self.suffix}',
+        handle, name = tempfile.mkstemp(prefix=f'.{self.target.stem}.{os.getpid()}.', suffix=f'.tmp{self.suffix}',
                                         dir=self.target.parent)
         os.close(handle)
         self.temporary = Path(name)
@@ -36,8 +42,62 @@ class atomic_path:
             with open(self.temporary, 'rb') as f:
                 os.fsync(f.fileno())
             os.replace(self.temporary, self.target)
+            _fsync_directory(self.target.parent)
         else:
             self.temporary.unlink(missing_ok=True)
+
+
+def _fsync_directory(directory: Path) -> None:
+    """Make a rename in ``directory`` durable (power loss); best effort where directories cannot be opened."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+_TEMPORARY = re.compile(r'^\.(.+)\.(\d+)\.[^.]+\.tmp[^/]*$')
+
+
+def remove_stale_temporaries(directory: str | Path, stems=None) -> list[Path]:
+    """Delete the temporary files :class:`atomic_path` left in ``directory`` when their writer was killed
+    (its process no longer exists), only those of targets named ``stems`` when given; returns what was
+    deleted. Files of live writers are never touched."""
+    directory = Path(directory)
+    stems = None if stems is None else set(stems)
+    removed = []
+    try:
+        entries = list(directory.iterdir())
+    except OSError:
+        return removed
+    for path in entries:
+        match = _TEMPORARY.match(path.name)
+        if match is None or (stems is not None and match.group(1) not in stems) or not path.is_file():
+            continue
+        pid = int(match.group(2))
+        if pid == os.getpid() or _process_exists(pid):
+            continue
+        try:
+            path.unlink()
+            removed.append(path)
+        except OSError:
+            pass
+    return removed
+
+
+def _process_exists(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def tum_lines(stamps_ns: np.ndarray, poses: np.ndarray) -> str:

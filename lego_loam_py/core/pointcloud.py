@@ -31,6 +31,9 @@ DATATYPE_TO_NUMPY: dict[int, str] = {
 NUMPY_TO_DATATYPE: dict[str, int] = {v: k for k, v in DATATYPE_TO_NUMPY.items()}
 
 
+MAX_POINT_STEP = 1 << 20   # bytes per point; real layouts use 12-64 (numpy cannot even describe > 2**31 - 1)
+
+
 class CloudLayoutError(ValueError):
     """The fields / sizes of a PointCloud2 do not describe its data."""
 
@@ -67,6 +70,8 @@ def dtype_from_fields(fields: Sequence[PointField], point_step: int, is_bigendia
     """
     if point_step <= 0:
         raise CloudLayoutError(f'point_step must be positive, got {point_step}')
+    if point_step > MAX_POINT_STEP:
+        raise CloudLayoutError(f'point_step {point_step} is absurd (more than {MAX_POINT_STEP} bytes per point)')
     order = '>' if is_bigendian else '<'
     names, formats, offsets = [], [], []
     spans = []

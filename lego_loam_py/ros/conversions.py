@@ -25,6 +25,7 @@ __all__ = [
     'stamp_to_ns', 'ns_to_stamp', 'make_header', 'cloud_msg_to_buffer', 'cloud_msg_to_array',
     'array_to_cloud_msg', 'pose_to_odometry', 'odometry_to_pose', 'pose_to_transform',
     'numpy_to_array', 'xyzi_to_cloud_msg', 'cloud_msg_to_xyzi', 'cloud_info_to_msg', 'cloud_info_from_msg',
+    'MAX_POSITION',
 ]
 
 
@@ -153,15 +154,28 @@ def pose_to_odometry(pose: np.ndarray, header: Header, child_frame_id: str,
     return msg
 
 
+MAX_POSITION = 1e6   # [m] a pose further from its origin than 1000 km is garbage, not a map
+
+
 def odometry_to_pose(msg: Odometry) -> np.ndarray:
-    """4x4 pose of an Odometry message (raises ValueError for non-finite or zero quaternions)."""
+    """4x4 pose of an Odometry message.
+
+    Raises ValueError for non-finite values, a quaternion that is not of unit length (zero, or off by more
+    than 10 %: garbage, not a rotation) and positions beyond ``MAX_POSITION``.
+    """
     p = msg.pose.pose
     q = np.array([p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w])
     t = np.array([p.position.x, p.position.y, p.position.z])
     if not (np.isfinite(q).all() and np.isfinite(t).all()):
         raise ValueError('odometry pose is not finite')
-    if np.linalg.norm(q) < 1e-6:
+    scale = float(np.abs(q).max())
+    norm = scale * float(np.linalg.norm(q / scale)) if scale > 0 else 0.0   # no overflow for huge values
+    if norm < 1e-6:
         raise ValueError('odometry orientation quaternion has zero norm')
+    if abs(norm - 1.0) > 0.1:
+        raise ValueError(f'odometry orientation quaternion is not of unit length (norm {norm:.3g})')
+    if not (np.abs(t) <= MAX_POSITION).all():
+        raise ValueError(f'odometry position beyond {MAX_POSITION:g} m')
     pose = np.eye(4)
     pose[:3, :3] = quaternion_to_matrix(q)
     pose[:3, 3] = t

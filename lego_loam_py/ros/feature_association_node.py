@@ -9,8 +9,12 @@ depth 50) when ``sensor.imu_topic`` is set. Publishes, stamped with the scan:
   (frame ``camera``, LOAM camera axes);
 * while subscribed: /laser_cloud_sharp, /laser_cloud_less_sharp, /laser_cloud_flat, /laser_cloud_less_flat.
 
-Scans with an older stamp than the previous one are dropped (out of order); a jump back by more than a
-second (a bag restarted or looped) resets the odometry with a warning.
+Scans with an older stamp than the previous one are dropped (out of order or duplicate). A jump of more than a
+second either way is believed once the next scan continues the new timeline (a single wrong stamp costs that
+scan only): back in time (a bag restarted or looped) the odometry resets with a warning, forward it goes on.
+Inconsistent inputs (CloudInfo arrays that do not match the cloud, ring indices outside it, non-finite or
+absurd values) are dropped with a throttled warning; should the odometry ever become non-finite it resets
+instead of publishing garbage. A reset keeps the IMU samples.
 """
 from __future__ import annotations
 
@@ -25,7 +29,8 @@ from sensor_msgs.msg import Imu, PointCloud2
 from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, LASER_ODOM_FRAME
 from lego_loam_py.core.pointcloud import CloudLayoutError
-from lego_loam_py.core.sync import StampSynchronizer
+from lego_loam_py.core.image_projection import MAX_COORDINATE
+from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import (cloud_info_from_msg, cloud_msg_to_array, cloud_msg_to_xyzi, make_header,
                                           pose_to_odometry, stamp_to_ns, xyzi_to_cloud_msg)
@@ -48,8 +53,10 @@ class FeatureAssociationNode(LegoLoamNode):
         self.create_subscription(PointCloud2, '/segmented_cloud', lambda m: self.on_part('cloud', m), depth1)
         self.create_subscription(CloudInfo, '/segmented_cloud_info', lambda m: self.on_part('info', m), depth1)
         self.create_subscription(PointCloud2, '/outlier_cloud', lambda m: self.on_part('outlier', m), depth1)
+        self.imu_subscription = None
         if self.params.sensor.imu_topic:
-            self.create_subscription(Imu, self.params.sensor.imu_topic, self.on_imu, qos.sensor_input(50))
+            self.imu_subscription = self.create_subscription(Imu, self.params.sensor.imu_topic, self.on_imu,
+                                                             qos.sensor_input(50))
         self.pub_odometry = self.create_publisher(Odometry, '/laser_odom_to_init', qos.reliable(5))
         self.tf = TransformBroadcaster(self)
         last = qos.reliable(2)
@@ -61,7 +68,7 @@ class FeatureAssociationNode(LegoLoamNode):
         self.pub_less_sharp = self.create_publisher(PointCloud2, '/laser_cloud_less_sharp', features)
         self.pub_flat = self.create_publisher(PointCloud2, '/laser_cloud_flat', features)
         self.pub_less_flat = self.create_publisher(PointCloud2, '/laser_cloud_less_flat', features)
-        self.last_stamp_ns: int | None = None
+        self.order = StampOrder(RESET_JUMP_NS)
         self.get_logger().info(
             f'featureAssociation: IMU {self.params.sensor.imu_topic or "off"}, relative point time: '
             f'{fa.relative_time_source}, mapping every {fa.skip_frame_num + 1} scans')
@@ -89,19 +96,49 @@ class FeatureAssociationNode(LegoLoamNode):
             self.count('imu_dropped')
             self.warn('imu', f'IMU message dropped: {reason}')
 
+    @property
+    def last_stamp_ns(self) -> int | None:
+        """Stamp of the last scan processed [ns]."""
+        return self.order.last_ns
+
     def on_scan(self, cloud_msg: PointCloud2, info_msg, outlier_msg: PointCloud2) -> None:
+        self.drain(self.imu_subscription, self.on_imu)   # the IMU samples that came with this scan first
+        stamp = stamp_to_ns(cloud_msg.header.stamp)
+        last = self.order.last_ns
+        decision = self.order.check(stamp, (cloud_msg, info_msg, outlier_msg))
+        if decision.discarded is not None:
+            self.count('scans_dropped')
+            held = stamp_to_ns(decision.discarded[0].header.stamp)
+            self.warn('glitch', f'a scan stamped {(held - (last or held)) * 1e-9:+.1f} s from the previous one was '
+                                'dropped: the next scan continued the old timeline (a wrong stamp)')
+        if decision.action == 'drop':
+            self.count('scans_dropped')
+            self.warn('order', f'scan dropped: {decision.reason} (stamp not newer than the previous scan)')
+            return
+        if decision.action == 'hold':
+            return   # a jump in time: the next scan tells whether it is real
+        if decision.action == 'reset':
+            self.warn('reset', f'time jumped back by {-decision.jump_ns * 1e-9:.1f} s (bag restarted?): '
+                               'odometry reset', period=0.0)
+            self._reset()
+        elif decision.action == 'jump':
+            self.warn('jump', f'time jumped forward by {decision.jump_ns * 1e-9:.1f} s: carrying on', period=0.0)
+            self.count('forward_jumps')
+        if decision.held is not None:
+            self._process(*decision.held)
+        self._process(cloud_msg, info_msg, outlier_msg)
+
+    def _reset(self) -> None:
+        """Start the odometry again (the IMU samples stay: they follow their own timeline)."""
+        imu = self.core.imu
+        self.core.reset()
+        self.core.imu = imu
+        self.order.reset()
+        self.count('resets')
+
+    def _process(self, cloud_msg: PointCloud2, info_msg, outlier_msg: PointCloud2) -> None:
         start = time.perf_counter()
         stamp = stamp_to_ns(cloud_msg.header.stamp)
-        if self.last_stamp_ns is not None and stamp <= self.last_stamp_ns:
-            if stamp < self.last_stamp_ns - RESET_JUMP_NS:
-                self.warn('reset', f'time jumped back by {(self.last_stamp_ns - stamp) * 1e-9:.1f} s (bag restarted?): '
-                                   'odometry reset', period=0.0)
-                self.core.reset()
-                self.count('resets')
-            else:
-                self.count('scans_dropped')
-                self.warn('order', 'scan older than or as old as the previous one dropped (out of order/duplicate)')
-                return
         try:
             scan = self._scan_input(stamp, cloud_msg, info_msg, outlier_msg)
         except (CloudLayoutError, ValueError) as exc:
@@ -113,13 +150,26 @@ class FeatureAssociationNode(LegoLoamNode):
         except Exception:
             self.count('scans_dropped')
             self.error('process_exception', 'unexpected error in featureAssociation; scan dropped')
+            if not self._state_is_finite():
+                self.warn('diverged', 'the odometry state is no longer finite: odometry reset', period=0.0)
+                self._reset()
             return
-        self.last_stamp_ns = stamp
+        if not (self._state_is_finite() and _finite(result.corner_last) and _finite(result.surf_last)
+                and _finite(result.outlier_last)):
+            self.count('scans_dropped')
+            self.warn('diverged', 'the odometry became non-finite: scan dropped, odometry reset', period=0.0)
+            self._reset()
+            return
+        self.order.processed(stamp)
         self._publish(result, cloud_msg.header.stamp)
         self.count('scans')
         if result.imu_used:
             self.count('scans_with_imu')
         self.record_time('scan', time.perf_counter() - start)
+
+    def _state_is_finite(self) -> bool:
+        return bool(np.isfinite(self.core.transform_sum).all() and
+                    np.isfinite(self.core.odometry.transform_cur).all())
 
     def _scan_input(self, stamp: int, cloud_msg, info_msg, outlier_msg) -> ScanInput:
         """Convert and validate the three messages (raises ValueError for inconsistent content)."""
@@ -137,17 +187,32 @@ class FeatureAssociationNode(LegoLoamNode):
             raise ValueError(f'CloudInfo ring indices have {len(info.start_ring_index)}/{len(info.end_ring_index)} '
                              f'entries, sensor.n_scan is {n_scan}')
         if (info.end_ring_index > n).any() or (info.start_ring_index > n + 10).any() or \
-                (info.start_ring_index < -10).any():
+                (info.start_ring_index < -10).any() or (info.end_ring_index < -10).any():
             raise ValueError('CloudInfo ring indices point outside the segmented cloud')
-        if not (np.isfinite(segmented).all() and np.isfinite(outlier[:, :3]).all()):
-            raise ValueError('non-finite coordinates in the segmented or outlier cloud')
-        if not np.isfinite([info.start_orientation, info.end_orientation, info.orientation_diff]).all() or \
-                info.orientation_diff == 0:
+        if not (np.isfinite(segmented).all() and np.isfinite(outlier).all()):
+            raise ValueError('non-finite values in the segmented or outlier cloud')
+        if not ((np.abs(segmented[:, :3]) <= MAX_COORDINATE).all() and
+                (np.abs(outlier[:, :3]) <= MAX_COORDINATE).all()):
+            raise ValueError(f'coordinates beyond {MAX_COORDINATE:g} m in the segmented or outlier cloud')
+        # The intensity of imageProjection's clouds is row + column / 10000: the row indexes the rings.
+        if n and not ((segmented[:, 3] >= 0).all() and (segmented[:, 3] < n_scan).all()):
+            raise ValueError(f'segmented cloud intensities are not row + column / 10000 with rows 0..{n_scan - 1}')
+        angles = [info.start_orientation, info.end_orientation, info.orientation_diff]
+        if not np.isfinite(angles).all() or not (np.abs(angles) <= 100.0).all() or info.orientation_diff == 0:
             raise ValueError('invalid sweep orientation in CloudInfo')
         info.segmented_cloud_range = info.segmented_cloud_range[:n]
         info.segmented_cloud_col_ind = info.segmented_cloud_col_ind[:n]
         info.segmented_cloud_ground_flag = info.segmented_cloud_ground_flag[:n]
-        point_time = points['time'] if 'time' in (points.dtype.names or ()) else None
+        if not (np.isfinite(info.segmented_cloud_range).all() and
+                (np.abs(info.segmented_cloud_range) <= 2 * MAX_COORDINATE).all()):
+            raise ValueError('CloudInfo ranges are not finite or absurd')
+        point_time = None
+        if 'time' in (points.dtype.names or ()) and points['time'].ndim == 1:
+            point_time = points['time']
+            period = self.params.sensor.scan_period
+            if not (np.isfinite(point_time).all() and (np.abs(point_time) <= 10 * period).all()):
+                self.warn('bad_time', 'per-point time field not finite or far outside the sweep: ignored')
+                point_time = None
         return ScanInput(stamp, segmented, info, outlier, point_time)
 
     # ---------------------------------------------------------------------------------- outputs
@@ -168,6 +233,10 @@ class FeatureAssociationNode(LegoLoamNode):
             self.pub_surf_last.publish(xyzi_to_cloud_msg(result.surf_last, camera))
         if result.outlier_last is not None:
             self.pub_outlier_last.publish(xyzi_to_cloud_msg(result.outlier_last, camera))
+
+
+def _finite(cloud) -> bool:
+    return cloud is None or bool(np.isfinite(cloud).all())
 
 
 def main(args=None) -> int:

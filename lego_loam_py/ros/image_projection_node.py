@@ -7,7 +7,9 @@ input stamp, in frame ``base_link`` (the lidar frame; CloudInfo keeps the input 
 * always: /segmented_cloud, /segmented_cloud_info, /outlier_cloud
 * while subscribed: /full_cloud_projected, /full_cloud_info, /ground_cloud, /segmented_cloud_pure
 
-Bad clouds (invalid layout, no x/y/z, nothing valid, wrong sensor) are dropped with a throttled warning.
+Bad clouds (invalid layout, no x/y/z, nothing valid, wrong sensor, more than ``MAX_POINTS_PER_PIXEL`` times
+as many points as the range image has pixels) are dropped with a throttled warning. The node keeps no state
+between scans, so a bad cloud costs that cloud only.
 """
 from __future__ import annotations
 
@@ -19,14 +21,18 @@ from cloud_msgs.msg import CloudInfo
 from sensor_msgs.msg import PointCloud2
 
 from lego_loam_py.core.frames import BASE_LINK_FRAME
-from lego_loam_py.core.image_projection import ImageProjection, InputError, prepare_input
+from lego_loam_py.core.image_projection import MAX_COORDINATE, ImageProjection, InputError, prepare_input
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import cloud_info_to_msg, cloud_msg_to_array, make_header, xyzi_to_cloud_msg
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 
-__all__ = ['ImageProjectionNode', 'main']
+__all__ = ['ImageProjectionNode', 'main', 'MAX_POINTS_PER_PIXEL']
+
+# A cloud with more points than this many per range-image pixel is not from the configured sensor (a dual
+# return VLP-16 has 2): it is dropped before it is read, so memory and time per scan stay bounded.
+MAX_POINTS_PER_PIXEL = 16
 
 
 class ImageProjectionNode(LegoLoamNode):
@@ -52,6 +58,12 @@ class ImageProjectionNode(LegoLoamNode):
         start = time.perf_counter()
         self.count('clouds_in')
         try:
+            s = self.params.sensor
+            limit = MAX_POINTS_PER_PIXEL * s.n_scan * s.horizon_scan
+            if int(msg.width) * int(msg.height) > limit:
+                raise InputError(f'{int(msg.width) * int(msg.height)} points, more than {limit} '
+                                 f'({MAX_POINTS_PER_PIXEL} per pixel of the {s.n_scan}x{s.horizon_scan} range '
+                                 f'image of sensor.preset {s.preset}): not a scan of this sensor')
             points = cloud_msg_to_array(msg)
             data = prepare_input(points, self.params)
             if data.xyz.shape[0] == 0:
@@ -65,7 +77,10 @@ class ImageProjectionNode(LegoLoamNode):
             self.count('clouds_dropped')
             self.error('cloud_exception', 'unexpected error while reading a cloud; dropped')
             return
-        self._check_sensor(points, data)
+        try:
+            self._check_sensor(points, data)
+        except Exception:
+            self.error('check_exception', 'unexpected error while checking a cloud')
         try:
             result = self.core.process(data)
         except InputError as exc:
@@ -105,8 +120,8 @@ class ImageProjectionNode(LegoLoamNode):
                 self.warn('ring_range', f'{share:.0%} of the points have {s.ring_field} >= {s.n_scan} (up to '
                                         f'{highest}) and are dropped: is sensor.preset ({s.preset}) right?')
         if data.dropped_non_finite:
-            self.warn('non_finite', f'{data.dropped_non_finite} points with NaN/inf coordinates dropped',
-                      period=60.0)
+            self.warn('non_finite', f'{data.dropped_non_finite} points with NaN/inf coordinates (or beyond '
+                                    f'{MAX_COORDINATE:g} m) dropped', period=60.0)
 
 
 def main(args=None) -> int:

@@ -15,6 +15,13 @@ Loop closure (``loop_closure.loop_closure_enable_flag``) runs every ``loop_closu
 callback group, so the ICP does not hold up the mapping steps. The service ``save_map``
 (std_srvs/Trigger) and the shutdown hook write the maps and the keyframe trajectory to
 ``map_optimization.file_directory``.
+
+Robustness: inputs older than the previous ones are dropped; a jump of more than a second either way is
+believed once the next input continues the new timeline. Back in time (a bag restarted or looped) the map
+built so far is saved, then mapping starts afresh (the IMU samples stay). An odometry that jumps further
+than any vehicle moves between two inputs (featureAssociation restarted or reset) is re-anchored at the last
+optimised pose instead of dragging the map along. Inputs with non-finite or absurd values are dropped with a
+throttled warning; a mapping step that fails or yields a non-finite pose is skipped and the map is kept.
 """
 from __future__ import annotations
 
@@ -27,10 +34,12 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from sensor_msgs.msg import Imu, PointCloud2
 from std_srvs.srv import Trigger
 
-from lego_loam_py.core.frames import AFT_MAPPED_FRAME, CAMERA_INIT_FRAME, matrix_to_pose6, pose6_to_matrix
+from lego_loam_py.core.frames import (AFT_MAPPED_FRAME, CAMERA_INIT_FRAME, invert_pose, matrix_to_pose6,
+                                      pose6_to_matrix)
+from lego_loam_py.core.image_projection import MAX_COORDINATE
 from lego_loam_py.core.map_optimization import MapOptimization, transform_cloud
 from lego_loam_py.core.pointcloud import CloudLayoutError
-from lego_loam_py.core.sync import StampSynchronizer
+from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import (cloud_msg_to_xyzi, make_header, odometry_to_pose, pose_to_odometry,
                                           stamp_to_ns, xyzi_to_cloud_msg)
@@ -41,6 +50,21 @@ from lego_loam_py.ros.tf import TransformBroadcaster
 __all__ = ['MapOptimizationNode', 'main']
 
 RESET_JUMP_NS = 1_000_000_000
+MAP_FILE_STEMS = ('global_map', 'corner_map', 'surface_map', 'trajectory', 'trajectory_camera_init')
+# Odometry that moves more than this between two inputs did not follow a vehicle: it restarted.
+ODOMETRY_JUMP_M, ODOMETRY_JUMP_M_PER_S = 5.0, 30.0
+ODOMETRY_JUMP_RAD, ODOMETRY_JUMP_RAD_PER_S = 1.0, 6.0
+MAX_EXTRAPOLATION_S = 10.0   # over a longer gap the vehicle is assumed to have stopped
+
+
+def _scaled_motion(motion: np.ndarray, scale: float) -> np.ndarray:
+    """The 4x4 motion ``motion`` repeated ``scale`` times (rotation vector and translation scaled)."""
+    from scipy.spatial.transform import Rotation
+
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(motion[:3, :3]).as_rotvec() * scale).as_matrix()
+    out[:3, 3] = motion[:3, 3] * scale
+    return out
 
 
 class MapOptimizationNode(LegoLoamNode):
@@ -53,10 +77,11 @@ class MapOptimizationNode(LegoLoamNode):
         self.create_subscription(PointCloud2, '/laser_cloud_corner_last', lambda m: self.on_part('corner', m), depth2)
         self.create_subscription(PointCloud2, '/laser_cloud_surf_last', lambda m: self.on_part('surf', m), depth2)
         self.create_subscription(PointCloud2, '/outlier_cloud_last', lambda m: self.on_part('outlier', m), depth2)
-        self.create_subscription(Odometry, '/laser_odom_to_init', lambda m: self.on_part('odometry', m),
-                                 qos.reliable(5))
+        self.create_subscription(Odometry, '/laser_odom_to_init', self.on_odometry, qos.reliable(5))
+        self.imu_subscription = None
         if self.params.sensor.imu_topic:
-            self.create_subscription(Imu, self.params.sensor.imu_topic, self.on_imu, qos.sensor_input(50))
+            self.imu_subscription = self.create_subscription(Imu, self.params.sensor.imu_topic, self.on_imu,
+                                                             qos.sensor_input(50))
         self.pub_aft_mapped = self.create_publisher(Odometry, '/aft_mapped_to_init', qos.reliable(5))
         self.tf = TransformBroadcaster(self)
         self.pub_key_poses = self.create_publisher(PointCloud2, '/key_pose_origin', depth2)
@@ -66,14 +91,26 @@ class MapOptimizationNode(LegoLoamNode):
         self.pub_history = self.create_publisher(PointCloud2, '/history_cloud', depth2)
         self.pub_corrected = self.create_publisher(PointCloud2, '/corrected_cloud', depth2)
         self.create_service(Trigger, 'save_map', self.on_save_map)
-        self.last_stamp_ns: int | None = None
+        self.order = StampOrder(RESET_JUMP_NS)
+        self._last_odometry: tuple[int, np.ndarray, object] | None = None   # (stamp, 4x4, publisher) last processed
+        self._odometry_publisher: dict[int, object] = {}   # stamp -> publisher of recent odometry messages
+        self._older_odometry: tuple[int, np.ndarray, object] | None = None   # the one before _last_odometry
         self.last_step_stamp = None
         background = MutuallyExclusiveCallbackGroup()
         self.create_timer(mo.global_map_publish_period, self.publish_global_map, callback_group=background)
         if lc.loop_closure_enable_flag:
             self.create_timer(lc.period, self.loop_closure, callback_group=MutuallyExclusiveCallbackGroup())
+        self._remove_stale_temporaries()
         self.get_logger().info(f'mapOptimization: every {mo.mapping_process_interval} s, loop closure '
                                f'{"on" if lc.loop_closure_enable_flag else "off"}, maps saved to {mo.file_directory}')
+
+    def _remove_stale_temporaries(self) -> None:
+        """A predecessor killed while saving left temporary files (its saved files are complete): remove them."""
+        from lego_loam_py.core.io import remove_stale_temporaries
+        removed = remove_stale_temporaries(self.params.map_optimization.file_directory, stems=MAP_FILE_STEMS)
+        if removed:
+            self.get_logger().info(f'removed {len(removed)} temporary file(s) of an interrupted save in '
+                                   f'{self.params.map_optimization.file_directory}')
 
     # ------------------------------------------------------------------------------------------ inputs
     def on_part(self, name: str, msg) -> None:
@@ -88,6 +125,16 @@ class MapOptimizationNode(LegoLoamNode):
         if complete is not None:
             self.on_inputs(complete)
 
+    def on_odometry(self, msg: Odometry, info) -> None:
+        """/laser_odom_to_init; the publisher's id tells a restarted featureAssociation (a new odometry frame)."""
+        gid = info.get('publisher_gid') if isinstance(info, dict) else None
+        if gid is not None:
+            data = gid.get('data') if isinstance(gid, dict) else gid
+            self._odometry_publisher[stamp_to_ns(msg.header.stamp)] = bytes(data) if data is not None else None
+            while len(self._odometry_publisher) > 64:
+                self._odometry_publisher.pop(next(iter(self._odometry_publisher)))
+        self.on_part('odometry', msg)
+
     def on_imu(self, msg: Imu) -> None:
         o, w, a = msg.orientation, msg.angular_velocity, msg.linear_acceleration
         reason = self.core.imu.add(stamp_to_ns(msg.header.stamp) * 1e-9, (o.x, o.y, o.z, o.w), (w.x, w.y, w.z),
@@ -96,38 +143,69 @@ class MapOptimizationNode(LegoLoamNode):
             self.count('imu_dropped')
             self.warn('imu', f'IMU message dropped: {reason}')
 
+    @property
+    def last_stamp_ns(self) -> int | None:
+        """Stamp of the last input processed [ns]."""
+        return self.order.last_ns
+
     def on_inputs(self, parts: dict) -> None:
+        self.drain(self.imu_subscription, self.on_imu)   # the IMU samples up to this input first
+        stamp = stamp_to_ns(parts['odometry'].header.stamp)
+        last = self.order.last_ns
+        decision = self.order.check(stamp, parts)
+        if decision.discarded is not None:
+            self.count('inputs_dropped')
+            held = stamp_to_ns(decision.discarded['odometry'].header.stamp)
+            self.warn('glitch', f'an input stamped {(held - (last or held)) * 1e-9:+.1f} s from the previous one was '
+                                'dropped: the next input continued the old timeline (a wrong stamp)')
+        if decision.action == 'drop':
+            self.count('inputs_dropped')
+            self.warn('order', f'input dropped: {decision.reason} (stamp not newer than the previous input)')
+            return
+        if decision.action == 'hold':
+            return   # a jump in time: the next input tells whether it is real
+        if decision.action == 'reset':
+            self._reset_after_time_jump(-decision.jump_ns)
+        elif decision.action == 'jump':
+            self.warn('jump', f'time jumped forward by {decision.jump_ns * 1e-9:.1f} s: carrying on', period=0.0)
+            self.count('forward_jumps')
+        if decision.held is not None:
+            self._process(decision.held)
+        self._process(parts)
+
+    def _process(self, parts: dict) -> None:
         start = time.perf_counter()
         odometry = parts['odometry']
         stamp = stamp_to_ns(odometry.header.stamp)
-        if self.last_stamp_ns is not None and stamp <= self.last_stamp_ns:
-            if stamp < self.last_stamp_ns - RESET_JUMP_NS:
-                self._reset_after_time_jump(stamp)
-            else:
-                self.count('inputs_dropped')
-                self.warn('order', 'input older than or as old as the previous one dropped (out of order/duplicate)')
-                return
         try:
-            transform_sum = matrix_to_pose6(odometry_to_pose(odometry))
+            odometry_pose = odometry_to_pose(odometry)
+            transform_sum = matrix_to_pose6(odometry_pose)
             corner = cloud_msg_to_xyzi(parts['corner'])
             surf = cloud_msg_to_xyzi(parts['surf'])
             outlier = cloud_msg_to_xyzi(parts['outlier'])
             for name, cloud in (('corner', corner), ('surf', surf), ('outlier', outlier)):
-                if not np.isfinite(cloud[:, :3]).all():
-                    raise ValueError(f'non-finite coordinates in the {name} cloud')
+                if not np.isfinite(cloud).all():
+                    raise ValueError(f'non-finite values in the {name} cloud')
+                if not (np.abs(cloud[:, :3]) <= MAX_COORDINATE).all():
+                    raise ValueError(f'coordinates beyond {MAX_COORDINATE:g} m in the {name} cloud')
         except (CloudLayoutError, ValueError) as exc:
             self.count('inputs_dropped')
             self.warn('bad_input', f'mapping input dropped: {exc}')
             return
-        self.last_stamp_ns = stamp
+        self.order.processed(stamp)
+        self._check_odometry_continuity(stamp, odometry_pose, transform_sum, self._odometry_publisher.get(stamp))
         try:
             step = self.core.process(stamp, transform_sum, corner, surf, outlier)
         except Exception:
             self.count('steps_failed')
-            self.error('process_exception', 'unexpected error in mapOptimization; step skipped')
+            self.error('process_exception', 'unexpected error in mapOptimization; step skipped, map kept')
             return
         if step is None:
             self.count('inputs_skipped_by_interval')
+            return
+        if not (np.isfinite(step.transform_aft).all() and np.isfinite(step.transform_bef).all()):
+            self.count('steps_failed')
+            self.warn('non_finite_step', 'a mapping step gave a non-finite pose: not published, map kept')
             return
         self.count('steps')
         if step.keyframe_added:
@@ -135,20 +213,63 @@ class MapOptimizationNode(LegoLoamNode):
         self._publish(step, odometry.header.stamp)
         self.record_time('step', time.perf_counter() - start)
 
-    def _reset_after_time_jump(self, stamp: int) -> None:
-        """A bag restarted: keep the map built so far on disk, then start a new one."""
+    def _check_odometry_continuity(self, stamp: int, pose: np.ndarray, transform_sum: np.ndarray,
+                                   publisher=None) -> None:
+        """Re-anchor when the odometry restarted: it comes from another publisher (featureAssociation was
+        restarted) and moved, or it jumped further than any vehicle moves, or back to the origin."""
+        previous, self._last_odometry = self._last_odometry, (stamp, pose, publisher)
+        if previous is None:
+            return
+        self._older_odometry, older = previous, self._older_odometry
+        dt = max((stamp - previous[0]) * 1e-9, 0.0)
+        step = invert_pose(previous[1]) @ pose
+        distance = float(np.linalg.norm(step[:3, 3]))
+        angle = float(np.arccos(np.clip((np.trace(step[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+        implausible = distance > ODOMETRY_JUMP_M + ODOMETRY_JUMP_M_PER_S * dt or \
+            angle > ODOMETRY_JUMP_RAD + ODOMETRY_JUMP_RAD_PER_S * dt
+        # A restarted featureAssociation starts again at (about) the identity, usually after a gap in time.
+        origin_angle = float(np.arccos(np.clip((np.trace(pose[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+        back_at_origin = (distance > 2.0 or angle > 0.5) and np.linalg.norm(pose[:3, 3]) < 1.5 and origin_angle < 0.35
+        new_publisher = publisher is not None and previous[2] is not None and publisher != previous[2] and \
+            (distance > 0.5 or angle > 0.1)
+        if not (implausible or back_at_origin or new_publisher):
+            return
+        self.count('odometry_restarts')
+        why = 'featureAssociation restarted' if new_publisher else 'featureAssociation restarted?'
+        self.warn('odometry_jump', f'the odometry jumped by {distance:.1f} m and {np.degrees(angle):.0f} deg in '
+                                   f'{dt:.1f} s ({why}): re-anchored at the last mapped pose, moved on at the '
+                                   'last speed over the gap', period=0.0)
+        with self.core.lock:
+            aft = pose6_to_matrix(self.core.transform_aft)
+            bef = pose6_to_matrix(self.core.transform_bef)
+            predicted = aft @ invert_pose(bef) @ previous[1]   # the map pose of the last odometry before the gap
+            if older is not None and previous[0] > older[0] and dt <= MAX_EXTRAPOLATION_S:
+                # Constant velocity over the gap (the vehicle did not stop while the odometry was away).
+                motion = invert_pose(older[1]) @ previous[1]
+                scale = dt / ((previous[0] - older[0]) * 1e-9)
+                predicted = predicted @ _scaled_motion(motion, scale)
+            # T_aft · T_bef^-1 · T_sum must predict that pose for the new odometry pose T_sum.
+            self.core.transform_bef = matrix_to_pose6(pose @ invert_pose(predicted) @ aft)
+            self.core.transform_sum = np.asarray(transform_sum, dtype=float).copy()
+        self._older_odometry = None   # the one before belongs to the old odometry frame
+
+    def _reset_after_time_jump(self, jump_ns: int) -> None:
+        """A bag restarted: keep the map built so far on disk, then start a new one (the IMU samples stay)."""
         mo = self.params.map_optimization
-        jump = (self.last_stamp_ns - stamp) * 1e-9
+        jump = jump_ns * 1e-9
         saved = ''
         if self.core.keyframes and mo.save_map_on_shutdown:
             try:
                 self.core.save(mo.file_directory)
                 saved = f'; the previous map was saved to {mo.file_directory}'
-            except OSError as exc:
+            except Exception as exc:
                 saved = f'; saving the previous map failed: {exc}'
         self.warn('reset', f'time jumped back by {jump:.1f} s (bag restarted?): mapping reset{saved}', period=0.0)
+        imu = self.core.imu
         self.core = MapOptimization(self.params)
-        self.sync.clear()
+        self.core.imu = imu
+        self.order.reset()
+        self._last_odometry = self._older_odometry = None
         self.count('resets')
 
     # ----------------------------------------------------------------------------------------- outputs
@@ -206,6 +327,10 @@ class MapOptimizationNode(LegoLoamNode):
 
     def on_save_map(self, request, response):
         directory = self.params.map_optimization.file_directory
+        if not self.core.keyframes:   # nothing to write (and the files of an earlier run stay as they are)
+            response.success = False
+            response.message = 'no keyframe yet: nothing to save'
+            return response
         try:
             written = self.core.save(directory)
             response.success = True
@@ -214,6 +339,16 @@ class MapOptimizationNode(LegoLoamNode):
             response.success = False
             response.message = f'saving to {directory} failed: {exc}'
         return response
+
+    def statistics(self) -> dict:
+        """The base statistics plus the size of the map held in memory (keyframe clouds)."""
+        out = super().statistics()
+        with self.core.lock:
+            keyframes = list(self.core.keyframes)
+        points = sum(len(kf.corner) + len(kf.surf) + len(kf.outlier) for kf in keyframes)
+        nbytes = sum(kf.corner.nbytes + kf.surf.nbytes + kf.outlier.nbytes for kf in keyframes)
+        out['map'] = dict(keyframes=len(keyframes), points=int(points), bytes=int(nbytes))
+        return out
 
     def on_shutdown(self) -> None:
         mo = self.params.map_optimization

@@ -1,12 +1,14 @@
 """What every lego_loam_py node shares: typed parameters, throttled warnings, timing statistics."""
 from __future__ import annotations
 
+import inspect
 import json
 import os
 import re
+import threading
 import time
 import traceback
-from collections import deque
+from collections import OrderedDict, deque
 
 import numpy as np
 from rclpy.node import Node
@@ -17,37 +19,127 @@ from lego_loam_py.ros.params import declare_params
 __all__ = ['LegoLoamNode']
 
 
+_NUMBERS = re.compile(r'[0-9]+')
+_QUOTED = re.compile(r"'[^']*'|\"[^\"]*\"")
+
+
 class LegoLoamNode(Node):
     """Base node: declares all parameters (``self.params``) and keeps per-step timings.
 
-    ``warn(key, text)`` logs at most once per ``period`` seconds per key and says how many similar warnings
-    were suppressed meanwhile, so a stream of bad messages cannot flood the log.
+    ``warn(key, text)`` logs at most once per ``period`` seconds per kind of warning and says how many
+    similar warnings were suppressed meanwhile, so a stream of bad messages cannot flood the log.
+
+    Every subscription and timer callback runs guarded: an exception it lets through is logged (throttled,
+    with its traceback) and counted in ``counters['callback_errors']``, and the node keeps serving. A bug
+    triggered by one message therefore costs that message, never the process or the map.
     """
 
     WARN_PERIOD = 10.0
+    MAX_WARNING_KINDS = 256        # throttling state kept (oldest kinds forgotten first)
+    MAX_VARIANTS_PER_KEY = 16      # distinct texts per key before the key alone decides the kind
 
     def __init__(self, name: str, **kwargs):
         super().__init__(name, automatically_declare_parameters_from_overrides=True, **kwargs)
         self.params: Params = declare_params(self)
-        self._warned: dict[str, tuple[float, int]] = {}
+        self._warned: OrderedDict[str, tuple[float, int]] = OrderedDict()
+        self._variants: dict[str, int] = {}
+        self._warn_lock = threading.Lock()
         self.timings_ms: dict[str, deque] = {}
         self.counters: dict[str, int] = {}
 
+    # ---------------------------------------------------------------------------------- guarded callbacks
+    def create_subscription(self, msg_type, topic, callback, qos_profile, **kwargs):
+        return super().create_subscription(msg_type, topic, self._guarded(callback, f'message on {topic}'),
+                                           qos_profile, **kwargs)
+
+    def create_timer(self, timer_period_sec, callback, *args, **kwargs):
+        return super().create_timer(timer_period_sec, self._guarded(callback, 'timer'), *args, **kwargs)
+
+    def _guarded(self, callback, what: str):
+        """``callback`` wrapped so that an exception is logged and counted instead of ending the process.
+
+        The wrapper takes as many arguments as the callback (rclpy passes the MessageInfo to callbacks that
+        take two).
+        """
+        if callback is None:
+            return None
+
+        def call(*args):
+            try:
+                return callback(*args)
+            except Exception:
+                self.count('callback_errors')
+                self.error(f'callback:{what}', f'unexpected error while handling a {what}; it was skipped')
+            return None
+
+        try:
+            inspect.signature(callback).bind()
+            return lambda: call()
+        except TypeError:
+            pass
+        try:
+            inspect.signature(callback).bind(object())
+            return lambda msg: call(msg)
+        except TypeError:
+            return lambda msg, info: call(msg, info)
+
+    def drain(self, subscription, callback, limit: int = 1000) -> int:
+        """Hand every message waiting in ``subscription``'s queue to ``callback`` now; returns how many.
+
+        The executor takes one message per subscription and wait cycle, in creation order: a node busy with
+        a scan would otherwise process it before the IMU samples that arrived with it (and, when always
+        busy, never catch up with the IMU). At most ``limit`` messages, so a flood cannot stall the node.
+        """
+        if subscription is None:
+            return 0
+        taken = 0
+        while taken < limit:
+            try:
+                with subscription.handle:
+                    message = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+            except Exception:   # the subscription is being destroyed (shutdown)
+                break
+            if message is None:
+                break
+            taken += 1
+            try:
+                callback(message[0])
+            except Exception:
+                self.count('callback_errors')
+                self.error('drain', 'unexpected error while handling a queued message; it was skipped')
+        return taken
+
+    # ------------------------------------------------------------------------------------------- warnings
     def warn(self, key: str, text: str, period: float | None = None) -> None:
         """Log ``text`` unless a warning of the same kind was logged less than ``period`` s ago.
 
-        The kind is ``key`` plus the text with its numbers masked, so different problems are each reported
-        while a repeated one (same text but for sizes and stamps) is throttled.
+        The kind is ``key`` plus the text with its numbers and quoted names masked, so different problems
+        are each reported while a repeated one (same text but for sizes, stamps, frame ids and field names)
+        is throttled. The state is bounded: a key with many different texts falls back to the key alone.
         """
-        key = f'{key}:{re.sub(r"[0-9]+", "#", text)[:120]}'
+        with self._warn_lock:   # mapOptimization warns from two executor threads
+            self._warn(key, text, period)
+
+    def _warn(self, key: str, text: str, period: float | None) -> None:
+        masked = _QUOTED.sub('~', _NUMBERS.sub('#', text))[:120]
+        kind = f'{key}:{masked}'
+        if kind not in self._warned:
+            variants = self._variants.get(key, 0)
+            if variants >= self.MAX_VARIANTS_PER_KEY:
+                kind = f'{key}:*'
+            else:
+                self._variants[key] = variants + 1
         now = time.monotonic()
-        last, suppressed = self._warned.get(key, (-float('inf'), 0))
+        last, suppressed = self._warned.get(kind, (-float('inf'), 0))
         if now - last >= (self.WARN_PERIOD if period is None else period):
             extra = f' ({suppressed} similar warnings suppressed)' if suppressed else ''
             self.get_logger().warning(text + extra)
-            self._warned[key] = (now, 0)
+            self._warned[kind] = (now, 0)
         else:
-            self._warned[key] = (last, suppressed + 1)
+            self._warned[kind] = (last, suppressed + 1)
+        self._warned.move_to_end(kind)
+        while len(self._warned) > self.MAX_WARNING_KINDS:
+            self._warned.popitem(last=False)
 
     def error(self, key: str, text: str) -> None:
         """Unexpected failure while handling a message: log with the traceback (throttled) and carry on."""

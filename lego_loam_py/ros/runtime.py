@@ -8,6 +8,8 @@ from __future__ import annotations
 import signal
 import sys
 import threading
+import time
+import traceback
 from typing import Callable, Sequence
 
 import rclpy
@@ -18,6 +20,15 @@ from rclpy.signals import SignalHandlerOptions
 from lego_loam_py.core.params import ParameterError
 
 __all__ = ['run_node']
+
+
+def _log_executor_error(node: Node) -> None:
+    error = getattr(node, 'error', None)
+    if error is not None:
+        node.count('executor_errors')
+        error('executor', 'unexpected error in the executor; continuing')
+    else:
+        node.get_logger().error(f'unexpected error in the executor; continuing: {traceback.format_exc(limit=6)}')
 
 
 def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, threads: int = 1) -> int:
@@ -39,7 +50,15 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, thr
         executor.add_node(node)
         try:
             while not stop.is_set() and rclpy.ok():
-                executor.spin_once(timeout_sec=0.1)
+                try:
+                    executor.spin_once(timeout_sec=0.1)
+                except (KeyboardInterrupt, ExternalShutdownException):
+                    raise
+                except Exception:
+                    # Callbacks of LegoLoamNode are guarded; this is the last line of defence (an error in the
+                    # executor or in taking a message): log it, keep serving, never spin hot on it.
+                    _log_executor_error(node)
+                    time.sleep(0.01)
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         finally:

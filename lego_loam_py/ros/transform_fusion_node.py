@@ -3,8 +3,13 @@
 Publishes, for every odometry message, /integrated_to_init (nav_msgs/Odometry, camera_init -> camera) and
 the TF camera_init -> camera; once at start-up, latched on /tf_static, the original launch file's static
 transforms map -> camera_init and camera -> base_link, so the whole tree map -> ... -> base_link exists
-without any other node. A mapping result older than the odometry stream by more than a second after a jump
-back in time is discarded (bag restarted).
+without any other node.
+
+Odometry older than the previous message is dropped (out of order or duplicate); a jump of more than a
+second either way is believed once the next message continues the new timeline, and back in time (a bag
+restarted) it resets the map correction. A mapping result from before that reset, or stamped more than
+``MAPPED_AHEAD_NS`` after the latest odometry (the old timeline, after a jump back), is discarded. Poses that
+are not finite, not unit quaternions or absurdly far are dropped with a throttled warning.
 """
 from __future__ import annotations
 
@@ -14,9 +19,10 @@ import numpy as np
 from nav_msgs.msg import Odometry
 
 from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, pose6_to_matrix
+from lego_loam_py.core.sync import StampOrder
 from lego_loam_py.core.transform_fusion import TransformFusion
 from lego_loam_py.ros import qos
-from lego_loam_py.ros.conversions import make_header, odometry_to_pose, pose_to_odometry, stamp_to_ns
+from lego_loam_py.ros.conversions import MAX_POSITION, make_header, odometry_to_pose, pose_to_odometry, stamp_to_ns
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 from lego_loam_py.ros.tf import StaticTransformBroadcaster, TransformBroadcaster, original_static_transforms
@@ -24,6 +30,7 @@ from lego_loam_py.ros.tf import StaticTransformBroadcaster, TransformBroadcaster
 __all__ = ['TransformFusionNode', 'main']
 
 RESET_JUMP_NS = 1_000_000_000
+MAPPED_AHEAD_NS = 1_000_000_000   # a mapping result is never ahead of the odometry it was computed from
 
 
 class TransformFusionNode(LegoLoamNode):
@@ -36,9 +43,23 @@ class TransformFusionNode(LegoLoamNode):
         self.tf = TransformBroadcaster(self)
         self.static_tf = StaticTransformBroadcaster(self)
         self.static_tf.send(original_static_transforms(self.get_clock().now().nanoseconds))
-        self.last_stamp_ns: int | None = None
+        self.order = StampOrder(RESET_JUMP_NS)
+        self._timeline_start_ns: int | None = None   # first odometry integrated since the last reset
+
+    @property
+    def last_stamp_ns(self) -> int | None:
+        """Stamp of the last odometry message integrated [ns]."""
+        return self.order.last_ns
 
     def on_mapped(self, msg: Odometry) -> None:
+        stamp = stamp_to_ns(msg.header.stamp)
+        last = self.order.newest_ns   # (an odometry message held after a gap counts: mapping may have used it)
+        if (last is not None and stamp > last + MAPPED_AHEAD_NS) or \
+                (self._timeline_start_ns is not None and stamp < self._timeline_start_ns):
+            self.count('mapped_dropped')
+            self.warn('stale_mapped', f'/aft_mapped_to_init stamped {(stamp - (last or stamp)) * 1e-9:+.1f} s from the '
+                                      'odometry dropped: it belongs to the timeline before a restart')
+            return
         try:
             aft = odometry_to_pose(msg)
             twist = msg.twist.twist
@@ -46,6 +67,8 @@ class TransformFusionNode(LegoLoamNode):
                              twist.linear.x, twist.linear.y, twist.linear.z])
             if not np.isfinite(bef6).all():
                 raise ValueError('the twist fields (the pre-mapping pose) are not finite')
+            if not ((np.abs(bef6[:3]) <= 100.0).all() and (np.abs(bef6[3:]) <= MAX_POSITION).all()):
+                raise ValueError('the twist fields (the pre-mapping pose) are absurd')
             bef = pose6_to_matrix(bef6)
         except ValueError as exc:
             self.count('mapped_dropped')
@@ -56,18 +79,44 @@ class TransformFusionNode(LegoLoamNode):
 
     def on_odometry(self, msg: Odometry) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
-        if self.last_stamp_ns is not None and stamp < self.last_stamp_ns - RESET_JUMP_NS:
-            self.warn('reset', f'time jumped back by {(self.last_stamp_ns - stamp) * 1e-9:.1f} s: map correction '
-                               'reset', period=0.0)
+        last = self.order.last_ns
+        decision = self.order.check(stamp, msg)
+        if decision.discarded is not None:
+            self.count('odometry_dropped')
+            held = stamp_to_ns(decision.discarded.header.stamp)
+            self.warn('glitch', f'odometry stamped {(held - (last or held)) * 1e-9:+.1f} s from the previous one '
+                                'dropped: the next message continued the old timeline (a wrong stamp)')
+        if decision.action == 'drop':
+            self.count('odometry_dropped')
+            self.warn('order', f'/laser_odom_to_init dropped: {decision.reason}')
+            return
+        if decision.action == 'hold':
+            return
+        if decision.action == 'reset':
+            self.warn('reset', f'time jumped back by {-decision.jump_ns * 1e-9:.1f} s: map correction reset',
+                      period=0.0)
             self.core.reset()
+            self.order.reset()
+            self._timeline_start_ns = stamp_to_ns((decision.held or msg).header.stamp)
+            self.count('resets')
+        if decision.held is not None:
+            self._integrate(decision.held)
+        self._integrate(msg)
+
+    def _integrate(self, msg: Odometry) -> None:
         try:
             odometry = odometry_to_pose(msg)
         except ValueError as exc:
             self.count('odometry_dropped')
             self.warn('bad_odometry', f'/laser_odom_to_init dropped: {exc}')
             return
-        self.last_stamp_ns = stamp
         mapped = self.core.integrate(odometry)
+        if not np.isfinite(mapped).all():
+            self.count('odometry_dropped')
+            self.warn('non_finite', 'the fused pose is not finite: map correction reset')
+            self.core.reset()
+            return
+        self.order.processed(stamp_to_ns(msg.header.stamp))
         header = make_header(msg.header.stamp, CAMERA_INIT_FRAME)
         self.pub_integrated.publish(pose_to_odometry(mapped, header, CAMERA_FRAME))
         self.tf.send_pose(mapped, msg.header.stamp, CAMERA_INIT_FRAME, CAMERA_FRAME)
