@@ -37,6 +37,16 @@ COMMANDS = [
      'Run imageProjection, featureAssociation, mapOptimization and transformFusion on a bag in one process, as '
      'fast as the machine goes; writes the trajectory (TUM, REP-103 and camera_init axes), the map (PCD), a PNG '
      'and a summary with the accuracy against a ground truth found beside the bag.'),
+    ('launch', 'lego_loam_py.launch', 'start the four nodes as supervised processes (optionally player, recorder)',
+     'Start imageProjection, featureAssociation, mapOptimization and transformFusion as separate processes with one '
+     'parameter file (ros2 launch is not installable from PyPI), optionally replaying a bag with /clock '
+     '(use_sim_time) and recording topics. Ctrl-C, SIGTERM or the end of the bag (after a drain) stop every process '
+     'cleanly in reverse order; the exit code is non-zero when any process failed.'),
+    ('demo', 'lego_loam_py.demo', 'one command: the pipeline over DDS on a bag, with summary, trajectory, map, PNG',
+     'Run the four nodes as separate processes over DDS on a bag (default: bags/campus_8s) with the player and the '
+     'recorder, then print a summary (scans in and processed per node, drops, trajectory length, accuracy against the '
+     'ground truth beside the bag, ms per scan per node) and write the trajectory (TUM), the map (PCD), a PNG and '
+     'summary.json.'),
     ('eval', 'lego_loam_py.evaluation', 'accuracy of a trajectory against ground truth (ATE, RPE, drift) with evo',
      'Compare an estimated TUM trajectory with a ground truth (a TUM file, or the ground_truth.tum beside a '
      'bag): ATE after SE(3) alignment, RPE over segments, end-point error and drift; optional plot.'),

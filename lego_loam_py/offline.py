@@ -29,7 +29,17 @@ from lego_loam_py.core.params import ParameterError, Params, load_params
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.core.transform_fusion import TransformFusion
 
-__all__ = ['RunResult', 'run_bag', 'write_outputs', 'add_arguments', 'main']
+__all__ = ['RunResult', 'run_bag', 'write_outputs', 'format_summary', 'pose_time_offset_ns', 'add_arguments',
+           'main']
+
+
+def pose_time_offset_ns(params: Params) -> int:
+    """[ns] to add to a scan's stamp to get the time of the sensor pose the pipeline publishes for it: one
+    sweep with the original odometry model (its pose of scan k is the sensor's at the end of the sweep),
+    0 otherwise. Applies to /laser_odom_to_init and /integrated_to_init alike."""
+    if params.feature_association.odometry_model == 'original':
+        return int(round(params.sensor.scan_period * 1e9))
+    return 0
 
 
 @dataclass
@@ -71,8 +81,7 @@ def run_bag(bag: str | Path, params: Params, *, cloud_topic: str | None = None, 
     ip, fa = ImageProjection(params), FeatureAssociation(params)
     mo, fusion = MapOptimization(params), TransformFusion()
     result = RunResult(mapper=mo if mapping else None)
-    if params.feature_association.odometry_model == 'original':
-        result.pose_time_offset_ns = int(round(params.sensor.scan_period * 1e9))
+    result.pose_time_offset_ns = pose_time_offset_ns(params)
     lc = params.loop_closure
     next_loop_check = None
     start = time.perf_counter()
@@ -166,9 +175,13 @@ def _timing_table(timings: dict[str, list[float]]) -> dict[str, dict[str, float]
 
 
 def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, poses_camera_init: np.ndarray,
-                  mapper: MapOptimization | None, summary: dict, params: Params) -> dict:
+                  mapper: MapOptimization | None, summary: dict, params: Params,
+                  map_dir: str | Path | None = None) -> dict:
     """Trajectories, maps, PNG and summary.json into ``out_dir``; adds the accuracy to ``summary`` when a
-    ground truth sits beside the bag. Returns the summary."""
+    ground truth sits beside the bag. Returns the summary.
+
+    The maps come from ``mapper`` (saved into ``out_dir/map``) or, without one, from ``map_dir`` where they
+    were saved already (by the mapOptimization node): listed in the summary and drawn under the PNG."""
     from lego_loam_py.evaluation import evaluate, path_length, plot_trajectories
     from lego_loam_py.sim.output import load_ground_truth
 
@@ -185,6 +198,11 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
         summary['map_files'] = {k: str(v) for k, v in saved.items()}
         from lego_loam_py.core.io import read_pcd
         map_points = read_pcd(saved['global_map'])
+    elif map_dir is not None and (Path(map_dir) / 'global_map.pcd').is_file():
+        from lego_loam_py.core.io import read_pcd
+        saved_files = sorted(p for p in Path(map_dir).iterdir() if p.suffix in ('.pcd', '.tum'))
+        summary['map_files'] = {p.name: str(p) for p in saved_files}
+        map_points = read_pcd(Path(map_dir) / 'global_map.pcd')
     ground_truth = load_ground_truth(bag)
     trajectories = {'lego_loam_py': poses_map}
     if ground_truth is not None and len(stamps) > 1:

@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import rclpy
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -42,7 +43,10 @@ class Recorder:
         self._subscriptions: dict[str, object] = {}
         self._lock = threading.Lock()
         self._closed = False
-        self._timer = node.create_timer(discovery_period, self.discover)
+        # Steady clock: with use_sim_time the ROS clock stands still until /clock arrives, and a timer on it
+        # would never discover the topics that appear after start-up.
+        self._timer = node.create_timer(discovery_period, self.discover,
+                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.discover()
 
     def _qos_for(self, topic: str) -> QoSProfile:

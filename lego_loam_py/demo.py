@@ -1,0 +1,292 @@
+"""``lego_loam_py demo [BAG]``: the whole system on a recording, as it runs on a robot, in one command.
+
+The four nodes run as separate processes talking DDS (:mod:`lego_loam_py.launch`), the player replays the
+bag with /clock (the nodes use sim time), and the recorder records /integrated_to_init, /laser_odom_to_init
+and /aft_mapped_to_init. Once the bag is played and the pipeline drained, every process is stopped with
+SIGINT: each node writes its statistics (``LEGO_LOAM_PY_STATS_DIR``) and mapOptimization saves the map
+(``map_optimization.file_directory``). The demo then reads all of it back and writes, into ``OUTDIR``
+(default ``output/demo-<bag name>/``):
+
+* ``trajectory.tum`` (REP-103 ``map`` axes) and ``trajectory_camera_init.tum`` (the original's camera_init
+  axes): the recorded /integrated_to_init, one pose per scan, the pose = ``odometry_to_pose(msg)``;
+* ``map/``: global, corner and surface maps (PCD) and the keyframe trajectory, saved by mapOptimization;
+* ``trajectory.png``: the trajectory (and the ground truth) over a top view of the map;
+* ``summary.json``: the figures printed at the end (scans in and processed per node, drops, ms per scan,
+  trajectory length, accuracy against the ground truth when one sits beside the bag);
+* ``recording/`` (mcap), ``stats/<node>.json``, ``logs/<process>.log``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shutil
+import sys
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+__all__ = ['DemoResult', 'run_demo', 'read_trajectory', 'read_stats', 'format_demo_summary', 'default_bag',
+           'add_arguments', 'main']
+
+RECORDED_TOPICS = ('/integrated_to_init', '/laser_odom_to_init', '/aft_mapped_to_init')
+STATS_NODES = ('imageProjection', 'featureAssociation', 'mapOptimization', 'transformFusion')
+# Timing entry of each node's statistics that is its work per scan (mapOptimization: per mapping step).
+NODE_TIMINGS = {'imageProjection': 'scan', 'featureAssociation': 'scan', 'mapOptimization': 'step',
+                'transformFusion': 'odometry'}
+# Counters that count messages a node received and threw away.
+_DROP_COUNTER = re.compile(r'(dropped|failed|rejected|errors)$')
+MAP_FILES = ('global_map.pcd', 'corner_map.pcd', 'surface_map.pcd', 'trajectory.pcd', 'trajectory.tum',
+             'trajectory_camera_init.tum')
+
+
+def _display(path: Path) -> str:
+    """``path`` relative to the working directory when it lies below it (as users type it)."""
+    try:
+        return str(Path(path).resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
+
+
+def default_bag() -> Path:
+    """bags/campus_8s of the source tree (the committed recording)."""
+    return Path(__file__).resolve().parents[1] / 'bags' / 'campus_8s'
+
+
+@dataclass
+class DemoResult:
+    exit_code: int
+    summary: dict
+    out_dir: Path
+
+
+def read_stats(stats_dir: Path) -> dict[str, dict]:
+    """Node name -> the statistics it wrote on shutdown (missing nodes are left out)."""
+    out = {}
+    for name in STATS_NODES:
+        path = Path(stats_dir) / f'{name}.json'
+        if path.is_file():
+            try:
+                out[name] = json.loads(path.read_text())
+            except (OSError, ValueError):
+                continue
+    return out
+
+
+def read_trajectory(recording: Path, topic: str = '/integrated_to_init') -> tuple[np.ndarray, np.ndarray]:
+    """(header stamps [ns], 4x4 poses in camera_init axes) of the Odometry messages of ``topic`` in a
+    recorded bag, in the order they were published."""
+    from lego_loam_py.bag.io import BagReader
+    from lego_loam_py.ros.conversions import odometry_to_pose
+
+    stamps, poses = [], []
+    with BagReader(recording) as reader:
+        if topic not in reader.topics():
+            return np.zeros(0, np.int64), np.zeros((0, 4, 4))
+        for message in reader.messages(topics=[topic]):
+            msg = reader.deserialize(message)
+            try:
+                pose = odometry_to_pose(msg)
+            except ValueError:
+                continue
+            stamps.append(int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec))
+            poses.append(pose)
+    return np.array(stamps, dtype=np.int64), np.array(poses).reshape(-1, 4, 4)
+
+
+def _clear_previous_outputs(out: Path) -> None:
+    """Remove what an earlier demo wrote into ``out`` that this run would not overwrite (a stale map or
+    statistics file would be taken for this run's). Only our own file names are touched."""
+    recording = out / 'recording'
+    if recording.exists():
+        if recording.is_dir() and ((recording / 'metadata.yaml').is_file() or not any(recording.iterdir())):
+            shutil.rmtree(recording)
+        else:
+            raise FileExistsError(f'{recording} exists and is not a bag this demo recorded: move it away')
+    for name in STATS_NODES:
+        (out / 'stats' / f'{name}.json').unlink(missing_ok=True)
+    for name in MAP_FILES:
+        (out / 'map' / name).unlink(missing_ok=True)
+    for name in ('trajectory.tum', 'trajectory_camera_init.tum', 'trajectory.png', 'summary.json'):
+        (out / name).unlink(missing_ok=True)
+
+
+def _node_summary(stats: dict[str, dict]) -> tuple[dict, dict, dict]:
+    """(processed per node, drop counters per node, timings per node) from the nodes' statistics."""
+    counters = {name: s.get('counters', {}) for name, s in stats.items()}
+    processed = {
+        'imageProjection': counters.get('imageProjection', {}).get('clouds_out', 0),
+        'featureAssociation': counters.get('featureAssociation', {}).get('scans', 0),
+        'mapOptimization': counters.get('mapOptimization', {}).get('steps', 0),
+        'transformFusion': counters.get('transformFusion', {}).get('integrated', 0),
+    }
+    drops = {}
+    for name, values in counters.items():
+        found = {k: v for k, v in values.items() if _DROP_COUNTER.search(k) and v}
+        # featureAssociation's inputs without partners are lost scans; mapOptimization's are mostly the
+        # odometry of scans that were not sent to mapping (every other scan), which is by design.
+        if name == 'featureAssociation' and values.get('unmatched_inputs'):
+            found['unmatched_inputs'] = values['unmatched_inputs']
+        if found:
+            drops[name] = found
+    timings = {}
+    for name, key in NODE_TIMINGS.items():
+        available = stats.get(name, {}).get('timings_ms', {})
+        entry = available.get(key) or (next(iter(available.values())) if len(available) == 1 else None)
+        if entry:
+            timings[name] = entry
+    return processed, drops, timings
+
+
+def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_file: Path | None = None,
+             overrides: list[str] | None = None, progress: bool = False, stop: threading.Event | None = None,
+             hurry: threading.Event | None = None, announce: Callable[[str], None] | None = None,
+             ready_timeout: float = 60.0) -> DemoResult:
+    """Run the pipeline over DDS on ``bag`` and write the outputs into ``out_dir`` (see the module
+    docstring). Raises ``BagError`` / ``ParameterError`` / ``ValueError`` before starting anything when the
+    bag or the parameters are invalid."""
+    from lego_loam_py.bag.io import BagReader
+    from lego_loam_py.core.params import load_params
+    from lego_loam_py.evaluation import path_length
+    from lego_loam_py.launch import PipelineConfig, package_file, run_pipeline
+    from lego_loam_py.offline import parse_overrides, pose_time_offset_ns, write_outputs
+
+    out = Path(out_dir).resolve()
+    params_file = params_file or package_file('config', 'params.yaml')
+    map_dir = out / 'map'
+    node_overrides = list(overrides or []) + [f'map_optimization.file_directory:={map_dir}']
+    params = load_params(params_file, parse_overrides(node_overrides), node_name='imageProjection')
+    with BagReader(bag) as reader:
+        scans_in = reader.topic_counts().get(params.sensor.point_cloud_topic, 0)
+        bag_duration = reader.duration
+    out.mkdir(parents=True, exist_ok=True)
+    _clear_previous_outputs(out)
+
+    config = PipelineConfig(
+        params_file=params_file, overrides=node_overrides, bag=Path(bag), rate=rate, player_progress=progress,
+        record_topics=RECORDED_TOPICS, record_output=out / 'recording', stats_dir=out / 'stats',
+        output='log', log_dir=out / 'logs', ready_timeout=ready_timeout)
+    outcome = run_pipeline(config, stop=stop, hurry=hurry, announce=announce)
+
+    stats = read_stats(out / 'stats')
+    processed, drops, timings = _node_summary(stats)
+    recording = out / 'recording'
+    stamps, poses = (read_trajectory(recording) if (recording / 'metadata.yaml').is_file()
+                     else (np.zeros(0, np.int64), np.zeros((0, 4, 4))))
+    stamps = stamps + pose_time_offset_ns(params)
+    ip_in = stats.get('imageProjection', {}).get('counters', {}).get('clouds_in', 0)
+    fa = stats.get('featureAssociation', {}).get('counters', {})
+    # Scans imageProjection published that featureAssociation neither processed nor rejected: overwritten in
+    # its depth-1 input queues while it was busy (the original's queue semantics), when it is not real time.
+    # (A scan with one part overwritten leaves its other parts in featureAssociation's unmatched_inputs.)
+    fa_handled = fa.get('scans', 0) + fa.get('scans_dropped', 0)
+    overwritten = max(0, processed['imageProjection'] - fa_handled) if 'featureAssociation' in stats else 0
+    summary = dict(
+        bag=_display(bag), mode='dds', rate=rate, bag_duration_s=bag_duration, wall_time_s=outcome.wall_time_s,
+        scans_in=scans_in, processed=processed,
+        integrated=len(stamps), integrated_fraction=len(stamps) / scans_in if scans_in else 0.0,
+        not_received=max(0, scans_in - ip_in) if 'imageProjection' in stats else scans_in,
+        drop_counters=drops, queue_overwritten=overwritten,
+        keyframes=stats.get('mapOptimization', {}).get('counters', {}).get('keyframes', 0),
+        scans_with_imu=fa.get('scans_with_imu', 0),
+        timings_ms=timings,
+        processes=[dict(name=p.name, pid=p.pid, returncode=p.returncode, how=p.how, failure=p.failure)
+                   for p in outcome.processes],
+        failures=list(outcome.failures), interrupted=outcome.interrupted, ready_after_s=outcome.ready_after_s)
+    summary['dropped'] = summary['not_received'] + sum(sum(d.values()) for d in drops.values())
+    if len(stamps):
+        summary = write_outputs(out, bag, stamps, poses, None, summary, params, map_dir=map_dir)
+    else:
+        summary['trajectory_length_m'] = path_length(poses)
+        (out / 'summary.json').write_text(json.dumps(summary, indent=2, default=float))
+    exit_code = outcome.exit_code
+    if exit_code == 0 and not len(stamps) and not outcome.interrupted:
+        summary['failures'].append(f'no /integrated_to_init was recorded from {scans_in} scans')
+        (out / 'summary.json').write_text(json.dumps(summary, indent=2, default=float))
+        exit_code = 1
+    return DemoResult(exit_code, summary, out)
+
+
+def format_demo_summary(summary: dict, out_dir: Path | None = None) -> str:
+    """The demo's report, as printed at the end of a run."""
+    from lego_loam_py.evaluation import TrajectoryMetrics
+
+    scans_in = summary['scans_in']
+    p = summary['processed']
+    lines = [f"LeGO-LOAM over DDS: {summary['bag']} at {summary['rate']:g}x, four nodes as separate processes"
+             + (' (INTERRUPTED)' if summary.get('interrupted') else '')]
+    lines.append(f"scans in {scans_in} ({summary['bag_duration_s']:.1f} s of data); processed: imageProjection "
+                 f"{p['imageProjection']}, featureAssociation {p['featureAssociation']} (IMU on "
+                 f"{summary['scans_with_imu']}), mapOptimization {p['mapOptimization']} mapping steps "
+                 f"({summary['keyframes']} keyframes), transformFusion {p['transformFusion']}")
+    fraction = summary['integrated_fraction']
+    lines.append(f"/integrated_to_init for {summary['integrated']} of {scans_in} scans ({fraction:.1%}; the first "
+                 f"scan only initialises the odometry)")
+    detail = [f"{summary['not_received']} never reached imageProjection"]
+    for node, counters in summary['drop_counters'].items():
+        detail.append(f'{node} ' + ', '.join(f'{k} {v}' for k, v in counters.items()))
+    lines.append(f"dropped messages {summary['dropped']}: " + '; '.join(detail))
+    if summary['queue_overwritten']:
+        lines.append(f"  + {summary['queue_overwritten']} scans featureAssociation never got: overwritten in its "
+                     "depth-1 input queues while it was busy (as in the original: the latest scan wins)")
+    if summary['timings_ms']:
+        lines.append(f"{'ms per scan':<22s}{'median':>8s}{'p95':>9s}{'n':>7s}")
+        for node, t in summary['timings_ms'].items():
+            unit = '  (per mapping step)' if node == 'mapOptimization' else ''
+            lines.append(f"  {node:<20s}{t['median']:8.1f}{t['p95']:9.1f}{t['count']:7d}{unit}")
+    lines.append(f"trajectory length {summary.get('trajectory_length_m', 0.0):.1f} m")
+    if 'accuracy' in summary:
+        lines.append('accuracy vs ground truth: ' + TrajectoryMetrics(**summary['accuracy']).summary())
+    elif 'accuracy_error' in summary:
+        lines.append(f"accuracy: {summary['accuracy_error']}")
+    else:
+        lines.append('accuracy: no ground truth beside the bag')
+    if out_dir is not None:
+        lines.append(f'outputs in {_display(out_dir)}/: trajectory.tum (REP-103 map axes), trajectory_camera_init.tum, '
+                     f'map/*.pcd, trajectory.png, summary.json, recording/ (mcap), stats/, logs/')
+    for failure in summary.get('failures', []):
+        lines.append(f'FAILED: {failure}')
+    return '\n'.join(lines)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('bag', nargs='?', default=None,
+                        help='ROS 1 .bag or ROS 2 bag directory (default: bags/campus_8s of the repository)')
+    parser.add_argument('-o', '--output', default=None, help='output directory (default: output/demo-<bag name>)')
+    parser.add_argument('-r', '--rate', type=float, default=1.0, help='playback rate factor (default 1)')
+    parser.add_argument('--params-file', type=Path, default=None,
+                        help='ROS 2 parameter file for the nodes (default: config/params.yaml)')
+    parser.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
+                        help='set a parameter on every node, e.g. -p sensor.imu_topic:=""')
+    parser.add_argument('--no-progress', action='store_true', help='no progress bar while the bag plays')
+
+
+def main(args: argparse.Namespace) -> int:
+    from lego_loam_py.bag.io import BagError
+    from lego_loam_py.core.params import ParameterError
+    from lego_loam_py.launch import Interrupts
+
+    bag = Path(args.bag) if args.bag else default_bag()
+    if args.bag is None and not bag.exists():
+        print(f'error: the default recording {bag} is not there (a source checkout has it): give a BAG',
+              file=sys.stderr)
+        return 2
+    name = bag.resolve().name if bag.suffix != '.bag' else bag.stem
+    out = Path(args.output) if args.output else Path('output') / f'demo-{name}'
+    progress = not args.no_progress and sys.stderr.isatty()
+    print(f'demo: {_display(bag)} at {args.rate:g}x through imageProjection, featureAssociation, mapOptimization and '
+          f'transformFusion (separate processes, DDS); logs in {out}/logs/', file=sys.stderr, flush=True)
+    with Interrupts() as interrupts:
+        try:
+            result = run_demo(bag, out, rate=args.rate, params_file=args.params_file, overrides=args.param,
+                              progress=progress, stop=interrupts.stop, hurry=interrupts.hurry)
+        except (BagError, ParameterError, ValueError, FileExistsError) as exc:
+            print(f'error: {exc}', file=sys.stderr)
+            return 2
+    print(format_demo_summary(result.summary, result.out_dir))
+    if result.summary.get('interrupted'):
+        return 130
+    return result.exit_code
