@@ -53,7 +53,7 @@ def test_mapping_and_fusion_over_dds_equal_the_original(shared_data, tmp_path, r
     assert ready
     spin_until(rclpy_context, node, lambda: False, 0.5)
     player = processes.start([BIN / 'lego_loam_py', 'play', shared_data / 'golden' / f'{GOLDEN_BAG}_ros2',
-                              '--rate', '0.5', '--wait-for-subscribers', '20', '--no-progress'])
+                              '--rate', '0.25', '--wait-for-subscribers', '20', '--no-progress'])
     expected_mapped = golden['aft_mapped_to_init_stamps'].tolist()
     done = spin_until(rclpy_context, node, lambda: len(integrated) >= len(stamps) - 1 and
                       len(mapped) >= len(expected_mapped), timeout=90)
