@@ -104,7 +104,8 @@ def test_player_replays_every_message_in_order_with_clock(tmp_path, ros1, rclpy_
     assert np.array_equal(ros_cloud_to_array(clouds[7]), cloud_points(7))
     assert clouds[0].header.frame_id == 'velodyne' and imus[3].angular_velocity.x == pytest.approx(0.03)
     # /clock follows the bag time: never backwards, from the first to the last recording time.
-    assert len(clock) > N_CLOUDS + N_IMU
+    # At 40 Hz (the default, as rosbag2) for about 1 s of wall time: far fewer ticks than messages.
+    assert 20 <= len(clock) < (N_CLOUDS + N_IMU) / 2
     assert all(b >= a for a, b in zip(clock, clock[1:]))
     last_recording = max(T0 + (N_CLOUDS - 1) * 100_000_000 + 3_000_000, T0 + (N_IMU - 1) * 20_000_000 + 1_000)
     assert clock[0] == T0 + 1_000 and clock[-1] == last_recording

@@ -1,8 +1,8 @@
 """``lego_loam_py play``: replay a ROS 1 or ROS 2 bag over DDS, publishing /clock.
 
 Messages are published as serialized CDR (no deserialization for ROS 2 bags), paced by their recording
-time divided by the rate factor. /clock carries the bag time: before every message and at ``clock_hz`` in
-between, so nodes with ``use_sim_time`` follow the bag. ``--loop`` plays the bag again and again, like
+time divided by the rate factor. /clock carries the bag time at ``clock_hz`` (40 Hz as rosbag2, or before
+every message with 0), so nodes with ``use_sim_time`` follow the bag. ``--loop`` plays the bag again and again, like
 ``rosbag play -l``: stamps and /clock jump back to the bag's start at every repetition.
 """
 from __future__ import annotations
@@ -51,7 +51,7 @@ def _parse_remaps(remaps: list[str]) -> dict[str, str]:
 
 
 def play(node: Node, reader: BagReader, *, topics: list[str] | None = None, rate: float = 1.0,
-         start_offset: float = 0.0, clock_hz: float = 100.0, publish_clock: bool = True,
+         start_offset: float = 0.0, clock_hz: float = 40.0, publish_clock: bool = True,
          remaps: dict[str, str] | None = None, wait_for_subscribers: float = 0.0, depth: int = 100,
          progress: bool = True, stop: threading.Event | None = None, loops: int = 1) -> PlayStats:
     """Publish the bag's messages on ``node``; returns what was published. Blocks until done or ``stop``.
@@ -130,7 +130,12 @@ def play(node: Node, reader: BagReader, *, topics: list[str] | None = None, rate
                 if stop.is_set():
                     stats.interrupted = True
                     break
-                publish_clock_at(message.timestamp)
+                # /clock at most at clock_hz (every subscriber with use_sim_time pays a callback per tick);
+                # with clock_hz 0, before every message.
+                now = time.monotonic()
+                if clock_period == float('inf') or now - last_clock >= clock_period:
+                    publish_clock_at(message.timestamp)
+                    last_clock = now
                 publishers[message.topic].publish(message.data)
                 stats.published[message.topic] = stats.published.get(message.topic, 0) + 1
                 last_stamp = message.timestamp
@@ -138,6 +143,7 @@ def play(node: Node, reader: BagReader, *, topics: list[str] | None = None, rate
                 if bar is not None:
                     bar.update(1)
             if bag_start is not None:
+                publish_clock_at(last_stamp)   # the clock ends where the bag's messages end
                 bag_span += (last_stamp - bag_start) / 1e9
             if stats.interrupted:
                 break
@@ -166,8 +172,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--topics', nargs='+', metavar='TOPIC', help='play only these topics (default: all)')
     parser.add_argument('-s', '--start-offset', type=float, default=0.0, metavar='SEC',
                         help='skip the first SEC seconds of the bag')
-    parser.add_argument('--clock', type=float, default=100.0, metavar='HZ',
-                        help='publish /clock at this rate between messages (default 100; 0: only with messages)')
+    parser.add_argument('--clock', type=float, default=40.0, metavar='HZ',
+                        help='publish /clock at this rate, with the messages and between them (default 40, as '
+                             'rosbag2; 0: before every message)')
     parser.add_argument('--no-clock', action='store_true', help='do not publish /clock')
     parser.add_argument('--remap', nargs='+', default=[], metavar='FROM:=TO', help='topic remappings')
     parser.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='SEC',
