@@ -19,10 +19,11 @@ z forward) for world vectors; ``angle`` integrates the raw gyro in lidar axes (x
 """
 from __future__ import annotations
 
+import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from lego_loam_py.core.frames import euler_to_matrices
 
@@ -38,6 +39,13 @@ def imu_world_rotation(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> 
     return euler_to_matrices(pitch, yaw, roll)
 
 
+def _quaternion_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
+    """3x3 rotation of a unit quaternion (x, y, z, w)."""
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
 @dataclass
 class ImuState:
     """IMU quantities interpolated at given times (arrays of the query's length)."""
@@ -51,7 +59,12 @@ class ImuState:
 
 
 class ImuBuffer:
-    """Bounded ring of processed IMU samples (``capacity`` = the original's imuQueLength)."""
+    """Bounded ring of processed IMU samples (``capacity`` = the original's imuQueLength).
+
+    Samples are processed with scalar math (a 200 Hz IMU feeds two nodes: per-sample numpy or scipy calls
+    would cost more than the algorithm) and kept as rows; the arrays the queries use are built once per
+    change, when a scan asks for them.
+    """
 
     def __init__(self, capacity: int = 200, gravity: float = 9.81, scan_period: float = 0.1,
                  imu_to_lidar: np.ndarray | None = None, reset_after: float = 1.0):
@@ -61,15 +74,38 @@ class ImuBuffer:
         self.imu_to_lidar = None if imu_to_lidar is None else np.asarray(imu_to_lidar, dtype=float)
         self.reset_after = float(reset_after)
         self.resets = 0
-        self._time = np.zeros(0)
-        self._rpy = np.zeros((0, 3))
-        self._velocity = np.zeros((0, 3))
-        self._shift = np.zeros((0, 3))
-        self._angle = np.zeros((0, 3))
+        # One row per sample: time, roll, pitch, yaw, velocity (3), shift (3), angle (3).
+        self._rows: deque[tuple[float, ...]] = deque(maxlen=self.capacity)
+        self._arrays: np.ndarray | None = None
         self.rejected: dict[str, int] = {}
 
     def __len__(self) -> int:
-        return len(self._time)
+        return len(self._rows)
+
+    def _table(self) -> np.ndarray:
+        if self._arrays is None:
+            self._arrays = np.array(self._rows, dtype=float).reshape(-1, 13)
+        return self._arrays
+
+    @property
+    def _time(self) -> np.ndarray:
+        return self._table()[:, 0]
+
+    @property
+    def _rpy(self) -> np.ndarray:
+        return self._table()[:, 1:4]
+
+    @property
+    def _velocity(self) -> np.ndarray:
+        return self._table()[:, 4:7]
+
+    @property
+    def _shift(self) -> np.ndarray:
+        return self._table()[:, 7:10]
+
+    @property
+    def _angle(self) -> np.ndarray:
+        return self._table()[:, 10:13]
 
     @property
     def times(self) -> np.ndarray:
@@ -77,9 +113,8 @@ class ImuBuffer:
 
     def clear(self) -> None:
         """Forget every sample (the rejection and reset counters are kept)."""
-        rejected, resets = self.rejected, self.resets
-        self.__init__(self.capacity, self.gravity, self.scan_period, self.imu_to_lidar, self.reset_after)
-        self.rejected, self.resets = rejected, resets
+        self._rows.clear()
+        self._arrays = None
 
     def _reject(self, reason: str) -> str:
         self.rejected[reason] = self.rejected.get(reason, 0) + 1
@@ -87,56 +122,71 @@ class ImuBuffer:
 
     def add(self, stamp: float, orientation_xyzw, angular_velocity, linear_acceleration) -> str | None:
         """Process one sample; returns None when accepted, else why it was rejected."""
-        q = np.asarray(orientation_xyzw, dtype=float)
-        gyro = np.asarray(angular_velocity, dtype=float)
-        acc = np.asarray(linear_acceleration, dtype=float)
-        if q.shape != (4,) or gyro.shape != (3,) or acc.shape != (3,):
+        try:
+            qx, qy, qz, qw = (float(v) for v in orientation_xyzw)
+            gx, gy, gz = (float(v) for v in angular_velocity)
+            ax, ay, az = (float(v) for v in linear_acceleration)
+            stamp = float(stamp)
+        except (TypeError, ValueError):
             return self._reject('malformed sample')
-        if not (np.isfinite(stamp) and np.isfinite(q).all() and np.isfinite(gyro).all() and np.isfinite(acc).all()):
+        values = (stamp, qx, qy, qz, qw, gx, gy, gz, ax, ay, az)
+        if not all(math.isfinite(v) for v in values):
             return self._reject('non-finite value')
-        scale = float(np.abs(q).max())
-        norm = scale * float(np.linalg.norm(q / scale)) if scale > 0 else 0.0   # no overflow for huge values
+        scale = max(abs(qx), abs(qy), abs(qz), abs(qw))
+        norm = scale * math.sqrt((qx / scale) ** 2 + (qy / scale) ** 2 + (qz / scale) ** 2 + (qw / scale) ** 2) \
+            if scale > 0 else 0.0   # no overflow for huge values
         if norm < 1e-6:
             return self._reject('zero-norm orientation quaternion (the IMU must provide orientation)')
         if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
             return self._reject('orientation quaternion is not of unit length')
-        if not (np.abs(gyro) <= MAX_ANGULAR_VELOCITY).all():
+        if max(abs(gx), abs(gy), abs(gz)) > MAX_ANGULAR_VELOCITY:
             return self._reject(f'angular velocity beyond {MAX_ANGULAR_VELOCITY:g} rad/s')
-        if not (np.abs(acc) <= MAX_ACCELERATION).all():
+        if max(abs(ax), abs(ay), abs(az)) > MAX_ACCELERATION:
             return self._reject(f'acceleration beyond {MAX_ACCELERATION:g} m/s^2')
-        if len(self._time) and stamp < self._time[-1] - self.reset_after:
+        last = self._rows[-1] if self._rows else None
+        if last is not None and stamp < last[0] - self.reset_after:
             self.clear()   # the source restarted (a bag looped): start again from this sample
             self.resets += 1
-        if len(self._time) and stamp <= self._time[-1]:
+            last = None
+        if last is not None and stamp <= last[0]:
             return self._reject('stamp not newer than the previous sample (out of order or duplicate)')
-        rotation = Rotation.from_quat(q / np.linalg.norm(q))
-        if self.imu_to_lidar is not None:
+        qx, qy, qz, qw = qx / norm, qy / norm, qz / norm, qw / norm
+        if self.imu_to_lidar is None:
+            # Fixed-axis x, y, z angles (tf getRPY) of the unit quaternion.
+            roll = math.atan2(2.0 * (qw * qx + qy * qz), 1.0 - 2.0 * (qx * qx + qy * qy))
+            pitch = math.asin(max(-1.0, min(1.0, 2.0 * (qw * qy - qz * qx))))
+            yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+        else:
             # Measurements in lidar axes: rotate vectors; the attitude becomes that of the lidar.
-            gyro = self.imu_to_lidar @ gyro
-            acc = self.imu_to_lidar @ acc
-            rotation = rotation * Rotation.from_matrix(self.imu_to_lidar.T)
-        roll, pitch, yaw = rotation.as_euler('xyz')  # fixed-axis x, y, z = tf getRPY
+            m = self.imu_to_lidar
+            gx, gy, gz = (m @ np.array([gx, gy, gz])).tolist()
+            ax, ay, az = (m @ np.array([ax, ay, az])).tolist()
+            r = _quaternion_matrix(qx, qy, qz, qw) @ m.T
+            roll = math.atan2(r[2, 1], r[2, 2])
+            pitch = math.asin(max(-1.0, min(1.0, -r[2, 0])))
+            yaw = math.atan2(r[1, 0], r[0, 0])
         # Gravity-free acceleration in the body frame, re-ordered into camera axes (x=y_l, y=z_l, z=x_l).
         g = self.gravity
-        body = np.array([acc[1] - np.sin(roll) * np.cos(pitch) * g,
-                         acc[2] - np.cos(roll) * np.cos(pitch) * g,
-                         acc[0] + np.sin(pitch) * g])
-        world = imu_world_rotation(roll, pitch, yaw)[0] @ body
-        if len(self._time) and stamp - self._time[-1] < self.scan_period:
-            dt = stamp - self._time[-1]
-            velocity = self._velocity[-1] + world * dt
-            shift = self._shift[-1] + self._velocity[-1] * dt + world * dt * dt / 2
-            angle = self._angle[-1] + gyro * dt
+        cr, sr, cp, sp, cy, sy = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), \
+            math.cos(yaw), math.sin(yaw)
+        bx, by, bz = ay - sr * cp * g, az - cr * cp * g, ax + sp * g
+        # World acceleration: Ry(yaw) Rx(pitch) Rz(roll) (camera axes, as imu_world_rotation) times the body one.
+        wx = (cy * cr + sy * sp * sr) * bx + (-cy * sr + sy * sp * cr) * by + sy * cp * bz
+        wy = cp * sr * bx + cp * cr * by - sp * bz
+        wz = (-sy * cr + cy * sp * sr) * bx + (sy * sr + cy * sp * cr) * by + cy * cp * bz
+        if last is not None and stamp - last[0] < self.scan_period:
+            dt = stamp - last[0]
+            v0, s0, a0 = last[4:7], last[7:10], last[10:13]
+            world = (wx, wy, wz)
+            velocity = tuple(v + w * dt for v, w in zip(v0, world))
+            shift = tuple(s + v * dt + w * dt * dt / 2 for s, v, w in zip(s0, v0, world))
+            angle = tuple(a + w * dt for a, w in zip(a0, (gx, gy, gz)))
         else:  # first sample, or after a gap: restart the integration
-            velocity = np.zeros(3)
-            shift = self._shift[-1] if len(self._time) else np.zeros(3)
-            angle = self._angle[-1] if len(self._time) else np.zeros(3)
-        keep = self.capacity - 1
-        self._time = np.append(self._time[-keep:], stamp)
-        self._rpy = np.vstack([self._rpy[-keep:], [roll, pitch, yaw]])
-        self._velocity = np.vstack([self._velocity[-keep:], velocity])
-        self._shift = np.vstack([self._shift[-keep:], shift])
-        self._angle = np.vstack([self._angle[-keep:], angle])
+            velocity = (0.0, 0.0, 0.0)
+            shift = last[7:10] if last is not None else (0.0, 0.0, 0.0)
+            angle = last[10:13] if last is not None else (0.0, 0.0, 0.0)
+        self._rows.append((stamp, roll, pitch, yaw, *velocity, *shift, *angle))
+        self._arrays = None
         return None
 
     def covers(self, start: float, end: float, tolerance: float = 0.02) -> bool:

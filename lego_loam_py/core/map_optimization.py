@@ -337,8 +337,8 @@ class MapOptimization:
         mo = self.params.map_optimization
         step = step if step is not None else MappingStep(0, initial, initial, False, 0)
         pose = np.asarray(initial, dtype=float).copy()
-        corner_tree = cKDTree(corner_map[:, :3].astype(np.float64))
-        surf_tree = cKDTree(surf_map[:, :3].astype(np.float64))
+        corner_tree = cKDTree(corner_map[:, :3].astype(np.float64), balanced_tree=False)
+        surf_tree = cKDTree(surf_map[:, :3].astype(np.float64), balanced_tree=False)
         step.optimised = True
         for iteration in range(mo.max_iterations):
             step.iterations = iteration + 1
