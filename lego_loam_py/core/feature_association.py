@@ -251,7 +251,7 @@ class FeatureAssociation:
         (when used) and timed ``1 + s`` (the reference is the previous sweep's start)."""
         out = cloud.copy()
         if to_reference is not None:
-            rotation = np.einsum('ij,njk->nik', to_reference, attitude['r_points'][index])
+            rotation = np.einsum('ij,njk->nik', to_reference, self._point_attitudes(attitude, index))
             out[:, :3] = np.einsum('nij,nj->ni', rotation, cloud[:, :3].astype(np.float64)).astype(_F32)
         ring = np.trunc(cloud[:, 3]).astype(np.float64)
         s = 10.0 * (cloud[:, 3].astype(np.float64) - ring)
@@ -268,7 +268,7 @@ class FeatureAssociation:
         out = np.empty_like(cloud)
         out[:, 3] = ring.astype(_F32)
         if attitude is not None and index is not None:
-            relative = np.einsum('ij,njk->nik', attitude['r_start'].T, attitude['r_points'][index])
+            relative = np.einsum('ij,njk->nik', attitude['r_start'].T, self._point_attitudes(attitude, index))
             rotated = np.einsum('nij,nj->ni', relative, cloud[:, :3].astype(np.float64))
         elif attitude is not None:   # voxel centroids (less-flat): attitude at each point's own time
             rotated = np.einsum('nij,nj->ni', self._relative_attitudes(attitude, s), cloud[:, :3].astype(np.float64))
@@ -299,16 +299,23 @@ class FeatureAssociation:
         return deskewed
 
     def _imu_attitudes(self, rel: np.ndarray, stamp_ns: int) -> dict | None:
-        """IMU attitude (camera axes) at the sweep start and at every point's time, or None when the IMU does
-        not cover the sweep."""
+        """IMU attitude (camera axes) at the sweep start, and what :meth:`_point_attitudes` needs for the
+        points' own times (``rel`` = relative times of the prepared points), or None when the IMU does not
+        cover the sweep."""
         period = self.params.sensor.scan_period
         t_start = stamp_ns * 1e-9
         if not self.imu.covers(t_start, t_start + period):
             return None
-        state = self.imu.interpolate(np.concatenate(([t_start], t_start + rel * period)))
-        rotations = imu_world_rotation(state.roll, state.pitch, state.yaw)
-        return dict(t_start=t_start, r_start=rotations[0], r_points=rotations[1:], roll_start=float(state.roll[0]),
+        state = self.imu.interpolate([t_start])
+        r_start = imu_world_rotation(state.roll, state.pitch, state.yaw)[0]
+        return dict(t_start=t_start, r_start=r_start, rel=rel, roll_start=float(state.roll[0]),
                     pitch_start=float(state.pitch[0]))
+
+    def _point_attitudes(self, attitude: dict, index: np.ndarray) -> np.ndarray:
+        """(n, 3, 3) IMU attitudes at the times of the prepared points ``index`` (only the features need them)."""
+        times = attitude['t_start'] + attitude['rel'][index] * self.params.sensor.scan_period
+        state = self.imu.interpolate(times)
+        return imu_world_rotation(state.roll, state.pitch, state.yaw)
 
     def _process_original(self, scan: ScanInput) -> FeatureAssociationResult:
         """The original's model: registration against the previous features moved to that sweep's end."""

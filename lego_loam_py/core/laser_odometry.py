@@ -20,7 +20,13 @@ active parameters at the full ``θ`` (as the original, which does not scale them
 Correspondence search follows the original: nearest neighbour in the last cloud (KD-tree), then the
 nearest point on the same ring and on another ring within ±2.5 rings, scanning the ring-ordered last cloud
 outwards from the nearest neighbour; the forward scan is bounded by the *current* feature count (quirk 8.1,
-kept by default because fixing it changes results; ``fix_scan_bound`` removes it).
+kept for parity; ``fix_scan_bound`` removes it).
+
+The default sweep-start model (``odometry_model: sweep_start``, an exact Jacobian) differs on purpose:
+full Gauss-Newton steps in blocks of ``reassociate_every`` iterations with fixed weights and backtracking
+(:meth:`LaserOdometry._register_blocks`); the 2nd/3rd correspondence points are the nearest on whole
+neighbouring rings (a 4-D KD-tree over x, y, z and the ring, so no quirk 8.1); and the point-to-line
+residual is the perpendicular offset as a 3-vector, smooth where a point meets its line.
 """
 from __future__ import annotations
 
@@ -272,29 +278,76 @@ def _prev_below(rings: np.ndarray, n_rings: int) -> np.ndarray:
 
 
 class _LastCloud:
-    """A 'last' feature cloud with its KD-tree and ring look-ups."""
+    """A 'last' feature cloud with its KD-tree and ring look-ups (built on first use)."""
 
     def __init__(self, points: np.ndarray, n_rings: int):
         self.points = points
+        self.n_rings = n_rings
         self.rings = ring_of(points[:, 3])
         self.tree = cKDTree(points[:, :3].astype(np.float64)) if len(points) else None
-        low = int(self.rings.min(initial=0))
-        high = int(self.rings.max(initial=0))
-        self._offset = -min(low, 0) + 3
-        span = max(high, n_rings) + self._offset + 3
-        shifted = self.rings + self._offset
-        self._next_above = _next_above(shifted, span)
-        self._prev_below = _prev_below(shifted, span)
+        self._tables = None
+        self._ring_tree = None
+
+    def _window_tables(self):
+        if self._tables is None:
+            low = int(self.rings.min(initial=0))
+            high = int(self.rings.max(initial=0))
+            offset = -min(low, 0) + 3
+            span = max(high, self.n_rings) + offset + 3
+            shifted = self.rings + offset
+            self._tables = (offset, _next_above(shifted, span), _prev_below(shifted, span))
+        return self._tables
+
+    # Rings are a fourth coordinate this far apart: no two points on different rings are ever neighbours.
+    _RING_SPACING = 1.0e4
+
+    def ring_tree(self) -> cKDTree:
+        """KD-tree over (x, y, z, ring x a huge spacing): a query placed on ring r finds points of ring r only."""
+        if self._ring_tree is None:
+            xyzr = np.empty((len(self.points), 4))
+            xyzr[:, :3] = self.points[:, :3]
+            xyzr[:, 3] = self.rings * self._RING_SPACING
+            self._ring_tree = cKDTree(xyzr)
+        return self._ring_tree
+
+    def nearest_on_rings(self, query: np.ndarray, scan: np.ndarray, offsets: tuple[int, ...], limit: float,
+                         exclude: np.ndarray | None = None) -> np.ndarray:
+        """Per query, the index of the nearest point whose ring is ``scan + offset`` for one of ``offsets``,
+        within squared distance ``limit`` (-1 if none); ``exclude`` (per query) is an index never chosen."""
+        best = np.full(len(query), -1, dtype=np.int64)
+        if len(query) == 0 or len(self.points) == 0:
+            return best
+        best_sq = np.full(len(query), float(limit))
+        tree, n = self.ring_tree(), len(self.points)
+        xyzr = np.empty((len(query), 4))
+        xyzr[:, :3] = query[:, :3]
+        k = 1 if exclude is None else 2
+        rows = np.arange(len(query))
+        for offset in offsets:
+            xyzr[:, 3] = (scan + offset) * self._RING_SPACING
+            distance, index = tree.query(xyzr, k=k, distance_upper_bound=math.sqrt(limit))
+            distance, index = distance.reshape(len(query), k), index.reshape(len(query), k)
+            found = index < n
+            if exclude is not None:
+                found &= index != exclude[:, None]
+            column = np.argmax(found, axis=1)            # the nearest usable neighbour (sorted by distance)
+            usable = found[rows, column]
+            sq = np.where(usable, distance[rows, column] ** 2, np.inf)
+            better = sq < best_sq
+            best[better] = index[rows, column][better]
+            best_sq[better] = sq[better]
+        return best
 
     def window(self, closest: np.ndarray, scan: np.ndarray, window: float, forward_bound: int):
         """Forward [closest+1, hi) and backward (lo, closest-1] index windows of the original's scans."""
         n = len(self.points)
+        offset, next_above, prev_below = self._window_tables()
         limit = int(math.floor(window))       # int(ring) > scan + 2.5  <=>  ring > scan + floor(2.5)
-        up = np.clip(scan + limit + self._offset + 1, 0, self._next_above.shape[0] - 1)
-        down = np.clip(scan - limit + self._offset + 1, 0, self._prev_below.shape[0] - 1)
-        hi = self._next_above[up, np.minimum(closest + 1, n)]
+        up = np.clip(scan + limit + offset + 1, 0, next_above.shape[0] - 1)
+        down = np.clip(scan - limit + offset + 1, 0, prev_below.shape[0] - 1)
+        hi = next_above[up, np.minimum(closest + 1, n)]
         hi = np.minimum(hi, forward_bound)
-        lo = self._prev_below[down, closest]  # last index < closest whose ring < scan - 2
+        lo = prev_below[down, closest]  # last index < closest whose ring < scan - 2
         return np.maximum(hi, closest + 1), lo
 
 
@@ -356,6 +409,53 @@ def find_corner_correspondences(points_start: np.ndarray, last: _LastCloud, para
                               limit, True)
     index1[q] = closest
     index2[q] = np.where(e2 < d2, b2, f2)
+    return CornerCorrespondences(index1, index2)
+
+
+def _closest(points_start: np.ndarray, last: _LastCloud, params: Params):
+    """(queries with a nearest neighbour within the gate, that neighbour, its ring)."""
+    dist, nearest = last.tree.query(points_start[:, :3].astype(np.float64), k=1)
+    q = np.flatnonzero(dist.astype(np.float64) ** 2 < params.feature_association.nearest_feature_search_sq_dist)
+    closest = nearest[q]
+    return q, closest, last.rings[closest]
+
+
+def find_surf_correspondences_by_ring(points_start: np.ndarray, last: _LastCloud, params: Params) -> SurfCorrespondences:
+    """The plane correspondences of the sweep-start model: the nearest point (KD-tree), the nearest other
+    point on its ring, and the nearest point on the rings within ``ring_search_window`` of it, searched in
+    per-ring KD-trees over whole rings (the original scans index windows bounded by quirk 8.1)."""
+    fa = params.feature_association
+    n = len(points_start)
+    index1 = np.full(n, -1, dtype=np.int64)
+    index2, index3 = index1.copy(), index1.copy()
+    if n == 0 or last.tree is None:
+        return SurfCorrespondences(index1, index2, index3)
+    q, closest, scan = _closest(points_start, last, params)
+    reach = int(math.floor(fa.ring_search_window))
+    others = tuple(d for d in range(-reach, reach + 1) if d != 0)
+    query = points_start[q]
+    limit = fa.nearest_feature_search_sq_dist
+    index1[q] = closest
+    index2[q] = last.nearest_on_rings(query, scan, (0,), limit, exclude=closest)
+    index3[q] = last.nearest_on_rings(query, scan, others, limit)
+    return SurfCorrespondences(index1, index2, index3)
+
+
+def find_corner_correspondences_by_ring(points_start: np.ndarray, last: _LastCloud,
+                                        params: Params) -> CornerCorrespondences:
+    """The line correspondences of the sweep-start model: the nearest point and the nearest point on the
+    other rings within ``ring_search_window`` of it (per-ring KD-trees, whole rings)."""
+    fa = params.feature_association
+    n = len(points_start)
+    index1 = np.full(n, -1, dtype=np.int64)
+    index2 = index1.copy()
+    if n == 0 or last.tree is None:
+        return CornerCorrespondences(index1, index2)
+    q, closest, scan = _closest(points_start, last, params)
+    reach = int(math.floor(fa.ring_search_window))
+    others = tuple(d for d in range(-reach, reach + 1) if d != 0)
+    index1[q] = closest
+    index2[q] = last.nearest_on_rings(points_start[q], scan, others, fa.nearest_feature_search_sq_dist)
     return CornerCorrespondences(index1, index2)
 
 
@@ -517,10 +617,9 @@ class LaserOdometry:
 
         Each block associates the points anew and fixes their weights (1 in the first block, as the original;
         ``1 - gain |d|`` afterwards), so within a block the cost ``sum w d^2`` is fixed and each step is
-        shortened until it does not increase that cost. The point-to-line residual keeps the sign it had at
-        the association, so a step that carries a point across its line does not flip its gradient. Without
-        this, full steps overshoot on the wrong correspondences of the first iterations and the edge stage
-        bounces around; the original avoids that with 5 % steps, which then stop with up to 2 cm / 2 deg left.
+        shortened until it does not increase that cost. Without this, full steps overshoot on the wrong
+        correspondences of the first iterations and the edge stage bounces around; the original avoids that
+        with 5 % steps, which then stop with up to 2 cm / 2 deg left.
         """
         fa = self.params.feature_association
         for kind, points, active in (('surf', flat, self.SURF_PARAMS), ('corner', sharp, self.CORNER_PARAMS)):
@@ -554,71 +653,81 @@ class LaserOdometry:
 
     def _residual_function(self, kind: str, points: np.ndarray, weighted: bool):
         """Associate ``points`` at the current estimate and return ``f(theta, jacobian)`` giving the weighted
-        residuals (and their Jacobian rows) of the usable correspondences, weights fixed now."""
+        residuals (and their Jacobian rows) of the usable correspondences, weights fixed now.
+
+        Planes give one residual per point, the signed distance. Lines give three: the point's perpendicular
+        offset from the line as a vector, ``(I - u u^T)(p - a)``. Its length is the original's point-to-line
+        distance, but unlike that distance it is smooth where the point meets the line, so Gauss-Newton
+        converges there instead of stepping back and forth across it.
+        """
         fa = self.params.feature_association
         theta0 = self.transform_cur.copy()
         start = transform_to_start(points, theta0)
         last = self.last_surf if kind == 'surf' else self.last_corner
-        bound = len(last.points) if self.fix_scan_bound else len(points)
         if kind == 'surf':
-            match = find_surf_correspondences(start, last, self.params, bound)
+            match = find_surf_correspondences_by_ring(start, last, self.params)
             usable = np.flatnonzero((match.index2 >= 0) & (match.index3 >= 0))
             anchors = (last.points[match.index1[usable]], last.points[match.index2[usable]],
                        last.points[match.index3[usable]])
         else:
-            match = find_corner_correspondences(start, last, self.params, bound)
+            match = find_corner_correspondences_by_ring(start, last, self.params)
             usable = np.flatnonzero(match.index2 >= 0)
-            anchors = (last.points[match.index1[usable]], last.points[match.index2[usable]])
+            a = last.points[match.index1[usable], :3].astype(np.float64)
+            b = last.points[match.index2[usable], :3].astype(np.float64)
+            with np.errstate(invalid='ignore', divide='ignore'):
+                along = (a - b) / np.linalg.norm(a - b, axis=1)[:, None]
+            anchors = (a, along)
         selected = points[usable]
         active = self.SURF_PARAMS if kind == 'surf' else self.CORNER_PARAMS
-        sides = None
+        s_selected = relative_time_of(selected[:, 3]).astype(np.float64)
 
-        def evaluate(theta: np.ndarray):
-            p_start = transform_to_start(selected, theta)
-            if kind == 'surf':
-                direction, distance = plane_coefficients(p_start, *anchors)
-                scale = np.sqrt(np.sqrt((p_start[:, :3].astype(np.float64) ** 2).sum(axis=1)))
-            else:
-                direction, distance = line_coefficients(p_start, *anchors)
-                if sides is not None:
-                    flip = np.einsum('ni,ni->n', direction.astype(np.float64), sides) < 0
-                    direction = np.where(flip[:, None], -direction, direction)
-                    distance = np.where(flip, -distance, distance)
-                scale = np.ones(len(distance))
-            return direction, distance.astype(np.float64), scale
+        def offsets(theta: np.ndarray, anchor, along) -> np.ndarray:
+            """(n, 3) perpendicular offsets of the points from their lines."""
+            d = transform_to_start(selected, theta)[:, :3].astype(np.float64) - anchor
+            return d - np.einsum('ni,ni->n', d, along)[:, None] * along
 
-        direction, distance, scale = evaluate(theta0)
-        if kind == 'corner':
-            sides = direction.astype(np.float64)
-        if weighted:
-            weight = 1.0 - fa.weight_gain * np.abs(distance) / scale
-        else:
-            weight = np.ones(len(distance))
-        keep = (weight > fa.min_weight) & np.isfinite(distance) & np.isfinite(direction).all(axis=1)
         if kind == 'surf':
-            keep &= distance != 0
+            p_start = transform_to_start(selected, theta0)
+            normal, distance = plane_coefficients(p_start, *anchors)
+            distance = distance.astype(np.float64)
+            scale = np.sqrt(np.sqrt((p_start[:, :3].astype(np.float64) ** 2).sum(axis=1)))
+            finite = np.isfinite(distance) & np.isfinite(normal).all(axis=1) & (distance != 0)
+        else:
+            distance = np.linalg.norm(offsets(theta0, *anchors), axis=1)
+            scale = np.ones(len(distance))
+            finite = np.isfinite(distance) & np.isfinite(anchors[1]).all(axis=1)
+        weight = 1.0 - fa.weight_gain * np.abs(distance) / scale if weighted else np.ones(len(distance))
+        keep = (weight > fa.min_weight) & finite
         if keep.sum() < fa.min_correspondences:
             return None
-        selected, anchors = selected[keep], tuple(a[keep] for a in anchors)
-        weight = weight[keep]
-        if sides is not None:
-            sides = sides[keep]
+        selected, anchors, weight, s_selected = selected[keep], tuple(x[keep] for x in anchors), weight[keep], \
+            s_selected[keep]
 
         # The rotation prior: sqrt(w) * angle for each active rotation parameter, appended to the residuals.
         prior_columns = [k for k, parameter in enumerate(active) if parameter < 3] if self.rotation_prior > 0 else []
         prior_rows = np.zeros((len(prior_columns), len(active)))
         prior_rows[np.arange(len(prior_columns)), prior_columns] = math.sqrt(self.rotation_prior)
         prior_parameters = [active[k] for k in prior_columns]
+        if kind == 'corner':
+            along = anchors[1]
+            # Rows of the projector I - u u^T, weighted: the coefficients of the three residual components.
+            projector = (np.eye(3)[None, :, :] - along[:, :, None] * along[:, None, :]) * weight[:, None, None]
 
         def residual(theta: np.ndarray, jacobian: bool = False):
-            direction, distance, _ = evaluate(theta)
-            values = weight * distance
+            if kind == 'surf':
+                normal, distance = plane_coefficients(transform_to_start(selected, theta), *anchors)
+                values = weight * distance.astype(np.float64)
+            else:
+                values = (weight[:, None] * offsets(theta, *anchors)).reshape(-1)
             if prior_parameters:
                 values = np.concatenate([values, math.sqrt(self.rotation_prior) * np.asarray(theta)[prior_parameters]])
             if not jacobian:
                 return values
-            coeff = np.concatenate([direction * weight[:, None], (weight * distance)[:, None]], axis=1)
-            rows = plane_jacobian_rows(selected, coeff, theta, active, exact=True)
+            if kind == 'surf':
+                rows = _scaled_rows(selected, normal.astype(np.float64) * weight[:, None], theta, s_selected)[:, active]
+            else:
+                rows = np.stack([_scaled_rows(selected, projector[:, k, :], theta, s_selected)[:, active]
+                                 for k in range(3)], axis=1).reshape(-1, len(active))
             return (np.concatenate([rows, prior_rows]) if prior_parameters else rows), values
 
         residual.points = len(selected)

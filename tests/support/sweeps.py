@@ -23,12 +23,14 @@ def box(center, size) -> o3d.t.geometry.TriangleMesh:
 
 
 def room_world(seed: int = 0, corridor: bool = False) -> o3d.t.geometry.RaycastingScene:
-    """A 40 x 30 m yard with a floor, walls and pillars/boxes (or a long corridor: two walls + floor)."""
+    """A 40 x 30 m yard with a floor, walls and pillars/boxes (or a long closed corridor: two walls, floor and
+    ceiling, so that nothing but the walls' and floor's own shape is seen: motion along it is unobservable)."""
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(box([0, 0, -1.6], [200, 200, 0.2]))                   # floor, top at z = -1.5
     if corridor:
         scene.add_triangles(box([0, 3.0, 0], [400, 0.2, 6]))
         scene.add_triangles(box([0, -3.0, 0], [400, 0.2, 6]))
+        scene.add_triangles(box([0, 0, 2.6], [400, 8, 0.2]))                 # ceiling, underside at z = 2.5
         return scene
     for center, size in [([20, 0, 1], [0.4, 30, 5]), ([-20, 0, 1], [0.4, 30, 5]),
                          ([0, 15, 1], [40, 0.4, 5]), ([0, -15, 1], [40, 0.4, 5])]:
