@@ -266,9 +266,14 @@ class ImageProjection:
         * A pixel that forms a vertical pair with the pixel above or below it (height step > ratio x horizontal
           gap, gap < a fraction of the range) lies on a vertical surface: the first ring on a wall's base or a
           car's side pairs with distant ground at a shallow slope, and the original marks it ground.
-        * Ground candidates farther than max(tolerance, ratio x range) from a plane fitted to the candidates
-          (least squares, refitted without the rejects, three rounds) are horizontal surfaces above the ground:
-          car hoods and roofs, benches.
+        * Candidates within the plane radius, and the first candidate of every column wherever it lies, must
+          lie within max(tolerance, ratio x range) of a plane fitted (least squares, refitted without the
+          rejects, three rounds) to the candidates within that radius: car hoods and roofs, benches.
+        * Each column is walked upward from the lowest ring: every candidate after the column's first must
+          continue the column's last accepted ground point, a height change of at most tan(chain slope) x the
+          horizontal gap + the chain tolerance. Raised surfaces far out break that chain, while ground that
+          bends away from any single plane, as a forest's uneven terrain does, continues it. (A plane fitted
+          to the whole scan instead dropped up to 77 % of the ground of single forest scans.)
         """
         ip = self.params.image_projection
         g = self.params.sensor.ground_scan_ind
@@ -289,14 +294,33 @@ class ImageProjection:
         xyz = p[rows, cols, :3].astype(np.float64)
         reach = np.hypot(xyz[:, 0], xyz[:, 1])
         tolerance = np.maximum(ip.ground_plane_tolerance, ip.ground_plane_tolerance_ratio * reach)
-        keep = np.ones(len(xyz), dtype=bool)
+        near = reach <= ip.ground_plane_radius
+        keep = near if near.sum() >= 10 else np.ones(len(xyz), dtype=bool)
         design = np.column_stack([xyz[:, 0], xyz[:, 1], np.ones(len(xyz))])
         for _ in range(3):
             if keep.sum() < 3:
                 break
             coef, *_ = np.linalg.lstsq(design[keep], xyz[keep, 2], rcond=None)
-            keep = np.abs(xyz[:, 2] - design @ coef) <= tolerance
-        ground[rows[~keep], cols[~keep]] = False
+            keep = (np.abs(xyz[:, 2] - design @ coef) <= tolerance) & (near if near.sum() >= 10 else True)
+        on_plane = np.zeros_like(ground)
+        on_plane[rows, cols] = np.abs(xyz[:, 2] - design @ coef) <= tolerance
+        near_image = np.zeros_like(ground)
+        near_image[rows, cols] = near
+        # The walk up the columns: a loop over the few ground rows, vectorised over the columns.
+        slope = math.tan(math.radians(ip.ground_chain_slope))
+        last = np.full((self.horizon_scan, 3), np.nan)
+        for r in range(top):
+            candidate = ground[r]
+            if not candidate.any():
+                continue
+            xyz_r = p[r, :, :3].astype(np.float64)
+            with np.errstate(invalid='ignore'):
+                step = np.hypot(xyz_r[:, 0] - last[:, 0], xyz_r[:, 1] - last[:, 1])
+                continues = np.abs(xyz_r[:, 2] - last[:, 2]) <= slope * step + ip.ground_chain_tolerance
+            seeded = ~np.isnan(last[:, 0])
+            accepted = candidate & np.where(seeded, continues, True) & (on_plane[r] | (seeded & ~near_image[r]))
+            ground[r] = accepted
+            last[accepted] = xyz_r[accepted]
         return ground
 
     # ------------------------------------------------------------------------------- segmentation

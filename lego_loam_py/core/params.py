@@ -98,12 +98,16 @@ class ImageProjectionParams:
 
     ground_slope_threshold: float = 10.0  # |slope - mount angle| <= this marks ground [deg]
     # 'refined' (default) removes from the original's ground the points that start a vertical surface (wall
-    # bases, car sides) and those far above a plane fitted to the ground; 'original' is the C++'s rule.
+    # bases, car sides) and those that step up from the ground below them in their column (car hoods, tables);
+    # 'original' is the C++'s rule.
     ground_rule: str = 'refined'
     ground_vertical_ratio: float = 2.0      # a pair is a vertical surface if |dz| > ratio * horizontal gap ...
     ground_vertical_gap: float = 0.05       # ... and the gap < this fraction of the range
-    ground_plane_tolerance: float = 0.5     # ground farther from the fitted plane than max(this [m], ...
-    ground_plane_tolerance_ratio: float = 0.05  # ... this fraction of the horizontal range) is not ground
+    ground_plane_tolerance: float = 0.5     # ground farther from the plane fitted to the near ground than ...
+    ground_plane_tolerance_ratio: float = 0.05  # ... max(this [m], this x range) is not ground
+    ground_plane_radius: float = 25.0       # the plane is fitted to, and checks, the candidates within this range [m]
+    ground_chain_slope: float = 20.0        # later ground in a column rises at most tan(this [deg]) x gap ...
+    ground_chain_tolerance: float = 0.15    # ... + this [m] over the column's last ground point
     segment_theta: float = 60.0 / 180.0 * math.pi  # BFS join criterion beta > theta [rad]
     segment_valid_point_num: int = 5      # small cluster kept if >= this many points ...
     segment_valid_line_num: int = 3       # ... over >= this many rows
@@ -366,6 +370,9 @@ def _validate(p: Params) -> None:
     ip = p.image_projection
     need(ip.ground_rule in ('refined', 'original'), 'image_projection.ground_rule', "must be 'refined' or 'original'")
     need(0 < ip.segment_theta < math.pi, 'image_projection.segment_theta', 'must lie in (0, pi) radians')
+    need(0 <= ip.ground_chain_slope < 90, 'image_projection.ground_chain_slope', 'must lie in [0, 90) degrees')
+    for key in ('ground_plane_radius', 'ground_chain_tolerance', 'ground_plane_tolerance'):
+        need(getattr(ip, key) >= 0, f'image_projection.{key}', 'must not be negative')
     need(ip.outlier_column_stride > 0, 'image_projection.outlier_column_stride', 'must be positive')
     need(ip.ground_column_stride > 0, 'image_projection.ground_column_stride', 'must be positive')
     fa = p.feature_association
