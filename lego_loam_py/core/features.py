@@ -28,7 +28,7 @@ import numpy as np
 
 from lego_loam_py.core.image_projection import CloudInfo
 from lego_loam_py.core.params import Params
-from lego_loam_py.core.voxel import voxel_downsample
+from lego_loam_py.core.voxel import voxel_downsample_groups
 
 __all__ = ['ScanFeatures', 'FeatureExtractor', 'smoothness', 'occluded_mask']
 
@@ -121,7 +121,7 @@ class FeatureExtractor:
         is_edge_candidate = (curvature > edge_thr) & ~ground
         is_flat_candidate = (curvature < surf_thr) & ground
         sharp, less_sharp, flat = [], [], []
-        less_flat_parts = []
+        less_flat_parts, less_flat_rings = [], []
         sections = fa.sections_total
         start_ring = info.start_ring_index.astype(np.int64)
         end_ring = info.end_ring_index.astype(np.int64)
@@ -183,13 +183,18 @@ class FeatureExtractor:
                 ring_less_flat.append(region[label[region] <= 0])
             if ring_less_flat:
                 idx = np.concatenate(ring_less_flat)
-                if len(idx):
-                    less_flat_parts.append(voxel_downsample(points[idx], fa.less_flat_leaf_size))
+                less_flat_parts.append(idx)
+                less_flat_rings.append(np.full(len(idx), ring))
         self._stale_picked[:head] = picked[:head]
         sharp_index = np.asarray(sharp, dtype=np.int64)
         less_sharp_index = np.asarray(less_sharp, dtype=np.int64)
         flat_index = np.asarray(flat, dtype=np.int64)
-        less_flat = np.concatenate(less_flat_parts) if less_flat_parts else np.zeros((0, 4), _F32)
+        if less_flat_parts:
+            # The original filters ring by ring; one grouped filter gives the same points in the same order.
+            less_flat = voxel_downsample_groups(points[np.concatenate(less_flat_parts)], np.concatenate(less_flat_rings),
+                                                fa.less_flat_leaf_size)
+        else:
+            less_flat = np.zeros((0, 4), _F32)
         return ScanFeatures(sharp=points[sharp_index], less_sharp=points[less_sharp_index], flat=points[flat_index],
                             less_flat=less_flat, sharp_index=sharp_index, less_sharp_index=less_sharp_index,
                             flat_index=flat_index)

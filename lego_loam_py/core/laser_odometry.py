@@ -317,25 +317,26 @@ class _LastCloud:
         best = np.full(len(query), -1, dtype=np.int64)
         if len(query) == 0 or len(self.points) == 0:
             return best
-        best_sq = np.full(len(query), float(limit))
-        tree, n = self.ring_tree(), len(self.points)
-        xyzr = np.empty((len(query), 4))
-        xyzr[:, :3] = query[:, :3]
+        tree, n, m = self.ring_tree(), len(self.points), len(query)
+        # One query for all offsets: the queries stacked offset by offset.
+        xyzr = np.empty((len(offsets), m, 4))
+        xyzr[:, :, :3] = query[None, :, :3]
+        xyzr[:, :, 3] = (scan[None, :] + np.asarray(offsets)[:, None]) * self._RING_SPACING
         k = 1 if exclude is None else 2
-        rows = np.arange(len(query))
-        for offset in offsets:
-            xyzr[:, 3] = (scan + offset) * self._RING_SPACING
-            distance, index = tree.query(xyzr, k=k, distance_upper_bound=math.sqrt(limit))
-            distance, index = distance.reshape(len(query), k), index.reshape(len(query), k)
-            found = index < n
-            if exclude is not None:
-                found &= index != exclude[:, None]
-            column = np.argmax(found, axis=1)            # the nearest usable neighbour (sorted by distance)
-            usable = found[rows, column]
-            sq = np.where(usable, distance[rows, column] ** 2, np.inf)
-            better = sq < best_sq
-            best[better] = index[rows, column][better]
-            best_sq[better] = sq[better]
+        distance, index = tree.query(xyzr.reshape(-1, 4), k=k, distance_upper_bound=math.sqrt(limit))
+        distance, index = distance.reshape(len(offsets), m, k), index.reshape(len(offsets), m, k)
+        found = index < n
+        if exclude is not None:
+            found &= index != exclude[None, :, None]
+        column = np.argmax(found, axis=2)[..., None]      # the nearest usable neighbour (sorted by distance)
+        usable = np.take_along_axis(found, column, 2)[..., 0]
+        sq = np.where(usable, np.take_along_axis(distance, column, 2)[..., 0] ** 2, np.inf)
+        nearest = np.take_along_axis(index, column, 2)[..., 0]
+        # The first offset wins ties, as a loop over the offsets keeping only strictly closer points does.
+        which = np.argmin(sq, axis=0)
+        columns = np.arange(m)
+        best_sq = sq[which, columns]
+        best[best_sq < limit] = nearest[which, columns][best_sq < limit]
         return best
 
     def window(self, closest: np.ndarray, scan: np.ndarray, window: float, forward_bound: int):

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ['voxel_downsample', 'voxel_indices']
+__all__ = ['voxel_downsample', 'voxel_downsample_groups', 'voxel_indices']
 
 
 def voxel_indices(xyz: np.ndarray, leaf_size: float) -> np.ndarray:
@@ -52,3 +52,40 @@ def voxel_downsample(points: np.ndarray, leaf_size: float, return_counts: bool =
     sums = np.add.reduceat(points[order], starts, axis=0)
     centroids = (sums / counts[:, None].astype(np.float32)).astype(np.float32)
     return (centroids, counts) if return_counts else centroids
+
+
+def voxel_downsample_groups(points: np.ndarray, groups: np.ndarray, leaf_size: float) -> np.ndarray:
+    """``voxel_downsample`` of each group of points on its own grid (anchored at the group's bounding box),
+    concatenated in increasing group order: what a filter per ring gives, in one sort instead of one per ring.
+
+    ``points`` (N, k) with x, y, z first; ``groups`` (N,) non-negative integers.
+    """
+    if leaf_size <= 0:
+        raise ValueError(f'voxel leaf size must be positive, got {leaf_size}')
+    points = np.asarray(points, dtype=np.float32)
+    groups = np.asarray(groups, dtype=np.int64)
+    finite = np.isfinite(points[:, :3]).all(axis=1)
+    if not finite.all():
+        points, groups = points[finite], groups[finite]
+    if len(points) == 0:
+        return np.zeros((0, points.shape[1]), dtype=np.float32)
+    by_group = np.argsort(groups, kind='stable')
+    points, groups = points[by_group], groups[by_group]
+    group_starts = np.flatnonzero(np.concatenate(([True], groups[1:] != groups[:-1])))
+    group_of = np.cumsum(np.concatenate(([False], groups[1:] != groups[:-1])))   # 0..G-1 per point
+    inverse = np.float32(1.0) / np.float32(leaf_size)
+    # floor(min(p) / leaf) == min(floor(p / leaf)): the product and floor are monotonic in float32 too.
+    scaled = np.floor(points[:, :3] * inverse)
+    min_b = np.minimum.reduceat(scaled, group_starts, axis=0)
+    max_b = np.maximum.reduceat(scaled, group_starts, axis=0)
+    div = (max_b - min_b).astype(np.int64) + 1
+    ijk = (scaled - min_b[group_of]).astype(np.int64)
+    local = ijk[:, 0] + ijk[:, 1] * div[group_of, 0] + ijk[:, 2] * (div[:, 0] * div[:, 1])[group_of]
+    span = int((div[:, 0] * div[:, 1] * div[:, 2]).max())
+    index = group_of * span + local
+    order = np.argsort(index, kind='stable')
+    sorted_index = index[order]
+    starts = np.flatnonzero(np.concatenate(([True], sorted_index[1:] != sorted_index[:-1])))
+    counts = np.diff(np.append(starts, len(sorted_index)))
+    sums = np.add.reduceat(points[order], starts, axis=0)
+    return (sums / counts[:, None].astype(np.float32)).astype(np.float32)

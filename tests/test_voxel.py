@@ -1,0 +1,45 @@
+"""Voxel-grid downsampling with PCL's VoxelGrid semantics, alone and per group (ring)."""
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from lego_loam_py.core.voxel import voxel_downsample, voxel_downsample_groups
+
+
+def test_centroids_in_voxel_index_order():
+    # Leaf 1 m, grid anchored at floor(min) = (0, 0, 0): voxel index x + 2 y (x fastest; 2 voxels along x).
+    points = np.array([[1.5, 0.5, 0.0, 10.0],    # voxel (1, 0) -> index 1
+                       [0.2, 0.2, 0.0, 1.0],     # voxel (0, 0) -> index 0
+                       [0.4, 0.6, 0.0, 3.0],     # voxel (0, 0)
+                       [0.5, 1.5, 0.0, 7.0]], dtype=np.float32)   # voxel (0, 1) -> index 2
+    out, counts = voxel_downsample(points, 1.0, return_counts=True)
+    assert np.allclose(out, [[0.3, 0.4, 0.0, 2.0], [1.5, 0.5, 0.0, 10.0], [0.5, 1.5, 0.0, 7.0]])
+    assert counts.tolist() == [2, 1, 1]
+
+
+def test_grid_is_anchored_at_the_bounding_box_and_ignores_non_finite_points():
+    points = np.array([[-0.1, 0.0, 0.0], [0.1, 0.0, 0.0], [np.nan, 0.0, 0.0], [0.0, np.inf, 0.0]], np.float32)
+    # Voxels of 1 m from floor(-0.1) = -1: the two points fall on either side of 0.
+    assert len(voxel_downsample(points, 1.0)) == 2
+
+
+def test_groups_are_filtered_on_their_own_grids():
+    # The same two points in one group share a voxel; in two groups they stay apart, ordered by group.
+    points = np.array([[0.1, 0.0, 0.0], [0.2, 0.0, 0.0]], np.float32)
+    assert len(voxel_downsample_groups(points, np.array([0, 0]), 1.0)) == 1
+    out = voxel_downsample_groups(points, np.array([5, 2]), 1.0)
+    assert np.array_equal(out, points[::-1])
+
+
+@settings(max_examples=200, deadline=None)
+@given(arrays(np.float32, st.tuples(st.integers(1, 300), st.just(4)),
+              elements=st.floats(-50, 50, width=32) | st.just(np.float32(np.nan))),
+       st.integers(0, 2**31 - 1), st.sampled_from([0.05, 0.2, 0.4, 1.0]))
+def test_grouped_filter_equals_one_filter_per_group(points, seed, leaf):
+    groups = np.random.default_rng(seed).integers(0, 16, len(points))
+    parts = [voxel_downsample(points[groups == g], leaf) for g in np.unique(groups)]
+    expected = np.concatenate(parts)
+    assert np.array_equal(voxel_downsample_groups(points, groups, leaf), expected, equal_nan=True)
