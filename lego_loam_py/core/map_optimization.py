@@ -72,12 +72,20 @@ def map_jacobian_rows(points: np.ndarray, coeff: np.ndarray, pose6: np.ndarray) 
     return rows
 
 
+def _knn(tree: cKDTree, points_world: np.ndarray, mo) -> tuple[np.ndarray, np.ndarray]:
+    """The ``knn`` nearest map points of each point. The search stops at the gate the caller applies to the
+    k-th distance (points farther than that get inf, as if unmatched), which spares most of the tree walk for
+    points off the map; the neighbours of the points that pass the gate are the exact k nearest."""
+    bound = math.sqrt(mo.knn_max_sq_dist) * (1.0 + 1e-9)
+    return tree.query(points_world[:, :3], k=mo.knn, distance_upper_bound=bound)
+
+
 def edge_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: np.ndarray, params: Params):
     """Point-to-line coefficients: (index of used points, coeff (m, 4) = s·gradient, s·distance)."""
     mo = params.map_optimization
     if len(points_world) == 0 or tree is None:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 4))
-    distance, index = tree.query(points_world[:, :3], k=mo.knn)
+    distance, index = _knn(tree, points_world, mo)
     ok = distance[:, -1] ** 2 < mo.knn_max_sq_dist
     used = np.flatnonzero(ok)
     neighbours = map_points[index[used], :3].astype(np.float64)          # (m, k, 3)
@@ -101,7 +109,7 @@ def plane_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: n
     mo = params.map_optimization
     if len(points_world) == 0 or tree is None:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 4))
-    distance, index = tree.query(points_world[:, :3], k=mo.knn)
+    distance, index = _knn(tree, points_world, mo)
     ok = distance[:, -1] ** 2 < mo.knn_max_sq_dist
     used = np.flatnonzero(ok)
     neighbours = map_points[index[used], :3].astype(np.float64)          # (m, k, 3)
