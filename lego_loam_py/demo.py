@@ -244,6 +244,8 @@ def format_demo_summary(summary: dict, out_dir: Path | None = None) -> str:
         lines.append(f"accuracy: {summary['accuracy_error']}")
     else:
         lines.append('accuracy: no ground truth beside the bag')
+    from lego_loam_py.offline import map_to_scene_lines
+    lines.extend(map_to_scene_lines(summary))
     if out_dir is not None:
         lines.append(f'outputs in {_display(out_dir)}/: trajectory.tum (REP-103 map axes), trajectory_camera_init.tum, '
                      f'map/*.pcd, trajectory.png, summary.json, recording/ (mcap), stats/, logs/')

@@ -29,7 +29,7 @@ from lego_loam_py.core.params import ParameterError, Params, load_params
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.core.transform_fusion import TransformFusion
 
-__all__ = ['RunResult', 'run_bag', 'write_outputs', 'format_summary', 'pose_time_offset_ns', 'add_arguments',
+__all__ = ['RunResult', 'run_bag', 'write_outputs', 'format_summary', 'map_to_scene_lines', 'pose_time_offset_ns', 'add_arguments',
            'main']
 
 
@@ -215,6 +215,12 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
         # Show the ground truth in the estimate's frame (both start at identity at the first scan).
         first = np.argmin(np.abs(gt_stamps - stamps[0]))
         trajectories = {'ground truth': np.linalg.inv(gt_poses[first])[None] @ gt_poses, **trajectories}
+    if map_points is not None and len(map_points) and len(stamps):
+        from lego_loam_py.sim.output import map_distance_to_scene
+        distance = map_distance_to_scene(bag, map_points, int(stamps[0]), poses_map[0])
+        if distance is not None and len(distance):
+            summary['map_to_scene'] = dict(median_m=float(np.median(distance)),
+                                           p90_m=float(np.percentile(distance, 90)), points=int(len(distance)))
     summary['png'] = str(plot_trajectories(out / 'trajectory.png', trajectories, map_points,
                                            title=f'{Path(bag).name}: trajectory over the map (top view)'))
     (out / 'summary.json').write_text(json.dumps(summary, indent=2, default=float))
@@ -240,7 +246,17 @@ def format_summary(summary: dict) -> str:
         lines.append(f"accuracy: {summary['accuracy_error']}")
     else:
         lines.append('no ground truth beside the bag')
+    lines.extend(map_to_scene_lines(summary))
     return '\n'.join(lines)
+
+
+def map_to_scene_lines(summary: dict) -> list[str]:
+    """The summary line of the map's distance to a simulated scene, when one was measured."""
+    m = summary.get('map_to_scene')
+    if not m:
+        return []
+    return [f"map vs the simulated scene: median point-to-mesh distance {m['median_m']:.3f} m, 90th percentile "
+            f"{m['p90_m']:.3f} m over {m['points']} map points"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -206,7 +206,7 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
 
 
 def _trim_bag(source: Path, target: Path, seconds: float) -> None:
-    """The first ``seconds`` of a bag, with the ground truth beside it."""
+    """The first ``seconds`` of a bag, with the ground truth and the scenario beside it."""
     from lego_loam_py.bag.io import BagReader, BagWriter
 
     with BagReader(source) as reader, BagWriter(target) as writer:
@@ -214,6 +214,7 @@ def _trim_bag(source: Path, target: Path, seconds: float) -> None:
         for message in reader.messages(stop=stop):
             writer.write_raw(message.topic, message.msgtype, message.timestamp, message.data)
     shutil.copy(source / 'ground_truth.tum', target / 'ground_truth.tum')
+    shutil.copy(source / 'scenario.yaml', target / 'scenario.yaml')
 
 
 def test_demo_writes_a_summary_trajectory_map_and_png(tmp_path, ros_domain):
@@ -254,6 +255,11 @@ def test_demo_writes_a_summary_trajectory_map_and_png(tmp_path, ros_domain):
     assert summary['accuracy']['ate_rmse_m'] < 0.2
     cloud = read_pcd(out / 'map' / 'global_map.pcd')
     assert cloud.shape[1] >= 3 and len(cloud) > 1000
+    # The saved map opens with open3d and lies on the simulated scene's surfaces.
+    import open3d as o3d
+    assert len(o3d.io.read_point_cloud(str(out / 'map' / 'global_map.pcd')).points) == len(cloud)
+    assert summary['map_to_scene']['points'] == len(cloud) and summary['map_to_scene']['median_m'] < 0.15
+    assert 'median point-to-mesh distance' in text
     assert read_tum(out / 'map' / 'trajectory.tum')[0].size >= 5   # keyframes
     png = (out / 'trajectory.png').read_bytes()
     assert png[:8] == b'\x89PNG\r\n\x1a\n' and len(png) > 20_000

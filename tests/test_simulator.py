@@ -623,3 +623,29 @@ def test_committed_bag_plays_over_dds(rclpy_context, processes):
     assert len(points) == len(labels[5]) and set(points.dtype.names) >= {'x', 'y', 'z', 'intensity', 'ring', 'time'}
     assert imus[0].header.frame_id == 'imu_link' and abs(imus[0].linear_acceleration.z - GRAVITY) < 1.0
     node.destroy_node()
+
+
+def test_map_distance_to_scene_places_the_map_with_the_estimated_first_pose():
+    """Surface points seen from the first pose, expressed in a 'map' frame where that pose is a known
+    transform, are on the scene (distance ~0); the same points with a pose that is 1 m off are not."""
+    world = build_world('campus', 0)
+    world_from_lidar = world.trajectory.matrices(np.array([2.0]))[0]
+    azimuth = np.linspace(-np.pi, np.pi, 720, endpoint=False)
+    directions = np.column_stack([np.cos(azimuth), np.sin(azimuth), np.full(720, -0.15)])
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    directions = directions @ world_from_lidar[:3, :3].T
+    origins = np.repeat(world_from_lidar[None, :3, 3], 720, axis=0)
+    distance = world.scene.cast(origins, directions)[0]
+    hits = origins + directions * distance[:, None]
+    hits = hits[np.isfinite(hits).all(axis=1)]
+    lidar_in_map = np.eye(4)
+    lidar_in_map[:3, :3] = Rotation.from_euler('z', 30, degrees=True).as_matrix()
+    lidar_in_map[:3, 3] = [5.0, -2.0, 0.3]
+    map_from_world = lidar_in_map @ np.linalg.inv(world_from_lidar)
+    in_map = hits @ map_from_world[:3, :3].T + map_from_world[:3, 3]
+    stamp = START_STAMP_NS + 2_000_000_000
+    assert np.median(sidecars.map_distance_to_scene(BAGS / 'campus_8s', in_map, stamp, lidar_in_map)) < 1e-3
+    shifted = lidar_in_map.copy()
+    shifted[:3, 3] += [0.0, 0.0, 1.0]
+    assert np.median(sidecars.map_distance_to_scene(BAGS / 'campus_8s', in_map, stamp, shifted)) > 0.3
+    assert sidecars.map_distance_to_scene(REPO / 'tests', in_map, stamp, lidar_in_map) is None

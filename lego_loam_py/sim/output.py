@@ -31,7 +31,7 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
-__all__ = ['GROUND_TRUTH', 'GROUND_TRUTH_DENSE', 'LABELS', 'SCENARIO', 'NOTE', 'sidecar_path', 'write_tum',
+__all__ = ['map_distance_to_scene', 'GROUND_TRUTH', 'GROUND_TRUTH_DENSE', 'LABELS', 'SCENARIO', 'NOTE', 'sidecar_path', 'write_tum',
            'read_tum', 'load_ground_truth', 'relative_poses', 'LabelWriter', 'Labels', 'load_labels',
            'load_scenario', 'write_yaml']
 
@@ -115,6 +115,28 @@ def load_scenario(bag_path: str | Path) -> dict[str, Any] | None:
     if not path.is_file():
         return None
     return yaml.safe_load(path.read_text())
+
+
+def map_distance_to_scene(bag_path: str | Path, map_points: np.ndarray, stamp_ns: int,
+                          lidar_pose_in_map: np.ndarray) -> np.ndarray | None:
+    """Distance [m] of each map point (REP-103 axes of the ``map`` frame) to the simulated scene's surfaces,
+    or None when no scenario.yaml sits beside the bag.
+
+    ``lidar_pose_in_map`` (4x4) is the estimated lidar pose at ``stamp_ns`` (e.g. the first pose of the
+    trajectory); the true pose at that time places ``map`` in the world. (``map`` is not simply the first
+    lidar pose: with an IMU the pipeline levels it with the IMU's roll and pitch, as the original does.)
+    """
+    scenario = load_scenario(bag_path)
+    if scenario is None:
+        return None
+    from lego_loam_py.sim.scenarios import build_world
+
+    world = build_world(scenario['config']['scenario'], int(scenario['config']['seed']))
+    t = (int(stamp_ns) - int(scenario['recording']['start_stamp_ns'])) / 1e9
+    world_from_map = world.trajectory.matrices(np.array([t]))[0] @ np.linalg.inv(lidar_pose_in_map)
+    xyz = np.asarray(map_points, dtype=np.float64)[:, :3]
+    xyz = xyz[np.isfinite(xyz).all(axis=1)]
+    return world.scene.distance(xyz @ world_from_map[:3, :3].T + world_from_map[:3, 3])
 
 
 def write_yaml(path: str | Path, data: dict[str, Any]) -> None:
