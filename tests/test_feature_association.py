@@ -461,29 +461,3 @@ def test_static_recording_yields_near_zero_motion(shared_data):
     assert drift['original'][0] == pytest.approx(0.0999, abs=0.005)
     assert drift['azimuth'][0] < 0.2 and drift['azimuth'][1] < 5.0
 
-
-@pytest.mark.parametrize('seed', [0, 1, 2])
-def test_whole_ring_search_equals_the_originals_window_search_without_its_bound(seed):
-    """The sweep-start model's correspondences (nearest points on whole neighbouring rings, from a KD-tree
-    over x, y, z and ring) are the original's window scans with quirk 8.1's bound lifted."""
-    from lego_loam_py.core.laser_odometry import (_LastCloud, find_corner_correspondences,
-                                                  find_corner_correspondences_by_ring, find_surf_correspondences,
-                                                  find_surf_correspondences_by_ring)
-    rng = np.random.default_rng(seed)
-    rings = np.sort(rng.integers(0, 16, 600))
-    # Ring-ordered like a 'last' cloud: ring in the integer part of the intensity, time in the fraction.
-    last_points = np.column_stack([rng.uniform(-8, 8, (600, 3)), rings + rng.uniform(0, 0.1, 600)]).astype(np.float32)
-    query = (last_points[rng.choice(600, 150)] + np.float32(0.3) * rng.standard_normal((150, 4)).astype(np.float32))
-    query[:, 3] = np.abs(query[:, 3])
-    last = _LastCloud(last_points, 16)
-    window = find_surf_correspondences(query, last, PARAMS, forward_bound=len(last_points))
-    by_ring = find_surf_correspondences_by_ring(query, last, PARAMS)
-    for name in ('index1', 'index2', 'index3'):
-        assert np.array_equal(getattr(window, name), getattr(by_ring, name)), name
-    assert (by_ring.index3 >= 0).sum() > 100
-    window = find_corner_correspondences(query, last, PARAMS, forward_bound=len(last_points))
-    by_ring = find_corner_correspondences_by_ring(query, last, PARAMS)
-    assert np.array_equal(window.index1, by_ring.index1) and np.array_equal(window.index2, by_ring.index2)
-    # With the original's bound (the current feature count, here 150 of 600) the window search misses some.
-    bounded = find_corner_correspondences(query, last, PARAMS, forward_bound=150)
-    assert not np.array_equal(bounded.index2, by_ring.index2)

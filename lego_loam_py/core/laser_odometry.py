@@ -24,9 +24,10 @@ kept for parity; ``fix_scan_bound`` removes it).
 
 The default sweep-start model (``odometry_model: sweep_start``, an exact Jacobian) differs on purpose:
 full Gauss-Newton steps in blocks of ``reassociate_every`` iterations with fixed weights and backtracking
-(:meth:`LaserOdometry._register_blocks`); the 2nd/3rd correspondence points are the nearest on whole
-neighbouring rings (a 4-D KD-tree over x, y, z and the ring, so no quirk 8.1); and the point-to-line
-residual is the perpendicular offset as a 3-vector, smooth where a point meets its line.
+(:meth:`LaserOdometry._register_blocks`), and the point-to-line residual is the perpendicular offset as a
+3-vector, smooth where a point meets its line. It keeps the original's correspondence search with quirk
+8.1: searching whole neighbouring rings instead (no bound) was measured worse, 46 % instead of 4.6 % drift
+in the simulated corridor with IMU, where the bound keeps matches near the scan's own stretch of wall.
 """
 from __future__ import annotations
 
@@ -286,7 +287,6 @@ class _LastCloud:
         self.rings = ring_of(points[:, 3])
         self.tree = cKDTree(points[:, :3].astype(np.float64)) if len(points) else None
         self._tables = None
-        self._ring_tree = None
 
     def _window_tables(self):
         if self._tables is None:
@@ -297,47 +297,6 @@ class _LastCloud:
             shifted = self.rings + offset
             self._tables = (offset, _next_above(shifted, span), _prev_below(shifted, span))
         return self._tables
-
-    # Rings are a fourth coordinate this far apart: no two points on different rings are ever neighbours.
-    _RING_SPACING = 1.0e4
-
-    def ring_tree(self) -> cKDTree:
-        """KD-tree over (x, y, z, ring x a huge spacing): a query placed on ring r finds points of ring r only."""
-        if self._ring_tree is None:
-            xyzr = np.empty((len(self.points), 4))
-            xyzr[:, :3] = self.points[:, :3]
-            xyzr[:, 3] = self.rings * self._RING_SPACING
-            self._ring_tree = cKDTree(xyzr)
-        return self._ring_tree
-
-    def nearest_on_rings(self, query: np.ndarray, scan: np.ndarray, offsets: tuple[int, ...], limit: float,
-                         exclude: np.ndarray | None = None) -> np.ndarray:
-        """Per query, the index of the nearest point whose ring is ``scan + offset`` for one of ``offsets``,
-        within squared distance ``limit`` (-1 if none); ``exclude`` (per query) is an index never chosen."""
-        best = np.full(len(query), -1, dtype=np.int64)
-        if len(query) == 0 or len(self.points) == 0:
-            return best
-        tree, n, m = self.ring_tree(), len(self.points), len(query)
-        # One query for all offsets: the queries stacked offset by offset.
-        xyzr = np.empty((len(offsets), m, 4))
-        xyzr[:, :, :3] = query[None, :, :3]
-        xyzr[:, :, 3] = (scan[None, :] + np.asarray(offsets)[:, None]) * self._RING_SPACING
-        k = 1 if exclude is None else 2
-        distance, index = tree.query(xyzr.reshape(-1, 4), k=k, distance_upper_bound=math.sqrt(limit))
-        distance, index = distance.reshape(len(offsets), m, k), index.reshape(len(offsets), m, k)
-        found = index < n
-        if exclude is not None:
-            found &= index != exclude[None, :, None]
-        column = np.argmax(found, axis=2)[..., None]      # the nearest usable neighbour (sorted by distance)
-        usable = np.take_along_axis(found, column, 2)[..., 0]
-        sq = np.where(usable, np.take_along_axis(distance, column, 2)[..., 0] ** 2, np.inf)
-        nearest = np.take_along_axis(index, column, 2)[..., 0]
-        # The first offset wins ties, as a loop over the offsets keeping only strictly closer points does.
-        which = np.argmin(sq, axis=0)
-        columns = np.arange(m)
-        best_sq = sq[which, columns]
-        best[best_sq < limit] = nearest[which, columns][best_sq < limit]
-        return best
 
     def window(self, closest: np.ndarray, scan: np.ndarray, window: float, forward_bound: int):
         """Forward [closest+1, hi) and backward (lo, closest-1] index windows of the original's scans."""
@@ -410,53 +369,6 @@ def find_corner_correspondences(points_start: np.ndarray, last: _LastCloud, para
                               limit, True)
     index1[q] = closest
     index2[q] = np.where(e2 < d2, b2, f2)
-    return CornerCorrespondences(index1, index2)
-
-
-def _closest(points_start: np.ndarray, last: _LastCloud, params: Params):
-    """(queries with a nearest neighbour within the gate, that neighbour, its ring)."""
-    dist, nearest = last.tree.query(points_start[:, :3].astype(np.float64), k=1)
-    q = np.flatnonzero(dist.astype(np.float64) ** 2 < params.feature_association.nearest_feature_search_sq_dist)
-    closest = nearest[q]
-    return q, closest, last.rings[closest]
-
-
-def find_surf_correspondences_by_ring(points_start: np.ndarray, last: _LastCloud, params: Params) -> SurfCorrespondences:
-    """The plane correspondences of the sweep-start model: the nearest point (KD-tree), the nearest other
-    point on its ring, and the nearest point on the rings within ``ring_search_window`` of it, searched in
-    per-ring KD-trees over whole rings (the original scans index windows bounded by quirk 8.1)."""
-    fa = params.feature_association
-    n = len(points_start)
-    index1 = np.full(n, -1, dtype=np.int64)
-    index2, index3 = index1.copy(), index1.copy()
-    if n == 0 or last.tree is None:
-        return SurfCorrespondences(index1, index2, index3)
-    q, closest, scan = _closest(points_start, last, params)
-    reach = int(math.floor(fa.ring_search_window))
-    others = tuple(d for d in range(-reach, reach + 1) if d != 0)
-    query = points_start[q]
-    limit = fa.nearest_feature_search_sq_dist
-    index1[q] = closest
-    index2[q] = last.nearest_on_rings(query, scan, (0,), limit, exclude=closest)
-    index3[q] = last.nearest_on_rings(query, scan, others, limit)
-    return SurfCorrespondences(index1, index2, index3)
-
-
-def find_corner_correspondences_by_ring(points_start: np.ndarray, last: _LastCloud,
-                                        params: Params) -> CornerCorrespondences:
-    """The line correspondences of the sweep-start model: the nearest point and the nearest point on the
-    other rings within ``ring_search_window`` of it (per-ring KD-trees, whole rings)."""
-    fa = params.feature_association
-    n = len(points_start)
-    index1 = np.full(n, -1, dtype=np.int64)
-    index2 = index1.copy()
-    if n == 0 or last.tree is None:
-        return CornerCorrespondences(index1, index2)
-    q, closest, scan = _closest(points_start, last, params)
-    reach = int(math.floor(fa.ring_search_window))
-    others = tuple(d for d in range(-reach, reach + 1) if d != 0)
-    index1[q] = closest
-    index2[q] = last.nearest_on_rings(points_start[q], scan, others, fa.nearest_feature_search_sq_dist)
     return CornerCorrespondences(index1, index2)
 
 
@@ -666,12 +578,14 @@ class LaserOdometry:
         start = transform_to_start(points, theta0)
         last = self.last_surf if kind == 'surf' else self.last_corner
         if kind == 'surf':
-            match = find_surf_correspondences_by_ring(start, last, self.params)
+            bound = len(last.points) if self.fix_scan_bound else len(points)
+            match = find_surf_correspondences(start, last, self.params, bound)
             usable = np.flatnonzero((match.index2 >= 0) & (match.index3 >= 0))
             anchors = (last.points[match.index1[usable]], last.points[match.index2[usable]],
                        last.points[match.index3[usable]])
         else:
-            match = find_corner_correspondences_by_ring(start, last, self.params)
+            bound = len(last.points) if self.fix_scan_bound else len(points)
+            match = find_corner_correspondences(start, last, self.params, bound)
             usable = np.flatnonzero(match.index2 >= 0)
             a = last.points[match.index1[usable], :3].astype(np.float64)
             b = last.points[match.index2[usable], :3].astype(np.float64)
