@@ -100,17 +100,29 @@ def _process_exists(pid: int) -> bool:
     return True
 
 
-def tum_lines(stamps_ns: np.ndarray, poses: np.ndarray) -> str:
-    """TUM text ``timestamp tx ty tz qx qy qz qw`` for (N,) ns stamps and (N, 4, 4) poses."""
+def tum_lines(stamps_ns: np.ndarray, poses: np.ndarray, position_digits: int = 6, rotation_digits: int = 9) -> str:
+    """TUM text ``timestamp tx ty tz qx qy qz qw`` for (N,) ns stamps and (N, 4, 4) poses (quaternions with
+    qw >= 0, so a pose has one spelling)."""
     stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
     poses = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
     quats = Rotation.from_matrix(poses[:, :3, :3]).as_quat() if len(poses) else np.zeros((0, 4))
-    lines = []
-    for stamp, pose, q in zip(stamps_ns, poses, quats):
-        sec, nsec = divmod(int(stamp), 1_000_000_000)
-        t = pose[:3, 3]
-        lines.append(f'{sec}.{nsec:09d} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}')
+    quats[quats[:, 3] < 0] *= -1.0
+    p, r = position_digits, rotation_digits
+    lines = [f'{_format_stamp(stamp)} {t[0]:.{p}f} {t[1]:.{p}f} {t[2]:.{p}f} '
+             f'{q[0]:.{r}f} {q[1]:.{r}f} {q[2]:.{r}f} {q[3]:.{r}f}'
+             for stamp, t, q in zip(stamps_ns, poses[:, :3, 3], quats)]
     return '\n'.join(lines) + ('\n' if lines else '')
+
+
+def _format_stamp(stamp_ns: int) -> str:
+    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    return f'{sec}.{nsec:09d}'
+
+
+def _parse_stamp(text: str) -> int:
+    whole, _, fraction = text.partition('.')
+    sign = -1 if whole.startswith('-') else 1
+    return sign * (abs(int(whole)) * 1_000_000_000 + int((fraction + '000000000')[:9] or 0))
 
 
 def write_tum_atomic(path: str | Path, stamps_ns: np.ndarray, poses: np.ndarray) -> Path:
@@ -122,7 +134,7 @@ def write_tum_atomic(path: str | Path, stamps_ns: np.ndarray, poses: np.ndarray)
 
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """(stamps [ns] int64 (N,), poses (N, 4, 4)) from a TUM file (comments and blank lines skipped)."""
-    stamps, poses = [], []
+    stamps, rows = [], []
     for line in Path(path).read_text().splitlines():
         line = line.strip()
         if not line or line.startswith('#'):
@@ -130,14 +142,14 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         parts = line.split()
         if len(parts) != 8:
             raise ValueError(f'{path}: a TUM line has 8 values, got {len(parts)}: {line!r}')
-        whole, _, fraction = parts[0].partition('.')
-        stamps.append(int(whole) * 1_000_000_000 + int((fraction + '000000000')[:9]))
-        values = np.array([float(v) for v in parts[1:]])
-        pose = np.eye(4)
-        pose[:3, :3] = Rotation.from_quat(values[3:]).as_matrix()
-        pose[:3, 3] = values[:3]
-        poses.append(pose)
-    return np.array(stamps, dtype=np.int64), np.array(poses).reshape(-1, 4, 4)
+        stamps.append(_parse_stamp(parts[0]))
+        rows.append([float(v) for v in parts[1:]])
+    values = np.array(rows, dtype=float).reshape(-1, 7)
+    poses = np.tile(np.eye(4), (len(values), 1, 1))
+    if len(values):
+        poses[:, :3, :3] = Rotation.from_quat(values[:, 3:]).as_matrix()
+        poses[:, :3, 3] = values[:, :3]
+    return np.array(stamps, dtype=np.int64), poses
 
 
 def write_pcd_atomic(path: str | Path, points: np.ndarray) -> Path:

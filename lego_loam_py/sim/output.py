@@ -29,7 +29,8 @@ from typing import Any
 
 import numpy as np
 import yaml
-from scipy.spatial.transform import Rotation
+
+from lego_loam_py.core.io import read_tum, tum_lines
 
 __all__ = ['map_distance_to_scene', 'GROUND_TRUTH', 'GROUND_TRUTH_DENSE', 'LABELS', 'SCENARIO', 'NOTE', 'sidecar_path', 'write_tum',
            'read_tum', 'load_ground_truth', 'relative_poses', 'LabelWriter', 'Labels', 'load_labels',
@@ -54,17 +55,6 @@ def sidecar_path(bag_path: str | Path, name: str) -> Path:
     return path / name
 
 
-def _format_stamp(stamp_ns: int) -> str:
-    stamp_ns = int(stamp_ns)
-    return f'{stamp_ns // 1_000_000_000}.{stamp_ns % 1_000_000_000:09d}'
-
-
-def _parse_stamp(text: str) -> int:
-    whole, _, fraction = text.partition('.')
-    sign = -1 if whole.startswith('-') else 1
-    return sign * (abs(int(whole)) * 1_000_000_000 + int((fraction + '000000000')[:9] or 0))
-
-
 def relative_poses(poses: np.ndarray) -> np.ndarray:
     """(N, 4, 4) poses expressed relative to the first one (``inv(T_0) T_k``)."""
     first_inverse = np.linalg.inv(poses[0])
@@ -72,32 +62,8 @@ def relative_poses(poses: np.ndarray) -> np.ndarray:
 
 
 def write_tum(path: str | Path, stamps_ns: np.ndarray, poses: np.ndarray) -> None:
-    """TUM trajectory file: ``timestamp tx ty tz qx qy qz qw`` per line (quaternion with qw >= 0)."""
-    quaternions = Rotation.from_matrix(poses[:, :3, :3]).as_quat()
-    quaternions[quaternions[:, 3] < 0] *= -1.0
-    lines = [f'{_format_stamp(s)} {t[0]:.9f} {t[1]:.9f} {t[2]:.9f} {q[0]:.12f} {q[1]:.12f} {q[2]:.12f} {q[3]:.12f}'
-             for s, t, q in zip(stamps_ns, poses[:, :3, 3], quaternions)]
-    Path(path).write_text('# timestamp tx ty tz qx qy qz qw\n' + '\n'.join(lines) + '\n')
-
-
-def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """(stamps [ns] int64 (N,), poses (N, 4, 4)) of a TUM trajectory file."""
-    stamps, rows = [], []
-    for line in Path(path).read_text().splitlines():
-        line = line.strip()
-        if not line or line.startswith('#'):
-            continue
-        parts = line.split()
-        if len(parts) != 8:
-            raise ValueError(f'{path}: a TUM line needs 8 values, got {len(parts)}: {line!r}')
-        stamps.append(_parse_stamp(parts[0]))
-        rows.append([float(v) for v in parts[1:]])
-    values = np.array(rows, dtype=float).reshape(-1, 7)
-    poses = np.tile(np.eye(4), (len(values), 1, 1))
-    if len(values):
-        poses[:, :3, :3] = Rotation.from_quat(values[:, 3:]).as_matrix()
-        poses[:, :3, 3] = values[:, :3]
-    return np.array(stamps, dtype=np.int64), poses
+    """Ground-truth TUM file: a header line, then ``timestamp tx ty tz qx qy qz qw`` (nm / 1e-12 precision)."""
+    Path(path).write_text('# timestamp tx ty tz qx qy qz qw\n' + tum_lines(stamps_ns, poses, 9, 12))
 
 
 def load_ground_truth(bag_path: str | Path, dense: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
