@@ -212,8 +212,6 @@ def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_
 
 def format_demo_summary(summary: dict, out_dir: Path | None = None) -> str:
     """The demo's report, as printed at the end of a run."""
-    from lego_loam_py.evaluation import TrajectoryMetrics
-
     scans_in = summary['scans_in']
     p = summary['processed']
     lines = [f"LeGO-LOAM over DDS: {summary['bag']} at {summary['rate']:g}x, four nodes as separate processes"
@@ -237,15 +235,8 @@ def format_demo_summary(summary: dict, out_dir: Path | None = None) -> str:
         for node, t in summary['timings_ms'].items():
             unit = '  (per mapping step)' if node == 'mapOptimization' else ''
             lines.append(f"  {node:<20s}{t['median']:8.1f}{t['p95']:9.1f}{t['count']:7d}{unit}")
-    lines.append(f"trajectory length {summary.get('trajectory_length_m', 0.0):.1f} m")
-    if 'accuracy' in summary:
-        lines.append('accuracy vs ground truth: ' + TrajectoryMetrics(**summary['accuracy']).summary())
-    elif 'accuracy_error' in summary:
-        lines.append(f"accuracy: {summary['accuracy_error']}")
-    else:
-        lines.append('accuracy: no ground truth beside the bag')
-    from lego_loam_py.offline import map_to_scene_lines
-    lines.extend(map_to_scene_lines(summary))
+    from lego_loam_py.offline import result_lines
+    lines.extend(result_lines(summary))
     if out_dir is not None:
         lines.append(f'outputs in {_display(out_dir)}/: trajectory.tum (REP-103 map axes), trajectory_camera_init.tum, '
                      f'map/*.pcd, trajectory.png, summary.json, recording/ (mcap), stats/, logs/')

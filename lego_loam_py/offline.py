@@ -23,13 +23,14 @@ from lego_loam_py.bag.io import BagError, BagReader, cloud_msg_to_array
 from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix
 from lego_loam_py.core.image_projection import ImageProjection, InputError, prepare_input
+from lego_loam_py.core.imu import imu_sample
 from lego_loam_py.core.io import write_tum_atomic
 from lego_loam_py.core.map_optimization import MapOptimization
 from lego_loam_py.core.params import ParameterError, Params, load_params
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.core.transform_fusion import TransformFusion
 
-__all__ = ['RunResult', 'run_bag', 'write_outputs', 'format_summary', 'map_to_scene_lines', 'pose_time_offset_ns', 'add_arguments',
+__all__ = ['RunResult', 'run_bag', 'write_outputs', 'format_summary', 'result_lines', 'pose_time_offset_ns', 'add_arguments',
            'main']
 
 
@@ -102,8 +103,7 @@ def run_bag(bag: str | Path, params: Params, *, cloud_topic: str | None = None, 
                 msg = reader.deserialize(message)
                 stamp = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
                 if message.topic != cloud_topic:
-                    o, w, a = msg.orientation, msg.angular_velocity, msg.linear_acceleration
-                    sample = (stamp * 1e-9, (o.x, o.y, o.z, o.w), (w.x, w.y, w.z), (a.x, a.y, a.z))
+                    sample = imu_sample(msg)
                     if fa.add_imu(*sample) is not None:
                         result.count('imu_rejected')
                     mo.imu.add(*sample)
@@ -238,25 +238,27 @@ def format_summary(summary: dict) -> str:
     if 'realtime_factor' in summary:
         lines.append(f"{summary['bag_duration_s']:.1f} s of data in {summary['wall_time_s']:.1f} s: "
                      f"{summary['realtime_factor']:.2f}x real time")
-    lines.append(f"trajectory length {summary.get('trajectory_length_m', 0.0):.1f} m")
+    lines.extend(result_lines(summary))
+    return '\n'.join(lines)
+
+
+def result_lines(summary: dict) -> list[str]:
+    """The summary lines on the result, shared by ``run`` and the demo: trajectory length, accuracy against
+    the ground truth, and the map's distance to a simulated scene when one was measured."""
+    from lego_loam_py.evaluation import TrajectoryMetrics
+
+    lines = [f"trajectory length {summary.get('trajectory_length_m', 0.0):.1f} m"]
     if 'accuracy' in summary:
-        from lego_loam_py.evaluation import TrajectoryMetrics
         lines.append('accuracy vs ground truth: ' + TrajectoryMetrics(**summary['accuracy']).summary())
     elif 'accuracy_error' in summary:
         lines.append(f"accuracy: {summary['accuracy_error']}")
     else:
-        lines.append('no ground truth beside the bag')
-    lines.extend(map_to_scene_lines(summary))
-    return '\n'.join(lines)
-
-
-def map_to_scene_lines(summary: dict) -> list[str]:
-    """The summary line of the map's distance to a simulated scene, when one was measured."""
+        lines.append('accuracy: no ground truth beside the bag')
     m = summary.get('map_to_scene')
-    if not m:
-        return []
-    return [f"map vs the simulated scene: median point-to-mesh distance {m['median_m']:.3f} m, 90th percentile "
-            f"{m['p90_m']:.3f} m over {m['points']} map points"]
+    if m:
+        lines.append(f"map vs the simulated scene: median point-to-mesh distance {m['median_m']:.3f} m, 90th "
+                     f"percentile {m['p90_m']:.3f} m over {m['points']} map points")
+    return lines
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
