@@ -311,6 +311,18 @@ class _LastCloud:
         return np.maximum(hi, closest + 1), lo
 
 
+def _nearest_and_windows(points_start: np.ndarray, last: _LastCloud, params: Params, forward_bound: int):
+    """The search both correspondence kinds start with: the queries whose nearest point in the last cloud lies
+    within the gate (indices ``q``), that point and its ring, and the original's index windows around it."""
+    fa = params.feature_association
+    dist, nearest = last.tree.query(points_start[:, :3].astype(np.float64), k=1)
+    q = np.flatnonzero(dist.astype(np.float64) ** 2 < fa.nearest_feature_search_sq_dist)
+    closest = nearest[q]
+    scan = last.rings[closest]
+    hi, lo = last.window(closest, scan, fa.ring_search_window, forward_bound)
+    return q, closest, scan, hi, lo
+
+
 def find_surf_correspondences(points_start: np.ndarray, last: _LastCloud, params: Params,
                               forward_bound: int) -> SurfCorrespondences:
     """The original's plane correspondences for flat points already mapped to the sweep start."""
@@ -320,12 +332,7 @@ def find_surf_correspondences(points_start: np.ndarray, last: _LastCloud, params
     index2, index3 = index1.copy(), index1.copy()
     if n == 0 or last.tree is None:
         return SurfCorrespondences(index1, index2, index3)
-    dist, nearest = last.tree.query(points_start[:, :3].astype(np.float64), k=1)
-    found = dist.astype(np.float64) ** 2 < fa.nearest_feature_search_sq_dist
-    q = np.flatnonzero(found)
-    closest = nearest[q]
-    scan = last.rings[closest]
-    hi, lo = last.window(closest, scan, fa.ring_search_window, forward_bound)
+    q, closest, scan, hi, lo = _nearest_and_windows(points_start, last, params, forward_bound)
     limit = fa.nearest_feature_search_sq_dist
     query = points_start[q]
     # Forward: same-or-lower ring -> point 2, higher ring -> point 3.
@@ -353,12 +360,7 @@ def find_corner_correspondences(points_start: np.ndarray, last: _LastCloud, para
     index2 = index1.copy()
     if n == 0 or last.tree is None:
         return CornerCorrespondences(index1, index2)
-    dist, nearest = last.tree.query(points_start[:, :3].astype(np.float64), k=1)
-    found = dist.astype(np.float64) ** 2 < fa.nearest_feature_search_sq_dist
-    q = np.flatnonzero(found)
-    closest = nearest[q]
-    scan = last.rings[closest]
-    hi, lo = last.window(closest, scan, fa.ring_search_window, forward_bound)
+    q, closest, scan, hi, lo = _nearest_and_windows(points_start, last, params, forward_bound)
     limit = fa.nearest_feature_search_sq_dist
     query = points_start[q]
     owner, position = _ragged(closest + 1, hi)

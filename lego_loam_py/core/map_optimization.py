@@ -26,7 +26,6 @@ Thread safety: :meth:`process`, :meth:`detect_loop`, :meth:`close_loop`, :meth:`
 from __future__ import annotations
 
 import math
-import os
 import threading
 import time as _time
 from dataclasses import dataclass, field
@@ -72,12 +71,14 @@ def map_jacobian_rows(points: np.ndarray, coeff: np.ndarray, pose6: np.ndarray) 
     return rows
 
 
-def _knn(tree: cKDTree, points_world: np.ndarray, mo) -> tuple[np.ndarray, np.ndarray]:
-    """The ``knn`` nearest map points of each point. The search stops at the gate the caller applies to the
-    k-th distance (points farther than that get inf, as if unmatched), which spares most of the tree walk for
-    points off the map; the neighbours of the points that pass the gate are the exact k nearest."""
+def _neighbourhoods(points_world: np.ndarray, tree: cKDTree, map_points: np.ndarray, mo):
+    """(indices of the points whose ``knn`` nearest map points all lie within the gate, those neighbours
+    (m, k, 3) float64). The tree search stops at the gate, which spares most of the walk for points off the
+    map; the neighbours of the points that pass are the exact k nearest."""
     bound = math.sqrt(mo.knn_max_sq_dist) * (1.0 + 1e-9)
-    return tree.query(points_world[:, :3], k=mo.knn, distance_upper_bound=bound)
+    distance, index = tree.query(points_world[:, :3], k=mo.knn, distance_upper_bound=bound)
+    used = np.flatnonzero(distance[:, -1] ** 2 < mo.knn_max_sq_dist)
+    return used, map_points[index[used], :3].astype(np.float64)
 
 
 def edge_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: np.ndarray, params: Params):
@@ -85,10 +86,7 @@ def edge_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: np
     mo = params.map_optimization
     if len(points_world) == 0 or tree is None:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 4))
-    distance, index = _knn(tree, points_world, mo)
-    ok = distance[:, -1] ** 2 < mo.knn_max_sq_dist
-    used = np.flatnonzero(ok)
-    neighbours = map_points[index[used], :3].astype(np.float64)          # (m, k, 3)
+    used, neighbours = _neighbourhoods(points_world, tree, map_points, mo)
     centroid = neighbours.mean(axis=1)
     centred = neighbours - centroid[:, None, :]
     covariance = np.einsum('mki,mkj->mij', centred, centred) / mo.knn
@@ -109,10 +107,7 @@ def plane_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: n
     mo = params.map_optimization
     if len(points_world) == 0 or tree is None:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 4))
-    distance, index = _knn(tree, points_world, mo)
-    ok = distance[:, -1] ** 2 < mo.knn_max_sq_dist
-    used = np.flatnonzero(ok)
-    neighbours = map_points[index[used], :3].astype(np.float64)          # (m, k, 3)
+    used, neighbours = _neighbourhoods(points_world, tree, map_points, mo)
     # Least-squares plane n·x = -1 through the neighbours: the normal equations (A^T A) n = -A^T 1, solved in
     # closed form (Cramer's rule on the symmetric 3x3 systems, vectorised over all points).
     xx, yy, zz = (np.einsum('mk,mk->m', neighbours[..., i], neighbours[..., i]) for i in range(3))
