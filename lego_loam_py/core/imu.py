@@ -27,7 +27,7 @@ import numpy as np
 
 from lego_loam_py.core.frames import euler_to_matrices
 
-__all__ = ['ImuBuffer', 'ImuState', 'imu_world_rotation', 'MAX_ANGULAR_VELOCITY', 'MAX_ACCELERATION']
+__all__ = ['ImuBuffer', 'ImuState', 'imu_sample', 'imu_world_rotation', 'MAX_ANGULAR_VELOCITY', 'MAX_ACCELERATION']
 
 MAX_ANGULAR_VELOCITY = 100.0   # [rad/s] anything faster is garbage (gyros saturate at 35-70 rad/s)
 MAX_ACCELERATION = 1000.0      # [m/s^2] about 100 g (accelerometers saturate at 16-200 g)
@@ -219,3 +219,10 @@ class ImuBuffer:
         return ImuState(roll=rpy[:, 0], pitch=rpy[:, 1], yaw=rpy[:, 2], velocity=lerp(self._velocity),
                         shift=lerp(self._shift), angle=lerp(self._angle))
 
+
+def imu_sample(msg) -> tuple[float, tuple, tuple, tuple]:
+    """``ImuBuffer.add``'s arguments from a sensor_msgs/Imu (an rclpy or a rosbags message, read by attribute):
+    (stamp [s], orientation (x, y, z, w), angular velocity [rad/s], linear acceleration [m/s^2])."""
+    o, w, a = msg.orientation, msg.angular_velocity, msg.linear_acceleration
+    stamp_s = (int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)) * 1e-9
+    return stamp_s, (o.x, o.y, o.z, o.w), (w.x, w.y, w.z), (a.x, a.y, a.z)

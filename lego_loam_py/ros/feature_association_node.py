@@ -30,6 +30,7 @@ from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, LASER_ODOM_FRAME
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.core.image_projection import MAX_COORDINATE
+from lego_loam_py.core.imu import imu_sample
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import (cloud_info_from_msg, cloud_msg_to_array, cloud_msg_to_xyzi, make_header,
@@ -75,23 +76,12 @@ class FeatureAssociationNode(LegoLoamNode):
 
     # ----------------------------------------------------------------------------------- inputs
     def on_part(self, name: str, msg) -> None:
-        try:
-            complete = self.sync.add(name, stamp_to_ns(msg.header.stamp), msg)
-        except Exception:
-            self.error('sync_exception', 'unexpected error while synchronising inputs')
-            return
-        if self.sync.dropped:
-            self.count('unmatched_inputs', self.sync.dropped)
-            self.warn('unmatched', f'{self.sync.dropped} input message(s) without matching partners within '
-                                   f'{self.params.feature_association.sync_tolerance} s dropped')
-            self.sync.dropped = 0
+        complete = self.add_part(self.sync, name, msg, self.params.feature_association.sync_tolerance)
         if complete is not None:
             self.on_scan(complete['cloud'], complete['info'], complete['outlier'])
 
     def on_imu(self, msg: Imu) -> None:
-        o, w, a = msg.orientation, msg.angular_velocity, msg.linear_acceleration
-        reason = self.core.add_imu(stamp_to_ns(msg.header.stamp) * 1e-9, (o.x, o.y, o.z, o.w), (w.x, w.y, w.z),
-                                   (a.x, a.y, a.z))
+        reason = self.core.add_imu(*imu_sample(msg))
         if reason is not None:
             self.count('imu_dropped')
             self.warn('imu', f'IMU message dropped: {reason}')

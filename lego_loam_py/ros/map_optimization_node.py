@@ -39,6 +39,7 @@ from lego_loam_py.core.frames import (AFT_MAPPED_FRAME, CAMERA_INIT_FRAME, inver
 from lego_loam_py.core.image_projection import MAX_COORDINATE
 from lego_loam_py.core.map_optimization import MapOptimization, transform_cloud
 from lego_loam_py.core.pointcloud import CloudLayoutError
+from lego_loam_py.core.imu import imu_sample
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import (cloud_msg_to_xyzi, make_header, odometry_to_pose, pose_to_odometry,
@@ -114,14 +115,7 @@ class MapOptimizationNode(LegoLoamNode):
 
     # ------------------------------------------------------------------------------------------ inputs
     def on_part(self, name: str, msg) -> None:
-        try:
-            complete = self.sync.add(name, stamp_to_ns(msg.header.stamp), msg)
-        except Exception:
-            self.error('sync_exception', 'unexpected error while synchronising inputs')
-            return
-        if self.sync.dropped:
-            self.count('unmatched_inputs', self.sync.dropped)
-            self.sync.dropped = 0
+        complete = self.add_part(self.sync, name, msg)
         if complete is not None:
             self.on_inputs(complete)
 
@@ -136,9 +130,7 @@ class MapOptimizationNode(LegoLoamNode):
         self.on_part('odometry', msg)
 
     def on_imu(self, msg: Imu) -> None:
-        o, w, a = msg.orientation, msg.angular_velocity, msg.linear_acceleration
-        reason = self.core.imu.add(stamp_to_ns(msg.header.stamp) * 1e-9, (o.x, o.y, o.z, o.w), (w.x, w.y, w.z),
-                                   (a.x, a.y, a.z))
+        reason = self.core.imu.add(*imu_sample(msg))
         if reason is not None:
             self.count('imu_dropped')
             self.warn('imu', f'IMU message dropped: {reason}')

@@ -14,6 +14,7 @@ import numpy as np
 from rclpy.node import Node
 
 from lego_loam_py.core.params import Params
+from lego_loam_py.ros.conversions import stamp_to_ns
 from lego_loam_py.ros.params import declare_params
 
 __all__ = ['LegoLoamNode']
@@ -144,6 +145,23 @@ class LegoLoamNode(Node):
     def error(self, key: str, text: str) -> None:
         """Unexpected failure while handling a message: log with the traceback (throttled) and carry on."""
         self.warn(key, f'{text}: {traceback.format_exc(limit=6)}')
+
+    def add_part(self, sync, name: str, msg, warn_tolerance: float | None = None) -> dict | None:
+        """Give one message of a synchronised input set to ``sync`` (a StampSynchronizer); returns the set once
+        complete. Parts that lost their partners are counted as ``unmatched_inputs`` (and, with
+        ``warn_tolerance`` [s], warned about)."""
+        try:
+            complete = sync.add(name, stamp_to_ns(msg.header.stamp), msg)
+        except Exception:
+            self.error('sync_exception', 'unexpected error while synchronising inputs')
+            return None
+        if sync.dropped:
+            self.count('unmatched_inputs', sync.dropped)
+            if warn_tolerance is not None:
+                self.warn('unmatched', f'{sync.dropped} input message(s) without matching partners within '
+                                       f'{warn_tolerance} s dropped')
+            sync.dropped = 0
+        return complete
 
     def count(self, name: str, amount: int = 1) -> None:
         self.counters[name] = self.counters.get(name, 0) + amount
