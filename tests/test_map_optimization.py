@@ -154,7 +154,7 @@ def test_keyframes_every_0_3_m_and_the_surrounding_map():
     positions = np.array([kf.pose6[3:] for kf in mo.keyframes])
     cells = np.floor(positions / 1.0) - np.floor(positions.min(axis=0) / 1.0)
     expected = sorted({int(np.mean([i for i in range(4) if (cells[i] == cell).all()])) for cell in cells})
-    assert ids == expected and set(mo._world_cache) <= set(ids)
+    assert ids == expected and mo._corner_accumulator.ids() <= set(ids)
     # Steps closer than mapping_process_interval are skipped.
     assert mo.process(7 * 400_000_000 + 200_000_000, np.zeros(6), f.less_sharp, f.less_flat,
                       np.zeros((0, 4), np.float32)) is None

@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from lego_loam_py.core.voxel import voxel_downsample, voxel_downsample_groups
+from lego_loam_py.core.voxel import VoxelAccumulator, voxel_downsample, voxel_downsample_groups
 
 
 def test_centroids_in_voxel_index_order():
@@ -43,3 +43,44 @@ def test_grouped_filter_equals_one_filter_per_group(points, seed, leaf):
     parts = [voxel_downsample(points[groups == g], leaf) for g in np.unique(groups)]
     expected = np.concatenate(parts)
     assert np.array_equal(voxel_downsample_groups(points, groups, leaf), expected, equal_nan=True)
+
+
+def test_accumulator_sums_voxels_across_clouds_and_forgets_removed_ones():
+    # Leaf 1 m. Cloud a: two points in voxel (0, 0, 0); cloud b: one in (0, 0, 0), one in (-1, 0, 0).
+    a = np.array([[0.2, 0.2, 0.2, 1.0], [0.4, 0.4, 0.4, 3.0]], np.float32)
+    b = np.array([[0.6, 0.6, 0.6, 5.0], [-0.5, 0.5, 0.5, 9.0]], np.float32)
+    union = VoxelAccumulator(1.0)
+    union.add('a', a)
+    union.add('b', b)
+    # PCL order: increasing x within a row, so (-1, 0, 0) comes first; (0, 0, 0) averages three points.
+    assert np.allclose(union.centroids(), [[-0.5, 0.5, 0.5, 9.0], [0.4, 0.4, 0.4, 3.0]])
+    union.remove('a')
+    assert np.allclose(union.centroids(), [[-0.5, 0.5, 0.5, 9.0], [0.6, 0.6, 0.6, 5.0]])
+    union.remove('b')
+    assert len(union) == 0 and union.centroids().shape == (0, 4)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), leaf=st.sampled_from([0.2, 0.4, 1.0]))
+def test_accumulator_equals_one_filter_of_the_union_through_adds_and_removes(seed, leaf):
+    rng = np.random.default_rng(seed)
+    clouds = {}
+    union = VoxelAccumulator(leaf)
+    for step in range(12):
+        if clouds and rng.random() < 0.35:
+            gone = rng.choice(sorted(clouds))
+            del clouds[gone]
+            union.remove(gone)
+        else:
+            size = int(rng.integers(0, 200))
+            centre = rng.uniform(-60, 60, 3)
+            cloud = np.concatenate([centre + rng.normal(0, 2.0, (size, 3)), rng.uniform(0, 100, (size, 1))], 1)
+            clouds[step] = cloud.astype(np.float32)
+            union.add(step, clouds[step])
+        expected = voxel_downsample(np.concatenate(list(clouds.values())).reshape(-1, 4), leaf) \
+            if clouds else np.zeros((0, 4), np.float32)
+        assert union.centroids().shape == expected.shape
+        assert np.allclose(union.centroids(), expected, atol=1e-4)
+    rebuilt = VoxelAccumulator(leaf)
+    rebuilt.rebuild(clouds)
+    assert np.allclose(rebuilt.centroids(), union.centroids(), atol=1e-5)

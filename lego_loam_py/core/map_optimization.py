@@ -12,8 +12,10 @@ clouds in their own sensor frame and are the nodes of a gtsam iSAM2 graph (prior
 factors from the optimised poses, the original's noise), expressed in lidar axes as the original does. The
 surrounding map is the union of the keyframes within ``surrounding_keyframe_search_radius`` (picked through
 a 1 m voxel grid of their positions whose averaged index is truncated, quirk 8.5) or, with loop closure
-on, the last ``surrounding_keyframe_search_num`` keyframes. World-frame copies of keyframe clouds are
-cached and recomputed only for keyframes that enter the map or after a loop closure moves the poses.
+on, the last ``surrounding_keyframe_search_num`` keyframes. The voxel-filtered map is kept in two
+:class:`~lego_loam_py.core.voxel.VoxelAccumulator` (corner, surface + outlier): a keyframe's world clouds are
+computed and merged in when it enters the set and subtracted when it leaves, so a step costs the change of
+the set, not a new filter of some 50 keyframes; a loop closure that moves the poses rebuilds it.
 
 Scan-to-map registration: for each downsampled corner point, the 5 nearest map corners must span a line
 (largest eigenvalue > 3 × the middle one); for each surface point, the 5 nearest map surface points must
@@ -39,7 +41,7 @@ from lego_loam_py.core.frames import (camera_pose_to_lidar, camera_to_lidar, inv
 from lego_loam_py.core.imu import ImuBuffer
 from lego_loam_py.core.laser_odometry import line_coefficients
 from lego_loam_py.core.params import Params
-from lego_loam_py.core.voxel import voxel_downsample
+from lego_loam_py.core.voxel import VoxelAccumulator, voxel_downsample
 
 __all__ = ['MapOptimization', 'MappingStep', 'LoopCandidate', 'LoopResult', 'map_jacobian_rows',
            'edge_correspondences', 'plane_correspondences', 'transform_cloud']
@@ -218,7 +220,8 @@ class MapOptimization:
         self.transform_last = np.zeros(6)
         self.keyframes: list[Keyframe] = []
         self._positions = np.zeros((0, 3))
-        self._world_cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._corner_accumulator = VoxelAccumulator(mo.corner_leaf_size)
+        self._surf_accumulator = VoxelAccumulator(mo.surf_leaf_size)
         self.current_position = np.zeros(3)
         self._previous_keyframe_position: np.ndarray | None = None
         isam_params = gtsam.ISAM2Params()
@@ -305,27 +308,33 @@ class MapOptimization:
         ids = np.unique(np.trunc(filtered[:, 3]).astype(np.int64))   # averaged indices, truncated (quirk 8.5)
         return [int(i) for i in ids if 0 <= i < n]
 
-    def _world_clouds(self, index: int) -> tuple[np.ndarray, np.ndarray]:
-        cached = self._world_cache.get(index)
-        if cached is None:
-            kf = self.keyframes[index]
-            cached = (transform_cloud(kf.corner, kf.pose6),
-                      transform_cloud(np.concatenate([kf.surf, kf.outlier]), kf.pose6))
-            self._world_cache[index] = cached
-        return cached
-
     def _surrounding_map(self) -> tuple[np.ndarray, np.ndarray]:
-        mo = self.params.map_optimization
+        """The voxel-filtered corner and surface(+outlier) maps of the surrounding keyframes (world, camera
+        axes). Between steps the set changes by a keyframe or two, so the accumulators merge those in and out
+        instead of filtering every point again; a keyframe's world clouds are computed once, when it enters."""
         ids = self._surrounding_ids()
-        for stale in set(self._world_cache) - set(ids):
-            del self._world_cache[stale]
-        if not ids:
-            empty = np.zeros((0, 4), dtype=_F32)
-            return empty, empty
-        clouds = [self._world_clouds(i) for i in ids]
-        corner = voxel_downsample(np.concatenate([c for c, _ in clouds]), mo.corner_leaf_size)
-        surf = voxel_downsample(np.concatenate([s for _, s in clouds]), mo.surf_leaf_size)
-        return corner, surf
+        present = self._corner_accumulator.ids()
+        entering = [i for i in ids if i not in present]
+        leaving = present - set(ids)
+        if len(entering) + len(leaving) > max(4, len(ids) // 2):
+            # Most of the map changed (start, loop correction, a jump): one grouping beats many merges.
+            clouds = {i: self._world_clouds(i) for i in ids}
+            self._corner_accumulator.rebuild({i: c for i, (c, _) in clouds.items()})
+            self._surf_accumulator.rebuild({i: s for i, (_, s) in clouds.items()})
+        else:
+            for i in leaving:
+                self._corner_accumulator.remove(i)
+                self._surf_accumulator.remove(i)
+            for i in entering:
+                corner, surf = self._world_clouds(i)
+                self._corner_accumulator.add(i, corner)
+                self._surf_accumulator.add(i, surf)
+        return self._corner_accumulator.centroids(), self._surf_accumulator.centroids()
+
+    def _world_clouds(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        kf = self.keyframes[index]
+        return (transform_cloud(kf.corner, kf.pose6),
+                transform_cloud(np.concatenate([kf.surf, kf.outlier]), kf.pose6))
 
     def _scan_to_map(self, corner_map, surf_map, corner_ds, surf_ds, step: MappingStep) -> None:
         self.transform_tobe = self.register_to_map(corner_map, surf_map, corner_ds, surf_ds, self.transform_tobe, step)
@@ -433,7 +442,8 @@ class MapOptimization:
         for kf in self.keyframes:
             kf.pose6 = self._pose6_of(estimate.atPose3(kf.index))
         self._positions = np.array([kf.pose6[3:] for kf in self.keyframes])
-        self._world_cache.clear()
+        self._corner_accumulator.clear()   # every keyframe moved: the map is rebuilt at the next step
+        self._surf_accumulator.clear()
         self.loop_closed = False
 
     # ------------------------------------------------------------------------------------ loop closure
