@@ -238,7 +238,7 @@ def test_demo_writes_a_summary_trajectory_map_and_png(tmp_path, ros_domain):
     assert f'scans in {scans} (' in text
     assert re.search(r'processed: imageProjection \d+, featureAssociation \d+ .*transformFusion \d+', text), text
     assert re.search(r'/integrated_to_init for \d+ of \d+ scans', text) and 'dropped messages' in text
-    for name in ('imageProjection', 'featureAssociation', 'mapOptimization'):
+    for name in ('imageProjection', 'featureAssociation', 'mapOptimization', 'transformFusion'):
         assert re.search(rf'{name}\s+\d+\.\d\s+\d+\.\d\s+\d+', text), name   # ms per scan: median, p95, n
     assert 'trajectory length' in text and 'accuracy vs ground truth: ATE RMSE' in text
 

@@ -14,6 +14,7 @@ are not finite, not unit quaternions or absurdly far are dropped with a throttle
 from __future__ import annotations
 
 import sys
+import time
 
 import numpy as np
 from nav_msgs.msg import Odometry
@@ -104,6 +105,7 @@ class TransformFusionNode(LegoLoamNode):
         self._integrate(msg)
 
     def _integrate(self, msg: Odometry) -> None:
+        start = time.perf_counter()
         try:
             odometry = odometry_to_pose(msg)
         except ValueError as exc:
@@ -121,6 +123,7 @@ class TransformFusionNode(LegoLoamNode):
         self.pub_integrated.publish(pose_to_odometry(mapped, header, CAMERA_FRAME))
         self.tf.send_pose(mapped, msg.header.stamp, CAMERA_INIT_FRAME, CAMERA_FRAME)
         self.count('integrated')
+        self.record_time('odometry', time.perf_counter() - start)   # conversion, fusion and publishing
 
 
 def main(args=None) -> int:
