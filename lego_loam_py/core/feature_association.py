@@ -280,8 +280,7 @@ class FeatureAssociation:
         return out
 
     def _relative_attitudes(self, attitude: dict, s: np.ndarray) -> np.ndarray:
-        state = self.imu.interpolate(attitude['t_start'] + s * self.params.sensor.scan_period)
-        rotations = imu_world_rotation(state.roll, state.pitch, state.yaw)
+        rotations = imu_world_rotation(*self.imu.attitude(attitude['t_start'] + s * self.params.sensor.scan_period))
         return np.einsum('ij,njk->nik', attitude['r_start'].T, rotations)
 
     def _outlier_at_start(self, scan: ScanInput, motion: np.ndarray, attitude: dict | None) -> np.ndarray:
@@ -314,8 +313,7 @@ class FeatureAssociation:
     def _point_attitudes(self, attitude: dict, index: np.ndarray) -> np.ndarray:
         """(n, 3, 3) IMU attitudes at the times of the prepared points ``index`` (only the features need them)."""
         times = attitude['t_start'] + attitude['rel'][index] * self.params.sensor.scan_period
-        state = self.imu.interpolate(times)
-        return imu_world_rotation(state.roll, state.pitch, state.yaw)
+        return imu_world_rotation(*self.imu.attitude(times))
 
     def _process_original(self, scan: ScanInput) -> FeatureAssociationResult:
         """The original's model: registration against the previous features moved to that sweep's end."""

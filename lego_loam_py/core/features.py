@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lego_loam_py.core.image_projection import CloudInfo
+from lego_loam_py.core.laser_odometry import _ragged
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.voxel import voxel_downsample_groups
 
@@ -116,82 +117,94 @@ class FeatureExtractor:
         picked = occluded_mask(ranges, columns, self.params)
         head = min(w, n)
         picked[:head] |= self._stale_picked[:head]
-        label = np.zeros(n, dtype=np.int8)
-        edge_thr, surf_thr = _F32(fa.edge_threshold), _F32(fa.surf_threshold)
-        is_edge_candidate = (curvature > edge_thr) & ~ground
-        is_flat_candidate = (curvature < surf_thr) & ground
-        sharp, less_sharp, flat = [], [], []
-        less_flat_parts, less_flat_rings = [], []
+        is_edge_candidate = (curvature > _F32(fa.edge_threshold)) & ~ground
+        is_flat_candidate = (curvature < _F32(fa.surf_threshold)) & ground
+
+        # Every sub-region [sp, ep] of every ring at once, ring by ring (C++ integer division truncates toward
+        # zero); empty ones (sp >= ep) are skipped.
         sections = fa.sections_total
-        start_ring = info.start_ring_index.astype(np.int64)
-        end_ring = info.end_ring_index.astype(np.int64)
+        j = np.arange(sections)
+        s = info.start_ring_index.astype(np.int64)[:, None]
+        e = info.end_ring_index.astype(np.int64)[:, None]
+        sp = np.trunc((s * (sections - j) + e * j) / sections).astype(np.int64).reshape(-1)
+        ep = (np.trunc((s * (sections - 1 - j) + e * (j + 1)) / sections).astype(np.int64) - 1).reshape(-1)
+        region_ring = np.repeat(np.arange(len(s)), sections)
+        valid = sp < ep
+        sp, ep, region_ring = sp[valid], ep[valid], region_ring[valid]
+        regions = len(sp)
 
-        # How far a pick suppresses its neighbours: up to suppress_half_window points each way, stopping
-        # before the first column jump larger than suppress_column_jump (precomputed for every point).
-        forward, backward = _suppression_extents(columns, fa.suppress_half_window, fa.suppress_column_jump)
+        # Per region, [sp, ep) sorted by curvature (stable). Positions below w were never written: a phantom
+        # entry for point 0, whose curvature was never computed either (0), so it is sorted as point 0.
+        region_of, position = _ragged(sp, ep)
+        position[position < w] = 0
+        # One stable sort by (region, curvature): the curvature is a square, and the bits of a non-negative
+        # float32 order as the values do.
+        key = (region_of << 32) | curvature[position].view(np.uint32).astype(np.int64)
+        ascending = position[np.argsort(key, kind='stable')]
+        # Candidates in visiting order, each region in a slot of ep - sp + 1 entries: edges from the unsorted
+        # element ep, then the largest curvature down; flats from the smallest up, ep last.
+        length = ep - sp
+        slot = np.cumsum(length + 1) - (length + 1)
+        rank = np.arange(len(ascending)) - np.repeat(slot - np.arange(regions), length)   # rank within region
+        edge_order = np.empty(len(ascending) + regions, dtype=np.int64)
+        edge_order[slot] = ep
+        edge_order[np.repeat(slot + length, length) - rank] = ascending
+        flat_order = np.empty_like(edge_order)
+        flat_order[slot + length] = ep
+        flat_order[np.repeat(slot, length) + rank] = ascending
+        edge_list, edge_bounds = _candidates(edge_order, is_edge_candidate[edge_order], slot)
+        flat_list, flat_bounds = _candidates(flat_order, is_flat_candidate[flat_order], slot)
 
-        def suppress(index: int) -> None:
-            picked[index - backward[index]:index + forward[index] + 1] = True
-
-        for ring in range(len(start_ring)):
-            ring_less_flat = []
-            s, e = int(start_ring[ring]), int(end_ring[ring])
-            for j in range(sections):
-                # C++ integer division truncates toward zero.
-                sp = int((s * (sections - j) + e * j) / sections)
-                ep = int((s * (sections - 1 - j) + e * (j + 1)) / sections) - 1
-                if sp >= ep:
+        # The greedy selection is sequential (each pick suppresses its neighbours for the later ones): plain
+        # Python on lists and a bytearray, with every candidate's suppression slice prepared beforehand.
+        jumps = _column_jumps(columns, fa.suppress_column_jump)
+        edge_slices = _suppression_slices(edge_list, jumps, fa.suppress_half_window)
+        flat_slices = _suppression_slices(flat_list, jumps, fa.suppress_half_window)
+        edges, flats = edge_list.tolist(), flat_list.tolist()
+        fill = [b'\x01' * k for k in range(2 * fa.suppress_half_window + 2)]
+        taken = bytearray(picked.tobytes())
+        sharp, less_sharp, less_sharp_region, flat = [], [], [], []
+        edge_num, less_edge_num, surf_num = fa.edge_feature_num, fa.less_edge_feature_num, fa.surf_feature_num
+        for region in range(regions):
+            count = 0
+            first, stop, low, high = edge_bounds[region], edge_bounds[region + 1], edge_slices[0], edge_slices[1]
+            for i in range(first, stop):
+                k = edges[i]
+                if taken[k]:
                     continue
-                positions = np.arange(sp, ep)
-                ind = positions.copy()
-                # Positions below w were never written: a phantom entry for point 0, whose curvature was
-                # never computed either (0), so the candidate tests below treat it as point 0.
-                ind[positions < w] = 0
-                order = ind[np.argsort(curvature[ind], kind='stable')]
-                # Edges: the unsorted element ep first, then from the largest curvature down.
-                edge_order = np.concatenate(([ep], order[::-1]))
-                edge_order = edge_order[is_edge_candidate[edge_order]].tolist()
-                count = 0
-                for k in edge_order:
-                    if picked[k]:
-                        continue
-                    count += 1
-                    if count <= fa.edge_feature_num:
-                        label[k] = 2
-                        sharp.append(k)
-                        less_sharp.append(k)
-                    elif count <= fa.less_edge_feature_num:
-                        label[k] = 1
-                        less_sharp.append(k)
-                    else:
-                        break
-                    suppress(k)
-                # Flats: from the smallest curvature up, the unsorted element ep last.
-                flat_order = np.concatenate((order, [ep]))
-                flat_order = flat_order[is_flat_candidate[flat_order]].tolist()
-                count = 0
-                for k in flat_order:
-                    if picked[k]:
-                        continue
-                    label[k] = -1
-                    flat.append(k)
-                    count += 1
-                    if count >= fa.surf_feature_num:
-                        break
-                    suppress(k)
-                region = np.arange(sp, ep + 1)
-                ring_less_flat.append(region[label[region] <= 0])
-            if ring_less_flat:
-                idx = np.concatenate(ring_less_flat)
-                less_flat_parts.append(idx)
-                less_flat_rings.append(np.full(len(idx), ring))
-        self._stale_picked[:head] = picked[:head]
+                count += 1
+                if count <= edge_num:
+                    sharp.append(k)
+                elif count > less_edge_num:
+                    break
+                less_sharp.append(k)
+                less_sharp_region.append(region)
+                taken[low[i]:high[i]] = fill[high[i] - low[i]]
+            count = 0
+            first, stop, low, high = flat_bounds[region], flat_bounds[region + 1], flat_slices[0], flat_slices[1]
+            for i in range(first, stop):
+                k = flats[i]
+                if taken[k]:
+                    continue
+                flat.append(k)
+                count += 1
+                if count >= surf_num:
+                    break
+                taken[low[i]:high[i]] = fill[high[i] - low[i]]
+        self._stale_picked[:head] = np.frombuffer(taken, dtype=bool)[:head]
         sharp_index = np.asarray(sharp, dtype=np.int64)
         less_sharp_index = np.asarray(less_sharp, dtype=np.int64)
         flat_index = np.asarray(flat, dtype=np.int64)
-        if less_flat_parts:
-            # The original filters ring by ring; one grouped filter gives the same points in the same order.
-            less_flat = voxel_downsample_groups(points[np.concatenate(less_flat_parts)], np.concatenate(less_flat_rings),
+
+        # Less flat: the points of each region [sp, ep] not picked as edges by the end of that region (only the
+        # phantom point 0 can be picked from another region), voxel-filtered ring by ring (one grouped filter
+        # gives the same points in the same order).
+        edge_region = np.full(n, regions, dtype=np.int64)
+        edge_region[less_sharp_index] = np.asarray(less_sharp_region, dtype=np.int64)
+        region_of, position = _ragged(sp, ep + 1)
+        kept = edge_region[position] > region_of
+        if kept.any():
+            less_flat = voxel_downsample_groups(points[position[kept]], region_ring[region_of[kept]],
                                                 fa.less_flat_leaf_size)
         else:
             less_flat = np.zeros((0, 4), _F32)
@@ -200,18 +213,31 @@ class FeatureExtractor:
                             flat_index=flat_index)
 
 
+def _candidates(order: np.ndarray, usable: np.ndarray, slot: np.ndarray):
+    """The usable entries of ``order`` and, per region (slots starting at ``slot``), where they start and end
+    in that list (region r: [bounds[r], bounds[r + 1]))."""
+    before = np.concatenate(([0], np.cumsum(usable)))
+    return order[usable], np.append(before[slot], before[-1]).tolist()
 
-def _suppression_extents(columns: np.ndarray, half_window: int, column_jump: int) -> tuple[np.ndarray, np.ndarray]:
-    """(forward, backward) numbers of neighbours a pick at each index marks: the original walks l = 1..w
-    (and -1..-w) and stops at the first |col[k+l] - col[k+l-1]| > jump."""
-    n = len(columns)
-    jump = np.zeros(n + 1, dtype=bool)          # jump[j]: between point j-1 and j
-    jump[1:n] = np.abs(np.diff(columns)) > column_jump
-    jump[0] = jump[n] = True                    # the array ends stop the walk too
-    index = np.arange(n + 1)
-    next_jump = np.minimum.accumulate(np.where(jump, index, n + 1)[::-1])[::-1]   # first jump at >= j
-    last_jump = np.maximum.accumulate(np.where(jump, index, -1))                  # last jump at <= j
-    k = np.arange(n)
-    forward = np.minimum(half_window, next_jump[np.minimum(k + 1, n)] - k - 1)
-    backward = np.minimum(half_window, k - last_jump[k])
-    return forward.astype(np.int64), backward.astype(np.int64)
+
+def _column_jumps(columns: np.ndarray, column_jump: int) -> np.ndarray:
+    """Sorted j in [0, n] where the column jumps by more than ``column_jump`` between points j - 1 and j; the
+    array ends (0 and n) count as jumps, they stop a suppression walk too."""
+    inner = np.flatnonzero(np.abs(np.diff(columns)) > column_jump) + 1
+    return np.concatenate(([0], inner, [len(columns)]))
+
+
+def _suppression_slices(index: np.ndarray, jumps: np.ndarray, half_window: int):
+    """(start, stop) lists of the slice a pick at each ``index`` marks, as the original walks l = 1..w (and
+    -1..-w) and stops at the first column jump; 0 <= start < stop <= n for indices in [0, n)."""
+    n = int(jumps[-1])
+    negative = len(index) > 0 and index.min() < 0
+    k = np.where(index < 0, index + n, index) if negative else index   # the point a negative index reads
+    forward = np.minimum(half_window, jumps[np.searchsorted(jumps, np.minimum(k + 1, n))] - k - 1)
+    backward = np.minimum(half_window, k - jumps[np.searchsorted(jumps, k, side='right') - 1])
+    start = index - backward
+    stop = index + forward + 1
+    if negative:   # normalised as Python slices are, so that stop - start stays the slice's length
+        start = np.clip(np.where(start < 0, start + n, start), 0, n)
+        stop = np.maximum(np.clip(np.where(stop < 0, stop + n, stop), 0, n), start)
+    return start.tolist(), stop.tolist()

@@ -195,6 +195,24 @@ class ImuBuffer:
 
     def interpolate(self, times: np.ndarray) -> ImuState:
         """Linear interpolation at ``times`` [s] (held at the ends); yaw interpolated across +-pi."""
+        back, front, ratio = self._bracket(times)
+
+        def lerp(values):
+            a, b = values[back], values[front]
+            r = ratio.reshape((-1,) + (1,) * (values.ndim - 1))
+            return a + (b - a) * r
+
+        rpy = self._lerp_attitude(back, front, ratio)
+        return ImuState(roll=rpy[:, 0], pitch=rpy[:, 1], yaw=rpy[:, 2], velocity=lerp(self._velocity),
+                        shift=lerp(self._shift), angle=lerp(self._angle))
+
+    def attitude(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(roll, pitch, yaw) of :meth:`interpolate`, without the other quantities (deskewing needs only these)."""
+        rpy = self._lerp_attitude(*self._bracket(times))
+        return rpy[:, 0], rpy[:, 1], rpy[:, 2]
+
+    def _bracket(self, times: np.ndarray):
+        """(sample before, sample after, fraction between them) of each time."""
         times = np.atleast_1d(np.asarray(times, dtype=float))
         n = len(self._time)
         front = np.clip(np.searchsorted(self._time, times, side='left'), 0, n - 1)
@@ -205,19 +223,17 @@ class ImuBuffer:
         ratio = np.clip(ratio, 0.0, 1.0)
         beyond = times >= self._time[-1]
         ratio[beyond] = 1.0
+        return back, front, ratio
 
-        def lerp(values):
-            a, b = values[back], values[front]
-            r = ratio.reshape((-1,) + (1,) * (values.ndim - 1))
-            return a + (b - a) * r
-
-        rpy = lerp(self._rpy)
-        yaw_back, yaw_front = self._rpy[back, 2], self._rpy[front, 2]
+    def _lerp_attitude(self, back: np.ndarray, front: np.ndarray, ratio: np.ndarray) -> np.ndarray:
+        """(n, 3) roll, pitch, yaw, the yaw unwrapped across +-pi."""
+        rpy_back, rpy_front = self._rpy[back], self._rpy[front]
+        rpy = rpy_back + (rpy_front - rpy_back) * ratio[:, None]
+        yaw_back, yaw_front = rpy_back[:, 2], rpy_front[:, 2]
         jump = yaw_front - yaw_back
         unwrapped_back = yaw_back + np.where(jump > np.pi, 2 * np.pi, np.where(jump < -np.pi, -2 * np.pi, 0.0))
         rpy[:, 2] = unwrapped_back + (yaw_front - unwrapped_back) * ratio
-        return ImuState(roll=rpy[:, 0], pitch=rpy[:, 1], yaw=rpy[:, 2], velocity=lerp(self._velocity),
-                        shift=lerp(self._shift), angle=lerp(self._angle))
+        return rpy
 
 
 def imu_sample(msg) -> tuple[float, tuple, tuple, tuple]:

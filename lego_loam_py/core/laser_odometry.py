@@ -74,24 +74,100 @@ def relative_time_of(intensity: np.ndarray) -> np.ndarray:
     return _F32(10) * (intensity - np.trunc(intensity).astype(_F32))
 
 
+class _SweepStart:
+    """``R(sθ)^T (p - s t)`` of fixed points at one ``θ`` and its Jacobian rows, sharing the per-point sines,
+    cosines and partial products (the Gauss-Newton loop evaluates both at every step).
+
+    ``R(sθ)^T = Ry(-s ry) Rx(-s rx) Rz(-s rz)`` is applied right to left: ``u = Rz q``, ``v = Rx u`` with
+    ``q = p - s t``, the start point is ``Ry v``.
+    """
+
+    def __init__(self, xyz: np.ndarray, s: np.ndarray, transform: np.ndarray):
+        """``xyz`` (3, n) float64, ``s`` (n,) float64."""
+        transform = np.asarray(transform, dtype=np.float64)
+        self.s = s
+        # The three angles (and the three coordinates) in one call each: small arrays, per-call cost dominates.
+        angles = np.multiply.outer(transform[:3], s)
+        self.cx, self.cy, self.cz = np.cos(angles)
+        self.sx, self.sy, self.sz = np.sin(angles)
+        self.qx, self.qy, self.qz = xyz - np.multiply.outer(transform[3:], s)
+        cx, sx, cz, sz = self.cx, self.sx, self.cz, self.sz
+        self.ux, self.uy = cz * self.qx + sz * self.qy, -sz * self.qx + cz * self.qy   # uz = qz
+        self.vy, self.vz = cx * self.uy + sx * self.qz, -sx * self.uy + cx * self.qz   # vx = ux
+        self._factors = {}
+
+    @classmethod
+    def of(cls, points: np.ndarray, transform: np.ndarray) -> '_SweepStart':
+        """For (n, 4) points with intensity ring + 0.1 s."""
+        xyz = points[:, :3].T.astype(np.float64, order='C')
+        return cls(xyz, relative_time_of(points[:, 3]).astype(np.float64), transform)
+
+    def xyz(self) -> np.ndarray:
+        """(n, 3) float32 start points."""
+        out = np.empty((len(self.s), 3), dtype=_F32)
+        out[:, 0] = self.cy * self.ux - self.sy * self.vz
+        out[:, 1] = self.vy
+        out[:, 2] = self.sy * self.ux + self.cy * self.vz
+        return out
+
+    def _factor(self, column: int):
+        """The coefficient-free parts of a rotation column (see :meth:`rows`)."""
+        if column not in self._factors:
+            cx, sx, cy, sy, cz, sz = self.cx, self.sx, self.cy, self.sy, self.cz, self.sz
+            if column == 0:     # dRx(-rx) u = (0, -sx uy + cx uz, -cx uy - sx uz)
+                value = (-sx * self.uy + cx * self.qz, -cx * self.uy - sx * self.qz)
+            elif column == 1:   # dRy(-ry) v = (-sy vx - cy vz, 0, cy vx - sy vz)
+                value = (-sy * self.ux - cy * self.vz, cy * self.ux - sy * self.vz)
+            else:               # dRz(-rz) q = (-sz qx + cz qy, -cz qx - sz qy, 0)
+                value = (-sz * self.qx + cz * self.qy, -cz * self.qx - sz * self.qy)
+            self._factors[column] = value
+        return self._factors[column]
+
+    def rows(self, coeff: np.ndarray, active: list[int]) -> np.ndarray:
+        """``coeff · d/dθ_active [R(sθ)^T (p - s t)]``: (n, len(active)) for ``coeff`` (n, 3) float64, or for
+        m coefficient vectors per point, ``coeff`` (n, m, 3), (n * m, len(active)) point by point (all m
+        in the same calls).
+
+        The rotation derivatives are ``s Ry Rx dRz q``, ``s Ry dRx u`` and ``s dRy v``; the translation ones
+        ``-s R^T e_k``, dotted with ``coeff``: ``-s (Rz^T Rx^T Ry^T coeff)_k``. No per-point 3x3 matrices.
+        """
+        batched = coeff.ndim == 3
+
+        def per_point(value):
+            return value[:, None] if batched else value
+
+        cx, sx, cy, sy, cz, sz, s = (per_point(v) for v in (self.cx, self.sx, self.cy, self.sy, self.cz, self.sz,
+                                                             self.s))
+        ax, ay, az = coeff[..., 0], coeff[..., 1], coeff[..., 2]
+        # coeff^T Ry: the row vector that turns a vector w into coeff · (Ry w); then the same for Ry Rx w.
+        bx, by, bz = ax * cy + az * sy, ay, -ax * sy + az * cy
+        cx_, cy_ = bx, by * cx - bz * sx
+        # Filled and returned column by column (Fortran order, as the solver has always received them).
+        out = np.empty((len(active),) + coeff.shape[:-1])
+        for j, column in enumerate(active):
+            if column == 0:
+                f1, f2 = (per_point(f) for f in self._factor(0))
+                value = by * f1 + bz * f2
+            elif column == 1:
+                f1, f2 = (per_point(f) for f in self._factor(1))
+                value = ax * f1 + az * f2
+            elif column == 2:
+                f1, f2 = (per_point(f) for f in self._factor(2))
+                value = cx_ * f1 + cy_ * f2
+            elif column == 3:
+                value = -(cx_ * cz - cy_ * sz)
+            elif column == 4:
+                value = -(cx_ * sz + cy_ * cz)
+            else:
+                value = -(by * sx + bz * cx)
+            out[j] = value * s
+        return out.reshape(len(active), -1).T
+
+
 def transform_to_start(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
     """Map (n, 4) points (camera axes, intensity = ring + 0.1 s) to the sweep start: ``R(sθ)^T (p - s t)``."""
-    s = relative_time_of(points[:, 3]).astype(np.float64)
-    theta = s[:, None] * np.asarray(transform, dtype=np.float64)[None, :]
-    p = points[:, :3].astype(np.float64) - theta[:, 3:]
-    cz, sz = np.cos(theta[:, 2]), np.sin(theta[:, 2])
-    cx, sx = np.cos(theta[:, 0]), np.sin(theta[:, 0])
-    cy, sy = np.cos(theta[:, 1]), np.sin(theta[:, 1])
-    # R^T = Ry(-ry) Rx(-rx) Rz(-rz), applied right to left, per point.
-    x1 = cz * p[:, 0] + sz * p[:, 1]
-    y1 = -sz * p[:, 0] + cz * p[:, 1]
-    z1 = p[:, 2]
-    y2 = cx * y1 + sx * z1
-    z2 = -sx * y1 + cx * z1
     out = np.empty((len(points), 4), dtype=_F32)
-    out[:, 0] = cy * x1 - sy * z2
-    out[:, 1] = y2
-    out[:, 2] = sy * x1 + cy * z2
+    out[:, :3] = _SweepStart.of(points, transform).xyz()
     out[:, 3] = points[:, 3]
     return out
 
@@ -141,41 +217,7 @@ def plane_jacobian_rows(points: np.ndarray, coeff: np.ndarray, transform: np.nda
     if not exact:
         jac = start_jacobian(points, transform)[:, :, active]
         return np.einsum('ni,nij->nj', coeff[:, :3].astype(np.float64), jac)
-    s = relative_time_of(points[:, 3]).astype(np.float64)
-    return _scaled_rows(points, coeff[:, :3].astype(np.float64), transform, s)[:, active]
-
-
-def _scaled_rows(points: np.ndarray, coeff: np.ndarray, transform: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """(n, 6): ``coeff · d/dθ [R(sθ)^T (p - s t)]`` for per-point fractions ``s``, written out per component.
-
-    ``R(sθ)^T = Ry(-s ry) Rx(-s rx) Rz(-s rz)``; with ``u = Rz q``, ``v = Rx u`` (``q = p - s t``) the rotation
-    derivatives are ``s Ry Rx dRz q``, ``s Ry dRx u`` and ``s dRy v``; the translation ones ``-s R^T e_k``,
-    dotted with ``coeff``: ``-s (Rz^T Rx^T Ry^T coeff)_k``. No per-point 3x3 matrices are built.
-    """
-    theta = s[:, None] * np.asarray(transform, dtype=np.float64)[None, :]
-    cx, sx = np.cos(theta[:, 0]), np.sin(theta[:, 0])
-    cy, sy = np.cos(theta[:, 1]), np.sin(theta[:, 1])
-    cz, sz = np.cos(theta[:, 2]), np.sin(theta[:, 2])
-    qx, qy, qz = (points[:, k].astype(np.float64) - theta[:, 3 + k] for k in range(3))
-    ux, uy, uz = cz * qx + sz * qy, -sz * qx + cz * qy, qz          # Rz(-rz) q
-    vx, vy, vz = ux, cx * uy + sx * uz, -sx * uy + cx * uz          # Rx(-rx) u
-    ax, ay, az = coeff[:, 0], coeff[:, 1], coeff[:, 2]
-    # coeff^T Ry: the row vector that turns a vector w into coeff · (Ry w).
-    bx, by, bz = ax * cy + az * sy, ay, -ax * sy + az * cy
-    # coeff^T Ry Rx: the same for Ry Rx w.
-    cx_, cy_, cz_ = bx, by * cx - bz * sx, by * sx + bz * cx
-    rows = np.empty((len(points), 6))
-    # d/drx: coeff · Ry dRx u, dRx(-rx) u = (0, -sx uy + cx uz, -cx uy - sx uz)
-    rows[:, 0] = by * (-sx * uy + cx * uz) + bz * (-cx * uy - sx * uz)
-    # d/dry: coeff · dRy v, dRy(-ry) v = (-sy vx - cy vz, 0, cy vx - sy vz)
-    rows[:, 1] = ax * (-sy * vx - cy * vz) + az * (cy * vx - sy * vz)
-    # d/drz: coeff · Ry Rx dRz q, dRz(-rz) q = (-sz qx + cz qy, -cz qx - sz qy, 0)
-    rows[:, 2] = cx_ * (-sz * qx + cz * qy) + cy_ * (-cz * qx - sz * qy)
-    # d/dt: -coeff · Ry Rx Rz e_k = -(coeff^T Ry Rx Rz)_k
-    rows[:, 3] = -(cx_ * cz - cy_ * sz)
-    rows[:, 4] = -(cx_ * sz + cy_ * cz)
-    rows[:, 5] = -cz_
-    return rows * s[:, None]
+    return _SweepStart.of(points, transform).rows(coeff[:, :3].astype(np.float64), active)
 
 
 def accumulate(transform_sum: np.ndarray, transform_cur: np.ndarray, imu_shift: np.ndarray | None = None) -> np.ndarray:
@@ -209,50 +251,25 @@ class CornerCorrespondences:
     index2: np.ndarray
 
 
+# The original scans the last cloud forwards from the nearest point, then backwards, and tells the points it
+# meets apart by ring. Each query's window is cut into four segments, each the candidates of one kind met in
+# one direction, in increasing index order: other rings met backwards (below the nearest point's ring), its
+# own ring backwards, its own ring forwards, other rings forwards (above). Plane points 2 come from the 'same'
+# segments, plane points 3 and line points 2 from the 'other' ones.
+_BACK_OTHER, _BACK_SAME, _FORWARD_SAME, _FORWARD_OTHER = range(4)
+_SAME, _OTHER = [_BACK_SAME, _FORWARD_SAME], [_BACK_OTHER, _FORWARD_OTHER]
+_BACKWARD = np.array([True, True, False, False])
+
+
+def _ranges(lo: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """The integers of the ranges [lo, lo + length), back to back (lengths >= 0)."""
+    return np.arange(int(lengths.sum())) + np.repeat(lo - (np.cumsum(lengths) - lengths), lengths)
+
+
 def _ragged(lo: np.ndarray, hi: np.ndarray):
     """(owner, position) of every integer in the half-open windows [lo, hi)."""
     lengths = np.maximum(hi - lo, 0)
-    total = int(lengths.sum())
-    owner = np.repeat(np.arange(len(lo)), lengths)
-    starts = np.cumsum(lengths) - lengths
-    position = np.arange(total) - np.repeat(starts, lengths) + np.repeat(lo, lengths)
-    return owner, position
-
-
-def _best_in_windows(query: np.ndarray, cloud: np.ndarray, owner: np.ndarray, position: np.ndarray,
-                     mask: np.ndarray, n_queries: int, limit: float, prefer_last: bool):
-    """Per query, the masked window point with the smallest squared distance below ``limit``.
-
-    Ties keep the point the original's loop meets first: the lowest position when scanning forwards, the
-    highest when scanning backwards (``prefer_last``). Returns (index or -1, squared distance or limit).
-    """
-    best_index = np.full(n_queries, -1, dtype=np.int64)
-    best_dist = np.full(n_queries, _F32(limit), dtype=_F32)
-    if len(owner) == 0:
-        return best_index, best_dist
-    owner, position = owner[mask], position[mask]
-    if len(owner) == 0:
-        return best_index, best_dist
-    diff = cloud[position, :3] - query[owner, :3]
-    dist = (diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1] + diff[:, 2] * diff[:, 2]).astype(_F32)
-    keep = dist < _F32(limit)
-    owner, position, dist = owner[keep], position[keep], dist[keep]
-    if len(owner) == 0:
-        return best_index, best_dist
-    # The windows arrive grouped by owner with ascending positions: per owner, the minimum distance, then the
-    # first (forward scan) or last (backward scan) position reaching it.
-    starts = np.flatnonzero(np.concatenate(([True], owner[1:] != owner[:-1])))
-    minimum = np.minimum.reduceat(dist, starts)
-    lengths = np.diff(np.append(starts, len(owner)))
-    at_minimum = np.flatnonzero(dist == np.repeat(minimum, lengths))
-    block = np.searchsorted(starts, at_minimum, side='right') - 1
-    if prefer_last:
-        chosen = at_minimum[np.concatenate((block[1:] != block[:-1], [True]))]
-    else:
-        chosen = at_minimum[np.concatenate(([True], block[1:] != block[:-1]))]
-    best_index[owner[chosen]] = position[chosen]
-    best_dist[owner[chosen]] = dist[chosen]
-    return best_index, best_dist
+    return np.repeat(np.arange(len(lo)), lengths), _ranges(lo, lengths)
 
 
 def _next_above(rings: np.ndarray, n_rings: int) -> np.ndarray:
@@ -279,12 +296,17 @@ def _prev_below(rings: np.ndarray, n_rings: int) -> np.ndarray:
 
 
 class _LastCloud:
-    """A 'last' feature cloud with its KD-tree and ring look-ups (built on first use)."""
+    """A 'last' feature cloud with its KD-tree and ring look-ups."""
 
     def __init__(self, points: np.ndarray, n_rings: int):
         self.points = points
         self.n_rings = n_rings
         self.rings = ring_of(points[:, 3])
+        # Features are extracted ring by ring, so the rings normally ascend: every window bound is then a
+        # binary search and every segment an index range. Other clouds take the general (slower) path.
+        self.ring_ordered = bool(np.all(self.rings[1:] >= self.rings[:-1]))
+        # One contiguous array per coordinate: the window search gathers them once per candidate.
+        self.columns = tuple(np.ascontiguousarray(points[:, k]) for k in range(3))
         self.tree = cKDTree(points[:, :3].astype(np.float64)) if len(points) else None
         self._tables = None
 
@@ -301,14 +323,81 @@ class _LastCloud:
     def window(self, closest: np.ndarray, scan: np.ndarray, window: float, forward_bound: int):
         """Forward [closest+1, hi) and backward (lo, closest-1] index windows of the original's scans."""
         n = len(self.points)
-        offset, next_above, prev_below = self._window_tables()
         limit = int(math.floor(window))       # int(ring) > scan + 2.5  <=>  ring > scan + floor(2.5)
-        up = np.clip(scan + limit + offset + 1, 0, next_above.shape[0] - 1)
-        down = np.clip(scan - limit + offset + 1, 0, prev_below.shape[0] - 1)
-        hi = next_above[up, np.minimum(closest + 1, n)]
+        if self.ring_ordered:
+            hi = np.searchsorted(self.rings, scan + limit, side='right')     # first ring > scan + limit
+            lo = np.minimum(np.searchsorted(self.rings, scan - limit, side='left'), closest) - 1
+        else:
+            offset, next_above, prev_below = self._window_tables()
+            up = np.clip(scan + limit + offset + 1, 0, next_above.shape[0] - 1)
+            down = np.clip(scan - limit + offset + 1, 0, prev_below.shape[0] - 1)
+            hi = next_above[up, np.minimum(closest + 1, n)]
+            lo = prev_below[down, closest]  # last index < closest whose ring < scan - 2
         hi = np.minimum(hi, forward_bound)
-        lo = prev_below[down, closest]  # last index < closest whose ring < scan - 2
         return np.maximum(hi, closest + 1), lo
+
+    def segments(self, closest: np.ndarray, scan: np.ndarray, hi: np.ndarray, lo: np.ndarray, kinds: list[int]):
+        """The window segments (see ``_BACK_OTHER``) of every query: (positions back to back, (n, 4) lengths);
+        segments not in ``kinds`` are left empty."""
+        n_queries = len(closest)
+        if self.ring_ordered:
+            ring_start = np.searchsorted(self.rings, scan, side='left')
+            ring_end = np.searchsorted(self.rings, scan, side='right')
+            backward_cut = np.clip(ring_start, lo + 1, closest)
+            forward_cut = np.clip(ring_end, closest + 1, hi)
+            # Columns in the order of _BACK_OTHER, _BACK_SAME, _FORWARD_SAME, _FORWARD_OTHER.
+            starts = np.stack([lo + 1, backward_cut, closest + 1, forward_cut], axis=1)
+            stops = np.stack([backward_cut, closest, forward_cut, hi], axis=1)
+            lengths = np.zeros((n_queries, 4), dtype=np.int64)
+            lengths[:, kinds] = stops[:, kinds] - starts[:, kinds]
+            return _ranges(starts.reshape(-1), lengths.reshape(-1)), lengths
+        # General path: class every window point as the original's loops do, then group by query and segment.
+        forward_owner, forward = _ragged(closest + 1, hi)
+        backward_owner, backward = _ragged(lo + 1, closest)
+        forward_kind = np.where(self.rings[forward] <= scan[forward_owner], _FORWARD_SAME, _FORWARD_OTHER)
+        backward_kind = np.where(self.rings[backward] >= scan[backward_owner], _BACK_SAME, _BACK_OTHER)
+        key = np.concatenate((backward_owner * 4 + backward_kind, forward_owner * 4 + forward_kind))
+        position = np.concatenate((backward, forward))
+        wanted = np.isin(key % 4, kinds)
+        key, position = key[wanted], position[wanted]
+        position = position[np.argsort(key, kind='stable')]
+        return position, np.bincount(key, minlength=4 * n_queries).reshape(n_queries, 4)
+
+
+def _nearest_in_segments(query: np.ndarray, last: _LastCloud, position: np.ndarray, lengths: np.ndarray,
+                         limit: float):
+    """Per query and segment, the candidate the original's scan keeps: the smallest squared distance below
+    ``limit`` (its float32 expression), the first index met on ties (the highest in a backward segment).
+
+    Returns (n, 4) indices (-1: none) and squared distances (inf: none).
+    """
+    flat_lengths = lengths.reshape(-1)
+    index = np.full(len(flat_lengths), -1, dtype=np.int64)
+    best = np.full(len(flat_lengths), np.inf, dtype=_F32)
+    if len(position):
+        per_query = lengths.sum(axis=1)
+        x, y, z = last.columns
+        dx = x[position] - np.repeat(query[:, 0], per_query)
+        dy = y[position] - np.repeat(query[:, 1], per_query)
+        dz = z[position] - np.repeat(query[:, 2], per_query)
+        dist = dx * dx + dy * dy + dz * dz
+        ends = np.cumsum(flat_lengths)
+        filled = np.flatnonzero(flat_lengths)
+        best[filled] = np.fmin.reduceat(dist, (ends - flat_lengths)[filled])   # fmin: NaN never wins
+        at_minimum = np.flatnonzero(dist == np.repeat(best, flat_lengths))
+        segment = np.searchsorted(ends, at_minimum, side='right')
+        new_segment = segment[1:] != segment[:-1]
+        keep = np.where(_BACKWARD[segment % 4], np.append(new_segment, True), np.insert(new_segment, 0, True))
+        index[segment[keep]] = position[at_minimum[keep]]
+    outside = ~(best < _F32(limit))
+    index[outside] = -1
+    best[outside] = np.inf
+    return index.reshape(-1, 4), best.reshape(-1, 4)
+
+
+def _pick(index: np.ndarray, best: np.ndarray, backward: int, forward: int) -> np.ndarray:
+    """The original's choice between its forward and backward scans: backward only when strictly closer."""
+    return np.where(best[:, backward] < best[:, forward], index[:, backward], index[:, forward])
 
 
 def _nearest_and_windows(points_start: np.ndarray, last: _LastCloud, params: Params, forward_bound: int):
@@ -326,56 +415,40 @@ def _nearest_and_windows(points_start: np.ndarray, last: _LastCloud, params: Par
 def find_surf_correspondences(points_start: np.ndarray, last: _LastCloud, params: Params,
                               forward_bound: int) -> SurfCorrespondences:
     """The original's plane correspondences for flat points already mapped to the sweep start."""
-    fa = params.feature_association
     n = len(points_start)
     index1 = np.full(n, -1, dtype=np.int64)
     index2, index3 = index1.copy(), index1.copy()
     if n == 0 or last.tree is None:
         return SurfCorrespondences(index1, index2, index3)
     q, closest, scan, hi, lo = _nearest_and_windows(points_start, last, params, forward_bound)
-    limit = fa.nearest_feature_search_sq_dist
-    query = points_start[q]
-    # Forward: same-or-lower ring -> point 2, higher ring -> point 3.
-    owner, position = _ragged(closest + 1, hi)
-    same = last.rings[position] <= scan[owner]
-    f2, d2 = _best_in_windows(query, last.points, owner, position, same, len(q), limit, False)
-    f3, d3 = _best_in_windows(query, last.points, owner, position, ~same, len(q), limit, False)
-    # Backward (from closest-1 down): same-or-higher ring -> point 2, lower ring -> point 3.
-    owner, position = _ragged(lo + 1, closest)
-    same = last.rings[position] >= scan[owner]
-    b2, e2 = _best_in_windows(query, last.points, owner, position, same, len(q), limit, True)
-    b3, e3 = _best_in_windows(query, last.points, owner, position, ~same, len(q), limit, True)
+    position, lengths = last.segments(closest, scan, hi, lo, _SAME + _OTHER)
+    index, best = _nearest_in_segments(points_start[q], last, position, lengths,
+                                       params.feature_association.nearest_feature_search_sq_dist)
     index1[q] = closest
-    index2[q] = np.where(e2 < d2, b2, f2)
-    index3[q] = np.where(e3 < d3, b3, f3)
+    index2[q] = _pick(index, best, _BACK_SAME, _FORWARD_SAME)
+    index3[q] = _pick(index, best, _BACK_OTHER, _FORWARD_OTHER)
     return SurfCorrespondences(index1, index2, index3)
 
 
 def find_corner_correspondences(points_start: np.ndarray, last: _LastCloud, params: Params,
                                 forward_bound: int) -> CornerCorrespondences:
     """The original's line correspondences for sharp points already mapped to the sweep start."""
-    fa = params.feature_association
     n = len(points_start)
     index1 = np.full(n, -1, dtype=np.int64)
     index2 = index1.copy()
     if n == 0 or last.tree is None:
         return CornerCorrespondences(index1, index2)
     q, closest, scan, hi, lo = _nearest_and_windows(points_start, last, params, forward_bound)
-    limit = fa.nearest_feature_search_sq_dist
-    query = points_start[q]
-    owner, position = _ragged(closest + 1, hi)
-    f2, d2 = _best_in_windows(query, last.points, owner, position, last.rings[position] > scan[owner], len(q),
-                              limit, False)
-    owner, position = _ragged(lo + 1, closest)
-    b2, e2 = _best_in_windows(query, last.points, owner, position, last.rings[position] < scan[owner], len(q),
-                              limit, True)
+    position, lengths = last.segments(closest, scan, hi, lo, _OTHER)
+    index, best = _nearest_in_segments(points_start[q], last, position, lengths,
+                                       params.feature_association.nearest_feature_search_sq_dist)
     index1[q] = closest
-    index2[q] = np.where(e2 < d2, b2, f2)
+    index2[q] = _pick(index, best, _BACK_OTHER, _FORWARD_OTHER)
     return CornerCorrespondences(index1, index2)
 
 
-def plane_coefficients(p_start: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray):
-    """Unit normal (n, 3) and signed distance (n,) of points to the planes through a, b, c (float32)."""
+def plane_through(a: np.ndarray, b: np.ndarray, c: np.ndarray):
+    """Unit normal (n, 3) and offset (n,) of the planes through a, b, c (float32): ``n · p + offset = 0``."""
     ab, ac = (b - a).astype(_F32), (c - a).astype(_F32)
     pa = ab[:, 1] * ac[:, 2] - ac[:, 1] * ab[:, 2]
     pb = ab[:, 2] * ac[:, 0] - ac[:, 2] * ab[:, 0]
@@ -385,8 +458,24 @@ def plane_coefficients(p_start: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.
         ps = np.sqrt(pa * pa + pb * pb + pc * pc)
         normal = np.stack([pa / ps, pb / ps, pc / ps], axis=1)
         pd = pd / ps
-    distance = normal[:, 0] * p_start[:, 0] + normal[:, 1] * p_start[:, 1] + normal[:, 2] * p_start[:, 2] + pd
-    return normal, distance
+    return normal, pd
+
+
+def plane_distance(normal: np.ndarray, offset: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Signed distances of points p (n, >= 3) to the planes of :func:`plane_through`."""
+    return normal[:, 0] * p[:, 0] + normal[:, 1] * p[:, 1] + normal[:, 2] * p[:, 2] + offset
+
+
+def plane_coefficients(p_start: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray):
+    """Unit normal (n, 3) and signed distance (n,) of points to the planes through a, b, c (float32)."""
+    normal, offset = plane_through(a, b, c)
+    return normal, plane_distance(normal, offset, p_start)
+
+
+def _line_offsets(p: np.ndarray, anchor: np.ndarray, along: np.ndarray) -> np.ndarray:
+    """(n, 3) perpendicular offsets of points from the lines through ``anchor`` with unit direction ``along``."""
+    d = p - anchor
+    return d - np.einsum('ni,ni->n', d, along)[:, None] * along
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -576,75 +665,64 @@ class LaserOdometry:
         converges there instead of stepping back and forth across it.
         """
         fa = self.params.feature_association
-        theta0 = self.transform_cur.copy()
-        start = transform_to_start(points, theta0)
+        start = transform_to_start(points, self.transform_cur)
         last = self.last_surf if kind == 'surf' else self.last_corner
+        bound = len(last.points) if self.fix_scan_bound else len(points)
+        # The planes and lines depend only on the last cloud: fixed for the whole block.
         if kind == 'surf':
-            bound = len(last.points) if self.fix_scan_bound else len(points)
             match = find_surf_correspondences(start, last, self.params, bound)
             usable = np.flatnonzero((match.index2 >= 0) & (match.index3 >= 0))
-            anchors = (last.points[match.index1[usable]], last.points[match.index2[usable]],
-                       last.points[match.index3[usable]])
+            normal, offset = plane_through(last.points[match.index1[usable]], last.points[match.index2[usable]],
+                                           last.points[match.index3[usable]])
+            p_start = start[usable]
+            distance = plane_distance(normal, offset, p_start).astype(np.float64)
+            scale = np.sqrt(np.sqrt((p_start[:, :3].astype(np.float64) ** 2).sum(axis=1)))
+            finite = np.isfinite(distance) & np.isfinite(normal).all(axis=1) & (distance != 0)
+            anchors = (normal, offset)
         else:
-            bound = len(last.points) if self.fix_scan_bound else len(points)
             match = find_corner_correspondences(start, last, self.params, bound)
             usable = np.flatnonzero(match.index2 >= 0)
             a = last.points[match.index1[usable], :3].astype(np.float64)
             b = last.points[match.index2[usable], :3].astype(np.float64)
             with np.errstate(invalid='ignore', divide='ignore'):
                 along = (a - b) / np.linalg.norm(a - b, axis=1)[:, None]
-            anchors = (a, along)
-        selected = points[usable]
-        active = self.SURF_PARAMS if kind == 'surf' else self.CORNER_PARAMS
-        s_selected = relative_time_of(selected[:, 3]).astype(np.float64)
-
-        def offsets(theta: np.ndarray, anchor, along) -> np.ndarray:
-            """(n, 3) perpendicular offsets of the points from their lines."""
-            d = transform_to_start(selected, theta)[:, :3].astype(np.float64) - anchor
-            return d - np.einsum('ni,ni->n', d, along)[:, None] * along
-
-        if kind == 'surf':
-            p_start = transform_to_start(selected, theta0)
-            normal, distance = plane_coefficients(p_start, *anchors)
-            distance = distance.astype(np.float64)
-            scale = np.sqrt(np.sqrt((p_start[:, :3].astype(np.float64) ** 2).sum(axis=1)))
-            finite = np.isfinite(distance) & np.isfinite(normal).all(axis=1) & (distance != 0)
-        else:
-            distance = np.linalg.norm(offsets(theta0, *anchors), axis=1)
+            distance = np.linalg.norm(_line_offsets(start[usable, :3].astype(np.float64), a, along), axis=1)
             scale = np.ones(len(distance))
-            finite = np.isfinite(distance) & np.isfinite(anchors[1]).all(axis=1)
+            finite = np.isfinite(distance) & np.isfinite(along).all(axis=1)
+            anchors = (a, along)
         weight = 1.0 - fa.weight_gain * np.abs(distance) / scale if weighted else np.ones(len(distance))
         keep = (weight > fa.min_weight) & finite
         if keep.sum() < fa.min_correspondences:
             return None
-        selected, anchors, weight, s_selected = selected[keep], tuple(x[keep] for x in anchors), weight[keep], \
-            s_selected[keep]
+        selected = points[usable[keep]]
+        first, second = (x[keep] for x in anchors)
+        weight = weight[keep]
+        xyz = selected[:, :3].T.astype(np.float64, order='C')
+        s = relative_time_of(selected[:, 3]).astype(np.float64)
+        active = self.SURF_PARAMS if kind == 'surf' else self.CORNER_PARAMS
 
         # The rotation prior: sqrt(w) * angle for each active rotation parameter, appended to the residuals.
         prior_columns = [k for k, parameter in enumerate(active) if parameter < 3] if self.rotation_prior > 0 else []
         prior_rows = np.zeros((len(prior_columns), len(active)))
         prior_rows[np.arange(len(prior_columns)), prior_columns] = math.sqrt(self.rotation_prior)
         prior_parameters = [active[k] for k in prior_columns]
-        if kind == 'corner':
-            along = anchors[1]
+        if kind == 'surf':
+            coefficients = first.astype(np.float64) * weight[:, None]   # the weighted normal
+        else:
             # Rows of the projector I - u u^T, weighted: the coefficients of the three residual components.
-            projector = (np.eye(3)[None, :, :] - along[:, :, None] * along[:, None, :]) * weight[:, None, None]
+            coefficients = (np.eye(3)[None, :, :] - second[:, :, None] * second[:, None, :]) * weight[:, None, None]
 
         def residual(theta: np.ndarray, jacobian: bool = False):
+            frame = _SweepStart(xyz, s, theta)
             if kind == 'surf':
-                normal, distance = plane_coefficients(transform_to_start(selected, theta), *anchors)
-                values = weight * distance.astype(np.float64)
+                values = weight * plane_distance(first, second, frame.xyz()).astype(np.float64)
             else:
-                values = (weight[:, None] * offsets(theta, *anchors)).reshape(-1)
+                values = (weight[:, None] * _line_offsets(frame.xyz().astype(np.float64), first, second)).reshape(-1)
             if prior_parameters:
                 values = np.concatenate([values, math.sqrt(self.rotation_prior) * np.asarray(theta)[prior_parameters]])
             if not jacobian:
                 return values
-            if kind == 'surf':
-                rows = _scaled_rows(selected, normal.astype(np.float64) * weight[:, None], theta, s_selected)[:, active]
-            else:
-                rows = np.stack([_scaled_rows(selected, projector[:, k, :], theta, s_selected)[:, active]
-                                 for k in range(3)], axis=1).reshape(-1, len(active))
+            rows = frame.rows(coefficients, active)   # lines: the three components of each point, as the values
             return (np.concatenate([rows, prior_rows]) if prior_parameters else rows), values
 
         residual.points = len(selected)
