@@ -152,12 +152,30 @@ def test_keyframes_every_0_3_m_and_the_surrounding_map():
     # The original picks keyframes through a 1 m voxel grid of their positions and truncates the averaged
     # index of each voxel (quirk 8.5): compute that independently.
     positions = np.array([kf.pose6[3:] for kf in mo.keyframes])
-    cells = np.floor(positions / 1.0) - np.floor(positions.min(axis=0) / 1.0)
+    cells = np.floor(positions / 1.0)
     expected = sorted({int(np.mean([i for i in range(4) if (cells[i] == cell).all()])) for cell in cells})
     assert ids == expected and mo._corner_accumulator.ids() <= set(ids)
     # Steps closer than mapping_process_interval are skipped.
     assert mo.process(7 * 400_000_000 + 200_000_000, np.zeros(6), f.less_sharp, f.less_flat,
                       np.zeros((0, 4), np.float32)) is None
+
+
+def test_keypose_pick_latest_maps_a_second_pass_with_its_own_keyframes():
+    # Two passes along the same 30 m (keyframes 2 m apart): 0..15 going, 16..31 coming back over them.
+    mo = MapOptimization(PARAMS.replace(map_optimization__keypose_pick='latest'))
+    empty = np.zeros((0, 4), np.float32)
+    path = np.concatenate([np.arange(16) * 2.0, np.arange(16) * 2.0]) + 0.5
+    for k, z in enumerate(path):
+        mo.transform_aft = mo.transform_tobe = np.array([0, 0, 0, 0, 0, z])
+        mo._save_keyframe(k, empty, empty, empty)
+    mo.current_position = np.array([0, 0, 0.5])
+    assert mo._surrounding_ids() == list(range(16, 32))     # each place's latest keyframe: the second pass
+    # The original averages the indices in each 1 m voxel (quirk 8.5): place j holds keyframes j and j + 16,
+    # so it picks j + 8, a keyframe 16 m away from place j.
+    original = MapOptimization(PARAMS)
+    original.keyframes, original._positions = mo.keyframes, mo._positions
+    original.current_position = mo.current_position
+    assert original._surrounding_ids() == list(range(8, 24))
 
 
 def test_surrounding_map_radius_and_recent_modes():

@@ -10,8 +10,8 @@ Poses are six-vectors ``(rx, ry, rz, tx, ty, tz)`` in LOAM camera axes with the 
 Keyframes (every ``keyframe_distance`` of travel) keep their downsampled corner, surface and outlier
 clouds in their own sensor frame and are the nodes of a gtsam iSAM2 graph (prior on the first, between
 factors from the optimised poses, the original's noise), expressed in lidar axes as the original does. The
-surrounding map is the union of the keyframes within ``surrounding_keyframe_search_radius`` (picked through
-a 1 m voxel grid of their positions whose averaged index is truncated, quirk 8.5) or, with loop closure
+surrounding map is the union of the keyframes within ``surrounding_keyframe_search_radius`` (one per 1 m voxel
+of their positions: the latest, or the original's truncated averaged index, quirk 8.5) or, with loop closure
 on, the last ``surrounding_keyframe_search_num`` keyframes. The voxel-filtered map is kept in two
 :class:`~lego_loam_py.core.voxel.VoxelAccumulator` (corner, surface + outlier): a keyframe's world clouds are
 computed and merged in when it enters the set and subtracted when it leaves, so a step costs the change of
@@ -41,7 +41,7 @@ from lego_loam_py.core.frames import (camera_pose_to_lidar, camera_to_lidar, inv
 from lego_loam_py.core.imu import ImuBuffer
 from lego_loam_py.core.laser_odometry import line_coefficients
 from lego_loam_py.core.params import Params
-from lego_loam_py.core.voxel import VoxelAccumulator, voxel_downsample
+from lego_loam_py.core.voxel import VoxelAccumulator, voxel_downsample, voxel_indices
 
 __all__ = ['MapOptimization', 'MappingStep', 'LoopCandidate', 'LoopResult', 'map_jacobian_rows',
            'edge_correspondences', 'plane_correspondences', 'transform_cloud']
@@ -301,12 +301,24 @@ class MapOptimization:
             return list(range(max(0, n - mo.surrounding_keyframe_search_num), n))
         near = np.flatnonzero(np.linalg.norm(self._positions - self.current_position, axis=1)
                               <= mo.surrounding_keyframe_search_radius)
-        if len(near) == 0:
+        return self._one_keyframe_per_voxel(near, mo.surrounding_keypose_leaf_size)
+
+    def _one_keyframe_per_voxel(self, ids: np.ndarray, leaf_size: float) -> list[int]:
+        """Sorted keyframe indices, one per ``leaf_size`` voxel of the positions of keyframes ``ids``.
+
+        'latest' keeps each voxel's most recent keyframe. 'averaged_index' is the original's (quirk 8.5): PCL
+        averages the indices in a voxel and the mean is truncated, which on a second pass over a place picks a
+        keyframe from between the two passes, far from the voxel."""
+        if len(ids) == 0:
             return []
-        poses = np.concatenate([self._positions[near], near[:, None].astype(float)], axis=1)
-        filtered = voxel_downsample(poses, mo.surrounding_keypose_leaf_size)
-        ids = np.unique(np.trunc(filtered[:, 3]).astype(np.int64))   # averaged indices, truncated (quirk 8.5)
-        return [int(i) for i in ids if 0 <= i < n]
+        if self.params.map_optimization.keypose_pick == 'averaged_index':
+            poses = np.concatenate([self._positions[ids], ids[:, None].astype(float)], axis=1)
+            picked = np.unique(np.trunc(voxel_downsample(poses, leaf_size)[:, 3]).astype(np.int64))
+            return [int(i) for i in picked if 0 <= i < len(self.keyframes)]
+        voxel = voxel_indices(self._positions[ids].astype(np.float32), leaf_size)
+        order = np.lexsort((ids, voxel))                     # by voxel, then by keyframe index
+        last_of_voxel = np.append(voxel[order][1:] != voxel[order][:-1], True)
+        return sorted(int(i) for i in ids[order][last_of_voxel])
 
     def _surrounding_map(self) -> tuple[np.ndarray, np.ndarray]:
         """The voxel-filtered corner and surface(+outlier) maps of the surrounding keyframes (world, camera
@@ -539,12 +551,12 @@ class MapOptimization:
             if not self.keyframes:
                 return np.zeros((0, 4), _F32)
             near = np.flatnonzero(np.linalg.norm(self._positions - self.current_position, axis=1) <= radius)
-            poses = np.concatenate([self._positions[near], near[:, None].astype(float)], axis=1)
-            filtered = voxel_downsample(poses, mo.global_map_keypose_leaf_size)
-            ids = np.unique(np.trunc(filtered[:, 3]).astype(np.int64))
+            ids = self._one_keyframe_per_voxel(near, mo.global_map_keypose_leaf_size)
             clouds = [transform_cloud(np.concatenate([self.keyframes[i].corner, self.keyframes[i].surf,
                                                       self.keyframes[i].outlier]), self.keyframes[i].pose6)
                       for i in ids]
+        if not clouds:   # (the robot is beyond ``radius`` of every keyframe)
+            return np.zeros((0, 4), _F32)
         return voxel_downsample(np.concatenate(clouds), mo.global_map_leaf_size)
 
     def maps(self) -> dict[str, np.ndarray]:

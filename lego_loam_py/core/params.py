@@ -181,6 +181,10 @@ class MapOptimizationParams:
     surrounding_keyframe_search_radius: float = 50.0  # submap radius [m]
     surrounding_keyframe_search_num: int = 50         # submap size with loop closure on [keyframes]
     surrounding_keypose_leaf_size: float = 1.0
+    # Keyframe kept per keypose voxel: 'averaged_index' (the original: PCL averages the keyframe indices in
+    # the voxel and the truncated mean is taken, quirk 8.5) or 'latest' (the voxel's most recent keyframe: a
+    # cheaper map on a second pass, not a more accurate one on the simulated campus).
+    keypose_pick: str = 'averaged_index'
     knn: int = 5                            # neighbours per correspondence
     knn_max_sq_dist: float = 1.0            # the k-th neighbour must be closer [m^2]
     edge_eigen_ratio: float = 3.0           # line if lambda1 > ratio * lambda2
@@ -369,6 +373,8 @@ def _validate(p: Params) -> None:
     need(s.point_cloud_topic != '', 'sensor.point_cloud_topic', 'must not be empty')
     ip = p.image_projection
     need(ip.ground_rule in ('refined', 'original'), 'image_projection.ground_rule', "must be 'refined' or 'original'")
+    need(p.map_optimization.keypose_pick in ('latest', 'averaged_index'), 'map_optimization.keypose_pick',
+         "must be 'latest' or 'averaged_index'")
     need(0 < ip.segment_theta < math.pi, 'image_projection.segment_theta', 'must lie in (0, pi) radians')
     need(0 <= ip.ground_chain_slope < 90, 'image_projection.ground_chain_slope', 'must lie in [0, 90) degrees')
     for key in ('ground_plane_radius', 'ground_chain_tolerance', 'ground_plane_tolerance'):
