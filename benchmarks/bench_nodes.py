@@ -163,7 +163,8 @@ def bench_mapping(quick: bool) -> None:
         near = np.flatnonzero((keyframes >= target * 0.9) & (keyframes <= target * 1.1))
         if len(near):
             print(f'  at ~{target:4d} keyframes: step median {np.median(times[near]):6.1f} ms, '
-                  f'process RSS {np.median(memory[near]):7.1f} MiB')
+                  f'process RSS {np.median(memory[near]):7.1f} MiB ({np.median(memory[near]) - memory[0]:+6.1f} '
+                  f'MiB since the first step)')
     print(f'  {result.counts.get("keyframes", 0)} keyframes, {len(steps)} steps, offline '
           f'{result.bag_duration / result.wall_time:.2f}x real time')
 
