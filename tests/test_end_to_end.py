@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tests.support.ros import read_until
 from tests.support.topics import ALWAYS, GATED, TF_DYNAMIC, TF_STATIC, message_class
 
 REPO = Path(__file__).resolve().parents[1]
@@ -62,20 +63,6 @@ def _header_stamp_ns(cdr: bytes) -> int:
     encapsulation, then int32 sec, uint32 nanosec)."""
     sec, nanosec = struct.unpack_from('<iI' if cdr[1] in (0x01, 0x03) else '>iI', cdr, 4)
     return sec * 1_000_000_000 + nanosec
-
-
-def _read_until(proc, text: str, timeout: float) -> str:
-    deadline, lines = time.monotonic() + timeout, []
-    while time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if not line:
-            if proc.poll() is not None:
-                break
-            continue
-        lines.append(line)
-        if text in line:
-            return ''.join(lines)
-    raise AssertionError(f'{text!r} not seen within {timeout} s: {"".join(lines)}')
 
 
 def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp_path, rclpy_context, processes):
@@ -135,7 +122,7 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
         return condition()
 
     try:
-        head = _read_until(launcher, 'ready after', timeout=90)
+        head = read_until(launcher, 'ready after', timeout=90)
         assert spin(lambda: all(p.get_subscription_count() for p in publishers.values()), 30)
         spin(lambda: False, 0.5)   # the subscriptions finish matching
         # Lockstep: /clock, the IMU samples recorded before the cloud, the cloud, its /integrated_to_init.

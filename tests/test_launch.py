@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.support.ros import wait_for_line
+from tests.support.ros import read_until, wait_for_line
 from tests.support.topics import ALL, GATED
 
 REPO = Path(__file__).resolve().parents[1]
@@ -76,22 +76,6 @@ def wait_gone(pids, timeout: float) -> list[int]:
 def started_pids(output: str) -> dict[str, int]:
     """name -> pid from the supervisor's 'started NAME (pid N)' lines."""
     return {m.group(1): int(m.group(2)) for m in re.finditer(r'started (\S+) \(pid (\d+)\)', output)}
-
-
-def read_until(proc, text: str, timeout: float) -> str:
-    """Everything the child printed up to and including the first line containing ``text``."""
-    deadline = time.monotonic() + timeout
-    lines = []
-    while time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if not line:
-            if proc.poll() is not None:
-                break
-            continue
-        lines.append(line)
-        if text in line:
-            return ''.join(lines)
-    raise AssertionError(f'{text!r} not seen within {timeout} s: {"".join(lines)}')
 
 
 def wait_for_file_lines(path: Path, count: int, timeout: float = 10.0) -> list[str]:

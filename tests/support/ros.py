@@ -24,8 +24,9 @@ def spin_until(context, node, condition: Callable[[], bool], timeout: float) -> 
         executor.shutdown(timeout_sec=0.1)
 
 
-def wait_for_line(proc, text: str, timeout: float = 20.0) -> str:
-    """Read the child's stdout until a line containing ``text``; raise with its stderr otherwise."""
+def read_until(proc, text: str, timeout: float = 20.0) -> str:
+    """Everything the child printed on stdout up to and including the first line containing ``text``; raises
+    with what it printed (and its stderr, once it has exited) when no such line came within ``timeout``."""
     deadline = time.monotonic() + timeout
     lines = []
     while time.monotonic() < deadline:
@@ -36,9 +37,14 @@ def wait_for_line(proc, text: str, timeout: float = 20.0) -> str:
             continue
         lines.append(line)
         if text in line:
-            return line
-    err = proc.stderr.read() if proc.poll() is not None else ''
-    raise AssertionError(f'{text!r} not seen; stdout={"".join(lines)!r} stderr={err!r}')
+            return ''.join(lines)
+    err = proc.stderr.read() if proc.poll() is not None and proc.stderr is not None else ''
+    raise AssertionError(f'{text!r} not seen within {timeout} s; stdout={"".join(lines)!r} stderr={err!r}')
 
 
-__all__ = ['spin_until', 'wait_for_line', 'rclpy']
+def wait_for_line(proc, text: str, timeout: float = 20.0) -> str:
+    """The first line of the child's stdout containing ``text`` (see :func:`read_until`)."""
+    return read_until(proc, text, timeout).splitlines(keepends=True)[-1]
+
+
+__all__ = ['spin_until', 'read_until', 'wait_for_line', 'rclpy']
