@@ -94,26 +94,14 @@ class FeatureAssociationNode(LegoLoamNode):
     def on_scan(self, cloud_msg: PointCloud2, info_msg, outlier_msg: PointCloud2) -> None:
         self.drain(self.imu_subscription, self.on_imu)   # the IMU samples that came with this scan first
         stamp = stamp_to_ns(cloud_msg.header.stamp)
-        last = self.order.last_ns
-        decision = self.order.check(stamp, (cloud_msg, info_msg, outlier_msg))
-        if decision.discarded is not None:
-            self.count('scans_dropped')
-            held = stamp_to_ns(decision.discarded[0].header.stamp)
-            self.warn('glitch', f'a scan stamped {(held - (last or held)) * 1e-9:+.1f} s from the previous one was '
-                                'dropped: the next scan continued the old timeline (a wrong stamp)')
-        if decision.action == 'drop':
-            self.count('scans_dropped')
-            self.warn('order', f'scan dropped: {decision.reason} (stamp not newer than the previous scan)')
+        decision = self.check_order(self.order, stamp, (cloud_msg, info_msg, outlier_msg),
+                                    lambda held: stamp_to_ns(held[0].header.stamp), 'scan', 'scans_dropped')
+        if decision is None:
             return
-        if decision.action == 'hold':
-            return   # a jump in time: the next scan tells whether it is real
         if decision.action == 'reset':
             self.warn('reset', f'time jumped back by {-decision.jump_ns * 1e-9:.1f} s (bag restarted?): '
                                'odometry reset', period=0.0)
             self._reset()
-        elif decision.action == 'jump':
-            self.warn('jump', f'time jumped forward by {decision.jump_ns * 1e-9:.1f} s: carrying on', period=0.0)
-            self.count('forward_jumps')
         if decision.held is not None:
             self._process(*decision.held)
         self._process(cloud_msg, info_msg, outlier_msg)

@@ -143,24 +143,12 @@ class MapOptimizationNode(LegoLoamNode):
     def on_inputs(self, parts: dict) -> None:
         self.drain(self.imu_subscription, self.on_imu)   # the IMU samples up to this input first
         stamp = stamp_to_ns(parts['odometry'].header.stamp)
-        last = self.order.last_ns
-        decision = self.order.check(stamp, parts)
-        if decision.discarded is not None:
-            self.count('inputs_dropped')
-            held = stamp_to_ns(decision.discarded['odometry'].header.stamp)
-            self.warn('glitch', f'an input stamped {(held - (last or held)) * 1e-9:+.1f} s from the previous one was '
-                                'dropped: the next input continued the old timeline (a wrong stamp)')
-        if decision.action == 'drop':
-            self.count('inputs_dropped')
-            self.warn('order', f'input dropped: {decision.reason} (stamp not newer than the previous input)')
+        decision = self.check_order(self.order, stamp, parts, lambda held: stamp_to_ns(held['odometry'].header.stamp),
+                                    'input', 'inputs_dropped')
+        if decision is None:
             return
-        if decision.action == 'hold':
-            return   # a jump in time: the next input tells whether it is real
         if decision.action == 'reset':
             self._reset_after_time_jump(-decision.jump_ns)
-        elif decision.action == 'jump':
-            self.warn('jump', f'time jumped forward by {decision.jump_ns * 1e-9:.1f} s: carrying on', period=0.0)
-            self.count('forward_jumps')
         if decision.held is not None:
             self._process(decision.held)
         self._process(parts)

@@ -163,6 +163,29 @@ class LegoLoamNode(Node):
             sync.dropped = 0
         return complete
 
+    def check_order(self, order, stamp_ns: int, item, stamp_of, noun: str, dropped_counter: str):
+        """Apply ``order`` (a StampOrder) to an input with the warnings and counters the nodes share; returns
+        the decision when something is to be processed ('process', 'jump' or 'reset': the caller resets),
+        None when the input is dropped or held. ``stamp_of(item)`` [ns] names a discarded held input."""
+        last = order.last_ns
+        decision = order.check(stamp_ns, item)
+        article = 'an' if noun[:1] in 'aeiou' else 'a'
+        if decision.discarded is not None:
+            self.count(dropped_counter)
+            held = stamp_of(decision.discarded)
+            self.warn('glitch', f'{article} {noun} stamped {(held - (last or held)) * 1e-9:+.1f} s from the previous '
+                                f'one was dropped: the next {noun} continued the old timeline (a wrong stamp)')
+        if decision.action == 'drop':
+            self.count(dropped_counter)
+            self.warn('order', f'{noun} dropped: {decision.reason} (stamp not newer than the previous {noun})')
+            return None
+        if decision.action == 'hold':
+            return None   # a jump in time: the next input tells whether it is real
+        if decision.action == 'jump':
+            self.warn('jump', f'time jumped forward by {decision.jump_ns * 1e-9:.1f} s: carrying on', period=0.0)
+            self.count('forward_jumps')
+        return decision
+
     def count(self, name: str, amount: int = 1) -> None:
         self.counters[name] = self.counters.get(name, 0) + amount
 
