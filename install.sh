@@ -157,11 +157,15 @@ echo "import _lego_loam_py_env" > "$SITE/00_lego_loam_py_env.pth"
 
 # ---------------------------------------------------------------------------------------- packages
 say "installing Python packages (ROS 2 ${MODE})"
-run "${PIP[@]}" install --upgrade "setuptools>=68" wheel
+# Exact versions of everything (requirements/constraints.txt, written by requirements/update-constraints.sh):
+# every machine gets the same numpy, scipy, open3d ..., so that results and tests do not depend on the day
+# the venv was made.
+CONSTRAINTS=(-c "$ROOT/requirements/constraints.txt")
+run "${PIP[@]}" install "${CONSTRAINTS[@]}" --upgrade "setuptools>=68" wheel
 if [ "$MODE" = wheels ]; then
-  run "${PIP[@]}" install -r "$ROOT/requirements/ros-wheels.txt" -r "$ROOT/requirements/python.txt"
+  run "${PIP[@]}" install "${CONSTRAINTS[@]}" -r "$ROOT/requirements/ros-wheels.txt" -r "$ROOT/requirements/python.txt"
 else
-  run "${PIP[@]}" install -r "$ROOT/requirements/python.txt"
+  run "${PIP[@]}" install "${CONSTRAINTS[@]}" -r "$ROOT/requirements/python.txt"
 fi
 
 # ------------------------------------------------------------------------------ interface packages
@@ -238,7 +242,7 @@ fi
 
 # ------------------------------------------------------------------------------------------ check
 say "checking the installation"
-run "$VPY" -c 'import rclpy, cloud_msgs.msg, tf2_msgs.msg, sensor_msgs.msg, nav_msgs.msg, numpy, scipy, rosbags, open3d, gtsam, lego_loam_py'
+run "$VPY" -c 'import rclpy, cloud_msgs.msg, tf2_msgs.msg, sensor_msgs.msg, nav_msgs.msg, diagnostic_msgs.msg, numpy, scipy, rosbags, open3d, gtsam, lego_loam_py'
 
 echo "$STAMP" > "$STAMP_FILE"
 rm -f "$LOG"
