@@ -92,6 +92,7 @@ class FeatureAssociationNode(LegoLoamNode):
         return self.order.last_ns
 
     def on_scan(self, cloud_msg: PointCloud2, info_msg, outlier_msg: PointCloud2) -> None:
+        self.count('scans_in')
         self.drain(self.imu_subscription, self.on_imu)   # the IMU samples that came with this scan first
         stamp = stamp_to_ns(cloud_msg.header.stamp)
         decision = self.check_order(self.order, stamp, (cloud_msg, info_msg, outlier_msg),

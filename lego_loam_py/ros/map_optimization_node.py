@@ -141,6 +141,7 @@ class MapOptimizationNode(LegoLoamNode):
         return self.order.last_ns
 
     def on_inputs(self, parts: dict) -> None:
+        self.count('inputs_in')
         self.drain(self.imu_subscription, self.on_imu)   # the IMU samples up to this input first
         stamp = stamp_to_ns(parts['odometry'].header.stamp)
         decision = self.check_order(self.order, stamp, parts, lambda held: stamp_to_ns(held['odometry'].header.stamp),

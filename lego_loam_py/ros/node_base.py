@@ -1,4 +1,4 @@
-"""What every lego_loam_py node shares: typed parameters, throttled warnings, timing statistics."""
+"""What every lego_loam_py node shares: typed parameters, throttled warnings, timing statistics, diagnostics."""
 from __future__ import annotations
 
 import inspect
@@ -11,10 +11,13 @@ import traceback
 from collections import OrderedDict, deque
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from lego_loam_py.core.params import Params
 from lego_loam_py.ros.conversions import stamp_to_ns
+from lego_loam_py.ros import qos
 from lego_loam_py.ros.params import declare_params
 
 __all__ = ['LegoLoamNode']
@@ -33,11 +36,16 @@ class LegoLoamNode(Node):
     Every subscription and timer callback runs guarded: an exception it lets through is logged (throttled,
     with its traceback) and counted in ``counters['callback_errors']``, and the node keeps serving. A bug
     triggered by one message therefore costs that message, never the process or the map.
+
+    Every ``DIAGNOSTICS_PERIOD`` seconds of wall time (whatever ``use_sim_time`` says) the node publishes its
+    counters and timings on /diagnostics (diagnostic_msgs/DiagnosticArray, the ROS standard that
+    rqt_robot_monitor and the diagnostic aggregator read): one status named after the node.
     """
 
     WARN_PERIOD = 10.0
     MAX_WARNING_KINDS = 256        # throttling state kept (oldest kinds forgotten first)
     MAX_VARIANTS_PER_KEY = 16      # distinct texts per key before the key alone decides the kind
+    DIAGNOSTICS_PERIOD = 1.0       # [s] of wall time between two /diagnostics messages
 
     def __init__(self, name: str, **kwargs):
         super().__init__(name, automatically_declare_parameters_from_overrides=True, **kwargs)
@@ -47,6 +55,10 @@ class LegoLoamNode(Node):
         self._warn_lock = threading.Lock()
         self.timings_ms: dict[str, deque] = {}
         self.counters: dict[str, int] = {}
+        self._pub_diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', qos.reliable(10))
+        # Wall time: with use_sim_time and no /clock the ROS clock stands still, and so would the diagnostics.
+        self.create_timer(self.DIAGNOSTICS_PERIOD, self.publish_diagnostics,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     # ---------------------------------------------------------------------------------- guarded callbacks
     def create_subscription(self, msg_type, topic, callback, qos_profile, **kwargs):
@@ -179,8 +191,10 @@ class LegoLoamNode(Node):
             self.count(dropped_counter)
             self.warn('order', f'{noun} dropped: {decision.reason} (stamp not newer than the previous {noun})')
             return None
-        if decision.action == 'hold':
-            return None   # a jump in time: the next input tells whether it is real
+        if decision.action == 'hold':   # a jump in time: the next input tells whether it is real
+            self.warn('hold', f'{article} {noun} stamped {(stamp_ns - (last or stamp_ns)) * 1e-9:+.1f} s from the '
+                              f'previous one is held: the next {noun} tells whether time jumped')
+            return None
         if decision.action == 'jump':
             self.warn('jump', f'time jumped forward by {decision.jump_ns * 1e-9:.1f} s: carrying on', period=0.0)
             self.count('forward_jumps')
@@ -210,6 +224,23 @@ class LegoLoamNode(Node):
                 timings[name] = dict(median=float(np.median(v)), p95=float(np.percentile(v, 95)),
                                      mean=float(v.mean()), count=int(len(v)))
         return dict(node=self.get_name(), counters=dict(self.counters), timings_ms=timings)
+
+    def diagnostic_status(self) -> DiagnosticStatus:
+        """This node's status for /diagnostics: level, a one-line message, counters and timings as key-values."""
+        values = [KeyValue(key=name, value=str(value)) for name, value in sorted(self.counters.items())]
+        for name, values_ms in self.timings_ms.items():
+            if values_ms:
+                v = np.asarray(values_ms)
+                values.append(KeyValue(key=f'{name}_median_ms', value=f'{np.median(v):.2f}'))
+                values.append(KeyValue(key=f'{name}_p95_ms', value=f'{np.percentile(v, 95):.2f}'))
+        return DiagnosticStatus(level=DiagnosticStatus.OK, name=self.get_name(), message='running',
+                                hardware_id='lego_loam_py', values=values)
+
+    def publish_diagnostics(self) -> None:
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status = [self.diagnostic_status()]
+        self._pub_diagnostics.publish(array)
 
     def on_shutdown(self) -> None:
         self.get_logger().info(f'{self.get_name()} statistics: {self.timing_summary()}')

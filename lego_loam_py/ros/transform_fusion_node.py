@@ -79,6 +79,7 @@ class TransformFusionNode(LegoLoamNode):
         self.count('mapped')
 
     def on_odometry(self, msg: Odometry) -> None:
+        self.count('odometry_in')
         stamp = stamp_to_ns(msg.header.stamp)
         last = self.order.last_ns
         decision = self.order.check(stamp, msg)
