@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from typing import Sequence
 
@@ -84,9 +85,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(ours)
     args.ros_args = ['lego_loam_py', *ros_args]
     try:
-        return int(args.handler(args) or 0)
+        code = int(args.handler(args) or 0)
     except KeyboardInterrupt:
-        return 130
+        code = 130
+    if 'lego_loam_py.ros.runtime' in sys.modules and sys.modules['lego_loam_py.ros.runtime'].stuck_teardowns():
+        # A DDS teardown is stuck on a thread of ours: interpreter exit would wait for it forever.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
 
 
 if __name__ == '__main__':

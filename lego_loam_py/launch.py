@@ -367,13 +367,19 @@ class GraphMonitor:
         return missing
 
     def close(self) -> None:
+        from lego_loam_py.ros.runtime import finish_within
+
         self._stop.set()
         self._thread.join(timeout=2.0)
-        try:
-            self._executor.shutdown(timeout_sec=0.5)
-            self.node.destroy_node()
-        finally:
-            self._rclpy.try_shutdown(context=self.context)
+
+        def teardown() -> None:
+            try:
+                self._executor.shutdown(timeout_sec=0.5)
+                self.node.destroy_node()
+            finally:
+                self._rclpy.try_shutdown(context=self.context)
+
+        finish_within(teardown, "the supervisor's graph monitor shutdown")
 
 
 # ------------------------------------------------------------------------------------------- pipeline

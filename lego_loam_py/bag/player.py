@@ -24,6 +24,7 @@ from lego_loam_py.bag.io import BagError, BagReader
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import ns_to_stamp
 from lego_loam_py.ros.message_types import get_message_class
+from lego_loam_py.ros.runtime import teardown_guard
 
 __all__ = ['PlayStats', 'play', 'add_arguments', 'main']
 
@@ -211,19 +212,22 @@ def main(args: argparse.Namespace) -> int:
                      clock_hz=args.clock, publish_clock=not args.no_clock, remaps=remaps,
                      wait_for_subscribers=args.wait_for_subscribers, depth=args.qos_depth,
                      progress=not args.no_progress, stop=stop, loops=args.loop)
+        reader.close()
+        for topic, reason in stats.skipped_topics.items():
+            print(f'warning: {topic} not played: {reason}', file=sys.stderr)
+        if not args.quiet:
+            count = sum(stats.published.values())
+            rate = count / stats.wall_time if stats.wall_time > 0 else 0.0
+            state = 'interrupted' if stats.interrupted else 'done'
+            loops = f' ({stats.loops} plays)' if stats.loops > 1 else ''
+            print(f'{state}: {count} messages on {len(stats.published)} topics, {stats.bag_time:.2f} s of bag{loops} '
+                  f'in {stats.wall_time:.2f} s ({rate:.1f} msg/s)', file=sys.stderr, flush=True)
     finally:
+        reader.close()
+        guard = teardown_guard(0, 'the player\'s ROS 2 shutdown')
         node.destroy_node()
         rclpy.try_shutdown()
-        reader.close()
+        guard.cancel()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    for topic, reason in stats.skipped_topics.items():
-        print(f'warning: {topic} not played: {reason}', file=sys.stderr)
-    if not args.quiet:
-        count = sum(stats.published.values())
-        rate = count / stats.wall_time if stats.wall_time > 0 else 0.0
-        state = 'interrupted' if stats.interrupted else 'done'
-        loops = f' ({stats.loops} plays)' if stats.loops > 1 else ''
-        print(f'{state}: {count} messages on {len(stats.published)} topics, {stats.bag_time:.2f} s of bag{loops} in '
-              f'{stats.wall_time:.2f} s ({rate:.1f} msg/s)', file=sys.stderr)
     return 0

@@ -22,6 +22,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from lego_loam_py.bag.io import BagError, BagWriter
 from lego_loam_py.ros.message_types import get_message_class
+from lego_loam_py.ros.runtime import teardown_guard
 
 __all__ = ['Recorder', 'add_arguments', 'main']
 
@@ -128,16 +129,19 @@ def main(args: argparse.Namespace) -> int:
     try:
         while not stop.is_set() and time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=0.05)
+        recorder.close()
+        for warning in recorder.warnings:
+            print(f'warning: not recorded: {warning}', file=sys.stderr)
+        if not args.quiet:
+            total = sum(recorder.counts.values())
+            detail = ', '.join(f'{t}: {n}' for t, n in sorted(recorder.counts.items()))
+            print(f'recorded {total} messages into {output} ({detail})', file=sys.stderr, flush=True)
     finally:
         recorder.close()
+        guard = teardown_guard(0, 'the recorder\'s ROS 2 shutdown')
         node.destroy_node()
         rclpy.try_shutdown()
+        guard.cancel()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    for warning in recorder.warnings:
-        print(f'warning: not recorded: {warning}', file=sys.stderr)
-    if not args.quiet:
-        total = sum(recorder.counts.values())
-        detail = ', '.join(f'{t}: {n}' for t, n in sorted(recorder.counts.items()))
-        print(f'recorded {total} messages into {output} ({detail})', file=sys.stderr)
     return 0

@@ -5,6 +5,7 @@ hook can still log, publish and save (mapOptimization writes its map there) befo
 """
 from __future__ import annotations
 
+import os
 import signal
 import sys
 import threading
@@ -19,7 +20,30 @@ from rclpy.signals import SignalHandlerOptions
 
 from lego_loam_py.core.params import ParameterError
 
-__all__ = ['run_node']
+__all__ = ['run_node', 'teardown_guard', 'finish_within', 'stuck_teardowns']
+
+TEARDOWN_TIMEOUT_S = 5.0
+
+
+def _force_exit(code: int, what: str) -> None:
+    print(f'warning: {what} did not finish within {TEARDOWN_TIMEOUT_S:g} s (the DDS library is stuck); exiting '
+          f'anyway: everything was saved before it', file=sys.stderr, flush=True)
+    os._exit(code)
+
+
+def teardown_guard(code: int, what: str = 'the ROS 2 shutdown') -> threading.Timer:
+    """A timer that ends the process with ``code`` unless cancelled within ``TEARDOWN_TIMEOUT_S`` seconds.
+
+    Start it once the process's work is done (maps and statistics written), just before destroying its ROS
+    entities, and cancel it afterwards. Fast DDS 3.2.3, the version of the Kilted wheels, can deadlock its
+    event and receive threads when a remote writer goes away while a heartbeat response is being handled
+    (eProsima/Fast-DDS#6502 and relatives); deleting an entity then waits forever. Without the guard the
+    process would hang at Ctrl-C and be killed by whoever stops it, as a failure.
+    """
+    timer = threading.Timer(TEARDOWN_TIMEOUT_S, _force_exit, args=(code, what))
+    timer.daemon = True
+    timer.start()
+    return timer
 
 
 def _log_executor_error(node: Node) -> None:
@@ -31,6 +55,44 @@ def _log_executor_error(node: Node) -> None:
         node.get_logger().error(f'unexpected error in the executor; continuing: {traceback.format_exc(limit=6)}')
 
 
+_STUCK: list[str] = []
+
+
+def finish_within(teardown: Callable[[], None], what: str, timeout: float = TEARDOWN_TIMEOUT_S) -> bool:
+    """Run ``teardown`` (destroying ROS entities) on a daemon thread and wait at most ``timeout`` seconds.
+
+    For a process that still has work to do after its ROS part ends (the launch supervisor prints its
+    summary): a teardown stuck in the DDS library (see :func:`teardown_guard`) is left behind with a
+    warning and remembered, so that the process can end with ``os._exit`` (:func:`stuck_teardowns`)
+    instead of hanging at interpreter exit. Returns whether the teardown finished.
+    """
+    done = threading.Event()
+    failure: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            teardown()
+        except BaseException as exc:   # reported below, in the caller's thread
+            failure.append(exc)
+        finally:
+            done.set()
+
+    threading.Thread(target=run, name=f'teardown: {what}', daemon=True).start()
+    if not done.wait(timeout):
+        _STUCK.append(what)
+        print(f'warning: {what} did not finish within {timeout:g} s (the DDS library is stuck); carrying on',
+              file=sys.stderr, flush=True)
+        return False
+    if failure:
+        raise failure[0]
+    return True
+
+
+def stuck_teardowns() -> list[str]:
+    """The teardowns :func:`finish_within` gave up on in this process."""
+    return list(_STUCK)
+
+
 def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, threads: int = 1) -> int:
     """Create the node, spin until Ctrl-C / SIGTERM, run its ``on_shutdown`` hook, shut down.
 
@@ -40,12 +102,14 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, thr
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     node = None
+    code = 0
     try:
         try:
             node = factory()
         except ParameterError as exc:
             print(f'error: invalid parameters: {exc}', file=sys.stderr)
-            return 2
+            code = 2
+            return code
         executor = MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
         executor.add_node(node)
         try:
@@ -63,15 +127,18 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, thr
             pass
         finally:
             executor.shutdown(timeout_sec=1.0)
-        return 0
+        return code
     finally:
-        if node is not None:
-            hook = getattr(node, 'on_shutdown', None)
-            try:
+        try:
+            if node is not None:
+                hook = getattr(node, 'on_shutdown', None)
                 if hook is not None:
                     hook()
-            finally:
+        finally:
+            guard = teardown_guard(code, f'{node.get_name() if node is not None else "node"} shutdown')
+            if node is not None:
                 node.destroy_node()
-        rclpy.try_shutdown()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+            rclpy.try_shutdown()
+            guard.cancel()
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
