@@ -30,10 +30,13 @@ def rclpy_context(ros_domain):
     import rclpy
     from rclpy.context import Context
 
+    from lego_loam_py.ros.runtime import finish_within
+
     context = Context()
     rclpy.init(context=context, domain_id=ros_domain)
     yield context
-    rclpy.try_shutdown(context=context)
+    # (Bounded: a participant stuck in the DDS library must not hang the run; see tests.support.ros.release.)
+    finish_within(lambda: rclpy.try_shutdown(context=context), 'shutting down the test context', 10.0)
 
 
 class Processes:
@@ -89,3 +92,20 @@ def shared_data() -> Path:
             pytest.fail(message)
         pytest.skip(message)
     return path
+
+
+_EXIT_STATUS: list[int] = []
+
+
+def pytest_sessionfinish(session, exitstatus):
+    _EXIT_STATUS.append(int(exitstatus))
+
+
+def pytest_unconfigure(config):
+    """A DDS participant left stuck by a test (see tests.support.ros.release) would hang interpreter exit:
+    end the process with the session's status instead, once pytest has reported everything."""
+    runtime = sys.modules.get('lego_loam_py.ros.runtime')
+    if runtime is not None and runtime.stuck_teardowns() and _EXIT_STATUS:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(_EXIT_STATUS[-1])

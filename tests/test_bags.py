@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import signal
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +10,7 @@ import pytest
 
 from lego_loam_py.bag.io import BagReader, BagWriter, cloud_msg_to_array, make_cloud_msg
 from lego_loam_py.core.pointcloud import velodyne_points
-from tests.support.ros import spin_until, wait_for_line
+from tests.support.ros import release, spin_until, wait_for_line
 from tests.support.samples import cloud_info_arrays
 
 REPO = Path(__file__).resolve().parents[1]
@@ -109,7 +108,7 @@ def test_player_replays_every_message_in_order_with_clock(tmp_path, ros1, rclpy_
     assert all(b >= a for a, b in zip(clock, clock[1:]))
     last_recording = max(T0 + (N_CLOUDS - 1) * 100_000_000 + 3_000_000, T0 + (N_IMU - 1) * 20_000_000 + 1_000)
     assert clock[0] == T0 + 1_000 and clock[-1] == last_recording
-    node.destroy_node()
+    release(node)
 
 
 def test_player_topic_selection_and_start_offset(tmp_path, rclpy_context, processes):
@@ -125,11 +124,11 @@ def test_player_topic_selection_and_start_offset(tmp_path, rclpy_context, proces
     node.create_subscription(Imu, '/imu/data', imus.append, qos.reliable(500))
     player = processes.start([CLI, 'play', str(tmp_path / 'in'), '--topics', '/velodyne_points', '--rate', '4',
                               '--start-offset', '1.0', '--wait-for-subscribers', '20', '--no-progress'])
-    spin_until(rclpy_context, node, lambda: player.poll() is not None, timeout=60)
-    spin_until(rclpy_context, node, lambda: False, timeout=0.5)
+    # The player waits for every message to be acknowledged before it exits: then they are all here or queued.
+    assert spin_until(rclpy_context, node, lambda: player.poll() is not None and len(clouds) >= N_CLOUDS - 10, 60)
     assert player.returncode == 0
     assert len(clouds) == N_CLOUDS - 10 and not imus  # recording times 1.003 s ... are kept
-    node.destroy_node()
+    release(node)
 
 
 def test_player_reports_a_missing_bag(tmp_path):
@@ -138,7 +137,7 @@ def test_player_reports_a_missing_bag(tmp_path):
     assert result.returncode == 1 and 'bag not found' in result.stderr
 
 
-def test_recorder_writes_a_readable_bag_and_finishes_on_sigint(tmp_path, processes):
+def test_recorder_writes_a_readable_bag_and_finishes_on_sigint(tmp_path, rclpy_context, processes):
     """CloudInfo (custom type) and latched /tf_static from other processes, recorded into mcap."""
     out = tmp_path / 'recorded'
     recorder = processes.start([CLI, 'record', '/segmented_cloud_info', '/tf_static', '-o', str(out)])
@@ -146,7 +145,19 @@ def test_recorder_writes_a_readable_bag_and_finishes_on_sigint(tmp_path, process
     tf_static = processes.python('-m', 'tests.support.publisher', 'tf_static', cwd=REPO)
     wait_for_line(cloud_info, 'ready')
     wait_for_line(tf_static, 'ready')
-    time.sleep(4.0)
+    # Record until this process has seen 12 CloudInfo messages after the recorder subscribed to both topics (it
+    # finds them by polling the graph): events, so that a loaded machine only makes this slower.
+    import rclpy
+    from cloud_msgs.msg import CloudInfo
+
+    from lego_loam_py.ros import qos
+    node = rclpy.create_node('recording_watcher', context=rclpy_context)
+    assert spin_until(rclpy_context, node, lambda: node.count_subscribers('/segmented_cloud_info') >= 1 and
+                      node.count_subscribers('/tf_static') >= 1, 30), 'the recorder never subscribed'
+    seen = []
+    node.create_subscription(CloudInfo, '/segmented_cloud_info', seen.append, qos.reliable(1))
+    assert spin_until(rclpy_context, node, lambda: len(seen) >= 12, 60), f'{len(seen)} CloudInfo messages seen'
+    release(node)
     _, err = processes.stop(recorder, signal.SIGINT, timeout=20)
     assert recorder.returncode == 0, err
     assert 'recorded' in err
@@ -162,7 +173,9 @@ def test_recorder_writes_a_readable_bag_and_finishes_on_sigint(tmp_path, process
                  if c.topic == '/segmented_cloud_info']
         statics = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()
                    if c.topic == '/tf_static']
-    assert len(infos) >= 10, f'only {len(infos)} CloudInfo messages in 4 s at 10 Hz'
+    # The publisher keeps one message (reliable, depth 1, as the original's internal topics): a recorder slowed
+    # down by a busy machine may miss some of the 12, never most of them.
+    assert len(infos) >= 4, f'only {len(infos)} CloudInfo messages recorded while 12 were published'
     expected = cloud_info_arrays()
     msg = infos[-1]
     assert np.array_equal(msg.segmented_cloud_range, expected['segmented_cloud_range'])

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.support.ros import spin_until, wait_for_line
+from tests.support.ros import release, spin_until, wait_for_line
 from tests.support.samples import cloud_info_arrays
 
 REPO = Path(__file__).resolve().parents[1]
@@ -40,7 +40,7 @@ def test_cloud_info_between_processes(rclpy_context, processes):
     assert np.array_equal(np.array(msg.segmented_cloud_ground_flag, bool), expected['segmented_cloud_ground_flag'])
     assert np.array_equal(np.frombuffer(msg.segmented_cloud_col_ind, np.uint32), expected['segmented_cloud_col_ind'])
     assert np.array_equal(np.frombuffer(msg.segmented_cloud_range, np.float32), expected['segmented_cloud_range'])
-    node.destroy_node()
+    release(node)
 
 
 def test_tf_static_reaches_a_late_subscriber(rclpy_context, processes):
@@ -64,7 +64,7 @@ def test_tf_static_reaches_a_late_subscriber(rclpy_context, processes):
         r = transforms[key].transform.rotation
         assert np.allclose(frames.quaternion_to_matrix([r.x, r.y, r.z, r.w]), expected[:3, :3])
         assert transforms[key].header.stamp.nanosec == 42
-    node.destroy_node()
+    release(node)
 
 
 def test_tf2_msgs_type_hash_is_the_official_one():

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tests.support.ros import read_until
+from tests.support.ros import Diagnostics, read_until, release
 from tests.support.topics import ALWAYS, GATED, TF_DYNAMIC, TF_STATIC, message_class
 
 REPO = Path(__file__).resolve().parents[1]
@@ -102,6 +102,7 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
         (t.header.frame_id, t.child_frame_id) for t in m.transforms), TF_QOS)
     node.create_subscription(TFMessage, '/tf_static', lambda m: static_pairs.update(
         (t.header.frame_id, t.child_frame_id) for t in m.transforms), TF_STATIC_QOS)
+    diagnostics = Diagnostics(node)
     clock = node.create_publisher(Clock, '/clock', qos.reliable(10))
     reader = BagReader(BAG)
     reader.open()
@@ -124,7 +125,6 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
     try:
         head = read_until(launcher, 'ready after', timeout=90)
         assert spin(lambda: all(p.get_subscription_count() for p in publishers.values()), 30)
-        spin(lambda: False, 0.5)   # the subscriptions finish matching
         # Lockstep: /clock, the IMU samples recorded before the cloud, the cloud, its /integrated_to_init.
         pending_imu, waited_out = [], []
         for message in reader.messages(topics=list(publishers)):
@@ -137,12 +137,22 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
             pending_imu.clear()
             publishers['/velodyne_points'].publish(message.data)
             stamp = _header_stamp_ns(message.data)
-            # The first scan only initialises the odometry: nothing comes out for it.
-            limit = 2.0 if not integrated else SCAN_TIMEOUT_S
-            if not spin(lambda: integrated and stamp_to_ns(integrated[-1].header.stamp) >= stamp, limit):
+            if '/segmented_cloud' not in first:
+                # The first scan only initialises the odometry: nothing comes out of the pipeline for it. It is
+                # sent again until imageProjection has it: its best-effort input drops what arrives before it
+                # has matched this publisher, which only it knows (a duplicate is dropped as not newer).
+                for _ in range(6):
+                    if spin(lambda: '/segmented_cloud' in first, 5.0):
+                        break
+                    publishers['/velodyne_points'].publish(message.data)
+                continue
+            if not spin(lambda: integrated and stamp_to_ns(integrated[-1].header.stamp) >= stamp, SCAN_TIMEOUT_S):
                 waited_out.append(stamp)
         clock.publish(Clock(clock=ns_to_stamp(reader.end_time + 6_000_000_000)))   # past the 5 s map period
         spin(lambda: set(GATED) <= set(first), 10.0)
+        # Every node reports on /diagnostics once a second (wall time, although the nodes run on sim time).
+        spin(lambda: diagnostics.counter('imageProjection', 'clouds_in') >= SCANS and set(NODES) <= set(diagnostics.latest),
+             10.0)
     finally:
         reader.close()
     os.kill(launcher.pid, signal.SIGINT)   # Ctrl-C
@@ -159,7 +169,7 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
     assert not [name for name, pid in pids.items() if _alive(pid)], 'processes of the run are still alive'
     assert 'Traceback' not in _logs(logs), _logs(logs)
     stats = {name: json.loads((tmp_path / 'stats' / f'{name}.json').read_text()) for name in NODES}
-    assert stats['imageProjection']['counters']['clouds_in'] == SCANS
+    assert stats['imageProjection']['counters']['clouds_in'] >= SCANS   # every cloud (the first may come twice)
     assert not stats['imageProjection']['counters'].get('clouds_dropped')
 
     # Every topic, with its type (a subscription of another type would not have matched) and frames.
@@ -174,6 +184,10 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
         if child is not None:
             assert msg.child_frame_id == child, (topic, msg.child_frame_id)
     assert {(m.header.frame_id, m.child_frame_id) for m in integrated} == {('camera_init', 'camera')}
+    assert set(diagnostics.latest) >= set(NODES), diagnostics.latest
+    assert diagnostics.counter('imageProjection', 'clouds_in') >= SCANS
+    assert diagnostics.counter('transformFusion', 'integrated') >= MIN_INTEGRATED_FRACTION * SCANS - 2
+    assert all(level == 0 for level in diagnostics.levels.values()), diagnostics.messages
     assert tf_pairs >= TF_DYNAMIC, tf_pairs
     assert static_pairs >= TF_STATIC, static_pairs
 
@@ -189,7 +203,7 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
     assert metrics.matched_poses >= MIN_INTEGRATED_FRACTION * SCANS
     assert metrics.ate_rmse_m < ATE_BOUND_M, metrics.summary()
     assert metrics.path_length_m > 12.0   # the car drove ~13.4 m: the estimate is not standing still
-    node.destroy_node()
+    release(node)
 
 
 def _trim_bag(source: Path, target: Path, seconds: float) -> None:
@@ -214,11 +228,10 @@ def test_demo_writes_a_summary_trajectory_map_and_png(tmp_path, ros_domain):
         scans = reader.topic_counts()['/velodyne_points']
     assert 38 <= scans <= 41
     out = tmp_path / 'demo'
-    start = time.monotonic()
+    # (The timeout only guards against a hang: start-up and the map's evaluation take longer on a busy machine.)
     result = subprocess.run([BIN / 'lego_loam_py', 'demo', bag, '-o', out, '--rate', '0.5', '--no-progress'],
-                            capture_output=True, text=True, timeout=85)
+                            capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stdout + result.stderr + _logs(out / 'logs')
-    assert time.monotonic() - start < 85
 
     # The printed summary.
     text = result.stdout

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tests.support.ros import spin_until
+from tests.support.ros import bag_clouds, release, spin_until
 
 BIN = Path(sys.executable).parent
 GOLDEN_BAG = 'vlp16_static_indoor_20hz'
@@ -24,7 +24,17 @@ def wait_ready(context, node, topics, procs, timeout=30.0):
     for p in procs:
         assert p.poll() is None, f'a node exited: {p.communicate()[1]}'
     assert ok
-    spin_until(context, node, lambda: False, 0.5)
+
+
+def wait_linked(context, node, topics, timeout=30.0):
+    """Every topic between the nodes has its subscriber (a message sent before that is lost, as with any DDS
+    publisher)."""
+    linked = spin_until(context, node, lambda: all(node.count_subscribers(t) > 0 for t in topics), timeout)
+    assert linked, {t: node.count_subscribers(t) for t in topics}
+
+
+def stamp_of(msg) -> int:
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
 
 
 def test_odometry_for_every_scan_over_dds_equals_the_original(shared_data, tmp_path, rclpy_context, processes):
@@ -35,27 +45,37 @@ def test_odometry_for_every_scan_over_dds_equals_the_original(shared_data, tmp_p
 
     from lego_loam_py.ros import qos
     from lego_loam_py.ros.conversions import cloud_msg_to_xyzi, stamp_to_ns
+    from tests.support.ros import publish_in_lockstep
 
     golden = np.load(shared_data / 'golden' / f'{GOLDEN_BAG}.npz')
     stamps = golden['stamps'].tolist()
     from lego_loam_py.core.params import default_params_file
     params = default_params_file().parent / 'original.yaml'
     node = rclpy.create_node('fa_listener', context=rclpy_context)
-    odometry, tf, last = [], [], {t: [] for t in LAST_TOPICS}
+    odometry, tf, last, finished = [], [], {t: [] for t in LAST_TOPICS}, set()
     node.create_subscription(Odometry, '/laser_odom_to_init', odometry.append, qos.reliable(100))
     node.create_subscription(TFMessage, '/tf', tf.append, qos.reliable(100))
     for topic in LAST_TOPICS:
         node.create_subscription(PointCloud2, topic, last[topic].append, qos.reliable(100))
+    # featureAssociation publishes the less-flat features of every scan it processed (while subscribed),
+    # after the scan's odometry: the event that says it is done with a scan.
+    node.create_subscription(PointCloud2, '/laser_cloud_less_flat', lambda m: finished.add(stamp_to_ns(m.header.stamp)),
+                             qos.reliable(100))
+    clouds = node.create_publisher(PointCloud2, '/velodyne_points', qos.reliable(10))
     procs = start_pipeline(processes, params)
     wait_ready(rclpy_context, node, ['/laser_odom_to_init', '/segmented_cloud'], procs)
-    # The inputs are depth-1 queues, as the original's: on a loaded 2-core machine a 20 Hz replay at full speed
-    # can lose a scan to 'latest wins'. Parity needs every scan, so replay at a quarter speed.
-    player = processes.start([BIN / 'lego_loam_py', 'play', shared_data / 'golden' / f'{GOLDEN_BAG}_ros2',
-                              '--rate', '0.25', '--wait-for-subscribers', '20', '--no-progress'])
-    done = spin_until(rclpy_context, node, lambda: len(odometry) >= len(stamps) - 1, timeout=60)
-    assert player.wait(timeout=30) == 0
-    assert done, f'{len(odometry)} odometry messages for {len(stamps)} scans'
-    spin_until(rclpy_context, node, lambda: False, 0.5)
+    wait_linked(rclpy_context, node, ['/velodyne_points', '/segmented_cloud', '/segmented_cloud_info', '/outlier_cloud',
+                                      '/laser_cloud_less_flat'])
+    # One scan at a time, the next once featureAssociation is done with the previous one: parity needs every
+    # scan, and the nodes' depth-1 inputs (the original's 'latest wins') would let a loaded machine skip one.
+    scans = bag_clouds(shared_data / 'golden' / f'{GOLDEN_BAG}_ros2')
+    assert [s for s, _ in scans] == stamps
+    left = publish_in_lockstep(rclpy_context, node, clouds.publish, scans, lambda stamp: stamp in finished)
+    assert not left, f'no output for scans {[stamps.index(s) for s in left]}; {len(odometry)} odometry messages'
+    # The last clouds of the last scan are published right after its features.
+    expected_last = {topic: sum(golden[f'published_{topic.strip("/")}']) for topic in LAST_TOPICS}
+    assert spin_until(rclpy_context, node, lambda: all(len(last[t]) >= n for t, n in expected_last.items())
+                      and len(tf) >= len(odometry), 10), {t: len(v) for t, v in last.items()}
     # One pose per scan but the first (initialisation), with the scan's stamp and the original's frames.
     assert [stamp_to_ns(m.header.stamp) for m in odometry] == stamps[1:]
     assert {(m.header.frame_id, m.child_frame_id) for m in odometry} == {('camera_init', 'laser_odom')}
@@ -69,7 +89,7 @@ def test_odometry_for_every_scan_over_dds_equals_the_original(shared_data, tmp_p
     assert len(transforms) == len(odometry) and transforms[0].header.frame_id == 'camera_init'
     # 'last' clouds every second scan, in frame camera, as the original publishes them.
     for topic in LAST_TOPICS:
-        flags = golden[f'published_{topic.strip("/").replace("laser_cloud_", "laser_cloud_")}']
+        flags = golden[f'published_{topic.strip("/")}']
         assert [stamp_to_ns(m.header.stamp) for m in last[topic]] == [s for s, f in zip(stamps, flags) if f], topic
         assert {m.header.frame_id for m in last[topic]} == {'camera'}
     k = stamps.index(stamp_to_ns(last['/laser_cloud_corner_last'][3].header.stamp))
@@ -79,10 +99,10 @@ def test_odometry_for_every_scan_over_dds_equals_the_original(shared_data, tmp_p
         assert p.poll() is None
         _, err = processes.stop(p)
         assert p.returncode == 0 and 'Traceback' not in err
-    node.destroy_node()
+    release(node)
 
 
-def test_bad_cloud_info_is_dropped_and_a_time_jump_resets(rclpy_context, processes):
+def test_bad_cloud_info_is_dropped_and_a_time_jump_resets(rclpy_context, processes, tmp_path):
     """Inconsistent CloudInfo is dropped with a warning; a scan from the past (bag restarted) resets."""
     import rclpy
     from cloud_msgs.msg import CloudInfo
@@ -99,37 +119,47 @@ def test_bad_cloud_info_is_dropped_and_a_time_jump_resets(rclpy_context, process
     pubs = {'/segmented_cloud': node.create_publisher(PointCloud2, '/segmented_cloud', qos.reliable(10)),
             '/segmented_cloud_info': node.create_publisher(CloudInfo, '/segmented_cloud_info', qos.reliable(10)),
             '/outlier_cloud': node.create_publisher(PointCloud2, '/outlier_cloud', qos.reliable(10))}
-    odometry = []
+    odometry, finished = [], set()
     node.create_subscription(Odometry, '/laser_odom_to_init', odometry.append, qos.reliable(100))
-    fa = processes.start([BIN / 'featureAssociation'])
+    node.create_subscription(PointCloud2, '/laser_cloud_less_flat', lambda m: finished.add(stamp_of(m)),
+                             qos.reliable(100))
+    log_path = tmp_path / 'featureAssociation.log'
+    with open(log_path, 'w') as log:
+        fa = processes.start([BIN / 'featureAssociation'], stdout=log, stderr=log)
     wait_ready(rclpy_context, node, ['/laser_odom_to_init'], [fa])
-    assert spin_until(rclpy_context, node, lambda: all(p.get_subscription_count() for p in pubs.values()), 20)
+    assert spin_until(rclpy_context, node, lambda: all(p.get_subscription_count() for p in pubs.values()) and
+                      node.count_subscribers('/laser_cloud_less_flat') > 0, 20)
     params = Params()
     ip = ImageProjection(params)
     scene = room_world(seed=1)
     results = [ip.process(prepare_input(sweep(scene, np.eye(4)), params)) for _ in range(2)]
 
-    def send(result, stamp_ns, info=None):
+    def logged(text: str):
+        return lambda: text in log_path.read_text()
+
+    def send(result, stamp_ns, handled, info=None):
+        """Publish one scan, then wait until featureAssociation has handled it (its inputs are depth-1 queues:
+        the next scan must not overwrite this one)."""
         header = make_header(stamp_ns, 'base_link')
         pubs['/segmented_cloud'].publish(xyzi_to_cloud_msg(result.segmented_cloud, header))
         pubs['/segmented_cloud_info'].publish(info or cloud_info_to_msg(result.cloud_info, make_header(stamp_ns, 'v')))
         pubs['/outlier_cloud'].publish(xyzi_to_cloud_msg(result.outlier_cloud, header))
-        spin_until(rclpy_context, node, lambda: False, 0.4)
+        assert spin_until(rclpy_context, node, handled, 60), (stamp_ns, log_path.read_text())
 
     t0 = 50_000_000_000
-    send(results[0], t0)                                            # initialisation
+    send(results[0], t0, lambda: t0 in finished)                                       # initialisation
     bad = cloud_info_to_msg(results[1].cloud_info, make_header(t0 + 100_000_000, 'v'))
     bad.segmented_cloud_range = bad.segmented_cloud_range[:10]      # shorter than the cloud
-    send(results[1], t0 + 100_000_000, bad)
-    send(results[1], t0 + 200_000_000)                              # good: odometry
-    send(results[1], t0 + 150_000_000)                              # out of order: dropped
-    send(results[0], t0 - 10_000_000_000)                           # 10 s back: reset, re-initialise
-    send(results[1], t0 - 9_900_000_000)                            # odometry again, from the origin
-    assert spin_until(rclpy_context, node, lambda: len(odometry) >= 2, 10)
-    assert [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in odometry] == \
-        [t0 + 200_000_000, t0 - 9_900_000_000]
+    send(results[1], t0 + 100_000_000, logged('shorter than the segmented cloud'), bad)
+    send(results[1], t0 + 200_000_000, lambda: t0 + 200_000_000 in finished)          # good: odometry
+    send(results[1], t0 + 150_000_000, logged('out of order'))                         # out of order: dropped
+    send(results[0], t0 - 10_000_000_000, logged('is held'))                           # 10 s back: held ...
+    send(results[1], t0 - 9_900_000_000, lambda: t0 - 9_900_000_000 in finished)      # ... confirmed: reset
+    assert spin_until(rclpy_context, node, lambda: len(odometry) >= 2, 10)   # (published before the features)
+    assert [stamp_of(m) for m in odometry] == [t0 + 200_000_000, t0 - 9_900_000_000]   # again, from the origin
     assert fa.poll() is None
-    _, err = processes.stop(fa)
+    processes.stop(fa)
+    err = log_path.read_text()
     assert 'shorter than the segmented cloud' in err and 'out of order' in err and 'odometry reset' in err
     assert 'Traceback' not in err
-    node.destroy_node()
+    release(node)

@@ -2,13 +2,12 @@
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.support.ros import spin_until
+from tests.support.ros import Diagnostics, bag_clouds, publish_in_lockstep, release, spin_until
 
 BIN = Path(sys.executable).parent
 GOLDEN_BAG = 'vlp16_static_indoor_20hz'
@@ -33,12 +32,13 @@ def wait_for_publishers(context, node, topics, proc, timeout=20.0):
                     or proc.poll() is not None, timeout)
     assert proc.poll() is None, f'the node exited: {proc.communicate()[1]}'
     assert ok, f'publishers of {topics} not discovered'
-    spin_until(context, node, lambda: False, 0.5)  # let the other side finish matching
 
 
 def test_golden_bag_over_dds_gives_the_originals_outputs(shared_data, rclpy_context, processes):
     import rclpy
+    from sensor_msgs.msg import PointCloud2
 
+    from lego_loam_py.ros import qos
     from lego_loam_py.ros.conversions import cloud_msg_to_xyzi, stamp_to_ns
 
     golden = np.load(shared_data / 'golden' / f'{GOLDEN_BAG}.npz')
@@ -46,18 +46,19 @@ def test_golden_bag_over_dds_gives_the_originals_outputs(shared_data, rclpy_cont
     node = rclpy.create_node('ip_listener', context=rclpy_context)
     topics = ['/segmented_cloud', '/segmented_cloud_info', '/outlier_cloud', '/ground_cloud']
     got = subscribe(node, topics)
+    clouds = node.create_publisher(PointCloud2, '/velodyne_points', qos.reliable(10))
     from lego_loam_py.core.params import default_params_file
     ip = processes.start([BIN / 'imageProjection', '--ros-args', '--params-file',
                           default_params_file().parent / 'original.yaml'])
     wait_for_publishers(rclpy_context, node, topics, ip)
-    # The inputs are depth-1 queues, as the original's: on a loaded 2-core machine a 20 Hz replay at full speed
-    # can lose a scan to 'latest wins'. Parity needs every scan, so replay at a quarter speed.
-    player = processes.start([BIN / 'lego_loam_py', 'play', shared_data / 'golden' / f'{GOLDEN_BAG}_ros2',
-                              '--rate', '0.25', '--wait-for-subscribers', '20', '--no-progress'])
-    done = spin_until(rclpy_context, node, lambda: all(len(got[t]) >= n_scans for t in topics), timeout=60)
-    assert player.wait(timeout=30) == 0
-    assert done, {t: len(v) for t, v in got.items()}
-    spin_until(rclpy_context, node, lambda: False, 0.5)
+    assert spin_until(rclpy_context, node, lambda: clouds.get_subscription_count() > 0, 20)
+    # One scan at a time, the next once every output of the previous one is in: the input is a depth-1
+    # queue, as the original's, and parity needs every scan however slow a loaded machine is.
+    scans = bag_clouds(shared_data / 'golden' / f'{GOLDEN_BAG}_ros2')
+    assert len(scans) == n_scans
+    left = publish_in_lockstep(rclpy_context, node, clouds.publish, scans, lambda stamp: all(
+        got[t] and stamp_to_ns(got[t][-1].header.stamp) == stamp for t in topics))
+    assert not left, {t: len(v) for t, v in got.items()}
     assert ip.poll() is None, 'imageProjection exited'
     stamps = golden['stamps'].tolist()
     for topic in topics:
@@ -87,7 +88,7 @@ def test_golden_bag_over_dds_gives_the_originals_outputs(shared_data, rclpy_cont
     from lego_loam_py.ros.conversions import cloud_msg_to_array
     times = cloud_msg_to_array(got['/segmented_cloud'][0])['time']
     assert 0 <= times.min() and times.max() <= 0.051  # the 20 Hz recording's sweeps last 50 ms
-    node.destroy_node()
+    release(node)
 
 
 def make_bad_clouds():
@@ -123,26 +124,32 @@ def test_bad_clouds_are_dropped_and_the_node_keeps_serving(rclpy_context, proces
 
     node = rclpy.create_node('ip_bad_input', context=rclpy_context)
     got = subscribe(node, ['/segmented_cloud'])
+    diagnostics = Diagnostics(node)
     publisher = node.create_publisher(PointCloud2, '/velodyne_points', qos.reliable(10))
     ip = processes.start([BIN / 'imageProjection'])
     wait_for_publishers(rclpy_context, node, ['/segmented_cloud'], ip)
     assert spin_until(rclpy_context, node, lambda: publisher.get_subscription_count() > 0, 20)
     bad, _ = make_bad_clouds()
-    for _, msg in bad:
-        publisher.publish(msg)
-        spin_until(rclpy_context, node, lambda: False, 0.3)
+    # Each bad cloud once the node has taken the one before (its counters, on /diagnostics): the input is a
+    # depth-1 queue, and every one of them must be seen. The first is sent again until the node has matched us.
+    items = [(k + 1, msg) for k, (_, msg) in enumerate(bad)]
+    left = publish_in_lockstep(rclpy_context, node, publisher.publish, items,
+                               lambda k: diagnostics.counter('imageProjection', 'clouds_dropped') >= k)
+    assert not left, diagnostics.latest
+    assert diagnostics.counter('imageProjection', 'clouds_out') == 0
     scan = scene_points(np.fmin(floor_ranges(1.5), wall_ranges(6.0, half_width=2.5, z_min=-1.5)))
     publisher.publish(array_to_cloud_msg(scan, make_header(2_000_000_000, 'velodyne')))
-    assert spin_until(rclpy_context, node, lambda: len(got['/segmented_cloud']) >= 1, 20)
-    spin_until(rclpy_context, node, lambda: False, 0.5)
+    assert spin_until(rclpy_context, node, lambda: len(got['/segmented_cloud']) >= 1 and
+                      diagnostics.counter('imageProjection', 'clouds_out') >= 1, 30)
     assert len(got['/segmented_cloud']) == 1 and got['/segmented_cloud'][0].header.stamp.sec == 2
+    assert diagnostics.counter('imageProjection', 'clouds_dropped') >= len(bad)   # (a resent first one may count twice)
     assert ip.poll() is None
     _, err = processes.stop(ip)
     assert ip.returncode == 0
     for fragment in ('data has', 'no x/y/z field', "'x' and 'y' overlap", 'no valid point'):
         assert fragment in err, fragment
     assert 'Traceback' not in err
-    node.destroy_node()
+    release(node)
 
 
 def test_invalid_parameters_stop_the_node_with_a_clear_error(tmp_path, ros_domain):
@@ -181,8 +188,8 @@ def test_params_file_selects_the_preset(tmp_path, rclpy_context, processes, pres
     cols = np.tile(np.arange(880, 920), 11)
     az = np.radians(90.0 - (cols - 900) * 0.2)
     xyz = np.stack([8 * np.sin(az), 8 * np.cos(az), np.linspace(-1, 2, len(rows))], axis=1)
-    publisher.publish(array_to_cloud_msg(velodyne_points(xyz, ring=rows), make_header(3_000_000_000, 'velodyne')))
-    assert spin_until(rclpy_context, node, lambda: got['/segmented_cloud'], 20)
+    cloud = array_to_cloud_msg(velodyne_points(xyz, ring=rows), make_header(3_000_000_000, 'velodyne'))
+    assert not publish_in_lockstep(rclpy_context, node, publisher.publish, [(0, cloud)], lambda _: got['/segmented_cloud'])
     rows_out = np.floor(cloud_msg_to_xyzi(got['/segmented_cloud'][0])[:, 3] + 1e-4)
     assert rows_out.max() >= 20
-    node.destroy_node()
+    release(node)

@@ -17,6 +17,7 @@ import math
 import os
 import signal
 import sys
+import textwrap
 import time
 from collections import Counter
 from pathlib import Path
@@ -26,7 +27,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tests.support.ros import spin_until, wait_for_line
+from tests.support.ros import Diagnostics, publish_in_lockstep, release, spin_until, wait_for_line
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -982,6 +983,30 @@ def test_fusion_drops_stale_mapping_results_after_a_restart(context):
     tf.destroy_node()
 
 
+def test_a_stuck_dds_teardown_ends_the_process_instead_of_hanging_it(tmp_path):
+    """Fast DDS 3.2.3 can deadlock while an entity is deleted (see runtime.teardown_guard): a node process then
+    exits with its own code after a bounded wait, and a process with more to do carries on without it."""
+    import subprocess
+
+    script = textwrap.dedent('''
+        import sys, threading, time
+        from lego_loam_py.ros import runtime
+        runtime.TEARDOWN_TIMEOUT_S = 0.5
+        blocked = threading.Event()
+        assert runtime.finish_within(lambda: None, 'a quick teardown', 5.0)
+        assert not runtime.finish_within(blocked.wait, 'a stuck teardown', 0.5)
+        assert runtime.stuck_teardowns() == ['a stuck teardown']
+        print('carried on', flush=True)
+        runtime.teardown_guard(7, 'a stuck node shutdown')
+        blocked.wait()   # what a deadlocked destroy_node does
+    ''')
+    result = subprocess.run([sys.executable, '-c', script], capture_output=True, text=True, timeout=60, cwd=REPO)
+    assert result.returncode == 7, result.stderr
+    assert 'carried on' in result.stdout
+    assert 'a stuck teardown did not finish within 0.5 s' in result.stderr
+    assert 'a stuck node shutdown did not finish within 0.5 s' in result.stderr
+
+
 def test_stale_temporary_files_of_a_killed_save_are_removed(tmp_path, processes):
     """atomic_path names its temporaries after the writer's pid; those of dead writers are removed, those of
     live writers never are."""
@@ -1114,43 +1139,55 @@ def test_a_node_keeps_serving_through_a_stream_of_bad_messages(rclpy_context, pr
         nodes.start(name)
     wait_for_publishers(rclpy_context, node, ['/segmented_cloud', '/laser_odom_to_init'], nodes)
     assert spin_until(rclpy_context, node, lambda: cloud_pub.get_subscription_count() > 0 and
-                      imu_pub.get_subscription_count() > 0, 20)
-    spin_until(rclpy_context, node, lambda: False, 0.5)
+                      imu_pub.get_subscription_count() > 0 and
+                      node.count_subscribers('/segmented_cloud') >= 2, 20)
     bad_clouds, _ = make_bad_clouds()
     rng = np.random.default_rng(3)
-    good_stamps = []
-    messages = campus_messages(2.0)
-    for topic, msg in messages:
+    rounds, imu_batch = [], []
+    for topic, msg in campus_messages(2.0):
         if topic == '/imu/data':
+            imu_batch.append(msg)
+            continue
+        garbage = restamped(msg, stamp_of(msg) - 50_000_000)   # the layout of a real scan, random bytes
+        garbage.data = array.array('B', rng.bytes(len(msg.data)))
+        rounds.append((stamp_of(msg), (imu_batch, garbage, msg)))
+        imu_batch = []
+
+    def send(round_):
+        """The IMU samples recorded before the scan (with bad ones between them), bad clouds, then the scan:
+        the last one a depth-1 queue keeps, so the good scan always gets through however busy the node is."""
+        imu, garbage, good = round_
+        for msg in imu:
             imu_pub.publish(msg)
             if rng.random() < 0.2:   # a bad IMU sample between good ones
                 bad = Imu()
                 bad.header = msg.header
                 bad.orientation.x, bad.orientation.w = float(rng.choice([np.nan, 1e200, 0.0])), 0.0
                 imu_pub.publish(bad)
-            continue
         for _, bad in bad_clouds:
             cloud_pub.publish(bad)
-        garbage = restamped(msg, stamp_of(msg) - 50_000_000)   # the layout of a real scan, random bytes
-        garbage.data = array.array('B', rng.bytes(len(msg.data)))
         cloud_pub.publish(garbage)
-        spin_until(rclpy_context, node, lambda: False, 0.03)   # the subscription keeps the latest cloud only
-        cloud_pub.publish(msg)
-        good_stamps.append(stamp_of(msg))
-        spin_until(rclpy_context, node, lambda: False, 0.1)
-    done = spin_until(rclpy_context, node, lambda: len([m for _, m in got['/segmented_cloud']
-                                                        if stamp_of(m) in good_stamps]) >= len(good_stamps), 20)
-    spin_until(rclpy_context, node, lambda: False, 0.5)
+        cloud_pub.publish(good)
+
+    good_stamps = [stamp for stamp, _ in rounds]
+
+    def through(stamp: int) -> bool:
+        """The scan's segmentation is out and, but for the first scan (initialisation), its odometry."""
+        return any(stamp_of(m) == stamp for _, m in got['/segmented_cloud']) and (
+            stamp == good_stamps[0] or any(stamp_of(m) == stamp for _, m in got['/laser_odom_to_init']))
+
+    left = publish_in_lockstep(rclpy_context, node, send, rounds, through)
     assert all(nodes.alive().values())
     codes = nodes.stop_all()
     logs = {name: nodes.log(name) for name in codes}
-    assert done, (len(got['/segmented_cloud']), len(good_stamps), logs)
+    assert not left, (len(got['/segmented_cloud']), len(good_stamps), logs)
     assert [stamp_of(m) for _, m in got['/segmented_cloud'] if stamp_of(m) in good_stamps] == good_stamps
-    assert len(got['/laser_odom_to_init']) >= len(good_stamps) - 2
+    odometry = [stamp_of(m) for _, m in got['/laser_odom_to_init']]
+    assert set(good_stamps[1:]) <= set(odometry)
     assert codes == {'imageProjection': 0, 'featureAssociation': 0}
     assert 'dropping cloud' in logs['imageProjection'] and 'IMU message dropped' in logs['featureAssociation']
     assert not any('Traceback' in text for text in logs.values()), logs
-    node.destroy_node()
+    release(node)
 
 
 def start_feeder(processes, tmp_path, *args):
@@ -1161,6 +1198,11 @@ def start_feeder(processes, tmp_path, *args):
     return proc
 
 
+def publisher_gids(node, topic: str) -> set[bytes]:
+    """The DDS ids of the publishers of ``topic`` in the graph."""
+    return {bytes(info.endpoint_gid) for info in node.get_publishers_info_by_topic(topic)}
+
+
 def gaps(arrivals: list[float], start: float, end: float) -> float:
     """Longest time without a message between ``start`` and ``end`` (arrival times, monotonic clock)."""
     times = [start] + [t for t in arrivals if start < t < end] + [end]
@@ -1168,52 +1210,64 @@ def gaps(arrivals: list[float], start: float, end: float) -> float:
 
 
 def test_the_pipeline_recovers_when_a_node_is_killed_and_restarted(rclpy_context, processes, tmp_path):
-    """mapOptimization, then imageProjection are killed with SIGKILL while the others run, and restarted: the
-    pipeline publishes again within seconds and the other nodes never notice more than a gap."""
+    """mapOptimization, then imageProjection are killed with SIGKILL while the others run, and restarted: once
+    the new process is up, the pipeline publishes again within a few scans, and the other nodes never notice
+    more than a gap."""
     nodes = NodeProcesses(processes, tmp_path, map_optimization__file_directory=tmp_path / 'maps')
     topics = ['/integrated_to_init', '/aft_mapped_to_init', '/laser_odom_to_init']
     node, got = listener(rclpy_context, 'restart_listener', topics)
     for name in NODES:
         nodes.start(name)
     wait_for_publishers(rclpy_context, node, topics + ['/segmented_cloud'], nodes)
-    feeder = start_feeder(processes, tmp_path, '--duration', 24)
-    t0 = time.monotonic()
-    spin_until(rclpy_context, node, lambda: time.monotonic() - t0 > 6, 10)
-    assert len(got['/aft_mapped_to_init']) > 2 and len(got['/integrated_to_init']) > 10
+    # Data at 1x for as long as the test needs it (continuous stamps over laps); stopped at the end.
+    feeder = start_feeder(processes, tmp_path, '--duration', 600)
+    assert spin_until(rclpy_context, node, lambda: len(got['/aft_mapped_to_init']) > 2 and
+                      len(got['/integrated_to_init']) > 10, 60), {t: len(v) for t, v in got.items()}
     events = {}
-    for name, at in (('mapOptimization', 6), ('imageProjection', 14)):
-        spin_until(rclpy_context, node, lambda: time.monotonic() - t0 > at, 15)
+    for name, output, publisher_topic in (('mapOptimization', '/aft_mapped_to_init', '/aft_mapped_to_init'),
+                                          ('imageProjection', '/integrated_to_init', '/segmented_cloud')):
+        old_gids = publisher_gids(node, publisher_topic)
         killed = time.monotonic()
         nodes.kill(name)
-        output = '/aft_mapped_to_init' if name == 'mapOptimization' else '/integrated_to_init'
-        count = len(got[output])
         nodes.start(name)
-        recovered = spin_until(rclpy_context, node, lambda: len(got[output]) > count + 2, 20)
+        # The new process is up once its publisher is discovered: how long that takes depends on the machine
+        # (a Python process importing numpy, scipy and rclpy); from then on the output must come back within
+        # a few scans of data. (The killed one's endpoints stay in the graph until its DDS lease expires.)
+        assert spin_until(rclpy_context, node, lambda: publisher_gids(node, publisher_topic) - old_gids or
+                          not nodes.alive()[name], 90), nodes.log(name)[-3000:]
+        up = time.monotonic()
+        # (Scans already on their way when the node was killed may still come out before it is up.)
+        recovered = spin_until(rclpy_context, node, lambda: len([t for t, _ in got[output] if t > up]) > 2, 30)
         assert recovered, (name, nodes.log(name)[-3000:])
-        events[name] = dict(killed=killed, recovery=got[output][count][0] - killed)
-    assert feeder.wait(timeout=30) == 0
-    spin_until(rclpy_context, node, lambda: False, 1.0)
+        first_output = next(t for t, _ in got[output] if t > up)
+        events[name] = dict(killed=killed, up=up, restart=up - killed, recovery=first_output - killed,
+                            output_after_up=first_output - up)
+    # Ten more fused poses after imageProjection is back, then the data stops.
+    after = len(got['/integrated_to_init'])
+    assert spin_until(rclpy_context, node, lambda: len(got['/integrated_to_init']) >= after + 10, 60)
+    processes.stop(feeder, signal.SIGTERM, timeout=30)
+    assert feeder.returncode == 0
     assert all(nodes.alive().values()), nodes.alive()
     codes = nodes.stop_all()
     logs = {name: nodes.log(name) for name in NODES}
     assert codes == {name: 0 for name in NODES}, logs
     assert not any('Traceback' in text for text in logs.values()), logs
-    # Recovery: the first output after the kill arrives within a few seconds (process start-up, DDS discovery).
+    # Recovery: once the restarted process is discovered, its first output follows within 5 s of data
+    # (50 scans; it needs one or two, plus its subscriptions matching the running nodes).
     for name, event in events.items():
-        assert event['recovery'] < 12.0, events
-    # The other nodes kept serving: odometry went on while mapOptimization was away.
-    # (A reader killed with SIGKILL can hold Fast DDS shared-memory buffers of its writers for a second or two:
-    # featureAssociation may then stall briefly; it never stops.)
-    mo = events['mapOptimization']['killed']
-    assert gaps([t for t, _ in got['/laser_odom_to_init']], mo, mo + 8.0) < 5.0
-    assert gaps([t for t, _ in got['/integrated_to_init']], mo, mo + 8.0) < 5.0
+        assert event['output_after_up'] < 5.0, events
+    # The other nodes kept serving: odometry and fusion went on while mapOptimization was away, with at most
+    # a short stall (a reader killed with SIGKILL can hold Fast DDS shared-memory buffers of its writers for a
+    # second or two: featureAssociation may then wait; it never stops).
+    mo = events['mapOptimization']
+    window = (mo['killed'], mo['killed'] + mo['recovery'])
+    assert gaps([t for t, _ in got['/laser_odom_to_init']], *window) < 5.0
+    assert gaps([t for t, _ in got['/integrated_to_init']], *window) < 5.0
     # Only scans fed while imageProjection was away were lost; odometry and fusion go on to the end.
     stamps = [stamp_of(m) for _, m in got['/integrated_to_init']]
     assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
-    ip = events['imageProjection']['killed'] + events['imageProjection']['recovery']
-    assert len([t for t, _ in got['/integrated_to_init'] if t > ip]) >= 10
     (tmp_path / 'restart_figures.json').write_text(json.dumps(events))
-    node.destroy_node()
+    release(node)
 
 
 def pcd_is_complete(path: Path) -> bool:
@@ -1250,6 +1304,7 @@ def test_map_files_are_complete_after_sigkill_during_a_save(rclpy_context, proce
     maps = tmp_path / 'maps'
     nodes = NodeProcesses(processes, tmp_path, map_optimization__file_directory=maps)
     node = rclpy.create_node('save_killer', context=rclpy_context)
+    diagnostics = Diagnostics(node)
     pubs = {name: node.create_publisher(cls, topic, qos.reliable(10)) for name, cls, topic in (
         ('corner', PointCloud2, '/laser_cloud_corner_last'), ('surf', PointCloud2, '/laser_cloud_surf_last'),
         ('outlier', PointCloud2, '/outlier_cloud_last'), ('odometry', Odometry, '/laser_odom_to_init'))}
@@ -1274,7 +1329,12 @@ def test_map_files_are_complete_after_sigkill_during_a_save(rclpy_context, proce
         return future.result()
 
     feed(inputs[:len(inputs) // 2])
-    assert save().success
+    # A map to save: mapOptimization made its first keyframe (its inputs are small queues: on a busy machine
+    # it skips some, and takes its time).
+    assert spin_until(rclpy_context, node, lambda: diagnostics.counter('mapOptimization', 'keyframes') >= 1, 60), \
+        nodes.log('mapOptimization')[-3000:]
+    response = save()
+    assert response.success, response.message
     names = [f'{stem}{".tum" if "trajectory_" in stem else ".pcd"}' for stem in MAP_FILE_STEMS] + ['trajectory.tum']
     names = sorted(set(names))
     assert all((maps / name).is_file() for name in names), sorted(p.name for p in maps.iterdir())
@@ -1311,7 +1371,7 @@ def test_map_files_are_complete_after_sigkill_during_a_save(rclpy_context, proce
     assert not [p.name for p in maps.iterdir() if '.tmp' in p.name]   # ... is gone once it restarted
     nodes.stop_all()
     assert 'Traceback' not in nodes.log('mapOptimization')
-    node.destroy_node()
+    release(node)
 
 
 def test_a_burst_of_clouds_keeps_queues_and_memory_bounded(rclpy_context, processes, tmp_path):
@@ -1332,11 +1392,13 @@ def test_a_burst_of_clouds_keeps_queues_and_memory_bounded(rclpy_context, proces
         return feeder.poll() is not None
 
     baseline = {name: rss_mb(proc.pid) for name, proc in nodes.procs.items()}
-    assert spin_until(rclpy_context, node, sample, 40)
+    assert spin_until(rclpy_context, node, sample, 60)
     out = feeder.stdout.read()
-    spin_until(rclpy_context, node, lambda: False, 1.5)
     assert 'burst 100' in out and 'done 150' in out, out
+    # The last scan fed is the one a depth-1 queue keeps: it comes out, however late.
     fed_last = max(stamp_of(m) for t, m in campus_messages(5.0) if t == '/velodyne_points')
+    assert spin_until(rclpy_context, node, lambda: sample() and got['/laser_odom_to_init'] and
+                      stamp_of(got['/laser_odom_to_init'][-1][1]) == fed_last, 30)
     processed = [stamp_of(m) for _, m in got['/segmented_cloud']]
     codes = nodes.stop_all()
     assert codes == {'imageProjection': 0, 'featureAssociation': 0}
@@ -1349,7 +1411,7 @@ def test_a_burst_of_clouds_keeps_queues_and_memory_bounded(rclpy_context, proces
     (tmp_path / 'burst_figures.json').write_text(json.dumps(dict(baseline=baseline, peak=peak)))
     assert all(g < 300 for g in growth.values()), (baseline, peak)   # 100 clouds are 40 MB
     assert not any('Traceback' in nodes.log(n) for n in nodes.procs)
-    node.destroy_node()
+    release(node)
 
 
 def test_a_bag_played_in_a_loop_resets_cleanly(rclpy_context, processes, tmp_path, shared_data):
@@ -1363,12 +1425,18 @@ def test_a_bag_played_in_a_loop_resets_cleanly(rclpy_context, processes, tmp_pat
     for name in NODES:
         nodes.start(name)
     wait_for_publishers(rclpy_context, node, topics + ['/segmented_cloud', '/laser_odom_to_init'], nodes)
-    spin_until(rclpy_context, node, lambda: False, 1.0)   # the nodes run with the clock at zero meanwhile
     player = processes.start([BIN / 'lego_loam_py', 'play', shared_data / 'golden' / 'vlp16_static_indoor_20hz_ros2',
                               '--loop', '3', '--rate', '0.5', '--wait-for-subscribers', '20', '--no-progress'])
-    assert player.wait(timeout=60) == 0, player.communicate()
+    assert spin_until(rclpy_context, node, lambda: player.poll() is not None, 120), 'the player did not finish'
+    assert player.returncode == 0, player.communicate()
     assert '(3 plays)' in player.communicate()[1]
-    spin_until(rclpy_context, node, lambda: False, 1.5)
+    # The last loop's scans are through once both resets are logged and the fused poses stop coming.
+    assert spin_until(rclpy_context, node, lambda: all(nodes.log(name).count('time jumped back') >= 2 for name in
+                                                       ('featureAssociation', 'transformFusion')), 60), \
+        {name: nodes.log(name)[-2000:] for name in NODES}
+    settled = []
+    spin_until(rclpy_context, node, lambda: settled.append(len(got['/integrated_to_init'])) or
+               (len(settled) > 40 and settled[-1] == settled[-41]), 30)   # 2 s (40 x 50 ms) without a new pose
     assert all(nodes.alive().values())
     codes = nodes.stop_all()
     logs = {name: nodes.log(name) for name in NODES}
@@ -1379,9 +1447,11 @@ def test_a_bag_played_in_a_loop_resets_cleanly(rclpy_context, processes, tmp_pat
     # mapOptimization sees every other scan and, on a busy machine, may miss a whole 2 s loop (latest data wins)
     assert 1 <= logs['mapOptimization'].count('time jumped back') <= 2, logs['mapOptimization']
     assert 'the previous map was saved' in logs['mapOptimization']
-    # Every loop produced fused poses: the stamps restart twice.
+    # Every loop produced fused poses: the stamps restart twice. (Each loop has 20 scans; on a busy machine the
+    # depth-1 queues may let a node skip some: latest data wins.)
     stamps = [stamp_of(m) for _, m in got['/integrated_to_init']]
-    restarts = sum(1 for a, b in zip(stamps, stamps[1:]) if b < a)
-    assert restarts == 2 and len(stamps) >= 3 * 15, (restarts, len(stamps))
+    restarts = [k + 1 for k, (a, b) in enumerate(zip(stamps, stamps[1:])) if b < a]
+    loops = [stamps[a:b] for a, b in zip([0] + restarts, restarts + [len(stamps)])]
+    assert len(restarts) == 2 and all(len(loop) >= 5 for loop in loops), [len(loop) for loop in loops]
     assert (maps / 'global_map.pcd').is_file()
-    node.destroy_node()
+    release(node)

@@ -47,4 +47,78 @@ def wait_for_line(proc, text: str, timeout: float = 20.0) -> str:
     return read_until(proc, text, timeout).splitlines(keepends=True)[-1]
 
 
-__all__ = ['spin_until', 'read_until', 'wait_for_line', 'rclpy']
+
+
+def publish_in_lockstep(context, node, publish, items, processed, timeout: float = 60.0,
+                        resend_after: float = 5.0) -> list:
+    """Hand ``items`` [(key, message)] to ``publish`` one at a time, each once ``processed(key)`` holds for the
+    one before: a pipeline fed this way never sees two inputs at once, so the nodes' depth-1 queues ('latest
+    wins', as the original's) lose nothing however slow a loaded machine makes them.
+
+    ``publish`` is a publisher's ``publish`` (a message or serialized bytes) or any callable that sends one
+    item. The first item is sent again every ``resend_after`` s while it has not come out: a best-effort
+    subscriber (the nodes' sensor input) drops what arrives before it has matched the publisher, and only
+    the subscriber knows when that is. A duplicate that does get through is dropped by the nodes as 'not
+    newer than the previous scan'. Returns the keys that were not processed within ``timeout`` s each
+    (the feed stops at the first).
+    """
+    for index, (key, message) in enumerate(items):
+        publish(message)
+        deadline = time.monotonic() + timeout
+        while not spin_until(context, node, lambda: processed(key), min(resend_after, deadline - time.monotonic())):
+            if time.monotonic() >= deadline:
+                return [k for k, _ in items[index:]]
+            if index == 0:
+                publish(message)
+    return []
+
+
+def bag_clouds(path) -> list[tuple[int, bytes]]:
+    """(header stamp [ns], serialized PointCloud2) of every /velodyne_points message of a ROS 2 bag."""
+    from lego_loam_py.bag.io import BagReader
+
+    with BagReader(path) as reader:
+        clouds = []
+        for message in reader.messages(topics=['/velodyne_points']):
+            stamp = reader.deserialize(message).header.stamp
+            clouds.append((stamp.sec * 1_000_000_000 + stamp.nanosec, bytes(message.data)))
+        return clouds
+
+
+class Diagnostics:
+    """The latest /diagnostics values of each node (the counters every lego_loam_py node publishes once a
+    second): the events a test waits on when a node's reaction to an input has no output of its own, such as
+    a dropped message."""
+
+    def __init__(self, node):
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        from lego_loam_py.ros import qos
+
+        self.latest: dict[str, dict[str, str]] = {}
+        self.levels: dict[str, int] = {}
+        self.messages: dict[str, str] = {}
+        node.create_subscription(DiagnosticArray, '/diagnostics', self._on_array, qos.reliable(50))
+
+    def _on_array(self, array) -> None:
+        for status in array.status:
+            self.latest[status.name] = {kv.key: kv.value for kv in status.values}
+            self.levels[status.name] = status.level[0] if isinstance(status.level, bytes) else int(status.level)
+            self.messages[status.name] = status.message
+
+    def counter(self, node_name: str, key: str) -> int:
+        """The node's counter ``key`` as last published (0 before the first publication or the first count)."""
+        return int(self.latest.get(node_name, {}).get(key, 0))
+
+
+def release(node, timeout: float = 10.0) -> bool:
+    """``node.destroy_node()`` that cannot hang the test run: Fast DDS 3.2.3 can deadlock a participant when a
+    remote writer goes away during a heartbeat response (see lego_loam_py.ros.runtime.teardown_guard), and
+    deleting an entity then waits forever. Everything the test checks is checked before this is called."""
+    from lego_loam_py.ros.runtime import finish_within
+
+    return finish_within(node.destroy_node, f'destroying the test node {node.get_name()}', timeout)
+
+
+__all__ = ['spin_until', 'read_until', 'wait_for_line', 'publish_in_lockstep', 'bag_clouds', 'Diagnostics', 'release',
+           'rclpy']
