@@ -38,6 +38,8 @@ from lego_loam_py.core.laser_odometry import (LaserOdometry, OdometryStats, accu
                                               sweep_rotation, transform_to_end, transform_to_start)
 from lego_loam_py.core.libm import atan2f
 from lego_loam_py.core.params import Params
+from lego_loam_py.core.validation import (MAX_POSITION, MAX_SWEEP_TRANSLATION, cloud_problem, pose6_problem,
+                                          vector_problem)
 
 __all__ = ['FeatureAssociation', 'FeatureAssociationResult', 'relative_time', 'relative_time_from_azimuth',
            'ScanInput']
@@ -69,6 +71,7 @@ class FeatureAssociationResult:
     imu_used: bool
     odometry: OdometryStats | None = None
     timings_ms: dict = field(default_factory=dict)
+    resumed: bool = False                # initialised again after a restart, at the pose reached before it
 
     @property
     def pose(self) -> np.ndarray:
@@ -125,11 +128,44 @@ class FeatureAssociation:
         self._world_pose = np.eye(4)          # sweep-start model: pose of the current sweep start
         self._previous_attitude: dict | None = None
         self._first_features = None
+        self._resumed = False   # restarted after a poisoned state: the first scan keeps transform_sum as it is
         self.scans = 0
 
     def reset(self) -> None:
         """Forget everything (a bag restarted or time jumped back)."""
         self.__init__(self.params, self.odometry.fix_scan_bound)
+
+    def health_problem(self) -> str | None:
+        """Why the odometry state is poisoned (non-finite or beyond what a sensor can produce), or None.
+
+        Checked after every scan: the accumulated pose, the sweep motion being estimated, the 'last' clouds the
+        next scan registers against (coordinates, and intensities ``ring + 0.1 s`` below ``n_scan + 1``) and the
+        IMU integration."""
+        odometry = self.odometry
+        last_bound = self.params.sensor.n_scan + 1.0
+        return (pose6_problem('the odometry pose', self.transform_sum)
+                or pose6_problem('the sweep motion', odometry.transform_cur, MAX_SWEEP_TRANSLATION)
+                or pose6_problem('the previous sweep motion', self._last_full_motion, MAX_SWEEP_TRANSLATION)
+                or vector_problem('the sweep-start pose', self._world_pose, MAX_POSITION, 'm')
+                or (cloud_problem('the last corner cloud', odometry.last_corner.points, last_bound)
+                    if odometry.last_corner is not None else None)
+                or (cloud_problem('the last surface cloud', odometry.last_surf.points, last_bound)
+                    if odometry.last_surf is not None else None)
+                or self.imu.health_problem())
+
+    def restart(self) -> None:
+        """Start the odometry again from the next scan, after its state was poisoned (:meth:`health_problem`).
+
+        The pose reached so far is kept when it is sane, so /laser_odom_to_init carries on from there instead of
+        jumping back to the origin; the IMU samples are kept when they are sane, else they are dropped too.
+        """
+        pose = self.transform_sum.copy() if pose6_problem('pose', self.transform_sum) is None else np.zeros(6)
+        imu = self.imu if self.imu.health_problem() is None else None
+        self.reset()
+        if imu is not None:
+            self.imu = imu
+        self.transform_sum = pose
+        self._resumed = bool(np.any(pose != 0.0))
 
     # ------------------------------------------------------------------------------------- per scan
     def prepare_points(self, scan: ScanInput) -> np.ndarray:
@@ -161,7 +197,7 @@ class FeatureAssociation:
         fa = self.params.feature_association
         if initialized:
             return FeatureAssociationResult(scan.stamp_ns, features, self.transform_sum.copy(), corner_last,
-                                            surf_last, None, True, imu_used, None, timings)
+                                            surf_last, None, True, imu_used, None, timings, resumed=self._resumed)
         self.frame_count += 1
         publish = self.frame_count >= fa.skip_frame_num + 1
         if publish:
@@ -193,10 +229,10 @@ class FeatureAssociation:
         self.scans += 1
         odometry = self.odometry
         if not self.initialized:
-            if attitude is not None:
+            if attitude is not None and not self._resumed:
                 self.transform_sum[0] += attitude['pitch_start']
                 self.transform_sum[2] += attitude['roll_start']
-            self._world_pose = make_pose(euler_to_matrix(*self.transform_sum[:3]))
+            self._world_pose = make_pose(euler_to_matrix(*self.transform_sum[:3]), self.transform_sum[3:])
             motion = np.eye(4)
             corner_last = self._deskew_to_start(features.less_sharp, features.less_sharp_index, motion, attitude, points)
             surf_last = self._deskew_to_start(features.less_flat, None, motion, attitude, points)
@@ -330,7 +366,7 @@ class FeatureAssociation:
         self.scans += 1
         if not self.initialized:
             self.odometry.set_last(features.less_sharp, features.less_flat)
-            if imu is not None:
+            if imu is not None and not self._resumed:
                 self.transform_sum[0] += imu['pitch_start']
                 self.transform_sum[2] += imu['roll_start']
             self.initialized = True

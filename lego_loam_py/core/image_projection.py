@@ -25,12 +25,12 @@ from scipy.sparse.csgraph import connected_components
 
 from lego_loam_py.core.libm import atan2f, cosf, sinf
 from lego_loam_py.core.params import Params
+from lego_loam_py.core.validation import MAX_COORDINATE
 
 __all__ = ['CloudInfo', 'SegmentationResult', 'ImageProjection', 'ProjectionInput', 'OUTLIER_LABEL',
            'NO_LABEL', 'prepare_input', 'InputError']
 
 OUTLIER_LABEL = 999999   # the original's label of points in clusters that are too small
-MAX_COORDINATE = 1e4     # [m] points further out on any axis are dropped as invalid (input validation)
 NO_LABEL = -1            # ground or empty pixel (labelMat == -1)
 _F32 = np.float32
 

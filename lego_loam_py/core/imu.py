@@ -26,12 +26,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from lego_loam_py.core.frames import euler_to_matrices
+from lego_loam_py.core.validation import MAX_ACCELERATION, MAX_ANGULAR_VELOCITY, MAX_SPEED
 
 __all__ = ['ImuBuffer', 'ImuState', 'imu_sample', 'imu_world_rotation', 'MAX_ANGULAR_VELOCITY', 'MAX_ACCELERATION']
 
-MAX_ANGULAR_VELOCITY = 100.0   # [rad/s] anything faster is garbage (gyros saturate at 35-70 rad/s)
-MAX_ACCELERATION = 1000.0      # [m/s^2] about 100 g (accelerometers saturate at 16-200 g)
 QUATERNION_NORM_TOLERANCE = 0.1
+RESYNC_AFTER = 3   # samples in a row stamped before the newest one that show the newest one's stamp was wrong
 
 
 def imu_world_rotation(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
@@ -77,6 +77,7 @@ class ImuBuffer:
         # One row per sample: time, roll, pitch, yaw, velocity (3), shift (3), angle (3).
         self._rows: deque[tuple[float, ...]] = deque(maxlen=self.capacity)
         self._arrays: np.ndarray | None = None
+        self._behind: list[float] = []   # stamps of the samples rejected in a row as older than the newest
         self.rejected: dict[str, int] = {}
 
     def __len__(self) -> int:
@@ -111,10 +112,23 @@ class ImuBuffer:
     def times(self) -> np.ndarray:
         return self._time
 
+    def health_problem(self) -> str | None:
+        """Why the integrated state is not sane (non-finite, or a velocity no vehicle reaches), or None."""
+        if not self._rows:
+            return None
+        last = np.asarray(self._rows[-1], dtype=np.float64)
+        if not np.isfinite(last).all():
+            return 'the IMU integration is not finite'
+        speed = float(np.abs(last[4:7]).max())
+        if speed > MAX_SPEED:
+            return f'the IMU-integrated velocity reaches {speed:.3g} m/s (bound {MAX_SPEED:g} m/s)'
+        return None
+
     def clear(self) -> None:
         """Forget every sample (the rejection and reset counters are kept)."""
         self._rows.clear()
         self._arrays = None
+        self._behind = []
 
     def _reject(self, reason: str) -> str:
         self.rejected[reason] = self.rejected.get(reason, 0) + 1
@@ -149,7 +163,18 @@ class ImuBuffer:
             self.resets += 1
             last = None
         if last is not None and stamp <= last[0]:
-            return self._reject('stamp not newer than the previous sample (out of order or duplicate)')
+            # A sample stamped a little ahead of time would hold back every later one: after RESYNC_AFTER
+            # samples in a row stamped before it (and after each other), it is the wrong one: start again.
+            if stamp < last[0] and (not self._behind or stamp > self._behind[-1]):
+                self._behind.append(stamp)
+            else:
+                self._behind = [stamp] if stamp < last[0] else []
+            if len(self._behind) < RESYNC_AFTER:
+                return self._reject('stamp not newer than the previous sample (out of order or duplicate)')
+            self.clear()
+            self.resets += 1
+            last = None
+        self._behind = []
         qx, qy, qz, qw = qx / norm, qy / norm, qz / norm, qw / norm
         if self.imu_to_lidar is None:
             # Fixed-axis x, y, z angles (tf getRPY) of the unit quaternion.

@@ -41,6 +41,7 @@ from lego_loam_py.core.frames import (camera_pose_to_lidar, camera_to_lidar, inv
 from lego_loam_py.core.imu import ImuBuffer
 from lego_loam_py.core.laser_odometry import line_coefficients
 from lego_loam_py.core.params import Params
+from lego_loam_py.core.validation import pose6_problem
 from lego_loam_py.core.voxel import VoxelAccumulator, voxel_downsample, voxel_indices
 
 __all__ = ['MapOptimization', 'MappingStep', 'LoopCandidate', 'LoopResult', 'map_jacobian_rows',
@@ -224,15 +225,9 @@ class MapOptimization:
         self._surf_accumulator = VoxelAccumulator(mo.surf_leaf_size)
         self.current_position = np.zeros(3)
         self._previous_keyframe_position: np.ndarray | None = None
-        isam_params = gtsam.ISAM2Params()
-        isam_params.setRelinearizeThreshold(mo.isam_relinearize_threshold)
-        isam_params.relinearizeSkip = mo.isam_relinearize_skip
-        # QR, not gtsam's default Cholesky: with the original's tiny variances (1e-8 m^2) Cholesky declares the
-        # system indeterminate once the keyframes are some 50 m from the origin; QR stays well-conditioned.
-        isam_params.setFactorization('QR')
-        self.isam = gtsam.ISAM2(isam_params)
         self._prior_noise = gtsam.noiseModel.Diagonal.Variances(np.asarray(mo.prior_noise_variances, dtype=float))
         self._odometry_noise = gtsam.noiseModel.Diagonal.Variances(np.asarray(mo.odometry_noise_variances, dtype=float))
+        self._rebuild_graph()   # (empty)
         self.imu = ImuBuffer(params.feature_association.imu_que_length, params.feature_association.gravity,
                              params.sensor.scan_period)
         self._degeneracy = _Degeneracy()
@@ -244,6 +239,74 @@ class MapOptimization:
         self.last_maps: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 4), _F32), np.zeros((0, 4), _F32))
         self.last_scan: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 4), _F32), np.zeros((0, 4), _F32))
 
+    # --------------------------------------------------------------------------------- self-checks
+    def health_problem(self) -> str | None:
+        """Why the mapping state is poisoned (non-finite or absurd poses, optimizer solution or IMU), or None.
+        Checked after every step; :meth:`heal` repairs it."""
+        with self.lock:
+            return (pose6_problem('the mapped pose', self.transform_aft)
+                    or pose6_problem('the pose being optimised', self.transform_tobe)
+                    or pose6_problem('the odometry of the last step', self.transform_bef)
+                    or pose6_problem('the latest odometry', self.transform_sum)
+                    or pose6_problem('the last keyframe pose', self.transform_last)
+                    or (pose6_problem('the newest keyframe (optimizer solution)', self.keyframes[-1].pose6)
+                        if self.keyframes else None)
+                    or self.imu.health_problem())
+
+    def heal(self) -> str:
+        """Reset what :meth:`health_problem` found poisoned and keep the map and the trajectory built so far:
+        keyframes whose optimised pose is not sane are dropped (the pose graph is then rebuilt from the kept
+        poses, loop constraints included in them), and mapping goes on from the newest sane keyframe, where the
+        next odometry is re-anchored. Returns what was done, for the log."""
+        with self.lock:
+            done = []
+            good = [kf for kf in self.keyframes if pose6_problem('', kf.pose6) is None]
+            if len(good) < len(self.keyframes):
+                done.append(f'{len(self.keyframes) - len(good)} keyframe(s) with a poisoned pose dropped')
+                self.keyframes = [Keyframe(i, kf.stamp_ns, kf.pose6, kf.corner, kf.surf, kf.outlier)
+                                  for i, kf in enumerate(good)]
+                self._rebuild_graph()
+            self._positions = np.array([kf.pose6[3:] for kf in self.keyframes]).reshape(-1, 3)
+            anchor = self.keyframes[-1].pose6.copy() if self.keyframes else np.zeros(6)
+            self.transform_aft, self.transform_tobe, self.transform_last = anchor.copy(), anchor.copy(), anchor.copy()
+            if pose6_problem('', self.transform_sum) is not None:
+                self.transform_sum = np.zeros(6)
+            # T_aft · T_bef^-1 · T_sum predicts the anchor for the latest odometry: mapping resumes there.
+            self.transform_bef = self.transform_sum.copy()
+            self.current_position = anchor[3:].copy()
+            self._previous_keyframe_position = anchor[3:].copy() if self.keyframes else None
+            self._corner_accumulator.clear()
+            self._surf_accumulator.clear()
+            if self.imu.health_problem() is not None:
+                self.imu.clear()
+                done.append('IMU samples dropped')
+            done.append(f'mapping resumes from keyframe {len(self.keyframes) - 1}' if self.keyframes
+                        else 'mapping starts again')
+            return ', '.join(done) + f'; {len(self.keyframes)} keyframes kept'
+
+    def _rebuild_graph(self) -> None:
+        """A new iSAM2 graph over the keyframes' current poses: a prior on the first, between factors along."""
+        gtsam = self._gtsam
+        mo = self.params.map_optimization
+        isam_params = gtsam.ISAM2Params()
+        isam_params.setRelinearizeThreshold(mo.isam_relinearize_threshold)
+        isam_params.relinearizeSkip = mo.isam_relinearize_skip
+        # QR, not gtsam's default Cholesky: with the original's tiny variances (1e-8 m^2) Cholesky declares the
+        # system indeterminate once the keyframes are some 50 m from the origin; QR stays well-conditioned.
+        isam_params.setFactorization('QR')
+        self.isam = gtsam.ISAM2(isam_params)
+        if not self.keyframes:
+            return
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        poses = [self._gtsam_pose(kf.pose6) for kf in self.keyframes]
+        graph.add(gtsam.PriorFactorPose3(0, poses[0], self._prior_noise))
+        values.insert(0, poses[0])
+        for k in range(1, len(poses)):
+            graph.add(gtsam.BetweenFactorPose3(k - 1, k, poses[k - 1].between(poses[k]), self._odometry_noise))
+            values.insert(k, poses[k])
+        self.isam.update(graph, values)
+        self.isam.update()
+
     # ------------------------------------------------------------------------------------------ steps
     def process(self, stamp_ns: int, transform_sum: np.ndarray, corner_last: np.ndarray, surf_last: np.ndarray,
                 outlier_last: np.ndarray) -> MappingStep | None:
@@ -253,7 +316,9 @@ class MapOptimization:
         with self.lock:
             self.latest_odometry_ns = stamp_ns
             self.transform_sum = np.asarray(transform_sum, dtype=float).copy()
-            if self._last_processing_ns is not None and stamp_ns - self._last_processing_ns < interval_ns:
+            # (An input stamped before the last step comes after a wrong stamp was found out, see StampOrder's
+            # resync: the interval counts from the inputs on the right timeline.)
+            if self._last_processing_ns is not None and 0 <= stamp_ns - self._last_processing_ns < interval_ns:
                 return None
             self._last_processing_ns = stamp_ns
             timings = {}

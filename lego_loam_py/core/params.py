@@ -33,7 +33,7 @@ import yaml
 
 __all__ = [
     'ParameterError', 'SensorParams', 'ImageProjectionParams', 'FeatureAssociationParams',
-    'MapOptimizationParams', 'LoopClosureParams', 'Params', 'SENSOR_PRESETS', 'load_params',
+    'MapOptimizationParams', 'LoopClosureParams', 'ReliabilityParams', 'Params', 'SENSOR_PRESETS', 'load_params',
     'params_from_mapping', 'flatten', 'read_params_file', 'default_params_file',
 ]
 
@@ -233,6 +233,21 @@ class LoopClosureParams:
 
 
 @dataclass(frozen=True)
+class ReliabilityParams:
+    """Bounds on inputs and the self-checks that keep a node serving (not in the original)."""
+
+    # A raw cloud with more points than this many per range-image pixel is not from the configured sensor
+    # (a dual-return VLP-16 has 2): dropped before it is decoded, so memory and time per scan stay bounded.
+    # Clouds derived from the range image (imageProjection's, featureAssociation's) hold at most one per pixel.
+    max_points_per_pixel: float = 16.0
+    # Consecutive failed steps (unexpected errors) after which a node resets its state as if it were poisoned.
+    reset_after_failures: int = 3
+    # Warn (throttled, with the reason, and on /diagnostics) when this many valid inputs in a row produced no
+    # output; 0 switches the watchdog off.
+    watchdog_inputs: int = 20
+
+
+@dataclass(frozen=True)
 class Params:
     """Every parameter of the four nodes; ``Params()`` is the original's VLP-16 configuration."""
 
@@ -241,6 +256,7 @@ class Params:
     feature_association: FeatureAssociationParams = field(default_factory=FeatureAssociationParams)
     map_optimization: MapOptimizationParams = field(default_factory=MapOptimizationParams)
     loop_closure: LoopClosureParams = field(default_factory=LoopClosureParams)
+    reliability: ReliabilityParams = field(default_factory=ReliabilityParams)
 
     def to_flat(self) -> dict[str, Any]:
         """``{'section.name': value}`` for every parameter (tuples become lists, as ROS stores them)."""
@@ -400,6 +416,10 @@ def _validate(p: Params) -> None:
         need(len(value) == 6 and all(v > 0 for v in value), f'map_optimization.{name}',
              'must be 6 positive variances (roll, pitch, yaw, x, y, z)')
     need(mo.knn >= 3, 'map_optimization.knn', 'must be at least 3')
+    r = p.reliability
+    need(r.max_points_per_pixel >= 1, 'reliability.max_points_per_pixel', 'must be at least 1')
+    need(r.reset_after_failures >= 1, 'reliability.reset_after_failures', 'must be at least 1')
+    need(r.watchdog_inputs >= 0, 'reliability.watchdog_inputs', 'must not be negative (0: off)')
     lc = p.loop_closure
     need(lc.period > 0, 'loop_closure.period', 'must be positive')
     need(lc.history_keyframe_leaf_size > 0, 'loop_closure.history_keyframe_leaf_size', 'must be positive')

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from lego_loam_py.core.frames import invert_pose
+from lego_loam_py.core.validation import MAX_POSITION, vector_problem
 
 __all__ = ['TransformFusion']
 
@@ -29,3 +30,10 @@ class TransformFusion:
 
     def reset(self) -> None:
         self.__init__()
+
+    def health_problem(self) -> str | None:
+        """Why the map correction is poisoned (non-finite, absurd, or not a rigid transform), or None."""
+        problem = vector_problem('the map correction', self.correction, MAX_POSITION, 'm')
+        if problem is None and np.abs(self.correction[:3, :3] @ self.correction[:3, :3].T - np.eye(3)).max() > 1e-3:
+            problem = 'the map correction is not a rigid transform'
+        return problem

@@ -18,6 +18,7 @@ from std_msgs.msg import Header
 
 from lego_loam_py.core.frames import matrix_to_quaternion, quaternion_to_matrix
 from lego_loam_py.core.image_projection import CloudInfo as CloudInfoData
+from lego_loam_py.core.validation import MAX_POSITION
 from lego_loam_py.core.pointcloud import (CloudBuffer, PointField, array_to_cloud, cloud_to_array, xyzi_array,
                                           xyzi_points)
 
@@ -154,7 +155,6 @@ def pose_to_odometry(pose: np.ndarray, header: Header, child_frame_id: str,
     return msg
 
 
-MAX_POSITION = 1e6   # [m] a pose further from its origin than 1000 km is garbage, not a map
 
 
 def odometry_to_pose(msg: Odometry) -> np.ndarray:
