@@ -18,6 +18,7 @@ instead of publishing garbage. A reset keeps the IMU samples.
 """
 from __future__ import annotations
 
+import copy
 import sys
 import time
 
@@ -26,10 +27,10 @@ from cloud_msgs.msg import CloudInfo
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu, PointCloud2
 
+from lego_loam_py.core import validation
 from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, LASER_ODOM_FRAME
 from lego_loam_py.core.pointcloud import CloudLayoutError
-from lego_loam_py.core.image_projection import MAX_COORDINATE
 from lego_loam_py.core.imu import imu_sample
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
@@ -42,6 +43,7 @@ from lego_loam_py.ros.tf import TransformBroadcaster
 __all__ = ['FeatureAssociationNode', 'main']
 
 RESET_JUMP_NS = 1_000_000_000   # a jump back in time by more than this resets the odometry
+INPUT_TOPICS = {'cloud': '/segmented_cloud', 'info': '/segmented_cloud_info', 'outlier': '/outlier_cloud'}
 
 
 class FeatureAssociationNode(LegoLoamNode):
@@ -76,9 +78,45 @@ class FeatureAssociationNode(LegoLoamNode):
 
     # ----------------------------------------------------------------------------------- inputs
     def on_part(self, name: str, msg) -> None:
-        complete = self.add_part(self.sync, name, msg, self.params.feature_association.sync_tolerance)
+        """One of the three inputs: checked on its own (size first, then content) before it may join a set, so
+        that a bad message can never take a valid scan's place among its partners."""
+        try:
+            self._check_size(name, msg)
+        except validation.InputRejected as exc:
+            self.count('scans_dropped')
+            self.warn('oversized', f'{INPUT_TOPICS[name]} dropped unread: {exc}')
+            self.reject_large(msg)
+            return
+        try:
+            decoded = self._decode(name, msg)
+        except (CloudLayoutError, ValueError) as exc:   # InputRejected is a ValueError
+            self.count('scans_dropped')
+            self.warn('bad_scan', f'scan dropped: {exc}')
+            return
+        complete = self.add_part(self.sync, name, msg, self.params.feature_association.sync_tolerance,
+                                 item=(msg, decoded))
         if complete is not None:
             self.on_scan(complete['cloud'], complete['info'], complete['outlier'])
+
+    def _decode(self, name: str, msg):
+        """The content of one input, checked against what imageProjection produces."""
+        if name == 'info':
+            info = cloud_info_from_msg(msg)
+            validation.check_cloud_info(INPUT_TOPICS[name], info, self.params)
+            return info
+        cloud = cloud_msg_to_xyzi(msg)
+        validation.check_cloud(INPUT_TOPICS[name], cloud, self.params.sensor.n_scan if name == 'cloud' else None)
+        if name == 'outlier':
+            return cloud
+        point_time = None
+        points = cloud_msg_to_array(msg)
+        if 'time' in (points.dtype.names or ()) and points['time'].ndim == 1:
+            point_time = points['time']
+            period = self.params.sensor.scan_period
+            if not (np.isfinite(point_time).all() and (np.abs(point_time) <= 10 * period).all()):
+                self.warn('bad_time', 'per-point time field not finite or far outside the sweep: ignored')
+                point_time = None
+        return cloud, point_time
 
     def on_imu(self, msg: Imu) -> None:
         reason = self.core.add_imu(*imu_sample(msg))
@@ -91,12 +129,13 @@ class FeatureAssociationNode(LegoLoamNode):
         """Stamp of the last scan processed [ns]."""
         return self.order.last_ns
 
-    def on_scan(self, cloud_msg: PointCloud2, info_msg, outlier_msg: PointCloud2) -> None:
+    def on_scan(self, cloud, info, outlier) -> None:
+        """A synchronised scan: each part is (message, decoded content)."""
         self.count('scans_in')
         self.drain(self.imu_subscription, self.on_imu)   # the IMU samples that came with this scan first
-        stamp = stamp_to_ns(cloud_msg.header.stamp)
-        decision = self.check_order(self.order, stamp, (cloud_msg, info_msg, outlier_msg),
-                                    lambda held: stamp_to_ns(held[0].header.stamp), 'scan', 'scans_dropped')
+        stamp = stamp_to_ns(cloud[0].header.stamp)
+        decision = self.check_order(self.order, stamp, (cloud, info, outlier),
+                                    lambda held: stamp_to_ns(held[0][0].header.stamp), 'scan', 'scans_dropped')
         if decision is None:
             return
         if decision.action == 'reset':
@@ -105,7 +144,7 @@ class FeatureAssociationNode(LegoLoamNode):
             self._reset()
         if decision.held is not None:
             self._process(*decision.held)
-        self._process(cloud_msg, info_msg, outlier_msg)
+        self._process(cloud, info, outlier)
 
     def _reset(self) -> None:
         """Start the odometry again (the IMU samples stay: they follow their own timeline)."""
@@ -115,90 +154,78 @@ class FeatureAssociationNode(LegoLoamNode):
         self.order.reset()
         self.count('resets')
 
-    def _process(self, cloud_msg: PointCloud2, info_msg, outlier_msg: PointCloud2) -> None:
+    def _process(self, cloud, info, outlier) -> None:
         start = time.perf_counter()
+        cloud_msg = cloud[0]
         stamp = stamp_to_ns(cloud_msg.header.stamp)
         try:
-            scan = self._scan_input(stamp, cloud_msg, info_msg, outlier_msg)
-        except (CloudLayoutError, ValueError) as exc:
+            scan = self._scan_input(stamp, cloud[1], info[1], outlier[1])
+        except ValueError as exc:   # InputRejected is a ValueError
+            # Each part passed its own checks, but the CloudInfo does not fit the cloud: one of them belongs to
+            # another scan (a wrong stamp). The CloudInfo goes; the clouds wait for the one that fits them.
             self.count('scans_dropped')
-            self.warn('bad_scan', f'scan dropped: {exc}')
+            self.warn('bad_scan', f'CloudInfo dropped: {exc}')
+            for name, part in (('cloud', cloud), ('outlier', outlier)):
+                self.sync.add(name, stamp_to_ns(part[0].header.stamp), part)
             return
+        self.input_valid()
         try:
             result = self.core.process(scan)
         except Exception:
             self.count('scans_dropped')
             self.error('process_exception', 'unexpected error in featureAssociation; scan dropped')
-            if not self._state_is_finite():
-                self.warn('diverged', 'the odometry state is no longer finite: odometry reset', period=0.0)
-                self._reset()
+            problem = self.core.health_problem()
+            if problem is not None or self.step_failed():
+                self._heal(problem or f'{self.params.reliability.reset_after_failures} scans in a row failed')
             return
-        if not (self._state_is_finite() and _finite(result.corner_last) and _finite(result.surf_last)
-                and _finite(result.outlier_last)):
+        problem = self.core.health_problem() or _cloud_problem(result)
+        if problem is not None:
             self.count('scans_dropped')
-            self.warn('diverged', 'the odometry became non-finite: scan dropped, odometry reset', period=0.0)
-            self._reset()
+            self._heal(problem)
             return
+        self.step_succeeded()
         self.order.processed(stamp)
         self._publish(result, cloud_msg.header.stamp)
+        self.output_published()
         self.count('scans')
         if result.imu_used:
             self.count('scans_with_imu')
         self.record_time('scan', time.perf_counter() - start)
 
-    def _state_is_finite(self) -> bool:
-        return bool(np.isfinite(self.core.transform_sum).all() and
-                    np.isfinite(self.core.odometry.transform_cur).all())
+    def _check_size(self, name: str, msg) -> None:
+        """imageProjection's clouds and CloudInfo arrays hold at most one entry per range-image pixel: anything
+        bigger is rejected on its header, before it is decoded or kept for synchronisation."""
+        limit = validation.derived_points_limit(self.params)
+        if name == 'info':
+            for field in ('segmented_cloud_range', 'segmented_cloud_col_ind', 'segmented_cloud_ground_flag'):
+                validation.check_count(f'{INPUT_TOPICS[name]}.{field} length', len(getattr(msg, field)), limit,
+                                       'pixels of the range image')
+        else:
+            validation.check_count(f'{INPUT_TOPICS[name]} points', int(msg.width) * int(msg.height), limit,
+                                   'pixels of the range image')
 
-    def _scan_input(self, stamp: int, cloud_msg, info_msg, outlier_msg) -> ScanInput:
-        """Convert and validate the three messages (raises ValueError for inconsistent content)."""
-        points = cloud_msg_to_array(cloud_msg)
-        segmented = cloud_msg_to_xyzi(cloud_msg)
-        outlier = cloud_msg_to_xyzi(outlier_msg)
-        info = cloud_info_from_msg(info_msg)
+    def _heal(self, problem: str) -> None:
+        """The odometry state is poisoned: start it again from the next scan, keeping the pose reached so far
+        (when sane) and the IMU samples (when sane)."""
+        self.core.restart()
+        self.state_reset(problem, 'odometry restarted from the next scan (pose so far kept)')
+
+    def _scan_input(self, stamp: int, cloud, info, outlier) -> ScanInput:
+        """The scan from its three decoded parts, once they fit together (raises InputRejected otherwise)."""
+        segmented, point_time = cloud
         n = len(segmented)
-        n_scan = self.params.sensor.n_scan
-        lengths = {len(info.segmented_cloud_range), len(info.segmented_cloud_col_ind),
-                   len(info.segmented_cloud_ground_flag)}
-        if min(lengths) < n:  # the original publishes 28800-long arrays; only the first n matter
-            raise ValueError(f'CloudInfo arrays ({sorted(lengths)}) are shorter than the segmented cloud ({n})')
-        if len(info.start_ring_index) != n_scan or len(info.end_ring_index) != n_scan:
-            raise ValueError(f'CloudInfo ring indices have {len(info.start_ring_index)}/{len(info.end_ring_index)} '
-                             f'entries, sensor.n_scan is {n_scan}')
-        if (info.end_ring_index > n).any() or (info.start_ring_index > n + 10).any() or \
-                (info.start_ring_index < -10).any() or (info.end_ring_index < -10).any():
-            raise ValueError('CloudInfo ring indices point outside the segmented cloud')
-        if not (np.isfinite(segmented).all() and np.isfinite(outlier).all()):
-            raise ValueError('non-finite values in the segmented or outlier cloud')
-        if not ((np.abs(segmented[:, :3]) <= MAX_COORDINATE).all() and
-                (np.abs(outlier[:, :3]) <= MAX_COORDINATE).all()):
-            raise ValueError(f'coordinates beyond {MAX_COORDINATE:g} m in the segmented or outlier cloud')
-        # The intensity of imageProjection's clouds is row + column / 10000: the row indexes the rings.
-        if n and not ((segmented[:, 3] >= 0).all() and (segmented[:, 3] < n_scan).all()):
-            raise ValueError(f'segmented cloud intensities are not row + column / 10000 with rows 0..{n_scan - 1}')
-        angles = [info.start_orientation, info.end_orientation, info.orientation_diff]
-        if not np.isfinite(angles).all() or not (np.abs(angles) <= 100.0).all() or info.orientation_diff == 0:
-            raise ValueError('invalid sweep orientation in CloudInfo')
+        validation.check_cloud_info(INPUT_TOPICS['info'], info, self.params, n)
+        info = copy.copy(info)   # (the decoded part may be held for a later scan: never change it)
         info.segmented_cloud_range = info.segmented_cloud_range[:n]
         info.segmented_cloud_col_ind = info.segmented_cloud_col_ind[:n]
         info.segmented_cloud_ground_flag = info.segmented_cloud_ground_flag[:n]
-        if not (np.isfinite(info.segmented_cloud_range).all() and
-                (np.abs(info.segmented_cloud_range) <= 2 * MAX_COORDINATE).all()):
-            raise ValueError('CloudInfo ranges are not finite or absurd')
-        point_time = None
-        if 'time' in (points.dtype.names or ()) and points['time'].ndim == 1:
-            point_time = points['time']
-            period = self.params.sensor.scan_period
-            if not (np.isfinite(point_time).all() and (np.abs(point_time) <= 10 * period).all()):
-                self.warn('bad_time', 'per-point time field not finite or far outside the sweep: ignored')
-                point_time = None
         return ScanInput(stamp, segmented, info, outlier, point_time)
 
     # ---------------------------------------------------------------------------------- outputs
     def _publish(self, result, stamp) -> None:
         pose = result.pose
         header = make_header(stamp, CAMERA_INIT_FRAME)
-        if not result.initialized:
+        if not result.initialized or result.resumed:   # (after a restart the pose reached so far goes on)
             self.pub_odometry.publish(pose_to_odometry(pose, header, LASER_ODOM_FRAME))
             self.tf.send_pose(pose, stamp, CAMERA_INIT_FRAME, LASER_ODOM_FRAME)
         camera = make_header(stamp, CAMERA_FRAME)
@@ -214,8 +241,13 @@ class FeatureAssociationNode(LegoLoamNode):
             self.pub_outlier_last.publish(xyzi_to_cloud_msg(result.outlier_last, camera))
 
 
-def _finite(cloud) -> bool:
-    return cloud is None or bool(np.isfinite(cloud).all())
+def _cloud_problem(result) -> str | None:
+    """Why the clouds about to be published are not sane, or None."""
+    for name in ('corner_last', 'surf_last', 'outlier_last'):
+        problem = validation.cloud_problem(name, getattr(result, name))
+        if problem is not None:
+            return problem
+    return None
 
 
 def main(args=None) -> int:

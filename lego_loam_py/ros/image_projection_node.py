@@ -7,9 +7,10 @@ input stamp, in frame ``base_link`` (the lidar frame; CloudInfo keeps the input 
 * always: /segmented_cloud, /segmented_cloud_info, /outlier_cloud
 * while subscribed: /full_cloud_projected, /full_cloud_info, /ground_cloud, /segmented_cloud_pure
 
-Bad clouds (invalid layout, no x/y/z, nothing valid, wrong sensor, more than ``MAX_POINTS_PER_PIXEL`` times
-as many points as the range image has pixels) are dropped with a throttled warning. The node keeps no state
-between scans, so a bad cloud costs that cloud only.
+Bad clouds (invalid layout, no x/y/z, nothing valid, wrong sensor, more than
+``reliability.max_points_per_pixel`` times as many points as the range image has pixels) are dropped with a
+throttled warning; an oversized one before it is decoded, and the memory its message took is given back. The
+node keeps no state between scans, so a bad cloud costs that cloud only.
 """
 from __future__ import annotations
 
@@ -21,18 +22,16 @@ from cloud_msgs.msg import CloudInfo
 from sensor_msgs.msg import PointCloud2
 
 from lego_loam_py.core.frames import BASE_LINK_FRAME
-from lego_loam_py.core.image_projection import MAX_COORDINATE, ImageProjection, InputError, prepare_input
+from lego_loam_py.core import validation
+from lego_loam_py.core.image_projection import ImageProjection, InputError, prepare_input
+from lego_loam_py.core.validation import MAX_COORDINATE
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import cloud_info_to_msg, cloud_msg_to_array, make_header, xyzi_to_cloud_msg
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 
-__all__ = ['ImageProjectionNode', 'main', 'MAX_POINTS_PER_PIXEL']
-
-# A cloud with more points than this many per range-image pixel is not from the configured sensor (a dual
-# return VLP-16 has 2): it is dropped before it is read, so memory and time per scan stay bounded.
-MAX_POINTS_PER_PIXEL = 16
+__all__ = ['ImageProjectionNode', 'main']
 
 
 class ImageProjectionNode(LegoLoamNode):
@@ -59,11 +58,14 @@ class ImageProjectionNode(LegoLoamNode):
         self.count('clouds_in')
         try:
             s = self.params.sensor
-            limit = MAX_POINTS_PER_PIXEL * s.n_scan * s.horizon_scan
-            if int(msg.width) * int(msg.height) > limit:
-                raise InputError(f'{int(msg.width) * int(msg.height)} points, more than {limit} '
-                                 f'({MAX_POINTS_PER_PIXEL} per pixel of the {s.n_scan}x{s.horizon_scan} range '
-                                 f'image of sensor.preset {s.preset}): not a scan of this sensor')
+            try:
+                validation.check_count(f'{s.point_cloud_topic} points', int(msg.width) * int(msg.height),
+                                       validation.raw_points_limit(self.params),
+                                       f'points {self.params.reliability.max_points_per_pixel:g} per pixel of the '
+                                       f'{s.n_scan}x{s.horizon_scan} range image of sensor.preset {s.preset} allow '
+                                       '(reliability.max_points_per_pixel): not a scan of this sensor')
+            except validation.InputRejected as exc:
+                raise InputError(str(exc)) from None
             points = cloud_msg_to_array(msg)
             data = prepare_input(points, self.params)
             if data.xyz.shape[0] == 0:
@@ -72,11 +74,13 @@ class ImageProjectionNode(LegoLoamNode):
             self.count('clouds_dropped')
             self.warn('bad_cloud', f'dropping cloud stamped {msg.header.stamp.sec}.{msg.header.stamp.nanosec:09d} '
                                    f'from {msg.header.frame_id!r}: {exc}')
+            self.reject_large(msg)
             return
         except Exception:  # never let one message take the node down
             self.count('clouds_dropped')
             self.error('cloud_exception', 'unexpected error while reading a cloud; dropped')
             return
+        self.input_valid()
         try:
             self._check_sensor(points, data)
         except Exception:
@@ -104,6 +108,7 @@ class ImageProjectionNode(LegoLoamNode):
         if self.pub_pure.get_subscription_count():
             self.pub_pure.publish(xyzi_to_cloud_msg(result.segmented_cloud_pure, header))
         self.count('clouds_out')
+        self.output_published()
         self.record_time('scan', time.perf_counter() - start)
 
     def _check_sensor(self, points: np.ndarray, data) -> None:

@@ -36,7 +36,8 @@ from std_srvs.srv import Trigger
 
 from lego_loam_py.core.frames import (AFT_MAPPED_FRAME, CAMERA_INIT_FRAME, invert_pose, matrix_to_pose6,
                                       pose6_to_matrix)
-from lego_loam_py.core.image_projection import MAX_COORDINATE
+from lego_loam_py.core import validation
+from lego_loam_py.core.io import CoalescingRunner
 from lego_loam_py.core.map_optimization import MapOptimization, transform_cloud
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.core.imu import imu_sample
@@ -46,6 +47,7 @@ from lego_loam_py.ros.conversions import (cloud_msg_to_xyzi, make_header, odomet
                                           stamp_to_ns, xyzi_to_cloud_msg)
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
+from lego_loam_py.ros.services import create_deferred_service
 from lego_loam_py.ros.tf import TransformBroadcaster
 
 __all__ = ['MapOptimizationNode', 'main']
@@ -56,6 +58,8 @@ MAP_FILE_STEMS = ('global_map', 'corner_map', 'surface_map', 'trajectory', 'traj
 ODOMETRY_JUMP_M, ODOMETRY_JUMP_M_PER_S = 5.0, 30.0
 ODOMETRY_JUMP_RAD, ODOMETRY_JUMP_RAD_PER_S = 1.0, 6.0
 MAX_EXTRAPOLATION_S = 10.0   # over a longer gap the vehicle is assumed to have stopped
+INPUT_TOPICS = {'corner': '/laser_cloud_corner_last', 'surf': '/laser_cloud_surf_last', 'outlier': '/outlier_cloud_last',
+                'odometry': '/laser_odom_to_init'}
 
 
 def _scaled_motion(motion: np.ndarray, scale: float) -> np.ndarray:
@@ -91,7 +95,9 @@ class MapOptimizationNode(LegoLoamNode):
         self.pub_registered = self.create_publisher(PointCloud2, '/registered_cloud', depth2)
         self.pub_history = self.create_publisher(PointCloud2, '/history_cloud', depth2)
         self.pub_corrected = self.create_publisher(PointCloud2, '/corrected_cloud', depth2)
-        self.create_service(Trigger, 'save_map', self.on_save_map)
+        # Saves run on a worker thread, one at a time; callers during a save share the next one (see services.py).
+        self.saves = CoalescingRunner(self._save_now, 'save_map')
+        create_deferred_service(self, Trigger, 'save_map', lambda _: self.saves.request(), _fill_save_response)
         self.order = StampOrder(RESET_JUMP_NS)
         self._last_odometry: tuple[int, np.ndarray, object] | None = None   # (stamp, 4x4, publisher) last processed
         self._odometry_publisher: dict[int, object] = {}   # stamp -> publisher of recent odometry messages
@@ -114,20 +120,49 @@ class MapOptimizationNode(LegoLoamNode):
                                    f'{self.params.map_optimization.file_directory}')
 
     # ------------------------------------------------------------------------------------------ inputs
-    def on_part(self, name: str, msg) -> None:
-        complete = self.add_part(self.sync, name, msg)
+    def on_part(self, name: str, msg, decoded=None) -> None:
+        """One of the four inputs: checked on its own (size first, then content) before it may join a set, so
+        that a bad message can never take a valid input's place among its partners."""
+        if decoded is None and name == 'odometry':
+            self.on_odometry(msg, None)
+            return
+        if decoded is None:
+            try:
+                # A cloud derived from the range image holds at most one point per pixel: anything bigger is
+                # rejected on its header, before it is decoded.
+                validation.check_count(f'{INPUT_TOPICS[name]} points', int(msg.width) * int(msg.height),
+                                       validation.derived_points_limit(self.params), 'pixels of the range image')
+            except validation.InputRejected as exc:
+                self.count('inputs_dropped')
+                self.warn('oversized', f'mapping input dropped unread: {exc}')
+                self.reject_large(msg)
+                return
+            try:
+                decoded = cloud_msg_to_xyzi(msg)
+                validation.check_cloud(INPUT_TOPICS[name], decoded)
+            except (CloudLayoutError, ValueError) as exc:   # InputRejected is a ValueError
+                self.count('inputs_dropped')
+                self.warn('bad_input', f'mapping input dropped: {exc}')
+                return
+        complete = self.add_part(self.sync, name, msg, item=(msg, decoded))
         if complete is not None:
             self.on_inputs(complete)
 
     def on_odometry(self, msg: Odometry, info) -> None:
         """/laser_odom_to_init; the publisher's id tells a restarted featureAssociation (a new odometry frame)."""
+        try:
+            pose = odometry_to_pose(msg)
+        except ValueError as exc:
+            self.count('inputs_dropped')
+            self.warn('bad_input', f'mapping input dropped: {exc}')
+            return
         gid = info.get('publisher_gid') if isinstance(info, dict) else None
         if gid is not None:
             data = gid.get('data') if isinstance(gid, dict) else gid
             self._odometry_publisher[stamp_to_ns(msg.header.stamp)] = bytes(data) if data is not None else None
             while len(self._odometry_publisher) > 64:
                 self._odometry_publisher.pop(next(iter(self._odometry_publisher)))
-        self.on_part('odometry', msg)
+        self.on_part('odometry', msg, pose)
 
     def on_imu(self, msg: Imu) -> None:
         reason = self.core.imu.add(*imu_sample(msg))
@@ -143,9 +178,10 @@ class MapOptimizationNode(LegoLoamNode):
     def on_inputs(self, parts: dict) -> None:
         self.count('inputs_in')
         self.drain(self.imu_subscription, self.on_imu)   # the IMU samples up to this input first
-        stamp = stamp_to_ns(parts['odometry'].header.stamp)
-        decision = self.check_order(self.order, stamp, parts, lambda held: stamp_to_ns(held['odometry'].header.stamp),
-                                    'input', 'inputs_dropped')
+        stamp = stamp_to_ns(parts['odometry'][0].header.stamp)
+        decision = self.check_order(self.order, stamp, parts,
+                                    lambda held: stamp_to_ns(held['odometry'][0].header.stamp), 'input',
+                                    'inputs_dropped')
         if decision is None:
             return
         if decision.action == 'reset':
@@ -155,44 +191,46 @@ class MapOptimizationNode(LegoLoamNode):
         self._process(parts)
 
     def _process(self, parts: dict) -> None:
+        """One synchronised input: each part is (message, decoded content), checked on arrival."""
         start = time.perf_counter()
-        odometry = parts['odometry']
+        odometry, odometry_pose = parts['odometry']
         stamp = stamp_to_ns(odometry.header.stamp)
-        try:
-            odometry_pose = odometry_to_pose(odometry)
-            transform_sum = matrix_to_pose6(odometry_pose)
-            corner = cloud_msg_to_xyzi(parts['corner'])
-            surf = cloud_msg_to_xyzi(parts['surf'])
-            outlier = cloud_msg_to_xyzi(parts['outlier'])
-            for name, cloud in (('corner', corner), ('surf', surf), ('outlier', outlier)):
-                if not np.isfinite(cloud).all():
-                    raise ValueError(f'non-finite values in the {name} cloud')
-                if not (np.abs(cloud[:, :3]) <= MAX_COORDINATE).all():
-                    raise ValueError(f'coordinates beyond {MAX_COORDINATE:g} m in the {name} cloud')
-        except (CloudLayoutError, ValueError) as exc:
-            self.count('inputs_dropped')
-            self.warn('bad_input', f'mapping input dropped: {exc}')
-            return
+        transform_sum = matrix_to_pose6(odometry_pose)
+        clouds = {name: parts[name][1] for name in ('corner', 'surf', 'outlier')}
         self.order.processed(stamp)
         self._check_odometry_continuity(stamp, odometry_pose, transform_sum, self._odometry_publisher.get(stamp))
         try:
-            step = self.core.process(stamp, transform_sum, corner, surf, outlier)
+            step = self.core.process(stamp, transform_sum, clouds['corner'], clouds['surf'], clouds['outlier'])
         except Exception:
+            self.input_valid()
             self.count('steps_failed')
             self.error('process_exception', 'unexpected error in mapOptimization; step skipped, map kept')
+            problem = self.core.health_problem()
+            if problem is not None or self.step_failed():
+                self._heal(problem or f'{self.params.reliability.reset_after_failures} mapping steps in a row failed')
             return
-        if step is None:
+        if step is None:   # (not due: the original maps every mapping_process_interval; no output expected)
             self.count('inputs_skipped_by_interval')
             return
-        if not (np.isfinite(step.transform_aft).all() and np.isfinite(step.transform_bef).all()):
+        self.input_valid()
+        problem = self.core.health_problem()
+        if problem is not None:
             self.count('steps_failed')
-            self.warn('non_finite_step', 'a mapping step gave a non-finite pose: not published, map kept')
+            self._heal(problem)
             return
+        self.step_succeeded()
         self.count('steps')
         if step.keyframe_added:
             self.count('keyframes')
         self._publish(step, odometry.header.stamp)
+        self.output_published()
         self.record_time('step', time.perf_counter() - start)
+
+    def _heal(self, problem: str) -> None:
+        """The mapping state is poisoned: reset what is, keep the map and the trajectory."""
+        done = self.core.heal()
+        self._last_odometry = self._older_odometry = None
+        self.state_reset(problem, done)
 
     def _check_odometry_continuity(self, stamp: int, pose: np.ndarray, transform_sum: np.ndarray,
                                    publisher=None) -> None:
@@ -306,20 +344,19 @@ class MapOptimizationNode(LegoLoamNode):
         else:
             self.count('loops_rejected')
 
-    def on_save_map(self, request, response):
+    def _save_now(self) -> tuple[bool, str]:
+        """Write the maps and the trajectory now (the save_map service's job): (success, message)."""
+        core = self.core
         directory = self.params.map_optimization.file_directory
-        if not self.core.keyframes:   # nothing to write (and the files of an earlier run stay as they are)
-            response.success = False
-            response.message = 'no keyframe yet: nothing to save'
-            return response
+        if not core.keyframes:   # nothing to write (and the files of an earlier run stay as they are)
+            return False, 'no keyframe yet: nothing to save'
         try:
-            written = self.core.save(directory)
-            response.success = True
-            response.message = f'saved {len(self.core.keyframes)} keyframes: ' + ', '.join(str(p) for p in written.values())
+            written = core.save(directory)
         except Exception as exc:  # report, never crash the node
-            response.success = False
-            response.message = f'saving to {directory} failed: {exc}'
-        return response
+            self.warn('save_failed', f'saving the map to {directory} failed: {exc}')
+            return False, f'saving to {directory} failed: {exc}'
+        self.count('saves')
+        return True, f'saved {len(core.keyframes)} keyframes: ' + ', '.join(str(p) for p in written.values())
 
     def statistics(self) -> dict:
         """The base statistics plus the size of the map held in memory (keyframe clouds)."""
@@ -334,12 +371,20 @@ class MapOptimizationNode(LegoLoamNode):
     def on_shutdown(self) -> None:
         mo = self.params.map_optimization
         if mo.save_map_on_shutdown and self.core.keyframes:
-            try:
-                written = self.core.save(mo.file_directory)
-                self.get_logger().info(f'map saved: {", ".join(str(p) for p in written.values())}')
-            except Exception as exc:
-                self.get_logger().error(f'saving the map to {mo.file_directory} failed: {exc}')
+            # Through the runner: a save_map call in progress finishes first, then the final map is written.
+            success, message = self.saves.request().result()
+            if success:
+                self.get_logger().info(f'map {message}')
+            else:
+                self.get_logger().error(message)
         super().on_shutdown()
+
+
+def _fill_save_response(response, finished) -> None:
+    try:
+        response.success, response.message = finished.result()
+    except Exception as exc:   # (_save_now reports its own failures; this is a bug in it)
+        response.success, response.message = False, f'saving failed: {exc!r}'
 
 
 def main(args=None) -> int:

@@ -20,7 +20,26 @@ from lego_loam_py.ros.conversions import stamp_to_ns
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.params import declare_params
 
-__all__ = ['LegoLoamNode']
+__all__ = ['LegoLoamNode', 'release_memory', 'LARGE_MESSAGE_BYTES']
+
+# A rejected message larger than this is followed by release_memory(): the allocator would otherwise keep its
+# pages (glibc keeps freed blocks of up to 32 MB in the heap once it has seen one that size).
+LARGE_MESSAGE_BYTES = 8 << 20
+
+
+def release_memory() -> None:
+    """Give the memory freed by a huge rejected message back to the operating system (glibc's malloc_trim;
+    a no-op where it does not exist)."""
+    import ctypes
+    import ctypes.util
+    import gc
+
+    gc.collect()
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6')
+        libc.malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 _NUMBERS = re.compile(r'[0-9]+')
@@ -55,6 +74,10 @@ class LegoLoamNode(Node):
         self._warn_lock = threading.Lock()
         self.timings_ms: dict[str, deque] = {}
         self.counters: dict[str, int] = {}
+        self._release_pending = False      # a huge message was rejected: give its memory back
+        self._last_problem = ''            # the latest warning or error: the watchdog's reason
+        self._inputs_without_output = 0
+        self._failures_in_a_row = 0
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', qos.reliable(10))
         # Wall time: with use_sim_time and no /clock the ROS clock stands still, and so would the diagnostics.
         self.create_timer(self.DIAGNOSTICS_PERIOD, self.publish_diagnostics,
@@ -62,7 +85,16 @@ class LegoLoamNode(Node):
 
     # ---------------------------------------------------------------------------------- guarded callbacks
     def create_subscription(self, msg_type, topic, callback, qos_profile, **kwargs):
-        return super().create_subscription(msg_type, topic, self._guarded(callback, f'message on {topic}'),
+        """A subscription whose callback is guarded (see the class) and counts what it takes (``received
+        <topic>``, on /diagnostics)."""
+        key = f'received {topic}'
+
+        def counted(*args):
+            self.counters[key] = self.counters.get(key, 0) + 1
+            return callback(*args)
+
+        counted.__signature__ = inspect.signature(callback)
+        return super().create_subscription(msg_type, topic, self._guarded(counted, f'message on {topic}'),
                                            qos_profile, **kwargs)
 
     def create_timer(self, timer_period_sec, callback, *args, **kwargs):
@@ -78,6 +110,9 @@ class LegoLoamNode(Node):
             return None
 
         def call(*args):
+            if self._release_pending:   # (the message that asked for it is gone by now: the executor held it)
+                self._release_pending = False
+                release_memory()
             try:
                 return callback(*args)
             except Exception:
@@ -115,6 +150,7 @@ class LegoLoamNode(Node):
             if message is None:
                 break
             taken += 1
+            self.count(f'received {subscription.topic_name}')
             try:
                 callback(message[0])
             except Exception:
@@ -123,7 +159,7 @@ class LegoLoamNode(Node):
         return taken
 
     # ------------------------------------------------------------------------------------------- warnings
-    def warn(self, key: str, text: str, period: float | None = None) -> None:
+    def warn(self, key: str, text: str, period: float | None = None, level: str = 'warning') -> None:
         """Log ``text`` unless a warning of the same kind was logged less than ``period`` s ago.
 
         The kind is ``key`` plus the text with its numbers and quoted names masked, so different problems
@@ -131,9 +167,11 @@ class LegoLoamNode(Node):
         is throttled. The state is bounded: a key with many different texts falls back to the key alone.
         """
         with self._warn_lock:   # mapOptimization warns from two executor threads
-            self._warn(key, text, period)
+            if key != 'watchdog':
+                self._last_problem = text
+            self._warn(key, text, period, level)
 
-    def _warn(self, key: str, text: str, period: float | None) -> None:
+    def _warn(self, key: str, text: str, period: float | None, level: str) -> None:
         masked = _QUOTED.sub('~', _NUMBERS.sub('#', text))[:120]
         kind = f'{key}:{masked}'
         if kind not in self._warned:
@@ -146,7 +184,11 @@ class LegoLoamNode(Node):
         last, suppressed = self._warned.get(kind, (-float('inf'), 0))
         if now - last >= (self.WARN_PERIOD if period is None else period):
             extra = f' ({suppressed} similar warnings suppressed)' if suppressed else ''
-            self.get_logger().warning(text + extra)
+            # (Two call sites: rclpy refuses one call site logging at two severities.)
+            if level == 'error':
+                self.get_logger().error(text + extra)
+            else:
+                self.get_logger().warning(text + extra)
             self._warned[kind] = (now, 0)
         else:
             self._warned[kind] = (last, suppressed + 1)
@@ -156,14 +198,62 @@ class LegoLoamNode(Node):
 
     def error(self, key: str, text: str) -> None:
         """Unexpected failure while handling a message: log with the traceback (throttled) and carry on."""
-        self.warn(key, f'{text}: {traceback.format_exc(limit=6)}')
+        self.warn(key, f'{text}: {traceback.format_exc(limit=6)}', level='error')
 
-    def add_part(self, sync, name: str, msg, warn_tolerance: float | None = None) -> dict | None:
-        """Give one message of a synchronised input set to ``sync`` (a StampSynchronizer); returns the set once
-        complete. Parts that lost their partners are counted as ``unmatched_inputs`` (and, with
-        ``warn_tolerance`` [s], warned about)."""
+    # ------------------------------------------------------------------------------- self-healing state
+    def step_failed(self) -> bool:
+        """Count a failed step (an unexpected error); True once ``reliability.reset_after_failures`` failed in
+        a row: the state is then to be treated as poisoned even if no check names the problem."""
+        self._failures_in_a_row += 1
+        return self._failures_in_a_row >= self.params.reliability.reset_after_failures
+
+    def step_succeeded(self) -> None:
+        self._failures_in_a_row = 0
+
+    def state_reset(self, problem: str, what: str) -> None:
+        """Log (one error per kind and second) and count a reset of poisoned state: ``problem`` is what the
+        check found, ``what`` says what was reset and what was kept."""
+        self._failures_in_a_row = 0
+        self.count('state_resets')
+        self.warn('state_reset', f'{problem}: {what}', period=1.0, level='error')
+
+    def reject_large(self, msg) -> None:
+        """A rejected message: when it was large, its memory goes back to the system at the next callback
+        (the executor holds the message until this one returns)."""
+        data = getattr(msg, 'data', None)
+        if data is not None and len(data) > LARGE_MESSAGE_BYTES:
+            self._release_pending = True
+
+    # ------------------------------------------------------------------------------------------- watchdog
+    def input_valid(self) -> None:
+        """A valid input arrived; warns (throttled, with the latest problem) once ``reliability.watchdog_inputs``
+        valid inputs in a row produced no output."""
+        self._inputs_without_output += 1
+        limit = self.params.reliability.watchdog_inputs
+        if limit and self._inputs_without_output >= limit:
+            if self._inputs_without_output == limit:
+                self.count('silent_periods')
+            self.warn('watchdog', self.watchdog_message())
+
+    def output_published(self) -> None:
+        self._inputs_without_output = 0
+
+    def watchdog_message(self) -> str:
+        reason = self._last_problem.splitlines()[0] if self._last_problem else 'no warning was logged'
+        return f'{self._inputs_without_output} valid inputs in a row and no output; latest problem: {reason}'
+
+    @property
+    def silent(self) -> bool:
+        """True while the watchdog counts more valid inputs without output than it allows."""
+        limit = self.params.reliability.watchdog_inputs
+        return bool(limit) and self._inputs_without_output >= limit
+
+    def add_part(self, sync, name: str, msg, warn_tolerance: float | None = None, item=None) -> dict | None:
+        """Give one message of a synchronised input set to ``sync`` (a StampSynchronizer), filed by its header
+        stamp as ``item`` (default: the message); returns the set once complete. Parts that lost their partners
+        are counted as ``unmatched_inputs`` (and, with ``warn_tolerance`` [s], warned about)."""
         try:
-            complete = sync.add(name, stamp_to_ns(msg.header.stamp), msg)
+            complete = sync.add(name, stamp_to_ns(msg.header.stamp), msg if item is None else item)
         except Exception:
             self.error('sync_exception', 'unexpected error while synchronising inputs')
             return None
@@ -198,6 +288,10 @@ class LegoLoamNode(Node):
         if decision.action == 'jump':
             self.warn('jump', f'time jumped forward by {decision.jump_ns * 1e-9:.1f} s: carrying on', period=0.0)
             self.count('forward_jumps')
+        if decision.action == 'resync':
+            self.warn('resync', f'{order.resync_after} {noun}s in a row were stamped before the previous one (by '
+                                f'{-decision.jump_ns * 1e-9:.3f} s here): that one had a wrong stamp; carrying on')
+            self.count('resyncs')
         return decision
 
     def count(self, name: str, amount: int = 1) -> None:
@@ -233,8 +327,13 @@ class LegoLoamNode(Node):
                 v = np.asarray(values_ms)
                 values.append(KeyValue(key=f'{name}_median_ms', value=f'{np.median(v):.2f}'))
                 values.append(KeyValue(key=f'{name}_p95_ms', value=f'{np.percentile(v, 95):.2f}'))
-        return DiagnosticStatus(level=DiagnosticStatus.OK, name=self.get_name(), message='running',
-                                hardware_id='lego_loam_py', values=values)
+        values.append(KeyValue(key='inputs_without_output', value=str(self._inputs_without_output)))
+        if self.silent:
+            level, message = DiagnosticStatus.WARN, self.watchdog_message()
+        else:
+            level, message = DiagnosticStatus.OK, 'running'
+        return DiagnosticStatus(level=level, name=self.get_name(), message=message, hardware_id='lego_loam_py',
+                                values=values)
 
     def publish_diagnostics(self) -> None:
         array = DiagnosticArray()

@@ -94,6 +94,10 @@ class TransformFusionNode(LegoLoamNode):
             return
         if decision.action == 'hold':
             return
+        if decision.action == 'resync':
+            self.warn('resync', f'{self.order.resync_after} odometry messages in a row were stamped before the '
+                                'previous one: that one had a wrong stamp; carrying on')
+            self.count('resyncs')
         if decision.action == 'reset':
             self.warn('reset', f'time jumped back by {-decision.jump_ns * 1e-9:.1f} s: map correction reset',
                       period=0.0)
@@ -113,17 +117,23 @@ class TransformFusionNode(LegoLoamNode):
             self.count('odometry_dropped')
             self.warn('bad_odometry', f'/laser_odom_to_init dropped: {exc}')
             return
-        mapped = self.core.integrate(odometry)
-        if not np.isfinite(mapped).all():
-            self.count('odometry_dropped')
-            self.warn('non_finite', 'the fused pose is not finite: map correction reset')
+        self.input_valid()
+        problem = self.core.health_problem()
+        mapped = self.core.integrate(odometry) if problem is None else None
+        if problem is None and not (np.isfinite(mapped).all() and np.abs(mapped[:3, 3]).max() <= MAX_POSITION):
+            problem = 'the fused pose is not finite or absurd'
+        if problem is not None:
+            # Only the correction can be poisoned (each odometry message is checked): start again without it;
+            # the next /aft_mapped_to_init brings it back.
             self.core.reset()
-            return
+            self.state_reset(problem, 'map correction reset (the next mapping result restores it)')
+            mapped = self.core.integrate(odometry)
         self.order.processed(stamp_to_ns(msg.header.stamp))
         header = make_header(msg.header.stamp, CAMERA_INIT_FRAME)
         self.pub_integrated.publish(pose_to_odometry(mapped, header, CAMERA_FRAME))
         self.tf.send_pose(mapped, msg.header.stamp, CAMERA_INIT_FRAME, CAMERA_FRAME)
         self.count('integrated')
+        self.output_published()
         self.record_time('odometry', time.perf_counter() - start)   # conversion, fusion and publishing
 
 
