@@ -148,9 +148,13 @@ if sys.prefix not in _prefixes:
 # DDS discovery stays on this machine.
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 os.environ.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
-# Loopback-only Fast DDS with shared-memory segments large enough for 1 MB clouds.
-os.environ.setdefault('FASTDDS_DEFAULT_PROFILES_FILE',
-                      os.path.join(sys.prefix, 'etc', 'lego_loam_py', 'fastdds_loopback.xml'))
+# Loopback-only Fast DDS with shared-memory segments large enough for 1 MB clouds, and readers that give a huge
+# sample's memory back (see the file). The rmw takes those middleware settings from the file only with
+# RMW_FASTRTPS_USE_QOS_FROM_XML=1 (the ROS QoS still come from the code): both or neither, so that a profile
+# file of the user's own is used as it is.
+if 'FASTDDS_DEFAULT_PROFILES_FILE' not in os.environ:
+    os.environ['FASTDDS_DEFAULT_PROFILES_FILE'] = os.path.join(sys.prefix, 'etc', 'lego_loam_py', 'fastdds_loopback.xml')
+    os.environ.setdefault('RMW_FASTRTPS_USE_QOS_FROM_XML', '1')
 os.environ.setdefault('LEGO_LOAM_PY_VENV', sys.prefix)
 EOF
 echo "import _lego_loam_py_env" > "$SITE/00_lego_loam_py_env.pth"
