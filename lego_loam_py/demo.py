@@ -149,6 +149,7 @@ def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_
     docstring). Raises ``BagError`` / ``ParameterError`` / ``ValueError`` before starting anything when the
     bag or the parameters are invalid."""
     from lego_loam_py.bag.io import BagReader
+    from lego_loam_py.core.io import write_text_atomic
     from lego_loam_py.core.params import load_params
     from lego_loam_py.evaluation import path_length
     from lego_loam_py.launch import PipelineConfig, package_file, run_pipeline
@@ -201,11 +202,11 @@ def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_
         summary = write_outputs(out, bag, stamps, poses, None, summary, params, map_dir=map_dir)
     else:
         summary['trajectory_length_m'] = path_length(poses)
-        (out / 'summary.json').write_text(json.dumps(summary, indent=2, default=float))
+        write_text_atomic(out / 'summary.json', json.dumps(summary, indent=2, default=float))
     exit_code = outcome.exit_code
     if exit_code == 0 and not len(stamps) and not outcome.interrupted:
         summary['failures'].append(f'no /integrated_to_init was recorded from {scans_in} scans')
-        (out / 'summary.json').write_text(json.dumps(summary, indent=2, default=float))
+        write_text_atomic(out / 'summary.json', json.dumps(summary, indent=2, default=float))
         exit_code = 1
     return DemoResult(exit_code, summary, out)
 

@@ -89,7 +89,11 @@ def evaluate(ground_truth: tuple[np.ndarray, np.ndarray], estimate: tuple[np.nda
     rotation_end_deg = float(np.degrees(np.arccos(np.clip((np.trace(rotation_error) - 1) / 2, -1.0, 1.0))))
 
     aligned = copy.deepcopy(est)
-    aligned.align(ref, correct_scale=False)
+    try:
+        aligned.align(ref, correct_scale=False)
+    except Exception as exc:   # evo's GeometryException: positions on a line (or a point) fix no rotation
+        raise ValueError(f'{ref.num_poses} matched poses cannot be aligned with the ground truth ({exc}): '
+                         'a run needs poses that span more than a straight line') from None
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref, aligned))
     stats = ape.get_all_statistics()
@@ -131,14 +135,17 @@ def plot_trajectories(path: str | Path, trajectories: dict[str, np.ndarray], map
         axes.scatter(pts[:, 0], pts[:, 1], c=np.clip(z, lo, hi), s=0.2, cmap='gray_r', alpha=0.6, linewidths=0)
     colours = ['tab:green', 'tab:red', 'tab:blue', 'tab:orange', 'tab:purple']
     for (name, poses), colour in zip(trajectories.items(), colours):
-        xy = np.asarray(poses)[:, :2, 3]
+        xy = np.asarray(poses).reshape(-1, 4, 4)[:, :2, 3]
+        if len(xy) == 0:
+            continue
         axes.plot(xy[:, 0], xy[:, 1], '-', color=colour, linewidth=1.6, label=name)
         axes.plot(xy[0, 0], xy[0, 1], 'o', color=colour, markersize=5)
     axes.set_aspect('equal')
     axes.set_xlabel('x [m] (map, REP-103)')
     axes.set_ylabel('y [m]')
     axes.grid(True, linewidth=0.3)
-    axes.legend(loc='best')
+    if axes.get_legend_handles_labels()[0]:
+        axes.legend(loc='best')
     if title:
         axes.set_title(title)
     figure.tight_layout()
@@ -183,7 +190,8 @@ def main(args) -> int:
         return 1
     print(metrics.summary())
     if args.json:
-        Path(args.json).write_text(json.dumps(metrics.as_dict(), indent=2))
+        from lego_loam_py.core.io import write_text_atomic
+        write_text_atomic(args.json, json.dumps(metrics.as_dict(), indent=2))
     if args.plot:
         first = int(np.argmin(np.abs(ground_truth[0] - estimate[0][0])))
         aligned_truth = relative_to_first(ground_truth[1][first:])

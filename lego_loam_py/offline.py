@@ -29,7 +29,7 @@ from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix
 from lego_loam_py.core.image_projection import ImageProjection, InputError, prepare_input
 from lego_loam_py.core.imu import imu_sample
-from lego_loam_py.core.io import write_tum_atomic
+from lego_loam_py.core.io import write_text_atomic, write_tum_atomic
 from lego_loam_py.core.map_optimization import MapOptimization
 from lego_loam_py.core.params import ParameterError, Params, load_params
 from lego_loam_py.core.pointcloud import CloudLayoutError
@@ -112,8 +112,15 @@ def run_bag(bag: str | Path, params: Params, *, cloud_topic: str | None = None, 
                 from tqdm import tqdm
                 bar = tqdm(total=min(total, max_scans or total), unit='scan', desc='run', file=sys.stderr,
                            dynamic_ncols=True, mininterval=0.5)
+            first_ns = None
             try:
                 for message in reader.messages(topics=wanted):
+                    if message.topic == cloud_topic and max_scans is not None and \
+                            result.counts.get('scans_in', 0) >= max_scans:
+                        # The data processed ends here: the real-time factor is about that part of the bag.
+                        result.bag_duration = (message.timestamp - first_ns) * 1e-9 if first_ns is not None else 0.0
+                        break
+                    first_ns = message.timestamp if first_ns is None else first_ns
                     msg = reader.deserialize(message)
                     stamp = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
                     if message.topic != cloud_topic:
@@ -123,8 +130,6 @@ def run_bag(bag: str | Path, params: Params, *, cloud_topic: str | None = None, 
                         back_end.add_imu(sample)
                         continue
                     result.count('scans_in')
-                    if max_scans is not None and result.counts['scans_in'] > max_scans:
-                        break
                     _one_scan(msg, stamp, params, ip, fa, back_end, result)
                     if mapping and lc.loop_closure_enable_flag:
                         if next_loop_check is None:
@@ -161,6 +166,13 @@ def _one_scan(msg, stamp: int, params: Params, ip, fa, back_end: '_BackEnd', res
     features = fa.process(ScanInput(stamp, segmentation.segmented_cloud, segmentation.cloud_info,
                                     segmentation.outlier_cloud, segmentation.segmented_time))
     result.time('featureAssociation', (time.perf_counter() - t1) * 1e3)
+    problem = fa.health_problem()
+    if problem is not None:   # the same self-check as the node's: start the odometry again, keep the pose
+        fa.restart()
+        result.count('state_resets')
+        result.count('scans_dropped')
+        print(f'warning: scan at {stamp * 1e-9:.3f} s: {problem}: odometry restarted', file=sys.stderr)
+        return
     result.count('scans_processed')
     if features.imu_used:
         result.count('scans_with_imu')
@@ -218,7 +230,12 @@ class _BackEnd:
             # CPU time of the thread: on the worker, wall time would also count the waits for the GIL while
             # the main thread runs the next scans.
             t = time.thread_time()
-            return self.mo.process(stamp, *inputs), (time.thread_time() - t) * 1e3
+            mapped = self.mo.process(stamp, *inputs)
+            problem = self.mo.health_problem() if mapped is not None else None
+            if problem is not None:   # the same self-check as the node's: reset what is poisoned, keep the map
+                print(f'warning: mapping step at {stamp * 1e-9:.3f} s: {problem}: {self.mo.heal()}', file=sys.stderr)
+                mapped = None
+            return mapped, (time.thread_time() - t) * 1e3
 
         self._events.append(('map', stamp, self._submit(step)))
 
@@ -281,8 +298,10 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
     out.mkdir(parents=True, exist_ok=True)
     poses_camera_init = np.asarray(poses_camera_init).reshape(-1, 4, 4)
     poses_map = np.array([camera_pose_to_lidar(p) for p in poses_camera_init]).reshape(-1, 4, 4)
-    write_tum_atomic(out / 'trajectory.tum', stamps, poses_map)
-    write_tum_atomic(out / 'trajectory_camera_init.tum', stamps, poses_camera_init)
+    summary['poses'] = int(len(poses_map))
+    if len(poses_map):   # (no pose, no file: an empty trajectory file would look like a broken one)
+        write_tum_atomic(out / 'trajectory.tum', stamps, poses_map)
+        write_tum_atomic(out / 'trajectory_camera_init.tum', stamps, poses_camera_init)
     summary['trajectory_length_m'] = path_length(poses_map)
     map_points = None
     if mapper is not None and mapper.keyframes:
@@ -297,14 +316,19 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
         map_points = read_pcd(Path(map_dir) / 'global_map.pcd')
     ground_truth = load_ground_truth(bag)
     trajectories = {'lego_loam_py': poses_map}
-    if ground_truth is not None and len(stamps) > 1:
+    if ground_truth is not None and len(stamps) < 3:
+        summary['accuracy_error'] = (f'not evaluated: {len(stamps)} pose(s); the evaluation needs at least 3 (the '
+                                     'first scan only initialises the odometry)')
+    elif ground_truth is not None:
         gt_stamps, gt_poses = ground_truth
         try:
             metrics = evaluate((gt_stamps, gt_poses), (stamps, poses_map))
             summary['accuracy'] = metrics.as_dict()
         except ValueError as exc:
             summary['accuracy_error'] = str(exc)
+    if ground_truth is not None and len(stamps):
         # Show the ground truth in the estimate's frame (both start at identity at the first scan).
+        gt_stamps, gt_poses = ground_truth
         first = np.argmin(np.abs(gt_stamps - stamps[0]))
         trajectories = {'ground truth': np.linalg.inv(gt_poses[first])[None] @ gt_poses, **trajectories}
     if map_points is not None and len(map_points) and len(stamps):
@@ -315,7 +339,7 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
                                            p90_m=float(np.percentile(distance, 90)), points=int(len(distance)))
     summary['png'] = str(plot_trajectories(out / 'trajectory.png', trajectories, map_points,
                                            title=f'{Path(bag).name}: trajectory over the map (top view)'))
-    (out / 'summary.json').write_text(json.dumps(summary, indent=2, default=float))
+    write_text_atomic(out / 'summary.json', json.dumps(summary, indent=2, default=float))
     return summary
 
 
@@ -360,8 +384,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
                         help='override one parameter, e.g. -p loop_closure.loop_closure_enable_flag:=true')
     parser.add_argument('--no-imu', action='store_true', help='ignore the IMU topic')
-    parser.add_argument('--max-scans', type=int, default=None, help='stop after this many scans')
+    parser.add_argument('--max-scans', type=_positive_int, default=None, help='stop after this many scans')
     parser.add_argument('--no-progress', action='store_true', help='no progress bar')
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f'must be at least 1, got {value}')
+    return value
 
 
 def parse_overrides(items: list[str]) -> dict:
@@ -394,5 +425,6 @@ def main(args: argparse.Namespace) -> int:
                    realtime_factor=result.bag_duration / result.wall_time if result.wall_time > 0 else float('nan'))
     summary = write_outputs(out, args.bag, stamps, np.array(result.integrated), result.mapper, summary, params)
     print(format_summary(summary))
-    print(f'outputs in {out}/: trajectory.tum, trajectory_camera_init.tum, map/*.pcd, trajectory.png, summary.json')
+    written = sorted(p.name + ('/' if p.is_dir() else '') for p in out.iterdir() if not p.name.startswith('.'))
+    print(f'outputs in {out}/: {", ".join(written)}')
     return 0

@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 __all__ = ['write_tum_atomic', 'read_tum', 'tum_lines', 'write_pcd_atomic', 'read_pcd', 'atomic_path',
-           'remove_stale_temporaries']
+           'remove_stale_temporaries', 'current_umask', 'CoalescingRunner', 'write_text_atomic']
 
 
 class atomic_path:
@@ -41,10 +41,88 @@ class atomic_path:
         if exc_type is None:
             with open(self.temporary, 'rb') as f:
                 os.fsync(f.fileno())
+            # mkstemp creates 0600; the file a user gets has the mode any other tool would give it.
+            os.chmod(self.temporary, 0o666 & ~current_umask())
             os.replace(self.temporary, self.target)
             _fsync_directory(self.target.parent)
         else:
             self.temporary.unlink(missing_ok=True)
+
+
+def write_text_atomic(path: str | Path, text: str) -> Path:
+    """Write a text file (a summary, statistics) under a temporary name and rename it into place."""
+    with atomic_path(path) as temporary:
+        temporary.write_text(text)
+    return Path(path)
+
+
+def current_umask() -> int:
+    """The process's umask, read without changing it (os.umask can only be read by setting it, which races
+    with other threads creating files); falls back to that on systems without /proc."""
+    try:
+        for line in Path('/proc/self/status').read_text().splitlines():
+            if line.startswith('Umask:'):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+class CoalescingRunner:
+    """Runs ``job`` on a worker thread when asked, one run at a time, and coalesces requests.
+
+    :meth:`request` returns a :class:`concurrent.futures.Future` of a run's result (or its exception). With no
+    run going on, a run starts at once; a request made while one is going on is answered by the next run,
+    which starts as soon as the current one ends and serves every request made meanwhile. Twenty callers at
+    once therefore cost two runs, and each gets a result from a run that started after it asked (or the one
+    going on when it asked).
+    """
+
+    def __init__(self, job, name: str = 'job'):
+        import threading
+
+        self._job = job
+        self._name = name
+        self._lock = threading.Lock()
+        self._running = None     # the Future of the run going on
+        self._next = None        # the Future shared by the requests made meanwhile
+        self.runs = 0
+
+    def request(self):
+        from concurrent.futures import Future
+
+        with self._lock:
+            if self._running is None:
+                self._running = Future()
+                self._start(self._running)
+                return self._running
+            if self._next is None:
+                self._next = Future()
+            return self._next
+
+    def _start(self, future) -> None:
+        import threading
+
+        self.runs += 1
+        threading.Thread(target=self._run, args=(future,), name=f'{self._name} run {self.runs}', daemon=True).start()
+
+    def _run(self, future) -> None:
+        try:
+            result = self._job()
+        except BaseException as exc:   # handed to every caller
+            future.set_exception(exc)
+        else:
+            future.set_result(result)
+        with self._lock:
+            self._running, self._next = self._next, None
+            if self._running is not None:
+                self._start(self._running)
+
+    def busy(self) -> bool:
+        with self._lock:
+            return self._running is not None
 
 
 def _fsync_directory(directory: Path) -> None:
