@@ -24,6 +24,22 @@ def ros_domain(monkeypatch):
         yield domain_id
 
 
+@pytest.fixture(scope='module')
+def context():
+    """An rclpy context of its own on a leased domain, shared by a module's in-process tests (nodes whose handlers are
+    called directly)."""
+    import rclpy
+    from rclpy.context import Context
+
+    from tests.support.domains import DomainLease
+
+    with DomainLease() as domain_id:
+        ctx = Context()
+        rclpy.init(context=ctx, domain_id=domain_id)
+        yield ctx
+        rclpy.try_shutdown(context=ctx)
+
+
 @pytest.fixture
 def rclpy_context(ros_domain):
     """An initialised rclpy context of its own on the test's domain; shut down afterwards."""

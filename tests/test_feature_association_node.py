@@ -150,7 +150,7 @@ def test_bad_cloud_info_is_dropped_and_a_time_jump_resets(rclpy_context, process
     send(results[0], t0, lambda: t0 in finished)                                       # initialisation
     bad = cloud_info_to_msg(results[1].cloud_info, make_header(t0 + 100_000_000, 'v'))
     bad.segmented_cloud_range = bad.segmented_cloud_range[:10]      # shorter than the cloud
-    send(results[1], t0 + 100_000_000, logged('shorter than the segmented cloud'), bad)
+    send(results[1], t0 + 100_000_000, logged('segmented_cloud_range length = 10, shorter than'), bad)
     send(results[1], t0 + 200_000_000, lambda: t0 + 200_000_000 in finished)          # good: odometry
     send(results[1], t0 + 150_000_000, logged('out of order'))                         # out of order: dropped
     send(results[0], t0 - 10_000_000_000, logged('is held'))                           # 10 s back: held ...
@@ -160,6 +160,6 @@ def test_bad_cloud_info_is_dropped_and_a_time_jump_resets(rclpy_context, process
     assert fa.poll() is None
     processes.stop(fa)
     err = log_path.read_text()
-    assert 'shorter than the segmented cloud' in err and 'out of order' in err and 'odometry reset' in err
+    assert 'segmented_cloud_range length = 10, shorter than' in err and 'out of order' in err and 'odometry reset' in err
     assert 'Traceback' not in err
     release(node)

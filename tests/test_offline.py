@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from lego_loam_py.core.io import read_pcd, read_tum
 from lego_loam_py.core.params import Params
@@ -64,3 +65,68 @@ def test_a_bag_without_the_cloud_topic_fails_clearly(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 1
     assert 'no /no_such_points topic' in done.stderr and 'Traceback' not in done.stderr
+
+
+def _first_scans(target: Path, scans: int) -> Path:
+    """A recording with the first ``scans`` clouds of the committed bag (and the IMU samples before them), its
+    ground truth beside it; with 0 scans the cloud topic is there without a message."""
+    import shutil
+
+    from lego_loam_py.bag.io import BagReader, BagWriter
+
+    with BagReader(BAG) as reader, BagWriter(target) as writer:
+        topics = reader.topics()
+        writer.add_topic('/velodyne_points', topics['/velodyne_points'])
+        clouds = 0
+        for message in reader.messages():
+            if message.topic == '/velodyne_points':
+                if clouds == scans:
+                    break
+                clouds += 1
+            writer.write_raw(message.topic, message.msgtype, message.timestamp, message.data)
+    shutil.copy(BAG / 'ground_truth.tum', target / 'ground_truth.tum')
+    shutil.copy(BAG / 'scenario.yaml', target / 'scenario.yaml')
+    return target
+
+
+@pytest.mark.parametrize('scans', [0, 1, 2])
+def test_run_on_a_recording_of_a_few_scans_writes_complete_readable_files(tmp_path, scans):
+    """0, 1 or 2 scans: exit 0, what could be computed is written completely (no empty or partial file), what
+    could not (an evaluation needs 3 poses) is said in the summary; every file readable by others (umask 022)."""
+    import os
+    import stat
+
+    bag = _first_scans(tmp_path / f'scans_{scans}', scans)
+    out = tmp_path / 'out'
+    done = subprocess.run([str(CLI), 'run', str(bag), '-o', str(out), '--no-progress'], capture_output=True,
+                          text=True, timeout=300, preexec_fn=lambda: os.umask(0o022))
+    assert done.returncode == 0, done.stderr
+    assert 'Traceback' not in done.stderr and 'not evaluated' in done.stdout
+    summary = json.loads((out / 'summary.json').read_text())
+    assert summary['counts'].get('scans_in', 0) == scans and summary['poses'] == max(0, scans - 1)
+    assert 'evaluation needs at least 3' in summary['accuracy_error']
+    files = [p for p in out.rglob('*') if p.is_file()]
+    assert files and not [p for p in files if p.stat().st_size == 0 or '.tmp' in p.name]
+    assert all(stat.S_IMODE(p.stat().st_mode) == 0o644 for p in files), {p.name: oct(p.stat().st_mode) for p in files}
+    assert (out / 'trajectory.tum').exists() == (scans >= 2)
+    if scans >= 2:
+        assert len(read_tum(out / 'trajectory.tum')[0]) == scans - 1
+        assert len(read_pcd(out / 'map' / 'global_map.pcd')) > 100
+
+
+def test_files_are_written_with_the_users_umask(tmp_path):
+    """Atomic writes go through a temporary file (mode 0600 when created): the result has the mode any other
+    tool would give it."""
+    import os
+    import stat
+
+    from lego_loam_py.core.io import write_text_atomic, write_tum_atomic
+
+    previous = os.umask(0o027)
+    try:
+        write_text_atomic(tmp_path / 'a.json', '{}')
+        write_tum_atomic(tmp_path / 'a.tum', np.array([1]), np.eye(4)[None])
+    finally:
+        os.umask(previous)
+    assert stat.S_IMODE((tmp_path / 'a.json').stat().st_mode) == 0o640
+    assert stat.S_IMODE((tmp_path / 'a.tum').stat().st_mode) == 0o640

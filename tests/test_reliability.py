@@ -27,11 +27,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tests.support.inprocess import CAMPUS, campus_messages, make_node, pipeline_outputs, restamped, stamp_of
 from tests.support.ros import Diagnostics, publish_in_lockstep, release, spin_until, wait_for_line
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
-CAMPUS = REPO / 'bags' / 'campus_8s'
 FUZZ_EXAMPLES = int(os.environ.get('LEGO_LOAM_FUZZ_EXAMPLES', '0'))
 TRIED: Counter = Counter()   # fuzz inputs per entry point
 
@@ -54,145 +54,6 @@ def fuzz_report():
 
 
 # ------------------------------------------------------------------------------------------ in-process nodes
-
-@pytest.fixture(scope='module')
-def context():
-    """An rclpy context of its own on a leased domain, shared by the in-process tests of this module."""
-    import rclpy
-    from rclpy.context import Context
-
-    from tests.support.domains import DomainLease
-
-    with DomainLease() as domain_id:
-        ctx = Context()
-        rclpy.init(context=ctx, domain_id=domain_id)
-        yield ctx
-        rclpy.try_shutdown(context=ctx)
-
-
-class Recorder:
-    """Installed on a node: records its warnings and errors, and what its publishers publish."""
-
-    def __init__(self, node):
-        self.node = node
-        self.warnings: list[tuple[str, str]] = []
-        self.errors: list[tuple[str, str]] = []
-        self.published: dict[str, list] = {}
-        warn, error = node.warn, node.error
-
-        def record_warn(key, text, period=None):
-            self.warnings.append((key, text))
-            warn(key, text, period)
-
-        def record_error(key, text):
-            self.errors.append((key, text))
-            error(key, text)
-
-        node.warn, node.error = record_warn, record_error
-        for publisher in node.publishers:
-            if publisher.topic_name in ('/tf', '/tf_static', '/rosout', '/parameter_events'):
-                continue
-            store = self.published.setdefault(publisher.topic_name, [])
-            original = publisher.publish
-
-            def publish(msg, _store=store, _original=original):
-                _store.append(msg)
-                _original(msg)
-
-            publisher.publish = publish
-
-    def out(self, topic: str) -> list:
-        return self.published.get(topic, [])
-
-    def mark(self):
-        return len(self.warnings), len(self.errors), {t: len(v) for t, v in self.published.items()}
-
-
-def make_node(context, cls, tmp_path=None, **overrides):
-    from rclpy.parameter import Parameter
-
-    values = dict(overrides)
-    if tmp_path is not None:
-        values.setdefault('map_optimization.file_directory', str(tmp_path))
-    node = cls(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])
-    return node, Recorder(node)
-
-
-# ------------------------------------------------------------------------------------------- sample inputs
-
-_CACHE: dict = {}
-
-
-def campus_messages(seconds: float = 3.0) -> list[tuple[str, object]]:
-    """(topic, rclpy message) of the first seconds of bags/campus_8s, in recording order."""
-    key = ('campus', seconds)
-    if key not in _CACHE:
-        from rclpy.serialization import deserialize_message
-        from sensor_msgs.msg import Imu, PointCloud2
-
-        from lego_loam_py.bag.io import BagReader
-
-        out = []
-        with BagReader(CAMPUS) as reader:
-            end = reader.start_time + int(seconds * 1e9)
-            for m in reader.messages():
-                if m.timestamp > end:
-                    break
-                cls = PointCloud2 if m.topic == '/velodyne_points' else Imu
-                out.append((m.topic, deserialize_message(bytes(m.data), cls)))
-        _CACHE[key] = out
-    return _CACHE[key]
-
-
-def pipeline_outputs(context, tmp_path) -> dict:
-    """imageProjection's and featureAssociation's messages for the first 3 s of the campus bag."""
-    if 'outputs' in _CACHE:
-        return _CACHE['outputs']
-    from lego_loam_py.ros.feature_association_node import FeatureAssociationNode
-    from lego_loam_py.ros.image_projection_node import ImageProjectionNode
-
-    ip, ip_rec = make_node(context, ImageProjectionNode)
-    fa, fa_rec = make_node(context, FeatureAssociationNode)
-    for topic, msg in campus_messages():
-        if topic == '/imu/data':
-            fa.on_imu(msg)
-            continue
-        before = len(ip_rec.out('/segmented_cloud'))
-        ip.on_cloud(msg)
-        if len(ip_rec.out('/segmented_cloud')) > before:
-            fa.on_part('cloud', ip_rec.out('/segmented_cloud')[-1])
-            fa.on_part('info', ip_rec.out('/segmented_cloud_info')[-1])
-            fa.on_part('outlier', ip_rec.out('/outlier_cloud')[-1])
-    outputs = dict(
-        clouds=[m for t, m in campus_messages() if t == '/velodyne_points'],
-        imu=[m for t, m in campus_messages() if t == '/imu/data'],
-        segmented=list(ip_rec.out('/segmented_cloud')), info=list(ip_rec.out('/segmented_cloud_info')),
-        outlier=list(ip_rec.out('/outlier_cloud')), odometry=list(fa_rec.out('/laser_odom_to_init')),
-        corner_last=list(fa_rec.out('/laser_cloud_corner_last')), surf_last=list(fa_rec.out('/laser_cloud_surf_last')),
-        outlier_last=list(fa_rec.out('/outlier_cloud_last')))
-    assert len(outputs['segmented']) == len(outputs['clouds']) and not ip_rec.errors and not fa_rec.errors
-    assert len(outputs['corner_last']) >= 10
-    ip.destroy_node()
-    fa.destroy_node()
-    _CACHE['outputs'] = outputs
-    return outputs
-
-
-def stamp_of(msg) -> int:
-    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-
-
-def restamped(msg, stamp_ns: int):
-    """A copy of ``msg`` with another header stamp (messages are shared between tests: never mutate them)."""
-    import copy
-
-    from lego_loam_py.ros.conversions import ns_to_stamp
-
-    out = copy.copy(msg)
-    out.header = copy.copy(msg.header)
-    out.header.stamp = ns_to_stamp(stamp_ns)
-    return out
-
 
 class Short(tuple):
     """A tuple of messages with a short repr (hypothesis prints failing inputs; messages print megabytes)."""
@@ -446,7 +307,7 @@ def test_fuzz_feature_association_inputs(context, tmp_path):
         assert_handled(rec, before, 'scan', None)
         # processed, dropped with a warning, or held (it came more than 1 s after the last processed scan)
         assert fa.counters.get('scans', 0) > scans or len(rec.warnings) > before[0] or fa.order.holding
-        assert fa._state_is_finite()
+        assert fa.core.health_problem() is None
         for msg in rec.out('/laser_odom_to_init')[before[2].get('/laser_odom_to_init', 0):]:
             p = msg.pose.pose.position
             assert np.isfinite([p.x, p.y, p.z]).all()
@@ -561,7 +422,7 @@ def test_fuzz_odometry(context, tmp_path):
         stamp = stamp_to_ns(msg.header.stamp)
         for name, key in (('corner', 'corner_last'), ('surf', 'surf_last'), ('outlier', 'outlier_last')):
             mo.on_part(name, restamped(outputs[key][k], stamp))
-        mo.on_part('odometry', msg)
+        mo.on_odometry(msg, {})
         assert not mo_rec.errors
 
     check()
@@ -664,8 +525,8 @@ def test_a_failing_callback_is_logged_and_the_node_keeps_serving(context):
     subscription.callback(String(data='y'))
     assert ip.counters['callback_errors'] == 2
     assert len(rec.errors) == 2
-    # error() logs through warn() with the traceback appended, so the cause is in the log
-    assert any('RuntimeError: boom' in text for _, text in rec.warnings)
+    # error() logs through warn() at error level with the traceback appended, so the cause is in the log
+    assert any('RuntimeError: boom' in text for _, text in rec.errors)
     timer = ip.create_timer(1000.0, lambda: 1 / 0)
     timer.callback()
     assert ip.counters['callback_errors'] == 3
