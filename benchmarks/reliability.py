@@ -31,7 +31,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from lego_loam_py.core.io import pcd_is_complete, tum_is_complete  # noqa: E402
 from tests.support.domains import DomainLease  # noqa: E402
+from tests.support.measure import rss_mb  # noqa: E402
+from tests.support.ros import spin_in_background  # noqa: E402
 
 BIN = Path(sys.executable).parent
 NODES = ('imageProjection', 'featureAssociation', 'mapOptimization', 'transformFusion')
@@ -39,16 +42,6 @@ OUTPUTS = {'imageProjection': '/segmented_cloud', 'featureAssociation': '/laser_
            'mapOptimization': '/aft_mapped_to_init', 'transformFusion': '/integrated_to_init'}
 MAP_FILES = ('global_map.pcd', 'corner_map.pcd', 'surface_map.pcd', 'trajectory.pcd', 'trajectory.tum',
              'trajectory_camera_init.tum')
-
-
-def rss_mb(pid: int) -> float:
-    try:
-        for line in Path(f'/proc/{pid}/status').read_text().splitlines():
-            if line.startswith('VmRSS:'):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return float('nan')
 
 
 def campus_bag() -> Path:
@@ -93,8 +86,7 @@ class Pipeline:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._stop = threading.Event()
-        self._spinner = threading.Thread(target=self._spin, daemon=True)
-        self._spinner.start()
+        self._spinner = spin_in_background(self.executor, self._stop)
         self.memory: list[tuple[float, dict[str, float]]] = []
         self.sample_period = sample_period
         self._sampler = threading.Thread(target=self._sample, daemon=True)
@@ -118,15 +110,6 @@ class Pipeline:
                     _store.append((time.monotonic(), _stamp(msg)))
                 cls, depth = (Odometry if 'init' in topic else PointCloud2), 100
             self.node.create_subscription(cls, topic, callback, qos.reliable(depth))
-
-    def _spin(self) -> None:
-        while not self._stop.is_set():
-            try:
-                self.executor.spin_once(timeout_sec=0.05)
-            except Exception:
-                if self._stop.is_set():
-                    return
-                raise
 
     def _sample(self) -> None:
         while not self._stop.wait(self.sample_period):
@@ -396,22 +379,6 @@ def faults(args) -> dict:
     return summary
 
 
-def _pcd_complete(path: Path) -> bool:
-    data = path.read_bytes()
-    end = data.find(b'DATA binary\n')
-    if end < 0:
-        return False
-    header = dict(line.split(' ', 1) for line in data[:end].decode().splitlines() if ' ' in line)
-    sizes = [int(v) for v in header['SIZE'].split()]
-    counts = [int(v) for v in header.get('COUNT', ' '.join('1' * len(sizes))).split()]
-    return len(data) - end - len(b'DATA binary\n') == int(header['POINTS']) * sum(a * b for a, b in zip(sizes, counts))
-
-
-def _tum_complete(path: Path) -> bool:
-    text = path.read_text()
-    return text == '' or (text.endswith('\n') and all(len(line.split()) == 8 for line in text.splitlines()))
-
-
 def _kill_during_saves(run: Pipeline, trials: int) -> dict:
     """Call save_map and SIGKILL mapOptimization the moment (plus 0-5 ms) a temporary map file appears; check
     that every map file is complete (the previous version or the new one) and that the restarted node
@@ -454,7 +421,7 @@ def _kill_during_saves(run: Pipeline, trials: int) -> dict:
             if path.name.startswith('.'):
                 continue
             outcome['files_checked'] += 1
-            complete = _pcd_complete(path) if path.suffix == '.pcd' else _tum_complete(path)
+            complete = pcd_is_complete(path) if path.suffix == '.pcd' else tum_is_complete(path)
             if not complete:   # (a complete file is the previous version or the new one)
                 outcome['partial_files'] += 1
         run.start('mapOptimization')

@@ -27,7 +27,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tests.support.inprocess import CAMPUS, campus_messages, make_node, pipeline_outputs, restamped, stamp_of
+from lego_loam_py.core.io import pcd_is_complete, tum_is_complete
+from tests.support.inprocess import (CAMPUS, campus_messages, make_node, mapping_inputs, mapping_publishers,
+                                     pipeline_outputs, restamped, stamp_of)
+from tests.support.measure import rss_mb
 from tests.support.ros import Diagnostics, publish_in_lockstep, release, spin_until, wait_for_line
 
 REPO = Path(__file__).resolve().parents[1]
@@ -443,10 +446,7 @@ def test_fuzz_mapping_inputs(context, tmp_path):
     outputs = pipeline_outputs(context, tmp_path)
     mo, rec = make_node(context, MapOptimizationNode, tmp_path)
     n = min(len(outputs['corner_last']), len(outputs['odometry']))
-    odometry_by_stamp = {stamp_of(m): m for m in outputs['odometry']}
-    inputs = [(c, s, o, odometry_by_stamp[stamp_of(c)])
-              for c, s, o in zip(outputs['corner_last'], outputs['surf_last'], outputs['outlier_last'])
-              if stamp_of(c) in odometry_by_stamp]
+    inputs = mapping_inputs(outputs)
     assert len(inputs) >= 8, n
     clock = {'t': 200_000_000_000, 'k': 0}
 
@@ -737,10 +737,7 @@ def test_mapping_resets_after_a_loop_and_keeps_the_map_on_disk(context, tmp_path
 
     outputs = pipeline_outputs(context, tmp_path)
     mo, rec = make_node(context, MapOptimizationNode, tmp_path / 'maps')
-    odometry_by_stamp = {stamp_of(m): m for m in outputs['odometry']}
-    inputs = [(c, s, o, odometry_by_stamp[stamp_of(c)])
-              for c, s, o in zip(outputs['corner_last'], outputs['surf_last'], outputs['outlier_last'])
-              if stamp_of(c) in odometry_by_stamp]
+    inputs = mapping_inputs(outputs)
 
     def send(parts, offset=0):
         stamp = stamp_of(parts[0]) + offset
@@ -774,10 +771,7 @@ def test_mapping_reanchors_a_restarted_odometry(context, tmp_path):
 
     outputs = pipeline_outputs(context, tmp_path)
     mo, rec = make_node(context, MapOptimizationNode, tmp_path)
-    odometry_by_stamp = {stamp_of(m): m for m in outputs['odometry']}
-    inputs = [(c, s, o, odometry_by_stamp[stamp_of(c)])
-              for c, s, o in zip(outputs['corner_last'], outputs['surf_last'], outputs['outlier_last'])
-              if stamp_of(c) in odometry_by_stamp]
+    inputs = mapping_inputs(outputs)
 
     def send(parts, stamp, odometry_pose=None, publisher=b'first'):
         odometry = parts[3]
@@ -896,17 +890,6 @@ def test_stale_temporary_files_of_a_killed_save_are_removed(tmp_path, processes)
 # ---------------------------------------------------------------------------------------- DDS: processes
 
 NODES = ('imageProjection', 'featureAssociation', 'mapOptimization', 'transformFusion')
-
-
-def rss_mb(pid: int) -> float:
-    """Resident memory of a process [MB] (psutil is not installed: /proc)."""
-    try:
-        for line in Path(f'/proc/{pid}/status').read_text().splitlines():
-            if line.startswith('VmRSS:'):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return 0.0
 
 
 class NodeProcesses:
@@ -1131,34 +1114,13 @@ def test_the_pipeline_recovers_when_a_node_is_killed_and_restarted(rclpy_context
     release(node)
 
 
-def pcd_is_complete(path: Path) -> bool:
-    """A binary PCD whose size matches its header (POINTS x the field sizes), as our writer produces."""
-    data = path.read_bytes()
-    end = data.find(b'DATA binary\n')
-    if not data.startswith(b'# .PCD') and not data.startswith(b'VERSION') or end < 0:
-        return False
-    header = dict(line.split(' ', 1) for line in data[:end].decode().splitlines() if ' ' in line)
-    sizes = [int(v) for v in header['SIZE'].split()]
-    counts = [int(v) for v in header.get('COUNT', ' '.join('1' * len(sizes))).split()]
-    expected = int(header['POINTS']) * sum(s * c for s, c in zip(sizes, counts))
-    return len(data) - end - len(b'DATA binary\n') == expected
-
-
-def tum_is_complete(path: Path) -> bool:
-    text = path.read_text()
-    return text == '' or (text.endswith('\n') and all(len(line.split()) == 8 for line in text.splitlines()))
-
-
 def test_map_files_are_complete_after_sigkill_during_a_save(rclpy_context, processes, tmp_path):
     """mapOptimization killed with SIGKILL in the middle of writing its map: every file is the previous complete
     version or the new complete one, never partial; the restarted node removes the killed writer's temporaries."""
     import rclpy
     from cloud_msgs.msg import CloudInfo  # noqa: F401 (type support loaded before the node starts)
-    from nav_msgs.msg import Odometry
-    from sensor_msgs.msg import PointCloud2
     from std_srvs.srv import Trigger
 
-    from lego_loam_py.ros import qos
     from lego_loam_py.ros.map_optimization_node import MAP_FILE_STEMS
 
     outputs = pipeline_outputs(rclpy_context, tmp_path)
@@ -1166,17 +1128,12 @@ def test_map_files_are_complete_after_sigkill_during_a_save(rclpy_context, proce
     nodes = NodeProcesses(processes, tmp_path, map_optimization__file_directory=maps)
     node = rclpy.create_node('save_killer', context=rclpy_context)
     diagnostics = Diagnostics(node)
-    pubs = {name: node.create_publisher(cls, topic, qos.reliable(10)) for name, cls, topic in (
-        ('corner', PointCloud2, '/laser_cloud_corner_last'), ('surf', PointCloud2, '/laser_cloud_surf_last'),
-        ('outlier', PointCloud2, '/outlier_cloud_last'), ('odometry', Odometry, '/laser_odom_to_init'))}
+    pubs = mapping_publishers(node)
     nodes.start('mapOptimization')
     client = node.create_client(Trigger, 'save_map')
     assert client.wait_for_service(timeout_sec=30)
     assert spin_until(rclpy_context, node, lambda: all(p.get_subscription_count() for p in pubs.values()), 20)
-    odometry_by_stamp = {stamp_of(m): m for m in outputs['odometry']}
-    inputs = [(c, s, o, odometry_by_stamp[stamp_of(c)])
-              for c, s, o in zip(outputs['corner_last'], outputs['surf_last'], outputs['outlier_last'])
-              if stamp_of(c) in odometry_by_stamp]
+    inputs = mapping_inputs(outputs)
 
     def feed(parts_list):
         for parts in parts_list:
@@ -1233,6 +1190,77 @@ def test_map_files_are_complete_after_sigkill_during_a_save(rclpy_context, proce
     nodes.stop_all()
     assert 'Traceback' not in nodes.log('mapOptimization')
     release(node)
+
+
+def test_save_map_answers_twenty_concurrent_callers_with_at_most_two_saves(rclpy_context, processes, tmp_path):
+    """20 clients call save_map at once while mapOptimization maps: every one gets an answer from a save that
+    started after it asked or was going on (coalesced: two saves), and the files are complete."""
+    import rclpy
+    from cloud_msgs.msg import CloudInfo  # noqa: F401 (type support loaded before the node starts)
+    from std_srvs.srv import Trigger
+
+    outputs = pipeline_outputs(rclpy_context, tmp_path)
+    maps = tmp_path / 'maps'
+    nodes = NodeProcesses(processes, tmp_path, map_optimization__file_directory=maps)
+    node = rclpy.create_node('save_callers', context=rclpy_context)
+    diagnostics = Diagnostics(node)
+    pubs = mapping_publishers(node)
+    nodes.start('mapOptimization')
+    clients = [node.create_client(Trigger, 'save_map') for _ in range(20)]
+    assert all(client.wait_for_service(timeout_sec=30) for client in clients)
+    assert spin_until(rclpy_context, node, lambda: all(p.get_subscription_count() for p in pubs.values()), 20)
+    inputs = mapping_inputs(outputs)
+    for parts in inputs[:len(inputs) // 2]:
+        for name, msg in zip(('corner', 'surf', 'outlier', 'odometry'), parts):
+            pubs[name].publish(msg)
+        spin_until(rclpy_context, node, lambda: False, 0.1)
+    assert spin_until(rclpy_context, node, lambda: diagnostics.counter('mapOptimization', 'keyframes') >= 1, 60)
+    futures = [client.call_async(Trigger.Request()) for client in clients]
+    for parts in inputs[len(inputs) // 2:]:   # mapping goes on meanwhile
+        for name, msg in zip(('corner', 'surf', 'outlier', 'odometry'), parts):
+            pubs[name].publish(msg)
+        spin_until(rclpy_context, node, lambda: False, 0.05)
+    assert spin_until(rclpy_context, node, lambda: all(f.done() for f in futures), 90), \
+        f'{sum(f.done() for f in futures)} of 20 answered: {nodes.log("mapOptimization")[-2000:]}'
+    assert all(f.result().success for f in futures), [f.result().message for f in futures]
+    assert spin_until(rclpy_context, node, lambda: diagnostics.counter('mapOptimization', 'save_requests') >= 20, 10)
+    assert 1 <= diagnostics.counter('mapOptimization', 'saves') <= 2
+    for name in ('global_map.pcd', 'corner_map.pcd', 'surface_map.pcd', 'trajectory.pcd'):
+        assert pcd_is_complete(maps / name), name
+    assert tum_is_complete(maps / 'trajectory.tum')
+    nodes.stop_all()
+    assert 'Traceback' not in nodes.log('mapOptimization')
+    release(node)
+
+
+def test_coalescing_runner_serves_every_caller_with_at_most_two_runs():
+    import threading
+
+    from lego_loam_py.core.io import CoalescingRunner
+
+    release_job, started = threading.Event(), threading.Event()
+
+    def job():
+        started.set()
+        release_job.wait(10)
+        return runner.runs
+
+    runner = CoalescingRunner(job, 'test')
+    first = runner.request()
+    assert started.wait(10)
+    later = [runner.request() for _ in range(19)]   # while the first run is going on: they share the next
+    assert all(f is later[0] for f in later) and not later[0].done()
+    release_job.set()
+    assert first.result(10) == 1 and all(f.result(10) == 2 for f in later)
+    assert runner.runs == 2 and not runner.busy()
+
+    def failing():
+        raise OSError('disk full')
+
+    broken = CoalescingRunner(failing)
+    with pytest.raises(OSError, match='disk full'):
+        broken.request().result(10)
+    assert broken.request().exception(10) is not None   # and it keeps answering
 
 
 def test_a_burst_of_clouds_keeps_queues_and_memory_bounded(rclpy_context, processes, tmp_path):

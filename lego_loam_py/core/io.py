@@ -15,7 +15,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 __all__ = ['write_tum_atomic', 'read_tum', 'tum_lines', 'write_pcd_atomic', 'read_pcd', 'atomic_path',
-           'remove_stale_temporaries', 'current_umask', 'CoalescingRunner', 'write_text_atomic']
+           'remove_stale_temporaries', 'current_umask', 'CoalescingRunner', 'write_text_atomic', 'pcd_is_complete',
+           'tum_is_complete']
 
 
 class atomic_path:
@@ -47,6 +48,29 @@ class atomic_path:
             _fsync_directory(self.target.parent)
         else:
             self.temporary.unlink(missing_ok=True)
+
+
+def pcd_is_complete(path: str | Path) -> bool:
+    """Whether a binary PCD file holds as many bytes as its header promises (POINTS x the point size): what a
+    writer killed halfway would not (ours never leave one: they write atomically)."""
+    data = Path(path).read_bytes()
+    end = data.find(b'DATA binary\n')
+    if end < 0 or not (data.startswith(b'# .PCD') or data.startswith(b'VERSION')):
+        return False
+    header = dict(line.split(' ', 1) for line in data[:end].decode(errors='replace').splitlines() if ' ' in line)
+    try:
+        sizes = [int(v) for v in header['SIZE'].split()]
+        counts = [int(v) for v in header.get('COUNT', ' '.join('1' * len(sizes))).split()]
+        expected = int(header['POINTS']) * sum(s * c for s, c in zip(sizes, counts))
+    except (KeyError, ValueError):
+        return False
+    return len(data) - end - len(b'DATA binary\n') == expected
+
+
+def tum_is_complete(path: str | Path) -> bool:
+    """Whether a TUM trajectory file is empty or holds only complete lines of 8 values."""
+    text = Path(path).read_text()
+    return text == '' or (text.endswith('\n') and all(len(line.split()) == 8 for line in text.splitlines()))
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:

@@ -30,7 +30,6 @@ from sensor_msgs.msg import Imu, PointCloud2
 from lego_loam_py.core import validation
 from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, LASER_ODOM_FRAME
-from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.core.imu import imu_sample
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
@@ -80,18 +79,12 @@ class FeatureAssociationNode(LegoLoamNode):
     def on_part(self, name: str, msg) -> None:
         """One of the three inputs: checked on its own (size first, then content) before it may join a set, so
         that a bad message can never take a valid scan's place among its partners."""
-        try:
-            self._check_size(name, msg)
-        except validation.InputRejected as exc:
-            self.count('scans_dropped')
-            self.warn('oversized', f'{INPUT_TOPICS[name]} dropped unread: {exc}')
-            self.reject_large(msg)
+        ok, _ = self.take(lambda: self._check_size(name, msg), 'scans_dropped',
+                          f'{INPUT_TOPICS[name]} dropped unread', 'oversized', msg)
+        if not ok:
             return
-        try:
-            decoded = self._decode(name, msg)
-        except (CloudLayoutError, ValueError) as exc:   # InputRejected is a ValueError
-            self.count('scans_dropped')
-            self.warn('bad_scan', f'scan dropped: {exc}')
+        ok, decoded = self.take(lambda: self._decode(name, msg), 'scans_dropped', 'scan dropped', 'bad_scan')
+        if not ok:
             return
         complete = self.add_part(self.sync, name, msg, self.params.feature_association.sync_tolerance,
                                  item=(msg, decoded))

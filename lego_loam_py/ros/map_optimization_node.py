@@ -39,7 +39,6 @@ from lego_loam_py.core.frames import (AFT_MAPPED_FRAME, CAMERA_INIT_FRAME, inver
 from lego_loam_py.core import validation
 from lego_loam_py.core.io import CoalescingRunner
 from lego_loam_py.core.map_optimization import MapOptimization, transform_cloud
-from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.core.imu import imu_sample
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
@@ -97,7 +96,7 @@ class MapOptimizationNode(LegoLoamNode):
         self.pub_corrected = self.create_publisher(PointCloud2, '/corrected_cloud', depth2)
         # Saves run on a worker thread, one at a time; callers during a save share the next one (see services.py).
         self.saves = CoalescingRunner(self._save_now, 'save_map')
-        create_deferred_service(self, Trigger, 'save_map', lambda _: self.saves.request(), _fill_save_response)
+        create_deferred_service(self, Trigger, 'save_map', self._save_requested, _fill_save_response)
         self.order = StampOrder(RESET_JUMP_NS)
         self._last_odometry: tuple[int, np.ndarray, object] | None = None   # (stamp, 4x4, publisher) last processed
         self._odometry_publisher: dict[int, object] = {}   # stamp -> publisher of recent odometry messages
@@ -127,34 +126,30 @@ class MapOptimizationNode(LegoLoamNode):
             self.on_odometry(msg, None)
             return
         if decoded is None:
-            try:
-                # A cloud derived from the range image holds at most one point per pixel: anything bigger is
-                # rejected on its header, before it is decoded.
-                validation.check_count(f'{INPUT_TOPICS[name]} points', int(msg.width) * int(msg.height),
-                                       validation.derived_points_limit(self.params), 'pixels of the range image')
-            except validation.InputRejected as exc:
-                self.count('inputs_dropped')
-                self.warn('oversized', f'mapping input dropped unread: {exc}')
-                self.reject_large(msg)
+            # A cloud derived from the range image holds at most one point per pixel: anything bigger is rejected
+            # on its header, before it is decoded.
+            ok, _ = self.take(lambda: validation.check_count(
+                f'{INPUT_TOPICS[name]} points', int(msg.width) * int(msg.height),
+                validation.derived_points_limit(self.params), 'pixels of the range image'),
+                'inputs_dropped', 'mapping input dropped unread', 'oversized', msg)
+            if not ok:
                 return
-            try:
-                decoded = cloud_msg_to_xyzi(msg)
-                validation.check_cloud(INPUT_TOPICS[name], decoded)
-            except (CloudLayoutError, ValueError) as exc:   # InputRejected is a ValueError
-                self.count('inputs_dropped')
-                self.warn('bad_input', f'mapping input dropped: {exc}')
+            ok, decoded = self.take(lambda: self._decode_cloud(name, msg), 'inputs_dropped', 'mapping input dropped')
+            if not ok:
                 return
         complete = self.add_part(self.sync, name, msg, item=(msg, decoded))
         if complete is not None:
             self.on_inputs(complete)
 
+    def _decode_cloud(self, name: str, msg):
+        cloud = cloud_msg_to_xyzi(msg)
+        validation.check_cloud(INPUT_TOPICS[name], cloud)
+        return cloud
+
     def on_odometry(self, msg: Odometry, info) -> None:
         """/laser_odom_to_init; the publisher's id tells a restarted featureAssociation (a new odometry frame)."""
-        try:
-            pose = odometry_to_pose(msg)
-        except ValueError as exc:
-            self.count('inputs_dropped')
-            self.warn('bad_input', f'mapping input dropped: {exc}')
+        ok, pose = self.take(lambda: odometry_to_pose(msg), 'inputs_dropped', 'mapping input dropped')
+        if not ok:
             return
         gid = info.get('publisher_gid') if isinstance(info, dict) else None
         if gid is not None:
@@ -343,6 +338,10 @@ class MapOptimizationNode(LegoLoamNode):
                 self.pub_corrected.publish(xyzi_to_cloud_msg(corrected, make_header(stamp, CAMERA_INIT_FRAME)))
         else:
             self.count('loops_rejected')
+
+    def _save_requested(self, request):
+        self.count('save_requests')
+        return self.saves.request()
 
     def _save_now(self) -> tuple[bool, str]:
         """Write the maps and the trajectory now (the save_map service's job): (success, message)."""

@@ -16,6 +16,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from lego_loam_py.core.params import Params
+from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.ros.conversions import stamp_to_ns
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.params import declare_params
@@ -216,6 +217,20 @@ class LegoLoamNode(Node):
         self._failures_in_a_row = 0
         self.count('state_resets')
         self.warn('state_reset', f'{problem}: {what}', period=1.0, level='error')
+
+    def take(self, check, dropped_counter: str, what: str, key: str = 'bad_input', msg=None):
+        """Run ``check()``, which returns the checked input or raises for a bad one (InputRejected,
+        CloudLayoutError or another ValueError). Returns ``(True, value)``, or ``(False, None)`` after counting
+        ``dropped_counter`` and one throttled warning '<what>: <reason>'; a rejected ``msg`` that was large gives
+        its memory back."""
+        try:
+            return True, check()
+        except (CloudLayoutError, ValueError) as exc:   # InputRejected is a ValueError
+            self.count(dropped_counter)
+            self.warn(key, f'{what}: {exc}')
+            if msg is not None:
+                self.reject_large(msg)
+            return False, None
 
     def reject_large(self, msg) -> None:
         """A rejected message: when it was large, its memory goes back to the system at the next callback

@@ -9,6 +9,7 @@ when the job's future completes, from the thread that completes it.
 from __future__ import annotations
 
 import threading
+import time
 from concurrent.futures import Future
 from typing import Any, Callable
 
@@ -19,6 +20,24 @@ __all__ = ['create_deferred_service', 'SERVICE_QUEUE_DEPTH']
 # Requests a service keeps while they wait to be taken: as many callers as any robot's tools will have at once
 # (rclpy's default of 10 silently drops the eleventh caller of a busy service).
 SERVICE_QUEUE_DEPTH = 100
+RESPONSE_RETRY_S = 10.0   # how long a response is retried while the caller's response reader is discovered
+RESPONSE_SPACING_S = 0.01   # between two answers of the same run (see done() below)
+
+
+def _send(send_now, response, header) -> bool:
+    try:
+        send_now(response, header)
+        return True
+    except Exception:   # rclpy raises when the rmw times out on the caller (or the node is shutting down)
+        return False
+
+
+def _send_until_matched(send_now, response, header) -> None:
+    deadline = time.monotonic() + RESPONSE_RETRY_S
+    while time.monotonic() < deadline:
+        time.sleep(0.05)
+        if _send(send_now, response, header):
+            return
 
 
 def create_deferred_service(node, srv_type, name: str, start: Callable[[Any], Future],
@@ -48,10 +67,14 @@ def create_deferred_service(node, srv_type, name: str, start: Callable[[Any], Fu
 
         def done(finished: Future) -> None:
             fill(response, finished)
-            try:
-                send_now(response, header)
-            except Exception:   # the node is shutting down: nobody is left to answer
-                pass
+            if not _send(send_now, response, header):
+                # A caller that asked right after creating its client: the rmw gives up on it (100 ms) while its
+                # response reader is still being discovered. Keep trying for a while, off this thread.
+                threading.Thread(target=_send_until_matched, args=(send_now, response, header), daemon=True).start()
+            # Every client of a service receives every response and keeps rclpy's default of 10: the answers of
+            # one coalesced run, sent back to back to twenty callers, would push a caller's own answer out of its
+            # queue before it is taken. A few milliseconds apart, each client takes them as they come.
+            time.sleep(RESPONSE_SPACING_S)
 
         future.add_done_callback(done)
 

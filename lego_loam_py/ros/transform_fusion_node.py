@@ -111,11 +111,9 @@ class TransformFusionNode(LegoLoamNode):
 
     def _integrate(self, msg: Odometry) -> None:
         start = time.perf_counter()
-        try:
-            odometry = odometry_to_pose(msg)
-        except ValueError as exc:
-            self.count('odometry_dropped')
-            self.warn('bad_odometry', f'/laser_odom_to_init dropped: {exc}')
+        ok, odometry = self.take(lambda: odometry_to_pose(msg), 'odometry_dropped', '/laser_odom_to_init dropped',
+                                 'bad_odometry')
+        if not ok:
             return
         self.input_valid()
         problem = self.core.health_problem()

@@ -134,3 +134,21 @@ def restamped(msg, stamp_ns: int):
     return out
 
 
+def mapping_inputs(outputs: dict) -> list[tuple]:
+    """(corner, surf, outlier, odometry) messages of every scan featureAssociation handed to mapping, from
+    :func:`pipeline_outputs`."""
+    odometry = {stamp_of(m): m for m in outputs['odometry']}
+    return [(c, s, o, odometry[stamp_of(c)]) for c, s, o in
+            zip(outputs['corner_last'], outputs['surf_last'], outputs['outlier_last']) if stamp_of(c) in odometry]
+
+
+def mapping_publishers(node) -> dict:
+    """Publishers of mapOptimization's four inputs on ``node``, by part name."""
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import PointCloud2
+
+    from lego_loam_py.ros import qos
+
+    return {name: node.create_publisher(cls, topic, qos.reliable(10)) for name, cls, topic in (
+        ('corner', PointCloud2, '/laser_cloud_corner_last'), ('surf', PointCloud2, '/laser_cloud_surf_last'),
+        ('outlier', PointCloud2, '/outlier_cloud_last'), ('odometry', Odometry, '/laser_odom_to_init'))}

@@ -1,6 +1,7 @@
 """Helpers for tests that talk DDS from the pytest process."""
 from __future__ import annotations
 
+import threading
 import time
 from typing import Callable
 
@@ -120,5 +121,24 @@ def release(node, timeout: float = 10.0) -> bool:
     return finish_within(node.destroy_node, f'destroying the test node {node.get_name()}', timeout)
 
 
-__all__ = ['spin_until', 'read_until', 'wait_for_line', 'publish_in_lockstep', 'bag_clouds', 'Diagnostics', 'release',
+def spin_in_background(executor, stop: threading.Event) -> threading.Thread:
+    """A daemon thread spinning ``executor`` until the event ``stop`` is set (for scripts that publish and wait
+    from their main thread); an error after ``stop`` (the context going away) ends it quietly."""
+    import threading
+
+    def spin() -> None:
+        while not stop.is_set():
+            try:
+                executor.spin_once(timeout_sec=0.05)
+            except Exception:
+                if stop.is_set():
+                    return
+                raise
+
+    thread = threading.Thread(target=spin, daemon=True)
+    thread.start()
+    return thread
+
+
+__all__ = ['spin_until', 'spin_in_background', 'read_until', 'wait_for_line', 'publish_in_lockstep', 'bag_clouds', 'Diagnostics', 'release',
            'rclpy']
