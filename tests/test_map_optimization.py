@@ -239,3 +239,17 @@ def test_transform_cloud_is_the_world_convention():
     points = cloud([[1.0, 0.0, 0.0], [0.0, 0.0, 5.0]])
     assert np.allclose(transform_cloud(points, pose)[:, :3],
                        transform_points(pose6_to_matrix(pose), points[:, :3].astype(float)), atol=1e-5)
+
+
+def test_an_empty_map_is_saved_as_a_valid_empty_pcd(tmp_path):
+    """A save before the first keyframe (or of a map without outliers) writes valid empty files, not none and
+    not an error: open3d refuses to write an empty cloud, so the writer makes the header itself."""
+    from lego_loam_py.core.io import pcd_is_complete, read_pcd, write_pcd_atomic
+
+    for columns in (3, 4):
+        path = write_pcd_atomic(tmp_path / f'empty{columns}.pcd', np.zeros((0, columns), np.float32))
+        assert pcd_is_complete(path)
+        assert read_pcd(path).shape == (0, columns)
+    written = MapOptimization(PARAMS).save(tmp_path / 'map')
+    assert all(pcd_is_complete(p) for name, p in written.items() if p.suffix == '.pcd')
+    assert read_pcd(written['global_map']).shape == (0, 4)

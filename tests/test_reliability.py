@@ -560,18 +560,19 @@ def test_warnings_are_throttled_and_their_state_is_bounded(context):
 # ------------------------------------------------------------------------------------------------- time
 
 def test_stamp_order_policy():
-    """process / drop / hold, then reset or jump when the next input confirms, or discard when it refutes."""
+    """process / drop / hold; a jump forward believed at the next input, a restart after three inputs on the new
+    timeline; held inputs refuted by the old timeline are discarded; wrong stamps ahead are found out (resync)."""
     from lego_loam_py.core.sync import StampOrder
 
     order = StampOrder(jump_ns=1000)
 
     def step(stamp, item=None):
         decision = order.check(stamp, item if item is not None else stamp)
-        if decision.action in ('process', 'reset', 'jump'):
+        if decision.action in ('process', 'reset', 'jump', 'resync'):
             if decision.action == 'reset':
                 order.reset()
-            if decision.held is not None:
-                order.processed(decision.held)
+            for held in decision.held:
+                order.processed(held)
             order.processed(stamp)
         return decision
 
@@ -579,23 +580,36 @@ def test_stamp_order_policy():
     assert step(10_100).reason == 'duplicate stamp' and step(10_050).reason == 'out of order'
     assert step(50_000).action == 'hold'                          # forward jump: held ...
     d = step(10_200)                                               # ... refuted by the old timeline
-    assert d.action == 'process' and d.discarded == 50_000 and order.last_ns == 10_200
-    assert step(1_000).action == 'hold'                           # back in time: held ...
+    assert d.action == 'process' and d.discarded == [50_000] and order.last_ns == 10_200
+    assert step(1_000).action == 'hold'                           # back in time, to before the timeline: held ...
     assert step(1_000).action == 'drop'                           # (a duplicate of the held one)
-    d = step(1_100)                                                # ... confirmed: reset, both processed
-    assert d.action == 'reset' and d.held == 1_000 and d.jump_ns == 1_000 - 10_200 and order.last_ns == 1_100
+    assert step(1_100).action == 'hold'                           # ... a second input on the new timeline ...
+    d = step(1_200)                                                # ... and a third: a restart, all processed
+    assert d.action == 'reset' and d.held == [1_000, 1_100] and d.jump_ns == 1_000 - 10_200
+    assert order.last_ns == 1_200 and order.first_ns == 1_000
     assert step(90_000).action == 'hold'
     d = step(90_500)
-    assert d.action == 'jump' and d.held == 90_000 and order.last_ns == 90_500
+    assert d.action == 'jump' and d.held == [90_000] and order.last_ns == 90_500
     assert step(5).action == 'hold' and step(200_000).action == 'hold'   # two jumps: the newest is held
     assert step(200_100).action == 'jump' and order.last_ns == 200_100
     # A sparse stream (inputs 2 s apart) loses nothing, each input waits for the next one.
     actions = [step(200_100 + k * 2000).action for k in range(1, 5)]
     assert actions == ['hold', 'jump', 'hold', 'jump'] and order.last_ns == 200_100 + 4 * 2000
-    # Back in time: confirmed only by an input before the old timeline.
-    assert step(100).action == 'hold'
+    # Back in time: confirmed only by inputs before the old timeline; two are not enough.
+    assert step(100).action == 'hold' and step(200).action == 'hold'
     d = step(208_300)                                               # the old timeline goes on: refuted
-    assert d.action == 'process' and d.discarded == 100
+    assert d.action == 'process' and d.discarded == [100, 200]
+    # Two inputs stamped a little ahead (within the jump bound) were taken: three in a row behind them show it.
+    assert step(208_900).action == 'process' and step(209_100).action == 'process'   # (these two were wrong)
+    assert [step(t).action for t in (208_400, 208_500)] == ['drop', 'drop']
+    d = step(208_600)
+    assert d.action == 'resync' and order.last_ns == 208_600
+    assert step(208_700).action == 'process'
+    # Back to a point inside the current timeline (after its start), confirmed: wrong stamps ahead, no restart.
+    assert step(500_000).action == 'hold' and step(500_100).action == 'jump'   # (wrongly stamped, both taken)
+    assert [step(t).action for t in (208_800, 208_900)] == ['hold', 'hold']
+    d = step(209_000)
+    assert d.action == 'resync' and d.held == [208_800, 208_900] and order.first_ns == 1_000
 
 
 def test_synchronizer_forgets_sets_of_another_timeline():
@@ -676,7 +690,9 @@ def test_time_out_of_order_duplicates_jumps_and_glitches(context, tmp_path):
     assert any('odometry reset' in text for _, text in rec.warnings)
     send(0, 0)                                       # clock at zero (before /clock) and back: two resets
     send(1, second // 10)
-    assert fa.counters['resets'] == 2 and odometry_stamps()[-1] == second // 10
+    assert fa.counters['resets'] == 1                # (two scans back in time are not yet a restart)
+    send(2, 2 * second // 10)
+    assert fa.counters['resets'] == 2 and odometry_stamps()[-2:] == [second // 10, 2 * second // 10]
     assert not rec.errors
     fa.destroy_node()
 
@@ -828,8 +844,10 @@ def test_fusion_drops_stale_mapping_results_after_a_restart(context):
         tf.on_odometry(odometry(s + k * 100_000_000, 0.1 * k))
     tf.on_mapped(odometry(s + 300_000_000, 5.0))          # correction: +5 m
     assert tf.counters['mapped'] == 1
-    tf.on_odometry(odometry(s - 60 * 10**9))               # the bag restarted (confirmed by the next one)
+    tf.on_odometry(odometry(s - 60 * 10**9))               # the bag restarted (confirmed by the next two)
     tf.on_odometry(odometry(s - 60 * 10**9 + 100_000_000))
+    assert tf.counters.get('resets', 0) == 0
+    tf.on_odometry(odometry(s - 60 * 10**9 + 200_000_000))
     assert tf.counters['resets'] == 1
     tf.on_mapped(odometry(s + 400_000_000, 5.0))           # a late result of the old timeline
     assert tf.counters['mapped'] == 1 and tf.counters['mapped_dropped'] == 1

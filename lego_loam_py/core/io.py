@@ -133,16 +133,21 @@ class CoalescingRunner:
         threading.Thread(target=self._run, args=(future,), name=f'{self._name} run {self.runs}', daemon=True).start()
 
     def _run(self, future) -> None:
+        result, error = None, None
         try:
             result = self._job()
         except BaseException as exc:   # handed to every caller
-            future.set_exception(exc)
-        else:
-            future.set_result(result)
+            error = exc
+        # The runner is idle (or on its next run) before anyone hears of the result: a caller that asks again
+        # at once gets a new run, and busy() is False once every caller has its answer.
         with self._lock:
             self._running, self._next = self._next, None
             if self._running is not None:
                 self._start(self._running)
+        if error is not None:
+            future.set_exception(error)
+        else:
+            future.set_result(result)
 
     def busy(self) -> bool:
         with self._lock:
@@ -259,6 +264,15 @@ def write_pcd_atomic(path: str | Path, points: np.ndarray) -> Path:
     import open3d as o3d
 
     points = np.asarray(points, dtype=np.float32)
+    points = points.reshape(len(points), points.shape[-1] if points.ndim == 2 else 3)
+    if len(points) == 0:   # open3d refuses to write an empty cloud; an empty map is still a valid file
+        fields = ['x', 'y', 'z', 'intensity'][:4 if points.shape[1] > 3 else 3]
+        header = ['# .PCD v0.7 - Point Cloud Data file format', 'VERSION 0.7', 'FIELDS ' + ' '.join(fields),
+                  'SIZE' + ' 4' * len(fields), 'TYPE' + ' F' * len(fields), 'COUNT' + ' 1' * len(fields),
+                  'WIDTH 0', 'HEIGHT 1', 'VIEWPOINT 0 0 0 1 0 0 0', 'POINTS 0', 'DATA binary']
+        with atomic_path(path, suffix='.pcd') as temporary:
+            temporary.write_bytes(('\n'.join(header) + '\n').encode())
+        return Path(path)
     cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(points[:, :3])))
     if points.shape[1] > 3:
         cloud.point['intensity'] = o3d.core.Tensor(np.ascontiguousarray(points[:, 3:4]))
@@ -273,6 +287,9 @@ def read_pcd(path: str | Path) -> np.ndarray:
     import open3d as o3d
 
     cloud = o3d.t.io.read_point_cloud(str(path))
+    if 'positions' not in cloud.point:   # an empty cloud (as write_pcd_atomic writes one)
+        fields = Path(path).read_bytes()[:512].split(b'\nFIELDS ', 1)[-1].split(b'\n', 1)[0].split()
+        return np.zeros((0, 4 if b'intensity' in fields else 3), np.float32)
     xyz = cloud.point['positions'].numpy().astype(np.float32)
     if 'intensity' in cloud.point:
         return np.concatenate([xyz, cloud.point['intensity'].numpy().reshape(-1, 1).astype(np.float32)], axis=1)

@@ -20,7 +20,7 @@ stamped before it (and after each other), it was the wrong one, and the node car
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 __all__ = ['StampSynchronizer', 'StampOrder', 'Decision']
@@ -93,70 +93,82 @@ class StampSynchronizer:
 class Decision:
     """What to do with an input (see :meth:`StampOrder.check`).
 
-    ``action``: 'process'; 'drop' (``reason`` says why); 'hold' (a jump in time, kept until the next input
-    confirms or refutes it); 'reset' (time jumped back, confirmed: reset, then process ``held`` and this
-    input); 'jump' (time jumped forward, confirmed: process ``held`` and this input, no reset); 'resync'
-    (inputs keep coming stamped a little before the last processed one: that one had a wrong stamp; process
-    this input, ``jump_ns`` says by how much time went back).
-    ``held`` is the item kept by the previous 'hold', ``jump_ns`` the size of a confirmed jump (signed) and
-    ``discarded`` a held item refuted by this input (it was a single wrong stamp).
+    ``action``: 'process'; 'drop' (``reason`` says why); 'hold' (a jump in time, kept until the next inputs
+    confirm or refute it); 'reset' (time jumped back, confirmed: reset, then process ``held`` and this input);
+    'jump' (time jumped forward, confirmed: process ``held`` and this input, no reset); 'resync' (the inputs
+    ahead of this one had wrong stamps: process ``held`` and this input, nothing reset). ``held`` lists the
+    items kept by earlier 'hold's, oldest first, ``jump_ns`` is the size of a confirmed jump (signed) and
+    ``discarded`` lists held items refuted by this input (they had wrong stamps).
     """
 
     action: str
     reason: str = ''
-    held: Any = None
+    held: list = field(default_factory=list)
     jump_ns: int = 0
-    discarded: Any = None
+    discarded: list = field(default_factory=list)
 
 
 class StampOrder:
-    """The stamp policy of a node's inputs: time moves forward; a jump is confirmed by the next input.
+    """The stamp policy of a node's inputs: time moves forward; a jump is believed once later inputs confirm it.
 
     * newer than the last processed input (by at most ``jump_ns``): process;
-    * not newer, by at most ``jump_ns``: drop (out of order or duplicate);
-    * more than ``jump_ns`` away (either way): hold it. The next input decides. After a jump forward, an input
-      newer than the held one confirms it ('jump': both are processed; inputs may simply be sparse); one back
-      on the old timeline refutes it. After a jump back, an input newer than the held one but still before the
-      old timeline confirms it ('reset', then both are processed); one on the old timeline refutes it. A
-      refuted input is dropped: it was a single wrong stamp.
+    * not newer, by at most ``jump_ns``: drop (out of order or duplicate); after ``resync_after`` such inputs in
+      a row (each newer than the one before), the last processed one had a wrong stamp: 'resync';
+    * more than ``jump_ns`` away (either way): hold it. A jump forward is confirmed by the next input newer than
+      it ('jump': both processed; inputs may simply be sparse). A jump back is confirmed by ``restart_after``
+      inputs in a row on the new timeline (each newer than the one before, all before the old timeline): back
+      to the start of the current timeline or before it, a restart ('reset', then all processed: a bag played
+      again); to a point after that start, the inputs ahead of it had wrong stamps ('resync', all processed,
+      nothing reset). An input on the old timeline refutes what is held: those inputs had wrong stamps and are
+      dropped. So a single wrong stamp costs that input only, and a restart needs more than a couple of them.
 
     Call :meth:`processed` after an input was processed, :meth:`reset` after the node reset.
     """
 
-    def __init__(self, jump_ns: int = 1_000_000_000, resync_after: int = 3):
+    def __init__(self, jump_ns: int = 1_000_000_000, resync_after: int = 3, restart_after: int = 3):
         self.jump_ns = int(jump_ns)
         self.resync_after = int(resync_after)
+        self.restart_after = int(restart_after)
         self.last_ns: int | None = None
-        self._held: tuple[int, Any] | None = None
+        self.first_ns: int | None = None   # the first input processed since the last reset: the timeline's start
+        self._held: list[tuple[int, Any]] = []
         self._behind: list[int] = []   # stamps of the inputs dropped in a row as out of order
 
     @property
     def holding(self) -> bool:
-        return self._held is not None
+        return bool(self._held)
 
     @property
     def newest_ns(self) -> int | None:
-        """The newest stamp seen: the held one when it is newer than the last processed one."""
-        held = self._held[0] if self._held is not None else None
+        """The newest stamp seen: a held one when it is newer than the last processed one."""
+        held = self._held[-1][0] if self._held else None
         if held is None or (self.last_ns is not None and held < self.last_ns):
             return self.last_ns
         return held
 
     def check(self, stamp_ns: int, item: Any = None) -> Decision:
         stamp_ns = int(stamp_ns)
-        held, self._held = self._held, None
-        if held is not None:
-            held_ns, held_item = held
-            last = self.last_ns if self.last_ns is not None else held_ns
-            if stamp_ns == held_ns:                                 # a duplicate of the held input
-                self._held = held
+        if self._held:
+            first_held_ns, newest_held_ns = self._held[0][0], self._held[-1][0]
+            last = self.last_ns if self.last_ns is not None else first_held_ns
+            if stamp_ns == newest_held_ns:                          # a duplicate of a held input
                 return Decision('drop', 'duplicate stamp')
-            if held_ns > last and stamp_ns > held_ns:               # forward, and time goes on from there
-                return Decision('jump', held=held_item, jump_ns=held_ns - last)
-            if held_ns < last and held_ns < stamp_ns < last - self.jump_ns:   # back, and goes on from there
-                return Decision('reset', held=held_item, jump_ns=held_ns - last)
+            items = [held_item for _, held_item in self._held]
+            if first_held_ns > last and stamp_ns > newest_held_ns:   # forward, and time goes on from there
+                self._held = []
+                return Decision('jump', held=items, jump_ns=first_held_ns - last)
+            if first_held_ns < last and newest_held_ns < stamp_ns < last - self.jump_ns:   # back, and goes on
+                if len(self._held) + 1 < self.restart_after:
+                    self._held.append((stamp_ns, item))
+                    return Decision('hold')
+                self._held = []
+                if self.first_ns is not None and first_held_ns > self.first_ns:
+                    # Back, but not to before this timeline began: no restart, the inputs ahead had wrong stamps.
+                    return Decision('resync', held=items, jump_ns=first_held_ns - last)
+                return Decision('reset', held=items, jump_ns=first_held_ns - last)
+            self._held = []
             decision = self._check_without_held(stamp_ns, item)   # refuted (or yet another jump: held)
-            decision.discarded = held_item
+            decision.discarded = items
             return decision
         return self._check_without_held(stamp_ns, item)
 
@@ -176,12 +188,15 @@ class StampOrder:
                 return Decision('resync', jump_ns=stamp_ns - last)
             return Decision('drop', 'out of order')
         self._behind.clear()
-        self._held = (stamp_ns, item)
+        self._held = [(stamp_ns, item)]
         return Decision('hold')
 
     def processed(self, stamp_ns: int) -> None:
         self.last_ns = int(stamp_ns)
+        if self.first_ns is None:
+            self.first_ns = self.last_ns
 
     def reset(self) -> None:
         self.last_ns = None
+        self.first_ns = None
         self._behind.clear()

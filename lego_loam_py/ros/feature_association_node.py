@@ -10,11 +10,13 @@ depth 50) when ``sensor.imu_topic`` is set. Publishes, stamped with the scan:
 * while subscribed: /laser_cloud_sharp, /laser_cloud_less_sharp, /laser_cloud_flat, /laser_cloud_less_flat.
 
 Scans with an older stamp than the previous one are dropped (out of order or duplicate). A jump of more than a
-second either way is believed once the next scan continues the new timeline (a single wrong stamp costs that
-scan only): back in time (a bag restarted or looped) the odometry resets with a warning, forward it goes on.
-Inconsistent inputs (CloudInfo arrays that do not match the cloud, ring indices outside it, non-finite or
-absurd values) are dropped with a throttled warning; should the odometry ever become non-finite it resets
-instead of publishing garbage. A reset keeps the IMU samples.
+second is believed once later scans continue the new timeline (a wrong stamp costs that scan only): forward,
+the next scan; back in time, three scans in a row, and then, when the new timeline starts before the current
+one did (a bag restarted or looped), the odometry resets with a warning; otherwise the scans ahead had wrong
+stamps and the node carries on (see :class:`lego_loam_py.core.sync.StampOrder`).
+Inputs are checked against what imageProjection can produce, each part on arrival (see
+:mod:`lego_loam_py.core.validation`), and dropped with a throttled warning; should the odometry's state ever be
+poisoned anyway, it restarts from the next scan at the pose reached so far. A reset keeps the IMU samples.
 """
 from __future__ import annotations
 
@@ -135,8 +137,8 @@ class FeatureAssociationNode(LegoLoamNode):
             self.warn('reset', f'time jumped back by {-decision.jump_ns * 1e-9:.1f} s (bag restarted?): '
                                'odometry reset', period=0.0)
             self._reset()
-        if decision.held is not None:
-            self._process(*decision.held)
+        for held in decision.held:
+            self._process(*held)
         self._process(cloud, info, outlier)
 
     def _reset(self) -> None:

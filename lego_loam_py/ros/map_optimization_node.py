@@ -16,9 +16,10 @@ callback group, so the ICP does not hold up the mapping steps. The service ``sav
 (std_srvs/Trigger) and the shutdown hook write the maps and the keyframe trajectory to
 ``map_optimization.file_directory``.
 
-Robustness: inputs older than the previous ones are dropped; a jump of more than a second either way is
-believed once the next input continues the new timeline. Back in time (a bag restarted or looped) the map
-built so far is saved, then mapping starts afresh (the IMU samples stay). An odometry that jumps further
+Robustness: inputs older than the previous ones are dropped; a jump of more than a second is believed once
+later inputs continue the new timeline (forward the next one, back three in a row). Back to before the current
+timeline began (a bag restarted or looped) the map built so far is saved, then mapping starts afresh (the IMU
+samples stay). An odometry that jumps further
 than any vehicle moves between two inputs (featureAssociation restarted or reset) is re-anchored at the last
 optimised pose instead of dragging the map along. Inputs with non-finite or absurd values are dropped with a
 throttled warning; a mapping step that fails or yields a non-finite pose is skipped and the map is kept.
@@ -181,8 +182,8 @@ class MapOptimizationNode(LegoLoamNode):
             return
         if decision.action == 'reset':
             self._reset_after_time_jump(-decision.jump_ns)
-        if decision.held is not None:
-            self._process(decision.held)
+        for held in decision.held:
+            self._process(held)
         self._process(parts)
 
     def _process(self, parts: dict) -> None:

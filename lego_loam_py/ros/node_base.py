@@ -21,11 +21,17 @@ from lego_loam_py.ros.conversions import stamp_to_ns
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.params import declare_params
 
-__all__ = ['LegoLoamNode', 'release_memory', 'LARGE_MESSAGE_BYTES']
+__all__ = ['LegoLoamNode', 'release_memory', 'resync_message', 'LARGE_MESSAGE_BYTES']
 
 # A rejected message larger than this is followed by release_memory(): the allocator would otherwise keep its
 # pages (glibc keeps freed blocks of up to 32 MB in the heap once it has seen one that size).
 LARGE_MESSAGE_BYTES = 8 << 20
+
+
+def resync_message(noun: str, decision) -> str:
+    """The warning of a 'resync' decision of a StampOrder."""
+    return (f'{noun}s continue {-decision.jump_ns * 1e-9:.3f} s before the previous one: the {noun}s ahead of them '
+            'had wrong stamps; carrying on from these')
 
 
 def release_memory() -> None:
@@ -287,25 +293,26 @@ class LegoLoamNode(Node):
         last = order.last_ns
         decision = order.check(stamp_ns, item)
         article = 'an' if noun[:1] in 'aeiou' else 'a'
-        if decision.discarded is not None:
-            self.count(dropped_counter)
-            held = stamp_of(decision.discarded)
-            self.warn('glitch', f'{article} {noun} stamped {(held - (last or held)) * 1e-9:+.1f} s from the previous '
-                                f'one was dropped: the next {noun} continued the old timeline (a wrong stamp)')
+        if decision.discarded:
+            self.count(dropped_counter, len(decision.discarded))
+            held = stamp_of(decision.discarded[0])
+            self.warn('glitch', f'{len(decision.discarded)} {noun}(s) stamped {(held - (last or held)) * 1e-9:+.1f} s '
+                                f'from the previous one dropped: the next {noun} continued the old timeline (wrong '
+                                'stamps)')
         if decision.action == 'drop':
             self.count(dropped_counter)
             self.warn('order', f'{noun} dropped: {decision.reason} (stamp not newer than the previous {noun})')
             return None
-        if decision.action == 'hold':   # a jump in time: the next input tells whether it is real
+        if decision.action == 'hold':   # a jump in time: the next inputs tell whether it is real
+            self.count('held')
             self.warn('hold', f'{article} {noun} stamped {(stamp_ns - (last or stamp_ns)) * 1e-9:+.1f} s from the '
-                              f'previous one is held: the next {noun} tells whether time jumped')
+                              f'previous one is held: the next {noun}s tell whether time jumped')
             return None
         if decision.action == 'jump':
             self.warn('jump', f'time jumped forward by {decision.jump_ns * 1e-9:.1f} s: carrying on', period=0.0)
             self.count('forward_jumps')
         if decision.action == 'resync':
-            self.warn('resync', f'{order.resync_after} {noun}s in a row were stamped before the previous one (by '
-                                f'{-decision.jump_ns * 1e-9:.3f} s here): that one had a wrong stamp; carrying on')
+            self.warn('resync', resync_message(noun, decision))
             self.count('resyncs')
         return decision
 

@@ -6,9 +6,10 @@ transforms map -> camera_init and camera -> base_link, so the whole tree map -> 
 without any other node.
 
 Odometry older than the previous message is dropped (out of order or duplicate); a jump of more than a
-second either way is believed once the next message continues the new timeline, and back in time (a bag
-restarted) it resets the map correction. A mapping result from before that reset, or stamped more than
-``MAPPED_AHEAD_NS`` after the latest odometry (the old timeline, after a jump back), is discarded. Poses that
+second is believed once later messages continue the new timeline (forward the next one, back three in a
+row), and back to before the current timeline began (a bag restarted) it resets the map correction. A mapping
+result from before that reset, or stamped more than ``MAPPED_AHEAD_NS`` after the latest odometry (the old
+timeline, after a jump back), is discarded. Poses that
 are not finite, not unit quaternions or absurdly far are dropped with a throttled warning.
 """
 from __future__ import annotations
@@ -24,7 +25,7 @@ from lego_loam_py.core.sync import StampOrder
 from lego_loam_py.core.transform_fusion import TransformFusion
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import MAX_POSITION, make_header, odometry_to_pose, pose_to_odometry, stamp_to_ns
-from lego_loam_py.ros.node_base import LegoLoamNode
+from lego_loam_py.ros.node_base import LegoLoamNode, resync_message
 from lego_loam_py.ros.runtime import run_node
 from lego_loam_py.ros.tf import StaticTransformBroadcaster, TransformBroadcaster, original_static_transforms
 
@@ -83,11 +84,12 @@ class TransformFusionNode(LegoLoamNode):
         stamp = stamp_to_ns(msg.header.stamp)
         last = self.order.last_ns
         decision = self.order.check(stamp, msg)
-        if decision.discarded is not None:
-            self.count('odometry_dropped')
-            held = stamp_to_ns(decision.discarded.header.stamp)
-            self.warn('glitch', f'odometry stamped {(held - (last or held)) * 1e-9:+.1f} s from the previous one '
-                                'dropped: the next message continued the old timeline (a wrong stamp)')
+        if decision.discarded:
+            self.count('odometry_dropped', len(decision.discarded))
+            held = stamp_to_ns(decision.discarded[0].header.stamp)
+            self.warn('glitch', f'{len(decision.discarded)} odometry message(s) stamped '
+                                f'{(held - (last or held)) * 1e-9:+.1f} s from the previous one dropped: the next '
+                                'message continued the old timeline (wrong stamps)')
         if decision.action == 'drop':
             self.count('odometry_dropped')
             self.warn('order', f'/laser_odom_to_init dropped: {decision.reason}')
@@ -95,18 +97,17 @@ class TransformFusionNode(LegoLoamNode):
         if decision.action == 'hold':
             return
         if decision.action == 'resync':
-            self.warn('resync', f'{self.order.resync_after} odometry messages in a row were stamped before the '
-                                'previous one: that one had a wrong stamp; carrying on')
+            self.warn('resync', resync_message('odometry message', decision))
             self.count('resyncs')
         if decision.action == 'reset':
             self.warn('reset', f'time jumped back by {-decision.jump_ns * 1e-9:.1f} s: map correction reset',
                       period=0.0)
             self.core.reset()
             self.order.reset()
-            self._timeline_start_ns = stamp_to_ns((decision.held or msg).header.stamp)
+            self._timeline_start_ns = stamp_to_ns((decision.held[0] if decision.held else msg).header.stamp)
             self.count('resets')
-        if decision.held is not None:
-            self._integrate(decision.held)
+        for held in decision.held:
+            self._integrate(held)
         self._integrate(msg)
 
     def _integrate(self, msg: Odometry) -> None:
