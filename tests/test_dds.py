@@ -115,3 +115,49 @@ def test_every_console_script_is_in_the_ros_layout():
 def test_cli_help(command):
     result = subprocess.run([str(VENV_BIN / 'lego_loam_py'), *command], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0 and result.stdout.startswith('usage: lego_loam_py')
+
+
+@pytest.mark.parametrize('executor', ['events', 'single'])
+def test_a_node_serves_with_either_executor(rclpy_context, processes, executor):
+    """The nodes spin rclpy's EventsExecutor by default; LEGO_LOAM_PY_EXECUTOR=single selects the
+    SingleThreadedExecutor. Either way transformFusion fuses odometry and answers over DDS."""
+    import os
+
+    import rclpy
+    from nav_msgs.msg import Odometry
+
+    from lego_loam_py.ros import qos
+    from lego_loam_py.ros.conversions import make_header, pose_to_odometry
+    from lego_loam_py.ros.conversions import stamp_to_ns
+    from tests.support.ros import publish_in_lockstep
+
+    env = dict(os.environ, LEGO_LOAM_PY_EXECUTOR=executor)
+    node = rclpy.create_node(f'executor_probe_{executor}', context=rclpy_context)
+    fused = {}
+    node.create_subscription(Odometry, '/integrated_to_init',
+                             lambda m: fused.setdefault(stamp_to_ns(m.header.stamp), m), qos.reliable(10))
+    odometry = node.create_publisher(Odometry, '/laser_odom_to_init', qos.reliable(10))
+    fusion = processes.start([VENV_BIN / 'transformFusion'], env=env)
+    assert spin_until(rclpy_context, node, lambda: odometry.get_subscription_count() > 0 and
+                      node.count_publishers('/integrated_to_init') > 0 or fusion.poll() is not None, 30)
+    assert fusion.poll() is None, fusion.communicate()[1]
+    items = []
+    for k in range(3):
+        pose = np.eye(4)
+        pose[2, 3] = 0.5 * k
+        stamp = 10**12 + k * 10**8
+        items.append((stamp, pose_to_odometry(pose, make_header(stamp, 'camera_init'), 'laser_odom')))
+    assert publish_in_lockstep(rclpy_context, node, odometry.publish, items, lambda stamp: stamp in fused, 30) == []
+    assert [fused[stamp].pose.pose.position.z for stamp, _ in items] == [0.0, 0.5, 1.0]
+    _, err = processes.stop(fusion)
+    assert fusion.returncode == 0 and 'Traceback' not in err
+    release(node)
+
+
+def test_an_unknown_executor_is_a_clear_error(processes):
+    import os
+
+    proc = processes.start([VENV_BIN / 'transformFusion'], env=dict(os.environ, LEGO_LOAM_PY_EXECUTOR='threads'))
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2
+    assert 'LEGO_LOAM_PY_EXECUTOR must be events or single' in err and 'Traceback' not in err

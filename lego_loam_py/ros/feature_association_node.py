@@ -2,7 +2,8 @@
 
 Subscribes /segmented_cloud, /segmented_cloud_info and /outlier_cloud (reliable, depth 1 as the original)
 and synchronises them by stamp (within ``feature_association.sync_tolerance``); /imu/data (best effort,
-depth 50) when ``sensor.imu_topic`` is set. Publishes, stamped with the scan:
+depth 200, polled: the samples are taken with each scan, no wake-up per sample) when ``sensor.imu_topic`` is
+set. Publishes, stamped with the scan:
 
 * every scan: /laser_odom_to_init (nav_msgs/Odometry, camera_init -> laser_odom) and its TF;
 * every ``skip_frame_num + 1`` scans: /laser_cloud_corner_last, /laser_cloud_surf_last, /outlier_cloud_last
@@ -32,7 +33,6 @@ from sensor_msgs.msg import Imu, PointCloud2
 from lego_loam_py.core import validation
 from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, LASER_ODOM_FRAME
-from lego_loam_py.core.imu import imu_sample
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import (cloud_info_from_msg, cloud_msg_to_array, cloud_msg_to_xyzi, make_header,
@@ -45,6 +45,7 @@ __all__ = ['FeatureAssociationNode', 'main']
 
 RESET_JUMP_NS = 1_000_000_000   # a jump back in time by more than this resets the odometry
 INPUT_TOPICS = {'cloud': '/segmented_cloud', 'info': '/segmented_cloud_info', 'outlier': '/outlier_cloud'}
+IMU_QUEUE_DEPTH = 200   # IMU samples kept between two scans (1 s at 200 Hz)
 
 
 class FeatureAssociationNode(LegoLoamNode):
@@ -58,9 +59,9 @@ class FeatureAssociationNode(LegoLoamNode):
         self.create_subscription(CloudInfo, '/segmented_cloud_info', lambda m: self.on_part('info', m), depth1)
         self.create_subscription(PointCloud2, '/outlier_cloud', lambda m: self.on_part('outlier', m), depth1)
         self.imu_subscription = None
-        if self.params.sensor.imu_topic:
-            self.imu_subscription = self.create_subscription(Imu, self.params.sensor.imu_topic, self.on_imu,
-                                                             qos.sensor_input(50))
+        if self.params.sensor.imu_topic:   # taken with each scan (1 s of samples wait at 200 Hz)
+            self.imu_subscription = self.create_polled_subscription(Imu, self.params.sensor.imu_topic,
+                                                                    qos.sensor_input(IMU_QUEUE_DEPTH), raw=True)
         self.pub_odometry = self.create_publisher(Odometry, '/laser_odom_to_init', qos.reliable(5))
         self.tf = TransformBroadcaster(self)
         last = qos.reliable(2)
@@ -113,11 +114,9 @@ class FeatureAssociationNode(LegoLoamNode):
                 point_time = None
         return cloud, point_time
 
-    def on_imu(self, msg: Imu) -> None:
-        reason = self.core.add_imu(*imu_sample(msg))
-        if reason is not None:
-            self.count('imu_dropped')
-            self.warn('imu', f'IMU message dropped: {reason}')
+    def on_imu(self, msg) -> None:
+        """A sensor_msgs/Imu, or its serialized bytes (see :meth:`LegoLoamNode.take_imu`)."""
+        self.take_imu(msg, self.core.add_imu)
 
     @property
     def last_stamp_ns(self) -> int | None:
@@ -221,8 +220,9 @@ class FeatureAssociationNode(LegoLoamNode):
         pose = result.pose
         header = make_header(stamp, CAMERA_INIT_FRAME)
         if not result.initialized or result.resumed:   # (after a restart the pose reached so far goes on)
-            self.pub_odometry.publish(pose_to_odometry(pose, header, LASER_ODOM_FRAME))
-            self.tf.send_pose(pose, stamp, CAMERA_INIT_FRAME, LASER_ODOM_FRAME)
+            odometry = pose_to_odometry(pose, header, LASER_ODOM_FRAME)
+            self.pub_odometry.publish(odometry)
+            self.tf.send_odometry(odometry)
         camera = make_header(stamp, CAMERA_FRAME)
         f = result.features
         for publisher, cloud in ((self.pub_sharp, f.sharp), (self.pub_less_sharp, f.less_sharp),

@@ -11,10 +11,11 @@ Subscribes /laser_cloud_corner_last, /laser_cloud_surf_last, /outlier_cloud_last
   around the robot), /registered_cloud (the current scan in the map), /laser_cloud_surround (global map,
   every ``global_map_publish_period`` s), /history_cloud and /corrected_cloud (loop closure).
 
-Loop closure (``loop_closure.loop_closure_enable_flag``) runs every ``loop_closure.period`` s in its own
-callback group, so the ICP does not hold up the mapping steps. The service ``save_map``
+Loop closure (``loop_closure.loop_closure_enable_flag``) runs every ``loop_closure.period`` s on a worker
+thread of its own, so the ICP does not hold up the mapping steps. The service ``save_map``
 (std_srvs/Trigger) and the shutdown hook write the maps and the keyframe trajectory to
-``map_optimization.file_directory``.
+``map_optimization.file_directory``, also on a worker thread (see :mod:`lego_loam_py.ros.services`). The IMU
+samples are taken with each mapping input (a polled subscription: no wake-up per sample).
 
 Robustness: inputs older than the previous ones are dropped; a jump of more than a second is believed once
 later inputs continue the new timeline (forward the next one, back three in a row). Back to before the current
@@ -26,12 +27,13 @@ throttled warning; a mapping step that fails or yields a non-finite pose is skip
 """
 from __future__ import annotations
 
+import struct
 import sys
+import threading
 import time
 
 import numpy as np
 from nav_msgs.msg import Odometry
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from sensor_msgs.msg import Imu, PointCloud2
 from std_srvs.srv import Trigger
 
@@ -40,7 +42,6 @@ from lego_loam_py.core.frames import (AFT_MAPPED_FRAME, CAMERA_INIT_FRAME, inver
 from lego_loam_py.core import validation
 from lego_loam_py.core.io import CoalescingRunner
 from lego_loam_py.core.map_optimization import MapOptimization, transform_cloud
-from lego_loam_py.core.imu import imu_sample
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import (cloud_msg_to_xyzi, make_header, odometry_to_pose, pose_to_odometry,
@@ -53,6 +54,7 @@ from lego_loam_py.ros.tf import TransformBroadcaster
 __all__ = ['MapOptimizationNode', 'main']
 
 RESET_JUMP_NS = 1_000_000_000
+IMU_QUEUE_DEPTH = 200   # IMU samples kept between two mapping inputs (1 s at 200 Hz)
 MAP_FILE_STEMS = ('global_map', 'corner_map', 'surface_map', 'trajectory', 'trajectory_camera_init')
 # Odometry that moves more than this between two inputs did not follow a vehicle: it restarted.
 ODOMETRY_JUMP_M, ODOMETRY_JUMP_M_PER_S = 5.0, 30.0
@@ -82,11 +84,15 @@ class MapOptimizationNode(LegoLoamNode):
         self.create_subscription(PointCloud2, '/laser_cloud_corner_last', lambda m: self.on_part('corner', m), depth2)
         self.create_subscription(PointCloud2, '/laser_cloud_surf_last', lambda m: self.on_part('surf', m), depth2)
         self.create_subscription(PointCloud2, '/outlier_cloud_last', lambda m: self.on_part('outlier', m), depth2)
-        self.create_subscription(Odometry, '/laser_odom_to_init', self.on_odometry, qos.reliable(5))
+        self.create_subscription(Odometry, '/laser_odom_to_init', self._on_odometry_message, qos.reliable(5))
+        # The same topic again, serialized and polled, for the publisher of each message (the executor's callbacks
+        # get no message info): a restarted featureAssociation is another publisher.
+        self._odometry_senders = self.create_polled_subscription(Odometry, '/laser_odom_to_init', qos.reliable(20),
+                                                                 raw=True)
         self.imu_subscription = None
-        if self.params.sensor.imu_topic:
-            self.imu_subscription = self.create_subscription(Imu, self.params.sensor.imu_topic, self.on_imu,
-                                                             qos.sensor_input(50))
+        if self.params.sensor.imu_topic:   # taken with each mapping input (1 s of samples wait at 200 Hz)
+            self.imu_subscription = self.create_polled_subscription(Imu, self.params.sensor.imu_topic,
+                                                                    qos.sensor_input(IMU_QUEUE_DEPTH), raw=True)
         self.pub_aft_mapped = self.create_publisher(Odometry, '/aft_mapped_to_init', qos.reliable(5))
         self.tf = TransformBroadcaster(self)
         self.pub_key_poses = self.create_publisher(PointCloud2, '/key_pose_origin', depth2)
@@ -103,10 +109,14 @@ class MapOptimizationNode(LegoLoamNode):
         self._odometry_publisher: dict[int, object] = {}   # stamp -> publisher of recent odometry messages
         self._older_odometry: tuple[int, np.ndarray, object] | None = None   # the one before _last_odometry
         self.last_step_stamp = None
-        background = MutuallyExclusiveCallbackGroup()
-        self.create_timer(mo.global_map_publish_period, self.publish_global_map, callback_group=background)
+        self.create_timer(mo.global_map_publish_period, self.publish_global_map)
+        # Loop closure (an ICP can take seconds) on a worker thread of its own, so that mapping steps go on; the
+        # timer only wakes it (the original's 1 Hz thread).
+        self._loop_wanted = threading.Event()
+        self._stopping = threading.Event()
         if lc.loop_closure_enable_flag:
-            self.create_timer(lc.period, self.loop_closure, callback_group=MutuallyExclusiveCallbackGroup())
+            self.create_timer(lc.period, self._loop_wanted.set)
+            threading.Thread(target=self._loop_worker, name='loop closure', daemon=True).start()
         self._remove_stale_temporaries()
         self.get_logger().info(f'mapOptimization: every {mo.mapping_process_interval} s, loop closure '
                                f'{"on" if lc.loop_closure_enable_flag else "off"}, maps saved to {mo.file_directory}')
@@ -147,7 +157,23 @@ class MapOptimizationNode(LegoLoamNode):
         validation.check_cloud(INPUT_TOPICS[name], cloud)
         return cloud
 
-    def on_odometry(self, msg: Odometry, info) -> None:
+    def _on_odometry_message(self, msg: Odometry) -> None:
+        self.drain(self._odometry_senders, self._note_sender, with_info=True, count=False)
+        self.on_odometry(msg, {'publisher_gid': self._odometry_publisher.get(stamp_to_ns(msg.header.stamp))})
+
+    def _note_sender(self, data: bytes, info) -> None:
+        """Which publisher sent the odometry of a stamp (from the serialized message's header)."""
+        gid = info.get('publisher_gid') if isinstance(info, dict) else None
+        sender = gid.get('data') if isinstance(gid, dict) else gid
+        if sender is None or len(data) < 12:
+            return
+        little = data[1] in (0x01, 0x03)   # CDR encapsulation, then the header's stamp: int32 sec, uint32 nanosec
+        sec, nanosec = struct.unpack_from('<iI' if little else '>iI', data, 4)
+        self._odometry_publisher[sec * 1_000_000_000 + nanosec] = bytes(sender)
+        while len(self._odometry_publisher) > 64:
+            self._odometry_publisher.pop(next(iter(self._odometry_publisher)))
+
+    def on_odometry(self, msg: Odometry, info=None) -> None:
         """/laser_odom_to_init; the publisher's id tells a restarted featureAssociation (a new odometry frame)."""
         ok, pose = self.take(lambda: odometry_to_pose(msg), 'inputs_dropped', 'mapping input dropped')
         if not ok:
@@ -160,11 +186,9 @@ class MapOptimizationNode(LegoLoamNode):
                 self._odometry_publisher.pop(next(iter(self._odometry_publisher)))
         self.on_part('odometry', msg, pose)
 
-    def on_imu(self, msg: Imu) -> None:
-        reason = self.core.imu.add(*imu_sample(msg))
-        if reason is not None:
-            self.count('imu_dropped')
-            self.warn('imu', f'IMU message dropped: {reason}')
+    def on_imu(self, msg) -> None:
+        """A sensor_msgs/Imu, or its serialized bytes (see :meth:`LegoLoamNode.take_imu`)."""
+        self.take_imu(msg, self.core.imu.add)
 
     @property
     def last_stamp_ns(self) -> int | None:
@@ -292,9 +316,9 @@ class MapOptimizationNode(LegoLoamNode):
         pose = pose6_to_matrix(step.transform_aft)
         header = make_header(stamp, CAMERA_INIT_FRAME)
         bef = step.transform_bef
-        self.pub_aft_mapped.publish(pose_to_odometry(pose, header, AFT_MAPPED_FRAME, twist_angular=bef[:3],
-                                                     twist_linear=bef[3:]))
-        self.tf.send_pose(pose, stamp, CAMERA_INIT_FRAME, AFT_MAPPED_FRAME)
+        odometry = pose_to_odometry(pose, header, AFT_MAPPED_FRAME, twist_angular=bef[:3], twist_linear=bef[3:])
+        self.pub_aft_mapped.publish(odometry)
+        self.tf.send_odometry(odometry)
         self.last_step_stamp = stamp
         if self.pub_key_poses.get_subscription_count():
             poses = self.core.keyframe_poses()
@@ -316,6 +340,12 @@ class MapOptimizationNode(LegoLoamNode):
             self.error('global_map', 'building the global map failed')
             return
         self.pub_surround.publish(xyzi_to_cloud_msg(cloud, make_header(self.last_step_stamp, CAMERA_INIT_FRAME)))
+
+    def _loop_worker(self) -> None:
+        while not self._stopping.is_set():
+            if self._loop_wanted.wait(0.5):
+                self._loop_wanted.clear()
+                self.loop_closure()
 
     def loop_closure(self) -> None:
         try:
@@ -369,6 +399,7 @@ class MapOptimizationNode(LegoLoamNode):
         return out
 
     def on_shutdown(self) -> None:
+        self._stopping.set()
         mo = self.params.map_optimization
         if mo.save_map_on_shutdown and self.core.keyframes:
             # Through the runner: a save_map call in progress finishes first, then the final map is written.
@@ -388,7 +419,7 @@ def _fill_save_response(response, finished) -> None:
 
 
 def main(args=None) -> int:
-    return run_node(MapOptimizationNode, args, threads=2)
+    return run_node(MapOptimizationNode, args)
 
 
 if __name__ == '__main__':

@@ -17,7 +17,8 @@ from rclpy.node import Node
 
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.pointcloud import CloudLayoutError
-from lego_loam_py.ros.conversions import stamp_to_ns
+from lego_loam_py.core.imu import imu_sample
+from lego_loam_py.ros.conversions import imu_sample_from_serialized, stamp_to_ns
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.params import declare_params
 
@@ -81,6 +82,7 @@ class LegoLoamNode(Node):
         self._warn_lock = threading.Lock()
         self.timings_ms: dict[str, deque] = {}
         self.counters: dict[str, int] = {}
+        self._polled_node = None           # the companion node of create_polled_subscription
         self._release_pending = False      # a huge message was rejected: give its memory back
         self._last_problem = ''            # the latest warning or error: the watchdog's reason
         self._inputs_without_output = 0
@@ -138,12 +140,49 @@ class LegoLoamNode(Node):
         except TypeError:
             return lambda msg, info: call(msg, info)
 
-    def drain(self, subscription, callback, limit: int = 1000) -> int:
-        """Hand every message waiting in ``subscription``'s queue to ``callback`` now; returns how many.
+    def create_polled_subscription(self, msg_type, topic: str, qos_profile, raw: bool = False):
+        """A subscription the executor never wakes up for: its messages wait in their DDS queue (``qos_profile``'s
+        depth) until :meth:`drain` takes them.
 
-        The executor takes one message per subscription and wait cycle, in creation order: a node busy with
-        a scan would otherwise process it before the IMU samples that arrived with it (and, when always
-        busy, never catch up with the IMU). At most ``limit`` messages, so a flood cannot stall the node.
+        For inputs that are only needed when something else arrives: the IMU at 200 Hz, taken when a scan comes
+        (a wake-up per sample cost more than the sample's processing). It lives on a companion node
+        ``<name>_polled`` that no executor spins (same process, same DDS participant); the topic is resolved
+        with this node's remappings.
+        """
+        if self._polled_node is None:
+            import rclpy
+            self._polled_node = rclpy.create_node(f'{self.get_name()}_polled', namespace=self.get_namespace(),
+                                                  context=self.context, use_global_arguments=False,
+                                                  enable_rosout=False, start_parameter_services=False)
+        return self._polled_node.create_subscription(msg_type, self.resolve_topic_name(topic), lambda _: None,
+                                                     qos_profile, raw=raw)
+
+    def destroy_node(self):
+        if self._polled_node is not None:
+            self._polled_node.destroy_node()
+            self._polled_node = None
+        return super().destroy_node()
+
+    def take_imu(self, msg, add) -> None:
+        """One IMU sample handed to ``add`` (an ImuBuffer's ``add``): ``msg`` is a sensor_msgs/Imu, or its bytes as
+        the nodes' polled raw subscriptions take them (:func:`imu_sample_from_serialized`); a sample the
+        buffer rejects, or bytes that are no Imu, are dropped with a throttled warning (``imu_dropped``)."""
+        try:
+            sample = imu_sample_from_serialized(msg) if isinstance(msg, (bytes, bytearray)) else imu_sample(msg)
+            reason = add(*sample)
+        except (ValueError, TypeError, AttributeError) as exc:
+            reason = f'unreadable message ({exc})'
+        if reason is not None:
+            self.count('imu_dropped')
+            self.warn('imu', f'IMU message dropped: {reason}')
+
+    def drain(self, subscription, callback, limit: int = 1000, with_info: bool = False, count: bool = True) -> int:
+        """Hand every message waiting in ``subscription``'s queue to ``callback`` now (with its message info,
+        ``with_info``); returns how many.
+
+        For a polled subscription (see :meth:`create_polled_subscription`) this is the only way its messages are
+        taken: before each scan, the IMU samples that came with it. At most ``limit`` messages, so a flood cannot
+        stall the node.
         """
         if subscription is None:
             return 0
@@ -157,9 +196,10 @@ class LegoLoamNode(Node):
             if message is None:
                 break
             taken += 1
-            self.count(f'received {subscription.topic_name}')
+            if count:
+                self.count(f'received {subscription.topic_name}')
             try:
-                callback(message[0])
+                callback(*(message if with_info else message[:1]))
             except Exception:
                 self.count('callback_errors')
                 self.error('drain', 'unexpected error while handling a queued message; it was skipped')

@@ -129,8 +129,9 @@ class TransformFusionNode(LegoLoamNode):
             mapped = self.core.integrate(odometry)
         self.order.processed(stamp_to_ns(msg.header.stamp))
         header = make_header(msg.header.stamp, CAMERA_INIT_FRAME)
-        self.pub_integrated.publish(pose_to_odometry(mapped, header, CAMERA_FRAME))
-        self.tf.send_pose(mapped, msg.header.stamp, CAMERA_INIT_FRAME, CAMERA_FRAME)
+        odometry = pose_to_odometry(mapped, header, CAMERA_FRAME)
+        self.pub_integrated.publish(odometry)
+        self.tf.send_odometry(odometry)
         self.count('integrated')
         self.output_published()
         self.record_time('odometry', time.perf_counter() - start)   # conversion, fusion and publishing

@@ -1,0 +1,116 @@
+"""Message conversions the nodes take on their hot paths: serialized IMU samples and the TF of an odometry."""
+from __future__ import annotations
+
+import math
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
+
+
+def imu_message(frame_id: str, sec: int, nanosec: int, values):
+    from sensor_msgs.msg import Imu
+
+    msg = Imu()
+    msg.header.frame_id = frame_id
+    msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+    o, w, a = msg.orientation, msg.angular_velocity, msg.linear_acceleration
+    o.x, o.y, o.z, o.w, w.x, w.y, w.z, a.x, a.y, a.z = values
+    msg.orientation_covariance[0] = -1.0           # (covariances sit between the fields read: not taken)
+    msg.angular_velocity_covariance[8] = 99.0
+    return msg
+
+
+def test_serialized_imu_by_hand():
+    """The XCDR1 layout of sensor_msgs/Imu, written by hand: header, then 37 doubles aligned to 8."""
+    from lego_loam_py.ros.conversions import imu_sample_from_serialized
+
+    frame = b'imu\x00'                                  # length 4 with the NUL: doubles start at 4 + 16
+    doubles = list(range(37))
+    data = b'\x00\x01\x00\x00' + struct.pack('<iII', 12, 500_000_000, len(frame)) + frame + struct.pack('<37d', *doubles)
+    stamp, orientation, gyro, accel = imu_sample_from_serialized(data)
+    assert stamp == 12.5
+    assert orientation == (0, 1, 2, 3) and gyro == (13, 14, 15) and accel == (25, 26, 27)
+    # Big-endian, and a frame id that needs padding (length 2: header ends at 4 + 14, doubles at 4 + 16).
+    data = b'\x00\x00\x00\x00' + struct.pack('>iII', 3, 0, 2) + b'a\x00' + b'\x00\x00' + struct.pack('>37d', *doubles)
+    assert imu_sample_from_serialized(data) == (3.0, (0, 1, 2, 3), (13, 14, 15), (25, 26, 27))
+
+
+@settings(max_examples=150, deadline=None)
+@given(frame_id=st.text(alphabet='abcdefghijklmnopqrstuvwxyz_/0123456789', max_size=40),
+       sec=st.integers(-2**31, 2**31 - 1), nanosec=st.integers(0, 999_999_999),
+       values=st.lists(finite, min_size=10, max_size=10))
+def test_serialized_imu_equals_the_message(frame_id, sec, nanosec, values):
+    """Whatever rclpy serializes, the bytes give exactly what the message object gives."""
+    from rclpy.serialization import serialize_message
+
+    from lego_loam_py.core.imu import imu_sample
+    from lego_loam_py.ros.conversions import imu_sample_from_serialized
+
+    msg = imu_message(frame_id, sec, nanosec, values)
+    assert imu_sample_from_serialized(serialize_message(msg)) == imu_sample(msg)
+
+
+@settings(max_examples=200, deadline=None)
+@given(data=st.binary(max_size=400))
+def test_serialized_imu_garbage_is_a_value_error_or_a_sample(data):
+    """Bytes that are no Imu raise ValueError (never another error, never a read past the end)."""
+    from lego_loam_py.ros.conversions import imu_sample_from_serialized
+
+    try:
+        stamp, orientation, gyro, accel = imu_sample_from_serialized(data)
+    except ValueError:
+        return
+    assert len(orientation) == 4 and len(gyro) == 3 and len(accel) == 3 and isinstance(stamp, float)
+
+
+def test_truncated_serialized_imu_is_refused():
+    from rclpy.serialization import serialize_message
+
+    from lego_loam_py.ros.conversions import imu_sample_from_serialized
+
+    data = serialize_message(imu_message('imu_link', 1, 2, [0.0, 0.0, 0.0, 1.0, 0.1, 0.2, 0.3, 0.0, 0.0, 9.8]))
+    imu_sample_from_serialized(data)
+    for cut in (0, 3, 15, 20, len(data) - 1):
+        with pytest.raises(ValueError):
+            imu_sample_from_serialized(data[:cut])
+
+
+def test_node_takes_serialized_imu_and_drops_unreadable_bytes(context):
+    """featureAssociation's polled IMU subscription hands it bytes: a valid sample goes into the buffer, bytes
+    that are no Imu are dropped with a warning, and the node goes on."""
+    from rclpy.serialization import serialize_message
+
+    from lego_loam_py.ros.feature_association_node import FeatureAssociationNode
+    from tests.support.inprocess import make_node
+
+    fa, rec = make_node(context, FeatureAssociationNode)
+    good = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.1, 0.0, 0.0, 9.81]
+    fa.on_imu(serialize_message(imu_message('imu', 100, 0, good)))
+    fa.on_imu(b'\x00\x01\x00\x00garbage')
+    fa.on_imu(serialize_message(imu_message('imu', 100, 5_000_000, good)))
+    assert len(fa.core.imu) == 2
+    assert fa.counters['imu_dropped'] == 1
+    assert any('IMU message dropped: unreadable message' in text for _, text in rec.warnings)
+    assert not rec.errors
+    fa.destroy_node()
+
+
+def test_transform_of_an_odometry_carries_its_pose_and_frames():
+    from lego_loam_py.core.frames import euler_to_matrix
+    from lego_loam_py.ros.conversions import make_header, odometry_to_transform, pose_to_odometry, pose_to_transform
+
+    pose = np.eye(4)
+    pose[:3, :3] = euler_to_matrix(0.1, -0.7, 2.5)
+    pose[:3, 3] = (1.5, -2.0, 30.25)
+    odometry = pose_to_odometry(pose, make_header(1_234_000_000_007, 'camera_init'), 'laser_odom')
+    transform = odometry_to_transform(odometry)
+    expected = pose_to_transform(pose, 1_234_000_000_007, 'camera_init', 'laser_odom')
+    assert transform.header == expected.header and transform.child_frame_id == 'laser_odom'
+    assert transform.transform == expected.transform
+    q = transform.transform.rotation
+    assert math.isclose(q.x ** 2 + q.y ** 2 + q.z ** 2 + q.w ** 2, 1.0, rel_tol=1e-12)
