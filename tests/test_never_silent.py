@@ -54,6 +54,22 @@ def near(msg, clock_ns: int, rng) -> object:
     return restamped(msg, clock_ns + int(rng.integers(-150_000_000, 150_000_000)))
 
 
+def for_any_bad_messages(max_examples: int, send_bad, send_valid_and_check) -> None:
+    """The property every node test checks: for any (seed, count) from hypothesis, ``send_bad(rng)`` count
+    times (one malformed message each), then ``send_valid_and_check(rng)``: valid input, and its output."""
+
+    @settings(max_examples=max_examples, **SETTINGS)
+    @given(SEQUENCES)
+    def check(sequence):
+        seed, count = sequence
+        rng = np.random.default_rng(seed)
+        for _ in range(count):
+            send_bad(rng)
+        send_valid_and_check(rng)
+
+    check()
+
+
 # ------------------------------------------------------------------------------------- imageProjection
 def test_image_projection_serves_the_next_valid_cloud_after_any_bad_ones(context):
     from lego_loam_py.ros.image_projection_node import ImageProjectionNode
@@ -62,20 +78,17 @@ def test_image_projection_serves_the_next_valid_cloud_after_any_bad_ones(context
     clouds = [m for t, m in campus_messages(1.0) if t == '/velodyne_points']
     clock = Clock()
 
-    @settings(max_examples=60, **SETTINGS)
-    @given(SEQUENCES)
-    def check(sequence):
-        seed, count = sequence
-        rng = np.random.default_rng(seed)
-        for _ in range(count):
-            ip.on_cloud(malformed_cloud(rng, near(clouds[int(rng.integers(len(clouds)))], clock.ns, rng)))
+    def bad(rng):
+        ip.on_cloud(malformed_cloud(rng, near(clouds[int(rng.integers(len(clouds)))], clock.ns, rng)))
+
+    def valid(rng):
         before = len(rec.out('/segmented_cloud'))
         ip.on_cloud(restamped(clouds[int(rng.integers(len(clouds)))], clock.next()))
         assert not rec.errors, rec.errors[-1][1]
         out = rec.out('/segmented_cloud')[before:]
         assert len(out) == 1 and stamp_of(out[0]) == clock.ns and finite_cloud(out[0])
 
-    check()
+    for_any_bad_messages(60, bad, valid)
     assert ip.counters.get('clouds_dropped', 0) > 0
     ip.destroy_node()
 
@@ -110,34 +123,31 @@ def test_feature_association_gives_odometry_for_the_next_valid_scan_after_any_ba
     valid_scan(1, clock.next())
     assert rec.out('/laser_odom_to_init')
 
-    @settings(max_examples=80, **SETTINGS)
-    @given(SEQUENCES)
-    def check(sequence):
-        seed, count = sequence
-        rng = np.random.default_rng(seed)
-        for _ in range(count):
-            k = int(rng.integers(n))
-            topic = int(rng.integers(4))
-            if topic == 0:
-                msg = malformed_cloud(rng, near(outputs['segmented'][k], clock.ns, rng))
-                fa.on_part('cloud', msg)
-            elif topic == 1:
-                msg = malformed_cloud_info(rng, near(outputs['info'][k], clock.ns, rng))
-                fa.on_part('info', msg)
-            elif topic == 2:
-                msg = malformed_cloud(rng, near(outputs['outlier'][k], clock.ns, rng))
-                fa.on_part('outlier', msg)
-            else:
-                msg = malformed_imu(rng, near(outputs['imu'][int(rng.integers(len(outputs['imu'])))], clock.ns, rng))
-                fa.on_imu(msg)
-            stamp = stamp_of(msg)
-            # A malformed part together with valid partners: a complete bad scan. (Only at the valid time: scans
-            # with valid content that agree on another timeline are a restart by design, a bag played in a loop;
-            # the node then follows them, and the real timeline back is believed at its second scan.)
-            if rng.random() < 0.3 and abs(stamp - clock.ns) < 500_000_000:
-                for name, key in (('cloud', 'segmented'), ('info', 'info'), ('outlier', 'outlier')):
-                    if rng.random() < 0.7:
-                        fa.on_part(name, restamped(outputs[key][k], stamp))
+    def bad(rng):
+        k = int(rng.integers(n))
+        topic = int(rng.integers(4))
+        if topic == 0:
+            msg = malformed_cloud(rng, near(outputs['segmented'][k], clock.ns, rng))
+            fa.on_part('cloud', msg)
+        elif topic == 1:
+            msg = malformed_cloud_info(rng, near(outputs['info'][k], clock.ns, rng))
+            fa.on_part('info', msg)
+        elif topic == 2:
+            msg = malformed_cloud(rng, near(outputs['outlier'][k], clock.ns, rng))
+            fa.on_part('outlier', msg)
+        else:
+            msg = malformed_imu(rng, near(outputs['imu'][int(rng.integers(len(outputs['imu'])))], clock.ns, rng))
+            fa.on_imu(msg)
+        stamp = stamp_of(msg)
+        # A malformed part together with valid partners: a complete bad scan. (Only at the valid time: three
+        # scans with valid content that agree on another timeline are a restart by design, a bag played in a
+        # loop; the node would then follow them.)
+        if rng.random() < 0.3 and abs(stamp - clock.ns) < 500_000_000:
+            for name, key in (('cloud', 'segmented'), ('info', 'info'), ('outlier', 'outlier')):
+                if rng.random() < 0.7:
+                    fa.on_part(name, restamped(outputs[key][k], stamp))
+
+    def valid(rng):
         before = len(rec.out('/laser_odom_to_init'))
         stamp = clock.next(fa.last_stamp_ns)
         valid_scan(int(rng.integers(n)), stamp)
@@ -147,7 +157,7 @@ def test_feature_association_gives_odometry_for_the_next_valid_scan_after_any_ba
         assert finite_pose(out[0])
         assert fa.core.health_problem() is None
 
-    check()
+    for_any_bad_messages(80, bad, valid)
     assert fa.counters.get('scans_dropped', 0) > 0
     fa.destroy_node()
 
@@ -171,23 +181,17 @@ def test_map_optimization_maps_the_next_valid_input_after_any_bad_messages(conte
     assert rec.out('/aft_mapped_to_init') and mo.core.keyframes
     keyframes = len(mo.core.keyframes)
 
-    @settings(max_examples=60, **SETTINGS)
-    @given(SEQUENCES)
-    def check(sequence):
-        seed, count = sequence
-        rng = np.random.default_rng(seed)
-        for _ in range(count):
-            k = int(rng.integers(len(inputs)))
-            part = int(rng.integers(5))
-            if part < 3:
-                msg = malformed_cloud(rng, near(inputs[k][part], clock.ns, rng))
-                mo.on_part(('corner', 'surf', 'outlier')[part], msg)
-            elif part == 3:
-                msg = malformed_odometry(rng, near(inputs[k][3], clock.ns, rng))
-                mo.on_odometry(msg, {})
-            else:
-                msg = malformed_imu(rng, near(outputs['imu'][int(rng.integers(len(outputs['imu'])))], clock.ns, rng))
-                mo.on_imu(msg)
+    def bad(rng):
+        k = int(rng.integers(len(inputs)))
+        part = int(rng.integers(5))
+        if part < 3:
+            mo.on_part(('corner', 'surf', 'outlier')[part], malformed_cloud(rng, near(inputs[k][part], clock.ns, rng)))
+        elif part == 3:
+            mo.on_odometry(malformed_odometry(rng, near(inputs[k][3], clock.ns, rng)), {})
+        else:
+            mo.on_imu(malformed_imu(rng, near(outputs['imu'][int(rng.integers(len(outputs['imu'])))], clock.ns, rng)))
+
+    def valid(rng):
         before = len(rec.out('/aft_mapped_to_init'))
         stamp = clock.next(mo.last_stamp_ns)
         valid_input(int(rng.integers(len(inputs))), stamp)
@@ -196,7 +200,7 @@ def test_map_optimization_maps_the_next_valid_input_after_any_bad_messages(conte
         assert len(out) == 1, (mo.counters, rec.warnings[-3:], rec.resets[-2:])
         assert finite_pose(out[0]) and mo.core.health_problem() is None
 
-    check()
+    for_any_bad_messages(60, bad, valid)
     assert len(mo.core.keyframes) >= keyframes   # nothing built was lost
     mo.destroy_node()
 
@@ -211,14 +215,11 @@ def test_transform_fusion_fuses_the_next_valid_odometry_after_any_bad_messages(c
     clock = Clock()
     tf.on_odometry(restamped(odometry[0], clock.ns))
 
-    @settings(max_examples=80, **SETTINGS)
-    @given(SEQUENCES)
-    def check(sequence):
-        seed, count = sequence
-        rng = np.random.default_rng(seed)
-        for _ in range(count):
-            msg = malformed_odometry(rng, near(odometry[int(rng.integers(len(odometry)))], clock.ns, rng))
-            (tf.on_mapped if rng.random() < 0.5 else tf.on_odometry)(msg)
+    def bad(rng):
+        msg = malformed_odometry(rng, near(odometry[int(rng.integers(len(odometry)))], clock.ns, rng))
+        (tf.on_mapped if rng.random() < 0.5 else tf.on_odometry)(msg)
+
+    def valid(rng):
         before = len(rec.out('/integrated_to_init'))
         stamp = clock.next(tf.last_stamp_ns)
         tf.on_odometry(restamped(odometry[int(rng.integers(len(odometry)))], stamp))
@@ -226,7 +227,7 @@ def test_transform_fusion_fuses_the_next_valid_odometry_after_any_bad_messages(c
         out = [m for m in rec.out('/integrated_to_init')[before:] if stamp_of(m) == stamp]
         assert len(out) == 1 and finite_pose(out[0]), (tf.counters, rec.warnings[-3:])
 
-    check()
+    for_any_bad_messages(80, bad, valid)
     tf.destroy_node()
 
 
