@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tests.support.ros import Diagnostics, bag_clouds, release, spin_until
+from tests.support.ros import Diagnostics, bag_clouds, links_matched, release, spin_until
 
 BIN = Path(sys.executable).parent
 GOLDEN_BAG = 'vlp16_static_indoor_20hz'
@@ -26,11 +26,13 @@ def wait_ready(context, node, topics, procs, timeout=30.0):
     assert ok
 
 
-def wait_linked(context, node, topics, timeout=30.0):
-    """Every topic between the nodes has its subscriber (a message sent before that is lost, as with any DDS
-    publisher)."""
-    linked = spin_until(context, node, lambda: all(node.count_subscribers(t) > 0 for t in topics), timeout)
-    assert linked, {t: node.count_subscribers(t) for t in topics}
+def wait_linked(context, node, links, timeout=60.0):
+    """Every link matched at both ends (see tests.support.ros.links_matched; a message sent before is lost, as
+    with any DDS publisher)."""
+    diagnostics = Diagnostics(node)
+    linked = spin_until(context, node, lambda: links_matched(diagnostics, links), timeout)
+    assert linked, {name: {k: v for k, v in values.items() if k.startswith('matched')}
+                    for name, values in diagnostics.latest.items()}
 
 
 def stamp_of(msg) -> int:
@@ -53,19 +55,22 @@ def test_odometry_for_every_scan_over_dds_equals_the_original(shared_data, tmp_p
     params = default_params_file().parent / 'original.yaml'
     node = rclpy.create_node('fa_listener', context=rclpy_context)
     odometry, tf, last, finished = [], [], {t: [] for t in LAST_TOPICS}, set()
-    node.create_subscription(Odometry, '/laser_odom_to_init', odometry.append, qos.reliable(100))
-    node.create_subscription(TFMessage, '/tf', tf.append, qos.reliable(100))
+    listeners = {'/laser_odom_to_init': node.create_subscription(Odometry, '/laser_odom_to_init', odometry.append,
+                                                                 qos.reliable(100)),
+                 '/tf': node.create_subscription(TFMessage, '/tf', tf.append, qos.reliable(100))}
     for topic in LAST_TOPICS:
-        node.create_subscription(PointCloud2, topic, last[topic].append, qos.reliable(100))
+        listeners[topic] = node.create_subscription(PointCloud2, topic, last[topic].append, qos.reliable(100))
     # featureAssociation publishes the less-flat features of every scan it processed (while subscribed),
     # after the scan's odometry: the event that says it is done with a scan.
-    node.create_subscription(PointCloud2, '/laser_cloud_less_flat', lambda m: finished.add(stamp_to_ns(m.header.stamp)),
-                             qos.reliable(100))
+    listeners['/laser_cloud_less_flat'] = node.create_subscription(
+        PointCloud2, '/laser_cloud_less_flat', lambda m: finished.add(stamp_to_ns(m.header.stamp)), qos.reliable(100))
     clouds = node.create_publisher(PointCloud2, '/velodyne_points', qos.reliable(10))
     procs = start_pipeline(processes, params)
     wait_ready(rclpy_context, node, ['/laser_odom_to_init', '/segmented_cloud'], procs)
-    wait_linked(rclpy_context, node, ['/velodyne_points', '/segmented_cloud', '/segmented_cloud_info', '/outlier_cloud',
-                                      '/laser_cloud_less_flat'])
+    wait_linked(rclpy_context, node, [(clouds, '/velodyne_points', ['imageProjection']),
+                                      *[('imageProjection', t, ['featureAssociation'])
+                                        for t in ('/segmented_cloud', '/segmented_cloud_info', '/outlier_cloud')],
+                                      *[('featureAssociation', t, [listener]) for t, listener in listeners.items()]])
     # One scan at a time, the next once featureAssociation is done with the previous one: parity needs every
     # scan, and the nodes' depth-1 inputs (the original's 'latest wins') would let a loaded machine skip one.
     scans = bag_clouds(shared_data / 'golden' / f'{GOLDEN_BAG}_ros2')

@@ -6,13 +6,24 @@ from pathlib import Path
 
 import numpy as np
 
-from tests.support.ros import Diagnostics, bag_clouds, publish_in_lockstep, release, spin_until
+from tests.support.ros import Diagnostics, bag_clouds, links_matched, publish_in_lockstep, release, spin_until
 
 BIN = Path(sys.executable).parent
 GOLDEN_BAG = 'vlp16_static_indoor_20hz'
 NODES = ('imageProjection', 'featureAssociation', 'mapOptimization', 'transformFusion')
 INTERNAL_TOPICS = ('/segmented_cloud', '/segmented_cloud_info', '/outlier_cloud', '/laser_cloud_corner_last',
                    '/laser_cloud_surf_last', '/outlier_cloud_last', '/laser_odom_to_init', '/aft_mapped_to_init')
+
+
+def pipeline_links(clouds, features_in, mapped_in, integrated_in):
+    """The links the parity test needs (see tests.support.ros.links_matched): the test's clouds in, the four
+    nodes between them, and the test's listeners on the outputs it waits for."""
+    ip, fa, mo, tf = NODES
+    return [(clouds, '/velodyne_points', [ip]),
+            *[(ip, topic, [fa]) for topic in INTERNAL_TOPICS[:3]],
+            *[(fa, topic, [mo]) for topic in INTERNAL_TOPICS[3:6]],
+            (fa, '/laser_odom_to_init', [mo, tf]), (mo, '/aft_mapped_to_init', [tf, mapped_in]),
+            (fa, '/laser_cloud_less_flat', [features_in]), (tf, '/integrated_to_init', [integrated_in])]
 
 
 def odometry_rows(messages):
@@ -55,12 +66,12 @@ def test_mapping_and_fusion_over_dds_equal_the_original(shared_data, tmp_path, r
     original = default_params_file().parent / 'original.yaml'
     node = rclpy.create_node('pipeline_listener', context=rclpy_context)
     mapped, integrated, static, features = [], [], [], set()
-    node.create_subscription(Odometry, '/aft_mapped_to_init', mapped.append, qos.reliable(100))
-    node.create_subscription(Odometry, '/integrated_to_init', integrated.append, qos.reliable(100))
+    mapped_in = node.create_subscription(Odometry, '/aft_mapped_to_init', mapped.append, qos.reliable(100))
+    integrated_in = node.create_subscription(Odometry, '/integrated_to_init', integrated.append, qos.reliable(100))
     node.create_subscription(TFMessage, '/tf_static', static.append, qos.latched())
     # featureAssociation's less-flat features (published while subscribed): it is done with a scan.
-    node.create_subscription(PointCloud2, '/laser_cloud_less_flat', lambda m: features.add(stamp_to_ns(m.header.stamp)),
-                             qos.reliable(100))
+    features_in = node.create_subscription(PointCloud2, '/laser_cloud_less_flat',
+                                           lambda m: features.add(stamp_to_ns(m.header.stamp)), qos.reliable(100))
     clouds = node.create_publisher(PointCloud2, '/velodyne_points', qos.reliable(10))
     diagnostics = Diagnostics(node)
     procs = {name: processes.start([BIN / name, '--ros-args', '--params-file', original, '--params-file', params])
@@ -73,11 +84,12 @@ def test_mapping_and_fusion_over_dds_equal_the_original(shared_data, tmp_path, r
     for name, p in procs.items():
         assert p.poll() is None, f'{name} exited: {p.communicate()[1]}'
     assert ready
-    # Every link between the nodes discovered (a message published before its subscriber is matched is lost,
-    # as with any DDS publisher: featureAssociation would then start one scan late).
-    linked = spin_until(rclpy_context, node, lambda: all(node.count_subscribers(topic) > 0 for topic in INTERNAL_TOPICS),
-                        30)
-    assert linked, {topic: node.count_subscribers(topic) for topic in INTERNAL_TOPICS}
+    # Every link matched at both ends: a message sent before is lost, as with any DDS publisher (a busy machine
+    # once had mapOptimization miss the first mapping inputs, and the lockstep wait for their result for ever).
+    links = pipeline_links(clouds, features_in, mapped_in, integrated_in)
+    linked = spin_until(rclpy_context, node, lambda: links_matched(diagnostics, links), 60)
+    assert linked, {name: {k: v for k, v in values.items() if k.startswith('matched')}
+                    for name, values in diagnostics.latest.items()}
     # One scan at a time, the next once the whole pipeline is done with the previous one: its fused pose is out
     # and, on the scans where the original ran a mapping step, that step's result too. Parity needs every scan
     # in the original's order of events; the depth-1 inputs ('latest wins') would let a loaded machine skip one.

@@ -28,6 +28,9 @@ __all__ = ['LegoLoamNode', 'release_memory', 'resync_message', 'LARGE_MESSAGE_BY
 # pages (glibc keeps freed blocks of up to 32 MB in the heap once it has seen one that size).
 LARGE_MESSAGE_BYTES = 8 << 20
 
+# rclpy's own endpoints of every node, left out of the matched counts on /diagnostics.
+_HOUSEKEEPING_TOPICS = frozenset(('/parameter_events', '/rosout', '/diagnostics'))
+
 
 def resync_message(noun: str, decision) -> str:
     """The warning of a 'resync' decision of a StampOrder."""
@@ -390,12 +393,33 @@ class LegoLoamNode(Node):
                 values.append(KeyValue(key=f'{name}_median_ms', value=f'{np.median(v):.2f}'))
                 values.append(KeyValue(key=f'{name}_p95_ms', value=f'{np.percentile(v, 95):.2f}'))
         values.append(KeyValue(key='inputs_without_output', value=str(self._inputs_without_output)))
+        values += [KeyValue(key=key, value=str(count)) for key, count in self.matched_endpoints().items()]
         if self.silent:
             level, message = DiagnosticStatus.WARN, self.watchdog_message()
         else:
             level, message = DiagnosticStatus.OK, 'running'
         return DiagnosticStatus(level=level, name=self.get_name(), message=message, hardware_id='lego_loam_py',
                                 values=values)
+
+    def matched_endpoints(self) -> dict[str, int]:
+        """How many remote endpoints DDS has matched with each of this node's topics: ``matched subscribers
+        <topic>`` per publisher, ``matched publishers <topic>`` per subscription (polled ones included).
+
+        A writer sends only to readers it has matched and a reliable reader takes only from writers it has
+        matched, each side on its own time; a topic listed in the ROS graph is not yet a link. These counts say
+        when it is one (an output nobody takes, an input nobody feeds), on /diagnostics.
+        """
+        matched = {}
+        for publisher in self.publishers:
+            if publisher.topic_name not in _HOUSEKEEPING_TOPICS:
+                matched[f'matched subscribers {publisher.topic_name}'] = publisher.get_subscription_count()
+        subscriptions = list(self.subscriptions)
+        if self._polled_node is not None:
+            subscriptions += list(self._polled_node.subscriptions)
+        for subscription in subscriptions:
+            if subscription.topic_name not in _HOUSEKEEPING_TOPICS:
+                matched[f'matched publishers {subscription.topic_name}'] = subscription.get_publisher_count()
+        return matched
 
     def publish_diagnostics(self) -> None:
         array = DiagnosticArray()

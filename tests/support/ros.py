@@ -112,6 +112,24 @@ class Diagnostics:
         return int(self.latest.get(node_name, {}).get(key, 0))
 
 
+def links_matched(diagnostics: Diagnostics, links) -> bool:
+    """Whether DDS has matched both ends of every link (writer, topic, readers): the writer with at least as many
+    readers as listed, each reader with a writer. An end is a node's name (its counts as published on
+    /diagnostics, see LegoLoamNode.matched_endpoints) or the test's own Publisher or Subscription.
+
+    Seeing a topic's endpoints in the test's view of the graph is not enough: each participant discovers the
+    others on its own time, and a message sent on a link not yet matched at both ends is lost.
+    """
+    def matched(end, topic: str, side: str) -> int:
+        if isinstance(end, str):
+            return diagnostics.counter(end, f'matched {side} {topic}')
+        return end.get_subscription_count() if side == 'subscribers' else end.get_publisher_count()
+
+    return all(matched(writer, topic, 'subscribers') >= len(readers) and
+               all(matched(reader, topic, 'publishers') >= 1 for reader in readers)
+               for writer, topic, readers in links)
+
+
 def release(node, timeout: float = 10.0) -> bool:
     """``node.destroy_node()`` that cannot hang the test run: Fast DDS 3.2.3 can deadlock a participant when a
     remote writer goes away during a heartbeat response (see lego_loam_py.ros.runtime.teardown_guard), and
