@@ -337,8 +337,10 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
         if distance is not None and len(distance):
             summary['map_to_scene'] = dict(median_m=float(np.median(distance)),
                                            p90_m=float(np.percentile(distance, 90)), points=int(len(distance)))
-    summary['png'] = str(plot_trajectories(out / 'trajectory.png', trajectories, map_points,
-                                           title=f'{Path(bag).name}: trajectory over the map (top view)'))
+    if any(len(poses) for poses in trajectories.values()) or (map_points is not None and len(map_points)):
+        # (nothing to draw, no picture: an empty plot would look like a broken run)
+        summary['png'] = str(plot_trajectories(out / 'trajectory.png', trajectories, map_points,
+                                               title=f'{Path(bag).name}: trajectory over the map (top view)'))
     write_text_atomic(out / 'summary.json', json.dumps(summary, indent=2, default=float))
     return summary
 

@@ -109,6 +109,7 @@ def test_run_on_a_recording_of_a_few_scans_writes_complete_readable_files(tmp_pa
     assert files and not [p for p in files if p.stat().st_size == 0 or '.tmp' in p.name]
     assert all(stat.S_IMODE(p.stat().st_mode) == 0o644 for p in files), {p.name: oct(p.stat().st_mode) for p in files}
     assert (out / 'trajectory.tum').exists() == (scans >= 2)
+    assert (out / 'trajectory.png').exists() == (scans >= 2)   # an empty plot is no picture of a run
     if scans >= 2:
         assert len(read_tum(out / 'trajectory.tum')[0]) == scans - 1
         assert len(read_pcd(out / 'map' / 'global_map.pcd')) > 100
