@@ -95,7 +95,7 @@ def test_four_isolated_points_are_outliers():
     ([8, 8, 9, 9, 10, 10], [300, 301, 300, 301, 300, 301], True),    # 6 points over 3 rows
     ([8, 8, 8, 9, 9, 9], [300, 301, 302, 300, 301, 302], False),     # 6 points over 2 rows
     ([8, 9, 9, 10, 10], [300, 300, 301, 300, 301], False),            # 5 points over 3 rows, but the seed is
-                                                                      # alone in its row (quirk 13): 2 rows count
+                                                                      # alone in its row (quirk 8.13): 2 rows count
     ([8, 8, 9, 10, 10], [300, 301, 300, 300, 301], True),             # 5 points, seed row shared: 3 rows
     ([8, 9, 10, 11], [300, 300, 300, 300], False),                    # 4 points over 4 rows: too few
 ])

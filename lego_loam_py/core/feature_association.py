@@ -1,6 +1,6 @@
 """featureAssociation: deskew, feature extraction and scan-to-scan odometry for one scan at a time.
 
-Per scan (reference §6.2): the segmented cloud (lidar axes, intensity row + col/10000) is turned into LOAM
+Per scan (docs/original.md §6.2): the segmented cloud (lidar axes, intensity row + col/10000) is turned into LOAM
 camera axes and every point gets its relative time in the sweep; with an IMU it is deskewed to the sweep
 start; features are extracted; the first scan initialises the 'last' clouds; later scans are registered
 against them (:class:`~lego_loam_py.core.laser_odometry.LaserOdometry`), the motion is accumulated into

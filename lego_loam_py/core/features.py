@@ -1,4 +1,4 @@
-"""Feature extraction of featureAssociation (reference §6.2 steps 2-4, quirks §8.2 and §8.7).
+"""Feature extraction of featureAssociation (docs/original.md §6.2 steps 2-4, quirks 8.2 and 8.7).
 
 Input: the segmented cloud of one scan in LOAM camera axes (after deskewing), with the CloudInfo arrays
 (ground flags, columns, ranges, ring index bounds). Output: sharp (edge), less-sharp, flat (ground plane)

@@ -1,4 +1,4 @@
-"""Frames, axes and angle conventions of LeGO-LOAM, in one place (reference/LEGO_LOAM.md §5).
+"""Frames, axes and angle conventions of LeGO-LOAM, in one place (docs/original.md §5).
 
 Two axis conventions meet in LeGO-LOAM:
 

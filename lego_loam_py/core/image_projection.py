@@ -1,4 +1,4 @@
-"""imageProjection: range image, ground removal and segmentation (reference/LEGO_LOAM.md §3, §6.1, §8).
+"""imageProjection: range image, ground removal and segmentation (docs/original.md §3, §6.1, §8).
 
 Everything is vectorised over points and pixels. The arithmetic follows the C++ original step by step,
 in float32 where it uses floats and with libm's ``atan2f`` (see :mod:`lego_loam_py.core.libm`), so on the
@@ -409,7 +409,7 @@ class ImageProjection:
         np.minimum.at(seed, component_of_run, first_row_major)
         valid = size >= ip.segment_min_cluster_size
         # The line count decides only for the mid-sized clusters. It counts the rows of the pixels other
-        # than the seed: the seed's row only if another pixel of the component lies in it (quirk 13). Each
+        # than the seed: the seed's row only if another pixel of the component lies in it (quirk 8.13). Each
         # run covers an interval of rows, the seed's run from the row above the seed (its lowest pixel).
         mid_sized = (size >= ip.segment_valid_point_num) & ~valid
         if mid_sized.any():

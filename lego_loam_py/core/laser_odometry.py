@@ -1,4 +1,4 @@
-"""Scan-to-scan odometry of featureAssociation (reference §5.3, §6.2 steps 5-10, quirks §8.1, §8.10, §8.11).
+"""Scan-to-scan odometry of featureAssociation (docs/original.md §5.3, §6.2 steps 5-10, quirks 8.1, 8.10, 8.11).
 
 Conventions (LOAM camera axes: x left, y up, z forward). The motion over one sweep is the six-vector
 ``transform_cur = (rx, ry, rz, tx, ty, tz)`` with ``R(θ) = Rz(rz) Rx(rx) Ry(ry)``: a point measured at

@@ -1,4 +1,4 @@
-"""mapOptimization: scan-to-map refinement, keyframes, iSAM2 pose graph, loop closure (reference §6.3).
+"""mapOptimization: scan-to-map refinement, keyframes, iSAM2 pose graph, loop closure (docs/original.md §6.3).
 
 Poses are six-vectors ``(rx, ry, rz, tx, ty, tz)`` in LOAM camera axes with the world convention
 ``R = Ry(ry) Rx(rx) Rz(rz)`` (:mod:`lego_loam_py.core.frames`):

@@ -1,7 +1,7 @@
 """All parameters of lego_loam_py in one typed structure.
 
 Every tunable value of the original LeGO-LOAM (``utility.h`` and the numbers hard-coded in its .cpp files,
-reference/LEGO_LOAM.md §2.1-§2.2) has a named field here, grouped by the node that uses it. The defaults
+docs/original.md §2.1-§2.2) has a named field here, grouped by the node that uses it. The defaults
 reproduce the original's VLP-16 configuration exactly.
 
 Parameters come from a ROS 2 style YAML file (``ros__parameters`` layout, one file for all four nodes)::
@@ -73,7 +73,7 @@ class SensorParams:
         return math.radians(self.ang_res_y)
 
 
-# Geometry of the sensor blocks of utility.h (reference §2.3) plus the HDL-64E values the original's
+# Geometry of the sensor blocks of utility.h (docs/original.md §2.3) plus the HDL-64E values the original's
 # author suggested (issue #12, ang_res_y as 26.9/63). Keys are the values accepted by ``sensor.preset``.
 SENSOR_PRESETS: dict[str, dict[str, Any]] = {
     'VLP-16': dict(n_scan=16, horizon_scan=1800, ang_res_x=0.2, ang_res_y=2.0, ang_bottom=15.0 + 0.1,

@@ -1,4 +1,4 @@
-"""transformFusion: the 10 Hz odometry corrected by the latest mapping result (reference §6.4).
+"""transformFusion: the 10 Hz odometry corrected by the latest mapping result (docs/original.md §6.4).
 
 ``T_mapped = T_aft · T_bef^-1 · T_sum``: the odometry pose ``T_sum`` of every scan, moved by the correction
 the last mapping step found (``T_aft`` is the optimised pose of the odometry pose ``T_bef``). Poses are

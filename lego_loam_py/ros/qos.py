@@ -1,4 +1,4 @@
-"""QoS profiles of the original's topics (reference §4, §14).
+"""QoS profiles of the original's topics (docs/original.md §4, §14).
 
 Sensor inputs are best effort, which matches both reliable and best-effort publishers (drivers use either).
 Internal topics are reliable keep-last with the original's queue sizes: depth 1 means a slow node always

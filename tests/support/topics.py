@@ -1,4 +1,4 @@
-"""The original LeGO-LOAM's topics (reference §4) as lego_loam_py publishes them: type, frame, child frame.
+"""The original LeGO-LOAM's topics (docs/original.md §4) as lego_loam_py publishes them: type, frame, child frame.
 
 Frames are the original's without the leading slash. ``SENSOR_FRAME`` marks CloudInfo, whose header is the
 input cloud's (the simulated bags' lidar frame is ``velodyne``).
