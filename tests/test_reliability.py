@@ -30,6 +30,7 @@ from hypothesis import strategies as st
 from lego_loam_py.core.io import pcd_is_complete, tum_is_complete
 from tests.support.inprocess import (CAMPUS, campus_messages, make_node, mapping_inputs, mapping_publishers,
                                      pipeline_outputs, restamped, stamp_of)
+from tests.support.malformed import set_sequence
 from tests.support.measure import rss_mb
 from tests.support.ros import Diagnostics, publish_in_lockstep, release, spin_until, wait_for_line
 
@@ -250,12 +251,7 @@ def mutated_scans(draw, outputs):
             values = rng.integers(info_max.min, info_max.max, len(values), endpoint=True)
         elif how == 'small' and typecode is not None:   # plausible but wrong: small random values
             values = rng.integers(0 if typecode == 'I' else -10, 2000, len(values)).astype(values.dtype)
-        if typecode is None:
-            setattr(info, name, [bool(v) for v in values])
-        else:
-            buffer = array.array(typecode)
-            buffer.frombytes(np.asarray(values).astype(np.dtype(typecode)).tobytes())
-            setattr(info, name, buffer)
+        set_sequence(info, name, values, typecode)
     for name in ('start_orientation', 'end_orientation', 'orientation_diff'):
         if 'orientation' in chosen and draw(st.booleans()):
             setattr(info, name, float(draw(st.sampled_from([math.nan, math.inf, 0.0, 1e30, -7.0, 3e38, 0.1, 6.0]))))
@@ -1132,32 +1128,51 @@ def test_the_pipeline_recovers_when_a_node_is_killed_and_restarted(rclpy_context
     release(node)
 
 
+class SavingMapper:
+    """mapOptimization as a process saving into ``tmp_path/maps``, fed the pipeline's mapping inputs by a test
+    node (``pubs``) that also reads its /diagnostics."""
+
+    def __init__(self, context, processes, tmp_path: Path, node_name: str):
+        import rclpy
+
+        outputs = pipeline_outputs(context, tmp_path)
+        self.context = context
+        self.maps = tmp_path / 'maps'
+        self.nodes = NodeProcesses(processes, tmp_path, map_optimization__file_directory=self.maps)
+        self.node = rclpy.create_node(node_name, context=context)
+        self.diagnostics = Diagnostics(self.node)
+        self.pubs = mapping_publishers(self.node)
+        self.nodes.start('mapOptimization')
+        self.inputs = mapping_inputs(outputs)
+
+    def wait_linked(self) -> None:
+        assert spin_until(self.context, self.node, lambda: all(p.get_subscription_count() for p in self.pubs.values()),
+                          20)
+
+    def feed(self, parts_list, pause: float) -> None:
+        """Each mapping input (corner, surf, outlier, odometry), ``pause`` seconds apart."""
+        for parts in parts_list:
+            for name, msg in zip(('corner', 'surf', 'outlier', 'odometry'), parts):
+                self.pubs[name].publish(msg)
+            spin_until(self.context, self.node, lambda: False, pause)
+
+
 def test_map_files_are_complete_after_sigkill_during_a_save(rclpy_context, processes, tmp_path):
     """mapOptimization killed with SIGKILL in the middle of writing its map: every file is the previous complete
     version or the new complete one, never partial; the restarted node removes the killed writer's temporaries."""
-    import rclpy
     from cloud_msgs.msg import CloudInfo  # noqa: F401 (type support loaded before the node starts)
     from std_srvs.srv import Trigger
 
     from lego_loam_py.ros.map_optimization_node import MAP_FILE_STEMS
 
-    outputs = pipeline_outputs(rclpy_context, tmp_path)
-    maps = tmp_path / 'maps'
-    nodes = NodeProcesses(processes, tmp_path, map_optimization__file_directory=maps)
-    node = rclpy.create_node('save_killer', context=rclpy_context)
-    diagnostics = Diagnostics(node)
-    pubs = mapping_publishers(node)
-    nodes.start('mapOptimization')
+    mapper = SavingMapper(rclpy_context, processes, tmp_path, 'save_killer')
+    maps, nodes, node, diagnostics, inputs = mapper.maps, mapper.nodes, mapper.node, mapper.diagnostics, mapper.inputs
     client = node.create_client(Trigger, 'save_map')
     assert client.wait_for_service(timeout_sec=30)
-    assert spin_until(rclpy_context, node, lambda: all(p.get_subscription_count() for p in pubs.values()), 20)
-    inputs = mapping_inputs(outputs)
+    mapper.wait_linked()
 
     def feed(parts_list):
-        for parts in parts_list:
-            for name, msg in zip(('corner', 'surf', 'outlier', 'odometry'), parts):
-                pubs[name].publish(msg)
-            spin_until(rclpy_context, node, lambda: False, 0.15)
+        mapper.feed(parts_list, 0.15)
 
     def save():
         future = client.call_async(Trigger.Request())
@@ -1213,31 +1228,18 @@ def test_map_files_are_complete_after_sigkill_during_a_save(rclpy_context, proce
 def test_save_map_answers_twenty_concurrent_callers_with_at_most_two_saves(rclpy_context, processes, tmp_path):
     """20 clients call save_map at once while mapOptimization maps: every one gets an answer from a save that
     started after it asked or was going on (coalesced: two saves), and the files are complete."""
-    import rclpy
     from cloud_msgs.msg import CloudInfo  # noqa: F401 (type support loaded before the node starts)
     from std_srvs.srv import Trigger
 
-    outputs = pipeline_outputs(rclpy_context, tmp_path)
-    maps = tmp_path / 'maps'
-    nodes = NodeProcesses(processes, tmp_path, map_optimization__file_directory=maps)
-    node = rclpy.create_node('save_callers', context=rclpy_context)
-    diagnostics = Diagnostics(node)
-    pubs = mapping_publishers(node)
-    nodes.start('mapOptimization')
+    mapper = SavingMapper(rclpy_context, processes, tmp_path, 'save_callers')
+    maps, nodes, node, diagnostics, inputs = mapper.maps, mapper.nodes, mapper.node, mapper.diagnostics, mapper.inputs
     clients = [node.create_client(Trigger, 'save_map') for _ in range(20)]
     assert all(client.wait_for_service(timeout_sec=30) for client in clients)
-    assert spin_until(rclpy_context, node, lambda: all(p.get_subscription_count() for p in pubs.values()), 20)
-    inputs = mapping_inputs(outputs)
-    for parts in inputs[:len(inputs) // 2]:
-        for name, msg in zip(('corner', 'surf', 'outlier', 'odometry'), parts):
-            pubs[name].publish(msg)
-        spin_until(rclpy_context, node, lambda: False, 0.1)
+    mapper.wait_linked()
+    mapper.feed(inputs[:len(inputs) // 2], 0.1)
     assert spin_until(rclpy_context, node, lambda: diagnostics.counter('mapOptimization', 'keyframes') >= 1, 60)
     futures = [client.call_async(Trigger.Request()) for client in clients]
-    for parts in inputs[len(inputs) // 2:]:   # mapping goes on meanwhile
-        for name, msg in zip(('corner', 'surf', 'outlier', 'odometry'), parts):
-            pubs[name].publish(msg)
-        spin_until(rclpy_context, node, lambda: False, 0.05)
+    mapper.feed(inputs[len(inputs) // 2:], 0.05)   # mapping goes on meanwhile
     assert spin_until(rclpy_context, node, lambda: all(f.done() for f in futures), 90), \
         f'{sum(f.done() for f in futures)} of 20 answered: {nodes.log("mapOptimization")[-2000:]}'
     assert all(f.result().success for f in futures), [f.result().message for f in futures]

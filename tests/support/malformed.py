@@ -145,6 +145,17 @@ _INFO_ARRAYS = (('start_ring_index', 'i'), ('end_ring_index', 'i'), ('segmented_
                 ('segmented_cloud_range', 'f'), ('segmented_cloud_ground_flag', None))
 
 
+def set_sequence(msg, name: str, values, typecode: str | None) -> None:
+    """Set a CloudInfo array field from any values: a list of bools (``typecode`` None) or an array.array of
+    ``typecode`` (the values cast, whatever they are)."""
+    if typecode is None:
+        setattr(msg, name, [bool(v) for v in values])
+    else:
+        buffer = array.array(typecode)
+        buffer.frombytes(np.asarray(values).astype(np.dtype(typecode)).tobytes())
+        setattr(msg, name, buffer)
+
+
 def malformed_cloud_info(rng: np.random.Generator, msg):
     """A CloudInfo with arrays of other lengths or impossible values, orientations NaN / 0 / 1e-30 / huge /
     inconsistent, or a stamp far away."""
@@ -167,12 +178,7 @@ def malformed_cloud_info(rng: np.random.Generator, msg):
         elif typecode in ('i', 'I'):
             limits = np.iinfo(np.int32 if typecode == 'i' else np.uint32)
             values = rng.integers(limits.min, limits.max, len(values), endpoint=True)
-        if typecode is None:
-            setattr(out, name, [bool(v) for v in values])
-        else:
-            buffer = array.array(typecode)
-            buffer.frombytes(np.asarray(values).astype(np.dtype(typecode)).tobytes())
-            setattr(out, name, buffer)
+        set_sequence(out, name, values, typecode)
     elif kind <= 3:
         for name in ('start_orientation', 'end_orientation', 'orientation_diff'):
             if rng.random() < 0.5:
