@@ -13,8 +13,9 @@ import sys
 from typing import Sequence
 
 from lego_loam_py import __version__
+from lego_loam_py.errors import LegoLoamError
 
-__all__ = ['main', 'build_parser', 'COMMANDS']
+__all__ = ['main', 'build_parser', 'run_command', 'COMMANDS']
 
 # (command, module, one-line help, description)
 COMMANDS = [
@@ -79,15 +80,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def run_command(handler, args: argparse.Namespace) -> int:
+    """A command's exit code: what ``handler(args)`` returns, or for a :class:`LegoLoamError` it raised its
+    ``exit_code`` after one ``error: ...`` line (the one place where errors become messages and codes); 130
+    after Ctrl-C."""
+    try:
+        return int(handler(args) or 0)
+    except LegoLoamError as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        return 130
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     ours, ros_args = _split_ros_args(argv)
     args = build_parser().parse_args(ours)
     args.ros_args = ['lego_loam_py', *ros_args]
-    try:
-        code = int(args.handler(args) or 0)
-    except KeyboardInterrupt:
-        code = 130
+    code = run_command(args.handler, args)
     if 'lego_loam_py.ros.runtime' in sys.modules and sys.modules['lego_loam_py.ros.runtime'].stuck_teardowns():
         # A DDS teardown is stuck on a thread of ours: interpreter exit would wait for it forever.
         sys.stdout.flush()

@@ -29,6 +29,8 @@ from typing import Callable
 
 import numpy as np
 
+from lego_loam_py.errors import UsageError
+
 __all__ = ['DemoResult', 'run_demo', 'read_trajectory', 'read_stats', 'format_demo_summary', 'default_bag',
            'add_arguments', 'main']
 
@@ -105,7 +107,7 @@ def _clear_previous_outputs(out: Path) -> None:
         if recording.is_dir() and ((recording / 'metadata.yaml').is_file() or not any(recording.iterdir())):
             shutil.rmtree(recording)
         else:
-            raise FileExistsError(f'{recording} exists and is not a bag this demo recorded: move it away')
+            raise UsageError(f'{recording} exists and is not a bag this demo recorded: move it away')
     for name in STATS_NODES:
         (out / 'stats' / f'{name}.json').unlink(missing_ok=True)
     for name in MAP_FILES:
@@ -146,8 +148,8 @@ def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_
              hurry: threading.Event | None = None, announce: Callable[[str], None] | None = None,
              ready_timeout: float = 60.0) -> DemoResult:
     """Run the pipeline over DDS on ``bag`` and write the outputs into ``out_dir`` (see the module
-    docstring). Raises ``BagError`` / ``ParameterError`` / ``ValueError`` before starting anything when the
-    bag or the parameters are invalid."""
+    docstring). Raises ``BagError``, ``ParameterError`` or ``UsageError`` before starting anything when the
+    bag, the parameters or the output directory cannot be used."""
     from lego_loam_py.bag.io import BagReader
     from lego_loam_py.core.io import write_text_atomic
     from lego_loam_py.core.params import load_params
@@ -259,27 +261,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from lego_loam_py.bag.io import BagError
-    from lego_loam_py.core.params import ParameterError
     from lego_loam_py.launch import Interrupts
 
     bag = Path(args.bag) if args.bag else default_bag()
     if args.bag is None and not bag.exists():
-        print(f'error: the default recording {bag} is not there (a source checkout has it): give a BAG',
-              file=sys.stderr)
-        return 2
+        raise UsageError(f'the default recording {bag} is not there (a source checkout has it): give a BAG')
     name = bag.resolve().name if bag.suffix != '.bag' else bag.stem
     out = Path(args.output) if args.output else Path('output') / f'demo-{name}'
     progress = not args.no_progress and sys.stderr.isatty()
     print(f'demo: {_display(bag)} at {args.rate:g}x through imageProjection, featureAssociation, mapOptimization and '
           f'transformFusion (separate processes, DDS); logs in {out}/logs/', file=sys.stderr, flush=True)
     with Interrupts() as interrupts:
-        try:
-            result = run_demo(bag, out, rate=args.rate, params_file=args.params_file, overrides=args.param,
-                              progress=progress, stop=interrupts.stop, hurry=interrupts.hurry)
-        except (BagError, ParameterError, ValueError, FileExistsError) as exc:
-            print(f'error: {exc}', file=sys.stderr)
-            return 2
+        result = run_demo(bag, out, rate=args.rate, params_file=args.params_file, overrides=args.param,
+                          progress=progress, stop=interrupts.stop, hurry=interrupts.hurry)
     print(format_demo_summary(result.summary, result.out_dir))
     if result.summary.get('interrupted'):
         return 130

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lego_loam_py.errors import LegoLoamError, UsageError
+
 __all__ = ['TrajectoryMetrics', 'evaluate', 'path_length', 'plot_trajectories', 'relative_to_first']
 
 
@@ -168,26 +170,22 @@ def add_arguments(parser) -> None:
 
 def main(args) -> int:
     import json
-    import sys
 
     from lego_loam_py.core.io import read_tum
     from lego_loam_py.sim.output import load_ground_truth
 
     source = args.bag or args.ground_truth
     if source is None:
-        print('error: give a ground-truth TUM file or --bag', file=sys.stderr)
-        return 2
+        raise UsageError('give a ground-truth TUM file or --bag')
     try:
         estimate = read_tum(args.estimate)
         path = Path(source)
         ground_truth = read_tum(path) if path.is_file() and path.suffix != '.bag' else load_ground_truth(path)
         if ground_truth is None:
-            print(f'error: no ground truth beside {source}', file=sys.stderr)
-            return 1
+            raise LegoLoamError(f'no ground truth beside {source}')
         metrics = evaluate(ground_truth, estimate, rpe_delta_m=args.delta, max_time_diff=args.max_time_diff)
-    except (OSError, ValueError) as exc:
-        print(f'error: {exc}', file=sys.stderr)
-        return 1
+    except (OSError, ValueError) as exc:   # unreadable files, trajectories that cannot be compared (evo)
+        raise LegoLoamError(str(exc)) from None
     print(metrics.summary())
     if args.json:
         from lego_loam_py.core.io import write_text_atomic

@@ -40,6 +40,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence, TextIO
 
+from lego_loam_py.errors import UsageError
+
 __all__ = ['NODES', 'READY_TOPICS', 'ProcessSpec', 'ProcessResult', 'Supervisor', 'PipelineConfig',
            'PipelineOutcome', 'GraphMonitor', 'run_pipeline', 'resolve_command', 'package_file',
            'Interrupts', 'add_arguments', 'main', 'main_argv']
@@ -469,8 +471,8 @@ def run_pipeline(config: PipelineConfig, stop: threading.Event | None = None, hu
     """Start, watch, drain and stop the pipeline described by ``config`` (see the module docstring).
 
     ``stop`` ends the run from outside (the CLI sets it on SIGINT/SIGTERM); ``hurry`` (a second Ctrl-C)
-    makes the shutdown kill instead of wait. Raises ``ParameterError`` / ``BagError`` / ``ValueError`` for
-    an invalid configuration before anything is started.
+    makes the shutdown kill instead of wait. Raises ``ParameterError`` or ``UsageError`` for an invalid
+    configuration and ``BagError`` for a bag that cannot be read, before anything is started.
     """
     from lego_loam_py.bag.io import resolve_bag_path
 
@@ -479,11 +481,11 @@ def run_pipeline(config: PipelineConfig, stop: threading.Event | None = None, hu
     started_at = time.monotonic()
     unknown = [n for n in config.nodes if n not in NODES]
     if unknown:
-        raise ValueError(f'unknown node(s) {", ".join(unknown)} (choose from {", ".join(NODES)})')
+        raise UsageError(f'unknown node(s) {", ".join(unknown)} (choose from {", ".join(NODES)})')
     if config.rate <= 0:
-        raise ValueError('the rate must be positive')
+        raise UsageError('the rate must be positive')
     if config.output == 'log' and config.log_dir is None:
-        raise ValueError("output 'log' needs a log directory")
+        raise UsageError("output 'log' needs a log directory")
     params = _load_run_params(config)          # invalid parameters stop here, before any process starts
     bag, play_topics = None, []
     if config.bag is not None:
@@ -495,7 +497,7 @@ def run_pipeline(config: PipelineConfig, stop: threading.Event | None = None, hu
     if config.rviz:
         rviz_command = shutil.which('rviz2')
         if rviz_command is None:
-            raise ValueError('rviz2 not found: it comes with a full ROS 2 install (source its setup.bash first)')
+            raise UsageError('rviz2 not found: it comes with a full ROS 2 install (source its setup.bash first)')
     if config.stats_dir is not None:
         Path(config.stats_dir).mkdir(parents=True, exist_ok=True)
 
@@ -672,12 +674,8 @@ class Interrupts:
 
 
 def main(args: argparse.Namespace) -> int:
-    from lego_loam_py.bag.io import BagError
-    from lego_loam_py.core.params import ParameterError
-
     if args.quiet_nodes and args.log_dir is None:
-        print('error: --quiet-nodes needs --log-dir', file=sys.stderr)
-        return 2
+        raise UsageError('--quiet-nodes needs --log-dir')
     record_topics = list(DEFAULT_RECORD_TOPICS) if args.record == [] else list(args.record or [])
     ros_args = list(getattr(args, 'ros_args', None) or [])[1:]   # [program name, '--ros-args', ...]
     config = PipelineConfig(
@@ -690,11 +688,7 @@ def main(args: argparse.Namespace) -> int:
         ready_timeout=args.ready_timeout, drain_quiet=args.drain_quiet, drain_timeout=args.drain_timeout,
         stop_timeout=args.stop_timeout, output='log' if args.quiet_nodes else 'screen', log_dir=args.log_dir)
     with Interrupts() as interrupts:
-        try:
-            outcome = run_pipeline(config, stop=interrupts.stop, hurry=interrupts.hurry)
-        except (ParameterError, BagError, ValueError) as exc:
-            print(f'error: {exc}', file=sys.stderr)
-            return 2
+        outcome = run_pipeline(config, stop=interrupts.stop, hurry=interrupts.hurry)
     if outcome.failures:
         print('[launch] FAILED: ' + '; '.join(outcome.failures), file=sys.stderr, flush=True)
     else:
@@ -713,9 +707,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main_argv(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``launch_scripts/lego_loam.py``: the ``launch`` command with its own parser."""
-    from lego_loam_py.cli import _split_ros_args
+    from lego_loam_py.cli import _split_ros_args, run_command
 
     ours, ros_args = _split_ros_args(list(sys.argv[1:] if argv is None else argv))
     args = build_parser().parse_args(ours)
     args.ros_args = ['lego_loam.py', *ros_args]
-    return main(args)
+    return run_command(main, args)

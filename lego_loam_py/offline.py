@@ -409,18 +409,10 @@ def parse_overrides(items: list[str]) -> dict:
 
 
 def main(args: argparse.Namespace) -> int:
-    try:
-        params = load_params(args.params_file, parse_overrides(args.param))
-    except ParameterError as exc:
-        print(f'error: {exc}', file=sys.stderr)
-        return 2
+    params = load_params(args.params_file, parse_overrides(args.param))
     out = Path(args.output or Path('output') / Path(args.bag).resolve().name)
-    try:
-        result = run_bag(args.bag, params, imu_topic='' if args.no_imu else None, max_scans=args.max_scans,
-                         progress=not args.no_progress)
-    except BagError as exc:
-        print(f'error: {exc}', file=sys.stderr)
-        return 1
+    result = run_bag(args.bag, params, imu_topic='' if args.no_imu else None, max_scans=args.max_scans,
+                     progress=not args.no_progress)
     stamps, _ = result.trajectory()
     summary = dict(bag=str(args.bag), mode='offline', counts=result.counts, timings_ms=_timing_table(result.timings_ms),
                    wall_time_s=result.wall_time, bag_duration_s=result.bag_duration,

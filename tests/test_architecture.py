@@ -79,3 +79,47 @@ def test_every_citation_of_the_original_resolves_inside_the_repository():
     assert not outside, f'cite docs/original.md instead: {outside}'
     assert not missing, missing
     assert cited_sections('see §6.2 and quirks 8.1, 8.10 and 8.11, quirk 8.5') == {'6.2', '8.1', '8.10', '8.11', '8.5'}
+
+
+BUILTIN_ERRORS = {'Exception', 'ValueError', 'RuntimeError', 'OSError', 'TypeError', 'KeyError', 'LookupError'}
+
+
+def test_every_error_of_the_package_has_the_common_root():
+    """An exception class the package defines derives from lego_loam_py.errors.LegoLoamError, so that the command
+    line turns it into a message and an exit code in one place."""
+    classes, offenders = [], []
+    for path in sorted((REPO / 'lego_loam_py').rglob('*.py')):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, ast.ClassDef):
+                continue
+            bases = {b.id if isinstance(b, ast.Name) else getattr(b, 'attr', '') for b in node.bases}
+            if bases & BUILTIN_ERRORS or node.name.endswith('Error'):
+                classes.append(node.name)
+                if 'LegoLoamError' not in bases and path.name != 'errors.py':
+                    offenders.append(f'{path.relative_to(REPO)}: {node.name}')
+    assert len(classes) >= 10 and not offenders, offenders
+
+
+def test_the_command_line_turns_errors_into_one_line_and_an_exit_code(capsys):
+    from lego_loam_py.bag.io import BagError
+    from lego_loam_py.cli import run_command
+    from lego_loam_py.core.params import ParameterError
+    from lego_loam_py.errors import UsageError
+
+    def raising(error):
+        def handler(args):
+            raise error
+        return handler
+
+    assert run_command(lambda args: 0, None) == 0 and run_command(lambda args: None, None) == 0
+    for error, code in ((UsageError('--loop N needs N >= 1'), 2), (ParameterError("unknown parameter 'x'"), 2),
+                        (BagError('bag not found: /nowhere'), 1)):
+        assert run_command(raising(error), None) == code
+        assert capsys.readouterr().err == f'error: {error}\n'
+    assert run_command(raising(KeyboardInterrupt()), None) == 130
+    try:   # anything else is a bug: its traceback is not hidden
+        run_command(raising(ZeroDivisionError('bug')), None)
+    except ZeroDivisionError:
+        pass
+    else:
+        raise AssertionError('an unexpected exception was swallowed')

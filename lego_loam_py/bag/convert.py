@@ -37,6 +37,7 @@ from lego_loam_py.core.ouster import (IMU_PACKET_SIZE, OusterDecoder, OusterForm
 from lego_loam_py.core.pcap import PcapError, UdpDatagrams, read_udp
 from lego_loam_py.core.pointcloud import VELODYNE_PACKED_DTYPE, VELODYNE_POINT_DTYPE
 from lego_loam_py.core.velodyne import PACKET_SIZE, VelodyneFormatError, Vlp16Decoder
+from lego_loam_py.errors import LegoLoamError, UsageError
 
 __all__ = ['add_arguments', 'main', 'convert', 'ConvertOptions', 'ConvertSummary', 'VELODYNE_SCAN_TYPES',
            'velodyne_scan_typestore', 'velodyne_bag_packets', 'detect_format', 'ConvertError']
@@ -53,7 +54,7 @@ _OUSTER_BATCH_PACKETS = 1024  # Ouster packets (whole scans) decoded per step
 _PCAP_MAGICS = {b'\xd4\xc3\xb2\xa1', b'\xa1\xb2\xc3\xd4', b'\x4d\x3c\xb2\xa1', b'\xa1\xb2\x3c\x4d', b'\x0a\x0d\x0d\x0a'}
 
 
-class ConvertError(RuntimeError):
+class ConvertError(LegoLoamError, RuntimeError):
     """The input cannot be converted (a message for the user, no traceback)."""
 
 
@@ -449,14 +450,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     if args.max_rotations is not None and args.max_rotations < 1:
-        print('error: --max-rotations must be at least 1', file=sys.stderr)
-        return 2
+        raise UsageError('--max-rotations must be at least 1')
     if args.restamp_period is not None and args.restamp_period <= 0:
-        print('error: --restamp-period must be positive', file=sys.stderr)
-        return 2
+        raise UsageError('--restamp-period must be positive')
     if not 0.0 <= args.min_completeness <= 1.0:
-        print('error: --min-completeness must be within [0, 1]', file=sys.stderr)
-        return 2
+        raise UsageError('--min-completeness must be within [0, 1]')
     options = ConvertOptions(
         format=args.format, model=args.model, split=args.split, min_completeness=args.min_completeness,
         restamp_period=args.restamp_period, topic=args.topic, frame_id=args.frame_id, layout=args.layout,
@@ -467,13 +465,8 @@ def main(args: argparse.Namespace) -> int:
     if args.ros1 and output.suffix != '.bag':
         output = output.with_suffix('.bag')
     if output.exists():
-        print(f'error: {output} exists already; bags are never overwritten', file=sys.stderr)
-        return 1
-    try:
-        summary = convert(args.input, output, options)
-    except (ConvertError, BagError) as exc:
-        print(f'error: {exc}', file=sys.stderr)
-        return 1
+        raise ConvertError(f'{output} exists already; bags are never overwritten')
+    summary = convert(args.input, output, options)
     if summary.rotations == 0:
         print(f'warning: no complete rotation in {args.input}; {output} holds no cloud', file=sys.stderr)
     if not args.quiet:

@@ -28,6 +28,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
 from lego_loam_py.core.pointcloud import CloudBuffer, PointField, array_to_cloud, cloud_to_array
+from lego_loam_py.errors import LegoLoamError
 
 __all__ = ['BagError', 'BagReader', 'BagWriter', 'BagMessage', 'ros2_typestore', 'ros1_typestore',
            'resolve_bag_path', 'cloud_msg_to_array', 'make_cloud_msg', 'CLOUD_INFO_MSG_TYPE']
@@ -40,7 +41,7 @@ _LATCHED_QOS = [Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurabil
 _ROS1_RENAMES = {'tf/msg/tfMessage': 'tf2_msgs/msg/TFMessage'}
 
 
-class BagError(RuntimeError):
+class BagError(LegoLoamError, RuntimeError):
     """A bag cannot be opened, read or written."""
 
 

@@ -20,11 +20,12 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 
-from lego_loam_py.bag.io import BagError, BagReader
+from lego_loam_py.bag.io import BagReader
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import ns_to_stamp
 from lego_loam_py.ros.message_types import get_message_class
 from lego_loam_py.ros.runtime import teardown_guard
+from lego_loam_py.errors import UsageError
 
 __all__ = ['PlayStats', 'play', 'add_arguments', 'main']
 
@@ -192,17 +193,11 @@ def main(args: argparse.Namespace) -> int:
     try:
         remaps = _parse_remaps(args.remap)
     except ValueError as exc:
-        print(f'error: {exc}', file=sys.stderr)
-        return 2
-    try:
-        reader = BagReader(args.bag)
-        reader.open()
-    except BagError as exc:
-        print(f'error: {exc}', file=sys.stderr)
-        return 1
+        raise UsageError(str(exc)) from None
     if args.loop < 0:
-        print('error: --loop N needs N >= 1 (or no N: forever)', file=sys.stderr)
-        return 2
+        raise UsageError('--loop N needs N >= 1 (or no N: forever)')
+    reader = BagReader(args.bag)
+    reader.open()
     stop = threading.Event()
     rclpy.init(args=getattr(args, 'ros_args', None), signal_handler_options=SignalHandlerOptions.NO)
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}

@@ -23,6 +23,7 @@ from rclpy.signals import SignalHandlerOptions
 from lego_loam_py.bag.io import BagError, BagWriter
 from lego_loam_py.ros.message_types import get_message_class
 from lego_loam_py.ros.runtime import teardown_guard
+from lego_loam_py.errors import UsageError
 
 __all__ = ['Recorder', 'add_arguments', 'main']
 
@@ -110,14 +111,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     if not args.topics and not args.all:
-        print('error: name topics to record or use --all', file=sys.stderr)
-        return 2
+        raise UsageError('name topics to record or use --all')
     output = Path(args.output or default_output_name())
-    try:
-        writer = BagWriter(output, storage=args.storage)
-    except BagError as exc:
-        print(f'error: {exc}', file=sys.stderr)
-        return 1
+    writer = BagWriter(output, storage=args.storage)
     stop = threading.Event()
     rclpy.init(args=getattr(args, 'ros_args', None), signal_handler_options=SignalHandlerOptions.NO)
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}

@@ -26,6 +26,7 @@ from scipy.sparse.csgraph import connected_components
 from lego_loam_py.core.libm import atan2f, cosf, sinf
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.validation import MAX_COORDINATE
+from lego_loam_py.errors import LegoLoamError
 
 __all__ = ['CloudInfo', 'SegmentationResult', 'ImageProjection', 'ProjectionInput', 'OUTLIER_LABEL',
            'NO_LABEL', 'prepare_input', 'InputError']
@@ -35,7 +36,7 @@ NO_LABEL = -1            # ground or empty pixel (labelMat == -1)
 _F32 = np.float32
 
 
-class InputError(ValueError):
+class InputError(LegoLoamError, ValueError):
     """The cloud cannot be projected at all (no x/y/z, no valid point)."""
 
 

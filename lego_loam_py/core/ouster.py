@@ -55,6 +55,7 @@ from typing import Any
 import numpy as np
 
 from lego_loam_py.core.pointcloud import VELODYNE_POINT_DTYPE, velodyne_points
+from lego_loam_py.errors import LegoLoamError
 
 __all__ = ['OusterMetadata', 'OusterFormatError', 'OusterScan', 'ImuSamples', 'OusterDecoder', 'decode_imu',
            'STANDARD_GRAVITY', 'IMU_PACKET_SIZE']
@@ -63,7 +64,7 @@ STANDARD_GRAVITY = 9.80665  # [m/s^2 per g], as ouster_ros
 IMU_PACKET_SIZE = 48
 
 
-class OusterFormatError(ValueError):
+class OusterFormatError(LegoLoamError, ValueError):
     """Metadata or packets this decoder cannot read."""
 
 

@@ -31,6 +31,8 @@ from typing import Any, Mapping, Sequence
 
 import yaml
 
+from lego_loam_py.errors import LegoLoamError
+
 __all__ = [
     'ParameterError', 'SensorParams', 'ImageProjectionParams', 'FeatureAssociationParams',
     'MapOptimizationParams', 'LoopClosureParams', 'ReliabilityParams', 'Params', 'SENSOR_PRESETS', 'load_params',
@@ -38,8 +40,10 @@ __all__ = [
 ]
 
 
-class ParameterError(ValueError):
+class ParameterError(LegoLoamError, ValueError):
     """A parameter file or override is invalid; the message names the offending key."""
+
+    exit_code = 2
 
 
 @dataclass(frozen=True)

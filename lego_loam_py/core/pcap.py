@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lego_loam_py.errors import LegoLoamError
+
 __all__ = ['PcapError', 'UdpDatagrams', 'read_udp']
 
 _MAGIC = {  # magic as read little-endian -> (byte order, fraction-of-second unit in ns)
@@ -36,7 +38,7 @@ _UDP = 17
 _GATHER_BYTES = 64 << 20   # bytes gathered per fancy-index call (bounds the index array's memory)
 
 
-class PcapError(ValueError):
+class PcapError(LegoLoamError, ValueError):
     """The file is not a readable classic pcap capture."""
 
 

@@ -16,6 +16,8 @@ from typing import Sequence
 
 import numpy as np
 
+from lego_loam_py.errors import LegoLoamError
+
 __all__ = [
     'CloudLayoutError', 'PointField', 'CloudBuffer', 'DATATYPE_TO_NUMPY', 'NUMPY_TO_DATATYPE',
     'dtype_from_fields', 'fields_from_dtype', 'cloud_to_array', 'array_to_cloud', 'xyz_array',
@@ -34,7 +36,7 @@ NUMPY_TO_DATATYPE: dict[str, int] = {v: k for k, v in DATATYPE_TO_NUMPY.items()}
 MAX_POINT_STEP = 1 << 20   # bytes per point; real layouts use 12-64 (numpy cannot even describe > 2**31 - 1)
 
 
-class CloudLayoutError(ValueError):
+class CloudLayoutError(LegoLoamError, ValueError):
     """The fields / sizes of a PointCloud2 do not describe its data."""
 
 

@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from lego_loam_py.errors import LegoLoamError
+
 __all__ = ['InputRejected', 'MAX_COORDINATE', 'MAX_POSITION', 'MAX_ANGULAR_VELOCITY', 'MAX_ACCELERATION',
            'MAX_SWEEP_TRANSLATION', 'MAX_SPEED', 'ORIENTATION_TOLERANCE', 'check_count', 'derived_points_limit',
            'raw_points_limit', 'check_cloud', 'check_cloud_info', 'check_pose', 'pose6_problem', 'cloud_problem',
@@ -32,7 +34,7 @@ MAX_ANGLE = 100.0            # [rad] Euler angles of a pose six-vector beyond th
 ORIENTATION_TOLERANCE = 1e-3  # [rad] float32 rounding of the sweep orientations, with margin
 
 
-class InputRejected(ValueError):
+class InputRejected(LegoLoamError, ValueError):
     """An input outside what the sensor or the pipeline can produce: ``field = value, bound``."""
 
     def __init__(self, field: str, value: Any, bound: str):

@@ -57,6 +57,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lego_loam_py.core.pointcloud import VELODYNE_POINT_DTYPE, velodyne_points
+from lego_loam_py.errors import LegoLoamError
 
 __all__ = [
     'PACKET_SIZE', 'RETURN_STRONGEST', 'RETURN_LAST', 'RETURN_DUAL', 'PRODUCT_VLP16', 'PRODUCT_HDL32E',
@@ -105,7 +106,7 @@ def _tables() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
 _COS_AZ, _SIN_AZ, _COS_EL, _SIN_EL = _tables()
 
 
-class VelodyneFormatError(ValueError):
+class VelodyneFormatError(LegoLoamError, ValueError):
     """The packets are not VLP-16 packets this decoder can read (wrong size, model or mixed modes)."""
 
 

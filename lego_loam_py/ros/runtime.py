@@ -18,7 +18,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
-from lego_loam_py.core.params import ParameterError
+from lego_loam_py.errors import LegoLoamError, UsageError
 
 __all__ = ['run_node', 'teardown_guard', 'finish_within', 'stuck_teardowns']
 
@@ -115,7 +115,7 @@ def make_executor():
             executor = EventsExecutor()
             return executor, lambda timeout_s: executor.spin_once(timeout_s)
     if choice != 'single':
-        raise ValueError(f'{EXECUTOR_VARIABLE} must be events or single, got {choice!r}')
+        raise UsageError(f'{EXECUTOR_VARIABLE} must be events or single, got {choice!r}')
     executor = SingleThreadedExecutor()
     return executor, lambda timeout_s: executor.spin_once(timeout_sec=timeout_s)
 
@@ -133,15 +133,10 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
     try:
         try:
             executor, spin_once = make_executor()
-        except ValueError as exc:   # (an unknown LEGO_LOAM_PY_EXECUTOR)
-            print(f'error: {exc}', file=sys.stderr)
-            code = 2
-            return code
-        try:
             node = factory()
-        except ParameterError as exc:
-            print(f'error: invalid parameters: {exc}', file=sys.stderr)
-            code = 2
+        except LegoLoamError as exc:   # an unknown LEGO_LOAM_PY_EXECUTOR, invalid parameters
+            print(f'error: {exc}', file=sys.stderr)
+            code = exc.exit_code
             return code
         executor.add_node(node)
         try:

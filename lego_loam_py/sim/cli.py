@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from lego_loam_py.errors import LegoLoamError, UsageError
+
 __all__ = ['add_arguments', 'main']
 
 
@@ -61,33 +63,25 @@ def main(args: argparse.Namespace) -> int:
     if args.list:
         return _list()
     if not args.scenario:
-        print('error: name a scenario (campus, forest, corridor, aggressive) or use --list', file=sys.stderr)
-        return 2
-    from lego_loam_py.bag.io import BagError
+        raise UsageError('name a scenario (campus, forest, corridor, aggressive) or use --list')
+    if args.compress and args.ros1:
+        raise UsageError('--compress applies to ROS 2 bags only')
+    if args.cached and args.output:
+        raise UsageError('--cached chooses the output itself; drop -o')
+    if not args.cached and not args.output:
+        raise UsageError('give the output bag with -o (or use --cached)')
     from lego_loam_py.sim.simulator import SimConfig, cached_scenario, simulate
 
     options = dict(duration=args.duration, seed=args.seed, preset=args.preset, imu_rate=args.imu_rate,
                    storage=args.storage, ros1=args.ros1, layout=args.layout, compress=args.compress,
                    imu_extrinsic_rpy=tuple(args.imu_extrinsic_rpy), ideal=args.ideal)
-    if args.compress and args.ros1:
-        print('error: --compress applies to ROS 2 bags only', file=sys.stderr)
-        return 2
     try:
         if args.cached:
-            if args.output:
-                print('error: --cached chooses the output itself; drop -o', file=sys.stderr)
-                return 2
-            path = cached_scenario(args.scenario, progress=not args.no_progress, **options)
-            print(path)
+            print(cached_scenario(args.scenario, progress=not args.no_progress, **options))
             return 0
-        if not args.output:
-            print('error: give the output bag with -o (or use --cached)', file=sys.stderr)
-            return 2
-        config = SimConfig(scenario=args.scenario, **options)
-        result = simulate(config, args.output, progress=not args.no_progress)
-    except (ValueError, FileExistsError, BagError) as exc:
-        print(f'error: {exc}', file=sys.stderr)
-        return 1
+        result = simulate(SimConfig(scenario=args.scenario, **options), args.output, progress=not args.no_progress)
+    except (ValueError, FileExistsError) as exc:   # an unknown scenario, a value out of range, an existing bag
+        raise LegoLoamError(str(exc)) from None
     print(f'wrote {result.bag_path}: {result.scans} scans, {result.imu_messages} IMU messages, {result.points} points '
           f'({result.duration:.1f} s); ground truth and labels beside it', file=sys.stderr)
     return 0

@@ -9,10 +9,11 @@ image, y left = left), matplotlib's Agg backend, no display needed.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
+
+from lego_loam_py.errors import LegoLoamError
 
 __all__ = ['read_scan', 'render_top_down', 'add_arguments', 'main', 'COLOR_MODES']
 
@@ -147,27 +148,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from lego_loam_py.bag.io import BagError
     from lego_loam_py.sim.output import load_labels
 
     bag = Path(args.bag)
-    try:
-        points, stamp, frame_id, count = read_scan(bag, args.scan, args.topic)
-    except BagError as exc:
-        print(f'error: {exc}', file=sys.stderr)
-        return 1
+    points, stamp, frame_id, count = read_scan(bag, args.scan, args.topic)
     labels = classes = None
     if args.color == 'label':
         label_file = load_labels(bag)
         if label_file is None:
-            print(f'error: --color label needs labels.npz beside {bag} (simulated bags have one)', file=sys.stderr)
-            return 1
+            raise LegoLoamError(f'--color label needs labels.npz beside {bag} (simulated bags have one)')
         labels, classes = label_file[args.scan], label_file.classes
         label_file.close()
         if len(labels) != len(points):
-            print(f'error: labels of scan {args.scan} ({len(labels)}) do not match its {len(points)} points',
-                  file=sys.stderr)
-            return 1
+            raise LegoLoamError(f'labels of scan {args.scan} ({len(labels)}) do not match its {len(points)} points')
     name = bag.name[:-4] if bag.name.endswith('.bag') else bag.name
     output = Path(args.output) if args.output else Path(f'{name}_scan{args.scan}_{args.color}.png')
     title = (f'{name}  scan {args.scan}/{count}  stamp {stamp // 1_000_000_000}.{stamp % 1_000_000_000:09d}  '
@@ -175,7 +168,6 @@ def main(args: argparse.Namespace) -> int:
     try:
         render_top_down(points, output, args.color, labels, classes, title, args.extent)
     except ValueError as exc:
-        print(f'error: {exc}', file=sys.stderr)
-        return 1
+        raise LegoLoamError(str(exc)) from None
     print(output)
     return 0
