@@ -31,6 +31,7 @@ from lego_loam_py.core.image_projection import ImageProjection, InputError, prep
 from lego_loam_py.core.imu import imu_sample
 from lego_loam_py.core.io import write_text_atomic, write_tum_atomic
 from lego_loam_py.core.map_optimization import MapOptimization
+from lego_loam_py.core.odometry_continuity import OdometryContinuity
 from lego_loam_py.core.params import ParameterError, Params, load_params
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.core.transform_fusion import TransformFusion
@@ -196,6 +197,7 @@ class _BackEnd:
 
     def __init__(self, mo: MapOptimization | None, fusion: TransformFusion, result: RunResult, threaded: bool):
         self.mo, self.fusion, self.result = mo, fusion, result
+        self.continuity = OdometryContinuity()   # (used on the mapping worker only)
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix='mapping') if threaded else None
         self._imu: list[tuple] = []
         self._events: deque = deque()
@@ -230,6 +232,12 @@ class _BackEnd:
             # CPU time of the thread: on the worker, wall time would also count the waits for the GIL while
             # the main thread runs the next scans.
             t = time.thread_time()
+            transform_sum = inputs[0]
+            pose = pose6_to_matrix(transform_sum)
+            jump = self.continuity.check(stamp, pose)
+            if jump is not None:   # the same protection as the node's: continue the map, do not drag it
+                print(f'warning: mapping input at {stamp * 1e-9:.3f} s: {jump.describe()}', file=sys.stderr)
+                self.mo.reanchor(jump, pose, transform_sum)
             mapped = self.mo.process(stamp, *inputs)
             problem = self.mo.health_problem() if mapped is not None else None
             if problem is not None:   # the same self-check as the node's: reset what is poisoned, keep the map

@@ -253,3 +253,58 @@ def test_an_empty_map_is_saved_as_a_valid_empty_pcd(tmp_path):
     written = MapOptimization(PARAMS).save(tmp_path / 'map')
     assert all(pcd_is_complete(p) for name, p in written.items() if p.suffix == '.pcd')
     assert read_pcd(written['global_map']).shape == (0, 4)
+
+
+def _translation(z: float) -> np.ndarray:
+    pose = np.eye(4)
+    pose[2, 3] = z   # forward, in camera axes
+    return pose
+
+
+def test_odometry_continuity_tells_a_restart_from_motion():
+    from lego_loam_py.core.odometry_continuity import OdometryContinuity
+
+    continuity = OdometryContinuity()
+    ns = 100_000_000   # 0.1 s
+    # 10 m/s forward, one publisher: motion.
+    assert all(continuity.check(k * ns, _translation(float(k)), b'a') is None for k in range(20))
+    # 100 m in 0.1 s: no vehicle does that.
+    jump = continuity.check(20 * ns, _translation(119.0), b'a')
+    assert jump is not None and jump.distance_m == 100.0 and abs(jump.dt_s - 0.1) < 1e-9 and not jump.new_publisher
+    assert jump.previous[0] == 19 * ns and jump.older is not None and jump.older[0] == 18 * ns
+    # Back at the origin after 3 s (featureAssociation restarted): 119 m in 3 s is plausible motion, the origin is not.
+    jump = continuity.check(50 * ns, np.eye(4), b'a')
+    assert jump is not None and jump.older is None   # (the pose before the last belonged to the old frame)
+    # Another publisher: 0.2 m is motion, 1 m is a restart elsewhere (only the publisher tells).
+    assert continuity.check(51 * ns, _translation(0.2), b'b') is None
+    jump = continuity.check(52 * ns, _translation(1.2), b'c')
+    assert jump is not None and jump.new_publisher and 'featureAssociation restarted)' in jump.describe()
+    continuity.forget()
+    assert continuity.check(53 * ns, _translation(500.0), b'd') is None
+
+
+def test_reanchoring_continues_from_the_last_mapped_pose_at_the_last_speed():
+    """Odometry and map frames agree (T_aft = T_bef); the odometry drove to z = 10 m at 10 m/s, went away for
+    0.5 s and came back at its origin: the next prediction is where the vehicle is now, z = 15 m."""
+    from lego_loam_py.core.frames import invert_pose, matrix_to_pose6, pose6_to_matrix
+    from lego_loam_py.core.odometry_continuity import (OdometryContinuity, anchored_transform_bef,
+                                                      MAX_EXTRAPOLATION_S)
+
+    ns = 100_000_000
+    continuity = OdometryContinuity()
+    continuity.check(99 * ns, _translation(9.0))
+    continuity.check(100 * ns, _translation(10.0))
+    jump = continuity.check(105 * ns, np.eye(4))
+    assert jump is not None
+    same = matrix_to_pose6(_translation(10.0))
+    bef = anchored_transform_bef(jump, np.eye(4), same, same)
+    predicted = pose6_to_matrix(same) @ invert_pose(pose6_to_matrix(bef)) @ np.eye(4)
+    np.testing.assert_allclose(predicted, _translation(15.0), atol=1e-9)
+    # After a gap longer than MAX_EXTRAPOLATION_S the vehicle is taken to have stopped where it was.
+    continuity.check(200 * ns, _translation(3.0))
+    continuity.check(210 * ns, _translation(4.0))
+    jump = continuity.check(210 * ns + int((MAX_EXTRAPOLATION_S + 1) * 1e9), np.eye(4))
+    assert jump is not None
+    bef = anchored_transform_bef(jump, np.eye(4), same, same)
+    np.testing.assert_allclose(pose6_to_matrix(same) @ invert_pose(pose6_to_matrix(bef)), _translation(4.0),
+                               atol=1e-9)

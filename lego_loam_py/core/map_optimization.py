@@ -40,6 +40,7 @@ from lego_loam_py.core.frames import (camera_pose_to_lidar, camera_to_lidar, inv
                                       matrix_to_pose6, pose6_to_matrix, rot_x, rot_y, rot_z, transform_points)
 from lego_loam_py.core.imu import ImuBuffer
 from lego_loam_py.core.laser_odometry import line_coefficients
+from lego_loam_py.core.odometry_continuity import OdometryJump, anchored_transform_bef
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.validation import pose6_problem
 from lego_loam_py.core.voxel import VoxelAccumulator, voxel_downsample, voxel_indices
@@ -252,6 +253,14 @@ class MapOptimization:
                     or (pose6_problem('the newest keyframe (optimizer solution)', self.keyframes[-1].pose6)
                         if self.keyframes else None)
                     or self.imu.health_problem())
+
+    def reanchor(self, jump: OdometryJump, pose: np.ndarray, transform_sum: np.ndarray) -> None:
+        """The odometry restarted (``jump``, see :mod:`lego_loam_py.core.odometry_continuity`) and is now at
+        ``pose`` (4x4) = ``transform_sum`` (six-vector): the next step starts from the last mapped pose, moved on
+        at the last speed over the gap, instead of the odometry's new origin."""
+        with self.lock:
+            self.transform_bef = anchored_transform_bef(jump, pose, self.transform_aft, self.transform_bef)
+            self.transform_sum = np.asarray(transform_sum, dtype=float).copy()
 
     def heal(self) -> str:
         """Reset what :meth:`health_problem` found poisoned and keep the map and the trajectory built so far:

@@ -37,11 +37,12 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu, PointCloud2
 from std_srvs.srv import Trigger
 
-from lego_loam_py.core.frames import (AFT_MAPPED_FRAME, CAMERA_INIT_FRAME, invert_pose, matrix_to_pose6,
+from lego_loam_py.core.frames import (AFT_MAPPED_FRAME, CAMERA_INIT_FRAME, matrix_to_pose6,
                                       pose6_to_matrix)
 from lego_loam_py.core import validation
 from lego_loam_py.core.io import CoalescingRunner
 from lego_loam_py.core.map_optimization import MapOptimization, transform_cloud
+from lego_loam_py.core.odometry_continuity import OdometryContinuity
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import (cloud_msg_to_xyzi, make_header, odometry_to_pose, pose_to_odometry,
@@ -56,22 +57,8 @@ __all__ = ['MapOptimizationNode', 'main']
 RESET_JUMP_NS = 1_000_000_000
 IMU_QUEUE_DEPTH = 200   # IMU samples kept between two mapping inputs (1 s at 200 Hz)
 MAP_FILE_STEMS = ('global_map', 'corner_map', 'surface_map', 'trajectory', 'trajectory_camera_init')
-# Odometry that moves more than this between two inputs did not follow a vehicle: it restarted.
-ODOMETRY_JUMP_M, ODOMETRY_JUMP_M_PER_S = 5.0, 30.0
-ODOMETRY_JUMP_RAD, ODOMETRY_JUMP_RAD_PER_S = 1.0, 6.0
-MAX_EXTRAPOLATION_S = 10.0   # over a longer gap the vehicle is assumed to have stopped
 INPUT_TOPICS = {'corner': '/laser_cloud_corner_last', 'surf': '/laser_cloud_surf_last', 'outlier': '/outlier_cloud_last',
                 'odometry': '/laser_odom_to_init'}
-
-
-def _scaled_motion(motion: np.ndarray, scale: float) -> np.ndarray:
-    """The 4x4 motion ``motion`` repeated ``scale`` times (rotation vector and translation scaled)."""
-    from scipy.spatial.transform import Rotation
-
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(motion[:3, :3]).as_rotvec() * scale).as_matrix()
-    out[:3, 3] = motion[:3, 3] * scale
-    return out
 
 
 class MapOptimizationNode(LegoLoamNode):
@@ -105,9 +92,8 @@ class MapOptimizationNode(LegoLoamNode):
         self.saves = CoalescingRunner(self._save_now, 'save_map')
         create_deferred_service(self, Trigger, 'save_map', self._save_requested, _fill_save_response)
         self.order = StampOrder(RESET_JUMP_NS)
-        self._last_odometry: tuple[int, np.ndarray, object] | None = None   # (stamp, 4x4, publisher) last processed
+        self.continuity = OdometryContinuity()   # the odometry poses taken, to see a restarted odometry
         self._odometry_publisher: dict[int, object] = {}   # stamp -> publisher of recent odometry messages
-        self._older_odometry: tuple[int, np.ndarray, object] | None = None   # the one before _last_odometry
         self.last_step_stamp = None
         self.create_timer(mo.global_map_publish_period, self.publish_global_map)
         # Loop closure (an ICP can take seconds) on a worker thread of its own, so that mapping steps go on; the
@@ -249,48 +235,17 @@ class MapOptimizationNode(LegoLoamNode):
     def _heal(self, problem: str) -> None:
         """The mapping state is poisoned: reset what is, keep the map and the trajectory."""
         done = self.core.heal()
-        self._last_odometry = self._older_odometry = None
+        self.continuity.forget()
         self.state_reset(problem, done)
 
     def _check_odometry_continuity(self, stamp: int, pose: np.ndarray, transform_sum: np.ndarray,
                                    publisher=None) -> None:
-        """Re-anchor when the odometry restarted: it comes from another publisher (featureAssociation was
-        restarted) and moved, or it jumped further than any vehicle moves, or back to the origin."""
-        previous, self._last_odometry = self._last_odometry, (stamp, pose, publisher)
-        if previous is None:
-            return
-        self._older_odometry, older = previous, self._older_odometry
-        dt = max((stamp - previous[0]) * 1e-9, 0.0)
-        step = invert_pose(previous[1]) @ pose
-        distance = float(np.linalg.norm(step[:3, 3]))
-        angle = float(np.arccos(np.clip((np.trace(step[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
-        implausible = distance > ODOMETRY_JUMP_M + ODOMETRY_JUMP_M_PER_S * dt or \
-            angle > ODOMETRY_JUMP_RAD + ODOMETRY_JUMP_RAD_PER_S * dt
-        # A restarted featureAssociation starts again at (about) the identity, usually after a gap in time.
-        origin_angle = float(np.arccos(np.clip((np.trace(pose[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
-        back_at_origin = (distance > 2.0 or angle > 0.5) and np.linalg.norm(pose[:3, 3]) < 1.5 and origin_angle < 0.35
-        new_publisher = publisher is not None and previous[2] is not None and publisher != previous[2] and \
-            (distance > 0.5 or angle > 0.1)
-        if not (implausible or back_at_origin or new_publisher):
-            return
-        self.count('odometry_restarts')
-        why = 'featureAssociation restarted' if new_publisher else 'featureAssociation restarted?'
-        self.warn('odometry_jump', f'the odometry jumped by {distance:.1f} m and {np.degrees(angle):.0f} deg in '
-                                   f'{dt:.1f} s ({why}): re-anchored at the last mapped pose, moved on at the '
-                                   'last speed over the gap', period=0.0)
-        with self.core.lock:
-            aft = pose6_to_matrix(self.core.transform_aft)
-            bef = pose6_to_matrix(self.core.transform_bef)
-            predicted = aft @ invert_pose(bef) @ previous[1]   # the map pose of the last odometry before the gap
-            if older is not None and previous[0] > older[0] and dt <= MAX_EXTRAPOLATION_S:
-                # Constant velocity over the gap (the vehicle did not stop while the odometry was away).
-                motion = invert_pose(older[1]) @ previous[1]
-                scale = dt / ((previous[0] - older[0]) * 1e-9)
-                predicted = predicted @ _scaled_motion(motion, scale)
-            # T_aft · T_bef^-1 · T_sum must predict that pose for the new odometry pose T_sum.
-            self.core.transform_bef = matrix_to_pose6(pose @ invert_pose(predicted) @ aft)
-            self.core.transform_sum = np.asarray(transform_sum, dtype=float).copy()
-        self._older_odometry = None   # the one before belongs to the old odometry frame
+        """Re-anchor when the odometry restarted (see :mod:`lego_loam_py.core.odometry_continuity`)."""
+        jump = self.continuity.check(stamp, pose, publisher)
+        if jump is not None:
+            self.count('odometry_restarts')
+            self.warn('odometry_jump', jump.describe(), period=0.0)
+            self.core.reanchor(jump, pose, transform_sum)
 
     def _reset_after_time_jump(self, jump_ns: int) -> None:
         """A bag restarted: keep the map built so far on disk, then start a new one (the IMU samples stay)."""
@@ -308,7 +263,7 @@ class MapOptimizationNode(LegoLoamNode):
         self.core = MapOptimization(self.params)
         self.core.imu = imu
         self.order.reset()
-        self._last_odometry = self._older_odometry = None
+        self.continuity.forget()
         self.count('resets')
 
     # ----------------------------------------------------------------------------------------- outputs
