@@ -10,12 +10,13 @@ import argparse
 import importlib
 import os
 import sys
+from pathlib import Path
 from typing import Sequence
 
 from lego_loam_py import __version__
 from lego_loam_py.errors import LegoLoamError
 
-__all__ = ['main', 'build_parser', 'run_command', 'COMMANDS']
+__all__ = ['main', 'build_parser', 'run_command', 'add_parameter_arguments', 'COMMANDS']
 
 # (command, module, one-line help, description)
 COMMANDS = [
@@ -63,6 +64,14 @@ def _split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
     rest = argv[i:]
     end = rest.index('--') if '--' in rest else len(rest)
     return argv[:i] + rest[end + 1:], rest[:end]
+
+
+def add_parameter_arguments(parser: argparse.ArgumentParser, params_file_help: str, param_example: str) -> None:
+    """``--params-file FILE`` and ``-p NAME:=VALUE`` (repeatable; see core.params.parse_overrides), the same
+    for every command that runs the pipeline."""
+    parser.add_argument('--params-file', type=Path, default=None, help=params_file_help)
+    parser.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
+                        help=f'override one parameter, e.g. -p {param_example}')
 
 
 def build_parser() -> argparse.ArgumentParser:

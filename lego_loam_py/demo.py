@@ -152,10 +152,10 @@ def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_
     bag, the parameters or the output directory cannot be used."""
     from lego_loam_py.bag.io import BagReader
     from lego_loam_py.core.io import write_text_atomic
-    from lego_loam_py.core.params import load_params
+    from lego_loam_py.core.params import load_params, parse_overrides
     from lego_loam_py.evaluation import path_length
     from lego_loam_py.launch import PipelineConfig, package_file, run_pipeline
-    from lego_loam_py.offline import parse_overrides, pose_time_offset_ns, write_outputs
+    from lego_loam_py.outputs import pose_time_offset_ns, write_outputs
 
     out = Path(out_dir).resolve()
     params_file = params_file or package_file('config', 'params.yaml')
@@ -238,7 +238,7 @@ def format_demo_summary(summary: dict, out_dir: Path | None = None) -> str:
         for node, t in summary['timings_ms'].items():
             unit = '  (per mapping step)' if node == 'mapOptimization' else ''
             lines.append(f"  {node:<20s}{t['median']:8.1f}{t['p95']:9.1f}{t['count']:7d}{unit}")
-    from lego_loam_py.offline import result_lines
+    from lego_loam_py.outputs import result_lines
     lines.extend(result_lines(summary))
     if out_dir is not None:
         lines.append(f'outputs in {_display(out_dir)}/: trajectory.tum (REP-103 map axes), trajectory_camera_init.tum, '
@@ -249,14 +249,14 @@ def format_demo_summary(summary: dict, out_dir: Path | None = None) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from lego_loam_py.cli import add_parameter_arguments
+
     parser.add_argument('bag', nargs='?', default=None,
                         help='ROS 1 .bag or ROS 2 bag directory (default: bags/campus_8s of the repository)')
     parser.add_argument('-o', '--output', default=None, help='output directory (default: output/demo-<bag name>)')
     parser.add_argument('-r', '--rate', type=float, default=1.0, help='playback rate factor (default 1)')
-    parser.add_argument('--params-file', type=Path, default=None,
-                        help='ROS 2 parameter file for the nodes (default: config/params.yaml)')
-    parser.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
-                        help='set a parameter on every node, e.g. -p sensor.imu_topic:=""')
+    add_parameter_arguments(parser, 'ROS 2 parameter file for the nodes (default: config/params.yaml)',
+                            'sensor.imu_topic:=""')
     parser.add_argument('--no-progress', action='store_true', help='no progress bar while the bag plays')
 
 

@@ -432,8 +432,7 @@ class PipelineOutcome:
 
 
 def _load_run_params(config: PipelineConfig):
-    from lego_loam_py.core.params import load_params
-    from lego_loam_py.offline import parse_overrides
+    from lego_loam_py.core.params import load_params, parse_overrides
     return load_params(config.params_file, parse_overrides(list(config.overrides)), node_name='imageProjection')
 
 
@@ -605,6 +604,8 @@ def _watch(config: PipelineConfig, supervisor: Supervisor, monitor: GraphMonitor
 
 # ------------------------------------------------------------------------------------------------ CLI
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from lego_loam_py.cli import add_parameter_arguments
+
     parser.add_argument('--bag', type=Path, default=None,
                         help='replay this bag (ROS 1 .bag or ROS 2 directory) with /clock; the nodes get '
                              'use_sim_time:=true and everything stops once the bag is played and drained')
@@ -613,10 +614,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--progress', action='store_true', help="show the player's progress bar")
     parser.add_argument('--keep-alive', action='store_true',
                         help='keep the nodes running after the bag ended (stop with Ctrl-C), e.g. to look at RViz')
-    parser.add_argument('--params-file', type=Path, default=None,
-                        help='ROS 2 parameter file for all four nodes (default: config/params.yaml of the package)')
-    parser.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
-                        help='set a parameter on every node, e.g. -p map_optimization.file_directory:=/tmp/maps')
+    add_parameter_arguments(parser, 'ROS 2 parameter file for all four nodes (default: config/params.yaml of the '
+                            'package)', 'map_optimization.file_directory:=/tmp/maps')
     parser.add_argument('--use-sim-time', choices=['auto', 'true', 'false'], default='auto',
                         help='use_sim_time of the nodes (auto: true when replaying a bag)')
     parser.add_argument('--nodes', nargs='+', choices=list(NODES), default=list(NODES), metavar='NODE',

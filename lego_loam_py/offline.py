@@ -14,7 +14,6 @@ the result is identical to a sequential run, and its ms per mapping step are the
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from collections import deque
@@ -29,24 +28,14 @@ from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix
 from lego_loam_py.core.image_projection import ImageProjection, InputError, prepare_input
 from lego_loam_py.core.imu import imu_sample
-from lego_loam_py.core.io import write_text_atomic, write_tum_atomic
 from lego_loam_py.core.map_optimization import MapOptimization
 from lego_loam_py.core.odometry_continuity import OdometryContinuity
-from lego_loam_py.core.params import ParameterError, Params, load_params
+from lego_loam_py.core.params import Params, load_params, parse_overrides
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.core.transform_fusion import TransformFusion
+from lego_loam_py.outputs import pose_time_offset_ns, result_lines, write_outputs
 
-__all__ = ['RunResult', 'run_bag', 'write_outputs', 'format_summary', 'result_lines', 'pose_time_offset_ns', 'add_arguments',
-           'main']
-
-
-def pose_time_offset_ns(params: Params) -> int:
-    """[ns] to add to a scan's stamp to get the time of the sensor pose the pipeline publishes for it: one
-    sweep with the original odometry model (its pose of scan k is the sensor's at the end of the sweep),
-    0 otherwise. Applies to /laser_odom_to_init and /integrated_to_init alike."""
-    if params.feature_association.odometry_model == 'original':
-        return int(round(params.sensor.scan_period * 1e9))
-    return 0
+__all__ = ['RunResult', 'run_bag', 'format_summary', 'add_arguments', 'main']
 
 
 @dataclass
@@ -291,68 +280,6 @@ def _timing_table(timings: dict[str, list[float]]) -> dict[str, dict[str, float]
                        count=len(v)) for name, v in timings.items() if v}
 
 
-def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, poses_camera_init: np.ndarray,
-                  mapper: MapOptimization | None, summary: dict, params: Params,
-                  map_dir: str | Path | None = None) -> dict:
-    """Trajectories, maps, PNG and summary.json into ``out_dir``; adds the accuracy to ``summary`` when a
-    ground truth sits beside the bag. Returns the summary.
-
-    The maps come from ``mapper`` (saved into ``out_dir/map``) or, without one, from ``map_dir`` where they
-    were saved already (by the mapOptimization node): listed in the summary and drawn under the PNG."""
-    from lego_loam_py.evaluation import evaluate, path_length, plot_trajectories
-    from lego_loam_py.sim.output import load_ground_truth
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    poses_camera_init = np.asarray(poses_camera_init).reshape(-1, 4, 4)
-    poses_map = np.array([camera_pose_to_lidar(p) for p in poses_camera_init]).reshape(-1, 4, 4)
-    summary['poses'] = int(len(poses_map))
-    if len(poses_map):   # (no pose, no file: an empty trajectory file would look like a broken one)
-        write_tum_atomic(out / 'trajectory.tum', stamps, poses_map)
-        write_tum_atomic(out / 'trajectory_camera_init.tum', stamps, poses_camera_init)
-    summary['trajectory_length_m'] = path_length(poses_map)
-    map_points = None
-    if mapper is not None and mapper.keyframes:
-        saved = mapper.save(out / 'map')
-        summary['map_files'] = {k: str(v) for k, v in saved.items()}
-        from lego_loam_py.core.io import read_pcd
-        map_points = read_pcd(saved['global_map'])
-    elif map_dir is not None and (Path(map_dir) / 'global_map.pcd').is_file():
-        from lego_loam_py.core.io import read_pcd
-        saved_files = sorted(p for p in Path(map_dir).iterdir() if p.suffix in ('.pcd', '.tum'))
-        summary['map_files'] = {p.name: str(p) for p in saved_files}
-        map_points = read_pcd(Path(map_dir) / 'global_map.pcd')
-    ground_truth = load_ground_truth(bag)
-    trajectories = {'lego_loam_py': poses_map}
-    if ground_truth is not None and len(stamps) < 3:
-        summary['accuracy_error'] = (f'not evaluated: {len(stamps)} pose(s); the evaluation needs at least 3 (the '
-                                     'first scan only initialises the odometry)')
-    elif ground_truth is not None:
-        gt_stamps, gt_poses = ground_truth
-        try:
-            metrics = evaluate((gt_stamps, gt_poses), (stamps, poses_map))
-            summary['accuracy'] = metrics.as_dict()
-        except ValueError as exc:
-            summary['accuracy_error'] = str(exc)
-    if ground_truth is not None and len(stamps):
-        # Show the ground truth in the estimate's frame (both start at identity at the first scan).
-        gt_stamps, gt_poses = ground_truth
-        first = np.argmin(np.abs(gt_stamps - stamps[0]))
-        trajectories = {'ground truth': np.linalg.inv(gt_poses[first])[None] @ gt_poses, **trajectories}
-    if map_points is not None and len(map_points) and len(stamps):
-        from lego_loam_py.sim.output import map_distance_to_scene
-        distance = map_distance_to_scene(bag, map_points, int(stamps[0]), poses_map[0])
-        if distance is not None and len(distance):
-            summary['map_to_scene'] = dict(median_m=float(np.median(distance)),
-                                           p90_m=float(np.percentile(distance, 90)), points=int(len(distance)))
-    if any(len(poses) for poses in trajectories.values()) or (map_points is not None and len(map_points)):
-        # (nothing to draw, no picture: an empty plot would look like a broken run)
-        summary['png'] = str(plot_trajectories(out / 'trajectory.png', trajectories, map_points,
-                                               title=f'{Path(bag).name}: trajectory over the map (top view)'))
-    write_text_atomic(out / 'summary.json', json.dumps(summary, indent=2, default=float))
-    return summary
-
-
 def format_summary(summary: dict) -> str:
     lines = [f"bag: {summary['bag']}"]
     c = summary.get('counts', {})
@@ -368,31 +295,13 @@ def format_summary(summary: dict) -> str:
     return '\n'.join(lines)
 
 
-def result_lines(summary: dict) -> list[str]:
-    """The summary lines on the result, shared by ``run`` and the demo: trajectory length, accuracy against
-    the ground truth, and the map's distance to a simulated scene when one was measured."""
-    from lego_loam_py.evaluation import TrajectoryMetrics
-
-    lines = [f"trajectory length {summary.get('trajectory_length_m', 0.0):.1f} m"]
-    if 'accuracy' in summary:
-        lines.append('accuracy vs ground truth: ' + TrajectoryMetrics(**summary['accuracy']).summary())
-    elif 'accuracy_error' in summary:
-        lines.append(f"accuracy: {summary['accuracy_error']}")
-    else:
-        lines.append('accuracy: no ground truth beside the bag')
-    m = summary.get('map_to_scene')
-    if m:
-        lines.append(f"map vs the simulated scene: median point-to-mesh distance {m['median_m']:.3f} m, 90th "
-                     f"percentile {m['p90_m']:.3f} m over {m['points']} map points")
-    return lines
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from lego_loam_py.cli import add_parameter_arguments
+
     parser.add_argument('bag', help='ROS 1 .bag or ROS 2 bag directory with PointCloud2 (and optionally Imu)')
     parser.add_argument('-o', '--output', default=None, help='output directory (default: output/<bag name>)')
-    parser.add_argument('--params-file', default=None, help='ROS 2 parameter file (default: built-in defaults)')
-    parser.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
-                        help='override one parameter, e.g. -p loop_closure.loop_closure_enable_flag:=true')
+    add_parameter_arguments(parser, 'ROS 2 parameter file (default: built-in defaults)',
+                            'loop_closure.loop_closure_enable_flag:=true')
     parser.add_argument('--no-imu', action='store_true', help='ignore the IMU topic')
     parser.add_argument('--max-scans', type=_positive_int, default=None, help='stop after this many scans')
     parser.add_argument('--no-progress', action='store_true', help='no progress bar')
@@ -403,17 +312,6 @@ def _positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f'must be at least 1, got {value}')
     return value
-
-
-def parse_overrides(items: list[str]) -> dict:
-    import yaml
-    out = {}
-    for item in items:
-        if ':=' not in item:
-            raise ParameterError(f"parameter override '{item}' must look like name:=value")
-        name, value = item.split(':=', 1)
-        out[name.strip()] = yaml.safe_load(value)
-    return out
 
 
 def main(args: argparse.Namespace) -> int:

@@ -36,7 +36,7 @@ from lego_loam_py.errors import LegoLoamError
 __all__ = [
     'ParameterError', 'SensorParams', 'ImageProjectionParams', 'FeatureAssociationParams',
     'MapOptimizationParams', 'LoopClosureParams', 'ReliabilityParams', 'Params', 'SENSOR_PRESETS', 'load_params',
-    'params_from_mapping', 'flatten', 'read_params_file', 'default_params_file',
+    'params_from_mapping', 'flatten', 'read_params_file', 'default_params_file', 'parse_overrides',
 ]
 
 
@@ -480,3 +480,13 @@ def load_params(path: str | Path | None = None, overrides: Mapping[str, Any] | N
             raise ParameterError(f'{path}: {exc}') from None
         raise
 
+
+def parse_overrides(items: Sequence[str]) -> dict:
+    """``name:=value`` overrides (``-p`` on the command line) as a dict of YAML-parsed values."""
+    out = {}
+    for item in items:
+        if ':=' not in item:
+            raise ParameterError(f"parameter override '{item}' must look like name:=value")
+        name, value = item.split(':=', 1)
+        out[name.strip()] = yaml.safe_load(value)
+    return out
