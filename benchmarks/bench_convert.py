@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from lego_loam_py.bag.convert import ConvertOptions, convert
-from lego_loam_py.core.pcap import read_udp
-from lego_loam_py.core.velodyne import PACKET_SIZE, decode_vlp16
+from lego_loam_py.sensors.pcap import read_udp
+from lego_loam_py.sensors.velodyne import PACKET_SIZE, decode_vlp16
 
 SHARED = Path(__file__).resolve().parents[2] / 'shared' / 'data'
 PCAP = SHARED / 'real' / 'vlp16_static_indoor_20hz_pcap' / 'vlp-16-test-90deg-1-50-frames.pcap'

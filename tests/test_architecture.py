@@ -143,3 +143,20 @@ def test_the_runners_do_not_import_each_other():
     crossing = {(name, other) for name, others in imports.items() for other in others} - allowed
     assert not crossing, crossing
     assert ('demo', 'launch') in {(n, o) for n, others in imports.items() for o in others}   # (the rule is parsed)
+
+
+def test_the_sensor_decoders_are_an_input_layer_outside_the_core():
+    """The packet and pcap decoders (lego_loam_py/sensors) import no ROS; the core imports none of them."""
+    sensors = REPO / 'lego_loam_py' / 'sensors'
+    decoders = sorted(p for p in sensors.glob('*.py') if p.name != '__init__.py')
+    assert {p.stem for p in decoders} >= {'velodyne', 'ouster', 'pcap'}
+    offenders = {}
+    for path in decoders:
+        bad = {m for m in imported_modules(path) if m.split('.')[0] in ROS_MODULES or m.startswith(ROS_MODULES)}
+        if bad:
+            offenders[path.name] = sorted(bad)
+    for path in sorted(CORE.rglob('*.py')):
+        bad = {m for m in imported_modules(path) if m.startswith('lego_loam_py.sensors')}
+        if bad:
+            offenders[str(path.relative_to(CORE))] = sorted(bad)
+    assert not offenders, offenders

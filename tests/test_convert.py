@@ -17,10 +17,10 @@ import pytest
 
 from lego_loam_py.bag.convert import (ConvertError, ConvertOptions, convert, velodyne_bag_packets)
 from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
-from lego_loam_py.core.ouster import OusterDecoder, OusterMetadata
-from lego_loam_py.core.pcap import read_udp
+from lego_loam_py.sensors.ouster import OusterDecoder, OusterMetadata
+from lego_loam_py.sensors.pcap import read_udp
 from lego_loam_py.core.pointcloud import VELODYNE_PACKED_DTYPE, VELODYNE_POINT_DTYPE
-from lego_loam_py.core.velodyne import (PACKET_SIZE, VLP16_ELEVATION_DEG, VelodyneFormatError, Vlp16Decoder,
+from lego_loam_py.sensors.velodyne import (PACKET_SIZE, VLP16_ELEVATION_DEG, VelodyneFormatError, Vlp16Decoder,
                                         decode_vlp16)
 
 CLI = str(Path(sys.executable).parent / 'lego_loam_py')

@@ -3,9 +3,9 @@
 Inputs (auto-detected, or ``--format``):
 
 * a Velodyne VLP-16 **pcap** (single or dual return): UDP data packets (1206 bytes, port 2368 unless
-  ``--port``) decoded by :mod:`lego_loam_py.core.velodyne`; position packets (port 8308) are ignored;
+  ``--port``) decoded by :mod:`lego_loam_py.sensors.velodyne`; position packets (port 8308) are ignored;
 * an **Ouster** pcap with its metadata JSON (``--metadata``; found automatically when a ``.json`` beside
-  the pcap has a name the pcap's starts with): lidar packets decoded by :mod:`lego_loam_py.core.ouster`,
+  the pcap has a name the pcap's starts with): lidar packets decoded by :mod:`lego_loam_py.sensors.ouster`,
   IMU packets written as ``sensor_msgs/Imu`` (``--imu-topic``) plus a latched ``/tf_static``
   ``os_sensor -> os_imu``;
 * a **ROS 1 or ROS 2 bag** of raw Velodyne packets (``velodyne_msgs/msg/VelodyneScan``; the type need not
@@ -32,11 +32,11 @@ from rosbags.typesys import get_types_from_msg
 
 from lego_loam_py.bag.io import BagError, BagReader, BagWriter, make_cloud_msg, ros2_typestore
 from lego_loam_py.core.frames import matrix_to_quaternion
-from lego_loam_py.core.ouster import (IMU_PACKET_SIZE, OusterDecoder, OusterFormatError, OusterMetadata,
+from lego_loam_py.sensors.ouster import (IMU_PACKET_SIZE, OusterDecoder, OusterFormatError, OusterMetadata,
                                       decode_imu)
-from lego_loam_py.core.pcap import PcapError, UdpDatagrams, read_udp
+from lego_loam_py.sensors.pcap import PcapError, UdpDatagrams, read_udp
 from lego_loam_py.core.pointcloud import VELODYNE_PACKED_DTYPE, VELODYNE_POINT_DTYPE
-from lego_loam_py.core.velodyne import PACKET_SIZE, VelodyneFormatError, Vlp16Decoder
+from lego_loam_py.sensors.velodyne import PACKET_SIZE, VelodyneFormatError, Vlp16Decoder
 from lego_loam_py.errors import LegoLoamError, UsageError
 
 __all__ = ['add_arguments', 'main', 'convert', 'ConvertOptions', 'ConvertSummary', 'VELODYNE_SCAN_TYPES',
