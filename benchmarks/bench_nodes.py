@@ -118,8 +118,7 @@ def bench_feature_association(scans: int) -> None:
     for kind, stamp, value in items:
         if kind == 'cloud':
             r = ip.process(prepare_input(value, params))
-            prepared.append(('cloud', ScanInput(stamp, r.segmented_cloud, r.cloud_info, r.outlier_cloud,
-                                                r.segmented_time)))
+            prepared.append(('cloud', ScanInput.from_segmentation(stamp, r)))
         else:
             prepared.append(('imu', value))
     for use_imu in (False, True):

@@ -13,17 +13,9 @@ from lego_loam_py.core.frames import camera_pose_to_lidar
 from lego_loam_py.core.io import write_text_atomic, write_tum_atomic
 from lego_loam_py.core.map_optimization import MapOptimization
 from lego_loam_py.core.params import Params
+from lego_loam_py.core.pipeline import pose_time_offset_ns
 
 __all__ = ['write_outputs', 'result_lines', 'pose_time_offset_ns']
-
-
-def pose_time_offset_ns(params: Params) -> int:
-    """[ns] to add to a scan's stamp to get the time of the sensor pose the pipeline publishes for it: one
-    sweep with the original odometry model (its pose of scan k is the sensor's at the end of the sweep),
-    0 otherwise. Applies to /laser_odom_to_init and /integrated_to_init alike."""
-    if params.feature_association.odometry_model == 'original':
-        return int(round(params.sensor.scan_period * 1e9))
-    return 0
 
 
 def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, poses_camera_init: np.ndarray,

@@ -118,8 +118,7 @@ def static_features(seed: int = 3):
     params = PARAMS.replace(feature_association__relative_time_source='point_time')
     r = ImageProjection(params).process(prepare_input(sweep(scene, np.eye(4)), params))
     fa = FeatureAssociation(params)
-    return fa.extractor.extract(fa.prepare_points(ScanInput(0, r.segmented_cloud, r.cloud_info, r.outlier_cloud,
-                                                            r.segmented_time)), r.cloud_info)
+    return fa.extractor.extract(fa.prepare_points(ScanInput.from_segmentation(0, r)), r.cloud_info)
 
 
 def test_known_transform_is_recovered_with_full_gauss_newton_steps():
@@ -166,7 +165,7 @@ def test_resampled_sweep_pair_registers_closely_original_model():
     ip, fa = ImageProjection(params), FeatureAssociation(params)
     for k, th in enumerate((np.zeros(6), theta)):
         r = ip.process(prepare_input(sweep(scene, np.eye(4), th), params))
-        fa.process(ScanInput(k, r.segmented_cloud, r.cloud_info, r.outlier_cloud, r.segmented_time))
+        fa.process(ScanInput.from_segmentation(k, r))
     estimate = fa.odometry.transform_cur
     assert np.abs(estimate[3:] - theta[3:]).max() < 0.05
     assert np.degrees(np.abs(estimate[:3] - theta[:3])).max() < 0.5
@@ -182,7 +181,7 @@ def test_resampled_sweep_pair_registers_closely_sweep_start_model():
     pose = np.eye(4)
     for k in range(2):
         r = ip.process(prepare_input(sweep(scene, pose, theta), params))
-        fa.process(ScanInput(k * 100_000_000, r.segmented_cloud, r.cloud_info, r.outlier_cloud, r.segmented_time))
+        fa.process(ScanInput.from_segmentation(k * 100_000_000, r))
         pose = pose @ motion_pose(theta, 1.0)
     estimate = fa.odometry.transform_cur
     assert np.abs(estimate[3:] - theta[3:]).max() < 0.03
@@ -206,7 +205,7 @@ def test_sweep_start_model_with_full_steps_is_stable_where_the_original_model_os
         per_scan = []
         for k, points in enumerate(sweeps):
             r = ip.process(prepare_input(points, params))
-            fa.process(ScanInput(k * 100_000_000, r.segmented_cloud, r.cloud_info, r.outlier_cloud, r.segmented_time))
+            fa.process(ScanInput.from_segmentation(k * 100_000_000, r))
             per_scan.append(abs(fa.odometry.transform_cur[5] - theta[5]))
         errors[model] = np.array(per_scan[2:])
     assert errors['sweep_start'].max() < 0.06
@@ -224,7 +223,7 @@ def test_constant_velocity_sequence_converges_with_the_original_step():
     estimates = []
     for k in range(12):
         r = ip.process(prepare_input(sweep(scene, pose, theta), params))
-        fa.process(ScanInput(k * 100_000_000, r.segmented_cloud, r.cloud_info, r.outlier_cloud, r.segmented_time))
+        fa.process(ScanInput.from_segmentation(k * 100_000_000, r))
         estimates.append(fa.odometry.transform_cur.copy())
         pose = pose @ step
     errors = np.abs(np.array(estimates[1:]) - theta)
@@ -281,8 +280,7 @@ def test_corridor_does_not_blow_up():
     pose = np.eye(4)
     for k in range(5):
         r = ip.process(prepare_input(sweep(scene, pose, theta if k else np.zeros(6)), params))
-        result = fa.process(ScanInput(k * 100_000_000, r.segmented_cloud, r.cloud_info, r.outlier_cloud,
-                                      r.segmented_time))
+        result = fa.process(ScanInput.from_segmentation(k * 100_000_000, r))
         pose = pose @ motion_pose(theta, 1.0) if k else pose
         assert np.isfinite(result.transform_sum).all() and np.abs(result.transform_sum).max() < 10
         assert np.abs(result.transform_sum[3:5]).max() < 0.05   # nothing sideways or vertical
@@ -314,7 +312,7 @@ def test_single_plane_does_not_blow_up():
     ip, fa = ImageProjection(params), FeatureAssociation(params)
     for k in range(3):
         r = ip.process(prepare_input(scene_points(floor_ranges(1.5)), params))
-        result = fa.process(ScanInput(k, r.segmented_cloud, r.cloud_info, r.outlier_cloud))
+        result = fa.process(ScanInput.from_segmentation(k, r, point_time=False))
     assert np.isfinite(result.transform_sum).all() and np.abs(result.transform_sum).max() < 1e-3
     assert result.odometry.skipped  # no edges at all: the original skips the odometry
 
@@ -343,7 +341,7 @@ def test_feature_counts_stay_within_the_originals_bounds(shared_data):
     inp = g['s0_input']
     r = ImageProjection(PARAMS).process(ProjectionInput(xyz=inp[:, :3].copy(), ring=inp[:, 4].astype(np.int64)))
     fa = FeatureAssociation(PARAMS)
-    points = fa.prepare_points(ScanInput(0, r.segmented_cloud, r.cloud_info, r.outlier_cloud))
+    points = fa.prepare_points(ScanInput.from_segmentation(0, r, point_time=False))
     features = FeatureExtractor(PARAMS).extract(points, r.cloud_info)
     info = r.cloud_info
     for ring in range(16):
@@ -424,7 +422,7 @@ def test_features_and_odometry_equal_the_cpp_original(shared_data, name):
     for k in range(len(g['stamps'])):
         inp = g[f's{k}_input']
         r = ip.process(ProjectionInput(xyz=inp[:, :3].copy(), ring=inp[:, 4].astype(np.int64)))
-        result = fa.process(ScanInput(int(g['stamps'][k]), r.segmented_cloud, r.cloud_info, r.outlier_cloud))
+        result = fa.process(ScanInput.from_segmentation(int(g['stamps'][k]), r, point_time=False))
         f = result.features
         for topic, ours, tolerance in [('sharp', f.sharp, 1e-6), ('less_sharp', f.less_sharp, 1e-6),
                                        ('flat', f.flat, 1e-6), ('less_flat', f.less_flat, 1e-5)]:
@@ -456,7 +454,7 @@ def test_static_recording_yields_near_zero_motion(shared_data):
         for k in range(len(g['stamps'])):
             inp = g[f's{k}_input']
             r = ip.process(ProjectionInput(xyz=inp[:, :3].copy(), ring=inp[:, 4].astype(np.int64)))
-            result = fa.process(ScanInput(int(g['stamps'][k]), r.segmented_cloud, r.cloud_info, r.outlier_cloud))
+            result = fa.process(ScanInput.from_segmentation(int(g['stamps'][k]), r, point_time=False))
         drift[name] = (np.linalg.norm(result.transform_sum[3:]), math.degrees(abs(result.transform_sum[1])))
     assert drift['original'][0] == pytest.approx(0.0999, abs=0.005)
     assert drift['azimuth'][0] < 0.2 and drift['azimuth'][1] < 5.0

@@ -79,8 +79,7 @@ def features_of(scene, pose):
     params = PARAMS.replace(feature_association__relative_time_source='point_time')
     r = ImageProjection(params).process(prepare_input(sweep(scene, pose), params))
     fa = FeatureAssociation(params)
-    return fa.extractor.extract(fa.prepare_points(ScanInput(0, r.segmented_cloud, r.cloud_info, r.outlier_cloud,
-                                                            r.segmented_time)), r.cloud_info)
+    return fa.extractor.extract(fa.prepare_points(ScanInput.from_segmentation(0, r)), r.cloud_info)
 
 
 def test_scan_registered_to_a_map_of_itself_under_a_known_offset_is_recovered():
@@ -200,7 +199,7 @@ def test_map_equals_the_originals_on_golden_data(shared_data):
     for k in range(len(g['stamps'])):
         inp = g[f's{k}_input']
         r = ip.process(ProjectionInput(xyz=inp[:, :3].copy(), ring=inp[:, 4].astype(np.int64)))
-        res = fa.process(ScanInput(int(g['stamps'][k]), r.segmented_cloud, r.cloud_info, r.outlier_cloud))
+        res = fa.process(ScanInput.from_segmentation(int(g['stamps'][k]), r, point_time=False))
         if res.outlier_last is not None:
             step = mo.process(res.stamp_ns, res.transform_sum, res.corner_last, res.surf_last, res.outlier_last)
             if step is not None:

@@ -131,3 +131,33 @@ def test_files_are_written_with_the_users_umask(tmp_path):
         os.umask(previous)
     assert stat.S_IMODE((tmp_path / 'a.json').stat().st_mode) == 0o640
     assert stat.S_IMODE((tmp_path / 'a.tum').stat().st_mode) == 0o640
+
+
+def test_the_one_scan_facade_gives_odometry_per_scan_and_says_why_a_scan_is_dropped():
+    """core.pipeline.Pipeline, the call `run` loops over: the first scan initialises (no pose), the next ones
+    get a 4x4 odometry pose at once and a fused pose in the record; a cloud without points is dropped with its
+    reason, counted, and the next valid scan is processed as usual."""
+    from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
+    from lego_loam_py.core.pipeline import Pipeline
+
+    clouds = []
+    with BagReader(BAG) as reader:
+        for message in reader.messages(topics=['/velodyne_points']):
+            msg = reader.deserialize(message)
+            clouds.append((msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec, cloud_msg_to_array(msg)))
+            if len(clouds) == 4:
+                break
+    warnings = []
+    pipeline = Pipeline(Params(), mapping_thread=True, warn=warnings.append)
+    first = pipeline.process_scan(clouds[0][1], clouds[0][0])
+    assert first.odometry is None and first.dropped is None
+    second = pipeline.process_scan(clouds[1][1], clouds[1][0])
+    assert second.odometry.shape == (4, 4) and np.isfinite(second.odometry).all()
+    assert 0.05 < np.linalg.norm(second.odometry[:3, 3]) < 1.0   # 0.1 s of a drive at a few m/s
+    empty = pipeline.process_scan(clouds[2][1][:0], clouds[2][0])
+    assert empty.odometry is None and empty.dropped and warnings and 'dropped' in warnings[-1]
+    assert pipeline.skip_scan(clouds[2][0] + 1, 'undecodable').dropped == 'undecodable'
+    assert pipeline.process_scan(clouds[3][1], clouds[3][0]).odometry is not None
+    record = pipeline.finish()
+    assert record.counts['scans_in'] == 5 and record.counts['scans_dropped'] == 2
+    assert record.stamps == [clouds[1][0], clouds[3][0]] and len(record.integrated) == 2

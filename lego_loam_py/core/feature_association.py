@@ -58,6 +58,13 @@ class ScanInput:
     outlier: np.ndarray                # (m, 4) float32 lidar axes
     point_time: np.ndarray | None = None  # (n,) seconds since the sweep start, when the cloud carries it
 
+    @classmethod
+    def from_segmentation(cls, stamp_ns: int, segmentation, point_time: bool = True) -> 'ScanInput':
+        """The input of a scan that imageProjection segmented (its SegmentationResult), as its three messages
+        carry it; ``point_time=False`` leaves the per-point times out, as a cloud without a time field."""
+        return cls(stamp_ns, segmentation.segmented_cloud, segmentation.cloud_info, segmentation.outlier_cloud,
+                   segmentation.segmented_time if point_time else None)
+
 
 @dataclass
 class FeatureAssociationResult:

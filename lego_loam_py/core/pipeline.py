@@ -1,0 +1,290 @@
+"""The whole pipeline on one scan at a time, without ROS: imageProjection -> featureAssociation ->
+transformFusion, and mapOptimization on the mapping inputs, in the order a replay delivers them.
+
+    pipeline = Pipeline(params)
+    pipeline.add_imu(sample)                      # each IMU sample, as core.imu.imu_sample gives it
+    output = pipeline.process_scan(points, stamp_ns)   # each cloud (structured array, see core.pointcloud)
+    record = pipeline.finish()                    # every pose, count and timing
+
+The offline mode (``lego_loam_py run``) is this call in a loop over a bag; the ROS nodes run the same cores,
+one per process. mapOptimization may run on a worker thread (``mapping_thread``): it then overlaps the next
+scans' imageProjection and featureAssociation (numpy and scipy release the GIL), with the same result as
+without it, since the worker takes the mapping inputs and IMU samples in arrival order and transformFusion
+applies each mapping result before the scans that follow it.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
+from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix
+from lego_loam_py.core.image_projection import ImageProjection, InputError, prepare_input
+from lego_loam_py.core.map_optimization import MapOptimization
+from lego_loam_py.core.odometry_continuity import OdometryContinuity
+from lego_loam_py.core.params import Params
+from lego_loam_py.core.pointcloud import CloudLayoutError
+from lego_loam_py.core.transform_fusion import TransformFusion
+
+__all__ = ['Pipeline', 'ScanOutput', 'RunResult', 'pose_time_offset_ns']
+
+
+def pose_time_offset_ns(params: Params) -> int:
+    """[ns] to add to a scan's stamp to get the time of the sensor pose the pipeline publishes for it: one
+    sweep with the original odometry model (its pose of scan k is the sensor's at the end of the sweep),
+    0 otherwise. Applies to /laser_odom_to_init and /integrated_to_init alike."""
+    if params.feature_association.odometry_model == 'original':
+        return int(round(params.sensor.scan_period * 1e9))
+    return 0
+
+
+@dataclass
+class RunResult:
+    """Everything a run produced; poses are 4x4 in camera_init (LOAM camera axes)."""
+
+    stamps: list[int] = field(default_factory=list)            # scans with an odometry pose
+    integrated: list[np.ndarray] = field(default_factory=list)  # /integrated_to_init
+    odometry: list[np.ndarray] = field(default_factory=list)    # /laser_odom_to_init
+    mapped_stamps: list[int] = field(default_factory=list)
+    mapped: list[np.ndarray] = field(default_factory=list)      # /aft_mapped_to_init
+    timings_ms: dict[str, list[float]] = field(default_factory=dict)
+    counts: dict[str, int] = field(default_factory=dict)
+    wall_time: float = 0.0
+    bag_duration: float = 0.0
+    mapper: MapOptimization | None = None
+    pose_time_offset_ns: int = 0   # the original odometry model's pose of scan k is the sensor's at k + one sweep
+
+    def count(self, name: str, amount: int = 1) -> None:
+        self.counts[name] = self.counts.get(name, 0) + amount
+
+    def time(self, name: str, ms: float) -> None:
+        self.timings_ms.setdefault(name, []).append(ms)
+
+    def trajectory(self, axes: str = 'map', which: str = 'integrated') -> tuple[np.ndarray, np.ndarray]:
+        """(stamps [ns] of the sensor poses, poses) of the fused ('integrated') or odometry ('odometry')
+        trajectory; ``axes`` 'map' (REP-103) or 'camera_init'. Stamps include the model's pose time offset."""
+        poses = np.array(self.integrated if which == 'integrated' else self.odometry).reshape(-1, 4, 4)
+        if axes == 'map':
+            poses = np.array([camera_pose_to_lidar(p) for p in poses]).reshape(-1, 4, 4)
+        return np.array(self.stamps, dtype=np.int64) + self.pose_time_offset_ns, poses
+
+
+@dataclass(frozen=True)
+class ScanOutput:
+    """What one scan gave: its odometry pose (4x4, camera_init; None for the first scan, which only
+    initialises, and for a dropped one) or why it was dropped."""
+
+    stamp_ns: int
+    odometry: np.ndarray | None = None
+    dropped: str | None = None
+    imu_used: bool = False
+
+
+def _to_stderr(text: str) -> None:
+    print(f'warning: {text}', file=sys.stderr)
+
+
+class Pipeline:
+    """The four cores on one scan at a time (see the module docstring). ``mapping=False``: odometry and
+    fusion only. ``warn`` receives a line for each scan or step dropped or repaired (default: stderr)."""
+
+    def __init__(self, params: Params, *, mapping: bool = True, mapping_thread: bool = False,
+                 warn: Callable[[str], None] | None = None):
+        self.params = params
+        self.ip, self.fa = ImageProjection(params), FeatureAssociation(params)
+        self.mo = MapOptimization(params)
+        self.fusion = TransformFusion()
+        self.mapping = mapping
+        self.record = RunResult(mapper=self.mo if mapping else None)
+        self.record.pose_time_offset_ns = pose_time_offset_ns(params)
+        self._warn = warn or _to_stderr
+        self._back_end = _BackEnd(self.mo if mapping else None, self.fusion, self.record, self._warn,
+                                  threaded=mapping and mapping_thread)
+        self._next_loop_check: int | None = None
+
+    def add_imu(self, sample: tuple) -> None:
+        """One IMU sample (``core.imu.imu_sample``: time [s], quaternion, angular velocity, acceleration)."""
+        if self.fa.add_imu(*sample) is not None:
+            self.record.count('imu_rejected')
+        self._back_end.add_imu(sample)
+
+    def skip_scan(self, stamp_ns: int, reason: str) -> ScanOutput:
+        """A scan the caller could not even decode: counted and warned about like any dropped scan."""
+        self.record.count('scans_in')
+        output = self._dropped(stamp_ns, reason)
+        self._after_scan(stamp_ns)
+        return output
+
+    def process_scan(self, points: np.ndarray, stamp_ns: int) -> ScanOutput:
+        """One cloud (structured array with x, y, z, intensity and optionally ring / time) stamped
+        ``stamp_ns`` [ns]: its odometry now, its fused pose and mapping as their results come (see
+        :meth:`finish`)."""
+        self.record.count('scans_in')
+        output = self._one_scan(points, stamp_ns)
+        self._after_scan(stamp_ns)
+        return output
+
+    def _after_scan(self, stamp_ns: int) -> None:
+        lc = self.params.loop_closure
+        if self.mapping and lc.loop_closure_enable_flag:   # every loop_closure.period s of data
+            if self._next_loop_check is None:
+                self._next_loop_check = stamp_ns + int(lc.period * 1e9)
+            elif stamp_ns >= self._next_loop_check:
+                self._next_loop_check = stamp_ns + int(lc.period * 1e9)
+                self._back_end.loop_closure()
+        self._back_end.drain()
+
+    def finish(self) -> RunResult:
+        """Wait for the mapping still under way, apply its results, and return the record of the run."""
+        try:
+            self._back_end.drain(wait=True)
+        finally:
+            self.close()
+        self.record.counts['keyframes'] = len(self.mo.keyframes) if self.mapping else 0
+        return self.record
+
+    def close(self) -> None:
+        """Stop the mapping worker (idempotent)."""
+        self._back_end.close()
+
+    def _dropped(self, stamp_ns: int, reason: str) -> ScanOutput:
+        self.record.count('scans_dropped')
+        self._warn(f'scan at {stamp_ns * 1e-9:.3f} s dropped: {reason}')
+        return ScanOutput(stamp_ns, dropped=reason)
+
+    def _one_scan(self, points: np.ndarray, stamp: int) -> ScanOutput:
+        record = self.record
+        t0 = time.perf_counter()
+        try:
+            segmentation = self.ip.process(prepare_input(points, self.params))
+        except (CloudLayoutError, InputError) as exc:
+            return self._dropped(stamp, str(exc))
+        t1 = time.perf_counter()
+        record.time('imageProjection', (t1 - t0) * 1e3)
+        features = self.fa.process(ScanInput.from_segmentation(stamp, segmentation))
+        record.time('featureAssociation', (time.perf_counter() - t1) * 1e3)
+        problem = self.fa.health_problem()
+        if problem is not None:   # the same self-check as the node's: start the odometry again, keep the pose
+            self.fa.restart()
+            record.count('state_resets')
+            record.count('scans_dropped')
+            self._warn(f'scan at {stamp * 1e-9:.3f} s: {problem}: odometry restarted')
+            return ScanOutput(stamp, dropped=f'{problem}: odometry restarted')
+        record.count('scans_processed')
+        if features.imu_used:
+            record.count('scans_with_imu')
+        if not features.initialized:
+            record.stamps.append(stamp)
+            record.odometry.append(features.pose)
+            self._back_end.fuse(features.pose)
+        if features.corner_last is not None and features.outlier_last is not None:
+            self._back_end.map(stamp, features.transform_sum, features.corner_last, features.surf_last,
+                               features.outlier_last)
+        return ScanOutput(stamp, None if features.initialized else features.pose, imu_used=features.imu_used)
+
+
+class _BackEnd:
+    """mapOptimization and transformFusion of a run, in arrival order.
+
+    Work for mapOptimization (IMU samples, mapping inputs, loop-closure checks) goes to one worker thread in
+    the order it arrives; transformFusion's events (fuse a scan's odometry, take a mapping result) are queued in
+    the same order and applied by :meth:`drain` as their results become available. So every scan is fused
+    with exactly the mapping results of the scans before it, whether the worker is a thread or not.
+    """
+
+    def __init__(self, mo: MapOptimization | None, fusion: TransformFusion, result: RunResult,
+                 warn: Callable[[str], None], threaded: bool):
+        self.mo, self.fusion, self.result, self.warn = mo, fusion, result, warn
+        self.continuity = OdometryContinuity()   # (used on the mapping worker only)
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix='mapping') if threaded else None
+        self._imu: list[tuple] = []
+        self._events: deque = deque()
+
+    def _submit(self, job) -> Future:
+        imu, self._imu = self._imu, []
+
+        def with_imu():
+            for sample in imu:   # the IMU samples that arrived before this job, as in the sequential run
+                self.mo.imu.add(*sample)
+            return job()
+
+        if self._executor is not None:
+            return self._executor.submit(with_imu)
+        future = Future()
+        future.set_result(with_imu())
+        return future
+
+    def add_imu(self, sample: tuple) -> None:
+        if self.mo is not None:
+            self._imu.append(sample)
+
+    def fuse(self, odometry: np.ndarray) -> None:
+        self._events.append(('fuse', odometry))
+        self.drain()
+
+    def map(self, stamp: int, *inputs) -> None:
+        if self.mo is None:
+            return
+
+        def step():
+            # CPU time of the thread: on the worker, wall time would also count the waits for the GIL while
+            # the main thread runs the next scans.
+            t = time.thread_time()
+            transform_sum = inputs[0]
+            pose = pose6_to_matrix(transform_sum)
+            jump = self.continuity.check(stamp, pose)
+            if jump is not None:   # the same protection as the node's: continue the map, do not drag it
+                self.warn(f'mapping input at {stamp * 1e-9:.3f} s: {jump.describe()}')
+                self.mo.reanchor(jump, pose, transform_sum)
+            mapped = self.mo.process(stamp, *inputs)
+            problem = self.mo.health_problem() if mapped is not None else None
+            if problem is not None:   # the same self-check as the node's: reset what is poisoned, keep the map
+                self.warn(f'mapping step at {stamp * 1e-9:.3f} s: {problem}: {self.mo.heal()}')
+                mapped = None
+            return mapped, (time.thread_time() - t) * 1e3
+
+        self._events.append(('map', stamp, self._submit(step)))
+
+    def loop_closure(self) -> None:
+        def close():
+            t = time.perf_counter()
+            candidate = self.mo.detect_loop()
+            loop = self.mo.close_loop(candidate) if candidate is not None else None
+            return loop, (time.perf_counter() - t) * 1e3
+
+        self._events.append(('loop', self._submit(close)))
+
+    def drain(self, wait: bool = False) -> None:
+        """Apply the queued events whose results are ready (all of them, waiting, with ``wait``)."""
+        result = self.result
+        while self._events:
+            event = self._events[0]
+            if event[0] != 'fuse' and not wait and not event[-1].done():
+                return
+            self._events.popleft()
+            if event[0] == 'fuse':
+                result.integrated.append(self.fusion.integrate(event[1]))
+            elif event[0] == 'map':
+                step, ms = event[2].result()
+                if step is not None:
+                    result.time('mapOptimization', ms)
+                    result.count('mapping_steps')
+                    aft, bef = pose6_to_matrix(step.transform_aft), pose6_to_matrix(step.transform_bef)
+                    self.fusion.on_mapped(aft, bef)
+                    result.mapped_stamps.append(event[1])
+                    result.mapped.append(aft)
+            else:
+                loop, ms = event[1].result()
+                if loop is not None:
+                    result.count('loops_closed' if loop.accepted else 'loops_rejected')
+                result.time('loop_closure', ms)
+
+    def close(self) -> None:
+        if self._executor is not None:
+            self._executor.shutdown(wait=True, cancel_futures=True)
