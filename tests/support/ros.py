@@ -51,7 +51,7 @@ def wait_for_line(proc, text: str, timeout: float = 20.0) -> str:
 
 
 def publish_in_lockstep(context, node, publish, items, processed, timeout: float = 60.0,
-                        resend_after: float = 5.0) -> list:
+                        resend_after: float = 5.0, resend=None) -> list:
     """Hand ``items`` [(key, message)] to ``publish`` one at a time, each once ``processed(key)`` holds for the
     one before: a pipeline fed this way never sees two inputs at once, so the nodes' depth-1 queues ('latest
     wins', as the original's) lose nothing however slow a loaded machine makes them.
@@ -60,7 +60,9 @@ def publish_in_lockstep(context, node, publish, items, processed, timeout: float
     item. The first item is sent again every ``resend_after`` s while it has not come out: a best-effort
     subscriber (the nodes' sensor input) drops what arrives before it has matched the publisher, and only
     the subscriber knows when that is. A duplicate that does get through is dropped by the nodes as 'not
-    newer than the previous scan'. Returns the keys that were not processed within ``timeout`` s each
+    newer than the previous scan'. ``resend`` (called with the message) does the same for every item: for
+    feeds that may lose any of them on the way, such as bursts over a best-effort input (a full shared-memory
+    segment drops what does not fit). Returns the keys that were not processed within ``timeout`` s each
     (the feed stops at the first).
     """
     for index, (key, message) in enumerate(items):
@@ -69,7 +71,9 @@ def publish_in_lockstep(context, node, publish, items, processed, timeout: float
         while not spin_until(context, node, lambda: processed(key), min(resend_after, deadline - time.monotonic())):
             if time.monotonic() >= deadline:
                 return [k for k, _ in items[index:]]
-            if index == 0:
+            if resend is not None:
+                resend(message)
+            elif index == 0:
                 publish(message)
     return []
 
