@@ -22,7 +22,7 @@ from lego_loam_py.ros.conversions import imu_sample_from_serialized, stamp_to_ns
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.params import declare_params
 
-__all__ = ['LegoLoamNode', 'release_memory', 'resync_message', 'LARGE_MESSAGE_BYTES']
+__all__ = ['LegoLoamNode', 'release_memory', 'LARGE_MESSAGE_BYTES']
 
 # A rejected message larger than this is followed by release_memory(): the allocator would otherwise keep its
 # pages (glibc keeps freed blocks of up to 32 MB in the heap once it has seen one that size).
@@ -30,12 +30,6 @@ LARGE_MESSAGE_BYTES = 8 << 20
 
 # rclpy's own endpoints of every node, left out of the matched counts on /diagnostics.
 _HOUSEKEEPING_TOPICS = frozenset(('/parameter_events', '/rosout', '/diagnostics'))
-
-
-def resync_message(noun: str, decision) -> str:
-    """The warning of a 'resync' decision of a StampOrder."""
-    return (f'{noun}s continue {-decision.jump_ns * 1e-9:.3f} s before the previous one: the {noun}s ahead of them '
-            'had wrong stamps; carrying on from these')
 
 
 def release_memory() -> None:
@@ -355,7 +349,8 @@ class LegoLoamNode(Node):
             self.warn('jump', f'time jumped forward by {decision.jump_ns * 1e-9:.1f} s: carrying on', period=0.0)
             self.count('forward_jumps')
         if decision.action == 'resync':
-            self.warn('resync', resync_message(noun, decision))
+            self.warn('resync', f'{noun}s continue {-decision.jump_ns * 1e-9:.3f} s before the previous one: the '
+                                f'{noun}s ahead of them had wrong stamps; carrying on from these')
             self.count('resyncs')
         return decision
 

@@ -25,7 +25,7 @@ from lego_loam_py.core.sync import StampOrder
 from lego_loam_py.core.transform_fusion import TransformFusion
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import MAX_POSITION, make_header, odometry_to_pose, pose_to_odometry, stamp_to_ns
-from lego_loam_py.ros.node_base import LegoLoamNode, resync_message
+from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 from lego_loam_py.ros.tf import StaticTransformBroadcaster, TransformBroadcaster, original_static_transforms
 
@@ -81,24 +81,10 @@ class TransformFusionNode(LegoLoamNode):
 
     def on_odometry(self, msg: Odometry) -> None:
         self.count('odometry_in')
-        stamp = stamp_to_ns(msg.header.stamp)
-        last = self.order.last_ns
-        decision = self.order.check(stamp, msg)
-        if decision.discarded:
-            self.count('odometry_dropped', len(decision.discarded))
-            held = stamp_to_ns(decision.discarded[0].header.stamp)
-            self.warn('glitch', f'{len(decision.discarded)} odometry message(s) stamped '
-                                f'{(held - (last or held)) * 1e-9:+.1f} s from the previous one dropped: the next '
-                                'message continued the old timeline (wrong stamps)')
-        if decision.action == 'drop':
-            self.count('odometry_dropped')
-            self.warn('order', f'/laser_odom_to_init dropped: {decision.reason}')
+        decision = self.check_order(self.order, stamp_to_ns(msg.header.stamp), msg,
+                                    lambda m: stamp_to_ns(m.header.stamp), 'odometry message', 'odometry_dropped')
+        if decision is None:   # dropped or held
             return
-        if decision.action == 'hold':
-            return
-        if decision.action == 'resync':
-            self.warn('resync', resync_message('odometry message', decision))
-            self.count('resyncs')
         if decision.action == 'reset':
             self.warn('reset', f'time jumped back by {-decision.jump_ns * 1e-9:.1f} s: map correction reset',
                       period=0.0)
