@@ -114,3 +114,18 @@ def test_transform_of_an_odometry_carries_its_pose_and_frames():
     assert transform.transform == expected.transform
     q = transform.transform.rotation
     assert math.isclose(q.x ** 2 + q.y ** 2 + q.z ** 2 + q.w ** 2, 1.0, rel_tol=1e-12)
+
+
+def test_the_header_stamp_is_read_from_a_serialized_message():
+    """mapOptimization tells odometry publishers apart by the stamp of each serialized message it polls."""
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import serialize_message
+
+    from lego_loam_py.ros.conversions import serialized_stamp_ns
+
+    msg = Odometry()
+    msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id = 1_700_000_000, 123, 'camera_init'
+    data = serialize_message(msg)
+    assert serialized_stamp_ns(data) == 1_700_000_000_000_000_123
+    assert serialized_stamp_ns(data[:8]) is None                  # too short for a stamp
+    assert serialized_stamp_ns(b'\x00\x03' + data[2:]) is None     # another encoding (parameter list)

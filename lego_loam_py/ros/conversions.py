@@ -27,7 +27,7 @@ __all__ = [
     'stamp_to_ns', 'ns_to_stamp', 'make_header', 'cloud_msg_to_buffer', 'cloud_msg_to_array',
     'array_to_cloud_msg', 'pose_to_odometry', 'odometry_to_pose', 'pose_to_transform',
     'numpy_to_array', 'xyzi_to_cloud_msg', 'cloud_msg_to_xyzi', 'cloud_info_to_msg', 'cloud_info_from_msg',
-    'imu_sample_from_serialized', 'odometry_to_transform', 'MAX_POSITION',
+    'imu_sample_from_serialized', 'serialized_stamp_ns', 'odometry_to_transform', 'MAX_POSITION',
 ]
 
 
@@ -53,6 +53,16 @@ def make_header(stamp: Time | int, frame_id: str) -> Header:
 # covariance (9), angular velocity (3), its covariance (9), linear acceleration (3), its covariance (9).
 _IMU_DOUBLES = 37
 _XCDR1 = {b'\x00\x00': '>', b'\x00\x01': '<'}   # encapsulation id -> byte order
+
+
+def serialized_stamp_ns(data: bytes) -> int | None:
+    """Header stamp [ns] of a serialized message that starts with a std_msgs/Header (XCDR1, see above), or
+    None for another encoding or too few bytes."""
+    order = _XCDR1.get(bytes(data[:2]))
+    if order is None or len(data) < 12:
+        return None
+    sec, nanosec = struct.unpack_from(order + 'iI', data, 4)
+    return sec * 1_000_000_000 + nanosec
 
 
 def imu_sample_from_serialized(data: bytes) -> tuple[float, tuple, tuple, tuple]:

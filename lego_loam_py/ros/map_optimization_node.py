@@ -27,7 +27,6 @@ throttled warning; a mapping step that fails or yields a non-finite pose is skip
 """
 from __future__ import annotations
 
-import struct
 import sys
 import threading
 import time
@@ -46,7 +45,7 @@ from lego_loam_py.core.odometry_continuity import OdometryContinuity
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import (cloud_msg_to_xyzi, make_header, odometry_to_pose, pose_to_odometry,
-                                          stamp_to_ns, xyzi_to_cloud_msg)
+                                          serialized_stamp_ns, stamp_to_ns, xyzi_to_cloud_msg)
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 from lego_loam_py.ros.services import create_deferred_service
@@ -151,11 +150,10 @@ class MapOptimizationNode(LegoLoamNode):
         """Which publisher sent the odometry of a stamp (from the serialized message's header)."""
         gid = info.get('publisher_gid') if isinstance(info, dict) else None
         sender = gid.get('data') if isinstance(gid, dict) else gid
-        if sender is None or len(data) < 12:
+        stamp = serialized_stamp_ns(data)
+        if sender is None or stamp is None:
             return
-        little = data[1] in (0x01, 0x03)   # CDR encapsulation, then the header's stamp: int32 sec, uint32 nanosec
-        sec, nanosec = struct.unpack_from('<iI' if little else '>iI', data, 4)
-        self._odometry_publisher[sec * 1_000_000_000 + nanosec] = bytes(sender)
+        self._odometry_publisher[stamp] = bytes(sender)
         while len(self._odometry_publisher) > 64:
             self._odometry_publisher.pop(next(iter(self._odometry_publisher)))
 
