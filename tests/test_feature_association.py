@@ -6,16 +6,18 @@ import math
 import numpy as np
 import pytest
 
-from lego_loam_py.core.feature_association import (FeatureAssociation, ScanInput, relative_time,
-                                                   relative_time_from_azimuth)
+from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.features import FeatureExtractor, occluded_mask, smoothness
 from lego_loam_py.core.frames import camera_pose_to_lidar, euler_to_quaternion, lidar_to_camera
 from lego_loam_py.core.image_projection import ImageProjection, ProjectionInput, prepare_input
 from lego_loam_py.core.imu import ImuBuffer
-from lego_loam_py.core.laser_odometry import (LaserOdometry, accumulate, line_coefficients, plane_coefficients,
-                                              plane_jacobian_rows, start_jacobian, sweep_angles, sweep_rotation,
-                                              transform_to_end, transform_to_start)
+from lego_loam_py.core.gauss_newton import DegeneracyProjection
+from lego_loam_py.core.geometry import line_coefficients, plane_coefficients
+from lego_loam_py.core.laser_odometry import OriginalOdometry, SweepStartOdometry, make_laser_odometry
 from lego_loam_py.core.params import Params, default_params_file, load_params
+from lego_loam_py.core.sweep import (accumulate, plane_jacobian_rows, relative_time, relative_time_from_azimuth,
+                                     start_jacobian, sweep_angles, sweep_rotation, transform_to_end,
+                                     transform_to_start)
 from lego_loam_py.core.sync import StampSynchronizer
 from tests.support.sweeps import motion_pose, room_world, sweep
 
@@ -126,7 +128,7 @@ def test_known_transform_is_recovered_with_full_gauss_newton_steps():
     sweep's own 'last' clouds: the two-stage solver recovers θ."""
     theta = np.array([0.004, math.radians(3.0), -0.003, 0.05, 0.02, -0.45])
     features = static_features()
-    odometry = LaserOdometry(PARAMS.replace(feature_association__step_scale=1.0))
+    odometry = OriginalOdometry(PARAMS.replace(feature_association__step_scale=1.0))
     odometry.set_last(features.less_sharp, features.less_flat)
     stats = odometry.register(moved_by_model(features.sharp, theta), moved_by_model(features.flat, theta))
     estimate = odometry.transform_cur
@@ -144,7 +146,7 @@ def test_rotation_prior_holds_the_rotation_the_imu_measured():
     moved = moved_by_model(features.sharp, theta), moved_by_model(features.flat, theta)
     yaw = {}
     for weight in (0.0, 1e3, 1e9):
-        odometry = LaserOdometry(PARAMS.replace(feature_association__step_scale=1.0), exact_jacobian=True)
+        odometry = SweepStartOdometry(PARAMS.replace(feature_association__step_scale=1.0))
         odometry.rotation_prior = weight
         odometry.set_last(features.less_sharp, features.less_flat)
         odometry.register(*moved)
@@ -289,21 +291,30 @@ def test_corridor_does_not_blow_up():
 def test_degenerate_directions_are_frozen():
     """The original's degeneracy handling: on the first iteration, eigen-directions of A^T A below the
     threshold are detected and the steps are projected off them, however the residuals pull."""
-    from lego_loam_py.core.laser_odometry import _Stage
     rng = np.random.default_rng(0)
     a = rng.normal(size=(200, 3))
     a[:, 2] *= 1e-3                      # the third parameter is (almost) unobservable
     b = rng.normal(size=200)
     weak = np.linalg.eigh(a.T @ a)[1][:, 0]   # about the third axis
     assert abs(weak[2]) > 0.99
-    stage = _Stage()
-    x = stage.step(a, b, 0, 10.0)
+    stage = DegeneracyProjection(3)
+    x = stage.step(a, b, True, 10.0)
     assert stage.degenerate and abs(x @ weak) < 1e-9 and np.abs(x).max() > 1e-3
-    x = stage.step(a, b + 5.0 * a[:, 2] * 1e3, 1, 10.0)   # later iterations keep the projection
+    x = stage.step(a, b + 5.0 * a[:, 2] * 1e3, False, 10.0)   # later iterations keep the projection
     assert abs(x @ weak) < 1e-9
-    well_posed = _Stage()
-    well_posed.step(rng.normal(size=(200, 3)), b, 0, 10.0)
+    well_posed = DegeneracyProjection(3)
+    well_posed.step(rng.normal(size=(200, 3)), b, True, 10.0)
     assert not well_posed.degenerate
+
+
+def test_the_odometry_model_is_chosen_once_from_the_parameters():
+    """``feature_association.odometry_model`` names the class; featureAssociation builds it once."""
+    assert type(make_laser_odometry(PARAMS.replace(feature_association__odometry_model='original'))) is \
+        OriginalOdometry
+    assert type(make_laser_odometry(PARAMS.replace(feature_association__odometry_model='sweep_start'))) is \
+        SweepStartOdometry
+    fa = FeatureAssociation(PARAMS.replace(feature_association__odometry_model='original'))
+    assert type(fa.odometry) is OriginalOdometry and fa._process == fa._process_original
 
 
 def test_single_plane_does_not_blow_up():

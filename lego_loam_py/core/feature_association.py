@@ -3,7 +3,7 @@
 Per scan (docs/original.md §6.2): the segmented cloud (lidar axes, intensity row + col/10000) is turned into LOAM
 camera axes and every point gets its relative time in the sweep; with an IMU it is deskewed to the sweep
 start; features are extracted; the first scan initialises the 'last' clouds; later scans are registered
-against them (:class:`~lego_loam_py.core.laser_odometry.LaserOdometry`), the motion is accumulated into
+against them (:mod:`~lego_loam_py.core.laser_odometry`), the motion is accumulated into
 ``transform_sum`` and the less-sharp / less-flat features re-projected to the sweep end become the next
 'last' clouds, handed to mapOptimization every ``skip_frame_num + 1`` scans.
 
@@ -23,7 +23,6 @@ twice). Translation keeps the original's constant-velocity guess corrected by th
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
@@ -34,18 +33,16 @@ from lego_loam_py.core.frames import (euler_to_matrix, invert_pose, lidar_to_cam
                                       matrix_to_pose6)
 from lego_loam_py.core.image_projection import CloudInfo
 from lego_loam_py.core.imu import ImuBuffer, imu_world_rotation
-from lego_loam_py.core.laser_odometry import (LaserOdometry, OdometryStats, accumulate, sweep_angles,
-                                              sweep_rotation, transform_to_end, transform_to_start)
-from lego_loam_py.core.libm import atan2f
+from lego_loam_py.core.laser_odometry import OdometryStats, make_laser_odometry
 from lego_loam_py.core.params import Params
+from lego_loam_py.core.sweep import (accumulate, motion_to_theta, relative_time, relative_time_from_azimuth,
+                                     sweep_angles, sweep_rotation, transform_to_end, transform_to_start)
 from lego_loam_py.core.validation import (MAX_POSITION, MAX_SWEEP_TRANSLATION, cloud_problem, pose6_problem,
                                           vector_problem)
 
-__all__ = ['FeatureAssociation', 'FeatureAssociationResult', 'relative_time', 'relative_time_from_azimuth',
-           'ScanInput']
+__all__ = ['FeatureAssociation', 'FeatureAssociationResult', 'ScanInput']
 
 _F32 = np.float32
-TWO_PI = 2 * math.pi
 
 
 @dataclass
@@ -86,33 +83,26 @@ class FeatureAssociationResult:
         return make_pose(euler_to_matrix(*self.transform_sum[:3]), self.transform_sum[3:])
 
 
-def relative_time_from_azimuth(points_lidar: np.ndarray, info: CloudInfo) -> np.ndarray:
-    """Relative time in [0, 1) of each point: its clockwise angle from the start orientation, modulo a turn,
-    over the sweep's orientation difference."""
-    ori = -atan2f(points_lidar[:, 1], points_lidar[:, 0]).astype(np.float64)
-    angle = np.mod(ori - float(info.start_orientation), TWO_PI)
-    return (angle / float(info.orientation_diff)).astype(_F32)
+@dataclass
+class SweepAttitude:
+    """The IMU over one sweep, for the sweep-start model (camera axes)."""
+
+    t_start: float            # sweep start [s]
+    r_start: np.ndarray       # (3, 3) IMU attitude at the sweep start
+    rel: np.ndarray           # (n,) relative times of the prepared points, for their own attitudes
+    roll_start: float         # [rad]
+    pitch_start: float        # [rad]
 
 
-def relative_time(points_lidar: np.ndarray, info: CloudInfo) -> np.ndarray:
-    """Relative time in [about -0.25, 1.25] of each point from its azimuth, as the original computes it.
+@dataclass
+class ImuSweep:
+    """What the original model takes from the IMU over one sweep (camera axes, sweep-start frame)."""
 
-    The orientation ``-atan2(y, x)`` is unwrapped against the sweep's start orientation until it passes
-    half a turn and against the end orientation afterwards; the switch happens once per cloud (the cloud is
-    ordered by ring, so later rings use the end rule throughout and their first quarter gets 1 + s).
-    """
-    ori = -atan2f(points_lidar[:, 1], points_lidar[:, 0]).astype(np.float64)
-    start = float(info.start_orientation)
-    end = float(info.end_orientation)
-    first = np.where(ori < start - math.pi / 2, ori + TWO_PI, np.where(ori > start + 3 * math.pi / 2, ori - TWO_PI, ori))
-    first = first.astype(_F32)
-    passed = (first - _F32(start)).astype(np.float64) > math.pi
-    switch = int(np.argmax(passed)) if passed.any() else len(ori)
-    second = (ori + TWO_PI).astype(_F32).astype(np.float64)
-    second = np.where(second < end - 3 * math.pi / 2, second + TWO_PI,
-                      np.where(second > end + math.pi / 2, second - TWO_PI, second)).astype(_F32)
-    final = np.where(np.arange(len(ori)) <= switch, first, second)
-    return ((final - _F32(start)) / _F32(info.orientation_diff)).astype(_F32)
+    roll_start: float           # [rad]
+    pitch_start: float          # [rad]
+    delta_end: np.ndarray       # (3, 3) rotation from the sweep end's attitude to the start's
+    shift_end: np.ndarray       # (3,) non-linear shift at the sweep end [m]
+    velocity_change: np.ndarray  # (3,) velocity change over the sweep [m/s]
 
 
 class FeatureAssociation:
@@ -123,9 +113,9 @@ class FeatureAssociation:
         fa = params.feature_association
         self.extractor = FeatureExtractor(params)
         # The sweep-start model minimises R((1+s)θ)^T (p - (1+s) t) and needs its exact derivative; the original
-        # model keeps the original's rows (derivative at the full θ).
-        self.odometry = LaserOdometry(params, fix_scan_bound=fix_scan_bound,
-                                      exact_jacobian=fa.odometry_model == 'sweep_start')
+        # model keeps the original's rows (derivative at the full θ). The scan path is chosen with it, once.
+        self.odometry = make_laser_odometry(params, fix_scan_bound)
+        self._process = self._process_original if fa.odometry_model == 'original' else self._process_sweep_start
         self.imu = ImuBuffer(fa.imu_que_length, fa.gravity, params.sensor.scan_period)
         self.transform_sum = np.zeros(6)
         self.initialized = False
@@ -133,7 +123,7 @@ class FeatureAssociation:
         self._previous_used_imu = False
         self._last_full_motion = np.zeros(6)   # sweep motion as a full (IMU-free) six-vector
         self._world_pose = np.eye(4)          # sweep-start model: pose of the current sweep start
-        self._previous_attitude: dict | None = None
+        self._previous_attitude: SweepAttitude | None = None
         self._first_features = None
         self._resumed = False   # restarted after a poisoned state: the first scan keeps transform_sum as it is
         self.scans = 0
@@ -194,9 +184,7 @@ class FeatureAssociation:
 
     def process(self, scan: ScanInput) -> FeatureAssociationResult:
         """Features and odometry of one scan (see the module docstring)."""
-        if self.params.feature_association.odometry_model == 'original':
-            return self._process_original(scan)
-        return self._process_sweep_start(scan)
+        return self._process(scan)
 
     def _finish(self, scan: ScanInput, features, corner_last, surf_last, outlier_last, initialized, imu_used,
                 stats, timings) -> FeatureAssociationResult:
@@ -237,8 +225,8 @@ class FeatureAssociation:
         odometry = self.odometry
         if not self.initialized:
             if attitude is not None and not self._resumed:
-                self.transform_sum[0] += attitude['pitch_start']
-                self.transform_sum[2] += attitude['roll_start']
+                self.transform_sum[0] += attitude.pitch_start
+                self.transform_sum[2] += attitude.roll_start
             self._world_pose = make_pose(euler_to_matrix(*self.transform_sum[:3]), self.transform_sum[3:])
             motion = np.eye(4)
             corner_last = self._deskew_to_start(features.less_sharp, features.less_sharp_index, motion, attitude, points)
@@ -250,7 +238,7 @@ class FeatureAssociation:
             return self._finish(scan, features, corner_last, surf_last, None, True, attitude is not None, None, timings)
         previous = self._previous_attitude
         use_imu = attitude is not None and previous is not None
-        to_reference = previous['r_start'].T if use_imu else None
+        to_reference = previous.r_start.T if use_imu else None
         sharp = self._registration_input(features.sharp, features.sharp_index, to_reference, attitude)
         flat = self._registration_input(features.flat, features.flat_index, to_reference, attitude)
         if use_imu:
@@ -266,7 +254,7 @@ class FeatureAssociation:
                 guess = odometry.transform_cur.copy()
                 first_motion = invert_pose(make_pose(sweep_rotation(*guess[:3]), guess[3:]))
                 if use_imu:
-                    first_motion = first_motion @ make_pose(previous['r_start'].T @ attitude['r_start'])
+                    first_motion = first_motion @ make_pose(previous.r_start.T @ attitude.r_start)
                 odometry.set_last(
                     self._deskew_to_start(first.less_sharp, first.less_sharp_index, first_motion, first_attitude,
                                           first_points),
@@ -277,7 +265,7 @@ class FeatureAssociation:
         theta = odometry.transform_cur
         motion = invert_pose(make_pose(sweep_rotation(*theta[:3]), theta[3:]))
         if use_imu:
-            motion = motion @ make_pose(previous['r_start'].T @ attitude['r_start'])
+            motion = motion @ make_pose(previous.r_start.T @ attitude.r_start)
         self._world_pose = self._world_pose @ motion
         self.transform_sum = matrix_to_pose6(self._world_pose)
         corner_last = self._deskew_to_start(features.less_sharp, features.less_sharp_index, motion, attitude, points)
@@ -289,7 +277,7 @@ class FeatureAssociation:
         return self._finish(scan, features, corner_last, surf_last, outlier, False, use_imu, stats, timings)
 
     def _registration_input(self, cloud: np.ndarray, index: np.ndarray, to_reference: np.ndarray | None,
-                            attitude: dict | None) -> np.ndarray:
+                            attitude: SweepAttitude | None) -> np.ndarray:
         """Current-sweep points for the registration: rotated into the reference orientation with the IMU
         (when used) and timed ``1 + s`` (the reference is the previous sweep's start)."""
         out = cloud.copy()
@@ -302,7 +290,7 @@ class FeatureAssociation:
         return out
 
     def _deskew_to_start(self, cloud: np.ndarray, index: np.ndarray | None, motion: np.ndarray,
-                         attitude: dict | None, points: np.ndarray) -> np.ndarray:
+                         attitude: SweepAttitude | None, points: np.ndarray) -> np.ndarray:
         """Features of this sweep in its start frame, assuming the sweep moved by ``motion`` (4x4, pose of the
         next sweep start): the IMU rotation (when there is one) and ``s`` times the translation, else the
         original's interpolation of the six-vector. The intensity becomes the ring."""
@@ -311,22 +299,22 @@ class FeatureAssociation:
         out = np.empty_like(cloud)
         out[:, 3] = ring.astype(_F32)
         if attitude is not None and index is not None:
-            relative = np.einsum('ij,njk->nik', attitude['r_start'].T, self._point_attitudes(attitude, index))
+            relative = np.einsum('ij,njk->nik', attitude.r_start.T, self._point_attitudes(attitude, index))
             rotated = np.einsum('nij,nj->ni', relative, cloud[:, :3].astype(np.float64))
         elif attitude is not None:   # voxel centroids (less-flat): attitude at each point's own time
             rotated = np.einsum('nij,nj->ni', self._relative_attitudes(attitude, s), cloud[:, :3].astype(np.float64))
         else:
-            theta = _motion_to_theta(motion)
+            theta = motion_to_theta(motion)
             out[:, :3] = transform_to_start(cloud, theta)[:, :3]
             return out
         out[:, :3] = (rotated + s[:, None] * motion[:3, 3][None, :]).astype(_F32)
         return out
 
-    def _relative_attitudes(self, attitude: dict, s: np.ndarray) -> np.ndarray:
-        rotations = imu_world_rotation(*self.imu.attitude(attitude['t_start'] + s * self.params.sensor.scan_period))
-        return np.einsum('ij,njk->nik', attitude['r_start'].T, rotations)
+    def _relative_attitudes(self, attitude: SweepAttitude, s: np.ndarray) -> np.ndarray:
+        rotations = imu_world_rotation(*self.imu.attitude(attitude.t_start + s * self.params.sensor.scan_period))
+        return np.einsum('ij,njk->nik', attitude.r_start.T, rotations)
 
-    def _outlier_at_start(self, scan: ScanInput, motion: np.ndarray, attitude: dict | None) -> np.ndarray:
+    def _outlier_at_start(self, scan: ScanInput, motion: np.ndarray, attitude: SweepAttitude | None) -> np.ndarray:
         """The outlier cloud in camera axes, deskewed to the sweep start like the features."""
         outlier = np.empty_like(scan.outlier)
         outlier[:, :3] = lidar_to_camera(scan.outlier[:, :3])
@@ -340,7 +328,7 @@ class FeatureAssociation:
         deskewed[:, 3] = scan.outlier[:, 3]
         return deskewed
 
-    def _imu_attitudes(self, rel: np.ndarray, stamp_ns: int) -> dict | None:
+    def _imu_attitudes(self, rel: np.ndarray, stamp_ns: int) -> SweepAttitude | None:
         """IMU attitude (camera axes) at the sweep start, and what :meth:`_point_attitudes` needs for the
         points' own times (``rel`` = relative times of the prepared points), or None when the IMU does not
         cover the sweep."""
@@ -350,12 +338,12 @@ class FeatureAssociation:
             return None
         state = self.imu.interpolate([t_start])
         r_start = imu_world_rotation(state.roll, state.pitch, state.yaw)[0]
-        return dict(t_start=t_start, r_start=r_start, rel=rel, roll_start=float(state.roll[0]),
-                    pitch_start=float(state.pitch[0]))
+        return SweepAttitude(t_start=t_start, r_start=r_start, rel=rel, roll_start=float(state.roll[0]),
+                             pitch_start=float(state.pitch[0]))
 
-    def _point_attitudes(self, attitude: dict, index: np.ndarray) -> np.ndarray:
+    def _point_attitudes(self, attitude: SweepAttitude, index: np.ndarray) -> np.ndarray:
         """(n, 3, 3) IMU attitudes at the times of the prepared points ``index`` (only the features need them)."""
-        times = attitude['t_start'] + attitude['rel'][index] * self.params.sensor.scan_period
+        times = attitude.t_start + attitude.rel[index] * self.params.sensor.scan_period
         return imu_world_rotation(*self.imu.attitude(times))
 
     def _process_original(self, scan: ScanInput) -> FeatureAssociationResult:
@@ -374,8 +362,8 @@ class FeatureAssociation:
         if not self.initialized:
             self.odometry.set_last(features.less_sharp, features.less_flat)
             if imu is not None and not self._resumed:
-                self.transform_sum[0] += imu['pitch_start']
-                self.transform_sum[2] += imu['roll_start']
+                self.transform_sum[0] += imu.pitch_start
+                self.transform_sum[2] += imu.roll_start
             self.initialized = True
             return self._finish(scan, features, features.less_sharp, features.less_flat, None, True,
                                 imu is not None, None, timings)
@@ -384,13 +372,13 @@ class FeatureAssociation:
         t3 = time.perf_counter()
         timings['odometry'] = (t3 - t2) * 1e3
         theta = self.odometry.transform_cur.copy()
-        shift_end = imu['shift_end'] if imu is not None else None
+        shift_end = imu.shift_end if imu is not None else None
         self.transform_sum = accumulate(self.transform_sum, theta, shift_end)
         if imu is not None:
-            rotation = euler_to_matrix(*self.transform_sum[:3]) @ imu['delta_end']
+            rotation = euler_to_matrix(*self.transform_sum[:3]) @ imu.delta_end
             self.transform_sum[:3] = matrix_to_euler(rotation)
         self._remember_motion(theta, imu)
-        correction = imu['delta_end'].T if imu is not None else None
+        correction = imu.delta_end.T if imu is not None else None
         corner_last = transform_to_end(features.less_sharp, theta, correction, shift_end)
         surf_last = transform_to_end(features.less_flat, theta, correction, shift_end)
         self.odometry.set_last(corner_last, surf_last)
@@ -406,7 +394,7 @@ class FeatureAssociation:
         """Feed one IMU sample (REP-103 body axes); returns the rejection reason or None."""
         return self.imu.add(stamp_s, orientation_xyzw, angular_velocity, linear_acceleration)
 
-    def _imu_deskew(self, points: np.ndarray, rel: np.ndarray, stamp_ns: int) -> dict | None:
+    def _imu_deskew(self, points: np.ndarray, rel: np.ndarray, stamp_ns: int) -> ImuSweep | None:
         """Rotate every point into the sweep-start frame with the IMU attitude and remove the IMU's non-linear
         shift; returns the sweep's IMU quantities, or None when the IMU does not cover the sweep."""
         period = self.params.sensor.scan_period
@@ -427,33 +415,28 @@ class FeatureAssociation:
         points[:, :3] = (np.einsum('nij,nj->ni', relative, points[:, :3].astype(np.float64)) + shift).astype(_F32)
         shift_end = r_start.T @ (state.shift[1] - state.shift[0] - v_start * period)
         velocity_change = r_start.T @ (state.velocity[1] - v_start)
-        return dict(roll_start=float(state.roll[0]), pitch_start=float(state.pitch[0]), delta_end=r_start.T @ r_end,
-                    shift_end=shift_end, velocity_change=velocity_change)
+        return ImuSweep(roll_start=float(state.roll[0]), pitch_start=float(state.pitch[0]),
+                        delta_end=r_start.T @ r_end, shift_end=shift_end, velocity_change=velocity_change)
 
-    def _initial_guess(self, imu: dict | None) -> None:
+    def _initial_guess(self, imu: ImuSweep | None) -> None:
         """Constant-velocity prior (``transform_cur`` kept), adapted when the IMU use changes."""
         cur = self.odometry.transform_cur
         period = self.params.sensor.scan_period
         if imu is not None:
             cur[:3] = 0.0   # deskewed points: only the rotation the IMU missed remains
             # The previous sweep's full translation, expressed for this sweep's IMU-deskewed points.
-            cur[3:] = imu['delta_end'] @ self._last_full_motion[3:] + imu['shift_end'] - imu['velocity_change'] * period
+            cur[3:] = imu.delta_end @ self._last_full_motion[3:] + imu.shift_end - imu.velocity_change * period
         elif self._previous_used_imu:
             cur[:] = self._last_full_motion
 
-    def _remember_motion(self, theta: np.ndarray, imu: dict | None) -> None:
+    def _remember_motion(self, theta: np.ndarray, imu: ImuSweep | None) -> None:
         """Store the sweep motion as an IMU-free six-vector (sweep convention) for the next prior."""
         self._previous_used_imu = imu is not None
         if imu is None:
             self._last_full_motion = theta.copy()
             return
         # Sweep end in the start frame: T(θ)^-1 · [ΔR, shift]; its inverse is the full T.
-        full_rotation = imu['delta_end'].T @ sweep_rotation(*theta[:3])
-        full_translation = imu['delta_end'].T @ (theta[3:] - imu['shift_end'])
+        full_rotation = imu.delta_end.T @ sweep_rotation(*theta[:3])
+        full_translation = imu.delta_end.T @ (theta[3:] - imu.shift_end)
         self._last_full_motion = np.array([*sweep_angles(full_rotation), *full_translation])
 
-
-def _motion_to_theta(motion: np.ndarray) -> np.ndarray:
-    """Six-vector θ (sweep convention) of a sweep whose end is at pose ``motion``: ``T(θ) = motion^-1``."""
-    forward = invert_pose(motion)
-    return np.array([*sweep_angles(forward[:3, :3]), *forward[:3, 3]])

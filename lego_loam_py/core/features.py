@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lego_loam_py.core.image_projection import CloudInfo
-from lego_loam_py.core.laser_odometry import _ragged
+from lego_loam_py.core.indexing import ragged
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.voxel import voxel_downsample_groups
 
@@ -135,7 +135,7 @@ class FeatureExtractor:
 
         # Per region, [sp, ep) sorted by curvature (stable). Positions below w were never written: a phantom
         # entry for point 0, whose curvature was never computed either (0), so it is sorted as point 0.
-        region_of, position = _ragged(sp, ep)
+        region_of, position = ragged(sp, ep)
         position[position < w] = 0
         # One stable sort by (region, curvature): the curvature is a square, and the bits of a non-negative
         # float32 order as the values do.
@@ -201,7 +201,7 @@ class FeatureExtractor:
         # gives the same points in the same order).
         edge_region = np.full(n, regions, dtype=np.int64)
         edge_region[less_sharp_index] = np.asarray(less_sharp_region, dtype=np.int64)
-        region_of, position = _ragged(sp, ep + 1)
+        region_of, position = ragged(sp, ep + 1)
         kept = edge_region[position] > region_of
         if kept.any():
             less_flat = voxel_downsample_groups(points[position[kept]], region_ring[region_of[kept]],

@@ -27,10 +27,11 @@ from scipy.spatial.transform import Rotation
 __all__ = [
     'MAP_FRAME', 'CAMERA_INIT_FRAME', 'CAMERA_FRAME', 'BASE_LINK_FRAME', 'LASER_ODOM_FRAME',
     'AFT_MAPPED_FRAME', 'LIDAR_TO_CAMERA', 'CAMERA_TO_LIDAR', 'lidar_to_camera', 'camera_to_lidar',
-    'rot_x', 'rot_y', 'rot_z', 'euler_to_matrix', 'euler_to_matrices', 'matrix_to_euler', 'quaternion_to_matrix',
+    'rot_x', 'rot_y', 'rot_z', 'GENERATOR_X', 'GENERATOR_Y', 'GENERATOR_Z', 'euler_to_matrix', 'euler_to_matrices',
+    'matrix_to_euler', 'quaternion_to_matrix',
     'matrix_to_quaternion', 'euler_to_quaternion', 'quaternion_to_euler', 'make_pose', 'pose6_to_matrix',
     'matrix_to_pose6', 'invert_pose', 'camera_pose_to_lidar', 'lidar_pose_to_camera',
-    'MAP_T_CAMERA_INIT', 'CAMERA_T_BASE_LINK', 'transform_points', 'wrap_angle',
+    'MAP_T_CAMERA_INIT', 'CAMERA_T_BASE_LINK', 'transform_points', 'transform_cloud', 'wrap_angle',
 ]
 
 # Frame ids, without the original's leading slashes (invalid in tf2).
@@ -72,6 +73,13 @@ def rot_y(angle: float) -> np.ndarray:
 def rot_z(angle: float) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+# Generators of the three rotations: d/da rot_x(a) = rot_x(a) @ GENERATOR_X, and likewise for y and z. The
+# odometry's and the mapping's Jacobians are built from them.
+GENERATOR_X = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+GENERATOR_Y = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+GENERATOR_Z = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
 
 
 def euler_to_matrix(rx: float, ry: float, rz: float) -> np.ndarray:
@@ -189,6 +197,14 @@ CAMERA_T_BASE_LINK = make_pose(LIDAR_TO_CAMERA)
 def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4x4 pose to (N, 3) points: ``R p + t``."""
     return np.asarray(points) @ pose[:3, :3].T + pose[:3, 3]
+
+
+def transform_cloud(points: np.ndarray, pose6: np.ndarray) -> np.ndarray:
+    """(n, 4) float32 points (camera axes, intensity kept) mapped with a world-convention pose six-vector."""
+    out = np.empty_like(points, dtype=np.float32)
+    out[:, :3] = transform_points(pose6_to_matrix(pose6), points[:, :3].astype(np.float64))
+    out[:, 3] = points[:, 3]
+    return out
 
 
 def wrap_angle(angle: np.ndarray | float) -> np.ndarray | float:

@@ -1,0 +1,56 @@
+"""The Gauss-Newton step with degeneracy projection that the odometry and the mapping share (docs/original.md
+§6.2 step 9, §6.3; Zhang et al., "On degeneracy of optimization-based state estimation problems", 2016).
+
+A step solves the normal equations ``AᵀA x = Aᵀb``. On the first iteration of a problem the eigenvectors of
+``AᵀA`` whose eigenvalues lie below a threshold, counted from the smallest up to the first that does not,
+are the degenerate directions; from then on every step is projected onto the well-constrained ones, so a
+corridor or a flat floor does not move the estimate along what the points cannot see.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ['normal_equations_step', 'DegeneracyProjection']
+
+
+def normal_equations_step(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(the least-squares step x of ``a x = b`` from the normal equations, ``aᵀa``); a singular ``aᵀa`` falls
+    back to the minimum-norm least-squares solution."""
+    ata = a.T @ a
+    atb = a.T @ b
+    try:
+        x = np.linalg.solve(ata, atb)
+    except np.linalg.LinAlgError:
+        x = np.linalg.lstsq(ata, atb, rcond=None)[0]
+    return x, ata
+
+
+class DegeneracyProjection:
+    """The degenerate directions of one least-squares problem, found on its first iteration and kept (across
+    scans too, as the original's members) until the next first iteration."""
+
+    def __init__(self, dimensions: int):
+        self.projection = np.eye(dimensions)
+        self.degenerate = False
+
+    def update(self, ata: np.ndarray, threshold: float) -> None:
+        """Find the directions of ``ata`` (the normal matrix) whose eigenvalues are below ``threshold``."""
+        values, vectors = np.linalg.eigh(ata)           # ascending
+        keep = np.ones(len(values), dtype=bool)
+        self.degenerate = False
+        for i in range(len(values)):                    # from the smallest up to the first >= threshold
+            if values[i] < threshold:
+                keep[i] = False
+                self.degenerate = True
+            else:
+                break
+        self.projection = vectors @ np.diag(keep.astype(float)) @ vectors.T
+
+    def step(self, a: np.ndarray, b: np.ndarray, first: bool, threshold: float) -> np.ndarray:
+        """The Gauss-Newton step of ``a x = b``, projected; ``first`` finds the degenerate directions anew."""
+        x, ata = normal_equations_step(a, b)
+        if first:
+            self.update(ata, threshold)
+        if self.degenerate:
+            x = self.projection @ x
+        return x
