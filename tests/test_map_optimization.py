@@ -9,11 +9,11 @@ import pytest
 from scipy.spatial import cKDTree
 
 from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
-from lego_loam_py.core.frames import euler_to_quaternion, pose6_to_matrix, transform_points
+from lego_loam_py.core.frames import euler_to_quaternion, pose6_to_matrix, transform_cloud, transform_points
 from lego_loam_py.core.image_projection import ImageProjection, ProjectionInput, prepare_input
-from lego_loam_py.core.map_optimization import (MapOptimization, edge_correspondences, map_jacobian_rows,
-                                                plane_correspondences, transform_cloud)
+from lego_loam_py.core.map_optimization import MapOptimization
 from lego_loam_py.core.params import Params, default_params_file, load_params
+from lego_loam_py.core.scan_to_map import edge_correspondences, map_jacobian_rows, plane_correspondences
 from lego_loam_py.core.voxel import voxel_downsample
 from tests.support.sweeps import room_world, sweep
 

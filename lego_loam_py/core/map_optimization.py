@@ -17,129 +17,36 @@ on, the last ``surrounding_keyframe_search_num`` keyframes. The voxel-filtered m
 computed and merged in when it enters the set and subtracted when it leaves, so a step costs the change of
 the set, not a new filter of some 50 keyframes; a loop closure that moves the poses rebuilds it.
 
-Scan-to-map registration: for each downsampled corner point, the 5 nearest map corners must span a line
-(largest eigenvalue > 3 × the middle one); for each surface point, the 5 nearest map surface points must
-fit a plane within 0.2 m. Up to 10 full Gauss-Newton steps with the original's weights, degeneracy
-projection (eigenvalues < 100 on the first iteration) and convergence test (0.05 deg, 0.05 cm).
+Scan-to-map registration is :mod:`lego_loam_py.core.scan_to_map`; the loop candidate search and its ICP are
+:mod:`lego_loam_py.core.loop_closure`. This module holds the mapper's state, keyframes and pose graph.
 
 Thread safety: :meth:`process`, :meth:`detect_loop`, :meth:`close_loop`, :meth:`global_map` and
 :meth:`save` take one lock, so loop closure can run in another thread (as the original's 1 Hz thread).
 """
 from __future__ import annotations
 
-import math
 import threading
 import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from lego_loam_py.core.frames import (camera_pose_to_lidar, camera_to_lidar, invert_pose, lidar_pose_to_camera,
-                                      matrix_to_pose6, pose6_to_matrix, rot_x, rot_y, rot_z, transform_points)
+from lego_loam_py.core.frames import (camera_pose_to_lidar, camera_to_lidar, invert_pose, matrix_to_pose6,
+                                      pose6_to_matrix, transform_cloud)
+from lego_loam_py.core.gauss_newton import DegeneracyProjection
 from lego_loam_py.core.imu import ImuBuffer
-from lego_loam_py.core.laser_odometry import line_coefficients
+from lego_loam_py.core.loop_closure import LoopCandidate, LoopResult, align_loop, find_loop_candidate
 from lego_loam_py.core.odometry_continuity import OdometryJump, anchored_transform_bef
 from lego_loam_py.core.params import Params
+from lego_loam_py.core.pose_graph import PoseGraph
+from lego_loam_py.core.scan_to_map import register_scan_to_map
 from lego_loam_py.core.validation import pose6_problem
 from lego_loam_py.core.voxel import VoxelAccumulator, voxel_downsample, voxel_indices
 
-__all__ = ['MapOptimization', 'MappingStep', 'LoopCandidate', 'LoopResult', 'map_jacobian_rows',
-           'edge_correspondences', 'plane_correspondences', 'transform_cloud']
+__all__ = ['MapOptimization', 'MappingStep', 'Keyframe']
 
 _F32 = np.float32
-_GX = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
-_GY = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
-_GZ = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
-
-
-def transform_cloud(points: np.ndarray, pose6: np.ndarray) -> np.ndarray:
-    """(n, 4) points (camera axes, intensity kept) mapped with a world-convention pose six-vector."""
-    out = np.empty_like(points, dtype=_F32)
-    out[:, :3] = transform_points(pose6_to_matrix(pose6), points[:, :3].astype(np.float64))
-    out[:, 3] = points[:, 3]
-    return out
-
-
-def map_jacobian_rows(points: np.ndarray, coeff: np.ndarray, pose6: np.ndarray) -> np.ndarray:
-    """Rows ``coeff · d(R p + t)/d(rx, ry, rz, tx, ty, tz)`` with ``R = Ry(ry) Rx(rx) Rz(rz)``."""
-    rx, ry, rz = (float(v) for v in pose6[:3])
-    Ry, Rx, Rz = rot_y(ry), rot_x(rx), rot_z(rz)
-    p = points[:, :3].astype(np.float64)
-    c = coeff[:, :3].astype(np.float64)
-    rows = np.empty((len(points), 6))
-    for k, derivative in enumerate((Ry @ Rx @ _GX @ Rz, Ry @ _GY @ Rx @ Rz, Ry @ Rx @ Rz @ _GZ)):
-        rows[:, k] = np.einsum('ni,ni->n', c, p @ derivative.T)
-    rows[:, 3:] = c
-    return rows
-
-
-def _neighbourhoods(points_world: np.ndarray, tree: cKDTree, map_points: np.ndarray, mo):
-    """(indices of the points whose ``knn`` nearest map points all lie within the gate, those neighbours
-    (m, k, 3) float64). The tree search stops at the gate, which spares most of the walk for points off the
-    map; the neighbours of the points that pass are the exact k nearest."""
-    bound = math.sqrt(mo.knn_max_sq_dist) * (1.0 + 1e-9)
-    distance, index = tree.query(points_world[:, :3], k=mo.knn, distance_upper_bound=bound)
-    used = np.flatnonzero(distance[:, -1] ** 2 < mo.knn_max_sq_dist)
-    return used, map_points[index[used], :3].astype(np.float64)
-
-
-def edge_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: np.ndarray, params: Params):
-    """Point-to-line coefficients: (index of used points, coeff (m, 4) = s·gradient, s·distance)."""
-    mo = params.map_optimization
-    if len(points_world) == 0 or tree is None:
-        return np.zeros(0, dtype=np.int64), np.zeros((0, 4))
-    used, neighbours = _neighbourhoods(points_world, tree, map_points, mo)
-    centroid = neighbours.mean(axis=1)
-    centred = neighbours - centroid[:, None, :]
-    covariance = np.einsum('mki,mkj->mij', centred, centred) / mo.knn
-    values, vectors = np.linalg.eigh(covariance)                         # ascending
-    is_line = values[:, 2] > mo.edge_eigen_ratio * values[:, 1]
-    used, centroid, direction = used[is_line], centroid[is_line], vectors[is_line, :, 2]
-    a = centroid + mo.line_half_length * direction
-    b = centroid - mo.line_half_length * direction
-    gradient, dist = line_coefficients(points_world[used], a.astype(_F32), b.astype(_F32))
-    weight = 1.0 - mo.weight_gain * np.abs(dist.astype(np.float64))
-    keep = (weight > mo.min_weight) & np.isfinite(dist) & np.isfinite(gradient).all(axis=1)
-    coeff = np.concatenate([gradient[keep] * weight[keep, None], (weight[keep] * dist[keep])[:, None]], axis=1)
-    return used[keep], coeff
-
-
-def plane_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: np.ndarray, params: Params):
-    """Point-to-plane coefficients: (index of used points, coeff (m, 4) = s·normal, s·distance)."""
-    mo = params.map_optimization
-    if len(points_world) == 0 or tree is None:
-        return np.zeros(0, dtype=np.int64), np.zeros((0, 4))
-    used, neighbours = _neighbourhoods(points_world, tree, map_points, mo)
-    # Least-squares plane n·x = -1 through the neighbours: the normal equations (A^T A) n = -A^T 1, solved in
-    # closed form (Cramer's rule on the symmetric 3x3 systems, vectorised over all points).
-    xx, yy, zz = (np.einsum('mk,mk->m', neighbours[..., i], neighbours[..., i]) for i in range(3))
-    xy = np.einsum('mk,mk->m', neighbours[..., 0], neighbours[..., 1])
-    xz = np.einsum('mk,mk->m', neighbours[..., 0], neighbours[..., 2])
-    yz = np.einsum('mk,mk->m', neighbours[..., 1], neighbours[..., 2])
-    b = -neighbours.sum(axis=1)
-    c00, c01, c02 = yy * zz - yz * yz, xz * yz - xy * zz, xy * yz - xz * yy
-    c11, c12, c22 = xx * zz - xz * xz, xy * xz - xx * yz, xx * yy - xy * xy
-    det = xx * c00 + xy * c01 + xz * c02
-    solvable = np.abs(det) > 1e-12
-    with np.errstate(divide='ignore', invalid='ignore'):
-        normal = np.stack([c00 * b[:, 0] + c01 * b[:, 1] + c02 * b[:, 2],
-                           c01 * b[:, 0] + c11 * b[:, 1] + c12 * b[:, 2],
-                           c02 * b[:, 0] + c12 * b[:, 1] + c22 * b[:, 2]], axis=1) / det[:, None]
-    used, neighbours, normal = used[solvable], neighbours[solvable], normal[solvable]
-    norm = np.linalg.norm(normal, axis=1)
-    normal /= norm[:, None]
-    offset = 1.0 / norm
-    residuals = np.abs(np.einsum('mki,mi->mk', neighbours, normal) + offset[:, None])
-    valid = (residuals <= mo.plane_max_residual).all(axis=1)
-    used, normal, offset = used[valid], normal[valid], offset[valid]
-    p = points_world[used, :3].astype(np.float64)
-    dist = np.einsum('mi,mi->m', p, normal) + offset
-    weight = 1.0 - mo.weight_gain * np.abs(dist) / np.sqrt(np.linalg.norm(p, axis=1))
-    keep = weight > mo.min_weight
-    coeff = np.concatenate([normal[keep] * weight[keep, None], (weight[keep] * dist[keep])[:, None]], axis=1)
-    return used[keep], coeff
 
 
 @dataclass
@@ -170,49 +77,10 @@ class MappingStep:
     timings_ms: dict = field(default_factory=dict)
 
 
-@dataclass
-class LoopCandidate:
-    latest: int
-    candidate: int
-    source: np.ndarray     # world points (camera axes) of the latest keyframe
-    target: np.ndarray     # world points of the candidate's neighbourhood, downsampled
-
-
-@dataclass
-class LoopResult:
-    latest: int
-    candidate: int
-    fitness: float         # PCL-style: mean squared distance to the nearest target point [m^2]
-    converged: bool
-    accepted: bool
-    correction: np.ndarray  # 4x4 world-frame correction (camera axes) applied to the latest keyframe
-
-
-class _Degeneracy:
-    def __init__(self):
-        self.projection = np.eye(6)
-        self.degenerate = False
-
-    def update(self, ata: np.ndarray, threshold: float) -> None:
-        values, vectors = np.linalg.eigh(ata)
-        keep = np.ones(6, dtype=bool)
-        self.degenerate = False
-        for i in range(6):
-            if values[i] < threshold:
-                keep[i] = False
-                self.degenerate = True
-            else:
-                break
-        self.projection = vectors @ np.diag(keep.astype(float)) @ vectors.T
-
-
 class MapOptimization:
     """The mapOptimization algorithm; :meth:`process` is called with each synchronised input set."""
 
     def __init__(self, params: Params):
-        import gtsam
-
-        self._gtsam = gtsam
         self.params = params
         mo = params.map_optimization
         self.transform_sum = np.zeros(6)
@@ -226,12 +94,10 @@ class MapOptimization:
         self._surf_accumulator = VoxelAccumulator(mo.surf_leaf_size)
         self.current_position = np.zeros(3)
         self._previous_keyframe_position: np.ndarray | None = None
-        self._prior_noise = gtsam.noiseModel.Diagonal.Variances(np.asarray(mo.prior_noise_variances, dtype=float))
-        self._odometry_noise = gtsam.noiseModel.Diagonal.Variances(np.asarray(mo.odometry_noise_variances, dtype=float))
-        self._rebuild_graph()   # (empty)
+        self.graph = PoseGraph(mo)
         self.imu = ImuBuffer(params.feature_association.imu_que_length, params.feature_association.gravity,
                              params.sensor.scan_period)
-        self._degeneracy = _Degeneracy()
+        self._degeneracy = DegeneracyProjection(6)
         self._last_processing_ns: int | None = None
         self.latest_odometry_ns = 0
         self.loop_closed = False
@@ -274,7 +140,7 @@ class MapOptimization:
                 done.append(f'{len(self.keyframes) - len(good)} keyframe(s) with a poisoned pose dropped')
                 self.keyframes = [Keyframe(i, kf.stamp_ns, kf.pose6, kf.corner, kf.surf, kf.outlier)
                                   for i, kf in enumerate(good)]
-                self._rebuild_graph()
+                self.graph.rebuild([kf.pose6 for kf in self.keyframes])
             self._positions = np.array([kf.pose6[3:] for kf in self.keyframes]).reshape(-1, 3)
             anchor = self.keyframes[-1].pose6.copy() if self.keyframes else np.zeros(6)
             self.transform_aft, self.transform_tobe, self.transform_last = anchor.copy(), anchor.copy(), anchor.copy()
@@ -292,29 +158,6 @@ class MapOptimization:
             done.append(f'mapping resumes from keyframe {len(self.keyframes) - 1}' if self.keyframes
                         else 'mapping starts again')
             return ', '.join(done) + f'; {len(self.keyframes)} keyframes kept'
-
-    def _rebuild_graph(self) -> None:
-        """A new iSAM2 graph over the keyframes' current poses: a prior on the first, between factors along."""
-        gtsam = self._gtsam
-        mo = self.params.map_optimization
-        isam_params = gtsam.ISAM2Params()
-        isam_params.setRelinearizeThreshold(mo.isam_relinearize_threshold)
-        isam_params.relinearizeSkip = mo.isam_relinearize_skip
-        # QR, not gtsam's default Cholesky: with the original's tiny variances (1e-8 m^2) Cholesky declares the
-        # system indeterminate once the keyframes are some 50 m from the origin; QR stays well-conditioned.
-        isam_params.setFactorization('QR')
-        self.isam = gtsam.ISAM2(isam_params)
-        if not self.keyframes:
-            return
-        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        poses = [self._gtsam_pose(kf.pose6) for kf in self.keyframes]
-        graph.add(gtsam.PriorFactorPose3(0, poses[0], self._prior_noise))
-        values.insert(0, poses[0])
-        for k in range(1, len(poses)):
-            graph.add(gtsam.BetweenFactorPose3(k - 1, k, poses[k - 1].between(poses[k]), self._odometry_noise))
-            values.insert(k, poses[k])
-        self.isam.update(graph, values)
-        self.isam.update()
 
     # ------------------------------------------------------------------------------------------ steps
     def process(self, stamp_ns: int, transform_sum: np.ndarray, corner_last: np.ndarray, surf_last: np.ndarray,
@@ -427,48 +270,15 @@ class MapOptimization:
 
     def register_to_map(self, corner_map: np.ndarray, surf_map: np.ndarray, corner_ds: np.ndarray,
                         surf_ds: np.ndarray, initial: np.ndarray, step: MappingStep | None = None) -> np.ndarray:
-        """Scan-to-map Gauss-Newton from ``initial`` (pose six-vector); returns the optimised pose.
-
-        ``corner_ds`` / ``surf_ds`` are the scan's downsampled features in its sensor frame, the maps are in the
-        world (camera axes). ``step`` (optional) receives iteration and correspondence counts.
-        """
-        mo = self.params.map_optimization
-        step = step if step is not None else MappingStep(0, initial, initial, False, 0)
-        pose = np.asarray(initial, dtype=float).copy()
-        corner_tree = cKDTree(corner_map[:, :3].astype(np.float64), balanced_tree=False)
-        surf_tree = cKDTree(surf_map[:, :3].astype(np.float64), balanced_tree=False)
-        step.optimised = True
-        for iteration in range(mo.max_iterations):
-            step.iterations = iteration + 1
-            world = pose6_to_matrix(pose)
-            corner_world = transform_points(world, corner_ds[:, :3].astype(np.float64)).astype(_F32)
-            surf_world = transform_points(world, surf_ds[:, :3].astype(np.float64)).astype(_F32)
-            ci, cc = edge_correspondences(corner_world, corner_tree, corner_map, self.params)
-            si, sc = plane_correspondences(surf_world, surf_tree, surf_map, self.params)
-            points = np.concatenate([corner_ds[ci], surf_ds[si]])
-            coeff = np.concatenate([cc, sc])
-            step.correspondences = len(coeff)
-            if len(coeff) < mo.min_correspondences:
-                break  # nothing would change in the next iterations
-            a = map_jacobian_rows(points, coeff, pose)
-            b = -coeff[:, 3]
-            ata, atb = a.T @ a, a.T @ b
-            try:
-                x = np.linalg.solve(ata, atb)
-            except np.linalg.LinAlgError:
-                x = np.linalg.lstsq(ata, atb, rcond=None)[0]
-            if iteration == 0:
-                self._degeneracy.update(ata, mo.degeneracy_threshold)
-            step.degenerate = self._degeneracy.degenerate
-            if self._degeneracy.degenerate:
-                x = self._degeneracy.projection @ x
-            if not np.isfinite(x).all():
-                break
-            pose = pose + x
-            delta_r = math.degrees(math.sqrt(float(x[0] ** 2 + x[1] ** 2 + x[2] ** 2)))
-            delta_t = math.sqrt(float(((x[3:] * 100.0) ** 2).sum()))
-            if delta_r < mo.convergence_rotation and delta_t < mo.convergence_translation:
-                break
+        """Scan-to-map registration from ``initial`` (:func:`~lego_loam_py.core.scan_to_map.register_scan_to_map`)
+        with this mapper's degeneracy state; returns the optimised pose. ``step`` (optional) receives iteration
+        and correspondence counts."""
+        pose, counts = register_scan_to_map(corner_map, surf_map, corner_ds, surf_ds, initial, self.params,
+                                            self._degeneracy)
+        if step is not None:
+            step.optimised = True
+            step.iterations, step.correspondences = counts.iterations, counts.correspondences
+            step.degenerate = counts.degenerate
         return pose
 
     def _transform_update(self, stamp_ns: int) -> None:
@@ -482,37 +292,19 @@ class MapOptimization:
         self.transform_aft = self.transform_tobe.copy()
 
     # ------------------------------------------------------------------------------------- the graph
-    def _gtsam_pose(self, pose6: np.ndarray):
-        lidar = camera_pose_to_lidar(pose6_to_matrix(pose6))
-        return self._gtsam.Pose3(self._gtsam.Rot3(lidar[:3, :3]), lidar[:3, 3].copy())
-
-    @staticmethod
-    def _pose6_of(gtsam_pose) -> np.ndarray:
-        return matrix_to_pose6(lidar_pose_to_camera(gtsam_pose.matrix()))
-
     def _save_keyframe(self, stamp_ns: int, corner_ds, surf_ds, outlier_ds) -> bool:
         mo = self.params.map_optimization
-        gtsam = self._gtsam
         self.current_position = self.transform_aft[3:].copy()
         if self.keyframes and np.linalg.norm(self.current_position - self._previous_keyframe_position) < \
                 mo.keyframe_distance:
             return False
         self._previous_keyframe_position = self.current_position.copy()
-        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         k = len(self.keyframes)
         if k == 0:
-            pose = self._gtsam_pose(self.transform_tobe)
-            graph.add(gtsam.PriorFactorPose3(0, pose, self._prior_noise))
-            values.insert(0, pose)
+            latest = self.graph.add_keyframe(0, self.transform_tobe)
             self.transform_last = self.transform_tobe.copy()
         else:
-            pose_from = self._gtsam_pose(self.transform_last)
-            pose_to = self._gtsam_pose(self.transform_aft)
-            graph.add(gtsam.BetweenFactorPose3(k - 1, k, pose_from.between(pose_to), self._odometry_noise))
-            values.insert(k, pose_to)
-        self.isam.update(graph, values)
-        self.isam.update()
-        latest = self._pose6_of(self.isam.calculateEstimatePose3(k))
+            latest = self.graph.add_keyframe(k, self.transform_aft, previous6=self.transform_last)
         self.keyframes.append(Keyframe(k, stamp_ns, latest, corner_ds, surf_ds, outlier_ds))
         self._positions = np.vstack([self._positions, latest[3:]])
         if k > 0:
@@ -524,9 +316,8 @@ class MapOptimization:
     def _correct_poses(self) -> None:
         if not self.loop_closed:
             return
-        estimate = self.isam.calculateEstimate()
-        for kf in self.keyframes:
-            kf.pose6 = self._pose6_of(estimate.atPose3(kf.index))
+        for kf, pose6 in zip(self.keyframes, self.graph.poses([kf.index for kf in self.keyframes])):
+            kf.pose6 = pose6
         self._positions = np.array([kf.pose6[3:] for kf in self.keyframes])
         self._corner_accumulator.clear()   # every keyframe moved: the map is rebuilt at the next step
         self._surf_accumulator.clear()
@@ -534,59 +325,22 @@ class MapOptimization:
 
     # ------------------------------------------------------------------------------------ loop closure
     def detect_loop(self) -> LoopCandidate | None:
-        """The original's candidate search: the nearest keyframe within the radius that is old enough."""
-        lc = self.params.loop_closure
+        """The original's candidate search (:func:`~lego_loam_py.core.loop_closure.find_loop_candidate`)."""
         with self.lock:
-            if not self.keyframes:
-                return None
-            distance = np.linalg.norm(self._positions - self.current_position, axis=1)
-            order = np.argsort(distance, kind='stable')
-            order = order[distance[order] <= lc.history_keyframe_search_radius]
-            times = np.array([kf.stamp_ns for kf in self.keyframes])
-            old = np.abs(times[order] - self.latest_odometry_ns) > lc.time_gap * 1e9
-            if not old.any():
-                return None
-            candidate = int(order[np.argmax(old)])
-            latest = len(self.keyframes) - 1
-            kf = self.keyframes[latest]
-            source = transform_cloud(np.concatenate([kf.corner, kf.surf]), kf.pose6)
-            source = source[np.trunc(source[:, 3]) >= 0]
-            near = range(max(0, candidate - lc.history_keyframe_search_num),
-                         min(latest, candidate + lc.history_keyframe_search_num) + 1)
-            target = np.concatenate([transform_cloud(np.concatenate([self.keyframes[j].corner, self.keyframes[j].surf]),
-                                                     self.keyframes[j].pose6) for j in near])
-            target = voxel_downsample(target, lc.history_keyframe_leaf_size)
-            return LoopCandidate(latest, candidate, source, target)
+            return find_loop_candidate(self.keyframes, self._positions, self.current_position,
+                                       self.latest_odometry_ns, self.params.loop_closure)
 
     def close_loop(self, candidate: LoopCandidate) -> LoopResult:
         """ICP of the latest keyframe against the candidate's neighbourhood; adds a loop factor when the fit
         is good enough. The ICP runs without the lock (it can take a while)."""
-        import open3d as o3d
-
-        lc = self.params.loop_closure
-        source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(candidate.source[:, :3].astype(np.float64)))
-        target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(candidate.target[:, :3].astype(np.float64)))
-        criteria = o3d.pipelines.registration.ICPConvergenceCriteria(
-            relative_fitness=lc.icp_euclidean_fitness_epsilon, relative_rmse=lc.icp_transformation_epsilon,
-            max_iteration=lc.icp_max_iterations)
-        result = o3d.pipelines.registration.registration_icp(
-            source, target, lc.icp_max_correspondence_distance, np.eye(4),
-            o3d.pipelines.registration.TransformationEstimationPointToPoint(), criteria)
-        correction = np.asarray(result.transformation)
-        aligned = transform_points(correction, candidate.source[:, :3].astype(np.float64))
-        distance, _ = cKDTree(candidate.target[:, :3].astype(np.float64)).query(aligned)
-        inside = distance <= lc.icp_max_correspondence_distance
-        fitness = float(np.mean(distance[inside] ** 2)) if inside.any() else float('inf')
-        converged = bool(np.isfinite(correction).all() and len(result.correspondence_set) > 0)
-        accepted = converged and fitness <= lc.history_keyframe_fitness_score
-        loop = LoopResult(candidate.latest, candidate.candidate, fitness, converged, accepted, correction)
-        if accepted:
+        loop = align_loop(candidate, self.params.loop_closure)
+        if loop.accepted:
             with self.lock:
                 latest_pose = pose6_to_matrix(self.keyframes[candidate.latest].pose6)
-                corrected = correction @ latest_pose
+                corrected = loop.correction @ latest_pose
                 target_pose = pose6_to_matrix(self.keyframes[candidate.candidate].pose6)
                 self.add_loop_factor(candidate.latest, candidate.candidate, invert_pose(corrected) @ target_pose,
-                                     np.full(6, max(fitness, 1e-12)))
+                                     np.full(6, max(loop.fitness, 1e-12)))
         self.loops.append(loop)
         return loop
 
@@ -594,15 +348,8 @@ class MapOptimization:
         """Add the constraint 'keyframe ``candidate`` seen from keyframe ``latest`` is ``relative``' (4x4,
         camera axes) with diagonal variances (rot, rot, rot, x, y, z in lidar axes, as the original), update
         iSAM2 and move every keyframe to the new estimate."""
-        gtsam = self._gtsam
         with self.lock:
-            lidar = camera_pose_to_lidar(relative)
-            between = gtsam.Pose3(gtsam.Rot3(lidar[:3, :3]), lidar[:3, 3].copy())
-            graph = gtsam.NonlinearFactorGraph()
-            graph.add(gtsam.BetweenFactorPose3(latest, candidate, between,
-                                               gtsam.noiseModel.Diagonal.Variances(np.asarray(variances, float))))
-            self.isam.update(graph, gtsam.Values())
-            self.isam.update()
+            self.graph.add_loop(latest, candidate, relative, variances)
             self.loop_closed = True
             self._correct_poses()
 

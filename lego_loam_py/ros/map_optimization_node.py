@@ -36,11 +36,11 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu, PointCloud2
 from std_srvs.srv import Trigger
 
-from lego_loam_py.core.frames import (AFT_MAPPED_FRAME, CAMERA_INIT_FRAME, matrix_to_pose6,
-                                      pose6_to_matrix)
+from lego_loam_py.core.frames import (AFT_MAPPED_FRAME, CAMERA_INIT_FRAME, matrix_to_pose6, pose6_to_matrix,
+                                      transform_cloud)
 from lego_loam_py.core import validation
 from lego_loam_py.core.io import CoalescingRunner
-from lego_loam_py.core.map_optimization import MapOptimization, transform_cloud
+from lego_loam_py.core.map_optimization import MapOptimization
 from lego_loam_py.core.odometry_continuity import OdometryContinuity
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos

@@ -1,0 +1,94 @@
+"""The keyframe pose graph of mapOptimization (docs/original.md §6.3 steps 5-7): a gtsam iSAM2 over the
+keyframe poses, with a prior on the first, a between factor from each keyframe to the next and the loop
+constraints, under the original's noise.
+
+Poses go in and come out as world-convention six-vectors in camera axes (:mod:`lego_loam_py.core.frames`);
+inside the graph they are in lidar axes, as the original keeps them, so its variances mean the same.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from lego_loam_py.core.frames import camera_pose_to_lidar, lidar_pose_to_camera, matrix_to_pose6, pose6_to_matrix
+from lego_loam_py.core.params import MapOptimizationParams
+
+__all__ = ['PoseGraph']
+
+
+class PoseGraph:
+    """iSAM2 over the keyframes 0, 1, ... in the order they are added."""
+
+    def __init__(self, mo: MapOptimizationParams):
+        import gtsam
+
+        self._gtsam = gtsam
+        self._params = mo
+        self._prior_noise = gtsam.noiseModel.Diagonal.Variances(np.asarray(mo.prior_noise_variances, dtype=float))
+        self._odometry_noise = gtsam.noiseModel.Diagonal.Variances(np.asarray(mo.odometry_noise_variances, dtype=float))
+        self.rebuild([])
+
+    def _pose3(self, pose_camera: np.ndarray):
+        """A gtsam Pose3 (lidar axes) of a 4x4 camera-axes pose."""
+        lidar = camera_pose_to_lidar(pose_camera)
+        return self._gtsam.Pose3(self._gtsam.Rot3(lidar[:3, :3]), lidar[:3, 3].copy())
+
+    @staticmethod
+    def _pose6(pose3) -> np.ndarray:
+        return matrix_to_pose6(lidar_pose_to_camera(pose3.matrix()))
+
+    def _update(self, graph, values) -> None:
+        self._isam.update(graph, values)
+        self._isam.update()
+
+    def rebuild(self, poses6: Sequence[np.ndarray]) -> None:
+        """A new graph over ``poses6`` as they are now: the prior on the first, between factors along (the
+        loop constraints of the old graph are in those poses already)."""
+        gtsam = self._gtsam
+        isam_params = gtsam.ISAM2Params()
+        isam_params.setRelinearizeThreshold(self._params.isam_relinearize_threshold)
+        isam_params.relinearizeSkip = self._params.isam_relinearize_skip
+        # QR, not gtsam's default Cholesky: with the original's tiny variances (1e-8 m^2) Cholesky declares the
+        # system indeterminate once the keyframes are some 50 m from the origin; QR stays well-conditioned.
+        isam_params.setFactorization('QR')
+        self._isam = gtsam.ISAM2(isam_params)
+        if not len(poses6):
+            return
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        poses = [self._pose3(pose6_to_matrix(p)) for p in poses6]
+        graph.add(gtsam.PriorFactorPose3(0, poses[0], self._prior_noise))
+        values.insert(0, poses[0])
+        for k in range(1, len(poses)):
+            graph.add(gtsam.BetweenFactorPose3(k - 1, k, poses[k - 1].between(poses[k]), self._odometry_noise))
+            values.insert(k, poses[k])
+        self._update(graph, values)
+
+    def add_keyframe(self, k: int, pose6: np.ndarray, previous6: np.ndarray | None = None) -> np.ndarray:
+        """Add keyframe ``k`` at ``pose6``: the first with the prior; any later one with a between factor from
+        keyframe ``k - 1`` at ``previous6`` (the motion the mapping measured). Returns its optimised pose."""
+        gtsam = self._gtsam
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        pose = self._pose3(pose6_to_matrix(pose6))
+        if previous6 is None:
+            graph.add(gtsam.PriorFactorPose3(k, pose, self._prior_noise))
+        else:
+            previous = self._pose3(pose6_to_matrix(previous6))
+            graph.add(gtsam.BetweenFactorPose3(k - 1, k, previous.between(pose), self._odometry_noise))
+        values.insert(k, pose)
+        self._update(graph, values)
+        return self._pose6(self._isam.calculateEstimatePose3(k))
+
+    def add_loop(self, latest: int, candidate: int, relative: np.ndarray, variances: np.ndarray) -> None:
+        """The constraint 'keyframe ``candidate`` seen from keyframe ``latest`` is ``relative``' (4x4, camera
+        axes), with diagonal variances (rot, rot, rot, x, y, z in lidar axes, as the original)."""
+        gtsam = self._gtsam
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(gtsam.BetweenFactorPose3(latest, candidate, self._pose3(relative),
+                                           gtsam.noiseModel.Diagonal.Variances(np.asarray(variances, float))))
+        self._update(graph, gtsam.Values())
+
+    def poses(self, indices: Sequence[int]) -> list[np.ndarray]:
+        """The current estimates of the keyframes ``indices`` (six-vectors)."""
+        estimate = self._isam.calculateEstimate()
+        return [self._pose6(estimate.atPose3(i)) for i in indices]
