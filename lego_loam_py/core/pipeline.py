@@ -189,6 +189,28 @@ class Pipeline:
         return ScanOutput(stamp, None if features.initialized else features.pose, imu_used=features.imu_used)
 
 
+@dataclass(frozen=True)
+class _Fuse:
+    """transformFusion integrates a scan's odometry (4x4, camera_init)."""
+
+    odometry: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Mapped:
+    """A mapping step of the scan stamped ``stamp_ns``; the future gives (MappingStep or None, CPU ms)."""
+
+    stamp_ns: int
+    future: Future
+
+
+@dataclass(frozen=True)
+class _LoopChecked:
+    """A loop-closure check; the future gives (LoopResult or None, wall ms)."""
+
+    future: Future
+
+
 class _BackEnd:
     """mapOptimization and transformFusion of a run, in arrival order.
 
@@ -204,7 +226,7 @@ class _BackEnd:
         self.continuity = OdometryContinuity()   # (used on the mapping worker only)
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix='mapping') if threaded else None
         self._imu: list[tuple] = []
-        self._events: deque = deque()
+        self._events: deque[_Fuse | _Mapped | _LoopChecked] = deque()
 
     def _submit(self, job) -> Future:
         imu, self._imu = self._imu, []
@@ -225,7 +247,7 @@ class _BackEnd:
             self._imu.append(sample)
 
     def fuse(self, odometry: np.ndarray) -> None:
-        self._events.append(('fuse', odometry))
+        self._events.append(_Fuse(odometry))
         self.drain()
 
     def map(self, stamp: int, *inputs) -> None:
@@ -249,7 +271,7 @@ class _BackEnd:
                 mapped = None
             return mapped, (time.thread_time() - t) * 1e3
 
-        self._events.append(('map', stamp, self._submit(step)))
+        self._events.append(_Mapped(stamp, self._submit(step)))
 
     def loop_closure(self) -> None:
         def close():
@@ -258,29 +280,29 @@ class _BackEnd:
             loop = self.mo.close_loop(candidate) if candidate is not None else None
             return loop, (time.perf_counter() - t) * 1e3
 
-        self._events.append(('loop', self._submit(close)))
+        self._events.append(_LoopChecked(self._submit(close)))
 
     def drain(self, wait: bool = False) -> None:
         """Apply the queued events whose results are ready (all of them, waiting, with ``wait``)."""
         result = self.result
         while self._events:
             event = self._events[0]
-            if event[0] != 'fuse' and not wait and not event[-1].done():
+            if not isinstance(event, _Fuse) and not wait and not event.future.done():
                 return
             self._events.popleft()
-            if event[0] == 'fuse':
-                result.integrated.append(self.fusion.integrate(event[1]))
-            elif event[0] == 'map':
-                step, ms = event[2].result()
+            if isinstance(event, _Fuse):
+                result.integrated.append(self.fusion.integrate(event.odometry))
+            elif isinstance(event, _Mapped):
+                step, ms = event.future.result()
                 if step is not None:
                     result.time('mapOptimization', ms)
                     result.count('mapping_steps')
                     aft, bef = pose6_to_matrix(step.transform_aft), pose6_to_matrix(step.transform_bef)
                     self.fusion.on_mapped(aft, bef)
-                    result.mapped_stamps.append(event[1])
+                    result.mapped_stamps.append(event.stamp_ns)
                     result.mapped.append(aft)
             else:
-                loop, ms = event[1].result()
+                loop, ms = event.future.result()
                 if loop is not None:
                     result.count('loops_closed' if loop.accepted else 'loops_rejected')
                 result.time('loop_closure', ms)
