@@ -9,10 +9,11 @@ import pytest
 from scipy.spatial import cKDTree
 
 from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
-from lego_loam_py.core.frames import euler_to_quaternion, pose6_to_matrix, transform_cloud, transform_points
-from lego_loam_py.core.image_projection import ImageProjection, ProjectionInput, prepare_input
+from lego_loam_py.core.frames import matrix_to_quaternion, pose6_to_matrix, transform_cloud, transform_points
+from lego_loam_py.core.image_projection import ImageProjection, prepare_input
 from lego_loam_py.core.map_optimization import MapOptimization
 from lego_loam_py.core.params import Params, default_params_file, load_params
+from lego_loam_py.core.pipeline import Pipeline
 from lego_loam_py.core.scan_to_map import edge_correspondences, map_jacobian_rows, plane_correspondences
 from lego_loam_py.core.voxel import voxel_downsample
 from tests.support.sweeps import room_world, sweep
@@ -192,20 +193,19 @@ def test_surrounding_map_radius_and_recent_modes():
 
 
 def test_map_equals_the_originals_on_golden_data(shared_data):
+    """The one-scan pipeline (imageProjection -> featureAssociation -> mapOptimization, as ``lego_loam_py run``
+    chains them) maps the original's inputs to the original's /aft_mapped_to_init."""
     params = load_params(default_params_file().parent / 'original.yaml')
     g = np.load(shared_data / 'golden' / 'vlp16_static_indoor_20hz.npz')
-    ip, fa, mo = ImageProjection(params), FeatureAssociation(params), MapOptimization(params)
-    ours = []
+    pipeline = Pipeline(params, warn=pytest.fail)
     for k in range(len(g['stamps'])):
         inp = g[f's{k}_input']
-        r = ip.process(ProjectionInput(xyz=inp[:, :3].copy(), ring=inp[:, 4].astype(np.int64)))
-        res = fa.process(ScanInput.from_segmentation(int(g['stamps'][k]), r, point_time=False))
-        if res.outlier_last is not None:
-            step = mo.process(res.stamp_ns, res.transform_sum, res.corner_last, res.surf_last, res.outlier_last)
-            if step is not None:
-                ours.append([*step.transform_aft[3:], *euler_to_quaternion(*step.transform_aft[:3])])
+        cloud = np.zeros(len(inp), dtype=[('x', np.float32), ('y', np.float32), ('z', np.float32), ('ring', np.uint16)])
+        cloud['x'], cloud['y'], cloud['z'], cloud['ring'] = inp[:, 0], inp[:, 1], inp[:, 2], inp[:, 4]
+        pipeline.process_scan(cloud, int(g['stamps'][k]))
+    mapped = np.array(pipeline.finish().mapped)
+    ours = np.array([[*pose[:3, 3], *matrix_to_quaternion(pose[:3, :3])] for pose in mapped])
     theirs = g['aft_mapped_to_init']
-    ours = np.array(ours)
     assert ours.shape == theirs.shape
     assert np.abs(ours[:, :3] - theirs[:, :3]).max() < 1e-5
     assert np.abs(np.abs(ours[:, 3:]) - np.abs(theirs[:, 3:])).max() < 1e-6
