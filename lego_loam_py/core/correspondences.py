@@ -1,4 +1,4 @@
-"""The scan-to-scan correspondence search of featureAssociation (docs/original.md §6.2 steps 6-7, quirk 8.1).
+"""The scan-to-scan correspondence search of featureAssociation (docs/original.md §6.2 step 7, quirk 8.1).
 
 It follows the original: nearest neighbour in the last cloud (KD-tree), then the nearest point on the same ring
 and on another ring within ±2.5 rings, scanning the ring-ordered last cloud outwards from the nearest

@@ -1,5 +1,6 @@
 """The Gauss-Newton step with degeneracy projection that the odometry and the mapping share (docs/original.md
-§6.2 step 9, §6.3; Zhang et al., "On degeneracy of optimization-based state estimation problems", 2016).
+§6.2 step 7, §6.3, quirk 8.10; Zhang et al., "On degeneracy of optimization-based state estimation problems",
+ICRA 2016).
 
 A step solves the normal equations ``AᵀA x = Aᵀb``. On the first iteration of a problem the eigenvectors of
 ``AᵀA`` whose eigenvalues lie below a threshold, counted from the smallest up to the first that does not,

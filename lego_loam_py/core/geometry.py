@@ -1,5 +1,5 @@
 """Point-to-plane and point-to-line geometry shared by the odometry and the mapping (docs/original.md §6.2
-step 8, §6.3), in float32 where the original computes in float.
+step 7, §6.3), in float32 where the original computes in float.
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Loop closure of mapOptimization (docs/original.md §6.3 step 7): the candidate search, and the ICP that
+"""Loop closure of mapOptimization (docs/original.md §6.3): the candidate search, and the ICP that
 checks a candidate before the pose graph gets its constraint (:meth:`MapOptimization.close_loop
 <lego_loam_py.core.map_optimization.MapOptimization.close_loop>`).
 

@@ -1,4 +1,4 @@
-"""The keyframe pose graph of mapOptimization (docs/original.md §6.3 steps 5-7): a gtsam iSAM2 over the
+"""The keyframe pose graph of mapOptimization (docs/original.md §6.3): a gtsam iSAM2 over the
 keyframe poses, with a prior on the first, a between factor from each keyframe to the next and the loop
 constraints, under the original's noise.
 

@@ -1,4 +1,4 @@
-"""Scan-to-map registration of mapOptimization (docs/original.md §6.3 steps 3-4).
+"""Scan-to-map registration of mapOptimization (docs/original.md §6.3).
 
 For each downsampled corner point, the 5 nearest map corners must span a line (largest eigenvalue > 3 × the
 middle one); for each surface point, the 5 nearest map surface points must fit a plane within 0.2 m. Up to 10

@@ -1,4 +1,4 @@
-"""Motion within one sweep (docs/original.md §5.3, §6.2 steps 1 and 5-10): relative times, deskewing and the
+"""Motion within one sweep (docs/original.md §5.3, §6.2 steps 1, 8 and 10): relative times, deskewing and the
 six-vector conventions the scan-to-scan odometry uses.
 
 Conventions (LOAM camera axes: x left, y up, z forward). The motion over one sweep is the six-vector
