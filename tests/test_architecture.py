@@ -46,10 +46,14 @@ REPO = CORE.parents[1]
 
 
 def cited_sections(text: str) -> set[str]:
-    """The sections and quirks of docs/original.md that ``text`` cites: '§6.2', 'quirk 8.5', 'quirks 8.1, 8.10'."""
+    """The sections, steps and quirks of docs/original.md that ``text`` cites: '§6.2', '§6.2 step 7' (as
+    '6.2/7'), '§6.2 steps 1, 8 and 10', '§6.2 steps 5-10', 'quirk 8.5', 'quirks 8.1, 8.10'."""
     import re
 
     cited = set(re.findall(r'§(\d+(?:\.\d+)?)', text))
+    for section, group in re.findall(r'§(\d+\.\d+),? steps? (\d+(?:-\d+)?(?:(?:, | and )\d+(?:-\d+)?)*)', text):
+        for first, last in re.findall(r'(\d+)(?:-(\d+))?', group):
+            cited.update(f'{section}/{n}' for n in range(int(first), int(last or first) + 1))
     for group in re.findall(r'quirks? (8\.\d+(?:(?:, | and )8\.\d+)*)', text):
         cited.update(re.findall(r'8\.\d+', group))
     return cited
@@ -64,7 +68,10 @@ def test_every_citation_of_the_original_resolves_inside_the_repository():
     present = set(re.findall(r'^## (\d+)\.', doc, re.M)) | set(re.findall(r'^\* \*\*(\d+\.\d+)', doc, re.M))
     quirks = doc[doc.index('## 8. Quirks'):doc.index('## 14.')]
     present |= {f'8.{n}' for n in re.findall(r'^(\d+)\. ', quirks, re.M)}
-    assert {'8.1', '8.14', '6.2', '5.3', '14'} <= present   # (the parsing of the page itself)
+    for section, body in re.findall(r'^\* \*\*(\d+\.\d+)(.*?)(?=^\* \*\*|^## )', doc, re.M | re.S):
+        present |= {f'{section}/{n}' for n in re.findall(r'^  (\d+)\. ', body, re.M)}   # its numbered steps
+    assert {'8.1', '8.14', '6.2', '5.3', '14', '6.2/1', '6.2/10'} <= present   # (the parsing of the page itself)
+    assert '6.3/1' not in present and '6.2/11' not in present
     missing, outside = {}, []
     sources = [p for d in ('lego_loam_py', 'tests', 'benchmarks') for p in (REPO / d).rglob('*.py')]
     for path in sources:
@@ -79,6 +86,8 @@ def test_every_citation_of_the_original_resolves_inside_the_repository():
     assert not outside, f'cite docs/original.md instead: {outside}'
     assert not missing, missing
     assert cited_sections('see §6.2 and quirks 8.1, 8.10 and 8.11, quirk 8.5') == {'6.2', '8.1', '8.10', '8.11', '8.5'}
+    assert cited_sections('(§5.3, §6.2 steps 1, 8 and 10-11; §6.3 step 2)') == \
+        {'5.3', '6.2', '6.3', '6.2/1', '6.2/8', '6.2/10', '6.2/11', '6.3/2'}
 
 
 BUILTIN_ERRORS = {'Exception', 'ValueError', 'RuntimeError', 'OSError', 'TypeError', 'KeyError', 'LookupError'}
