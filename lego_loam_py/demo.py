@@ -1,11 +1,11 @@
 """``lego_loam_py demo [BAG]``: the whole system on a recording, as it runs on a robot, in one command.
 
-The four nodes run as separate processes talking DDS (:mod:`lego_loam_py.launch`), the player replays the
-bag with /clock (the nodes use sim time), and the recorder records /integrated_to_init, /laser_odom_to_init
-and /aft_mapped_to_init. Once the bag is played and the pipeline drained, every process is stopped with
-SIGINT: each node writes its statistics (``LEGO_LOAM_PY_STATS_DIR``) and mapOptimization saves the map
-(``map_optimization.file_directory``). The demo then reads all of it back and writes, into ``OUTDIR``
-(default ``output/demo-<bag name>/``):
+The four nodes run as separate processes talking DDS (:mod:`lego_loam_py.orchestration`), the player
+replays the bag with /clock (the nodes use sim time), and the recorder records /integrated_to_init,
+/laser_odom_to_init and /aft_mapped_to_init. Once the bag is played and the pipeline drained, every
+process is stopped with SIGINT: each node writes its statistics (``LEGO_LOAM_PY_STATS_DIR``) and
+mapOptimization saves the map (``map_optimization.file_directory``). The demo then reads all of it back
+and writes, into ``OUTDIR`` (default ``output/demo-<bag name>/``):
 
 * ``trajectory.tum`` (REP-103 ``map`` axes) and ``trajectory_camera_init.tum`` (the original's camera_init
   axes): the recorded /integrated_to_init, one pose per scan, the pose = ``odometry_to_pose(msg)``;
@@ -30,12 +30,13 @@ from typing import Callable
 import numpy as np
 
 from lego_loam_py.errors import UsageError
+from lego_loam_py.orchestration import DEFAULT_RECORD_TOPICS, NODES, PipelineConfig, run_pipeline
+from lego_loam_py.supervisor import Interrupts, package_file
 
 __all__ = ['DemoResult', 'run_demo', 'read_trajectory', 'read_stats', 'format_demo_summary', 'default_bag',
            'add_arguments', 'main']
 
-RECORDED_TOPICS = ('/integrated_to_init', '/laser_odom_to_init', '/aft_mapped_to_init')
-STATS_NODES = ('imageProjection', 'featureAssociation', 'mapOptimization', 'transformFusion')
+STATS_NODES = tuple(NODES)   # every node writes its statistics when it stops
 # Timing entry of each node's statistics that is its work per scan (mapOptimization: per mapping step).
 NODE_TIMINGS = {'imageProjection': 'scan', 'featureAssociation': 'scan', 'mapOptimization': 'step',
                 'transformFusion': 'odometry'}
@@ -154,7 +155,6 @@ def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_
     from lego_loam_py.core.io import write_text_atomic
     from lego_loam_py.core.params import load_params, parse_overrides
     from lego_loam_py.evaluation import path_length
-    from lego_loam_py.launch import PipelineConfig, package_file, run_pipeline
     from lego_loam_py.outputs import pose_time_offset_ns, write_outputs
 
     out = Path(out_dir).resolve()
@@ -170,7 +170,7 @@ def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_
 
     config = PipelineConfig(
         params_file=params_file, overrides=node_overrides, bag=Path(bag), rate=rate, player_progress=progress,
-        record_topics=RECORDED_TOPICS, record_output=out / 'recording', stats_dir=out / 'stats',
+        record_topics=DEFAULT_RECORD_TOPICS, record_output=out / 'recording', stats_dir=out / 'stats',
         output='log', log_dir=out / 'logs', ready_timeout=ready_timeout)
     outcome = run_pipeline(config, stop=stop, hurry=hurry, announce=announce)
 
@@ -261,8 +261,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from lego_loam_py.launch import Interrupts
-
     bag = Path(args.bag) if args.bag else default_bag()
     if args.bag is None and not bag.exists():
         raise UsageError(f'the default recording {bag} is not there (a source checkout has it): give a BAG')

@@ -53,7 +53,7 @@ FAKE_CHILD = textwrap.dedent('''
 
 
 def fake(name: str, mode: str, log: Path, **kwargs):
-    from lego_loam_py.launch import ProcessSpec
+    from lego_loam_py.supervisor import ProcessSpec
     return ProcessSpec(name, [sys.executable, '-S', '-c', FAKE_CHILD, name, mode, str(log)], **kwargs)
 
 
@@ -90,7 +90,7 @@ def wait_for_file_lines(path: Path, count: int, timeout: float = 10.0) -> list[s
 
 # ------------------------------------------------------------------------------ supervisor mechanics
 def test_children_stop_in_reverse_start_order_and_exit_cleanly(tmp_path):
-    from lego_loam_py.launch import Supervisor
+    from lego_loam_py.supervisor import Supervisor
 
     log = tmp_path / 'sigint.log'
     messages = []
@@ -113,7 +113,7 @@ def test_children_stop_in_reverse_start_order_and_exit_cleanly(tmp_path):
 
 
 def test_a_child_ignoring_sigint_is_killed_with_its_whole_process_group(tmp_path):
-    from lego_loam_py.launch import Supervisor
+    from lego_loam_py.supervisor import Supervisor
 
     supervisor = Supervisor(output='log', log_dir=tmp_path / 'logs', announce=lambda _: None)
     child = supervisor.start(fake('stubborn', 'grandchild', tmp_path / 'x.log', stop_timeout=1.0))
@@ -131,7 +131,7 @@ def test_a_child_ignoring_sigint_is_killed_with_its_whole_process_group(tmp_path
 
 
 def test_a_child_that_exits_on_its_own_is_reported_once_as_a_failure(tmp_path):
-    from lego_loam_py.launch import ProcessSpec, Supervisor
+    from lego_loam_py.supervisor import ProcessSpec, Supervisor
 
     supervisor = Supervisor(output='log', log_dir=tmp_path / 'logs', announce=lambda _: None)
     crasher = supervisor.start(fake('crasher', 'crash', tmp_path / 'x.log'))
@@ -159,7 +159,7 @@ def test_children_die_with_a_killed_supervisor(tmp_path, processes):
     driver = textwrap.dedent(f'''
         import sys, time
         sys.path.insert(0, {str(REPO)!r})
-        from lego_loam_py.launch import ProcessSpec, Supervisor
+        from lego_loam_py.supervisor import ProcessSpec, Supervisor
         code = {FAKE_CHILD!r}
         supervisor = Supervisor(output='log', log_dir={str(tmp_path / 'logs')!r}, announce=lambda _: None)
         pids = [supervisor.start(ProcessSpec(n, [sys.executable, '-S', '-c', code, n, 'normal', 'x'])).pid
