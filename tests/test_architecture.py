@@ -162,6 +162,44 @@ def test_the_runners_do_not_import_each_other(tmp_path):
         ('demo', 'launch'), ('launch', 'offline'), ('offline', 'demo')}
 
 
+def ros_imports(path: Path) -> set[str]:
+    """The ROS modules (rclpy, message packages, lego_loam_py.ros) ``path`` imports, lazily or not."""
+    return {m for m in imported_modules(path) if m.split('.')[0] in ROS_MODULES or m.startswith(ROS_MODULES)}
+
+
+def test_the_process_supervisor_knows_no_ros(tmp_path):
+    """supervisor.py starts, watches and stops processes: no rclpy, no message package, no lego_loam_py.ros, not
+    even inside a function, and none of the commands built on it."""
+    supervisor = PACKAGE_DIR / 'supervisor.py'
+    commands = {f'lego_loam_py.{name}' for name in RUNNERS + ('orchestration', 'cli')}
+    assert not ros_imports(supervisor), ros_imports(supervisor)
+    assert not imported_modules(supervisor) & commands, imported_modules(supervisor) & commands
+    # (the rule is parsed: lazy imports count)
+    sample = tmp_path / 'sample.py'
+    sample.write_text('def spin():\n    import rclpy\n    from lego_loam_py.ros import qos\n')
+    assert ros_imports(sample) == {'rclpy', 'lego_loam_py.ros', 'lego_loam_py.ros.qos'}
+
+
+def defined_classes(path: Path) -> set[str]:
+    return {node.name for node in ast.walk(ast.parse(path.read_text())) if isinstance(node, ast.ClassDef)}
+
+
+def test_the_graph_monitor_is_part_of_the_ros_layer():
+    """The supervisor's ROS node (GraphMonitor) lives under lego_loam_py/ros; the runners, the orchestration and
+    the supervisor define no class of that name and import no rclpy themselves (the orchestration reaches the ROS
+    graph only through lego_loam_py.ros)."""
+    homes = [path.relative_to(PACKAGE_DIR).as_posix() for path in sorted(PACKAGE_DIR.rglob('*.py'))
+             if 'GraphMonitor' in defined_classes(path)]
+    assert homes == ['ros/graph_monitor.py'], homes
+    direct = {}
+    for name in RUNNERS + ('orchestration', 'supervisor'):
+        found = {m for m in ros_imports(PACKAGE_DIR / f'{name}.py') if not m.startswith('lego_loam_py.ros')}
+        if found:
+            direct[name] = sorted(found)
+    assert not direct, direct
+    assert 'lego_loam_py.ros.graph_monitor' in imported_modules(PACKAGE_DIR / 'orchestration.py')   # (parsed)
+
+
 def test_the_sensor_decoders_are_an_input_layer_outside_the_core():
     """The packet and pcap decoders (lego_loam_py/sensors) import no ROS; the core imports none of them."""
     sensors = REPO / 'lego_loam_py' / 'sensors'
