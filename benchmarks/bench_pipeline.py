@@ -72,11 +72,11 @@ def dds(bag: Path, rate: float) -> dict:
         os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
         result = run_demo(bag, out, rate=rate, announce=lambda _: None)
     s = result.summary
-    return dict(scans=s['scans_in'], integrated=s['integrated'], fraction=s['integrated_fraction'],
-                imu=s['scans_with_imu'], processed=s['processed'], ate=s.get('accuracy', {}).get('ate_rmse_m',
-                                                                                                 float('nan')),
-                timings={name: s['timings_ms'].get(name) for name in NODES + ('transformFusion',)}, exit_code=result.exit_code,
-                failures=s['failures'])
+    timings = {name: t.as_dict() for name, t in s.timings_ms.items()}
+    return dict(scans=s.scans_in, integrated=s.integrated, fraction=s.integrated_fraction, imu=s.scans_with_imu,
+                processed=s.processed, ate=s.outputs.accuracy.ate_rmse_m if s.outputs.accuracy else float('nan'),
+                timings={name: timings.get(name) for name in NODES + ('transformFusion',)}, exit_code=result.exit_code,
+                failures=s.failures)
 
 
 def _machine() -> str:

@@ -25,12 +25,13 @@ import sys
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
 from lego_loam_py.errors import UsageError
 from lego_loam_py.orchestration import DEFAULT_RECORD_TOPICS, NODES, PipelineConfig, run_pipeline
+from lego_loam_py.results import DemoSummary, TimingStats
 from lego_loam_py.supervisor import Interrupts, package_file
 
 __all__ = ['DemoResult', 'run_demo', 'read_trajectory', 'read_stats', 'format_demo_summary', 'default_bag',
@@ -62,7 +63,7 @@ def default_bag() -> Path:
 @dataclass
 class DemoResult:
     exit_code: int
-    summary: dict
+    summary: DemoSummary
     out_dir: Path
 
 
@@ -117,14 +118,28 @@ def _clear_previous_outputs(out: Path) -> None:
         (out / name).unlink(missing_ok=True)
 
 
-def _node_summary(stats: dict[str, dict]) -> tuple[dict, dict, dict]:
-    """(processed per node, drop counters per node, timings per node) from the nodes' statistics."""
-    counters = {name: s.get('counters', {}) for name, s in stats.items()}
+class NodeFigures(NamedTuple):
+    """What the nodes' statistics say about a run."""
+
+    processed: dict[str, int]           # node -> scans it processed (mapOptimization: mapping steps)
+    drops: dict[str, dict[str, int]]    # node -> its non-zero counters of messages thrown away
+    timings: dict[str, TimingStats]     # node -> its time per scan (mapOptimization: per mapping step)
+
+
+def _node_counters(stats: dict[str, dict]) -> dict[str, dict[str, int]]:
+    """Node -> its counters, for every node (empty for a node that wrote no statistics; a counter a node never
+    touched is not in its file: read them with ``.get(name, 0)``)."""
+    return {name: stats[name].get('counters', {}) if name in stats else {} for name in STATS_NODES}
+
+
+def _node_summary(stats: dict[str, dict]) -> NodeFigures:
+    """Processed scans, drop counters and timings per node from the nodes' statistics."""
+    counters = _node_counters(stats)
     processed = {
-        'imageProjection': counters.get('imageProjection', {}).get('clouds_out', 0),
-        'featureAssociation': counters.get('featureAssociation', {}).get('scans', 0),
-        'mapOptimization': counters.get('mapOptimization', {}).get('steps', 0),
-        'transformFusion': counters.get('transformFusion', {}).get('integrated', 0),
+        'imageProjection': counters['imageProjection'].get('clouds_out', 0),
+        'featureAssociation': counters['featureAssociation'].get('scans', 0),
+        'mapOptimization': counters['mapOptimization'].get('steps', 0),
+        'transformFusion': counters['transformFusion'].get('integrated', 0),
     }
     drops = {}
     for name, values in counters.items():
@@ -137,11 +152,11 @@ def _node_summary(stats: dict[str, dict]) -> tuple[dict, dict, dict]:
             drops[name] = found
     timings = {}
     for name, key in NODE_TIMINGS.items():
-        available = stats.get(name, {}).get('timings_ms', {})
+        available = stats[name].get('timings_ms', {}) if name in stats else {}
         entry = available.get(key) or (next(iter(available.values())) if len(available) == 1 else None)
         if entry:
-            timings[name] = entry
-    return processed, drops, timings
+            timings[name] = TimingStats.from_dict(entry)
+    return NodeFigures(processed, drops, timings)
 
 
 def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_file: Path | None = None,
@@ -152,10 +167,8 @@ def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_
     docstring). Raises ``BagError``, ``ParameterError`` or ``UsageError`` before starting anything when the
     bag, the parameters or the output directory cannot be used."""
     from lego_loam_py.bag.io import BagReader
-    from lego_loam_py.core.io import write_text_atomic
     from lego_loam_py.core.params import load_params, parse_overrides
-    from lego_loam_py.evaluation import path_length
-    from lego_loam_py.outputs import pose_time_offset_ns, write_outputs
+    from lego_loam_py.outputs import pose_time_offset_ns, write_outputs, write_summary
 
     out = Path(out_dir).resolve()
     params_file = params_file or package_file('config', 'params.yaml')
@@ -175,75 +188,70 @@ def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_
     outcome = run_pipeline(config, stop=stop, hurry=hurry, announce=announce)
 
     stats = read_stats(out / 'stats')
-    processed, drops, timings = _node_summary(stats)
+    figures = _node_summary(stats)
+    counters = _node_counters(stats)
     recording = out / 'recording'
     stamps, poses = (read_trajectory(recording) if (recording / 'metadata.yaml').is_file()
                      else (np.zeros(0, np.int64), np.zeros((0, 4, 4))))
     stamps = stamps + pose_time_offset_ns(params)
-    ip_in = stats.get('imageProjection', {}).get('counters', {}).get('clouds_in', 0)
-    fa = stats.get('featureAssociation', {}).get('counters', {})
+    fa = counters['featureAssociation']
     # Scans imageProjection published that featureAssociation neither processed nor rejected: overwritten in
     # its depth-1 input queues while it was busy (the original's queue semantics), when it is not real time.
     # (A scan with one part overwritten leaves its other parts in featureAssociation's unmatched_inputs.)
     fa_handled = fa.get('scans', 0) + fa.get('scans_dropped', 0)
-    overwritten = max(0, processed['imageProjection'] - fa_handled) if 'featureAssociation' in stats else 0
-    summary = dict(
-        bag=_display(bag), mode='dds', rate=rate, bag_duration_s=bag_duration, wall_time_s=outcome.wall_time_s,
-        scans_in=scans_in, processed=processed,
-        integrated=len(stamps), integrated_fraction=len(stamps) / scans_in if scans_in else 0.0,
-        not_received=max(0, scans_in - ip_in) if 'imageProjection' in stats else scans_in,
-        drop_counters=drops, queue_overwritten=overwritten,
-        keyframes=stats.get('mapOptimization', {}).get('counters', {}).get('keyframes', 0),
-        scans_with_imu=fa.get('scans_with_imu', 0),
-        timings_ms=timings,
-        processes=[dict(name=p.name, pid=p.pid, returncode=p.returncode, how=p.how, failure=p.failure)
-                   for p in outcome.processes],
-        failures=list(outcome.failures), interrupted=outcome.interrupted, ready_after_s=outcome.ready_after_s)
-    summary['dropped'] = summary['not_received'] + sum(sum(d.values()) for d in drops.values())
+    overwritten = max(0, figures.processed['imageProjection'] - fa_handled) if 'featureAssociation' in stats else 0
+    summary = DemoSummary(
+        bag=_display(bag), rate=rate, bag_duration_s=bag_duration, wall_time_s=outcome.wall_time_s,
+        scans_in=scans_in, processed=figures.processed, integrated=len(stamps),
+        not_received=(max(0, scans_in - counters['imageProjection'].get('clouds_in', 0))
+                      if 'imageProjection' in stats else scans_in),
+        drop_counters=figures.drops, queue_overwritten=overwritten,
+        keyframes=counters['mapOptimization'].get('keyframes', 0), scans_with_imu=fa.get('scans_with_imu', 0),
+        timings_ms=figures.timings, processes=list(outcome.processes), failures=list(outcome.failures),
+        interrupted=outcome.interrupted, ready_after_s=outcome.ready_after_s)
     if len(stamps):
-        summary = write_outputs(out, bag, stamps, poses, None, summary, params, map_dir=map_dir)
-    else:
-        summary['trajectory_length_m'] = path_length(poses)
-        write_text_atomic(out / 'summary.json', json.dumps(summary, indent=2, default=float))
+        write_outputs(out, bag, stamps, poses, None, summary, params, map_dir=map_dir)
+    else:   # no pose, no trajectory file, picture or accuracy: the summary says 0 m
+        write_summary(out, summary)
     exit_code = outcome.exit_code
     if exit_code == 0 and not len(stamps) and not outcome.interrupted:
-        summary['failures'].append(f'no /integrated_to_init was recorded from {scans_in} scans')
-        write_text_atomic(out / 'summary.json', json.dumps(summary, indent=2, default=float))
+        summary.failures.append(f'no /integrated_to_init was recorded from {scans_in} scans')
+        write_summary(out, summary)
         exit_code = 1
     return DemoResult(exit_code, summary, out)
 
 
-def format_demo_summary(summary: dict, out_dir: Path | None = None) -> str:
+def format_demo_summary(summary: DemoSummary, out_dir: Path | None = None) -> str:
     """The demo's report, as printed at the end of a run."""
-    scans_in = summary['scans_in']
-    p = summary['processed']
-    lines = [f"LeGO-LOAM over DDS: {summary['bag']} at {summary['rate']:g}x, four nodes as separate processes"
-             + (' (INTERRUPTED)' if summary.get('interrupted') else '')]
-    lines.append(f"scans in {scans_in} ({summary['bag_duration_s']:.1f} s of data); processed: imageProjection "
+    scans_in = summary.scans_in
+    p = summary.processed
+    lines = [f"LeGO-LOAM over DDS: {summary.bag} at {summary.rate:g}x, four nodes as separate processes"
+             + (' (INTERRUPTED)' if summary.interrupted else '')]
+    lines.append(f"scans in {scans_in} ({summary.bag_duration_s:.1f} s of data); processed: imageProjection "
                  f"{p['imageProjection']}, featureAssociation {p['featureAssociation']} (IMU on "
-                 f"{summary['scans_with_imu']}), mapOptimization {p['mapOptimization']} mapping steps "
-                 f"({summary['keyframes']} keyframes), transformFusion {p['transformFusion']}")
-    fraction = summary['integrated_fraction']
-    lines.append(f"/integrated_to_init for {summary['integrated']} of {scans_in} scans ({fraction:.1%}; the first "
+                 f"{summary.scans_with_imu}), mapOptimization {p['mapOptimization']} mapping steps "
+                 f"({summary.keyframes} keyframes), transformFusion {p['transformFusion']}")
+    fraction = summary.integrated_fraction
+    lines.append(f"/integrated_to_init for {summary.integrated} of {scans_in} scans ({fraction:.1%}; the first "
                  f"scan only initialises the odometry)")
-    detail = [f"{summary['not_received']} never reached imageProjection"]
-    for node, counters in summary['drop_counters'].items():
+    detail = [f"{summary.not_received} never reached imageProjection"]
+    for node, counters in summary.drop_counters.items():
         detail.append(f'{node} ' + ', '.join(f'{k} {v}' for k, v in counters.items()))
-    lines.append(f"dropped messages {summary['dropped']}: " + '; '.join(detail))
-    if summary['queue_overwritten']:
-        lines.append(f"  + {summary['queue_overwritten']} scans featureAssociation never got: overwritten in its "
+    lines.append(f"dropped messages {summary.dropped}: " + '; '.join(detail))
+    if summary.queue_overwritten:
+        lines.append(f"  + {summary.queue_overwritten} scans featureAssociation never got: overwritten in its "
                      "depth-1 input queues while it was busy (as in the original: the latest scan wins)")
-    if summary['timings_ms']:
+    if summary.timings_ms:
         lines.append(f"{'ms per scan':<22s}{'median':>8s}{'p95':>9s}{'n':>7s}")
-        for node, t in summary['timings_ms'].items():
+        for node, t in summary.timings_ms.items():
             unit = '  (per mapping step)' if node == 'mapOptimization' else ''
-            lines.append(f"  {node:<20s}{t['median']:8.1f}{t['p95']:9.1f}{t['count']:7d}{unit}")
+            lines.append(f"  {node:<20s}{t.median:8.1f}{t.p95:9.1f}{t.count:7d}{unit}")
     from lego_loam_py.outputs import result_lines
-    lines.extend(result_lines(summary))
+    lines.extend(result_lines(summary.outputs))
     if out_dir is not None:
         lines.append(f'outputs in {_display(out_dir)}/: trajectory.tum (REP-103 map axes), trajectory_camera_init.tum, '
                      f'map/*.pcd, trajectory.png, summary.json, recording/ (mcap), stats/, logs/')
-    for failure in summary.get('failures', []):
+    for failure in summary.failures:
         lines.append(f'FAILED: {failure}')
     return '\n'.join(lines)
 
@@ -273,6 +281,6 @@ def main(args: argparse.Namespace) -> int:
         result = run_demo(bag, out, rate=args.rate, params_file=args.params_file, overrides=args.param,
                           progress=progress, stop=interrupts.stop, hurry=interrupts.hurry)
     print(format_demo_summary(result.summary, result.out_dir))
-    if result.summary.get('interrupted'):
+    if result.summary.interrupted:
         return 130
     return result.exit_code

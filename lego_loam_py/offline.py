@@ -27,6 +27,7 @@ from lego_loam_py.core.params import Params, load_params, parse_overrides
 from lego_loam_py.core.pipeline import Pipeline, RunResult
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.outputs import result_lines, write_outputs
+from lego_loam_py.results import OfflineSummary, TimingStats
 
 __all__ = ['RunResult', 'run_bag', 'format_summary', 'add_arguments', 'main']
 
@@ -91,23 +92,18 @@ def run_bag(bag: str | Path, params: Params, *, cloud_topic: str | None = None, 
     return result
 
 
-def _timing_table(timings: dict[str, list[float]]) -> dict[str, dict[str, float]]:
-    return {name: dict(median=float(np.median(v)), p95=float(np.percentile(v, 95)), mean=float(np.mean(v)),
-                       count=len(v)) for name, v in timings.items() if v}
-
-
-def format_summary(summary: dict) -> str:
-    lines = [f"bag: {summary['bag']}"]
-    c = summary.get('counts', {})
+def format_summary(summary: OfflineSummary) -> str:
+    """The report of ``lego_loam_py run``, as printed at the end of a run."""
+    lines = [f"bag: {summary.bag}"]
+    c = summary.counts   # (a counter the run never touched is 0)
     lines.append(f"scans in {c.get('scans_in', 0)}, processed {c.get('scans_processed', 0)}, dropped "
                  f"{c.get('scans_dropped', 0)}; mapping steps {c.get('mapping_steps', 0)}, keyframes "
                  f"{c.get('keyframes', 0)}, IMU used on {c.get('scans_with_imu', 0)} scans")
-    for name, t in summary.get('timings_ms', {}).items():
-        lines.append(f"  {name:<20s} median {t['median']:7.1f} ms   p95 {t['p95']:7.1f} ms   (n={t['count']})")
-    if 'realtime_factor' in summary:
-        lines.append(f"{summary['bag_duration_s']:.1f} s of data in {summary['wall_time_s']:.1f} s: "
-                     f"{summary['realtime_factor']:.2f}x real time")
-    lines.extend(result_lines(summary))
+    for name, t in summary.timings_ms.items():
+        lines.append(f"  {name:<20s} median {t.median:7.1f} ms   p95 {t.p95:7.1f} ms   (n={t.count})")
+    lines.append(f"{summary.bag_duration_s:.1f} s of data in {summary.wall_time_s:.1f} s: "
+                 f"{summary.realtime_factor:.2f}x real time")
+    lines.extend(result_lines(summary.outputs))
     return '\n'.join(lines)
 
 
@@ -136,10 +132,10 @@ def main(args: argparse.Namespace) -> int:
     result = run_bag(args.bag, params, imu_topic='' if args.no_imu else None, max_scans=args.max_scans,
                      progress=not args.no_progress)
     stamps, _ = result.trajectory()
-    summary = dict(bag=str(args.bag), mode='offline', counts=result.counts, timings_ms=_timing_table(result.timings_ms),
-                   wall_time_s=result.wall_time, bag_duration_s=result.bag_duration,
-                   realtime_factor=result.bag_duration / result.wall_time if result.wall_time > 0 else float('nan'))
-    summary = write_outputs(out, args.bag, stamps, np.array(result.integrated), result.mapper, summary, params)
+    summary = OfflineSummary(bag=str(args.bag), counts=result.counts,
+                             timings_ms={name: TimingStats.of(v) for name, v in result.timings_ms.items() if v},
+                             wall_time_s=result.wall_time, bag_duration_s=result.bag_duration)
+    write_outputs(out, args.bag, stamps, np.array(result.integrated), result.mapper, summary, params)
     print(format_summary(summary))
     written = sorted(p.name + ('/' if p.is_dir() else '') for p in out.iterdir() if not p.name.startswith('.'))
     print(f'outputs in {out}/: {", ".join(written)}')

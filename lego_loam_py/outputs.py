@@ -4,7 +4,6 @@ the trajectories (TUM, REP-103 ``map`` and the original's camera_init axes), the
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -14,15 +13,21 @@ from lego_loam_py.core.io import write_text_atomic, write_tum_atomic
 from lego_loam_py.core.map_optimization import MapOptimization
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.pipeline import pose_time_offset_ns
+from lego_loam_py.results import DemoSummary, MapToScene, OfflineSummary, RunOutputs
 
-__all__ = ['write_outputs', 'result_lines', 'pose_time_offset_ns']
+__all__ = ['write_outputs', 'write_summary', 'result_lines', 'pose_time_offset_ns']
+
+
+def write_summary(out_dir: str | Path, summary: OfflineSummary | DemoSummary) -> None:
+    """``out_dir/summary.json``."""
+    write_text_atomic(Path(out_dir) / 'summary.json', summary.to_json())
 
 
 def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, poses_camera_init: np.ndarray,
-                  mapper: MapOptimization | None, summary: dict, params: Params,
-                  map_dir: str | Path | None = None) -> dict:
-    """Trajectories, maps, PNG and summary.json into ``out_dir``; adds the accuracy to ``summary`` when a
-    ground truth sits beside the bag. Returns the summary.
+                  mapper: MapOptimization | None, summary: OfflineSummary | DemoSummary, params: Params,
+                  map_dir: str | Path | None = None) -> RunOutputs:
+    """Trajectories, maps, PNG and summary.json into ``out_dir``; measures what they show (with the accuracy
+    when a ground truth sits beside the bag) into ``summary.outputs``, which it returns.
 
     The maps come from ``mapper`` (saved into ``out_dir/map``) or, without one, from ``map_dir`` where they
     were saved already (by the mapOptimization node): listed in the summary and drawn under the PNG."""
@@ -33,34 +38,33 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
     out.mkdir(parents=True, exist_ok=True)
     poses_camera_init = np.asarray(poses_camera_init).reshape(-1, 4, 4)
     poses_map = np.array([camera_pose_to_lidar(p) for p in poses_camera_init]).reshape(-1, 4, 4)
-    summary['poses'] = int(len(poses_map))
+    result = summary.outputs = RunOutputs(poses=int(len(poses_map)))
     if len(poses_map):   # (no pose, no file: an empty trajectory file would look like a broken one)
         write_tum_atomic(out / 'trajectory.tum', stamps, poses_map)
         write_tum_atomic(out / 'trajectory_camera_init.tum', stamps, poses_camera_init)
-    summary['trajectory_length_m'] = path_length(poses_map)
+    result.trajectory_length_m = path_length(poses_map)
     map_points = None
     if mapper is not None and mapper.keyframes:
         saved = mapper.save(out / 'map')
-        summary['map_files'] = {k: str(v) for k, v in saved.items()}
+        result.map_files = {k: str(v) for k, v in saved.items()}
         from lego_loam_py.core.io import read_pcd
         map_points = read_pcd(saved['global_map'])
     elif map_dir is not None and (Path(map_dir) / 'global_map.pcd').is_file():
         from lego_loam_py.core.io import read_pcd
         saved_files = sorted(p for p in Path(map_dir).iterdir() if p.suffix in ('.pcd', '.tum'))
-        summary['map_files'] = {p.name: str(p) for p in saved_files}
+        result.map_files = {p.name: str(p) for p in saved_files}
         map_points = read_pcd(Path(map_dir) / 'global_map.pcd')
     ground_truth = load_ground_truth(bag)
     trajectories = {'lego_loam_py': poses_map}
     if ground_truth is not None and len(stamps) < 3:
-        summary['accuracy_error'] = (f'not evaluated: {len(stamps)} pose(s); the evaluation needs at least 3 (the '
+        result.accuracy_error = (f'not evaluated: {len(stamps)} pose(s); the evaluation needs at least 3 (the '
                                      'first scan only initialises the odometry)')
     elif ground_truth is not None:
         gt_stamps, gt_poses = ground_truth
         try:
-            metrics = evaluate((gt_stamps, gt_poses), (stamps, poses_map))
-            summary['accuracy'] = metrics.as_dict()
+            result.accuracy = evaluate((gt_stamps, gt_poses), (stamps, poses_map))
         except ValueError as exc:
-            summary['accuracy_error'] = str(exc)
+            result.accuracy_error = str(exc)
     if ground_truth is not None and len(stamps):
         # Show the ground truth in the estimate's frame (both start at identity at the first scan).
         gt_stamps, gt_poses = ground_truth
@@ -70,30 +74,28 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
         from lego_loam_py.sim.output import map_distance_to_scene
         distance = map_distance_to_scene(bag, map_points, int(stamps[0]), poses_map[0])
         if distance is not None and len(distance):
-            summary['map_to_scene'] = dict(median_m=float(np.median(distance)),
-                                           p90_m=float(np.percentile(distance, 90)), points=int(len(distance)))
+            result.map_to_scene = MapToScene(median_m=float(np.median(distance)),
+                                             p90_m=float(np.percentile(distance, 90)), points=int(len(distance)))
     if any(len(poses) for poses in trajectories.values()) or (map_points is not None and len(map_points)):
         # (nothing to draw, no picture: an empty plot would look like a broken run)
-        summary['png'] = str(plot_trajectories(out / 'trajectory.png', trajectories, map_points,
+        result.png = str(plot_trajectories(out / 'trajectory.png', trajectories, map_points,
                                                title=f'{Path(bag).name}: trajectory over the map (top view)'))
-    write_text_atomic(out / 'summary.json', json.dumps(summary, indent=2, default=float))
-    return summary
+    write_summary(out, summary)
+    return result
 
 
-def result_lines(summary: dict) -> list[str]:
+def result_lines(outputs: RunOutputs) -> list[str]:
     """The summary lines on the result, shared by ``run`` and the demo: trajectory length, accuracy against
     the ground truth, and the map's distance to a simulated scene when one was measured."""
-    from lego_loam_py.evaluation import TrajectoryMetrics
-
-    lines = [f"trajectory length {summary.get('trajectory_length_m', 0.0):.1f} m"]
-    if 'accuracy' in summary:
-        lines.append('accuracy vs ground truth: ' + TrajectoryMetrics(**summary['accuracy']).summary())
-    elif 'accuracy_error' in summary:
-        lines.append(f"accuracy: {summary['accuracy_error']}")
+    lines = [f"trajectory length {outputs.trajectory_length_m:.1f} m"]
+    if outputs.accuracy is not None:
+        lines.append('accuracy vs ground truth: ' + outputs.accuracy.summary())
+    elif outputs.accuracy_error is not None:
+        lines.append(f"accuracy: {outputs.accuracy_error}")
     else:
         lines.append('accuracy: no ground truth beside the bag')
-    m = summary.get('map_to_scene')
-    if m:
-        lines.append(f"map vs the simulated scene: median point-to-mesh distance {m['median_m']:.3f} m, 90th "
-                     f"percentile {m['p90_m']:.3f} m over {m['points']} map points")
+    m = outputs.map_to_scene
+    if m is not None:
+        lines.append(f"map vs the simulated scene: median point-to-mesh distance {m.median_m:.3f} m, 90th "
+                     f"percentile {m.p90_m:.3f} m over {m.points} map points")
     return lines

@@ -270,6 +270,7 @@ def test_demo_writes_a_summary_trajectory_map_and_png(tmp_path, ros_domain):
 def test_demo_summary_accounts_for_every_scan():
     """The demo's figures from the nodes' statistics: processed per node, drops, queue overwrites, timings."""
     from lego_loam_py.demo import _node_summary, format_demo_summary
+    from lego_loam_py.results import DemoSummary, RunOutputs
 
     timing = dict(median=10.0, p95=20.0, mean=12.0, count=70)
     stats = {
@@ -288,10 +289,11 @@ def test_demo_summary_accounts_for_every_scan():
     assert drops == {'imageProjection': {'clouds_dropped': 1},
                      'featureAssociation': {'scans_dropped': 2, 'unmatched_inputs': 4}}
     assert set(timings) == {'imageProjection', 'featureAssociation', 'mapOptimization'}
-    summary = dict(bag='bags/x', rate=1.0, bag_duration_s=8.0, scans_in=80, processed=processed, integrated=69,
-                   integrated_fraction=69 / 80, not_received=1, drop_counters=drops, queue_overwritten=6,
-                   dropped=1 + 1 + 2 + 4, keyframes=20, scans_with_imu=65, timings_ms=timings,
-                   trajectory_length_m=13.4, failures=[])
+    summary = DemoSummary(bag='bags/x', rate=1.0, bag_duration_s=8.0, wall_time_s=9.0, scans_in=80, processed=processed,
+                          integrated=69, not_received=1, drop_counters=drops, queue_overwritten=6, keyframes=20,
+                          scans_with_imu=65, timings_ms=timings, processes=[], failures=[], interrupted=False,
+                          ready_after_s=3.0, outputs=RunOutputs(trajectory_length_m=13.4))
+    assert summary.dropped == 1 + 1 + 2 + 4 and summary.integrated_fraction == 69 / 80
     text = format_demo_summary(summary)
     assert 'scans in 80 (8.0 s of data); processed: imageProjection 78, featureAssociation 70 (IMU on 65)' in text
     assert '/integrated_to_init for 69 of 80 scans (86.2%' in text

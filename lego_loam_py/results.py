@@ -1,0 +1,163 @@
+"""The summary of a run, as printed at its end and written to ``summary.json``.
+
+``lego_loam_py run`` fills an :class:`OfflineSummary`, the demo a :class:`DemoSummary`; what both write beside
+the trajectory (its length, the accuracy against a ground truth, the map files, the PNG) is :class:`RunOutputs`,
+measured by :func:`lego_loam_py.outputs.write_outputs`. ``as_dict()`` is the layout of ``summary.json``, which
+users and tests read: its keys, their order and their values are part of the interface.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING, ClassVar, Sequence
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from lego_loam_py.evaluation import TrajectoryMetrics
+    from lego_loam_py.supervisor import ProcessResult
+
+__all__ = ['TimingStats', 'MapToScene', 'RunOutputs', 'OfflineSummary', 'DemoSummary']
+
+
+@dataclass(frozen=True)
+class TimingStats:
+    """Milliseconds one stage took per call: per scan, for mapOptimization per mapping step."""
+
+    median: float   # [ms]
+    p95: float      # [ms]
+    mean: float     # [ms]
+    count: int      # calls measured
+
+    @classmethod
+    def of(cls, values_ms: Sequence[float]) -> TimingStats:
+        """The statistics of a non-empty list of durations [ms]."""
+        return cls(median=float(np.median(values_ms)), p95=float(np.percentile(values_ms, 95)),
+                   mean=float(np.mean(values_ms)), count=len(values_ms))
+
+    @classmethod
+    def from_dict(cls, entry: dict) -> TimingStats:
+        """From a node's statistics file (``timings_ms`` entries have these four keys)."""
+        return cls(median=entry['median'], p95=entry['p95'], mean=entry['mean'], count=entry['count'])
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class MapToScene:
+    """Distances [m] from the map's points to the surfaces of the simulated scene the bag was made in."""
+
+    median_m: float
+    p90_m: float
+    points: int     # map points measured
+
+
+@dataclass
+class RunOutputs:
+    """What :func:`~lego_loam_py.outputs.write_outputs` wrote and measured. ``poses`` is None when it did not run
+    (a demo that recorded no pose): then only the trajectory length (0 m) goes into the summary."""
+
+    trajectory_length_m: float = 0.0
+    poses: int | None = None                    # poses in the trajectory files
+    map_files: dict[str, str] | None = None     # map name -> path of the file
+    accuracy: TrajectoryMetrics | None = None   # against the ground truth beside the bag
+    accuracy_error: str | None = None           # why there is a ground truth but no accuracy
+    map_to_scene: MapToScene | None = None
+    png: str | None = None                      # path of trajectory.png
+
+    def as_dict(self) -> dict:
+        out = {} if self.poses is None else {'poses': self.poses}
+        out['trajectory_length_m'] = self.trajectory_length_m
+        if self.map_files is not None:
+            out['map_files'] = self.map_files
+        if self.accuracy_error is not None:
+            out['accuracy_error'] = self.accuracy_error
+        if self.accuracy is not None:
+            out['accuracy'] = self.accuracy.as_dict()
+        if self.map_to_scene is not None:
+            out['map_to_scene'] = asdict(self.map_to_scene)
+        if self.png is not None:
+            out['png'] = self.png
+        return out
+
+
+class _Summary:
+    def as_dict(self) -> dict:
+        raise NotImplementedError
+
+    def to_json(self) -> str:
+        """The text of ``summary.json`` (numpy numbers as plain ones)."""
+        return json.dumps(self.as_dict(), indent=2, default=float)
+
+
+@dataclass
+class OfflineSummary(_Summary):
+    """``lego_loam_py run``: the pipeline in one process on ``bag``. Times are seconds."""
+
+    mode: ClassVar[str] = 'offline'
+    bag: str
+    counts: dict[str, int]                  # the run's counters: scans_in, scans_processed, mapping_steps, …
+    timings_ms: dict[str, TimingStats]      # stage -> its time per call
+    wall_time_s: float
+    bag_duration_s: float                   # of the data processed
+    outputs: RunOutputs = field(default_factory=RunOutputs)
+
+    @property
+    def realtime_factor(self) -> float:
+        """Seconds of data per second of wall time (nan when no time was measured)."""
+        return self.bag_duration_s / self.wall_time_s if self.wall_time_s > 0 else float('nan')
+
+    def as_dict(self) -> dict:
+        return dict(bag=self.bag, mode=self.mode, counts=self.counts,
+                    timings_ms={name: t.as_dict() for name, t in self.timings_ms.items()},
+                    wall_time_s=self.wall_time_s, bag_duration_s=self.bag_duration_s,
+                    realtime_factor=self.realtime_factor, **self.outputs.as_dict())
+
+
+@dataclass
+class DemoSummary(_Summary):
+    """The demo: the four nodes over DDS on ``bag``, replayed at ``rate`` times real time. Counts are scans
+    (mapOptimization: mapping steps) or messages; times are seconds."""
+
+    mode: ClassVar[str] = 'dds'
+    bag: str
+    rate: float
+    bag_duration_s: float
+    wall_time_s: float
+    scans_in: int                               # clouds in the bag
+    processed: dict[str, int]                   # node -> scans it processed
+    integrated: int                             # /integrated_to_init recorded: the trajectory's poses
+    not_received: int                           # scans imageProjection never received
+    drop_counters: dict[str, dict[str, int]]    # node -> its non-zero counters of messages thrown away
+    queue_overwritten: int                      # scans lost in featureAssociation's depth-1 input queues
+    keyframes: int
+    scans_with_imu: int                         # scans featureAssociation corrected with the IMU
+    timings_ms: dict[str, TimingStats]          # node -> its time per scan
+    processes: list[ProcessResult]
+    failures: list[str]
+    interrupted: bool
+    ready_after_s: float | None                 # from the start until every node was up (None: never)
+    outputs: RunOutputs = field(default_factory=RunOutputs)
+
+    @property
+    def integrated_fraction(self) -> float:
+        return self.integrated / self.scans_in if self.scans_in else 0.0
+
+    @property
+    def dropped(self) -> int:
+        """Scans never received plus every drop counter."""
+        return self.not_received + sum(sum(counters.values()) for counters in self.drop_counters.values())
+
+    def as_dict(self) -> dict:
+        return dict(
+            bag=self.bag, mode=self.mode, rate=self.rate, bag_duration_s=self.bag_duration_s,
+            wall_time_s=self.wall_time_s, scans_in=self.scans_in, processed=self.processed,
+            integrated=self.integrated, integrated_fraction=self.integrated_fraction,
+            not_received=self.not_received, drop_counters=self.drop_counters,
+            queue_overwritten=self.queue_overwritten, keyframes=self.keyframes, scans_with_imu=self.scans_with_imu,
+            timings_ms={name: t.as_dict() for name, t in self.timings_ms.items()},
+            processes=[dict(name=p.name, pid=p.pid, returncode=p.returncode, how=p.how, failure=p.failure)
+                       for p in self.processes],
+            failures=list(self.failures), interrupted=self.interrupted, ready_after_s=self.ready_after_s,
+            dropped=self.dropped, **self.outputs.as_dict())
