@@ -161,3 +161,42 @@ def test_an_unknown_executor_is_a_clear_error(processes):
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 2
     assert 'LEGO_LOAM_PY_EXECUTOR must be events or single' in err and 'Traceback' not in err
+
+
+def test_with_sim_time_a_node_reads_the_newest_clock_tick_without_waking_for_each(rclpy_context):
+    """/clock is polled by the nodes whose timers run on wall time: rclpy's own /clock subscription (a wake-up
+    per tick) is gone, and the clock handed out (diagnostics stamps) is the newest tick's time. mapOptimization,
+    whose timers run on ROS time, keeps rclpy's subscription."""
+    import rclpy
+    from rclpy.parameter import Parameter
+    from rosgraph_msgs.msg import Clock
+    from builtin_interfaces.msg import Time
+
+    from lego_loam_py.ros.map_optimization_node import MapOptimizationNode
+    from lego_loam_py.ros.transform_fusion_node import TransformFusionNode
+
+    sim_time = [Parameter('use_sim_time', value=True)]
+    fusion = TransformFusionNode(context=rclpy_context, parameter_overrides=sim_time)
+    mapping = MapOptimizationNode(context=rclpy_context, parameter_overrides=sim_time)
+    player = rclpy.create_node('clock_player', context=rclpy_context)
+    try:
+        assert fusion._time_source._clock_sub is None and fusion._polled_clock is not None
+        assert all(s.topic_name != '/clock' for s in fusion.subscriptions)
+        assert mapping._polled_clock is None and mapping._time_source._clock_sub is not None
+        publisher = player.create_publisher(Clock, '/clock', 10)
+        ticks = iter(range(10**6))
+
+        def newest_tick_applied() -> bool:
+            tick = next(ticks)
+            publisher.publish(Clock(clock=Time(sec=1000 + tick, nanosec=500)))
+            now = fusion.get_clock().now().nanoseconds
+            return now >= 1000 * 10**9 + 500 and (now - 500) % 10**9 == 0
+
+        assert spin_until(rclpy_context, player, newest_tick_applied, timeout=20), fusion.get_clock().now()
+        latest = fusion.get_clock().now().nanoseconds
+        publisher.publish(Clock(clock=Time(sec=5_000_000, nanosec=7)))
+        assert spin_until(rclpy_context, player, lambda: fusion.get_clock().now().nanoseconds != latest, timeout=20)
+        assert fusion.get_clock().now().nanoseconds == 5_000_000 * 10**9 + 7
+    finally:
+        for node in (fusion, mapping, player):
+            node.destroy_node()

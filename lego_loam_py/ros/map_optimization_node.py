@@ -61,6 +61,8 @@ INPUT_TOPICS = {'corner': '/laser_cloud_corner_last', 'surf': '/laser_cloud_surf
 
 
 class MapOptimizationNode(LegoLoamNode):
+    POLL_CLOCK = False   # the global map and loop-closure timers run on ROS time: every /clock tick counts
+
     def __init__(self, **kwargs):
         super().__init__('mapOptimization', **kwargs)
         self.core = MapOptimization(self.params)

@@ -18,7 +18,7 @@ from rclpy.node import Node
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.core.imu import imu_sample
-from lego_loam_py.ros.conversions import imu_sample_from_serialized, stamp_to_ns
+from lego_loam_py.ros.conversions import imu_sample_from_serialized, ns_to_stamp, serialized_stamp_ns, stamp_to_ns
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.params import declare_params
 
@@ -70,6 +70,9 @@ class LegoLoamNode(Node):
     MAX_WARNING_KINDS = 256        # throttling state kept (oldest kinds forgotten first)
     MAX_VARIANTS_PER_KEY = 16      # distinct texts per key before the key alone decides the kind
     DIAGNOSTICS_PERIOD = 1.0       # [s] of wall time between two /diagnostics messages
+    # With use_sim_time, take /clock only when the time is read (see _poll_clock_topic). A node whose timers run
+    # on ROS time needs every tick as it comes, and sets this False.
+    POLL_CLOCK = True
 
     def __init__(self, name: str, **kwargs):
         super().__init__(name, automatically_declare_parameters_from_overrides=True, **kwargs)
@@ -88,6 +91,42 @@ class LegoLoamNode(Node):
         # Wall time: with use_sim_time and no /clock the ROS clock stands still, and so would the diagnostics.
         self.create_timer(self.DIAGNOSTICS_PERIOD, self.publish_diagnostics,
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._polled_clock = self._poll_clock_topic() if self.POLL_CLOCK else None
+
+    # ------------------------------------------------------------------------------------------ the clock
+    def _poll_clock_topic(self):
+        """With use_sim_time, rclpy's time source wakes the node for every /clock tick (40 a second from a
+        player, about 0.6 ms of CPU per scan) to keep a time these nodes read only now and then: every header
+        they publish carries its input's stamp, and their timers run on wall time. The ticks wait in a polled
+        subscription instead (depth 1: only the newest), and :meth:`get_clock` applies the newest before
+        handing out the clock. Returns that subscription, or None (wall time, or a time source this rclpy
+        does not lay out as expected: then it stays as rclpy made it)."""
+        source = getattr(self, '_time_source', None)
+        subscription = getattr(source, '_clock_sub', None)
+        if subscription is None or not callable(getattr(source, 'clock_callback', None)):
+            return None
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from rosgraph_msgs.msg import Clock as ClockMessage
+
+        polled = self.create_polled_subscription(ClockMessage, subscription.topic_name,
+                                                 QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT),
+                                                 raw=True)
+        self.destroy_subscription(subscription)
+        source._clock_sub = None   # (use_sim_time set again later subscribes rclpy's way)
+        return polled
+
+    def get_clock(self):
+        """The node's clock, with the newest /clock tick applied first when ticks are polled."""
+        polled = getattr(self, '_polled_clock', None)   # (rclpy may ask before __init__ is through)
+        if polled is not None and self._time_source.ros_time_is_active:
+            newest = []
+            self.drain(polled, newest.append, count=False)
+            # A Clock message is a Time, laid out as a Header's stamp: the same reader applies.
+            stamp_ns = serialized_stamp_ns(newest[-1]) if newest else None
+            if stamp_ns is not None:
+                from rosgraph_msgs.msg import Clock as ClockMessage
+                self._time_source.clock_callback(ClockMessage(clock=ns_to_stamp(stamp_ns)))
+        return super().get_clock()
 
     # ---------------------------------------------------------------------------------- guarded callbacks
     def create_subscription(self, msg_type, topic, callback, qos_profile, **kwargs):
