@@ -14,7 +14,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lego_loam_py.core.indexing import ragged, ranges
-from lego_loam_py.core.params import Params
+from lego_loam_py.core.param_types import Params
 from lego_loam_py.core.sweep import ring_of
 
 __all__ = ['SurfCorrespondences', 'CornerCorrespondences', 'LastCloud', 'find_surf_correspondences',

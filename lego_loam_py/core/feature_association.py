@@ -34,7 +34,7 @@ from lego_loam_py.core.frames import (euler_to_matrix, invert_pose, lidar_to_cam
 from lego_loam_py.core.image_projection import CloudInfo
 from lego_loam_py.core.imu import ImuBuffer, imu_world_rotation
 from lego_loam_py.core.laser_odometry import OdometryStats, make_laser_odometry
-from lego_loam_py.core.params import Params
+from lego_loam_py.core.param_types import Params
 from lego_loam_py.core.sweep import (accumulate, motion_to_theta, relative_time, relative_time_from_azimuth,
                                      sweep_angles, sweep_rotation, transform_to_end, transform_to_start)
 from lego_loam_py.core.validation import (MAX_POSITION, MAX_SWEEP_TRANSLATION, cloud_problem, pose6_problem,

@@ -28,7 +28,7 @@ import numpy as np
 
 from lego_loam_py.core.image_projection import CloudInfo
 from lego_loam_py.core.indexing import ragged
-from lego_loam_py.core.params import Params
+from lego_loam_py.core.param_types import Params
 from lego_loam_py.core.voxel import voxel_downsample_groups
 
 __all__ = ['ScanFeatures', 'FeatureExtractor', 'smoothness', 'occluded_mask']

@@ -35,7 +35,7 @@ from lego_loam_py.core.correspondences import (CornerCorrespondences, LastCloud,
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
 from lego_loam_py.core.geometry import (line_coefficients, line_offsets, plane_coefficients, plane_distance,
                                         plane_through)
-from lego_loam_py.core.params import Params
+from lego_loam_py.core.param_types import Params
 from lego_loam_py.core.sweep import SweepStartFrame, plane_jacobian_rows, relative_time_of, transform_to_start
 
 __all__ = ['LaserOdometry', 'OriginalOdometry', 'SweepStartOdometry', 'make_laser_odometry', 'OdometryStats']

@@ -13,7 +13,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lego_loam_py.core.frames import transform_cloud, transform_points
-from lego_loam_py.core.params import LoopClosureParams
+from lego_loam_py.core.param_types import LoopClosureParams
 from lego_loam_py.core.voxel import voxel_downsample
 
 __all__ = ['LoopCandidate', 'LoopResult', 'find_loop_candidate', 'align_loop']

@@ -38,7 +38,7 @@ from lego_loam_py.core.gauss_newton import DegeneracyProjection
 from lego_loam_py.core.imu import ImuBuffer
 from lego_loam_py.core.loop_closure import LoopCandidate, LoopResult, align_loop, find_loop_candidate
 from lego_loam_py.core.odometry_continuity import OdometryJump, anchored_transform_bef
-from lego_loam_py.core.params import Params
+from lego_loam_py.core.param_types import Params
 from lego_loam_py.core.pose_graph import PoseGraph
 from lego_loam_py.core.scan_to_map import register_scan_to_map
 from lego_loam_py.core.validation import pose6_problem

@@ -28,7 +28,7 @@ from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix
 from lego_loam_py.core.image_projection import ImageProjection, InputError, prepare_input
 from lego_loam_py.core.map_optimization import MapOptimization
 from lego_loam_py.core.odometry_continuity import OdometryContinuity
-from lego_loam_py.core.params import Params
+from lego_loam_py.core.param_types import Params
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.core.transform_fusion import TransformFusion
 

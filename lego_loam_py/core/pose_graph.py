@@ -12,7 +12,7 @@ from typing import Sequence
 import numpy as np
 
 from lego_loam_py.core.frames import camera_pose_to_lidar, lidar_pose_to_camera, matrix_to_pose6, pose6_to_matrix
-from lego_loam_py.core.params import MapOptimizationParams
+from lego_loam_py.core.param_types import MapOptimizationParams
 
 __all__ = ['PoseGraph']
 

@@ -18,7 +18,7 @@ from lego_loam_py.core.frames import (GENERATOR_X, GENERATOR_Y, GENERATOR_Z, pos
                                       transform_points)
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
 from lego_loam_py.core.geometry import line_coefficients
-from lego_loam_py.core.params import Params
+from lego_loam_py.core.param_types import Params
 
 __all__ = ['map_jacobian_rows', 'edge_correspondences', 'plane_correspondences', 'register_scan_to_map',
            'RegistrationCounts']

@@ -1,0 +1,269 @@
+"""All parameters of lego_loam_py in one typed structure: their names, types, defaults and units.
+
+Every tunable value of the original LeGO-LOAM (``utility.h`` and the numbers hard-coded in its .cpp files,
+docs/original.md §2.1-§2.2) has a named field here, grouped by the node that uses it. The defaults
+reproduce the original's VLP-16 configuration exactly. A sensor preset (:data:`SENSOR_PRESETS`) fills the
+geometry fields of ``sensor``.
+
+Units: lengths in metres, times in seconds, angles in degrees unless a field's comment says radians (the
+original's ``segmentTheta`` is kept in radians, as in ``utility.h``).
+
+Building :class:`Params` from a mapping with checks is :mod:`lego_loam_py.core.param_validation`; reading
+files and overrides is :mod:`lego_loam_py.core.params`, which re-exports everything here.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+from lego_loam_py.errors import LegoLoamError
+
+__all__ = [
+    'ParameterError', 'SensorParams', 'ImageProjectionParams', 'FeatureAssociationParams',
+    'MapOptimizationParams', 'LoopClosureParams', 'ReliabilityParams', 'Params', 'SENSOR_PRESETS',
+]
+
+
+class ParameterError(LegoLoamError, ValueError):
+    """A parameter file or override is invalid; the message names the offending key."""
+
+    exit_code = 2
+
+
+@dataclass(frozen=True)
+class SensorParams:
+    """Lidar geometry, input topics and per-point fields."""
+
+    preset: str = 'VLP-16'             # one of SENSOR_PRESETS; fills the geometry fields below
+    n_scan: int = 16                   # rows of the range image (beams)
+    horizon_scan: int = 1800           # columns of the range image
+    ang_res_x: float = 0.2             # horizontal resolution [deg]
+    ang_res_y: float = 2.0             # vertical resolution [deg] (only without the ring field)
+    ang_bottom: float = 15.1           # offset of the lowest beam below horizontal [deg] (without ring)
+    ground_scan_ind: int = 7           # rows 0..ground_scan_ind-1 (and the row above) may be ground
+    scan_period: float = 0.1           # sweep duration [s]
+    use_cloud_ring: bool = True        # row from the ring field; falls back to elevation when absent
+    ring_field: str = 'ring'           # name of the beam index field
+    time_field: str = 'time'           # name of the per-point time field [s since sweep start]
+    sensor_minimum_range: float = 1.0  # closer returns are dropped [m]
+    sensor_mount_angle: float = 0.0    # expected ground slope in the ground test [deg]
+    point_cloud_topic: str = '/velodyne_points'
+    imu_topic: str = '/imu/data'       # empty string: do not subscribe to an IMU
+
+    @property
+    def segment_alpha_x(self) -> float:
+        """Horizontal angle between neighbouring columns [rad]."""
+        return math.radians(self.ang_res_x)
+
+    @property
+    def segment_alpha_y(self) -> float:
+        """Vertical angle between neighbouring rows [rad]."""
+        return math.radians(self.ang_res_y)
+
+
+# Geometry of the sensor blocks of utility.h (docs/original.md §2.3) plus the HDL-64E values the original's
+# author suggested (issue #12, ang_res_y as 26.9/63). Keys are the values accepted by ``sensor.preset``.
+SENSOR_PRESETS: dict[str, dict[str, Any]] = {
+    'VLP-16': dict(n_scan=16, horizon_scan=1800, ang_res_x=0.2, ang_res_y=2.0, ang_bottom=15.0 + 0.1,
+                   ground_scan_ind=7),
+    'HDL-32E': dict(n_scan=32, horizon_scan=1800, ang_res_x=360.0 / 1800, ang_res_y=41.33 / 31,
+                    ang_bottom=30.67, ground_scan_ind=20),
+    'VLS-128': dict(n_scan=128, horizon_scan=1800, ang_res_x=0.2, ang_res_y=0.3, ang_bottom=25.0,
+                    ground_scan_ind=10),
+    'HDL-64E': dict(n_scan=64, horizon_scan=1800, ang_res_x=0.2, ang_res_y=26.9 / 63, ang_bottom=24.9,
+                    ground_scan_ind=50),
+    'OS1-16': dict(n_scan=16, horizon_scan=1024, ang_res_x=360.0 / 1024, ang_res_y=33.2 / 15,
+                   ang_bottom=16.6 + 0.1, ground_scan_ind=7),
+    'OS1-64': dict(n_scan=64, horizon_scan=1024, ang_res_x=360.0 / 1024, ang_res_y=33.2 / 63,
+                   ang_bottom=16.6 + 0.1, ground_scan_ind=15),
+}
+_PRESET_FIELDS = ('n_scan', 'horizon_scan', 'ang_res_x', 'ang_res_y', 'ang_bottom', 'ground_scan_ind')
+
+
+@dataclass(frozen=True)
+class ImageProjectionParams:
+    """Range image, ground removal and segmentation (imageProjection.cpp)."""
+
+    ground_slope_threshold: float = 10.0  # |slope - mount angle| <= this marks ground [deg]
+    # 'refined' (default) removes from the original's ground the points that start a vertical surface (wall
+    # bases, car sides) and those that step up from the ground below them in their column (car hoods, tables);
+    # 'original' is the C++'s rule.
+    ground_rule: str = 'refined'
+    ground_vertical_ratio: float = 2.0      # a pair is a vertical surface if |dz| > ratio * horizontal gap ...
+    ground_vertical_gap: float = 0.05       # ... and the gap < this fraction of the range
+    ground_plane_tolerance: float = 0.5     # ground farther from the plane fitted to the near ground than ...
+    ground_plane_tolerance_ratio: float = 0.05  # ... max(this [m], this x range) is not ground
+    ground_plane_radius: float = 25.0       # the plane is fitted to, and checks, the candidates within this range [m]
+    ground_chain_slope: float = 20.0        # later ground in a column rises at most tan(this [deg]) x gap ...
+    ground_chain_tolerance: float = 0.15    # ... + this [m] over the column's last ground point
+    segment_theta: float = 60.0 / 180.0 * math.pi  # BFS join criterion beta > theta [rad]
+    segment_valid_point_num: int = 5      # small cluster kept if >= this many points ...
+    segment_valid_line_num: int = 3       # ... over >= this many rows
+    segment_min_cluster_size: int = 30    # a cluster this large is always kept
+    ring_index_margin: int = 5            # start/end ring index margins in the segmented cloud
+    outlier_column_stride: int = 5        # outliers published for columns % stride == 0
+    ground_column_stride: int = 5         # ground thinning: keep columns % stride == 0 ...
+    ground_edge_columns: int = 5          # ... and the first/last columns of the image
+
+
+@dataclass(frozen=True)
+class FeatureAssociationParams:
+    """Feature extraction and scan-to-scan odometry (featureAssociation.cpp)."""
+
+    system_delay: int = 0                 # scans ignored at start-up (declared, unused by the original)
+    imu_que_length: int = 200             # IMU ring buffer length
+    gravity: float = 9.81                 # [m/s^2]
+    # Relative time of each point in the sweep (for deskewing): 'azimuth' (from the point's azimuth, modulo
+    # the sweep), 'point_time' (the cloud's time field; azimuth when absent) or 'original' (the original's
+    # unwrapping, which times the first quarter of the sweep of most rings as the sweep's end; bit-exact).
+    relative_time_source: str = 'azimuth'
+    # Scan-to-scan model: 'sweep_start' registers the previous sweep's features, deskewed to that sweep's
+    # start, against the current sweep mapped there with (1 + s) times the motion (stable, poses at the
+    # header stamps); 'original' registers against the previous features moved to their sweep's end (the
+    # C++'s scheme: poses are those of the sweep end; with exact timing it is only marginally stable).
+    odometry_model: str = 'sweep_start'
+    sync_tolerance: float = 0.05          # |stamp difference| among the three inputs [s]
+    skip_frame_num: int = 1               # publish to mapping every (skip_frame_num + 1)-th scan
+    smoothness_half_window: int = 5       # +-5 neighbours in the curvature
+    occlusion_column_gap: int = 10        # neighbours closer than this many columns are compared
+    occlusion_depth_jump: float = 0.3     # [m]
+    parallel_beam_ratio: float = 0.02     # both neighbour range jumps > ratio * range
+    sections_total: int = 6               # sub-regions per ring
+    edge_threshold: float = 0.1           # curvature > -> edge candidate
+    surf_threshold: float = 0.1           # curvature < -> flat candidate
+    edge_feature_num: int = 2             # sharp features per sub-region
+    less_edge_feature_num: int = 20       # less-sharp features per sub-region (including the sharp)
+    surf_feature_num: int = 4             # flat features per sub-region
+    suppress_half_window: int = 5         # neighbours marked as picked around a feature
+    suppress_column_jump: int = 10        # ... unless the column jumps by more than this
+    less_flat_leaf_size: float = 0.2      # voxel leaf of the less-flat cloud [m]
+    nearest_feature_search_sq_dist: float = 25.0  # correspondence gate [m^2]
+    ring_search_window: float = 2.5       # rings searched for the 2nd/3rd correspondence point
+    max_iterations: int = 25              # Gauss-Newton iterations per stage
+    reassociate_every: int = 5            # correspondences recomputed every n iterations
+    weight_gain: float = 1.8              # s = 1 - gain * |d|
+    min_weight: float = 0.1               # correspondences with s <= this are dropped
+    step_scale: float = 1.0               # Gauss-Newton step scale (the original: 0.05, see config/original.yaml)
+    # sweep_start model with an IMU: the rotation the IMU measured between two sweeps is held with a prior of
+    # this weight [m^2/rad^2] (compared with the sum of squared point residuals in m); 0 leaves it to the lidar.
+    # Scan-to-scan matching has a small scene-dependent yaw bias (0.01 deg/scan on the simulated campus) that an
+    # attitude-measuring IMU does not have; lower this for an IMU whose heading drifts fast.
+    imu_rotation_prior: float = 1e6
+    degeneracy_threshold: float = 10.0    # eigenvalues below are degenerate directions
+    convergence_rotation: float = 0.1     # [deg]
+    convergence_translation: float = 0.1  # [cm]
+    min_correspondences: int = 10         # per iteration
+    min_last_corner_points: int = 10      # odometry skipped below
+    min_last_surf_points: int = 100       # odometry skipped below
+
+
+@dataclass(frozen=True)
+class MapOptimizationParams:
+    """Scan-to-map optimisation, keyframes and the pose graph (mapOptmization.cpp)."""
+
+    mapping_process_interval: float = 0.3  # minimum time between two mapping steps [s]
+    sync_tolerance: float = 0.005          # |stamp difference| among the four inputs [s]
+    corner_leaf_size: float = 0.2          # voxel leaves [m]
+    surf_leaf_size: float = 0.4
+    outlier_leaf_size: float = 0.4
+    surrounding_keyframe_search_radius: float = 50.0  # submap radius [m]
+    surrounding_keyframe_search_num: int = 50         # submap size with loop closure on [keyframes]
+    surrounding_keypose_leaf_size: float = 1.0
+    # Keyframe kept per keypose voxel: 'averaged_index' (the original: PCL averages the keyframe indices in
+    # the voxel and the truncated mean is taken, quirk 8.5) or 'latest' (the voxel's most recent keyframe: a
+    # cheaper map on a second pass, not a more accurate one on the simulated campus).
+    keypose_pick: str = 'averaged_index'
+    knn: int = 5                            # neighbours per correspondence
+    knn_max_sq_dist: float = 1.0            # the k-th neighbour must be closer [m^2]
+    edge_eigen_ratio: float = 3.0           # line if lambda1 > ratio * lambda2
+    line_half_length: float = 0.1           # line points = centroid +- this * direction [m]
+    plane_max_residual: float = 0.2         # every neighbour within this of the plane [m]
+    weight_gain: float = 0.9                # s = 1 - gain * |d|
+    min_weight: float = 0.1
+    max_iterations: int = 10
+    min_correspondences: int = 50
+    min_corner_map_points: int = 10         # map must have more than this
+    min_surf_map_points: int = 100
+    degeneracy_threshold: float = 100.0
+    convergence_rotation: float = 0.05      # [deg]
+    convergence_translation: float = 0.05   # [cm]
+    imu_blend_weight: float = 0.002         # roll/pitch <- (1 - w) * estimate + w * IMU
+    keyframe_distance: float = 0.3          # new keyframe after moving this far [m]
+    isam_relinearize_threshold: float = 0.01
+    isam_relinearize_skip: int = 1
+    # Diagonal variances (roll, pitch, yaw, x, y, z) of the prior and odometry factors.
+    prior_noise_variances: tuple[float, ...] = (1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-6)
+    odometry_noise_variances: tuple[float, ...] = (1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-6)
+    global_map_visualization_search_radius: float = 500.0  # [m]
+    global_map_keypose_leaf_size: float = 1.0
+    global_map_leaf_size: float = 0.4
+    global_map_publish_period: float = 5.0  # [s] (the original's 0.2 Hz thread)
+    file_directory: str = '/tmp/'           # where maps and trajectories are saved
+    save_map_on_shutdown: bool = True
+
+
+@dataclass(frozen=True)
+class LoopClosureParams:
+    """ICP loop closure (mapOptmization.cpp, off by default as in the original)."""
+
+    loop_closure_enable_flag: bool = False
+    history_keyframe_search_radius: float = 7.0   # candidate search radius [m]
+    history_keyframe_search_num: int = 25         # target submap = candidate +- this many keyframes
+    history_keyframe_fitness_score: float = 0.3   # ICP fitness gate (mean squared NN distance) [m^2]
+    history_keyframe_leaf_size: float = 0.4
+    time_gap: float = 30.0                        # candidate must be older than this [s]
+    period: float = 1.0                           # loop detection period [s]
+    icp_max_correspondence_distance: float = 100.0
+    icp_max_iterations: int = 100
+    icp_transformation_epsilon: float = 1e-6
+    icp_euclidean_fitness_epsilon: float = 1e-6
+    icp_ransac_iterations: int = 0
+
+
+@dataclass(frozen=True)
+class ReliabilityParams:
+    """Bounds on inputs and the self-checks that keep a node serving (not in the original)."""
+
+    # A raw cloud with more points than this many per range-image pixel is not from the configured sensor
+    # (a dual-return VLP-16 has 2): dropped before it is decoded, so memory and time per scan stay bounded.
+    # Clouds derived from the range image (imageProjection's, featureAssociation's) hold at most one per pixel.
+    max_points_per_pixel: float = 16.0
+    # Consecutive failed steps (unexpected errors) after which a node resets its state as if it were poisoned.
+    reset_after_failures: int = 3
+    # Warn (throttled, with the reason, and on /diagnostics) when this many valid inputs in a row produced no
+    # output; 0 switches the watchdog off.
+    watchdog_inputs: int = 20
+
+
+@dataclass(frozen=True)
+class Params:
+    """Every parameter of the four nodes; ``Params()`` is the original's VLP-16 configuration."""
+
+    sensor: SensorParams = field(default_factory=SensorParams)
+    image_projection: ImageProjectionParams = field(default_factory=ImageProjectionParams)
+    feature_association: FeatureAssociationParams = field(default_factory=FeatureAssociationParams)
+    map_optimization: MapOptimizationParams = field(default_factory=MapOptimizationParams)
+    loop_closure: LoopClosureParams = field(default_factory=LoopClosureParams)
+    reliability: ReliabilityParams = field(default_factory=ReliabilityParams)
+
+    def to_flat(self) -> dict[str, Any]:
+        """``{'section.name': value}`` for every parameter (tuples become lists, as ROS stores them)."""
+        out = {}
+        for section in fields(self):
+            group = getattr(self, section.name)
+            for f in fields(group):
+                value = getattr(group, f.name)
+                out[f'{section.name}.{f.name}'] = list(value) if isinstance(value, tuple) else value
+        return out
+
+    def replace(self, **flat_overrides: Any) -> 'Params':
+        """A copy with ``section__name=value`` overrides applied and validated (handy in tests)."""
+        overrides = {k.replace('__', '.'): v for k, v in flat_overrides.items()}
+        merged = self.to_flat()
+        if 'sensor.preset' in overrides:  # a new preset brings its own geometry unless given explicitly
+            for name in _PRESET_FIELDS:
+                merged.pop(f'sensor.{name}')
+        merged.update(overrides)
+        from lego_loam_py.core.param_validation import params_from_mapping   # (it imports this module)
+        return params_from_mapping(merged)

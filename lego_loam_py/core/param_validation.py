@@ -1,0 +1,161 @@
+"""Params from a mapping of parameter names: type checks, the sensor preset, range and choice checks.
+
+Names are dotted (``'image_projection.segment_theta'``) or nested mappings. A sensor preset fills the geometry
+fields of ``sensor``; any of those fields given explicitly overrides the preset. Unknown keys and values of the
+wrong type or out of range raise :class:`~lego_loam_py.core.param_types.ParameterError` naming the key.
+"""
+from __future__ import annotations
+
+import difflib
+import math
+import typing
+from dataclasses import fields
+from typing import Any, Mapping, Sequence
+
+from lego_loam_py.core.param_types import SENSOR_PRESETS, ParameterError, Params, SensorParams
+
+__all__ = ['params_from_mapping', 'flatten']
+
+
+def _sections() -> dict[str, type]:
+    return {f.name: f.default_factory for f in fields(Params)}  # type: ignore[misc]
+
+
+def _field_types(cls: type) -> dict[str, Any]:
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in fields(cls)}
+
+
+_VALID_KEYS: list[str] = [f'{s}.{n}' for s, cls in _sections().items() for n in _field_types(cls)]
+
+
+def flatten(tree: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
+    """Nested mapping -> ``{'a.b.c': value}`` (ROS 2 turns nested YAML into dotted names the same way)."""
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        if not isinstance(key, str):
+            raise ParameterError(f'parameter name {key!r} under {prefix or "the root"!r} is not a string')
+        name = f'{prefix}{key}'
+        if isinstance(value, Mapping):
+            out.update(flatten(value, name + '.'))
+        else:
+            out[name] = value
+    return out
+
+
+def _coerce(key: str, value: Any, annotation: Any) -> Any:
+    """Check ``value`` against the field type; ints are accepted for floats, nothing else is converted."""
+    def wrong(expected: str) -> ParameterError:
+        return ParameterError(f"parameter '{key}' must be {expected}, got {value!r} ({type(value).__name__})")
+
+    if annotation is bool:
+        if not isinstance(value, bool):
+            raise wrong('a boolean')
+        return value
+    if annotation is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise wrong('an integer')
+        return value
+    if annotation is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise wrong('a number')
+        value = float(value)
+        if not math.isfinite(value):
+            raise wrong('a finite number')
+        return value
+    if annotation is str:
+        if not isinstance(value, str):
+            raise wrong('a string')
+        return value
+    if typing.get_origin(annotation) is tuple:
+        if not isinstance(value, Sequence) or isinstance(value, str):
+            raise wrong('a list of numbers')
+        return tuple(_coerce(f'{key}[{i}]', v, float) for i, v in enumerate(value))
+    raise TypeError(f'unsupported parameter type {annotation!r} for {key}')  # programming error
+
+
+def _unknown_key_error(key: str) -> ParameterError:
+    close = difflib.get_close_matches(key, _VALID_KEYS, n=1, cutoff=0.6)
+    hint = f" (did you mean '{close[0]}'?)" if close else ''
+    return ParameterError(f"unknown parameter '{key}'{hint}")
+
+
+def params_from_mapping(values: Mapping[str, Any], apply_preset: bool = True) -> Params:
+    """Build :class:`Params` from flat dotted names or a nested mapping, on top of the defaults.
+
+    With ``apply_preset`` the geometry of ``sensor.preset`` is applied first and explicit ``sensor.*``
+    geometry keys override it.
+    """
+    flat = flatten(values)
+    sections = _sections()
+    grouped: dict[str, dict[str, Any]] = {name: {} for name in sections}
+    for key, value in flat.items():
+        section, _, name = key.partition('.')
+        if section not in sections or name not in _field_types(sections[section]):
+            raise _unknown_key_error(key)
+        grouped[section][name] = _coerce(key, value, _field_types(sections[section])[name])
+
+    sensor_values = grouped['sensor']
+    if apply_preset:
+        preset = sensor_values.get('preset', SensorParams.preset)
+        if preset not in SENSOR_PRESETS:
+            raise ParameterError(f"parameter 'sensor.preset' must be one of {sorted(SENSOR_PRESETS)}, "
+                                 f'got {preset!r}')
+        sensor_values = {**SENSOR_PRESETS[preset], **sensor_values}
+    built = {name: cls(**grouped[name]) for name, cls in sections.items() if name != 'sensor'}
+    params = Params(sensor=SensorParams(**sensor_values), **built)
+    _validate(params)
+    return params
+
+
+def _validate(p: Params) -> None:
+    def need(condition: bool, key: str, message: str) -> None:
+        if not condition:
+            raise ParameterError(f"parameter '{key}' {message}")
+
+    s = p.sensor
+    need(s.preset in SENSOR_PRESETS, 'sensor.preset', f'must be one of {sorted(SENSOR_PRESETS)}')
+    need(s.n_scan > 0, 'sensor.n_scan', 'must be positive')
+    need(s.horizon_scan > 0, 'sensor.horizon_scan', 'must be positive')
+    need(s.ang_res_x > 0, 'sensor.ang_res_x', 'must be positive')
+    need(s.ang_res_y > 0, 'sensor.ang_res_y', 'must be positive')
+    need(0 < s.ground_scan_ind < s.n_scan, 'sensor.ground_scan_ind', 'must lie in 1..n_scan-1')
+    need(s.scan_period > 0, 'sensor.scan_period', 'must be positive')
+    need(s.sensor_minimum_range >= 0, 'sensor.sensor_minimum_range', 'must not be negative')
+    need(s.point_cloud_topic != '', 'sensor.point_cloud_topic', 'must not be empty')
+    ip = p.image_projection
+    need(ip.ground_rule in ('refined', 'original'), 'image_projection.ground_rule', "must be 'refined' or 'original'")
+    need(p.map_optimization.keypose_pick in ('latest', 'averaged_index'), 'map_optimization.keypose_pick',
+         "must be 'latest' or 'averaged_index'")
+    need(0 < ip.segment_theta < math.pi, 'image_projection.segment_theta', 'must lie in (0, pi) radians')
+    need(0 <= ip.ground_chain_slope < 90, 'image_projection.ground_chain_slope', 'must lie in [0, 90) degrees')
+    for key in ('ground_plane_radius', 'ground_chain_tolerance', 'ground_plane_tolerance'):
+        need(getattr(ip, key) >= 0, f'image_projection.{key}', 'must not be negative')
+    need(ip.outlier_column_stride > 0, 'image_projection.outlier_column_stride', 'must be positive')
+    need(ip.ground_column_stride > 0, 'image_projection.ground_column_stride', 'must be positive')
+    fa = p.feature_association
+    need(fa.relative_time_source in ('azimuth', 'point_time', 'original'), 'feature_association.relative_time_source',
+         "must be 'azimuth', 'point_time' or 'original'")
+    need(fa.odometry_model in ('sweep_start', 'original'), 'feature_association.odometry_model',
+         "must be 'sweep_start' or 'original'")
+    need(fa.sections_total > 0, 'feature_association.sections_total', 'must be positive')
+    need(fa.skip_frame_num >= 0, 'feature_association.skip_frame_num', 'must not be negative')
+    need(fa.less_flat_leaf_size > 0, 'feature_association.less_flat_leaf_size', 'must be positive')
+    need(fa.imu_que_length > 0, 'feature_association.imu_que_length', 'must be positive')
+    need(fa.reassociate_every > 0, 'feature_association.reassociate_every', 'must be positive')
+    mo = p.map_optimization
+    for name in ('corner_leaf_size', 'surf_leaf_size', 'outlier_leaf_size', 'surrounding_keypose_leaf_size',
+                 'global_map_keypose_leaf_size', 'global_map_leaf_size', 'global_map_publish_period'):
+        need(getattr(mo, name) > 0, f'map_optimization.{name}', 'must be positive')
+    for name in ('prior_noise_variances', 'odometry_noise_variances'):
+        value = getattr(mo, name)
+        need(len(value) == 6 and all(v > 0 for v in value), f'map_optimization.{name}',
+             'must be 6 positive variances (roll, pitch, yaw, x, y, z)')
+    need(mo.knn >= 3, 'map_optimization.knn', 'must be at least 3')
+    r = p.reliability
+    need(r.max_points_per_pixel >= 1, 'reliability.max_points_per_pixel', 'must be at least 1')
+    need(r.reset_after_failures >= 1, 'reliability.reset_after_failures', 'must be at least 1')
+    need(r.watchdog_inputs >= 0, 'reliability.watchdog_inputs', 'must not be negative (0: off)')
+    lc = p.loop_closure
+    need(lc.period > 0, 'loop_closure.period', 'must be positive')
+    need(lc.history_keyframe_leaf_size > 0, 'loop_closure.history_keyframe_leaf_size', 'must be positive')
