@@ -10,6 +10,7 @@ from lego_loam_py.core.image_projection import (NO_LABEL, OUTLIER_LABEL, ImagePr
                                                 ProjectionInput, prepare_input)
 from lego_loam_py.core.params import Params, default_params_file, load_params
 from lego_loam_py.core.pointcloud import VELODYNE_POINT_DTYPE, velodyne_points
+from lego_loam_py.core.segmentation import Segmentation
 from tests.support.reference_bfs import reference_labels
 from tests.support.scenes import floor_ranges, pixel_points, scene_points, wall_ranges
 
@@ -179,10 +180,9 @@ def test_segmentation_equals_plain_bfs_on_random_images(seed):
     rng = np.random.default_rng(seed)
     h = 1800 if seed < 3 else int(rng.choice([40, 60, 90]))
     params = PARAMS.replace(sensor__horizon_scan=h, sensor__ang_res_x=360.0 / h) if h != 1800 else PARAMS
-    ip = ImageProjection(params)
     image, empty, ground = random_range_image(rng, 16, h)
-    ours = ip.segment(np.where(empty, np.finfo(np.float32).max, image).reshape(-1), ~empty.reshape(-1),
-                      ground.reshape(-1)).reshape(16, h)
+    ranges = np.where(empty, np.finfo(np.float32).max, image).reshape(-1)
+    ours = Segmentation(params).labels(ranges, ~empty.reshape(-1), ground.reshape(-1)).reshape(16, h)
     s = params.sensor
     reference = reference_labels(image.astype(np.float64), empty | ground, math.radians(s.ang_res_x),
                                  math.radians(s.ang_res_y), params.image_projection.segment_theta)
