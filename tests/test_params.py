@@ -1,6 +1,7 @@
 """Parameters: defaults equal the original and config/params.yaml, presets, clear errors, ROS declaration."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import textwrap
 
@@ -113,6 +114,26 @@ def test_node_specific_section_applies_on_top(tmp_path):
     assert load_params(path, node_name='/featureAssociation').sensor.sensor_minimum_range == 2.0
 
 
+def test_every_mode_switch_is_typed_with_its_choices():
+    """A parameter that picks a behaviour by name is a Literal of its names, not a bare string: the loader
+    checks it, and the defaults are among the names."""
+    import typing
+
+    from lego_loam_py.core import param_types
+
+    modes = {}
+    for section in dataclasses.fields(Params):
+        hints = typing.get_type_hints(section.default_factory)
+        for name, hint in hints.items():
+            if typing.get_origin(hint) is typing.Literal:
+                modes[f'{section.name}.{name}'] = typing.get_args(hint)
+                assert getattr(getattr(Params(), section.name), name) in typing.get_args(hint)
+    assert modes == {'image_projection.ground_rule': typing.get_args(param_types.GroundRule),
+                     'feature_association.relative_time_source': ('azimuth', 'point_time', 'original'),
+                     'feature_association.odometry_model': ('sweep_start', 'original'),
+                     'map_optimization.keypose_pick': ('averaged_index', 'latest')}
+
+
 def test_int_accepted_for_float():
     assert load_params(overrides={'sensor.sensor_minimum_range': 2}).sensor.sensor_minimum_range == 2.0
 
@@ -131,6 +152,12 @@ def test_int_accepted_for_float():
     ('map_optimization.prior_noise_variances', [1, 2], "'map_optimization.prior_noise_variances' must be 6"),
     ('map_optimization.prior_noise_variances', 3.0, "'map_optimization.prior_noise_variances' must be a list"),
     ('image_projection.segment_theta', 60.0, "'image_projection.segment_theta' must lie in (0, pi) radians"),
+    ('feature_association.odometry_model', 'sweepstart',
+     "'feature_association.odometry_model' must be 'sweep_start' or 'original', got 'sweepstart'"),
+    ('feature_association.relative_time_source', 'time',
+     "'feature_association.relative_time_source' must be 'azimuth', 'point_time' or 'original'"),
+    ('image_projection.ground_rule', 1, "'image_projection.ground_rule' must be 'refined' or 'original', got 1"),
+    ('map_optimization.keypose_pick', 'first', "'map_optimization.keypose_pick' must be 'averaged_index' or 'latest'"),
 ])
 def test_errors_name_the_key(key, value, fragment):
     with pytest.raises(ParameterError) as info:

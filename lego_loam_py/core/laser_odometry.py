@@ -35,7 +35,7 @@ from lego_loam_py.core.correspondences import (CornerCorrespondences, LastCloud,
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
 from lego_loam_py.core.geometry import (line_coefficients, line_offsets, plane_coefficients, plane_distance,
                                         plane_through)
-from lego_loam_py.core.param_types import Params
+from lego_loam_py.core.param_types import OdometryModel, Params
 from lego_loam_py.core.sweep import SweepStartFrame, plane_jacobian_rows, relative_time_of, transform_to_start
 
 __all__ = ['LaserOdometry', 'OriginalOdometry', 'SweepStartOdometry', 'make_laser_odometry', 'OdometryStats']
@@ -316,5 +316,5 @@ class SweepStartOdometry(LaserOdometry):
 
 def make_laser_odometry(params: Params, fix_scan_bound: bool = False) -> LaserOdometry:
     """The odometry model ``feature_association.odometry_model`` names."""
-    models = {'original': OriginalOdometry, 'sweep_start': SweepStartOdometry}
+    models: dict[OdometryModel, type[LaserOdometry]] = {'original': OriginalOdometry, 'sweep_start': SweepStartOdometry}
     return models[params.feature_association.odometry_model](params, fix_scan_bound)

@@ -15,15 +15,22 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields
-from typing import Any
+from typing import Any, Literal
 
 from lego_loam_py.errors import LegoLoamError
 
 __all__ = [
     'ParameterError', 'SensorParams', 'ImageProjectionParams', 'FeatureAssociationParams',
-    'MapOptimizationParams', 'LoopClosureParams', 'ReliabilityParams', 'Params', 'SENSOR_PRESETS',
+    'MapOptimizationParams', 'LoopClosureParams', 'ReliabilityParams', 'Params', 'SENSOR_PRESETS', 'GroundRule',
+    'RelativeTimeSource', 'OdometryModel', 'KeyposePick',
 ]
 
+
+# The mode switches: the values each may take, checked when parameters are loaded (see the fields' comments).
+GroundRule = Literal['refined', 'original']
+RelativeTimeSource = Literal['azimuth', 'point_time', 'original']
+OdometryModel = Literal['sweep_start', 'original']
+KeyposePick = Literal['averaged_index', 'latest']
 
 class ParameterError(LegoLoamError, ValueError):
     """A parameter file or override is invalid; the message names the offending key."""
@@ -89,7 +96,7 @@ class ImageProjectionParams:
     # 'refined' (default) removes from the original's ground the points that start a vertical surface (wall
     # bases, car sides) and those that step up from the ground below them in their column (car hoods, tables);
     # 'original' is the C++'s rule.
-    ground_rule: str = 'refined'
+    ground_rule: GroundRule = 'refined'
     ground_vertical_ratio: float = 2.0      # a pair is a vertical surface if |dz| > ratio * horizontal gap ...
     ground_vertical_gap: float = 0.05       # ... and the gap < this fraction of the range
     ground_plane_tolerance: float = 0.5     # ground farther from the plane fitted to the near ground than ...
@@ -117,12 +124,12 @@ class FeatureAssociationParams:
     # Relative time of each point in the sweep (for deskewing): 'azimuth' (from the point's azimuth, modulo
     # the sweep), 'point_time' (the cloud's time field; azimuth when absent) or 'original' (the original's
     # unwrapping, which times the first quarter of the sweep of most rings as the sweep's end; bit-exact).
-    relative_time_source: str = 'azimuth'
+    relative_time_source: RelativeTimeSource = 'azimuth'
     # Scan-to-scan model: 'sweep_start' registers the previous sweep's features, deskewed to that sweep's
     # start, against the current sweep mapped there with (1 + s) times the motion (stable, poses at the
     # header stamps); 'original' registers against the previous features moved to their sweep's end (the
     # C++'s scheme: poses are those of the sweep end; with exact timing it is only marginally stable).
-    odometry_model: str = 'sweep_start'
+    odometry_model: OdometryModel = 'sweep_start'
     sync_tolerance: float = 0.05          # |stamp difference| among the three inputs [s]
     skip_frame_num: int = 1               # publish to mapping every (skip_frame_num + 1)-th scan
     smoothness_half_window: int = 5       # +-5 neighbours in the curvature
@@ -173,7 +180,7 @@ class MapOptimizationParams:
     # Keyframe kept per keypose voxel: 'averaged_index' (the original: PCL averages the keyframe indices in
     # the voxel and the truncated mean is taken, quirk 8.5) or 'latest' (the voxel's most recent keyframe: a
     # cheaper map on a second pass, not a more accurate one on the simulated campus).
-    keypose_pick: str = 'averaged_index'
+    keypose_pick: KeyposePick = 'averaged_index'
     knn: int = 5                            # neighbours per correspondence
     knn_max_sq_dist: float = 1.0            # the k-th neighbour must be closer [m^2]
     edge_eigen_ratio: float = 3.0           # line if lambda1 > ratio * lambda2

@@ -67,6 +67,12 @@ def _coerce(key: str, value: Any, annotation: Any) -> Any:
         if not isinstance(value, str):
             raise wrong('a string')
         return value
+    if typing.get_origin(annotation) is typing.Literal:   # a mode switch: one of its names
+        choices = typing.get_args(annotation)
+        if value not in choices:
+            quoted = [repr(c) for c in choices]
+            raise wrong(f"{', '.join(quoted[:-1])} or {quoted[-1]}")
+        return value
     if typing.get_origin(annotation) is tuple:
         if not isinstance(value, Sequence) or isinstance(value, str):
             raise wrong('a list of numbers')
@@ -124,9 +130,6 @@ def _validate(p: Params) -> None:
     need(s.sensor_minimum_range >= 0, 'sensor.sensor_minimum_range', 'must not be negative')
     need(s.point_cloud_topic != '', 'sensor.point_cloud_topic', 'must not be empty')
     ip = p.image_projection
-    need(ip.ground_rule in ('refined', 'original'), 'image_projection.ground_rule', "must be 'refined' or 'original'")
-    need(p.map_optimization.keypose_pick in ('latest', 'averaged_index'), 'map_optimization.keypose_pick',
-         "must be 'latest' or 'averaged_index'")
     need(0 < ip.segment_theta < math.pi, 'image_projection.segment_theta', 'must lie in (0, pi) radians')
     need(0 <= ip.ground_chain_slope < 90, 'image_projection.ground_chain_slope', 'must lie in [0, 90) degrees')
     for key in ('ground_plane_radius', 'ground_chain_tolerance', 'ground_plane_tolerance'):
@@ -134,10 +137,6 @@ def _validate(p: Params) -> None:
     need(ip.outlier_column_stride > 0, 'image_projection.outlier_column_stride', 'must be positive')
     need(ip.ground_column_stride > 0, 'image_projection.ground_column_stride', 'must be positive')
     fa = p.feature_association
-    need(fa.relative_time_source in ('azimuth', 'point_time', 'original'), 'feature_association.relative_time_source',
-         "must be 'azimuth', 'point_time' or 'original'")
-    need(fa.odometry_model in ('sweep_start', 'original'), 'feature_association.odometry_model',
-         "must be 'sweep_start' or 'original'")
     need(fa.sections_total > 0, 'feature_association.sections_total', 'must be positive')
     need(fa.skip_frame_num >= 0, 'feature_association.skip_frame_num', 'must not be negative')
     need(fa.less_flat_leaf_size > 0, 'feature_association.less_flat_leaf_size', 'must be positive')
