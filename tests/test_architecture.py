@@ -36,6 +36,18 @@ def test_core_sources_import_no_ros():
     assert not offenders, offenders
 
 
+MAX_CORE_MODULE_LINES = 450
+
+
+def test_every_core_module_holds_one_concept_in_at_most_450_lines():
+    """An algorithm module that grows past 450 lines holds more than one concept (laser_odometry.py once held two
+    odometry models, the correspondence search and the geometry in 788): split it by concept."""
+    sizes = {path.name: len(path.read_text().splitlines()) for path in CORE.glob('*.py')}
+    assert len(sizes) > 20 and max(sizes.values()) > 300   # (the rule reads the real modules)
+    too_long = {name: lines for name, lines in sizes.items() if lines > MAX_CORE_MODULE_LINES}
+    assert not too_long, too_long
+
+
 def test_importing_the_core_loads_no_ros_module():
     modules = [f'lego_loam_py.core.{p.stem}' for p in sorted(CORE.glob('*.py')) if p.stem != '__init__']
     code = ('import sys\n' + ''.join(f'import {m}\n' for m in modules) +
