@@ -32,6 +32,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from lego_loam_py.core.io import pcd_is_complete, tum_is_complete  # noqa: E402
+from lego_loam_py.core.params import write_params_file  # noqa: E402
 from tests.support.domains import DomainLease  # noqa: E402
 from tests.support.measure import rss_mb  # noqa: E402
 from tests.support.ros import spin_in_background  # noqa: E402
@@ -64,16 +65,7 @@ class Pipeline:
         (out / 'stats').mkdir(exist_ok=True)
         params = dict(params or {})
         params.setdefault('map_optimization.file_directory', str(out / 'maps'))
-        self.params_file = out / 'params.yaml'
-        lines = ['/**:', '  ros__parameters:']
-        sections: dict[str, dict] = {}
-        for key, value in params.items():
-            section, _, name = key.partition('.')
-            sections.setdefault(section, {})[name] = value
-        for section, values in sections.items():
-            lines.append(f'    {section}:')
-            lines += [f'      {name}: {value}' for name, value in values.items()]
-        self.params_file.write_text('\n'.join(lines) + '\n')
+        self.params_file = write_params_file(out / 'params.yaml', params)
         self.procs: dict[str, subprocess.Popen] = {}
         self.starts: dict[str, int] = {}
         self.others: list[subprocess.Popen] = []

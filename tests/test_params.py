@@ -237,3 +237,20 @@ def test_ros_node_declares_every_parameter_from_a_params_file(tmp_path, ros_doma
         bad.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)
+
+
+def test_a_written_params_file_is_read_back_and_loaded(tmp_path):
+    """write_params_file (the benchmarks' and the node tests' parameter files) writes what read_params_file and
+    the nodes read: sections, a top-level ROS parameter, a path as a string."""
+    from pathlib import Path
+
+    from lego_loam_py.core.params import write_params_file
+
+    path = write_params_file(tmp_path / 'p.yaml', {'sensor.n_scan': 32, 'map_optimization.file_directory': Path('/m'),
+                                                   'use_sim_time': True, 'image_projection.ground_rule': 'original'})
+    assert read_params_file(path) == {'sensor.n_scan': 32, 'map_optimization.file_directory': '/m',
+                                      'use_sim_time': True, 'image_projection.ground_rule': 'original'}
+    values = read_params_file(path)
+    del values['use_sim_time']
+    loaded = load_params(overrides=values)
+    assert (loaded.sensor.n_scan, loaded.image_projection.ground_rule) == (32, 'original')

@@ -28,6 +28,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from lego_loam_py.core.io import pcd_is_complete, tum_is_complete
+from lego_loam_py.core.params import write_params_file
 from tests.support.inprocess import (CAMPUS, campus_messages, make_node, mapping_inputs, mapping_publishers,
                                      pipeline_outputs, restamped, stamp_of)
 from tests.support.malformed import set_sequence
@@ -912,20 +913,8 @@ class NodeProcesses:
     def __init__(self, processes, tmp_path: Path, **params):
         self.processes = processes
         self.dir = tmp_path
-        self.params = tmp_path / 'params.yaml'
-        lines = ['/**:', '  ros__parameters:']
-        sections: dict[str, dict] = {}
-        for key, value in params.items():
-            section, _, name = key.partition('__')
-            sections.setdefault(section, {})[name] = value
-        for section, values in sections.items():
-            if section == 'root':
-                lines += [f'    {name}: {value}' for name, value in values.items()]
-                continue
-            lines.append(f'    {section}:')
-            lines += [f'      {name}: {value}' for name, value in values.items()]
+        self.params = write_params_file(tmp_path / 'params.yaml', {k.replace('__', '.'): v for k, v in params.items()})
         self.args = ['--ros-args', '--params-file', self.params] if params else []
-        self.params.write_text('\n'.join(lines) + '\n')
         self.procs: dict[str, object] = {}
         self.starts: Counter = Counter()
 
@@ -1334,7 +1323,7 @@ def test_a_bag_played_in_a_loop_resets_cleanly(rclpy_context, processes, tmp_pat
     arrives and jumps back at every loop): each jump back resets featureAssociation, mapOptimization (after
     saving its map) and transformFusion once, with a warning, and outputs go on in every loop."""
     maps = tmp_path / 'maps'
-    nodes = NodeProcesses(processes, tmp_path, map_optimization__file_directory=maps, root__use_sim_time='true')
+    nodes = NodeProcesses(processes, tmp_path, map_optimization__file_directory=maps, use_sim_time=True)
     topics = ['/integrated_to_init', '/aft_mapped_to_init']
     node, got = listener(rclpy_context, 'loop_listener', topics)
     for name in NODES:

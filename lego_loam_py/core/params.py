@@ -32,8 +32,23 @@ from lego_loam_py.core.param_validation import flatten, params_from_mapping
 __all__ = [
     'ParameterError', 'SensorParams', 'ImageProjectionParams', 'FeatureAssociationParams',
     'MapOptimizationParams', 'LoopClosureParams', 'ReliabilityParams', 'Params', 'SENSOR_PRESETS', 'load_params',
-    'params_from_mapping', 'flatten', 'read_params_file', 'default_params_file', 'parse_overrides',
+    'params_from_mapping', 'flatten', 'read_params_file', 'write_params_file', 'default_params_file',
+    'parse_overrides',
 ]
+
+
+def write_params_file(path: str | Path, values: Mapping[str, Any]) -> Path:
+    """A ROS 2 parameter file for every node (``/**``) setting ``values``: ``'section.name'`` keys in their
+    section, keys without one (``use_sim_time``) at the top; paths are written as strings. The file
+    :func:`read_params_file` and ``--ros-args --params-file`` read."""
+    nested: dict[str, Any] = {}
+    for key, value in values.items():
+        section, _, name = key.rpartition('.')
+        value = str(value) if isinstance(value, Path) else value
+        (nested.setdefault(section, {}) if section else nested)[name] = value
+    path = Path(path)
+    path.write_text(yaml.safe_dump({'/**': {'ros__parameters': nested}}, sort_keys=False))
+    return path
 
 
 def read_params_file(path: str | Path, node_name: str | None = None) -> dict[str, Any]:
