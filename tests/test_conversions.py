@@ -100,6 +100,40 @@ def test_node_takes_serialized_imu_and_drops_unreadable_bytes(context):
     fa.destroy_node()
 
 
+@settings(max_examples=100, deadline=None)
+@given(frame_id=st.text(alphabet='abcdefghijklmnopqrstuvwxyz_/0123456789', max_size=13),
+       sec=st.integers(-2**31, 2**31 - 1), nanosec=st.integers(0, 999_999_999),
+       rings=st.integers(0, 70), points=st.integers(0, 3000), seed=st.integers(0, 2**32 - 1))
+def test_serialized_cloud_info_equals_the_message(frame_id, sec, nanosec, rings, points, seed):
+    """featureAssociation reads CloudInfo from its bytes: whatever rclpy serializes (every frame id length, so
+    every alignment; empty and long arrays), the stamp and arrays are exactly those of the message object, in
+    the same dtypes; cut short anywhere, the bytes are a ValueError."""
+    from cloud_msgs.msg import CloudInfo
+    from rclpy.serialization import serialize_message
+
+    from lego_loam_py.ros.conversions import cloud_info_from_msg, cloud_info_from_serialized
+
+    rng = np.random.default_rng(seed)
+    msg = CloudInfo()
+    msg.header.frame_id, msg.header.stamp.sec, msg.header.stamp.nanosec = frame_id, sec, nanosec
+    msg.start_ring_index = rng.integers(-2**31, 2**31, rings, dtype=np.int64).astype(np.int32).tolist()
+    msg.end_ring_index = rng.integers(-2**31, 2**31, rings, dtype=np.int64).astype(np.int32).tolist()
+    msg.start_orientation, msg.end_orientation, msg.orientation_diff = (float(np.float32(v)) for v in rng.normal(size=3))
+    msg.segmented_cloud_ground_flag = (rng.random(points) < 0.5).tolist()
+    msg.segmented_cloud_col_ind = rng.integers(0, 2**32, points, dtype=np.uint64).astype(np.uint32).tolist()
+    msg.segmented_cloud_range = rng.normal(size=points).astype(np.float32).tolist()
+    data = serialize_message(msg)
+    stamp, info = cloud_info_from_serialized(data)
+    expected = cloud_info_from_msg(msg)
+    assert stamp == sec * 1_000_000_000 + nanosec
+    for name, value in vars(expected).items():
+        got = getattr(info, name)
+        assert np.asarray(got).dtype == np.asarray(value).dtype and np.array_equal(got, value), name
+    for cut in sorted({0, 5, 12, len(data) // 2, len(data) - 1}):
+        with pytest.raises(ValueError):
+            cloud_info_from_serialized(data[:cut])
+
+
 def test_transform_of_an_odometry_carries_its_pose_and_frames():
     from lego_loam_py.core.frames import euler_to_matrix
     from lego_loam_py.ros.conversions import make_header, odometry_to_transform, pose_to_odometry, pose_to_transform

@@ -27,7 +27,8 @@ __all__ = [
     'stamp_to_ns', 'ns_to_stamp', 'make_header', 'cloud_msg_to_buffer', 'cloud_msg_to_array',
     'array_to_cloud_msg', 'pose_to_odometry', 'odometry_to_pose', 'pose_to_transform',
     'numpy_to_array', 'xyzi_to_cloud_msg', 'cloud_msg_to_xyzi', 'cloud_info_to_msg', 'cloud_info_from_msg',
-    'imu_sample_from_serialized', 'serialized_stamp_ns', 'odometry_to_transform', 'MAX_POSITION',
+    'imu_sample_from_serialized', 'serialized_stamp_ns', 'cloud_info_from_serialized', 'odometry_to_transform',
+    'MAX_POSITION',
 ]
 
 
@@ -173,6 +174,55 @@ def cloud_info_from_msg(msg) -> CloudInfoData:
         segmented_cloud_ground_flag=np.array(msg.segmented_cloud_ground_flag, dtype=bool),
         segmented_cloud_col_ind=np.array(msg.segmented_cloud_col_ind, dtype=np.uint32),
         segmented_cloud_range=np.array(msg.segmented_cloud_range, dtype=np.float32))
+
+
+def cloud_info_from_serialized(data: bytes, copy: bool = True) -> tuple[int, CloudInfoData]:
+    """(header stamp [ns], the core's CloudInfo) straight from the bytes of a cloud_msgs/CloudInfo as a
+    ``raw=True`` subscription takes them. rclpy's message holds the ground flags as a Python list of some
+    20 000 bools, which costs featureAssociation more than the rest of the message; here every array is one
+    ``frombuffer`` (``copy=False``: views of ``data``, enough to check their lengths). Other encodings go
+    through rclpy's deserializer; bytes too short for the lengths they announce raise ValueError."""
+    order = _XCDR1.get(bytes(data[:2]))
+    if order is None:
+        from rclpy.serialization import deserialize_message
+        from cloud_msgs.msg import CloudInfo
+        try:
+            msg = deserialize_message(bytes(data), CloudInfo)
+        except Exception as exc:   # rclpy raises its RMWError for bytes that are no CloudInfo
+            raise ValueError(f'not a serialized CloudInfo ({exc})') from None
+        return stamp_to_ns(msg.header.stamp), cloud_info_from_msg(msg)
+    body = memoryview(data)[4:]   # (CDR alignment counts from the end of the encapsulation)
+    position = 0
+
+    def take(dtype: str, count: int | None = None):
+        nonlocal position
+        item = np.dtype(order + dtype)
+        position = (position + item.alignment - 1) & ~(item.alignment - 1)
+        if count is None:   # a sequence: its uint32 length first
+            count = int(take('u4', 1)[0])
+            position = (position + item.alignment - 1) & ~(item.alignment - 1)
+        end = position + count * item.itemsize
+        if end > len(body):
+            raise ValueError(f'serialized CloudInfo of {len(data)} bytes ends inside its {count}-element field')
+        values = np.frombuffer(body, dtype=item, count=count, offset=position)
+        position = end
+        return values
+
+    sec, nanosec, name_length = (int(v) for v in (*take('i4', 1), *take('u4', 1), *take('u4', 1)))
+    take('u1', name_length)   # the frame id and its NUL
+    start_ring_index, end_ring_index = take('i4'), take('i4')
+    start_orientation, end_orientation, orientation_diff = take('f4', 3)
+    ground_flag = take('u1') != 0
+    col_ind, ranges = take('u4'), take('f4')
+
+    def native(values: np.ndarray, dtype) -> np.ndarray:
+        return values.astype(dtype, copy=copy)
+
+    return sec * 1_000_000_000 + nanosec, CloudInfoData(
+        start_ring_index=native(start_ring_index, np.int32), end_ring_index=native(end_ring_index, np.int32),
+        start_orientation=np.float32(start_orientation), end_orientation=np.float32(end_orientation),
+        orientation_diff=np.float32(orientation_diff), segmented_cloud_ground_flag=ground_flag,
+        segmented_cloud_col_ind=native(col_ind, np.uint32), segmented_cloud_range=native(ranges, np.float32))
 
 
 def pose_to_odometry(pose: np.ndarray, header: Header, child_frame_id: str,

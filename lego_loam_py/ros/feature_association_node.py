@@ -35,8 +35,9 @@ from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, LASER_ODOM_FRAME
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
-from lego_loam_py.ros.conversions import (cloud_info_from_msg, cloud_msg_to_array, cloud_msg_to_xyzi, make_header,
-                                          pose_to_odometry, stamp_to_ns, xyzi_to_cloud_msg)
+from lego_loam_py.ros.conversions import (cloud_info_from_msg, cloud_info_from_serialized, cloud_msg_to_array,
+                                          cloud_msg_to_xyzi, make_header, pose_to_odometry, serialized_stamp_ns,
+                                          stamp_to_ns, xyzi_to_cloud_msg)
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 from lego_loam_py.ros.tf import TransformBroadcaster
@@ -56,7 +57,9 @@ class FeatureAssociationNode(LegoLoamNode):
         self.sync = StampSynchronizer(['cloud', 'info', 'outlier'], int(fa.sync_tolerance * 1e9))
         depth1 = qos.reliable(1)
         self.create_subscription(PointCloud2, '/segmented_cloud', lambda m: self.on_part('cloud', m), depth1)
-        self.create_subscription(CloudInfo, '/segmented_cloud_info', lambda m: self.on_part('info', m), depth1)
+        # (serialized: see cloud_info_from_serialized)
+        self.create_subscription(CloudInfo, '/segmented_cloud_info', lambda m: self.on_part('info', m), depth1,
+                                 raw=True)
         self.create_subscription(PointCloud2, '/outlier_cloud', lambda m: self.on_part('outlier', m), depth1)
         self.imu_subscription = None
         if self.params.sensor.imu_topic:   # taken with each scan (1 s of samples wait at 200 Hz)
@@ -89,15 +92,18 @@ class FeatureAssociationNode(LegoLoamNode):
         ok, decoded = self.take(lambda: self._decode(name, msg), 'scans_dropped', 'scan dropped', 'bad_scan')
         if not ok:
             return
+        stamp_ns = None
+        if isinstance(msg, bytes):   # (another encoding than XCDR1: the deserializer reads the stamp)
+            stamp_ns = serialized_stamp_ns(msg) or cloud_info_from_serialized(msg, copy=False)[0]
         complete = self.add_part(self.sync, name, msg, self.params.feature_association.sync_tolerance,
-                                 item=(msg, decoded))
+                                 item=(msg, decoded), stamp_ns=stamp_ns)
         if complete is not None:
             self.on_scan(complete['cloud'], complete['info'], complete['outlier'])
 
     def _decode(self, name: str, msg):
         """The content of one input, checked against what imageProjection produces."""
         if name == 'info':
-            info = cloud_info_from_msg(msg)
+            info = cloud_info_from_serialized(msg)[1] if isinstance(msg, bytes) else cloud_info_from_msg(msg)
             validation.check_cloud_info(INPUT_TOPICS[name], info, self.params)
             return info
         cloud = cloud_msg_to_xyzi(msg)
@@ -191,8 +197,9 @@ class FeatureAssociationNode(LegoLoamNode):
         bigger is rejected on its header, before it is decoded or kept for synchronisation."""
         limit = validation.derived_points_limit(self.params)
         if name == 'info':
+            arrays = cloud_info_from_serialized(msg, copy=False)[1] if isinstance(msg, bytes) else msg
             for field in ('segmented_cloud_range', 'segmented_cloud_col_ind', 'segmented_cloud_ground_flag'):
-                validation.check_count(f'{INPUT_TOPICS[name]}.{field} length', len(getattr(msg, field)), limit,
+                validation.check_count(f'{INPUT_TOPICS[name]}.{field} length', len(getattr(arrays, field)), limit,
                                        'pixels of the range image')
         else:
             validation.check_count(f'{INPUT_TOPICS[name]} points', int(msg.width) * int(msg.height), limit,

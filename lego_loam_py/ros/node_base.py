@@ -317,7 +317,7 @@ class LegoLoamNode(Node):
     def reject_large(self, msg) -> None:
         """A rejected message: when it was large, its memory goes back to the system at the next callback
         (the executor holds the message until this one returns)."""
-        data = getattr(msg, 'data', None)
+        data = msg if isinstance(msg, bytes) else getattr(msg, 'data', None)
         if data is not None and len(data) > LARGE_MESSAGE_BYTES:
             self._release_pending = True
 
@@ -345,12 +345,15 @@ class LegoLoamNode(Node):
         limit = self.params.reliability.watchdog_inputs
         return bool(limit) and self._inputs_without_output >= limit
 
-    def add_part(self, sync, name: str, msg, warn_tolerance: float | None = None, item=None) -> dict | None:
+    def add_part(self, sync, name: str, msg, warn_tolerance: float | None = None, item=None,
+                 stamp_ns: int | None = None) -> dict | None:
         """Give one message of a synchronised input set to ``sync`` (a StampSynchronizer), filed by its header
-        stamp as ``item`` (default: the message); returns the set once complete. Parts that lost their partners
-        are counted as ``unmatched_inputs`` (and, with ``warn_tolerance`` [s], warned about)."""
+        stamp (``stamp_ns`` when given: a serialized message) as ``item`` (default: the message); returns the set
+        once complete. Parts that lost their partners are counted as ``unmatched_inputs`` (and, with
+        ``warn_tolerance`` [s], warned about)."""
         try:
-            complete = sync.add(name, stamp_to_ns(msg.header.stamp), msg if item is None else item)
+            stamp = stamp_to_ns(msg.header.stamp) if stamp_ns is None else stamp_ns
+            complete = sync.add(name, stamp, msg if item is None else item)
         except Exception:
             self.error('sync_exception', 'unexpected error while synchronising inputs')
             return None
