@@ -12,7 +12,8 @@ import math
 
 import numpy as np
 
-from lego_loam_py.core.libm import decide_on_atan2f, float_degrees
+from lego_loam_py.core.atan2f_decisions import atan2f_exceeds, first_float32_where
+from lego_loam_py.core.libm import float_degrees
 from lego_loam_py.core.param_types import Params
 
 __all__ = ['GroundRemoval']
@@ -31,6 +32,10 @@ class GroundRemoval:
         # The original's float constants.
         self._mount_angle = _F32(s.sensor_mount_angle)
         self._slope_threshold = _F32(params.image_projection.ground_slope_threshold)
+        # The slope test as angle thresholds: a pair is ground where its libm angle a has band 1, that is
+        # a > _slope_above and not a > _slope_at_most (the band is monotone in a, so these are exact).
+        band_starts = first_float32_where(lambda a: self._slope_band(a) >= np.array([1, 2]), -math.pi, math.pi, 2)
+        self._slope_above, self._slope_at_most = np.nextafter(band_starts, _F32(-np.inf))
 
     def ground(self, full: np.ndarray, filled: np.ndarray) -> np.ndarray:
         """Ground pixels (the original's groundMat == 1) as a boolean (N_SCAN*H,) mask.
@@ -49,7 +54,10 @@ class GroundRemoval:
             dx = upper[..., 0] - lower[..., 0]
             dy = upper[..., 1] - lower[..., 1]
             dz = upper[..., 2] - lower[..., 2]
-            slope_ok = decide_on_atan2f(dz, np.sqrt(dx * dx + dy * dy), self._slope_band) == 1
+            # The angle of (horizontal, dz) with horizontal >= 0 lies in [-pi/2, pi/2].
+            above, beyond = atan2f_exceeds(dz, np.sqrt(dx * dx + dy * dy), [self._slope_above, self._slope_at_most],
+                                           (-math.pi / 2, math.pi / 2))
+            slope_ok = above & ~beyond
         ground_pair = ~empty_pair & slope_ok
         # Iteration i writes row i (-1 if the pair has an empty pixel, 1 if ground) and row i+1 (1 if
         # ground); iteration i+1 runs later and may overwrite row i+1 with -1.
@@ -66,7 +74,7 @@ class GroundRemoval:
     def _slope_band(self, angle: np.ndarray) -> np.ndarray:
         """0 / 1 / 2 where the pair slope [rad] is below / within / above the ground band around the mount
         angle. Band 1 is the original's |deg(angle) - mount| <= threshold; the band index, unlike that test,
-        is monotone in the angle (as :func:`~lego_loam_py.core.libm.decide_on_atan2f` needs)."""
+        is monotone in the angle, so its changes are two angle thresholds."""
         off = float_degrees(angle) - self._mount_angle
         return (off >= -self._slope_threshold).astype(np.int8) + (off > self._slope_threshold)
 

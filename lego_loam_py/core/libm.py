@@ -7,9 +7,8 @@ function. :func:`atan2f` calls the system libm through a small C extension (``na
 with the package); without it, NumPy's float64 ``arctan2`` rounded to float32 is used, which differs from
 libm on a few tenths of a percent of such boundary points (:data:`EXACT` tells which one is active).
 
-libm's atan2f is slow, so :func:`decide_on_atan2f` calls it only for the few angles whose last bits decide a
-column, a ground pair or a join. :func:`float_degrees` and :func:`round_half_away` are the original's float
-degree conversion and C ``round``.
+libm's atan2f is slow: :mod:`lego_loam_py.core.atan2f_decisions` decides on its values mostly without it.
+:func:`float_degrees` and :func:`round_half_away` are the original's float degree conversion and C ``round``.
 """
 from __future__ import annotations
 
@@ -20,7 +19,7 @@ import math
 
 import numpy as np
 
-__all__ = ['atan2f', 'sinf', 'cosf', 'EXACT', 'decide_on_atan2f', 'float_degrees', 'round_half_away']
+__all__ = ['atan2f', 'sinf', 'cosf', 'EXACT', 'float_degrees', 'round_half_away']
 
 try:
     from lego_loam_py.core import _libm_compat
@@ -68,28 +67,6 @@ def cosf(value: float) -> np.float32:
     return np.float32(lib.cosf(float(np.float32(value)))) if lib else np.float32(np.cos(np.float32(value)))
 
 
-def decide_on_atan2f(y: np.ndarray, x: np.ndarray, decide) -> np.ndarray:
-    """``decide(atan2f(y, x))`` for float32 ``y``, ``x`` and an element-wise ``decide`` that is monotone in
-    the angle, calling libm's atan2f (~40 ns a value, the most expensive step of a scan) only where the
-    result depends on the angle's last bits.
-
-    float64 arctan2 is within ~1e-16 of the exact angle and libm's atan2f within 2 ulp of it, so the libm
-    value lies within |angle| * 2**-19 (>= 16 ulp; the constant term covers subnormal angles) of the rounded
-    float64 angle. Where ``decide`` agrees at both ends of that bracket it agrees on the libm value too (NaN
-    inputs give NaN at both ends and in libm alike).
-    """
-    with np.errstate(invalid='ignore'):
-        angle = np.arctan2(y, x, dtype=np.float64).astype(np.float32)
-        margin = np.abs(angle)
-        margin *= np.float32(2.0 ** -19)
-        margin += np.float32(2.0 ** -140)
-        result = decide(angle - margin)
-        unsure = result != decide(angle + margin)
-    if unsure.any():
-        result[unsure] = decide(atan2f(y[unsure], x[unsure]))
-    return result
-
-
 def float_degrees(angle_rad: np.ndarray) -> np.ndarray:
     """``angle * 180 / M_PI`` as the original evaluates it on a float: float32 product, double division."""
     return ((angle_rad * np.float32(180.0)).astype(np.float64) / math.pi).astype(np.float32)
@@ -99,3 +76,4 @@ def round_half_away(value: np.ndarray) -> np.ndarray:
     """C ``round``: halves away from zero (NumPy rounds halves to even)."""
     # Rounding to nearest is symmetric, so this equals sign(v) * floor(|v| + 0.5) bit for bit, in 3 passes.
     return np.trunc(value + np.copysign(0.5, value))
+

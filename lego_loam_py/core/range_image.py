@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lego_loam_py.core.libm import atan2f, decide_on_atan2f, float_degrees, round_half_away
+from lego_loam_py.core.atan2f_decisions import Atan2fSteps, decide_on_atan2f, first_float32_where
+from lego_loam_py.core.libm import atan2f, float_degrees, round_half_away
 from lego_loam_py.core.param_types import Params
 from lego_loam_py.core.validation import MAX_COORDINATE
 from lego_loam_py.errors import LegoLoamError
@@ -118,6 +119,14 @@ class RangeImageProjection:
         n, h = self.n_scan, self.horizon_scan
         rows, cols = np.repeat(np.arange(n), h), np.tile(np.arange(h), n)
         self._pixel_intensity = (rows + cols / 10000.0).astype(_F32)
+        # The column before wrapping falls from _top_column at atan2f = -pi to its value at +pi, one step at
+        # each threshold angle: the staircase that Atan2fSteps reads mostly without computing angles.
+        ends = self._column_of_azimuth(np.array([-math.pi, math.pi], dtype=_F32))
+        self._top_column = int(ends[0])
+        levels = np.arange(self._top_column - 1, int(ends[1]) - 1, -1)
+        thresholds = first_float32_where(lambda a: self._column_of_azimuth(a) <= levels, -math.pi, math.pi,
+                                         len(levels))
+        self._azimuth_steps = Atan2fSteps(thresholds)
 
     def orientation(self, xyz: np.ndarray) -> tuple[np.float32, np.float32, np.float32]:
         """(start, end, diff) orientation [rad] from the first and last point, as the original computes it."""
@@ -130,18 +139,28 @@ class RangeImageProjection:
             end = _F32(float(end) + 2 * math.pi)
         return start, end, _F32(end - start)
 
-    def rows_and_columns(self, data: ProjectionInput) -> tuple[np.ndarray, np.ndarray]:
-        """Range-image row and column of every point (int64; -1 where outside the image)."""
-        x, y, z = data.xyz[:, 0], data.xyz[:, 1], data.xyz[:, 2]
-        if data.ring is not None:
-            row = data.ring.copy()
+    def rows_and_columns(self, ring: np.ndarray | None, x: np.ndarray, y: np.ndarray,
+                         z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Range-image row and column of every point (int64; -1 where outside the image) from its ring (or
+        None) and float32 sensor-frame coordinates [m]."""
+        if ring is not None:
+            row = ring.copy()
         else:
             row = decide_on_atan2f(z, np.sqrt(x * x + y * y), self._row_of_elevation).astype(np.int64)
         row[(row < 0) | (row >= self.n_scan)] = -1
-        col = decide_on_atan2f(x, y, self._column_of_azimuth).astype(np.int64)
+        col = self._columns(x, y)
         col[col >= self.horizon_scan] -= self.horizon_scan
         col[(col < 0) | (col >= self.horizon_scan)] = -1
         return row, col
+
+    def _columns(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Column (int64, before wrapping into the image) of points at sensor-frame x, y [m]."""
+        steps, confirmed = self._azimuth_steps.count(x, y)   # of atan2f(x, y)
+        col = self._top_column - steps
+        unconfirmed = ~confirmed
+        if unconfirmed.any():
+            col[unconfirmed] = decide_on_atan2f(x[unconfirmed], y[unconfirmed], self._column_of_azimuth)
+        return col
 
     def _row_of_elevation(self, vertical: np.ndarray) -> np.ndarray:
         """Row (float; -1 below the image) of elevation angles [rad], monotone in the angle."""
@@ -160,9 +179,10 @@ class RangeImageProjection:
         """The range image of one scan's valid points (at least one)."""
         n, h = self.n_scan, self.horizon_scan
         xyz = data.xyz
-        x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+        # Contiguous copies: every pass over a strided column of xyz costs about twice as much.
+        x, y, z = (np.ascontiguousarray(xyz[:, axis]) for axis in range(3))
         start, end, diff = self.orientation(xyz)
-        row, col = self.rows_and_columns(data)
+        row, col = self.rows_and_columns(data.ring, x, y, z)
         rng = np.sqrt(x * x + y * y + z * z)  # float32, as sqrt(x*x + y*y + z*z) on floats
         keep = (row >= 0) & (col >= 0) & (rng >= self._min_range)
         pixel_of_point = (col + row * h)[keep]
@@ -175,8 +195,8 @@ class RangeImageProjection:
         # Every per-pixel image is one row gather from a per-point table whose extra last row (index -1)
         # holds the empty pixel's values; np.take is ~10x faster than fancy indexing on 2-D rows.
         table = np.empty((len(xyz) + 1, 4), dtype=_F32)
-        for axis in range(3):   # column by column: ~3x faster than one (n, 3) -> (n, 4) strided copy
-            table[:-1, axis] = xyz[:, axis]
+        for axis, values in enumerate((x, y, z)):   # column by column: ~3x faster than one (n, 3) -> (n, 4) copy
+            table[:-1, axis] = values
         table[:-1, 3] = rng
         table[-1] = (np.nan, np.nan, np.nan, np.finfo(np.float32).max)
         full_info = np.take(table, winner_of_pixel, axis=0)

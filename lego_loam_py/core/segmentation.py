@@ -15,7 +15,8 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
-from lego_loam_py.core.libm import cosf, decide_on_atan2f, sinf
+from lego_loam_py.core.atan2f_decisions import atan2f_exceeds
+from lego_loam_py.core.libm import cosf, sinf
 from lego_loam_py.core.param_types import Params
 
 __all__ = ['Segmentation', 'OUTLIER_LABEL', 'NO_LABEL']
@@ -120,12 +121,10 @@ class Segmentation:
         """The segmentation criterion beta > theta for neighbour pairs (direction 0: horizontal, 1: vertical).
 
         Computed for every pixel, pair or not (empty pixels' FLT_MAX ranges give finite angles far from theta):
-        cheaper than gathering the pairs.
+        cheaper than gathering the pairs. beta is libm's atan2f(y, x) with y >= 0, so it lies in [0, pi].
         """
         d1, d2 = np.maximum(range_a, range_b), np.minimum(range_a, range_b)
-        return decide_on_atan2f(d2 * self._sin_alpha[direction], d1 - d2 * self._cos_alpha[direction],
-                          self._beyond_theta)
-
-    def _beyond_theta(self, beta: np.ndarray) -> np.ndarray:
-        """beta [rad] > segment_theta: the pair lies on one object."""
-        return beta > self._theta
+        y = d2 * self._sin_alpha[direction]
+        x = d2 * self._cos_alpha[direction]
+        np.subtract(d1, x, out=x)
+        return atan2f_exceeds(y, x, [self._theta], (0.0, math.pi))[0]
