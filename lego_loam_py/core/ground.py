@@ -1,4 +1,4 @@
-"""imageProjection's ground removal (docs/original.md §3): which range-image pixels are ground.
+"""imageProjection's ground removal (docs/original.md §6.1): which range-image pixels are ground.
 
 The original's pair test (vertical neighbours in the lowest rows whose slope lies within a band around the
 sensor's mount angle) in its float32 arithmetic, optionally refined (``image_projection.ground_rule``) by a

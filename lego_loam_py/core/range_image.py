@@ -1,4 +1,4 @@
-"""imageProjection's first step: the valid points of a cloud and their range image (docs/original.md §3).
+"""imageProjection's first step: the valid points of a cloud and their range image (docs/original.md §6.1).
 
 :func:`prepare_input` keeps the valid points of a structured cloud; :class:`RangeImageProjection` puts each
 one in its range-image pixel (row from the ring or the elevation, column from the azimuth) as the C++

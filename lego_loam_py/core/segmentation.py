@@ -1,4 +1,4 @@
-"""imageProjection's segmentation (docs/original.md §3, §6.1): the label of every range-image pixel.
+"""imageProjection's segmentation (docs/original.md §6.1): the label of every range-image pixel.
 
 The breadth-first segmentation of the original is computed as connected components of the graph whose
 nodes are the non-ground, non-empty pixels and whose edges join 4-neighbours (columns wrap around) that
