@@ -32,7 +32,7 @@ from lego_loam_py.core.features import FeatureExtractor, ScanFeatures
 from lego_loam_py.core.frames import (euler_to_matrix, invert_pose, lidar_to_camera, make_pose, matrix_to_euler,
                                       matrix_to_pose6)
 from lego_loam_py.core.image_projection import CloudInfo
-from lego_loam_py.core.imu import ImuBuffer, imu_world_rotation
+from lego_loam_py.core.imu import ImuBuffer, imu_rotate, imu_world_rotation
 from lego_loam_py.core.laser_odometry import OdometryStats, make_laser_odometry
 from lego_loam_py.core.param_types import Params
 from lego_loam_py.core.sweep import (accumulate, motion_to_theta, relative_time, relative_time_from_azimuth,
@@ -282,8 +282,7 @@ class FeatureAssociation:
         (when used) and timed ``1 + s`` (the reference is the previous sweep's start)."""
         out = cloud.copy()
         if to_reference is not None:
-            rotation = np.einsum('ij,njk->nik', to_reference, self._point_attitudes(attitude, index))
-            out[:, :3] = np.einsum('nij,nj->ni', rotation, cloud[:, :3].astype(np.float64)).astype(_F32)
+            out[:, :3] = self._rotate_at_points(to_reference, attitude, index, cloud).astype(_F32)
         ring = np.trunc(cloud[:, 3]).astype(np.float64)
         s = 10.0 * (cloud[:, 3].astype(np.float64) - ring)
         out[:, 3] = (ring + 0.1 * (1.0 + s)).astype(_F32)
@@ -299,20 +298,16 @@ class FeatureAssociation:
         out = np.empty_like(cloud)
         out[:, 3] = ring.astype(_F32)
         if attitude is not None and index is not None:
-            relative = np.einsum('ij,njk->nik', attitude.r_start.T, self._point_attitudes(attitude, index))
-            rotated = np.einsum('nij,nj->ni', relative, cloud[:, :3].astype(np.float64))
+            rotated = self._rotate_at_points(attitude.r_start.T, attitude, index, cloud)
         elif attitude is not None:   # voxel centroids (less-flat): attitude at each point's own time
-            rotated = np.einsum('nij,nj->ni', self._relative_attitudes(attitude, s), cloud[:, :3].astype(np.float64))
+            times = attitude.t_start + s * self.params.sensor.scan_period
+            rotated = imu_rotate(attitude.r_start.T, *self.imu.attitude(times), cloud)
         else:
             theta = motion_to_theta(motion)
             out[:, :3] = transform_to_start(cloud, theta)[:, :3]
             return out
         out[:, :3] = (rotated + s[:, None] * motion[:3, 3][None, :]).astype(_F32)
         return out
-
-    def _relative_attitudes(self, attitude: SweepAttitude, s: np.ndarray) -> np.ndarray:
-        rotations = imu_world_rotation(*self.imu.attitude(attitude.t_start + s * self.params.sensor.scan_period))
-        return np.einsum('ij,njk->nik', attitude.r_start.T, rotations)
 
     def _outlier_at_start(self, scan: ScanInput, motion: np.ndarray, attitude: SweepAttitude | None) -> np.ndarray:
         """The outlier cloud in camera axes, deskewed to the sweep start like the features."""
@@ -329,7 +324,7 @@ class FeatureAssociation:
         return deskewed
 
     def _imu_attitudes(self, rel: np.ndarray, stamp_ns: int) -> SweepAttitude | None:
-        """IMU attitude (camera axes) at the sweep start, and what :meth:`_point_attitudes` needs for the
+        """IMU attitude (camera axes) at the sweep start, and what :meth:`_rotate_at_points` needs for the
         points' own times (``rel`` = relative times of the prepared points), or None when the IMU does not
         cover the sweep."""
         period = self.params.sensor.scan_period
@@ -341,10 +336,12 @@ class FeatureAssociation:
         return SweepAttitude(t_start=t_start, r_start=r_start, rel=rel, roll_start=float(state.roll[0]),
                              pitch_start=float(state.pitch[0]))
 
-    def _point_attitudes(self, attitude: SweepAttitude, index: np.ndarray) -> np.ndarray:
-        """(n, 3, 3) IMU attitudes at the times of the prepared points ``index`` (only the features need them)."""
+    def _rotate_at_points(self, left: np.ndarray, attitude: SweepAttitude, index: np.ndarray,
+                          cloud: np.ndarray) -> np.ndarray:
+        """(n, 3) float64 ``left @ R @ p`` of the ``cloud`` points, R the IMU attitude at the time of the prepared
+        point ``index`` each comes from (only the features need them)."""
         times = attitude.t_start + attitude.rel[index] * self.params.sensor.scan_period
-        return imu_world_rotation(*self.imu.attitude(times))
+        return imu_rotate(left, *self.imu.attitude(times), cloud)
 
     def _process_original(self, scan: ScanInput) -> FeatureAssociationResult:
         """The original's model: registration against the previous features moved to that sweep's end."""
@@ -406,13 +403,12 @@ class FeatureAssociation:
         # The start attitude is the IMU's at the sweep start (s = 0). The original takes the segmented cloud's
         # first point, which is ordered by ring and column and therefore lies behind the sensor, mid-sweep.
         state = self.imu.interpolate(np.concatenate(([t_start, t_end], point_times)))
-        rotations = imu_world_rotation(state.roll, state.pitch, state.yaw)
-        r_start, r_end, r_points = rotations[0], rotations[1], rotations[2:]
+        r_start, r_end = imu_world_rotation(state.roll[:2], state.pitch[:2], state.yaw[:2])
         v_start = state.velocity[0]
         dt = point_times - t_start
         shift = (state.shift[2:] - state.shift[0] - v_start[None, :] * dt[:, None]) @ r_start   # R_S^T (.)
-        relative = np.einsum('ij,njk->nik', r_start.T, r_points)
-        points[:, :3] = (np.einsum('nij,nj->ni', relative, points[:, :3].astype(np.float64)) + shift).astype(_F32)
+        rotated = imu_rotate(r_start.T, state.roll[2:], state.pitch[2:], state.yaw[2:], points)
+        points[:, :3] = (rotated + shift).astype(_F32)
         shift_end = r_start.T @ (state.shift[1] - state.shift[0] - v_start * period)
         velocity_change = r_start.T @ (state.velocity[1] - v_start)
         return ImuSweep(roll_start=float(state.roll[0]), pitch_start=float(state.pitch[0]),

@@ -28,7 +28,7 @@ __all__ = [
     'MAP_FRAME', 'CAMERA_INIT_FRAME', 'CAMERA_FRAME', 'BASE_LINK_FRAME', 'LASER_ODOM_FRAME',
     'AFT_MAPPED_FRAME', 'LIDAR_TO_CAMERA', 'CAMERA_TO_LIDAR', 'lidar_to_camera', 'camera_to_lidar',
     'rot_x', 'rot_y', 'rot_z', 'GENERATOR_X', 'GENERATOR_Y', 'GENERATOR_Z', 'euler_to_matrix', 'euler_to_matrices',
-    'matrix_to_euler', 'quaternion_to_matrix',
+    'rotate_by_euler', 'matrix_to_euler', 'quaternion_to_matrix',
     'matrix_to_quaternion', 'euler_to_quaternion', 'quaternion_to_euler', 'make_pose', 'pose6_to_matrix',
     'matrix_to_pose6', 'invert_pose', 'camera_pose_to_lidar', 'lidar_pose_to_camera',
     'MAP_T_CAMERA_INIT', 'CAMERA_T_BASE_LINK', 'transform_points', 'transform_cloud', 'wrap_angle',
@@ -90,22 +90,45 @@ def euler_to_matrix(rx: float, ry: float, rz: float) -> np.ndarray:
     return rot_y(ry) @ rot_x(rx) @ rot_z(rz)
 
 
+def _euler_entries(rx: np.ndarray, ry: np.ndarray, rz: np.ndarray) -> np.ndarray:
+    """(3, 3, n): the entries of ``Ry(ry) @ Rx(rx) @ Rz(rz)`` for (n,) angles, each entry a contiguous row."""
+    angles = np.array([np.asarray(a, dtype=float).reshape(-1) for a in (rx, ry, rz)])
+    (cx, cy, cz), (sx, sy, sz) = np.cos(angles), np.sin(angles)
+    sy_sx, cy_sx = sy * sx, cy * sx
+    out = np.empty((3, 3, angles.shape[1]))
+    out[0, 0] = cy * cz + sy_sx * sz
+    out[0, 1] = -cy * sz + sy_sx * cz
+    out[0, 2] = sy * cx
+    out[1, 0] = cx * sz
+    out[1, 1] = cx * cz
+    out[1, 2] = -sx
+    out[2, 0] = -sy * cz + cy_sx * sz
+    out[2, 1] = sy * sz + cy_sx * cz
+    out[2, 2] = cy * cx
+    return out
+
+
 def euler_to_matrices(rx: np.ndarray, ry: np.ndarray, rz: np.ndarray) -> np.ndarray:
     """Vectorised :func:`euler_to_matrix`: (n,) angle arrays -> (n, 3, 3) rotations ``Ry Rx Rz``."""
-    rx, ry, rz = (np.asarray(a, dtype=float).reshape(-1) for a in (rx, ry, rz))
-    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
-    out = np.empty((len(rx), 3, 3))
-    # Ry(ry) @ Rx(rx) @ Rz(rz), expanded.
-    out[:, 0, 0] = cy * cz + sy * sx * sz
-    out[:, 0, 1] = -cy * sz + sy * sx * cz
-    out[:, 0, 2] = sy * cx
-    out[:, 1, 0] = cx * sz
-    out[:, 1, 1] = cx * cz
-    out[:, 1, 2] = -sx
-    out[:, 2, 0] = -sy * cz + cy * sx * sz
-    out[:, 2, 1] = sy * sz + cy * sx * cz
-    out[:, 2, 2] = cy * cx
-    return out
+    return _euler_entries(rx, ry, rz).transpose(2, 0, 1).copy()
+
+
+def rotate_by_euler(left: np.ndarray, rx: np.ndarray, ry: np.ndarray, rz: np.ndarray,
+                    xyz: np.ndarray) -> np.ndarray:
+    """``(left @ euler_to_matrix(rx[n], ry[n], rz[n])) @ xyz[n]`` for every point: (n, 3) float64 (a view).
+
+    Bit for bit ``np.einsum('nij,nj->ni', np.einsum('ij,njk->nik', left, euler_to_matrices(rx, ry, rz)), xyz)``
+    (which the deskewing used) in a few calls on whole arrays instead of einsum's generic loops and (n, 3, 3)
+    arrays: the first einsum sums j = 0, 1, 2 in turn; the second, NumPy's baseline SIMD kernel with two lanes,
+    sums (j = 0 + j = 2) + j = 1. Both start from +0, so a zero sum is never -0: ``+ 0.0`` does the same here
+    (the sign of a zero in the intermediate matrix cannot reach a non-zero sum, and zero sums are made +0).
+    """
+    entries = _euler_entries(rx, ry, rz)
+    left = np.asarray(left, dtype=np.float64)
+    product = (left[:, 0, None, None] * entries[0] + left[:, 1, None, None] * entries[1]
+               + left[:, 2, None, None] * entries[2])   # (3, 3, n): left @ R
+    x, y, z = np.asarray(xyz)[:, :3].T.astype(np.float64)
+    return ((product[:, 0] * x + product[:, 2] * z) + product[:, 1] * y + 0.0).T
 
 
 def matrix_to_euler(rotation: np.ndarray) -> tuple[float, float, float]:

@@ -25,10 +25,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lego_loam_py.core.frames import euler_to_matrices
+from lego_loam_py.core.frames import euler_to_matrices, rotate_by_euler
 from lego_loam_py.core.validation import MAX_ACCELERATION, MAX_ANGULAR_VELOCITY, MAX_SPEED
 
-__all__ = ['ImuBuffer', 'ImuState', 'imu_sample', 'imu_world_rotation', 'MAX_ANGULAR_VELOCITY', 'MAX_ACCELERATION']
+__all__ = ['ImuBuffer', 'ImuState', 'imu_sample', 'imu_world_rotation', 'imu_rotate', 'MAX_ANGULAR_VELOCITY',
+           'MAX_ACCELERATION']
 
 QUATERNION_NORM_TOLERANCE = 0.1
 RESYNC_AFTER = 3   # samples in a row stamped before the newest one that show the newest one's stamp was wrong
@@ -37,6 +38,13 @@ RESYNC_AFTER = 3   # samples in a row stamped before the newest one that show th
 def imu_world_rotation(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
     """(n, 3, 3) attitudes in camera axes, ``Ry(yaw) Rx(pitch) Rz(roll)`` (= REP-103 ZYX in lidar axes)."""
     return euler_to_matrices(pitch, yaw, roll)
+
+
+def imu_rotate(left: np.ndarray, roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray,
+               xyz: np.ndarray) -> np.ndarray:
+    """(n, 3) float64 ``left @ imu_world_rotation(roll, pitch, yaw)[n] @ xyz[n]``, without the (n, 3, 3)
+    attitudes (:func:`~lego_loam_py.core.frames.rotate_by_euler`)."""
+    return rotate_by_euler(left, pitch, yaw, roll, xyz)
 
 
 def _quaternion_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
