@@ -117,8 +117,9 @@ class FeatureExtractor:
         picked = occluded_mask(ranges, columns, self.params)
         head = min(w, n)
         picked[:head] |= self._stale_picked[:head]
-        is_edge_candidate = (curvature > _F32(fa.edge_threshold)) & ~ground
-        is_flat_candidate = (curvature < _F32(fa.surf_threshold)) & ground
+        # Points picked already (occluded, parallel beams, stale) are never selected: left out of the candidates.
+        is_edge_candidate = (curvature > _F32(fa.edge_threshold)) & ~ground & ~picked
+        is_flat_candidate = (curvature < _F32(fa.surf_threshold)) & ground & ~picked
 
         # Every sub-region [sp, ep] of every ring at once, ring by ring (C++ integer division truncates toward
         # zero); empty ones (sp >= ep) are skipped.
