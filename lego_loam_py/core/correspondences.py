@@ -79,8 +79,8 @@ class LastCloud:
         # Features are extracted ring by ring, so the rings normally ascend: every window bound is then a
         # binary search and every segment an index range. Other clouds take the general (slower) path.
         self.ring_ordered = bool(np.all(self.rings[1:] >= self.rings[:-1]))
-        # One contiguous array per coordinate: the window search gathers them once per candidate.
-        self.columns = tuple(np.ascontiguousarray(points[:, k]) for k in range(3))
+        # (3, n): one contiguous row per coordinate, the window search gathers all three in one call.
+        self.xyz_rows = np.ascontiguousarray(points[:, :3].T)
         self.tree = cKDTree(points[:, :3].astype(np.float64)) if len(points) else None
         self._tables = None
 
@@ -119,9 +119,12 @@ class LastCloud:
             ring_end = np.searchsorted(self.rings, scan, side='right')
             backward_cut = np.clip(ring_start, lo + 1, closest)
             forward_cut = np.clip(ring_end, closest + 1, hi)
-            # Columns in the order of _BACK_OTHER, _BACK_SAME, _FORWARD_SAME, _FORWARD_OTHER.
-            starts = np.stack([lo + 1, backward_cut, closest + 1, forward_cut], axis=1)
-            stops = np.stack([backward_cut, closest, forward_cut, hi], axis=1)
+            starts = np.empty((n_queries, 4), dtype=np.int64)
+            starts[:, _BACK_OTHER], starts[:, _BACK_SAME] = lo + 1, backward_cut
+            starts[:, _FORWARD_SAME], starts[:, _FORWARD_OTHER] = closest + 1, forward_cut
+            stops = np.empty((n_queries, 4), dtype=np.int64)
+            stops[:, _BACK_OTHER], stops[:, _BACK_SAME] = backward_cut, closest
+            stops[:, _FORWARD_SAME], stops[:, _FORWARD_OTHER] = forward_cut, hi
             lengths = np.zeros((n_queries, 4), dtype=np.int64)
             lengths[:, kinds] = stops[:, kinds] - starts[:, kinds]
             return ranges(starts.reshape(-1), lengths.reshape(-1)), lengths
@@ -150,18 +153,19 @@ def _nearest_in_segments(query: np.ndarray, last: LastCloud, position: np.ndarra
     best = np.full(len(flat_lengths), np.inf, dtype=_F32)
     if len(position):
         per_query = lengths.sum(axis=1)
-        x, y, z = last.columns
-        dx = x[position] - np.repeat(query[:, 0], per_query)
-        dy = y[position] - np.repeat(query[:, 1], per_query)
-        dz = z[position] - np.repeat(query[:, 2], per_query)
-        dist = dx * dx + dy * dy + dz * dz
+        # (3, m) coordinate differences in one call each; summed x + y + z as the original's float expression.
+        delta = last.xyz_rows.take(position, axis=1) - np.repeat(query[:, :3].T, per_query, axis=1)
+        delta *= delta
+        dist = delta[0] + delta[1]
+        dist += delta[2]
         ends = np.cumsum(flat_lengths)
         filled = np.flatnonzero(flat_lengths)
         best[filled] = np.fmin.reduceat(dist, (ends - flat_lengths)[filled])   # fmin: NaN never wins
         at_minimum = np.flatnonzero(dist == np.repeat(best, flat_lengths))
         segment = np.searchsorted(ends, at_minimum, side='right')
         new_segment = segment[1:] != segment[:-1]
-        keep = np.where(_BACKWARD[segment % 4], np.append(new_segment, True), np.insert(new_segment, 0, True))
+        keep = np.where(_BACKWARD[segment % 4], np.concatenate((new_segment, [True])),
+                        np.concatenate(([True], new_segment)))
         index[segment[keep]] = position[at_minimum[keep]]
     outside = ~(best < _F32(limit))
     index[outside] = -1
