@@ -282,14 +282,23 @@ class SweepStartOdometry(LaserOdometry):
             # Rows of the projector I - u u^T, weighted: the coefficients of the three residual components.
             coefficients = (np.eye(3)[None, :, :] - second[:, :, None] * second[:, None, :]) * weight[:, None, None]
 
+        # The last evaluation, keyed by the bytes of its theta: the trial point _shorten accepts is the next
+        # iteration's estimate (the same additions), whose residuals and Jacobian then reuse its frame.
+        last_evaluation = [None, None, None]   # theta bytes, SweepStartFrame, values
+
         def residual(theta: np.ndarray, jacobian: bool = False):
-            frame = SweepStartFrame(xyz, s, theta)
-            if kind == 'surf':
-                values = weight * plane_distance(first, second, frame.xyz()).astype(np.float64)
+            key = np.asarray(theta, dtype=np.float64).tobytes()
+            if last_evaluation[0] == key:
+                frame, values = last_evaluation[1], last_evaluation[2]
             else:
-                values = (weight[:, None] * line_offsets(frame.xyz().astype(np.float64), first, second)).reshape(-1)
-            if prior_parameters:
-                values = np.concatenate([values, math.sqrt(self.rotation_prior) * np.asarray(theta)[prior_parameters]])
+                frame = SweepStartFrame(xyz, s, theta)
+                if kind == 'surf':
+                    values = weight * plane_distance(first, second, frame.xyz()).astype(np.float64)
+                else:
+                    values = (weight[:, None] * line_offsets(frame.xyz().astype(np.float64), first, second)).reshape(-1)
+                if prior_parameters:
+                    values = np.concatenate([values, math.sqrt(self.rotation_prior) * np.asarray(theta)[prior_parameters]])
+                last_evaluation[:] = key, frame, values
             if not jacobian:
                 return values
             rows = frame.rows(coefficients, active)   # lines: the three components of each point, as the values
