@@ -64,13 +64,14 @@ def voxel_downsample_groups(points: np.ndarray, groups: np.ndarray, leaf_size: f
         raise ValueError(f'voxel leaf size must be positive, got {leaf_size}')
     points = np.asarray(points, dtype=np.float32)
     groups = np.asarray(groups, dtype=np.int64)
-    finite = np.isfinite(points[:, :3]).all(axis=1)
-    if not finite.all():
+    if not np.isfinite(points[:, :3]).all():   # one whole-array test first: non-finite points are rare
+        finite = np.isfinite(points[:, :3]).all(axis=1)
         points, groups = points[finite], groups[finite]
     if len(points) == 0:
         return np.zeros((0, points.shape[1]), dtype=np.float32)
-    by_group = np.argsort(groups, kind='stable')
-    points, groups = points[by_group], groups[by_group]
+    if (groups[1:] < groups[:-1]).any():   # the features come ring by ring: usually in group order already
+        by_group = np.argsort(groups, kind='stable')
+        points, groups = points[by_group], groups[by_group]
     group_starts = np.flatnonzero(np.concatenate(([True], groups[1:] != groups[:-1])))
     group_of = np.cumsum(np.concatenate(([False], groups[1:] != groups[:-1])))   # 0..G-1 per point
     inverse = np.float32(1.0) / np.float32(leaf_size)
