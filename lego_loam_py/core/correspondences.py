@@ -81,7 +81,10 @@ class LastCloud:
         self.ring_ordered = bool(np.all(self.rings[1:] >= self.rings[:-1]))
         # (3, n): one contiguous row per coordinate, the window search gathers all three in one call.
         self.xyz_rows = np.ascontiguousarray(points[:, :3].T)
-        self.tree = cKDTree(points[:, :3].astype(np.float64)) if len(points) else None
+        # Sliding-midpoint splits (balanced_tree=False) build in about half the time of median splits and query
+        # as fast. The nearest neighbour is the same; only between exactly equidistant points (none in the
+        # recordings) may the tree's layout pick the other one.
+        self.tree = cKDTree(points[:, :3].astype(np.float64), balanced_tree=False) if len(points) else None
         self._tables = None
 
     def _window_tables(self):
