@@ -73,17 +73,18 @@ def voxel_downsample_groups(points: np.ndarray, groups: np.ndarray, leaf_size: f
         by_group = np.argsort(groups, kind='stable')
         points, groups = points[by_group], groups[by_group]
     group_starts = np.flatnonzero(np.concatenate(([True], groups[1:] != groups[:-1])))
-    group_of = np.cumsum(np.concatenate(([False], groups[1:] != groups[:-1])))   # 0..G-1 per point
+    group_sizes = np.diff(np.append(group_starts, len(groups)))   # per-group values reach the points by repeat
     inverse = np.float32(1.0) / np.float32(leaf_size)
     # floor(min(p) / leaf) == min(floor(p / leaf)): the product and floor are monotonic in float32 too.
     scaled = np.floor(points[:, :3] * inverse)
     min_b = np.minimum.reduceat(scaled, group_starts, axis=0)
     max_b = np.maximum.reduceat(scaled, group_starts, axis=0)
     div = (max_b - min_b).astype(np.int64) + 1
-    ijk = (scaled - min_b[group_of]).astype(np.int64)
-    local = ijk[:, 0] + ijk[:, 1] * div[group_of, 0] + ijk[:, 2] * (div[:, 0] * div[:, 1])[group_of]
+    ijk = (scaled - np.repeat(min_b, group_sizes, axis=0)).astype(np.int64)
+    local = ijk[:, 0] + ijk[:, 1] * np.repeat(div[:, 0], group_sizes) + \
+        ijk[:, 2] * np.repeat(div[:, 0] * div[:, 1], group_sizes)
     span = int((div[:, 0] * div[:, 1] * div[:, 2]).max())
-    index = group_of * span + local
+    index = np.repeat(np.arange(len(group_starts)) * span, group_sizes) + local
     order = np.argsort(index, kind='stable')
     sorted_index = index[order]
     starts = np.flatnonzero(np.concatenate(([True], sorted_index[1:] != sorted_index[:-1])))
