@@ -81,18 +81,21 @@ def occluded_mask(ranges: np.ndarray, columns: np.ndarray, params: Params) -> np
     i = np.arange(w, n - w - 1)
     if len(i) == 0:
         return picked
+    # Points i and i + 1 as slices (i runs over one contiguous range); i - 1 indexed, it wraps when w = 0.
+    here, after = slice(w, n - w - 1), slice(w + 1, n - w)
     col = columns.astype(np.int64)
-    near = np.abs(col[i + 1] - col[i]) < fa.occlusion_column_gap
-    d1, d2 = r[i], r[i + 1]
+    near = np.abs(col[after] - col[here]) < fa.occlusion_column_gap
+    d1, d2 = r[here], r[after]
     jump = _F32(fa.occlusion_depth_jump)
     farther_behind = near & (d1.astype(np.float64) - d2 > jump)        # i is the far side: mark i-5..i
     farther_ahead = near & ~farther_behind & (d2.astype(np.float64) - d1 > jump)  # mark i+1..i+6
+    behind, ahead = i[farther_behind], i[farther_ahead] + 1
     for offset in range(w + 1):
-        picked[i[farther_behind] - offset] = True
-        picked[i[farther_ahead] + 1 + offset] = True
-    diff1 = np.abs(r[i - 1] - r[i])
-    diff2 = np.abs(r[i + 1] - r[i])
-    ratio = fa.parallel_beam_ratio * r[i].astype(np.float64)
+        picked[behind - offset] = True
+        picked[ahead + offset] = True
+    diff1 = np.abs(r[i - 1] - d1)
+    diff2 = np.abs(d2 - d1)
+    ratio = fa.parallel_beam_ratio * d1.astype(np.float64)
     picked[i[(diff1 > ratio) & (diff2 > ratio)]] = True
     return picked
 
