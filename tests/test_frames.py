@@ -127,3 +127,21 @@ def test_quaternion_helpers_round_trip():
 
 def test_wrap_angle():
     assert np.allclose(F.wrap_angle(np.array([3 * np.pi, -3 * np.pi / 2, 0.1])), [-np.pi, np.pi / 2, 0.1])
+
+
+def test_rotate_by_euler_is_the_matrix_product_for_every_point():
+    """The deskewing's batched rotation equals ``left @ Ry Rx Rz @ p`` point by point (to rounding: its
+    summation order is fixed, the matrix product's may depend on the CPU's SIMD kernels)."""
+    from lego_loam_py.core.frames import euler_to_matrix, rotate_by_euler
+
+    rng = np.random.default_rng(4)
+    n = 257
+    rx, ry, rz = rng.uniform(-np.pi, np.pi, (3, n))
+    left = euler_to_matrix(*rng.uniform(-np.pi, np.pi, 3))
+    xyz = rng.normal(scale=30.0, size=(n, 3)).astype(np.float32)
+    got = rotate_by_euler(left, rx, ry, rz, xyz)
+    expected = np.array([left @ euler_to_matrix(rx[k], ry[k], rz[k]) @ xyz[k].astype(np.float64) for k in range(n)])
+    assert got.shape == (n, 3) and got.dtype == np.float64
+    assert np.abs(got - expected).max() <= 1e-12 * np.abs(xyz).max()
+    assert np.array_equal(rotate_by_euler(np.eye(3), np.zeros(2), np.zeros(2), np.zeros(2), xyz[:2]),
+                          xyz[:2].astype(np.float64))
