@@ -186,6 +186,19 @@ class FeatureAssociation:
         """Features and odometry of one scan (see the module docstring)."""
         return self._process(scan)
 
+    def _prepare_scan(self, scan: ScanInput, imu_step):
+        """What both models do first: the prepared points (:meth:`prepare_points`), ``imu_step(points, rel,
+        stamp_ns)`` (the model's use of the IMU over the sweep, ``rel`` the points' relative times; None for a
+        scan without points), the features, and the timings of the two [ms]."""
+        t0 = time.perf_counter()
+        points = self.prepare_points(scan)
+        rel = 10.0 * (points[:, 3].astype(np.float64) - np.trunc(points[:, 3]))
+        imu = imu_step(points, rel, scan.stamp_ns) if len(points) else None
+        t1 = time.perf_counter()
+        features = self.extractor.extract(points, scan.info)
+        self.scans += 1
+        return points, imu, features, {'deskew': (t1 - t0) * 1e3, 'features': (time.perf_counter() - t1) * 1e3}
+
     def _finish(self, scan: ScanInput, features, corner_last, surf_last, outlier_last, initialized, imu_used,
                 stats, timings) -> FeatureAssociationResult:
         """Publication decision (every skip_frame_num + 1 scans after the first) and the result."""
@@ -211,17 +224,10 @@ class FeatureAssociation:
         IMU, points are first rotated into the reference orientation with its attitude and ``θ`` keeps only
         the rotation the IMU missed.
         """
-        timings = {}
         t0 = time.perf_counter()
-        points = self.prepare_points(scan)
-        rel = 10.0 * (points[:, 3].astype(np.float64) - np.trunc(points[:, 3]))
-        attitude = self._imu_attitudes(rel, scan.stamp_ns) if len(points) else None
-        t1 = time.perf_counter()
-        features = self.extractor.extract(points, scan.info)
+        points, attitude, features, timings = self._prepare_scan(
+            scan, lambda prepared, rel, stamp_ns: self._imu_attitudes(rel, stamp_ns))
         t2 = time.perf_counter()
-        timings['deskew'] = (t1 - t0) * 1e3
-        timings['features'] = (t2 - t1) * 1e3
-        self.scans += 1
         odometry = self.odometry
         if not self.initialized:
             if attitude is not None and not self._resumed:
@@ -345,17 +351,9 @@ class FeatureAssociation:
 
     def _process_original(self, scan: ScanInput) -> FeatureAssociationResult:
         """The original's model: registration against the previous features moved to that sweep's end."""
-        timings = {}
         t0 = time.perf_counter()
-        points = self.prepare_points(scan)
-        rel = 10.0 * (points[:, 3].astype(np.float64) - np.trunc(points[:, 3]))
-        imu = self._imu_deskew(points, rel, scan.stamp_ns) if len(points) else None
-        t1 = time.perf_counter()
-        features = self.extractor.extract(points, scan.info)
+        points, imu, features, timings = self._prepare_scan(scan, self._imu_deskew)
         t2 = time.perf_counter()
-        timings['deskew'] = (t1 - t0) * 1e3
-        timings['features'] = (t2 - t1) * 1e3
-        self.scans += 1
         if not self.initialized:
             self.odometry.set_last(features.less_sharp, features.less_flat)
             if imu is not None and not self._resumed:
