@@ -10,7 +10,6 @@ import time
 import traceback
 from collections import OrderedDict, deque
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -21,6 +20,7 @@ from lego_loam_py.core.imu import imu_sample
 from lego_loam_py.ros.conversions import imu_sample_from_serialized, ns_to_stamp, serialized_stamp_ns, stamp_to_ns
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.params import declare_params
+from lego_loam_py.results import TimingStats
 
 __all__ = ['LegoLoamNode', 'release_memory', 'LARGE_MESSAGE_BYTES']
 
@@ -403,32 +403,26 @@ class LegoLoamNode(Node):
         self.timings_ms.setdefault(name, deque(maxlen=keep)).append(seconds * 1e3)
 
     def timing_summary(self) -> str:
-        parts = []
-        for name, values in self.timings_ms.items():
-            if values:
-                v = np.asarray(values)
-                parts.append(f'{name}: median {np.median(v):.1f} ms, p95 {np.percentile(v, 95):.1f} ms (n={len(v)})')
+        parts = [f'{name}: median {t.median:.1f} ms, p95 {t.p95:.1f} ms (n={t.count})'
+                 for name, t in self.timing_stats().items()]
         counters = ', '.join(f'{k}={v}' for k, v in sorted(self.counters.items()))
         return '; '.join(parts + ([counters] if counters else [])) or 'no data'
 
+    def timing_stats(self) -> dict[str, TimingStats]:
+        """Each timed stage's statistics over the recent calls [ms]."""
+        return {name: TimingStats.of(values) for name, values in self.timings_ms.items() if values}
+
     def statistics(self) -> dict:
         """Counters and timing percentiles (ms) of this node, for tools and reports."""
-        timings = {}
-        for name, values in self.timings_ms.items():
-            if values:
-                v = np.asarray(values)
-                timings[name] = dict(median=float(np.median(v)), p95=float(np.percentile(v, 95)),
-                                     mean=float(v.mean()), count=int(len(v)))
+        timings = {name: t.as_dict() for name, t in self.timing_stats().items()}
         return dict(node=self.get_name(), counters=dict(self.counters), timings_ms=timings)
 
     def diagnostic_status(self) -> DiagnosticStatus:
         """This node's status for /diagnostics: level, a one-line message, counters and timings as key-values."""
         values = [KeyValue(key=name, value=str(value)) for name, value in sorted(self.counters.items())]
-        for name, values_ms in self.timings_ms.items():
-            if values_ms:
-                v = np.asarray(values_ms)
-                values.append(KeyValue(key=f'{name}_median_ms', value=f'{np.median(v):.2f}'))
-                values.append(KeyValue(key=f'{name}_p95_ms', value=f'{np.percentile(v, 95):.2f}'))
+        for name, t in self.timing_stats().items():
+            values.append(KeyValue(key=f'{name}_median_ms', value=f'{t.median:.2f}'))
+            values.append(KeyValue(key=f'{name}_p95_ms', value=f'{t.p95:.2f}'))
         values.append(KeyValue(key='inputs_without_output', value=str(self._inputs_without_output)))
         values += [KeyValue(key=key, value=str(count)) for key, count in self.matched_endpoints().items()]
         if self.silent:
