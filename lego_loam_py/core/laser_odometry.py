@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -55,6 +56,18 @@ class OdometryStats:
     skipped: str = ''
     extra: dict = field(default_factory=dict)
 
+
+class _Stage(NamedTuple):
+    """One registration stage: its points, what they match, the parameters it moves (rows of the step that are
+    rotations and translations, for the convergence test) and its degeneracy state."""
+
+    kind: str                   # 'surf' (planes, flat points) or 'corner' (lines, sharp points)
+    points: np.ndarray
+    last: LastCloud
+    active: list[int]
+    rotation_rows: list[int]
+    translation_rows: list[int]
+    degeneracy: DegeneracyProjection
 
 
 class LaserOdometry:
@@ -99,6 +112,11 @@ class LaserOdometry:
     def _register(self, sharp: np.ndarray, flat: np.ndarray, stats: OdometryStats) -> OdometryStats:
         raise NotImplementedError
 
+    def _stages(self, sharp: np.ndarray, flat: np.ndarray) -> tuple[_Stage, _Stage]:
+        """Planes first (rx, rz, ty), then lines (ry, tx, tz)."""
+        return (_Stage('surf', flat, self.last_surf, self.SURF_PARAMS, [0, 1], [2], self._surf_stage),
+                _Stage('corner', sharp, self.last_corner, self.CORNER_PARAMS, [0], [1, 2], self._corner_stage))
+
     def _forward_bound(self, last: LastCloud, points: np.ndarray) -> int:
         """Where the forward correspondence scan stops: the current feature count (quirk 8.1) unless fixed."""
         return len(last.points) if self.fix_scan_bound else len(points)
@@ -118,33 +136,22 @@ class OriginalOdometry(LaserOdometry):
 
     def _register(self, sharp: np.ndarray, flat: np.ndarray, stats: OdometryStats) -> OdometryStats:
         fa = self.params.feature_association
-        for iteration in range(fa.max_iterations):
-            stats.surf_iterations = iteration + 1
-            if iteration % fa.reassociate_every == 0:
-                surf_match = find_surf_correspondences(transform_to_start(flat, self.transform_cur), self.last_surf,
-                                                       self.params, self._forward_bound(self.last_surf, flat))
-            a, b = self._surf_rows(flat, surf_match, iteration)
-            stats.surf_correspondences = len(b)
-            if len(b) < fa.min_correspondences:
-                continue
-            x = self._surf_stage.step(a, b, iteration == 0, fa.degeneracy_threshold)
-            stats.surf_degenerate = self._surf_stage.degenerate
-            if not self._apply(x, self.SURF_PARAMS, rotation_rows=[0, 1], translation_rows=[2]):
-                break
-        for iteration in range(fa.max_iterations):
-            stats.corner_iterations = iteration + 1
-            if iteration % fa.reassociate_every == 0:
-                corner_match = find_corner_correspondences(transform_to_start(sharp, self.transform_cur),
-                                                           self.last_corner, self.params,
-                                                           self._forward_bound(self.last_corner, sharp))
-            a, b = self._corner_rows(sharp, corner_match, iteration)
-            stats.corner_correspondences = len(b)
-            if len(b) < fa.min_correspondences:
-                continue
-            x = self._corner_stage.step(a, b, iteration == 0, fa.degeneracy_threshold)
-            stats.corner_degenerate = self._corner_stage.degenerate
-            if not self._apply(x, self.CORNER_PARAMS, rotation_rows=[0], translation_rows=[1, 2]):
-                break
+        for stage in self._stages(sharp, flat):
+            find, rows = ((find_surf_correspondences, self._surf_rows) if stage.kind == 'surf' else
+                          (find_corner_correspondences, self._corner_rows))
+            for iteration in range(fa.max_iterations):
+                setattr(stats, f'{stage.kind}_iterations', iteration + 1)
+                if iteration % fa.reassociate_every == 0:
+                    match = find(transform_to_start(stage.points, self.transform_cur), stage.last, self.params,
+                                 self._forward_bound(stage.last, stage.points))
+                a, b = rows(stage.points, match, iteration)
+                setattr(stats, f'{stage.kind}_correspondences', len(b))
+                if len(b) < fa.min_correspondences:
+                    continue
+                x = stage.degeneracy.step(a, b, iteration == 0, fa.degeneracy_threshold)
+                setattr(stats, f'{stage.kind}_degenerate', stage.degeneracy.degenerate)
+                if not self._apply(x, stage.active, stage.rotation_rows, stage.translation_rows):
+                    break
         return stats
 
     def _weights(self, distance: np.ndarray, scale: np.ndarray, iteration: int) -> np.ndarray:
@@ -196,12 +203,12 @@ class SweepStartOdometry(LaserOdometry):
         with 5 % steps, which then stop with up to 2 cm / 2 deg left.
         """
         fa = self.params.feature_association
-        for kind, points, active in (('surf', flat, self.SURF_PARAMS), ('corner', sharp, self.CORNER_PARAMS)):
-            stage = self._surf_stage if kind == 'surf' else self._corner_stage
+        for stage in self._stages(sharp, flat):
+            kind, active = stage.kind, stage.active
             iterations, first = 0, True
             blocks = -(-fa.max_iterations // fa.reassociate_every)
             for block in range(blocks):
-                residual = self._residual_function(kind, points, weighted=block > 0)
+                residual = self._residual_function(stage, weighted=block > 0)
                 if residual is None:
                     break
                 before = self.transform_cur.copy()
@@ -211,11 +218,11 @@ class SweepStartOdometry(LaserOdometry):
                     setattr(stats, f'{kind}_correspondences', residual.points)
                     if residual.points < fa.min_correspondences:
                         break
-                    x = stage.step(rows, -values, first, fa.degeneracy_threshold)
+                    x = stage.degeneracy.step(rows, -values, first, fa.degeneracy_threshold)
                     first = False
-                    setattr(stats, f'{kind}_degenerate', stage.degenerate)
+                    setattr(stats, f'{kind}_degenerate', stage.degeneracy.degenerate)
                     x = self._shorten(x, active, residual, float(np.square(values).sum()))
-                    converged = not self._apply(x, active, *(([0, 1], [2]) if kind == 'surf' else ([0], [1, 2])))
+                    converged = not self._apply(x, active, stage.rotation_rows, stage.translation_rows)
                     if converged:
                         break
                 moved = self.transform_cur - before
@@ -225,8 +232,8 @@ class SweepStartOdometry(LaserOdometry):
             setattr(stats, f'{kind}_iterations', iterations)
         return stats
 
-    def _residual_function(self, kind: str, points: np.ndarray, weighted: bool):
-        """Associate ``points`` at the current estimate and return ``f(theta, jacobian)`` giving the weighted
+    def _residual_function(self, stage: _Stage, weighted: bool):
+        """Associate the stage's points at the current estimate and return ``f(theta, jacobian)`` giving the weighted
         residuals (and their Jacobian rows) of the usable correspondences, weights fixed now.
 
         Planes give one residual per point, the signed distance. Lines give three: the point's perpendicular
@@ -235,8 +242,8 @@ class SweepStartOdometry(LaserOdometry):
         converges there instead of stepping back and forth across it.
         """
         fa = self.params.feature_association
+        kind, points, last, active = stage.kind, stage.points, stage.last, stage.active
         start = transform_to_start(points, self.transform_cur)
-        last = self.last_surf if kind == 'surf' else self.last_corner
         bound = self._forward_bound(last, points)
         # The planes and lines depend only on the last cloud: fixed for the whole block.
         if kind == 'surf':
@@ -269,7 +276,6 @@ class SweepStartOdometry(LaserOdometry):
         weight = weight[keep]
         xyz = selected[:, :3].T.astype(np.float64, order='C')
         s = relative_time_of(selected[:, 3]).astype(np.float64)
-        active = self.SURF_PARAMS if kind == 'surf' else self.CORNER_PARAMS
 
         # The rotation prior: sqrt(w) * angle for each active rotation parameter, appended to the residuals.
         prior_columns = [k for k, parameter in enumerate(active) if parameter < 3] if self.rotation_prior > 0 else []

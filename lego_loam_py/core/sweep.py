@@ -216,17 +216,12 @@ def start_jacobian(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
     return jac
 
 
-def plane_jacobian_rows(points: np.ndarray, coeff: np.ndarray, transform: np.ndarray, active: list[int],
-                        exact: bool = False) -> np.ndarray:
-    """Rows of the Gauss-Newton matrix: ``coeff_xyz · d p_start / d θ_active`` for each point.
-
-    ``exact`` differentiates the residual actually minimised, ``R(sθ)^T (p - s t)``: ``s · J(sθ)``. Without
-    it, the original's rows: ``J(θ)``, the derivative at the full motion whatever the point's time.
-    """
-    if not exact:
-        jac = start_jacobian(points, transform)[:, :, active]
-        return np.einsum('ni,nij->nj', coeff[:, :3].astype(np.float64), jac)
-    return SweepStartFrame.of(points, transform).rows(coeff[:, :3].astype(np.float64), active)
+def plane_jacobian_rows(points: np.ndarray, coeff: np.ndarray, transform: np.ndarray, active: list[int]) -> np.ndarray:
+    """The original model's rows of the Gauss-Newton matrix: ``coeff_xyz · J(θ)_active`` for each point, the
+    derivative at the full motion whatever the point's time (the sweep-start model differentiates its residual
+    exactly, :meth:`SweepStartFrame.rows`)."""
+    jac = start_jacobian(points, transform)[:, :, active]
+    return np.einsum('ni,nij->nj', coeff[:, :3].astype(np.float64), jac)
 
 
 def accumulate(transform_sum: np.ndarray, transform_cur: np.ndarray, imu_shift: np.ndarray | None = None) -> np.ndarray:
