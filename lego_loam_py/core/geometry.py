@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ['plane_through', 'plane_distance', 'plane_coefficients', 'line_offsets', 'cross_rows',
+__all__ = ['plane_through', 'plane_distance', 'plane_coefficients', 'fit_planes', 'line_offsets', 'cross_rows',
            'line_coefficients']
 
 _F32 = np.float32
@@ -34,6 +34,37 @@ def plane_coefficients(p_start: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.
     """Unit normal (n, 3) and signed distance (n,) of points to the planes through a, b, c (float32)."""
     normal, offset = plane_through(a, b, c)
     return normal, plane_distance(normal, offset, p_start)
+
+
+def fit_planes(neighbours: np.ndarray, max_residual: float):
+    """Least-squares planes ``n · x + offset = 0`` through (m, k, 3) float64 neighbourhoods: (indices of the
+    neighbourhoods whose every point lies within ``max_residual`` [m] of their plane, unit normals (j, 3),
+    offsets (j,)).
+
+    The plane is fitted as ``n · x = -1`` through the normal equations ``(A^T A) n = -A^T 1``, solved in closed
+    form (Cramer's rule on the symmetric 3x3 systems, vectorised); it cannot pass through the origin, which
+    the sensor never sees.
+    """
+    xx, yy, zz = (np.einsum('mk,mk->m', neighbours[..., i], neighbours[..., i]) for i in range(3))
+    xy = np.einsum('mk,mk->m', neighbours[..., 0], neighbours[..., 1])
+    xz = np.einsum('mk,mk->m', neighbours[..., 0], neighbours[..., 2])
+    yz = np.einsum('mk,mk->m', neighbours[..., 1], neighbours[..., 2])
+    b = -neighbours.sum(axis=1)
+    c00, c01, c02 = yy * zz - yz * yz, xz * yz - xy * zz, xy * yz - xz * yy
+    c11, c12, c22 = xx * zz - xz * xz, xy * xz - xx * yz, xx * yy - xy * xy
+    det = xx * c00 + xy * c01 + xz * c02
+    solvable = np.flatnonzero(np.abs(det) > 1e-12)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        normal = np.stack([c00 * b[:, 0] + c01 * b[:, 1] + c02 * b[:, 2],
+                           c01 * b[:, 0] + c11 * b[:, 1] + c12 * b[:, 2],
+                           c02 * b[:, 0] + c12 * b[:, 1] + c22 * b[:, 2]], axis=1) / det[:, None]
+    neighbours, normal = neighbours[solvable], normal[solvable]
+    norm = np.linalg.norm(normal, axis=1)
+    normal /= norm[:, None]
+    offset = 1.0 / norm
+    residuals = np.abs(np.einsum('mki,mi->mk', neighbours, normal) + offset[:, None])
+    valid = (residuals <= max_residual).all(axis=1)
+    return solvable[valid], normal[valid], offset[valid]
 
 
 def line_offsets(p: np.ndarray, anchor: np.ndarray, along: np.ndarray) -> np.ndarray:

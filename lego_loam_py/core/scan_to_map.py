@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 from lego_loam_py.core.frames import (GENERATOR_X, GENERATOR_Y, GENERATOR_Z, pose6_to_matrix, rot_x, rot_y, rot_z,
                                       transform_points)
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
-from lego_loam_py.core.geometry import line_coefficients
+from lego_loam_py.core.geometry import fit_planes, line_coefficients
 from lego_loam_py.core.param_types import Params
 
 __all__ = ['map_jacobian_rows', 'edge_correspondences', 'plane_correspondences', 'register_scan_to_map',
@@ -79,28 +79,8 @@ def plane_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: n
     if len(points_world) == 0 or tree is None:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 4))
     used, neighbours = _neighbourhoods(points_world, tree, map_points, mo)
-    # Least-squares plane n·x = -1 through the neighbours: the normal equations (A^T A) n = -A^T 1, solved in
-    # closed form (Cramer's rule on the symmetric 3x3 systems, vectorised over all points).
-    xx, yy, zz = (np.einsum('mk,mk->m', neighbours[..., i], neighbours[..., i]) for i in range(3))
-    xy = np.einsum('mk,mk->m', neighbours[..., 0], neighbours[..., 1])
-    xz = np.einsum('mk,mk->m', neighbours[..., 0], neighbours[..., 2])
-    yz = np.einsum('mk,mk->m', neighbours[..., 1], neighbours[..., 2])
-    b = -neighbours.sum(axis=1)
-    c00, c01, c02 = yy * zz - yz * yz, xz * yz - xy * zz, xy * yz - xz * yy
-    c11, c12, c22 = xx * zz - xz * xz, xy * xz - xx * yz, xx * yy - xy * xy
-    det = xx * c00 + xy * c01 + xz * c02
-    solvable = np.abs(det) > 1e-12
-    with np.errstate(divide='ignore', invalid='ignore'):
-        normal = np.stack([c00 * b[:, 0] + c01 * b[:, 1] + c02 * b[:, 2],
-                           c01 * b[:, 0] + c11 * b[:, 1] + c12 * b[:, 2],
-                           c02 * b[:, 0] + c12 * b[:, 1] + c22 * b[:, 2]], axis=1) / det[:, None]
-    used, neighbours, normal = used[solvable], neighbours[solvable], normal[solvable]
-    norm = np.linalg.norm(normal, axis=1)
-    normal /= norm[:, None]
-    offset = 1.0 / norm
-    residuals = np.abs(np.einsum('mki,mi->mk', neighbours, normal) + offset[:, None])
-    valid = (residuals <= mo.plane_max_residual).all(axis=1)
-    used, normal, offset = used[valid], normal[valid], offset[valid]
+    planar, normal, offset = fit_planes(neighbours, mo.plane_max_residual)
+    used = used[planar]
     p = points_world[used, :3].astype(np.float64)
     dist = np.einsum('mi,mi->m', p, normal) + offset
     weight = 1.0 - mo.weight_gain * np.abs(dist) / np.sqrt(np.linalg.norm(p, axis=1))
