@@ -247,10 +247,11 @@ class FeatureAssociation:
         to_reference = previous.r_start.T if use_imu else None
         sharp = self._registration_input(features.sharp, features.sharp_index, to_reference, attitude)
         flat = self._registration_input(features.flat, features.flat_index, to_reference, attitude)
+        wall = self._registration_input(features.wall, features.wall_index, to_reference, attitude)
         if use_imu:
             odometry.transform_cur[:3] = 0.0   # the IMU explains the rotation; only what it missed is left
         odometry.rotation_prior = self.params.feature_association.imu_rotation_prior if use_imu else 0.0
-        stats = odometry.register(sharp, flat)
+        stats = odometry.register(sharp, flat, wall)
         if self._first_features is not None:
             # The first reference was deskewed without knowing the motion (the sensor may already be moving):
             # deskew it with the motion just found and register again, twice (once the motion is known).
@@ -265,7 +266,7 @@ class FeatureAssociation:
                     self._deskew_to_start(first.less_sharp, first.less_sharp_index, first_motion, first_attitude,
                                           first_points),
                     self._deskew_to_start(first.less_flat, None, first_motion, first_attitude, first_points))
-                stats = odometry.register(sharp, flat)
+                stats = odometry.register(sharp, flat, wall)
         t3 = time.perf_counter()
         timings['odometry'] = (t3 - t2) * 1e3
         theta = odometry.transform_cur

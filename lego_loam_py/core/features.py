@@ -22,7 +22,7 @@ after 20 edges / 4 flats), never over all points.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -47,6 +47,10 @@ class ScanFeatures:
     sharp_index: np.ndarray        # indices into the scan's points
     less_sharp_index: np.ndarray
     flat_index: np.ndarray
+    # Flat non-ground points (walls, facades), for the sweep-start odometry's (ry, tx, tz) stage; empty when
+    # ``wall_feature_num`` is 0 (the original has none).
+    wall: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), _F32))
+    wall_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
 def smoothness(ranges: np.ndarray, half_window: int = 5) -> np.ndarray:
@@ -144,7 +148,8 @@ class FeatureExtractor:
         # One stable sort by (region, curvature): the curvature is a square, and the bits of a non-negative
         # float32 order as the values do.
         key = (region_of << 32) | curvature[position].view(np.uint32).astype(np.int64)
-        ascending = position[np.argsort(key, kind='stable')]
+        order = np.argsort(key, kind='stable')
+        ascending, region_of_sorted = position[order], region_of[order]
         # Candidates in visiting order, each region in a slot of ep - sp + 1 entries: edges from the unsorted
         # element ep, then the largest curvature down; flats from the smallest up, ep last.
         length = ep - sp
@@ -212,9 +217,29 @@ class FeatureExtractor:
                                                 fa.less_flat_leaf_size)
         else:
             less_flat = np.zeros((0, 4), _F32)
+        wall_index = _wall_points(ascending, region_of_sorted, curvature, ground, taken, fa)
         return ScanFeatures(sharp=points[sharp_index], less_sharp=points[less_sharp_index], flat=points[flat_index],
                             less_flat=less_flat, sharp_index=sharp_index, less_sharp_index=less_sharp_index,
-                            flat_index=flat_index)
+                            flat_index=flat_index, wall=points[wall_index], wall_index=wall_index)
+
+
+def _wall_points(ascending: np.ndarray, region: np.ndarray, curvature: np.ndarray, ground: np.ndarray,
+                 taken: bytearray, fa) -> np.ndarray:
+    """Up to ``wall_feature_num`` flattest non-ground points of each sub-region that no edge or flat pick
+    took or suppressed (``ascending``: positions sorted by region, then curvature; ``region``: their regions).
+
+    In a corridor the walls are the only structure beside the ground and carry the yaw and the lateral
+    position; the original leaves them to its few, noisy edge points."""
+    if fa.wall_feature_num <= 0 or not len(ascending):
+        return np.zeros(0, np.int64)
+    free = ~np.frombuffer(bytes(taken), dtype=bool)
+    candidate = (curvature[ascending] < _F32(fa.surf_threshold)) & ~ground[ascending] & free[ascending]
+    chosen = ascending[candidate]
+    chosen_region = region[candidate]
+    # Rank within the region: position in the candidate list minus the region's first candidate.
+    first = np.flatnonzero(np.r_[True, chosen_region[1:] != chosen_region[:-1]])
+    rank = np.arange(len(chosen)) - np.repeat(first, np.diff(np.r_[first, len(chosen)]))
+    return np.unique(chosen[rank < fa.wall_feature_num])   # (the phantom point 0 may appear twice)
 
 
 def _candidates(order: np.ndarray, usable: np.ndarray, slot: np.ndarray):

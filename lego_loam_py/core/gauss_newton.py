@@ -33,10 +33,14 @@ class DegeneracyProjection:
     def __init__(self, dimensions: int):
         self.projection = np.eye(dimensions)
         self.degenerate = False
+        # The smallest eigenvalue of the last normal matrix examined: how well the worst direction is held
+        # (the original's degeneracy test compares it with the threshold).
+        self.smallest_eigenvalue = float('nan')
 
     def update(self, ata: np.ndarray, threshold: float) -> None:
         """Find the directions of ``ata`` (the normal matrix) whose eigenvalues are below ``threshold``."""
         values, vectors = np.linalg.eigh(ata)           # ascending
+        self.smallest_eigenvalue = float(values[0])
         keep = np.ones(len(values), dtype=bool)
         self.degenerate = False
         for i in range(len(values)):                    # from the smallest up to the first >= threshold

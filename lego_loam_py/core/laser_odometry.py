@@ -34,8 +34,8 @@ import numpy as np
 from lego_loam_py.core.correspondences import (CornerCorrespondences, LastCloud, SurfCorrespondences,
                                                find_corner_correspondences, find_surf_correspondences)
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
-from lego_loam_py.core.geometry import (line_coefficients, line_offsets, plane_coefficients, plane_distance,
-                                        plane_through)
+from lego_loam_py.core.geometry import (fit_planes, line_coefficients, line_offsets, plane_coefficients,
+                                        plane_distance, plane_through)
 from lego_loam_py.core.param_types import OdometryModel, Params
 from lego_loam_py.core.sweep import SweepStartFrame, plane_jacobian_rows, relative_time_of, transform_to_start
 
@@ -53,6 +53,12 @@ class OdometryStats:
     corner_correspondences: int = 0
     surf_degenerate: bool = False
     corner_degenerate: bool = False
+    # Smallest eigenvalue of each stage's normal matrix on its first iteration (NaN: the stage did not run):
+    # the per-scan condition of the three parameters the stage estimates.
+    surf_condition: float = float('nan')
+    corner_condition: float = float('nan')
+    surf_walls: bool = False       # the stage had too few correspondences of its own and used the walls
+    corner_walls: bool = False
     skipped: str = ''
     extra: dict = field(default_factory=dict)
 
@@ -68,6 +74,33 @@ class _Stage(NamedTuple):
     rotation_rows: list[int]
     translation_rows: list[int]
     degeneracy: DegeneracyProjection
+    walls: np.ndarray | None = None   # wall points matched as planes in this stage too (sweep-start model)
+
+
+class _Term(NamedTuple):
+    """Fixed correspondences of one kind within a block: the points (3, n) float64 and their relative times,
+    weights, the anchors (planes: normal, offset; lines: a point, the unit direction) and the weighted
+    residual coefficients."""
+
+    kind: str
+    xyz: np.ndarray
+    s: np.ndarray
+    weight: np.ndarray
+    first: np.ndarray
+    second: np.ndarray
+    coefficients: np.ndarray
+    wall: bool = False
+
+    @property
+    def points(self) -> int:
+        return len(self.s)
+
+    def values(self, frame: SweepStartFrame) -> np.ndarray:
+        """Weighted residuals at the frame's ``θ``: plane distances, or line offsets (three per point)."""
+        if self.kind == 'surf':
+            return self.weight * plane_distance(self.first, self.second, frame.xyz()).astype(np.float64)
+        return (self.weight[:, None] * line_offsets(frame.xyz().astype(np.float64), self.first,
+                                                    self.second)).reshape(-1)
 
 
 class LaserOdometry:
@@ -99,23 +132,28 @@ class LaserOdometry:
             self.last_corner = LastCloud(corner, n_rings)
             self.last_surf = LastCloud(surf, n_rings)
 
-    def register(self, sharp: np.ndarray, flat: np.ndarray) -> OdometryStats:
-        """Refine ``transform_cur`` from the sweep's sharp and flat points (camera axes, ring + 0.1 s)."""
+    def register(self, sharp: np.ndarray, flat: np.ndarray, wall: np.ndarray | None = None) -> OdometryStats:
+        """Refine ``transform_cur`` from the sweep's sharp and flat points (camera axes, ring + 0.1 s), and
+        wall points (the sweep-start model matches them as planes in the (ry, tx, tz) stage; the original
+        model has none)."""
         fa = self.params.feature_association
         stats = OdometryStats()
         if self.last_corner is None or self.last_corner_count < fa.min_last_corner_points or \
                 self.last_surf_count < fa.min_last_surf_points:
             stats.skipped = 'too few points in the last clouds'
             return stats
-        return self._register(sharp, flat, stats)
+        return self._register(sharp, flat, wall, stats)
 
-    def _register(self, sharp: np.ndarray, flat: np.ndarray, stats: OdometryStats) -> OdometryStats:
+    def _register(self, sharp: np.ndarray, flat: np.ndarray, wall: np.ndarray | None,
+                  stats: OdometryStats) -> OdometryStats:
         raise NotImplementedError
 
-    def _stages(self, sharp: np.ndarray, flat: np.ndarray) -> tuple[_Stage, _Stage]:
-        """Planes first (rx, rz, ty), then lines (ry, tx, tz)."""
-        return (_Stage('surf', flat, self.last_surf, self.SURF_PARAMS, [0, 1], [2], self._surf_stage),
-                _Stage('corner', sharp, self.last_corner, self.CORNER_PARAMS, [0], [1, 2], self._corner_stage))
+    def _stages(self, sharp: np.ndarray, flat: np.ndarray, wall: np.ndarray | None = None) -> tuple[_Stage, _Stage]:
+        """Planes first (rx, rz, ty), then lines (ry, tx, tz); the wall planes, if any, in both (walls hold
+        the roll, yaw and lateral position; ceilings the pitch and height where the floor is hardly seen)."""
+        return (_Stage('surf', flat, self.last_surf, self.SURF_PARAMS, [0, 1], [2], self._surf_stage, wall),
+                _Stage('corner', sharp, self.last_corner, self.CORNER_PARAMS, [0], [1, 2], self._corner_stage,
+                       wall))
 
     def _forward_bound(self, last: LastCloud, points: np.ndarray) -> int:
         """Where the forward correspondence scan stops: the current feature count (quirk 8.1) unless fixed."""
@@ -134,9 +172,10 @@ class LaserOdometry:
 class OriginalOdometry(LaserOdometry):
     """The original's model: 5 % Gauss-Newton steps with the Jacobian at the full ``θ``."""
 
-    def _register(self, sharp: np.ndarray, flat: np.ndarray, stats: OdometryStats) -> OdometryStats:
+    def _register(self, sharp: np.ndarray, flat: np.ndarray, wall: np.ndarray | None,
+                  stats: OdometryStats) -> OdometryStats:
         fa = self.params.feature_association
-        for stage in self._stages(sharp, flat):
+        for stage in self._stages(sharp, flat):   # (no walls in the original)
             find, rows = ((find_surf_correspondences, self._surf_rows) if stage.kind == 'surf' else
                           (find_corner_correspondences, self._corner_rows))
             for iteration in range(fa.max_iterations):
@@ -193,7 +232,8 @@ class OriginalOdometry(LaserOdometry):
 class SweepStartOdometry(LaserOdometry):
     """The sweep-start model: full Gauss-Newton steps with the exact Jacobian, in blocks with backtracking."""
 
-    def _register(self, sharp: np.ndarray, flat: np.ndarray, stats: OdometryStats) -> OdometryStats:
+    def _register(self, sharp: np.ndarray, flat: np.ndarray, wall: np.ndarray | None,
+                  stats: OdometryStats) -> OdometryStats:
         """Both stages with full Gauss-Newton steps, in blocks of ``reassociate_every`` iterations.
 
         Each block associates the points anew and fixes their weights (1 in the first block, as the original;
@@ -203,7 +243,7 @@ class SweepStartOdometry(LaserOdometry):
         with 5 % steps, which then stop with up to 2 cm / 2 deg left.
         """
         fa = self.params.feature_association
-        for stage in self._stages(sharp, flat):
+        for stage in self._stages(sharp, flat, wall):
             kind, active = stage.kind, stage.active
             iterations, first = 0, True
             blocks = -(-fa.max_iterations // fa.reassociate_every)
@@ -219,6 +259,9 @@ class SweepStartOdometry(LaserOdometry):
                     if residual.points < fa.min_correspondences:
                         break
                     x = stage.degeneracy.step(rows, -values, first, fa.degeneracy_threshold)
+                    if first:
+                        setattr(stats, f'{kind}_condition', stage.degeneracy.smallest_eigenvalue)
+                        setattr(stats, f'{kind}_walls', residual.walls)
                     first = False
                     setattr(stats, f'{kind}_degenerate', stage.degeneracy.degenerate)
                     x = self._shorten(x, active, residual, float(np.square(values).sum()))
@@ -234,7 +277,59 @@ class SweepStartOdometry(LaserOdometry):
 
     def _residual_function(self, stage: _Stage, weighted: bool):
         """Associate the stage's points at the current estimate and return ``f(theta, jacobian)`` giving the weighted
-        residuals (and their Jacobian rows) of the usable correspondences, weights fixed now.
+        residuals (and their Jacobian rows) of the usable correspondences, weights fixed now; None with too
+        few. The stage's own points (planes or lines) come first, then its wall planes (when it has any).
+        """
+        fa = self.params.feature_association
+        own = self._term(stage.kind, stage.points, stage.last, weighted, self._forward_bound(stage.last, stage.points))
+        terms = [] if own is None else [own]
+        if stage.walls is not None and len(stage.walls) and (0 if own is None else own.points) < fa.wall_fallback_below:
+            # Too few of the stage's own correspondences (the floor of a corridor is hardly seen): without
+            # the walls and ceiling the stage would be skipped and its stale motion integrated scan after scan.
+            walls = self._term('wall', stage.walls, self.last_surf, weighted, 0)
+            terms += [] if walls is None else [walls]
+        if sum(term.points for term in terms) < fa.min_correspondences:
+            return None
+        active = stage.active
+        # The rotation prior: sqrt(w) * angle for each active rotation parameter, appended to the residuals.
+        prior_columns = [k for k, parameter in enumerate(active) if parameter < 3] if self.rotation_prior > 0 else []
+        prior_rows = np.zeros((len(prior_columns), len(active)))
+        prior_rows[np.arange(len(prior_columns)), prior_columns] = math.sqrt(self.rotation_prior)
+        prior_parameters = [active[k] for k in prior_columns]
+
+        # The last evaluation, keyed by the bytes of its theta: the trial point _shorten accepts is the next
+        # iteration's estimate (the same additions), whose residuals and Jacobian then reuse its frames.
+        last_evaluation = [None, None, None]   # theta bytes, SweepStartFrames, values
+
+        def residual(theta: np.ndarray, jacobian: bool = False):
+            key = np.asarray(theta, dtype=np.float64).tobytes()
+            if last_evaluation[0] == key:
+                frames, values = last_evaluation[1], last_evaluation[2]
+            else:
+                frames = [SweepStartFrame(term.xyz, term.s, theta) for term in terms]
+                parts = [term.values(frame) for term, frame in zip(terms, frames)]
+                if prior_parameters:
+                    parts.append(math.sqrt(self.rotation_prior) * np.asarray(theta)[prior_parameters])
+                values = np.concatenate(parts) if len(parts) > 1 else parts[0]
+                last_evaluation[:] = key, frames, values
+            if not jacobian:
+                return values
+            # Lines: the three components of each point, as the values.
+            rows = [frame.rows(term.coefficients, active) for term, frame in zip(terms, frames)]
+            if prior_parameters:
+                rows.append(prior_rows)
+            return (np.concatenate(rows) if len(rows) > 1 else rows[0]), values
+
+        residual.points = sum(term.points for term in terms)
+        residual.walls = any(term.wall for term in terms)
+        return residual
+
+    def _term(self, kind: str, points: np.ndarray, last: LastCloud, weighted: bool, bound: int) -> '_Term | None':
+        """The usable correspondences of ``points`` at the current estimate, their fixed weights and residual
+        coefficients; None when there are none. 'surf': planes through three points of the last cloud found
+        as the original does; 'wall': least-squares planes through the nearest points of the last cloud (as
+        the mapping's), for wall points, whose original-style search would cost whole rings per point;
+        'corner': lines.
 
         Planes give one residual per point, the signed distance. Lines give three: the point's perpendicular
         offset from the line as a vector, ``(I - u u^T)(p - a)``. Its length is the original's point-to-line
@@ -242,11 +337,16 @@ class SweepStartOdometry(LaserOdometry):
         converges there instead of stepping back and forth across it.
         """
         fa = self.params.feature_association
-        kind, points, last, active = stage.kind, stage.points, stage.last, stage.active
         start = transform_to_start(points, self.transform_cur)
-        bound = self._forward_bound(last, points)
         # The planes and lines depend only on the last cloud: fixed for the whole block.
-        if kind == 'surf':
+        if kind == 'wall':
+            usable, normal, offset = self._wall_planes(start, last)
+            p_start = start[usable]
+            distance = plane_distance(normal, offset, p_start[:, :3].astype(np.float64))
+            scale = np.sqrt(np.sqrt((p_start[:, :3].astype(np.float64) ** 2).sum(axis=1)))
+            finite = np.isfinite(distance) & (distance != 0)
+            anchors = (normal, offset)
+        elif kind == 'surf':
             match = find_surf_correspondences(start, last, self.params, bound)
             usable = np.flatnonzero((match.index2 >= 0) & (match.index3 >= 0))
             normal, offset = plane_through(last.points[match.index1[usable]], last.points[match.index2[usable]],
@@ -269,49 +369,35 @@ class SweepStartOdometry(LaserOdometry):
             anchors = (a, along)
         weight = 1.0 - fa.weight_gain * np.abs(distance) / scale if weighted else np.ones(len(distance))
         keep = (weight > fa.min_weight) & finite
-        if keep.sum() < fa.min_correspondences:
+        if not keep.any():
             return None
         selected = points[usable[keep]]
         first, second = (x[keep] for x in anchors)
         weight = weight[keep]
-        xyz = selected[:, :3].T.astype(np.float64, order='C')
-        s = relative_time_of(selected[:, 3]).astype(np.float64)
-
-        # The rotation prior: sqrt(w) * angle for each active rotation parameter, appended to the residuals.
-        prior_columns = [k for k, parameter in enumerate(active) if parameter < 3] if self.rotation_prior > 0 else []
-        prior_rows = np.zeros((len(prior_columns), len(active)))
-        prior_rows[np.arange(len(prior_columns)), prior_columns] = math.sqrt(self.rotation_prior)
-        prior_parameters = [active[k] for k in prior_columns]
-        if kind == 'surf':
+        if kind != 'corner':
             coefficients = first.astype(np.float64) * weight[:, None]   # the weighted normal
         else:
             # Rows of the projector I - u u^T, weighted: the coefficients of the three residual components.
             coefficients = (np.eye(3)[None, :, :] - second[:, :, None] * second[:, None, :]) * weight[:, None, None]
+        return _Term('surf' if kind == 'wall' else kind, selected[:, :3].T.astype(np.float64, order='C'),
+                     relative_time_of(selected[:, 3]).astype(np.float64), weight, first, second, coefficients,
+                     kind == 'wall')
 
-        # The last evaluation, keyed by the bytes of its theta: the trial point _shorten accepts is the next
-        # iteration's estimate (the same additions), whose residuals and Jacobian then reuse its frame.
-        last_evaluation = [None, None, None]   # theta bytes, SweepStartFrame, values
-
-        def residual(theta: np.ndarray, jacobian: bool = False):
-            key = np.asarray(theta, dtype=np.float64).tobytes()
-            if last_evaluation[0] == key:
-                frame, values = last_evaluation[1], last_evaluation[2]
-            else:
-                frame = SweepStartFrame(xyz, s, theta)
-                if kind == 'surf':
-                    values = weight * plane_distance(first, second, frame.xyz()).astype(np.float64)
-                else:
-                    values = (weight[:, None] * line_offsets(frame.xyz().astype(np.float64), first, second)).reshape(-1)
-                if prior_parameters:
-                    values = np.concatenate([values, math.sqrt(self.rotation_prior) * np.asarray(theta)[prior_parameters]])
-                last_evaluation[:] = key, frame, values
-            if not jacobian:
-                return values
-            rows = frame.rows(coefficients, active)   # lines: the three components of each point, as the values
-            return (np.concatenate([rows, prior_rows]) if prior_parameters else rows), values
-
-        residual.points = len(selected)
-        return residual
+    def _wall_planes(self, start: np.ndarray, last: LastCloud):
+        """(indices of the wall points whose nearest points in the last cloud form a plane, its unit normals,
+        offsets) with the mapping's neighbourhood and planarity settings."""
+        mo = self.params.map_optimization
+        if last.tree is None or not len(start):
+            return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
+        bound = math.sqrt(mo.knn_max_sq_dist) * (1.0 + 1e-9)
+        distance, index = last.tree.query(start[:, :3].astype(np.float64), k=mo.knn, distance_upper_bound=bound)
+        near = np.flatnonzero(distance[:, -1] ** 2 < mo.knn_max_sq_dist)
+        # Neighbours all on one ring lie on a curve, about which the fitted plane may turn freely (ceilings
+        # seen at grazing angles, where the rings are metres apart): only those spanning two rings or more.
+        rings = last.rings[index[near]]
+        near = near[(rings != rings[:, :1]).any(axis=1)]
+        planar, normal, offset = fit_planes(last.points[index[near], :3].astype(np.float64), mo.plane_max_residual)
+        return near[planar], normal, offset
 
     def _shorten(self, x: np.ndarray, active: list[int], residual, reference: float, halvings: int = 4) -> np.ndarray:
         """The largest of x, x/2, x/4, ... that does not increase the block's cost (``reference``, the cost at

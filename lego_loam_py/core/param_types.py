@@ -142,6 +142,12 @@ class FeatureAssociationParams:
     edge_feature_num: int = 2             # sharp features per sub-region
     less_edge_feature_num: int = 20       # less-sharp features per sub-region (including the sharp)
     surf_feature_num: int = 4             # flat features per sub-region
+    # Flat non-ground points (walls, ceilings) per sub-region that the sweep-start model matches as planes in
+    # a stage with fewer than ``wall_fallback_below`` correspondences of its own: in a corridor the floor is
+    # hardly seen, and without them the (rx, rz, ty) stage would be skipped scan after scan, its last motion
+    # integrated as constant velocity. 0: none, as the original.
+    wall_feature_num: int = 4
+    wall_fallback_below: int = 20
     suppress_half_window: int = 5         # neighbours marked as picked around a feature
     suppress_column_jump: int = 10        # ... unless the column jumps by more than this
     less_flat_leaf_size: float = 0.2      # voxel leaf of the less-flat cloud [m]
