@@ -172,3 +172,20 @@ def test_bad_cloud_info_is_dropped_and_a_time_jump_resets(rclpy_context, process
     assert 'segmented_cloud_range length = 10, shorter than' in err and 'out of order' in err and 'odometry reset' in err
     assert 'Traceback' not in err
     release(node)
+
+
+def test_each_scan_reports_how_well_the_odometry_was_held(context, tmp_path):
+    """The per-scan condition of both odometry stages (smallest eigenvalue of the normal matrix) is in the
+    node's statistics and on /diagnostics, beside the counters of degenerate and skipped stages."""
+    from tests.support.inprocess import pipeline_outputs
+
+    outputs = pipeline_outputs(context, tmp_path)
+    measures = outputs['fa_statistics']['measures']
+    scans = outputs['fa_statistics']['counters']['scans']
+    for stage in ('surf', 'corner'):
+        # Every scan after the first registers both stages on the campus (enough floor and edges).
+        assert measures[f'{stage}_condition']['count'] == scans - 1
+        assert measures[f'{stage}_condition']['median'] > 0
+        assert f'{stage}_stage_skipped' not in outputs['fa_statistics']['counters']
+    keys = {value.key: value.value for value in outputs['fa_diagnostics'].values}
+    assert float(keys['surf_condition_last']) > 0 and float(keys['corner_condition_median']) > 0

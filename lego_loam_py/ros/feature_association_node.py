@@ -190,7 +190,28 @@ class FeatureAssociationNode(LegoLoamNode):
         self.count('scans')
         if result.imu_used:
             self.count('scans_with_imu')
+        if result.odometry is not None:
+            self._report_conditioning(result.odometry)
         self.record_time('scan', time.perf_counter() - start)
+
+    def _report_conditioning(self, stats) -> None:
+        """How well the scan held the odometry: each stage's condition (smallest eigenvalue of its normal
+        matrix, in the statistics and on /diagnostics), counters of degenerate scans, of stages that had to
+        use the walls and of stages that could not run, and a throttled warning for the last two."""
+        for stage, label in (('surf', 'roll, pitch and height'), ('corner', 'yaw and horizontal position')):
+            condition = getattr(stats, f'{stage}_condition')
+            if condition == condition:   # NaN: the stage did not run
+                self.record_value(f'{stage}_condition', condition)
+            else:
+                self.count(f'{stage}_stage_skipped')
+                self.warn(f'{stage}_skipped', f'odometry: too few correspondences for the {label}; '
+                          'that part of the motion is predicted only')
+            if getattr(stats, f'{stage}_degenerate'):
+                self.count(f'{stage}_degenerate')
+            if getattr(stats, f'{stage}_walls'):
+                self.count(f'{stage}_wall_fallback')
+                self.warn(f'{stage}_walls', f'odometry: few features for the {label}; walls and ceiling used '
+                          'instead (degenerate surroundings, e.g. a corridor)')
 
     def _check_size(self, name: str, msg) -> None:
         """imageProjection's clouds and CloudInfo arrays hold at most one entry per range-image pixel: anything

@@ -81,6 +81,7 @@ class LegoLoamNode(Node):
         self._variants: dict[str, int] = {}
         self._warn_lock = threading.Lock()
         self.timings_ms: dict[str, deque] = {}
+        self.measures: dict[str, deque] = {}
         self.counters: dict[str, int] = {}
         self._polled_node = None           # the companion node of create_polled_subscription
         self._release_pending = False      # a huge message was rejected: give its memory back
@@ -402,6 +403,11 @@ class LegoLoamNode(Node):
     def record_time(self, name: str, seconds: float, keep: int = 10000) -> None:
         self.timings_ms.setdefault(name, deque(maxlen=keep)).append(seconds * 1e3)
 
+    def record_value(self, name: str, value: float, keep: int = 10000) -> None:
+        """A per-scan measure other than a duration (e.g. the odometry's condition), summarised like the
+        timings in the statistics and on /diagnostics."""
+        self.measures.setdefault(name, deque(maxlen=keep)).append(float(value))
+
     def timing_summary(self) -> str:
         parts = [f'{name}: median {t.median:.1f} ms, p95 {t.p95:.1f} ms (n={t.count})'
                  for name, t in self.timing_stats().items()]
@@ -415,7 +421,8 @@ class LegoLoamNode(Node):
     def statistics(self) -> dict:
         """Counters and timing percentiles (ms) of this node, for tools and reports."""
         timings = {name: t.as_dict() for name, t in self.timing_stats().items()}
-        return dict(node=self.get_name(), counters=dict(self.counters), timings_ms=timings)
+        measures = {name: TimingStats.of(values).as_dict() for name, values in self.measures.items() if values}
+        return dict(node=self.get_name(), counters=dict(self.counters), timings_ms=timings, measures=measures)
 
     def diagnostic_status(self) -> DiagnosticStatus:
         """This node's status for /diagnostics: level, a one-line message, counters and timings as key-values."""
@@ -423,6 +430,10 @@ class LegoLoamNode(Node):
         for name, t in self.timing_stats().items():
             values.append(KeyValue(key=f'{name}_median_ms', value=f'{t.median:.2f}'))
             values.append(KeyValue(key=f'{name}_p95_ms', value=f'{t.p95:.2f}'))
+        for name, recent in self.measures.items():
+            if recent:
+                values.append(KeyValue(key=f'{name}_last', value=f'{recent[-1]:.4g}'))
+                values.append(KeyValue(key=f'{name}_median', value=f'{TimingStats.of(recent).median:.4g}'))
         values.append(KeyValue(key='inputs_without_output', value=str(self._inputs_without_output)))
         values += [KeyValue(key=key, value=str(count)) for key, count in self.matched_endpoints().items()]
         if self.silent:

@@ -109,7 +109,8 @@ def pipeline_outputs(context, tmp_path) -> dict:
         segmented=list(ip_rec.out('/segmented_cloud')), info=list(ip_rec.out('/segmented_cloud_info')),
         outlier=list(ip_rec.out('/outlier_cloud')), odometry=list(fa_rec.out('/laser_odom_to_init')),
         corner_last=list(fa_rec.out('/laser_cloud_corner_last')), surf_last=list(fa_rec.out('/laser_cloud_surf_last')),
-        outlier_last=list(fa_rec.out('/outlier_cloud_last')))
+        outlier_last=list(fa_rec.out('/outlier_cloud_last')),
+        fa_statistics=fa.statistics(), fa_diagnostics=fa.diagnostic_status())
     assert len(outputs['segmented']) == len(outputs['clouds']) and not ip_rec.errors and not fa_rec.errors
     assert len(outputs['corner_last']) >= 10
     ip.destroy_node()
