@@ -23,6 +23,7 @@ twice). Translation keeps the original's constant-velocity guess corrected by th
 """
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 
@@ -247,7 +248,9 @@ class FeatureAssociation:
         to_reference = previous.r_start.T if use_imu else None
         sharp = self._registration_input(features.sharp, features.sharp_index, to_reference, attitude)
         flat = self._registration_input(features.flat, features.flat_index, to_reference, attitude)
-        wall = self._registration_input(features.wall, features.wall_index, to_reference, attitude)
+        # Walls are needed only where a stage is short of matches (corridors): prepared on first use.
+        wall = functools.cache(lambda: self._registration_input(features.wall, features.wall_index, to_reference,
+                                                                attitude))
         if use_imu:
             odometry.transform_cur[:3] = 0.0   # the IMU explains the rotation; only what it missed is left
         odometry.rotation_prior = self.params.feature_association.imu_rotation_prior if use_imu else 0.0

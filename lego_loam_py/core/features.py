@@ -228,12 +228,12 @@ def _wall_points(ascending: np.ndarray, region: np.ndarray, curvature: np.ndarra
     """Up to ``wall_feature_num`` flattest non-ground points of each sub-region that no edge or flat pick
     took or suppressed (``ascending``: positions sorted by region, then curvature; ``region``: their regions).
 
-    In a corridor the walls are the only structure beside the ground and carry the yaw and the lateral
-    position; the original leaves them to its few, noisy edge points."""
+    In a corridor the floor is hardly seen; walls and ceiling then hold the odometry's plane stage (see
+    :class:`~lego_loam_py.core.laser_odometry.SweepStartOdometry`)."""
     if fa.wall_feature_num <= 0 or not len(ascending):
         return np.zeros(0, np.int64)
-    free = ~np.frombuffer(bytes(taken), dtype=bool)
-    candidate = (curvature[ascending] < _F32(fa.surf_threshold)) & ~ground[ascending] & free[ascending]
+    is_wall = (curvature < _F32(fa.surf_threshold)) & ~ground & ~np.frombuffer(taken, dtype=bool)
+    candidate = is_wall[ascending]
     chosen = ascending[candidate]
     chosen_region = region[candidate]
     # Rank within the region: position in the candidate list minus the region's first candidate.

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Callable, NamedTuple, Union
 
 import numpy as np
 
@@ -63,6 +63,10 @@ class OdometryStats:
     extra: dict = field(default_factory=dict)
 
 
+# Wall points, or a function preparing them on first use.
+WallPoints = Union[np.ndarray, Callable[[], np.ndarray], None]
+
+
 class _Stage(NamedTuple):
     """One registration stage: its points, what they match, the parameters it moves (rows of the step that are
     rotations and translations, for the convergence test) and its degeneracy state."""
@@ -74,7 +78,9 @@ class _Stage(NamedTuple):
     rotation_rows: list[int]
     translation_rows: list[int]
     degeneracy: DegeneracyProjection
-    walls: np.ndarray | None = None   # wall points matched as planes in this stage too (sweep-start model)
+    # Wall points (prepared on first use) that back up the stage when it has too few matches of its own
+    # (sweep-start model).
+    walls: Callable[[], np.ndarray] | None = None
 
 
 class _Term(NamedTuple):
@@ -132,10 +138,10 @@ class LaserOdometry:
             self.last_corner = LastCloud(corner, n_rings)
             self.last_surf = LastCloud(surf, n_rings)
 
-    def register(self, sharp: np.ndarray, flat: np.ndarray, wall: np.ndarray | None = None) -> OdometryStats:
-        """Refine ``transform_cur`` from the sweep's sharp and flat points (camera axes, ring + 0.1 s), and
-        wall points (the sweep-start model matches them as planes in the (ry, tx, tz) stage; the original
-        model has none)."""
+    def register(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints = None) -> OdometryStats:
+        """Refine ``transform_cur`` from the sweep's sharp and flat points (camera axes, ring + 0.1 s). Wall
+        points, or a function preparing them (called only if a stage needs them), back up a stage short of
+        matches in the sweep-start model; the original model has none."""
         fa = self.params.feature_association
         stats = OdometryStats()
         if self.last_corner is None or self.last_corner_count < fa.min_last_corner_points or \
@@ -144,13 +150,15 @@ class LaserOdometry:
             return stats
         return self._register(sharp, flat, wall, stats)
 
-    def _register(self, sharp: np.ndarray, flat: np.ndarray, wall: np.ndarray | None,
+    def _register(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints,
                   stats: OdometryStats) -> OdometryStats:
         raise NotImplementedError
 
-    def _stages(self, sharp: np.ndarray, flat: np.ndarray, wall: np.ndarray | None = None) -> tuple[_Stage, _Stage]:
+    def _stages(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints = None) -> tuple[_Stage, _Stage]:
         """Planes first (rx, rz, ty), then lines (ry, tx, tz); the wall planes, if any, in both (walls hold
         the roll, yaw and lateral position; ceilings the pitch and height where the floor is hardly seen)."""
+        if wall is not None and not callable(wall):
+            points, wall = wall, lambda: points
         return (_Stage('surf', flat, self.last_surf, self.SURF_PARAMS, [0, 1], [2], self._surf_stage, wall),
                 _Stage('corner', sharp, self.last_corner, self.CORNER_PARAMS, [0], [1, 2], self._corner_stage,
                        wall))
@@ -172,7 +180,7 @@ class LaserOdometry:
 class OriginalOdometry(LaserOdometry):
     """The original's model: 5 % Gauss-Newton steps with the Jacobian at the full ``θ``."""
 
-    def _register(self, sharp: np.ndarray, flat: np.ndarray, wall: np.ndarray | None,
+    def _register(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints,
                   stats: OdometryStats) -> OdometryStats:
         fa = self.params.feature_association
         for stage in self._stages(sharp, flat):   # (no walls in the original)
@@ -232,7 +240,7 @@ class OriginalOdometry(LaserOdometry):
 class SweepStartOdometry(LaserOdometry):
     """The sweep-start model: full Gauss-Newton steps with the exact Jacobian, in blocks with backtracking."""
 
-    def _register(self, sharp: np.ndarray, flat: np.ndarray, wall: np.ndarray | None,
+    def _register(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints,
                   stats: OdometryStats) -> OdometryStats:
         """Both stages with full Gauss-Newton steps, in blocks of ``reassociate_every`` iterations.
 
@@ -283,10 +291,10 @@ class SweepStartOdometry(LaserOdometry):
         fa = self.params.feature_association
         own = self._term(stage.kind, stage.points, stage.last, weighted, self._forward_bound(stage.last, stage.points))
         terms = [] if own is None else [own]
-        if stage.walls is not None and len(stage.walls) and (0 if own is None else own.points) < fa.wall_fallback_below:
+        if stage.walls is not None and (0 if own is None else own.points) < fa.wall_fallback_below:
             # Too few of the stage's own correspondences (the floor of a corridor is hardly seen): without
             # the walls and ceiling the stage would be skipped and its stale motion integrated scan after scan.
-            walls = self._term('wall', stage.walls, self.last_surf, weighted, 0)
+            walls = self._term('wall', stage.walls(), self.last_surf, weighted, 0)
             terms += [] if walls is None else [walls]
         if sum(term.points for term in terms) < fa.min_correspondences:
             return None
