@@ -47,8 +47,8 @@ class ScanFeatures:
     sharp_index: np.ndarray        # indices into the scan's points
     less_sharp_index: np.ndarray
     flat_index: np.ndarray
-    # Flat non-ground points (walls, facades), for the sweep-start odometry's (ry, tx, tz) stage; empty when
-    # ``wall_feature_num`` is 0 (the original has none).
+    # Flat non-ground points (walls, ceilings, facades) that back up a sweep-start odometry stage short of
+    # matches; empty when ``wall_feature_num`` is 0 (the original has none).
     wall: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), _F32))
     wall_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 

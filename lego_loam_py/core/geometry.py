@@ -3,10 +3,12 @@ step 7, §6.3), in float32 where the original computes in float.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-__all__ = ['plane_through', 'plane_distance', 'plane_coefficients', 'fit_planes', 'line_offsets', 'cross_rows',
-           'line_coefficients']
+__all__ = ['plane_through', 'plane_distance', 'plane_coefficients', 'nearest_within', 'fit_planes', 'line_offsets',
+           'cross_rows', 'line_coefficients']
 
 _F32 = np.float32
 
@@ -34,6 +36,17 @@ def plane_coefficients(p_start: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.
     """Unit normal (n, 3) and signed distance (n,) of points to the planes through a, b, c (float32)."""
     normal, offset = plane_through(a, b, c)
     return normal, plane_distance(normal, offset, p_start)
+
+
+def nearest_within(tree, points: np.ndarray, k: int, max_sq_dist: float):
+    """(indices of the ``points`` whose ``k`` nearest neighbours in ``tree`` (a cKDTree) all lie within
+    ``sqrt(max_sq_dist)`` [m], those neighbours' indices (m, k)). The tree search stops at the gate, which
+    spares most of the walk for points far from the tree's cloud; the neighbours of the points that pass are
+    the exact k nearest."""
+    bound = math.sqrt(max_sq_dist) * (1.0 + 1e-9)
+    distance, index = tree.query(points, k=k, distance_upper_bound=bound)
+    used = np.flatnonzero(distance[:, -1] ** 2 < max_sq_dist)
+    return used, index[used]
 
 
 def fit_planes(neighbours: np.ndarray, max_residual: float):

@@ -34,8 +34,8 @@ import numpy as np
 from lego_loam_py.core.correspondences import (CornerCorrespondences, LastCloud, SurfCorrespondences,
                                                find_corner_correspondences, find_surf_correspondences)
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
-from lego_loam_py.core.geometry import (fit_planes, line_coefficients, line_offsets, plane_coefficients,
-                                        plane_distance, plane_through)
+from lego_loam_py.core.geometry import (fit_planes, line_coefficients, line_offsets, nearest_within,
+                                        plane_coefficients, plane_distance, plane_through)
 from lego_loam_py.core.param_types import OdometryModel, Params
 from lego_loam_py.core.sweep import SweepStartFrame, plane_jacobian_rows, relative_time_of, transform_to_start
 
@@ -397,14 +397,13 @@ class SweepStartOdometry(LaserOdometry):
         mo = self.params.map_optimization
         if last.tree is None or not len(start):
             return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
-        bound = math.sqrt(mo.knn_max_sq_dist) * (1.0 + 1e-9)
-        distance, index = last.tree.query(start[:, :3].astype(np.float64), k=mo.knn, distance_upper_bound=bound)
-        near = np.flatnonzero(distance[:, -1] ** 2 < mo.knn_max_sq_dist)
+        near, index = nearest_within(last.tree, start[:, :3].astype(np.float64), mo.knn, mo.knn_max_sq_dist)
         # Neighbours all on one ring lie on a curve, about which the fitted plane may turn freely (ceilings
         # seen at grazing angles, where the rings are metres apart): only those spanning two rings or more.
-        rings = last.rings[index[near]]
-        near = near[(rings != rings[:, :1]).any(axis=1)]
-        planar, normal, offset = fit_planes(last.points[index[near], :3].astype(np.float64), mo.plane_max_residual)
+        rings = last.rings[index]
+        spanning = (rings != rings[:, :1]).any(axis=1)
+        near, index = near[spanning], index[spanning]
+        planar, normal, offset = fit_planes(last.points[index, :3].astype(np.float64), mo.plane_max_residual)
         return near[planar], normal, offset
 
     def _shorten(self, x: np.ndarray, active: list[int], residual, reference: float, halvings: int = 4) -> np.ndarray:

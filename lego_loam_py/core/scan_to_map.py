@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 from lego_loam_py.core.frames import (GENERATOR_X, GENERATOR_Y, GENERATOR_Z, pose6_to_matrix, rot_x, rot_y, rot_z,
                                       transform_points)
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
-from lego_loam_py.core.geometry import fit_planes, line_coefficients
+from lego_loam_py.core.geometry import fit_planes, line_coefficients, nearest_within
 from lego_loam_py.core.param_types import Params
 
 __all__ = ['map_jacobian_rows', 'edge_correspondences', 'plane_correspondences', 'register_scan_to_map',
@@ -44,12 +44,9 @@ def map_jacobian_rows(points: np.ndarray, coeff: np.ndarray, pose6: np.ndarray) 
 
 def _neighbourhoods(points_world: np.ndarray, tree: cKDTree, map_points: np.ndarray, mo):
     """(indices of the points whose ``knn`` nearest map points all lie within the gate, those neighbours
-    (m, k, 3) float64). The tree search stops at the gate, which spares most of the walk for points off the
-    map; the neighbours of the points that pass are the exact k nearest."""
-    bound = math.sqrt(mo.knn_max_sq_dist) * (1.0 + 1e-9)
-    distance, index = tree.query(points_world[:, :3], k=mo.knn, distance_upper_bound=bound)
-    used = np.flatnonzero(distance[:, -1] ** 2 < mo.knn_max_sq_dist)
-    return used, map_points[index[used], :3].astype(np.float64)
+    (m, k, 3) float64), see :func:`~lego_loam_py.core.geometry.nearest_within`."""
+    used, index = nearest_within(tree, points_world[:, :3], mo.knn, mo.knn_max_sq_dist)
+    return used, map_points[index, :3].astype(np.float64)
 
 
 def edge_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: np.ndarray, params: Params):
