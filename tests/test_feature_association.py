@@ -476,6 +476,24 @@ def test_stamp_synchronizer_matches_and_bounds():
     assert len(sync._pending) <= sync.keep
 
 
+def test_a_stray_scan_at_the_tolerance_never_takes_the_parts_of_the_next():
+    """Parts of a stray scan stamped 50 ms before a good one (exactly featureAssociation's tolerance, which the
+    original compares strictly: |Δstamp| < 0.05 s), arriving interleaved in any order: the good scan's three
+    parts always come out together, and nothing released mixes the two scans."""
+    import itertools
+
+    tolerance = 50_000_000
+    stray, good = 1_000_000_000 - tolerance, 1_000_000_000
+    parts = [(name, stamp) for stamp in (stray, good) for name in ('cloud', 'info', 'outlier')]
+    for order in itertools.permutations(parts):
+        sync = StampSynchronizer(['cloud', 'info', 'outlier'], tolerance_ns=tolerance)
+        released = [out for name, stamp in order if (out := sync.add(name, stamp, (name, stamp))) is not None]
+        assert released, order
+        for out in released:
+            assert len({stamp for _, stamp in out.values()}) == 1, (order, out)
+        assert good in {out['cloud'][1] for out in released}, order
+
+
 # ------------------------------------------------------------------------------- parity with the original
 
 @pytest.mark.parametrize('name', GOLDEN)

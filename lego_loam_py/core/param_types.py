@@ -130,7 +130,7 @@ class FeatureAssociationParams:
     # header stamps); 'original' registers against the previous features moved to their sweep's end (the
     # C++'s scheme: poses are those of the sweep end; with exact timing it is only marginally stable).
     odometry_model: OdometryModel = 'sweep_start'
-    sync_tolerance: float = 0.05          # |stamp difference| among the three inputs [s]
+    sync_tolerance: float = 0.05          # |stamp difference| among the three inputs, strictly below [s]
     skip_frame_num: int = 1               # publish to mapping every (skip_frame_num + 1)-th scan
     smoothness_half_window: int = 5       # +-5 neighbours in the curvature
     occlusion_column_gap: int = 10        # neighbours closer than this many columns are compared
@@ -176,7 +176,7 @@ class MapOptimizationParams:
     """Scan-to-map optimisation, keyframes and the pose graph (mapOptmization.cpp)."""
 
     mapping_process_interval: float = 0.3  # minimum time between two mapping steps [s]
-    sync_tolerance: float = 0.005          # |stamp difference| among the four inputs [s]
+    sync_tolerance: float = 0.005          # |stamp difference| among the four inputs, strictly below [s]
     corner_leaf_size: float = 0.2          # voxel leaves [m]
     surf_leaf_size: float = 0.4
     outlier_leaf_size: float = 0.4

@@ -53,7 +53,7 @@ class StampSynchronizer:
                                  if reference in self._arrival}
         target = None
         for index, (reference, parts) in enumerate(self._pending):
-            if abs(stamp_ns - reference) <= self.tolerance_ns:
+            if abs(stamp_ns - reference) < self.tolerance_ns:   # strictly, as the original's |Δstamp| < 0.05 s
                 if name in parts:             # a newer message of the same topic replaces the old one
                     self.dropped += 1
                 target = index
