@@ -22,7 +22,9 @@ after 20 edges / 4 flats), never over all points.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -47,10 +49,21 @@ class ScanFeatures:
     sharp_index: np.ndarray        # indices into the scan's points
     less_sharp_index: np.ndarray
     flat_index: np.ndarray
-    # Flat non-ground points (walls, ceilings, facades) that back up a sweep-start odometry stage short of
-    # matches; empty when ``wall_feature_num`` is 0 (the original has none).
-    wall: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), _F32))
-    wall_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    # Selects the wall points (below) when first asked for: only a stage short of matches needs them.
+    select_walls: Callable[[], np.ndarray] | None = field(default=None, repr=False, compare=False)
+    # The scan's points (n, 4), which the wall indices refer to (read, never written).
+    scan_points: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    @functools.cached_property
+    def wall_index(self) -> np.ndarray:
+        """Indices of the flat non-ground points (walls, ceilings, facades) that back up a sweep-start odometry
+        stage short of matches; empty when ``wall_feature_num`` is 0 (the original has none)."""
+        return np.zeros(0, np.int64) if self.select_walls is None else self.select_walls()
+
+    @functools.cached_property
+    def wall(self) -> np.ndarray:
+        """The wall points (k, 4) float32, as the other clouds."""
+        return self.scan_points[self.wall_index] if self.select_walls is not None else np.zeros((0, 4), _F32)
 
 
 def smoothness(ranges: np.ndarray, half_window: int = 5) -> np.ndarray:
@@ -217,10 +230,11 @@ class FeatureExtractor:
                                                 fa.less_flat_leaf_size)
         else:
             less_flat = np.zeros((0, 4), _F32)
-        wall_index = _wall_points(ascending, region_of_sorted, curvature, ground, taken, fa)
+        # Wall points cost a pass over every region: selected only if a stage asks for them (corridors).
+        select_walls = functools.partial(_wall_points, ascending, region_of_sorted, curvature, ground, taken, fa)
         return ScanFeatures(sharp=points[sharp_index], less_sharp=points[less_sharp_index], flat=points[flat_index],
                             less_flat=less_flat, sharp_index=sharp_index, less_sharp_index=less_sharp_index,
-                            flat_index=flat_index, wall=points[wall_index], wall_index=wall_index)
+                            flat_index=flat_index, select_walls=select_walls, scan_points=points)
 
 
 def _wall_points(ascending: np.ndarray, region: np.ndarray, curvature: np.ndarray, ground: np.ndarray,
