@@ -1,4 +1,5 @@
-"""Message conversions the nodes take on their hot paths: serialized IMU samples and the TF of an odometry."""
+"""Message conversions the nodes take on their hot paths: serialized IMU samples, clouds and CloudInfo (read and
+written) and the TF of an odometry."""
 from __future__ import annotations
 
 import math
@@ -132,6 +133,60 @@ def test_serialized_cloud_info_equals_the_message(frame_id, sec, nanosec, rings,
     for cut in sorted({0, 5, 12, len(data) // 2, len(data) - 1}):
         with pytest.raises(ValueError):
             cloud_info_from_serialized(data[:cut])
+
+
+@settings(max_examples=60, deadline=None)
+@given(frame_id=st.text(alphabet='abcdefghijklmnopqrstuvwxyz_/0123456789', max_size=13),
+       sec=st.integers(-2**31, 2**31 - 1), nanosec=st.integers(0, 999_999_999),
+       points=st.integers(0, 3000), timed=st.booleans(), dense=st.booleans(), seed=st.integers(0, 2**32 - 1))
+def test_serialized_clouds_are_the_messages_rclpy_would_send(frame_id, sec, nanosec, points, timed, dense, seed):
+    """The nodes publish clouds and CloudInfo as bytes they write themselves: for every frame id length (so
+    every alignment), empty and long arrays, with and without the time field, rclpy reads back exactly the
+    message the nodes built before, from bytes as long as rclpy's own (only padding may differ)."""
+    from cloud_msgs.msg import CloudInfo
+    from rclpy.serialization import deserialize_message, serialize_message
+    from sensor_msgs.msg import PointCloud2
+
+    from lego_loam_py.core.image_projection import CloudInfo as CloudInfoData
+    from lego_loam_py.ros.conversions import (cloud_from_serialized, cloud_info_from_serialized, cloud_info_to_msg,
+                                              cloud_msg_to_xyzi, make_header, serialized_cloud_info,
+                                              serialized_xyzi_cloud, xyzi_to_cloud_msg)
+
+    rng = np.random.default_rng(seed)
+    header = make_header(sec * 1_000_000_000 + nanosec, frame_id)
+    values = rng.normal(scale=30.0, size=(points, 4)).astype(np.float32)
+    time = rng.random(points).astype(np.float32) if timed else None
+    expected = xyzi_to_cloud_msg(values, header, is_dense=dense, time=time)
+    data = serialized_xyzi_cloud(values, header, is_dense=dense, time=time)
+    assert isinstance(data, bytes) and len(data) == len(serialize_message(expected))
+    assert deserialize_message(data, PointCloud2) == expected
+    # ... and read back from the bytes (as the nodes' raw subscriptions do) it is that message again.
+    read = cloud_from_serialized(serialize_message(expected))
+    assert read.header == expected.header and (read.height, read.width) == (expected.height, expected.width)
+    assert [(f.name, f.offset, f.datatype, f.count) for f in read.fields] == \
+        [(f.name, f.offset, f.datatype, f.count) for f in expected.fields]
+    assert (read.is_bigendian, read.point_step, read.row_step, read.is_dense) == \
+        (expected.is_bigendian, expected.point_step, expected.row_step, expected.is_dense)
+    assert bytes(read.data) == bytes(expected.data)
+    assert np.array_equal(cloud_msg_to_xyzi(read), values) and np.array_equal(cloud_msg_to_xyzi(expected), values)
+    for cut in sorted({5, 12, len(data) // 2, len(data) - 2}):
+        with pytest.raises(ValueError):
+            cloud_from_serialized(data[:cut])
+
+    info = CloudInfoData(
+        start_ring_index=rng.integers(-2**31, 2**31, 16, dtype=np.int64).astype(np.int32),
+        end_ring_index=rng.integers(-2**31, 2**31, 16, dtype=np.int64).astype(np.int32),
+        start_orientation=np.float32(rng.normal()), end_orientation=np.float32(rng.normal()),
+        orientation_diff=np.float32(rng.normal()), segmented_cloud_ground_flag=rng.random(points) < 0.5,
+        segmented_cloud_col_ind=rng.integers(0, 2**32, points, dtype=np.uint64).astype(np.uint32),
+        segmented_cloud_range=rng.normal(size=points).astype(np.float32))
+    expected = cloud_info_to_msg(info, header)
+    data = serialized_cloud_info(info, header)
+    assert len(data) == len(serialize_message(expected))
+    assert deserialize_message(data, CloudInfo) == expected
+    stamp, back = cloud_info_from_serialized(data)
+    assert stamp == sec * 1_000_000_000 + nanosec
+    assert all(np.array_equal(getattr(back, name), value) for name, value in vars(info).items())
 
 
 def test_transform_of_an_odometry_carries_its_pose_and_frames():

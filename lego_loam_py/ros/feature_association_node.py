@@ -35,9 +35,9 @@ from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, LASER_ODOM_FRAME
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
-from lego_loam_py.ros.conversions import (cloud_info_from_msg, cloud_info_from_serialized, cloud_msg_to_array,
-                                          cloud_msg_to_xyzi, make_header, pose_to_odometry, serialized_stamp_ns,
-                                          stamp_to_ns, xyzi_to_cloud_msg)
+from lego_loam_py.ros.conversions import (cloud_from_serialized, cloud_info_from_msg, cloud_info_from_serialized,
+                                          cloud_msg_to_array, cloud_msg_to_xyzi, make_header, pose_to_odometry,
+                                          serialized_stamp_ns, serialized_xyzi_cloud, stamp_to_ns)
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 from lego_loam_py.ros.tf import TransformBroadcaster
@@ -56,11 +56,13 @@ class FeatureAssociationNode(LegoLoamNode):
         fa = self.params.feature_association
         self.sync = StampSynchronizer(['cloud', 'info', 'outlier'], int(fa.sync_tolerance * 1e9))
         depth1 = qos.reliable(1)
-        self.create_subscription(PointCloud2, '/segmented_cloud', lambda m: self.on_part('cloud', m), depth1)
-        # (serialized: see cloud_info_from_serialized)
+        # All three serialized: read from their bytes (cloud_from_serialized, cloud_info_from_serialized).
+        self.create_subscription(PointCloud2, '/segmented_cloud', lambda m: self.on_part('cloud', m), depth1,
+                                 raw=True)
         self.create_subscription(CloudInfo, '/segmented_cloud_info', lambda m: self.on_part('info', m), depth1,
                                  raw=True)
-        self.create_subscription(PointCloud2, '/outlier_cloud', lambda m: self.on_part('outlier', m), depth1)
+        self.create_subscription(PointCloud2, '/outlier_cloud', lambda m: self.on_part('outlier', m), depth1,
+                                 raw=True)
         self.imu_subscription = None
         if self.params.sensor.imu_topic:   # taken with each scan (1 s of samples wait at 200 Hz)
             self.imu_subscription = self.create_polled_subscription(Imu, self.params.sensor.imu_topic,
@@ -85,6 +87,11 @@ class FeatureAssociationNode(LegoLoamNode):
     def on_part(self, name: str, msg) -> None:
         """One of the three inputs: checked on its own (size first, then content) before it may join a set, so
         that a bad message can never take a valid scan's place among its partners."""
+        if name != 'info' and isinstance(msg, bytes):
+            ok, msg = self.take(lambda: cloud_from_serialized(msg), 'scans_dropped',
+                                f'{INPUT_TOPICS[name]} dropped unread', 'bad_scan', msg)
+            if not ok:
+                return
         ok, _ = self.take(lambda: self._check_size(name, msg), 'scans_dropped',
                           f'{INPUT_TOPICS[name]} dropped unread', 'oversized', msg)
         if not ok:
@@ -256,12 +263,12 @@ class FeatureAssociationNode(LegoLoamNode):
         for publisher, cloud in ((self.pub_sharp, f.sharp), (self.pub_less_sharp, f.less_sharp),
                                  (self.pub_flat, f.flat), (self.pub_less_flat, f.less_flat)):
             if publisher.get_subscription_count():
-                publisher.publish(xyzi_to_cloud_msg(cloud, camera))
+                publisher.publish(serialized_xyzi_cloud(cloud, camera))
         if result.corner_last is not None:
-            self.pub_corner_last.publish(xyzi_to_cloud_msg(result.corner_last, camera))
-            self.pub_surf_last.publish(xyzi_to_cloud_msg(result.surf_last, camera))
+            self.pub_corner_last.publish(serialized_xyzi_cloud(result.corner_last, camera))
+            self.pub_surf_last.publish(serialized_xyzi_cloud(result.surf_last, camera))
         if result.outlier_last is not None:
-            self.pub_outlier_last.publish(xyzi_to_cloud_msg(result.outlier_last, camera))
+            self.pub_outlier_last.publish(serialized_xyzi_cloud(result.outlier_last, camera))
 
 
 def _cloud_problem(result) -> str | None:

@@ -27,7 +27,8 @@ from lego_loam_py.core.image_projection import ImageProjection, InputError, prep
 from lego_loam_py.core.validation import MAX_COORDINATE
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.ros import qos
-from lego_loam_py.ros.conversions import cloud_info_to_msg, cloud_msg_to_array, make_header, xyzi_to_cloud_msg
+from lego_loam_py.ros.conversions import (cloud_from_serialized, cloud_msg_to_array, make_header,
+                                          serialized_cloud_info, serialized_xyzi_cloud)
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 
@@ -39,7 +40,8 @@ class ImageProjectionNode(LegoLoamNode):
         super().__init__('imageProjection', **kwargs)
         self.core = ImageProjection(self.params)
         topic = self.params.sensor.point_cloud_topic
-        self.create_subscription(PointCloud2, topic, self.on_cloud, qos.sensor_input(1))
+        # Serialized: the cloud is read from the bytes (cloud_from_serialized), not copied into a message first.
+        self.create_subscription(PointCloud2, topic, self.on_cloud, qos.sensor_input(1), raw=True)
         out = qos.reliable(1)
         self.pub_segmented = self.create_publisher(PointCloud2, '/segmented_cloud', out)
         self.pub_info = self.create_publisher(CloudInfo, '/segmented_cloud_info', out)
@@ -53,9 +55,15 @@ class ImageProjectionNode(LegoLoamNode):
         self.get_logger().info(f'imageProjection: {topic} -> /segmented_cloud; {s.preset} range image '
                                f'{s.n_scan}x{s.horizon_scan}, rows from {rows_from}')
 
-    def on_cloud(self, msg: PointCloud2) -> None:
+    def on_cloud(self, msg: PointCloud2 | bytes) -> None:
+        """A scan: a PointCloud2, or its serialized bytes."""
         start = time.perf_counter()
         self.count('clouds_in')
+        if isinstance(msg, bytes):
+            ok, msg = self.take(lambda: cloud_from_serialized(msg), 'clouds_dropped', 'dropping unreadable cloud',
+                                'bad_cloud', msg)
+            if not ok:
+                return
         try:
             s = self.params.sensor
             try:
@@ -96,17 +104,17 @@ class ImageProjectionNode(LegoLoamNode):
             self.error('process_exception', 'unexpected error in imageProjection; scan dropped')
             return
         header = make_header(msg.header.stamp, BASE_LINK_FRAME)
-        self.pub_segmented.publish(xyzi_to_cloud_msg(result.segmented_cloud, header, time=result.segmented_time))
-        self.pub_info.publish(cloud_info_to_msg(result.cloud_info, msg.header))
-        self.pub_outlier.publish(xyzi_to_cloud_msg(result.outlier_cloud, header))
+        self.pub_segmented.publish(serialized_xyzi_cloud(result.segmented_cloud, header, time=result.segmented_time))
+        self.pub_info.publish(serialized_cloud_info(result.cloud_info, msg.header))
+        self.pub_outlier.publish(serialized_xyzi_cloud(result.outlier_cloud, header))
         if self.pub_full.get_subscription_count():
-            self.pub_full.publish(xyzi_to_cloud_msg(result.full_cloud, header, is_dense=False))
+            self.pub_full.publish(serialized_xyzi_cloud(result.full_cloud, header, is_dense=False))
         if self.pub_full_info.get_subscription_count():
-            self.pub_full_info.publish(xyzi_to_cloud_msg(result.full_info_cloud, header, is_dense=False))
+            self.pub_full_info.publish(serialized_xyzi_cloud(result.full_info_cloud, header, is_dense=False))
         if self.pub_ground.get_subscription_count():
-            self.pub_ground.publish(xyzi_to_cloud_msg(result.ground_cloud, header))
+            self.pub_ground.publish(serialized_xyzi_cloud(result.ground_cloud, header))
         if self.pub_pure.get_subscription_count():
-            self.pub_pure.publish(xyzi_to_cloud_msg(result.segmented_cloud_pure, header))
+            self.pub_pure.publish(serialized_xyzi_cloud(result.segmented_cloud_pure, header))
         self.count('clouds_out')
         self.output_published()
         self.record_time('scan', time.perf_counter() - start)

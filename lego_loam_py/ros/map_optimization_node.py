@@ -44,8 +44,8 @@ from lego_loam_py.core.map_optimization import MapOptimization
 from lego_loam_py.core.odometry_continuity import OdometryContinuity
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
-from lego_loam_py.ros.conversions import (cloud_msg_to_xyzi, make_header, odometry_to_pose, pose_to_odometry,
-                                          serialized_stamp_ns, stamp_to_ns, xyzi_to_cloud_msg)
+from lego_loam_py.ros.conversions import (cloud_from_serialized, cloud_msg_to_xyzi, make_header, odometry_to_pose,
+                                          pose_to_odometry, serialized_stamp_ns, serialized_xyzi_cloud, stamp_to_ns)
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 from lego_loam_py.ros.services import create_deferred_service
@@ -69,9 +69,10 @@ class MapOptimizationNode(LegoLoamNode):
         mo, lc = self.params.map_optimization, self.params.loop_closure
         self.sync = StampSynchronizer(['corner', 'surf', 'outlier', 'odometry'], int(mo.sync_tolerance * 1e9))
         depth2 = qos.reliable(2)
-        self.create_subscription(PointCloud2, '/laser_cloud_corner_last', lambda m: self.on_part('corner', m), depth2)
-        self.create_subscription(PointCloud2, '/laser_cloud_surf_last', lambda m: self.on_part('surf', m), depth2)
-        self.create_subscription(PointCloud2, '/outlier_cloud_last', lambda m: self.on_part('outlier', m), depth2)
+        # Serialized clouds, read from their bytes (cloud_from_serialized).
+        for name in ('corner', 'surf', 'outlier'):
+            self.create_subscription(PointCloud2, INPUT_TOPICS[name], lambda m, name=name: self.on_part(name, m),
+                                     depth2, raw=True)
         self.create_subscription(Odometry, '/laser_odom_to_init', self._on_odometry_message, qos.reliable(5))
         # The same topic again, serialized and polled, for the publisher of each message (the executor's callbacks
         # get no message info): a restarted featureAssociation is another publisher.
@@ -123,6 +124,11 @@ class MapOptimizationNode(LegoLoamNode):
         if decoded is None and name == 'odometry':
             self.on_odometry(msg, None)
             return
+        if isinstance(msg, bytes):
+            ok, msg = self.take(lambda: cloud_from_serialized(msg), 'inputs_dropped',
+                                f'{INPUT_TOPICS[name]} dropped unread', 'bad_input', msg)
+            if not ok:
+                return
         if decoded is None:
             # A cloud derived from the range image holds at most one point per pixel: anything bigger is rejected
             # on its header, before it is decoded.
@@ -278,13 +284,13 @@ class MapOptimizationNode(LegoLoamNode):
         if self.pub_key_poses.get_subscription_count():
             poses = self.core.keyframe_poses()
             key = np.concatenate([poses[:, 3:], np.arange(len(poses))[:, None]], axis=1)
-            self.pub_key_poses.publish(xyzi_to_cloud_msg(key, header))
+            self.pub_key_poses.publish(serialized_xyzi_cloud(key, header))
         if self.pub_recent.get_subscription_count():
-            self.pub_recent.publish(xyzi_to_cloud_msg(self.core.last_maps[1], header))
+            self.pub_recent.publish(serialized_xyzi_cloud(self.core.last_maps[1], header))
         if self.pub_registered.get_subscription_count():
             corner, surf = self.core.last_scan
             registered = transform_cloud(np.concatenate([corner, surf]), step.transform_aft)
-            self.pub_registered.publish(xyzi_to_cloud_msg(registered, header))
+            self.pub_registered.publish(serialized_xyzi_cloud(registered, header))
 
     def publish_global_map(self) -> None:
         if self.last_step_stamp is None or not self.pub_surround.get_subscription_count():
@@ -294,7 +300,7 @@ class MapOptimizationNode(LegoLoamNode):
         except Exception:
             self.error('global_map', 'building the global map failed')
             return
-        self.pub_surround.publish(xyzi_to_cloud_msg(cloud, make_header(self.last_step_stamp, CAMERA_INIT_FRAME)))
+        self.pub_surround.publish(serialized_xyzi_cloud(cloud, make_header(self.last_step_stamp, CAMERA_INIT_FRAME)))
 
     def _loop_worker(self) -> None:
         while not self._stopping.is_set():
@@ -313,7 +319,7 @@ class MapOptimizationNode(LegoLoamNode):
             return
         stamp = self.last_step_stamp
         if stamp is not None and self.pub_history.get_subscription_count():
-            self.pub_history.publish(xyzi_to_cloud_msg(candidate.target, make_header(stamp, CAMERA_INIT_FRAME)))
+            self.pub_history.publish(serialized_xyzi_cloud(candidate.target, make_header(stamp, CAMERA_INIT_FRAME)))
         if result.accepted:
             self.count('loops_closed')
             self.get_logger().info(f'loop closed: keyframe {result.latest} -> {result.candidate} '
@@ -321,7 +327,7 @@ class MapOptimizationNode(LegoLoamNode):
             if stamp is not None and self.pub_corrected.get_subscription_count():
                 corrected = candidate.source.copy()
                 corrected[:, :3] = corrected[:, :3] @ result.correction[:3, :3].T + result.correction[:3, 3]
-                self.pub_corrected.publish(xyzi_to_cloud_msg(corrected, make_header(stamp, CAMERA_INIT_FRAME)))
+                self.pub_corrected.publish(serialized_xyzi_cloud(corrected, make_header(stamp, CAMERA_INIT_FRAME)))
         else:
             self.count('loops_rejected')
 

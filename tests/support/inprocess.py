@@ -12,6 +12,8 @@ class Recorder:
     """Installed on a node: records its warnings and errors, and what its publishers publish."""
 
     def __init__(self, node):
+        from rclpy.serialization import deserialize_message
+
         self.node = node
         self.warnings: list[tuple[str, str]] = []
         self.errors: list[tuple[str, str]] = []      # unexpected exceptions
@@ -35,8 +37,9 @@ class Recorder:
             store = self.published.setdefault(publisher.topic_name, [])
             original = publisher.publish
 
-            def publish(msg, _store=store, _original=original):
-                _store.append(msg)
+            def publish(msg, _store=store, _original=original, _type=publisher.msg_type):
+                # Clouds go out serialized: kept as the message a subscriber receives.
+                _store.append(deserialize_message(msg, _type) if isinstance(msg, bytes) else msg)
                 _original(msg)
 
             publisher.publish = publish
