@@ -301,8 +301,7 @@ class _CdrReader:
         return self.array('u1').tobytes().rstrip(b'\x00').decode('utf-8', errors='replace')
 
     def stamp_ns(self) -> int:
-        sec, nanosec = int(self.array('i4', 1)[0]), int(self.array('u4', 1)[0])
-        return sec * 1_000_000_000 + nanosec
+        return self.scalar('i4') * 1_000_000_000 + self.scalar('u4')
 
 
 def _deserialized(data: bytes, message_type, what: str):
@@ -365,7 +364,7 @@ def cloud_from_serialized(data: bytes) -> SerializedCloud | PointCloud2:
     if bytes(data[:2]) not in _XCDR1:
         return _deserialized(data, PointCloud2, 'PointCloud2')
     read = _CdrReader(data, 'PointCloud2')
-    sec, nanosec = int(read.array('i4', 1)[0]), int(read.array('u4', 1)[0])
+    sec, nanosec = read.scalar('i4'), read.scalar('u4')
     header = Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=read.string())
     height, width = (int(v) for v in read.array('u4', 2))
     fields = []
