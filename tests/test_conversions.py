@@ -205,6 +205,36 @@ def test_transform_of_an_odometry_carries_its_pose_and_frames():
     assert math.isclose(q.x ** 2 + q.y ** 2 + q.z ** 2 + q.w ** 2, 1.0, rel_tol=1e-12)
 
 
+@settings(max_examples=60, deadline=None)
+@given(frame_id=st.text(alphabet='abcdefghijklmnopqrstuvwxyz_/0123456789', max_size=13),
+       child=st.text(alphabet='abcdefghijklmnopqrstuvwxyz_', min_size=1, max_size=13),
+       sec=st.integers(-2**31, 2**31 - 1), nanosec=st.integers(0, 999_999_999),
+       angles=st.tuples(*[st.floats(-3.1, 3.1)] * 3), position=st.tuples(*[st.floats(-1e4, 1e4)] * 3),
+       twist=st.one_of(st.none(), st.tuples(*[st.floats(-1e3, 1e3)] * 6)))
+def test_serialized_odometry_and_its_transform_are_the_messages_rclpy_would_send(frame_id, child, sec, nanosec,
+                                                                                 angles, position, twist):
+    """Every node publishes its pose as an Odometry and the same transform on /tf, serialized by hand: rclpy
+    reads them back as exactly the messages pose_to_odometry and odometry_to_transform give (twist fields,
+    which mapOptimization fills with its pre-mapping pose, included)."""
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import deserialize_message
+    from tf2_msgs.msg import TFMessage
+
+    from lego_loam_py.core.frames import euler_to_matrix
+    from lego_loam_py.ros.conversions import (make_header, odometry_to_transform, pose_to_odometry,
+                                              serialized_odometry)
+
+    pose = np.eye(4)
+    pose[:3, :3] = euler_to_matrix(*angles)
+    pose[:3, 3] = position
+    header = make_header(sec * 1_000_000_000 + nanosec, frame_id)
+    extra = {} if twist is None else dict(twist_angular=twist[:3], twist_linear=twist[3:])
+    expected = pose_to_odometry(pose, header, child, **extra)
+    odometry, transforms = serialized_odometry(pose, header, child, **extra)
+    assert deserialize_message(odometry, Odometry) == expected
+    assert deserialize_message(transforms, TFMessage) == TFMessage(transforms=[odometry_to_transform(expected)])
+
+
 def test_the_header_stamp_is_read_from_a_serialized_message():
     """mapOptimization tells odometry publishers apart by the stamp of each serialized message it polls."""
     from nav_msgs.msg import Odometry

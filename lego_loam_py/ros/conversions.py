@@ -35,7 +35,7 @@ __all__ = [
     'numpy_to_array', 'xyzi_to_cloud_msg', 'cloud_msg_to_xyzi', 'cloud_info_to_msg', 'cloud_info_from_msg',
     'imu_sample_from_serialized', 'serialized_stamp_ns', 'cloud_info_from_serialized', 'odometry_to_transform',
     'serialized_cloud', 'serialized_xyzi_cloud', 'serialized_cloud_info', 'cloud_from_serialized',
-    'SerializedCloud', 'MAX_POSITION',
+    'SerializedCloud', 'serialized_odometry', 'MAX_POSITION',
 ]
 
 
@@ -404,6 +404,30 @@ def pose_to_odometry(pose: np.ndarray, header: Header, child_frame_id: str,
     return msg
 
 
+
+
+def serialized_odometry(pose: np.ndarray, header: Header, child_frame_id: str,
+                        twist_angular: Sequence[float] | None = None,
+                        twist_linear: Sequence[float] | None = None) -> tuple[bytes, bytes]:
+    """The serialized nav_msgs/Odometry that :func:`pose_to_odometry` would give, and the tf2_msgs/TFMessage
+    carrying its transform (:func:`odometry_to_transform`): the two every node publishes per pose, from one
+    quaternion."""
+    q = matrix_to_quaternion(pose[:3, :3])
+    position = [float(v) for v in pose[:3, 3]]
+    orientation = [float(v) for v in q]
+    odometry = _CdrWriter()
+    odometry.header(header)
+    odometry.string(child_frame_id)
+    odometry.scalars('43d', *position, *orientation, *([0.0] * 36))   # the pose, its covariance
+    twist = [float(v) for v in (twist_linear if twist_linear is not None else (0.0, 0.0, 0.0))] + \
+        [float(v) for v in (twist_angular if twist_angular is not None else (0.0, 0.0, 0.0))]
+    odometry.scalars('42d', *twist, *([0.0] * 36))                  # the twist (linear, angular), its covariance
+    transforms = _CdrWriter()
+    transforms.scalars('I', 1)
+    transforms.header(header)
+    transforms.string(child_frame_id)
+    transforms.scalars('7d', *position, *orientation)
+    return odometry.bytes(), transforms.bytes()
 
 
 def odometry_to_pose(msg: Odometry) -> np.ndarray:

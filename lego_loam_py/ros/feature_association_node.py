@@ -36,7 +36,7 @@ from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, LASER_ODOM
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import (cloud_from_serialized, cloud_info_from_msg, cloud_info_from_serialized,
-                                          cloud_msg_to_array, cloud_msg_to_xyzi, make_header, pose_to_odometry,
+                                          cloud_msg_to_array, cloud_msg_to_xyzi, make_header, serialized_odometry,
                                           serialized_stamp_ns, serialized_xyzi_cloud, stamp_to_ns)
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
@@ -255,9 +255,9 @@ class FeatureAssociationNode(LegoLoamNode):
         pose = result.pose
         header = make_header(stamp, CAMERA_INIT_FRAME)
         if not result.initialized or result.resumed:   # (after a restart the pose reached so far goes on)
-            odometry = pose_to_odometry(pose, header, LASER_ODOM_FRAME)
+            odometry, transform = serialized_odometry(pose, header, LASER_ODOM_FRAME)
             self.pub_odometry.publish(odometry)
-            self.tf.send_odometry(odometry)
+            self.tf.send_serialized(transform)
         camera = make_header(stamp, CAMERA_FRAME)
         f = result.features
         for publisher, cloud in ((self.pub_sharp, f.sharp), (self.pub_less_sharp, f.less_sharp),

@@ -45,7 +45,7 @@ from lego_loam_py.core.odometry_continuity import OdometryContinuity
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import (cloud_from_serialized, cloud_msg_to_xyzi, make_header, odometry_to_pose,
-                                          pose_to_odometry, serialized_stamp_ns, serialized_xyzi_cloud, stamp_to_ns)
+                                          serialized_odometry, serialized_stamp_ns, serialized_xyzi_cloud, stamp_to_ns)
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 from lego_loam_py.ros.services import create_deferred_service
@@ -277,9 +277,10 @@ class MapOptimizationNode(LegoLoamNode):
         pose = pose6_to_matrix(step.transform_aft)
         header = make_header(stamp, CAMERA_INIT_FRAME)
         bef = step.transform_bef
-        odometry = pose_to_odometry(pose, header, AFT_MAPPED_FRAME, twist_angular=bef[:3], twist_linear=bef[3:])
+        odometry, transform = serialized_odometry(pose, header, AFT_MAPPED_FRAME, twist_angular=bef[:3],
+                                                  twist_linear=bef[3:])
         self.pub_aft_mapped.publish(odometry)
-        self.tf.send_odometry(odometry)
+        self.tf.send_serialized(transform)
         self.last_step_stamp = stamp
         if self.pub_key_poses.get_subscription_count():
             poses = self.core.keyframe_poses()

@@ -16,7 +16,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from tf2_msgs.msg import TFMessage
 
 from lego_loam_py.core import frames
-from lego_loam_py.ros.conversions import odometry_to_transform, pose_to_transform
+from lego_loam_py.ros.conversions import pose_to_transform
 
 __all__ = ['TransformBroadcaster', 'StaticTransformBroadcaster', 'original_static_transforms',
            'TF_QOS', 'TF_STATIC_QOS']
@@ -41,9 +41,9 @@ class TransformBroadcaster:
     def send_pose(self, pose: np.ndarray, stamp: Time | int, parent: str, child: str) -> None:
         self.send(pose_to_transform(pose, stamp, parent, child))
 
-    def send_odometry(self, msg) -> None:
-        """The transform of a nav_msgs/Odometry just published (its frames, stamp and pose)."""
-        self.send(odometry_to_transform(msg))
+    def send_serialized(self, data: bytes) -> None:
+        """A serialized TFMessage (see :func:`~lego_loam_py.ros.conversions.serialized_odometry`)."""
+        self._publisher.publish(data)
 
 
 class StaticTransformBroadcaster:

@@ -24,7 +24,7 @@ from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, pose6_to_m
 from lego_loam_py.core.sync import StampOrder
 from lego_loam_py.core.transform_fusion import TransformFusion
 from lego_loam_py.ros import qos
-from lego_loam_py.ros.conversions import MAX_POSITION, make_header, odometry_to_pose, pose_to_odometry, stamp_to_ns
+from lego_loam_py.ros.conversions import MAX_POSITION, make_header, odometry_to_pose, serialized_odometry, stamp_to_ns
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 from lego_loam_py.ros.tf import StaticTransformBroadcaster, TransformBroadcaster, original_static_transforms
@@ -115,9 +115,9 @@ class TransformFusionNode(LegoLoamNode):
             mapped = self.core.integrate(odometry)
         self.order.processed(stamp_to_ns(msg.header.stamp))
         header = make_header(msg.header.stamp, CAMERA_INIT_FRAME)
-        odometry = pose_to_odometry(mapped, header, CAMERA_FRAME)
+        odometry, transform = serialized_odometry(mapped, header, CAMERA_FRAME)
         self.pub_integrated.publish(odometry)
-        self.tf.send_odometry(odometry)
+        self.tf.send_serialized(transform)
         self.count('integrated')
         self.output_published()
         self.record_time('odometry', time.perf_counter() - start)   # conversion, fusion and publishing
