@@ -101,6 +101,26 @@ def test_node_takes_serialized_imu_and_drops_unreadable_bytes(context):
     fa.destroy_node()
 
 
+def test_nodes_take_serialized_clouds_and_drop_unreadable_bytes(context):
+    """imageProjection's raw cloud subscription hands it bytes: a scan is segmented from them, bytes that are
+    no PointCloud2 are dropped with a warning, and the next scan goes through."""
+    from rclpy.serialization import serialize_message
+
+    from lego_loam_py.ros.image_projection_node import ImageProjectionNode
+    from tests.support.inprocess import campus_messages, make_node
+
+    ip, rec = make_node(context, ImageProjectionNode)
+    clouds = [m for t, m in campus_messages(0.5) if t == '/velodyne_points']
+    ip.on_cloud(serialize_message(clouds[0]))
+    ip.on_cloud(b'\x00\x01\x00\x00garbage')
+    ip.on_cloud(serialize_message(clouds[1]))
+    assert [m.header.stamp for m in rec.out('/segmented_cloud')] == [clouds[0].header.stamp, clouds[1].header.stamp]
+    assert ip.counters['clouds_dropped'] == 1
+    assert any('dropping unreadable cloud' in text for _, text in rec.warnings)
+    assert not rec.errors
+    ip.destroy_node()
+
+
 @settings(max_examples=100, deadline=None)
 @given(frame_id=st.text(alphabet='abcdefghijklmnopqrstuvwxyz_/0123456789', max_size=13),
        sec=st.integers(-2**31, 2**31 - 1), nanosec=st.integers(0, 999_999_999),

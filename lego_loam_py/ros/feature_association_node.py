@@ -35,9 +35,9 @@ from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, LASER_ODOM_FRAME
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
-from lego_loam_py.ros.conversions import (cloud_from_serialized, cloud_info_from_msg, cloud_info_from_serialized,
-                                          cloud_msg_to_array, cloud_msg_to_xyzi, make_header, serialized_odometry,
-                                          serialized_stamp_ns, serialized_xyzi_cloud, stamp_to_ns)
+from lego_loam_py.ros.conversions import (cloud_info_from_msg, cloud_info_from_serialized, cloud_msg_to_array,
+                                          cloud_msg_to_xyzi, make_header, serialized_odometry, serialized_stamp_ns,
+                                          serialized_xyzi_cloud, stamp_to_ns)
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 from lego_loam_py.ros.tf import TransformBroadcaster
@@ -87,9 +87,8 @@ class FeatureAssociationNode(LegoLoamNode):
     def on_part(self, name: str, msg) -> None:
         """One of the three inputs: checked on its own (size first, then content) before it may join a set, so
         that a bad message can never take a valid scan's place among its partners."""
-        if name != 'info' and isinstance(msg, bytes):
-            ok, msg = self.take(lambda: cloud_from_serialized(msg), 'scans_dropped',
-                                f'{INPUT_TOPICS[name]} dropped unread', 'bad_scan', msg)
+        if name != 'info':
+            ok, msg = self.take_cloud(msg, 'scans_dropped', f'{INPUT_TOPICS[name]} dropped unread', 'bad_scan')
             if not ok:
                 return
         ok, _ = self.take(lambda: self._check_size(name, msg), 'scans_dropped',

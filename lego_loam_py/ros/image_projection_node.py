@@ -27,8 +27,7 @@ from lego_loam_py.core.image_projection import ImageProjection, InputError, prep
 from lego_loam_py.core.validation import MAX_COORDINATE
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.ros import qos
-from lego_loam_py.ros.conversions import (cloud_from_serialized, cloud_msg_to_array, make_header,
-                                          serialized_cloud_info, serialized_xyzi_cloud)
+from lego_loam_py.ros.conversions import cloud_msg_to_array, make_header, serialized_cloud_info, serialized_xyzi_cloud
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 
@@ -59,11 +58,9 @@ class ImageProjectionNode(LegoLoamNode):
         """A scan: a PointCloud2, or its serialized bytes."""
         start = time.perf_counter()
         self.count('clouds_in')
-        if isinstance(msg, bytes):
-            ok, msg = self.take(lambda: cloud_from_serialized(msg), 'clouds_dropped', 'dropping unreadable cloud',
-                                'bad_cloud', msg)
-            if not ok:
-                return
+        ok, msg = self.take_cloud(msg, 'clouds_dropped', 'dropping unreadable cloud', 'bad_cloud')
+        if not ok:
+            return
         try:
             s = self.params.sensor
             try:

@@ -44,7 +44,7 @@ from lego_loam_py.core.map_optimization import MapOptimization
 from lego_loam_py.core.odometry_continuity import OdometryContinuity
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
-from lego_loam_py.ros.conversions import (cloud_from_serialized, cloud_msg_to_xyzi, make_header, odometry_to_pose,
+from lego_loam_py.ros.conversions import (cloud_msg_to_xyzi, make_header, odometry_to_pose,
                                           serialized_odometry, serialized_stamp_ns, serialized_xyzi_cloud, stamp_to_ns)
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
@@ -124,11 +124,9 @@ class MapOptimizationNode(LegoLoamNode):
         if decoded is None and name == 'odometry':
             self.on_odometry(msg, None)
             return
-        if isinstance(msg, bytes):
-            ok, msg = self.take(lambda: cloud_from_serialized(msg), 'inputs_dropped',
-                                f'{INPUT_TOPICS[name]} dropped unread', 'bad_input', msg)
-            if not ok:
-                return
+        ok, msg = self.take_cloud(msg, 'inputs_dropped', f'{INPUT_TOPICS[name]} dropped unread', 'bad_input')
+        if not ok:
+            return
         if decoded is None:
             # A cloud derived from the range image holds at most one point per pixel: anything bigger is rejected
             # on its header, before it is decoded.

@@ -17,7 +17,8 @@ from rclpy.node import Node
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.core.imu import imu_sample
-from lego_loam_py.ros.conversions import imu_sample_from_serialized, ns_to_stamp, serialized_stamp_ns, stamp_to_ns
+from lego_loam_py.ros.conversions import (cloud_from_serialized, imu_sample_from_serialized, ns_to_stamp,
+                                          serialized_stamp_ns, stamp_to_ns)
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.params import declare_params
 from lego_loam_py.results import TimingStats
@@ -199,6 +200,14 @@ class LegoLoamNode(Node):
             self._polled_node.destroy_node()
             self._polled_node = None
         return super().destroy_node()
+
+    def take_cloud(self, msg, dropped_counter: str, what: str, key: str):
+        """``(True, cloud)`` for a PointCloud2, or for its bytes as the nodes' raw subscriptions take them (read
+        by :func:`cloud_from_serialized`); ``(False, None)`` after counting ``dropped_counter`` and a throttled
+        warning for bytes that are no cloud (see :meth:`take`)."""
+        if not isinstance(msg, bytes):
+            return True, msg
+        return self.take(lambda: cloud_from_serialized(msg), dropped_counter, what, key, msg)
 
     def take_imu(self, msg, add) -> None:
         """One IMU sample handed to ``add`` (an ImuBuffer's ``add``): ``msg`` is a sensor_msgs/Imu, or its bytes as
