@@ -324,6 +324,38 @@ def test_aggressive_reaches_90_deg_per_second_in_the_imu(contents):
     assert 85.0 < yaw_rate.max() < 95.0
 
 
+def test_in_place_turns_stop_spin_at_the_peak_rate_and_walk_on_where_they_left_off():
+    base = build_world('corridor', 0)
+    world = build_world('corridor', 0, turn_rate=150.0)
+    turns = world.trajectory
+    assert world.facts['turns'] == len(turns.starts) >= 3
+    # A whole turn at a quintic yaw profile: 360 deg * 15/8 / 150 deg/s = 4.5 s, plus 1 s of braking.
+    assert turns.turn_time == pytest.approx(4.5) and turns.pause == pytest.approx(5.5)
+    assert world.default_duration == pytest.approx(base.default_duration + 5.5 * len(turns.starts), abs=0.11)
+    t = np.arange(0.0, 70.0, 0.01)
+    yaw_rate = np.degrees(turns.angular_velocity(t)[:, 2])
+    speed = np.linalg.norm(turns.velocity(t), axis=1)
+    assert 149.0 < np.abs(yaw_rate).max() < 151.0 and world.facts['turn_peak_rate_deg_s'] == 150.0
+    # The first turn: standing still at its middle (base time 10 s), left; the second one turns right.
+    first_middle = turns.starts[0] + 1.0 + 0.5 * turns.turn_time
+    standing = np.abs(t - first_middle) < 0.5 * turns.turn_time
+    assert speed[standing].max() < 1e-6 and yaw_rate[np.argmin(np.abs(t - first_middle))] > 149.0
+    assert yaw_rate[np.argmin(np.abs(t - (turns.starts[1] + 1.0 + 0.5 * turns.turn_time)))] < -149.0
+    rotation, position = turns.pose(np.array([first_middle]))
+    assert np.allclose(position, base.trajectory.pose(np.array([10.0]))[1], atol=1e-9)
+    # Smooth: braking and walking on are no harder than the walk itself.
+    assert np.linalg.norm(turns.acceleration(t), axis=1).max() < 1.2 * np.linalg.norm(
+        base.trajectory.acceleration(t), axis=1).max()
+    # After the turns, the pose is the base one, 5.5 s later per turn; before the first, the base one.
+    for later, turns_before in ((5.0, 0), (30.0, 1), (67.0, 2)):
+        assert np.allclose(turns.matrices([later]), base.trajectory.matrices([later - 5.5 * turns_before]), atol=1e-9)
+    # Recordings without turns keep the configuration (and cache key) they had before the option existed.
+    assert 'turn_rate' not in SimConfig('corridor').to_dict()
+    assert SimConfig('corridor', turn_rate=150).command('out').endswith('--turn-rate 150')
+    with pytest.raises(ValueError, match='turn rate'):
+        SimConfig('corridor', turn_rate=-1.0).validate()
+
+
 # ------------------------------------------------------------------------------------------------------- IMU
 
 def _integrate_gyro(rotation0: np.ndarray, gyro: np.ndarray, dt: float) -> np.ndarray:

@@ -38,6 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='rotate the IMU axes relative to the lidar: roll pitch yaw [deg] (default 0 0 0)')
     parser.add_argument('--ideal', action='store_true', help='noise-free sensors: no range/IMU noise, no biases, '
                         'no dropped returns')
+    parser.add_argument('--turn-rate', type=float, default=0.0, metavar='DEG_S',
+                        help='stop for whole in-place turns (at 10 s, then every 30 s) peaking at this yaw rate '
+                        '[deg/s] (default 0: none)')
     parser.add_argument('--cached', action='store_true', help='generate into the cache (~/.cache/lego_loam_py/sim, '
                         '$LEGO_LOAM_CACHE) unless present; print the bag path')
     parser.add_argument('--list', action='store_true', help='list the scenarios and sensor presets, then exit')
@@ -74,7 +77,8 @@ def main(args: argparse.Namespace) -> int:
 
     options = dict(duration=args.duration, seed=args.seed, preset=args.preset, imu_rate=args.imu_rate,
                    storage=args.storage, ros1=args.ros1, layout=args.layout, compress=args.compress,
-                   imu_extrinsic_rpy=tuple(args.imu_extrinsic_rpy), ideal=args.ideal)
+                   imu_extrinsic_rpy=tuple(args.imu_extrinsic_rpy), ideal=args.ideal,
+                   turn_rate=args.turn_rate)
     try:
         if args.cached:
             print(cached_scenario(args.scenario, progress=not args.no_progress, **options))

@@ -97,7 +97,8 @@ def map_distance_to_scene(bag_path: str | Path, map_points: np.ndarray, stamp_ns
         return None
     from lego_loam_py.sim.scenarios import build_world
 
-    world = build_world(scenario['config']['scenario'], int(scenario['config']['seed']))
+    config = scenario['config']
+    world = build_world(config['scenario'], int(config['seed']), float(config.get('turn_rate', 0.0)))
     t = (int(stamp_ns) - int(scenario['recording']['start_stamp_ns'])) / 1e9
     world_from_map = world.trajectory.matrices(np.array([t]))[0] @ np.linalg.inv(lidar_pose_in_map)
     xyz = np.asarray(map_points, dtype=np.float64)[:, :3]

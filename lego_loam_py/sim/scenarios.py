@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 
 from lego_loam_py.sim.scene import (GROUND_ID, Scene, SceneBuilder, Terrain, box_mesh, cylinder_mesh,
                                     ellipsoid_mesh, heightfield_mesh, material_index, transform_mesh)
-from lego_loam_py.sim.trajectory import ClosedPath, Oscillation, PathTrajectory, SpeedProfile
+from lego_loam_py.sim.trajectory import ClosedPath, InPlaceTurns, Oscillation, PathTrajectory, SpeedProfile, Trajectory
 
 __all__ = ['World', 'SCENARIOS', 'ScenarioInfo', 'build_world', 'scenario_names', 'scenario_rng']
 
@@ -46,7 +46,7 @@ class World:
     name: str
     seed: int
     scene: Scene
-    trajectory: PathTrajectory
+    trajectory: Trajectory
     default_duration: float                 # [s]: one full lap
     description: str
     facts: dict = field(default_factory=dict)
@@ -758,9 +758,27 @@ def scenario_names() -> list[str]:
     return list(SCENARIOS)
 
 
+#: Base times [s] of the in-place turns ``turn_rate`` inserts: on the first straight of every scenario,
+#: then every 30 s.
+TURN_FIRST, TURN_EVERY = 10.0, 30.0
+
+
 @functools.lru_cache(maxsize=4)
-def build_world(name: str, seed: int = 0) -> World:
-    """The scenario ``name`` built with ``seed`` (cached: worlds are immutable)."""
+def build_world(name: str, seed: int = 0, turn_rate: float = 0.0) -> World:
+    """The scenario ``name`` built with ``seed`` (cached: worlds are immutable). ``turn_rate`` > 0 [deg/s]
+    stops the platform for a whole in-place turn, alternately left and right, with that peak yaw rate
+    at :data:`TURN_FIRST` s and every :data:`TURN_EVERY` s of the lap after it."""
     if name not in SCENARIOS:
         raise ValueError(f"unknown scenario '{name}' (known: {', '.join(SCENARIOS)})")
-    return SCENARIOS[name].build(int(seed))
+    world = SCENARIOS[name].build(int(seed))
+    if not turn_rate:
+        return world
+    at = np.arange(TURN_FIRST, world.default_duration - 1.0, TURN_EVERY)
+    trajectory = InPlaceTurns(world.trajectory, at, float(turn_rate))
+    t = np.arange(0.0, world.default_duration + trajectory.pause * len(at), 0.01)
+    facts = dict(world.facts, turns=len(at), turn_peak_rate_deg_s=float(turn_rate),
+                 max_yaw_rate_deg_s=round(float(np.degrees(np.abs(trajectory.angular_velocity(t)[:, 2]).max())), 2),
+                 loop=False)
+    return World(name, world.seed, world.scene, trajectory,
+                 _whole_scans(world.default_duration + trajectory.pause * len(at)),
+                 f'{world.description}; {len(at)} whole in-place turns at up to {turn_rate:g} deg/s', facts)

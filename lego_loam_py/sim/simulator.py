@@ -51,6 +51,7 @@ class SimConfig:
     compress: bool = False                        # zstd chunks (ROS 2 mcap / sqlite3 file)
     imu_extrinsic_rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)   # IMU axes in the lidar frame [deg]
     ideal: bool = False                           # no noise, no bias, no dropped returns
+    turn_rate: float = 0.0                        # peak yaw rate of inserted in-place turns [deg/s]; 0: none
 
     def validate(self) -> 'SimConfig':
         from lego_loam_py.core.params import SENSOR_PRESETS
@@ -67,14 +68,18 @@ class SimConfig:
             raise ValueError(f'duration must be positive, got {self.duration}')
         if not 1.0 <= self.imu_rate <= 2000.0:
             raise ValueError(f'imu rate must be within 1..2000 Hz, got {self.imu_rate}')
+        if not 0.0 <= self.turn_rate <= 720.0:
+            raise ValueError(f'turn rate must be within 0..720 deg/s, got {self.turn_rate}')
         if len(self.imu_extrinsic_rpy) != 3:
             raise ValueError('the IMU extrinsic needs roll, pitch and yaw')
         return replace(self, imu_extrinsic_rpy=tuple(float(a) for a in self.imu_extrinsic_rpy),
-                       seed=int(self.seed), imu_rate=float(self.imu_rate))
+                       seed=int(self.seed), imu_rate=float(self.imu_rate), turn_rate=float(self.turn_rate))
 
     def to_dict(self) -> dict[str, Any]:
         out = asdict(self)
         out['imu_extrinsic_rpy'] = list(self.imu_extrinsic_rpy)
+        if not self.turn_rate:
+            del out['turn_rate']   # recordings without turns keep the cache keys they had before the option
         return out
 
     def command(self, output: str | Path) -> str:
@@ -99,6 +104,8 @@ class SimConfig:
             parts += ['--imu-extrinsic-rpy', *(f'{a:g}' for a in self.imu_extrinsic_rpy)]
         if self.ideal:
             parts.append('--ideal')
+        if self.turn_rate:
+            parts += ['--turn-rate', f'{self.turn_rate:g}']
         return ' '.join(parts)
 
     def cache_key(self) -> str:
@@ -193,7 +200,7 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
     bag_path = _bag_output_path(config, output)
     if bag_path.exists():
         raise FileExistsError(f'{bag_path} exists already; choose another output (bags are never overwritten)')
-    world = build_world(config.scenario, config.seed)
+    world = build_world(config.scenario, config.seed, config.turn_rate)
     lidar = LidarModel.from_preset(config.preset, ideal=config.ideal)
     imu = ImuModel(rate=config.imu_rate, noise=ImuNoise.none() if config.ideal else ImuNoise(),
                    extrinsic_rpy_deg=config.imu_extrinsic_rpy)

@@ -13,9 +13,11 @@ and the same motion by construction.
 :class:`PathTrajectory` drives a closed smooth path (:class:`ClosedPath`) at a speed profile that slows
 down in curves (:class:`SpeedProfile`), follows a terrain with a four-wheel footprint (roll and pitch from
 the wheel contact heights), and adds optional periodic oscillations (walking bob, sway).
+:class:`InPlaceTurns` stops any trajectory at given moments for a whole turn on the spot.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -26,7 +28,8 @@ from scipy.spatial.transform import Rotation
 
 from lego_loam_py.sim.scene import Terrain
 
-__all__ = ['Trajectory', 'ClosedPath', 'SpeedProfile', 'Oscillation', 'PathTrajectory', 'rotation_zyx']
+__all__ = ['Trajectory', 'ClosedPath', 'SpeedProfile', 'Oscillation', 'PathTrajectory', 'InPlaceTurns',
+           'rotation_zyx']
 
 _STEP = 2e-3  # [s] finite-difference step
 
@@ -266,3 +269,68 @@ class PathTrajectory(Trajectory):
         mount[:, 1] = self._channel('sway', t)
         mount[:, 2] = self.sensor_height + self._channel('heave', t)
         return rotation, ground + np.einsum('nij,nj->ni', rotation, mount)
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    """The quintic step ``6x^5 - 15x^4 + 10x^3`` on [0, 1] (0 below, 1 above): zero first and second
+    derivatives at both ends; its slope peaks at 15/8 in the middle."""
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * x * (x * (6.0 * x - 15.0) + 10.0)
+
+
+def _smoothstep_integral(x: np.ndarray) -> np.ndarray:
+    """``integral_0^x smoothstep`` for x in [0, 1] (1/2 at 1)."""
+    x = np.clip(x, 0.0, 1.0)
+    return x ** 4 * (x * (x - 3.0) + 2.5)
+
+
+class InPlaceTurns(Trajectory):
+    """``base`` with whole turns on the spot inserted: at each of the base times ``at`` [s] the platform
+    brakes to a standstill (over ``brake`` s), turns ``angle`` [deg] (positive: left, about the world's
+    vertical through the lidar) with a smooth yaw profile whose rate peaks at ``peak_rate`` [deg/s], then
+    walks on as ``base`` did. The pose before and after a whole turn is the same, so the rest of the
+    trajectory is the base one, :attr:`pause` later per turn.
+
+    While braking and standing, the base trajectory slows down with it (its bob and sway too): base time
+    runs at ``1 - h(t)`` of real time, with ``h`` a quintic step from 0 to 1 and back, so the motion stays
+    smooth (C2) and the IMU sees it as the lidar does. Each turn alternates direction.
+    """
+
+    def __init__(self, base: Trajectory, at: Sequence[float], peak_rate: float, angle: float = 360.0,
+                 brake: float = 1.0):
+        if not peak_rate > 0 or not angle > 0 or not brake > 0:
+            raise ValueError('an in-place turn needs a positive peak rate, angle and braking time')
+        self.base = base
+        self.angle = math.radians(angle)
+        self.brake = float(brake)
+        # The quintic step's slope peaks at 15/8 per unit time: the turn lasts angle * 15/8 / peak rate.
+        self.turn_time = self.angle * 1.875 / math.radians(peak_rate)
+        # Real time added per turn [s]: braking and walking on each lose brake/2 of base time.
+        self.pause = self.brake + self.turn_time
+        base_times = np.sort(np.asarray(at, dtype=float))
+        # Real time each stop begins: the base time reaches `at` at the standstill, braking having lost
+        # brake/2 of it, later by the pauses of the turns before.
+        self.starts = base_times - 0.5 * self.brake + self.pause * np.arange(len(base_times))
+        self.directions = np.where(np.arange(len(base_times)) % 2 == 0, 1.0, -1.0)
+        self.lap_time = None
+
+    def _lost(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(base time lost to the stops by real time t [s], the yaw the turns added [rad])."""
+        lost = np.zeros_like(t)
+        yaw = np.zeros_like(t)
+        b, turn = self.brake, self.turn_time
+        for start, direction in zip(self.starts, self.directions):
+            tau = t - start
+            braking = b * _smoothstep_integral(tau / b)
+            standing = np.clip(tau - b, 0.0, turn)
+            x = (tau - b - turn) / b
+            walking_on = b * (np.clip(x, 0.0, 1.0) - _smoothstep_integral(x))
+            lost += braking + standing + walking_on
+            yaw += direction * self.angle * _smoothstep((tau - b) / turn)
+        return lost, yaw
+
+    def pose(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        lost, yaw = self._lost(t)
+        rotation, position = self.base.pose(t - lost)
+        return rotation_zyx(yaw, np.zeros_like(yaw), np.zeros_like(yaw)) @ rotation, position
