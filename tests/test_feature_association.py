@@ -156,6 +156,30 @@ def test_rotation_prior_holds_the_rotation_the_imu_measured():
     assert 0.5 < yaw[1e3] < 2.5
 
 
+def test_a_lost_odometry_registers_again_from_standing_still():
+    """After a turn faster than the lidar alone can follow, the constant-velocity guess is a turn the sensor
+    no longer makes: registered from it, few sharp points match and the wrong motion would be integrated
+    again and again. The odometry says it is lost and registers again from standing still, which here (the
+    sensor did not move) finds the truth. A right guess is not second-guessed: same bits either way."""
+    features = static_features()
+    wild = np.array([0.0, math.radians(60.0), 0.0, 0.3, 0.0, 0.2])
+
+    def register(guess, lost_match_ratio):
+        odometry = SweepStartOdometry(PARAMS.replace(feature_association__lost_match_ratio=lost_match_ratio))
+        odometry.set_last(features.less_sharp, features.less_flat)
+        odometry.transform_cur = guess.copy()
+        return odometry.register(features.sharp, features.flat), odometry.transform_cur
+
+    stats, never = register(wild, 0.0)
+    assert not stats.lost and stats.corner_match_ratio < 0.3 and np.degrees(np.abs(never[:3])).max() > 5.0
+    stats, estimate = register(wild, 0.3)
+    assert stats.lost and stats.recovered and stats.extra['lost_match_ratio'] < 0.3 < 0.9 < stats.corner_match_ratio
+    assert np.degrees(np.abs(estimate[:3])).max() < 0.05 and np.abs(estimate[3:]).max() < 0.01
+    close = np.array([0.0, math.radians(0.5), 0.0, 0.01, 0.0, 0.02])
+    (stats, estimate), (_, unchecked) = register(close, 0.3), register(close, 0.0)
+    assert not stats.lost and stats.corner_match_ratio > 0.9 and np.array_equal(estimate, unchecked)
+
+
 def test_resampled_sweep_pair_registers_closely_original_model():
     """Two real sweeps (different samples of the world, motion during the second): the original's model
     (registration against the previous sweep moved to its end) lands within a few centimetres; its robust

@@ -189,3 +189,7 @@ def test_each_scan_reports_how_well_the_odometry_was_held(context, tmp_path):
         assert f'{stage}_stage_skipped' not in outputs['fa_statistics']['counters']
     keys = {value.key: value.value for value in outputs['fa_diagnostics'].values}
     assert float(keys['surf_condition_last']) > 0 and float(keys['corner_condition_median']) > 0
+    # The share of sharp points matched: most of them on the campus, so the odometry was never lost.
+    assert measures['corner_match_ratio']['count'] == scans - 1 and measures['corner_match_ratio']['median'] > 0.5
+    assert 0.5 < float(keys['corner_match_ratio_median']) <= 1.0
+    assert 'odometry_lost' not in outputs['fa_statistics']['counters']

@@ -44,7 +44,6 @@ __all__ = ['LaserOdometry', 'OriginalOdometry', 'SweepStartOdometry', 'make_lase
 _F32 = np.float32
 
 
-
 @dataclass
 class OdometryStats:
     surf_iterations: int = 0
@@ -59,6 +58,10 @@ class OdometryStats:
     corner_condition: float = float('nan')
     surf_walls: bool = False       # the stage had too few correspondences of its own and used the walls
     corner_walls: bool = False
+    # Share of the sharp points matched in the corner stage's last association (sweep-start model; NaN: none).
+    corner_match_ratio: float = float('nan')
+    lost: bool = False             # below feature_association.lost_match_ratio (extra['lost_match_ratio']) ...
+    recovered: bool = False        # ... and registering again from standing still matched more
     skipped: str = ''
     extra: dict = field(default_factory=dict)
 
@@ -242,6 +245,22 @@ class SweepStartOdometry(LaserOdometry):
 
     def _register(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints,
                   stats: OdometryStats) -> OdometryStats:
+        """Register from the constant-velocity guess (:meth:`_iterate`). Few sharp points matched at the end:
+        lost (a turn too fast for the lidar alone left the guess, and then each next one, in a wrong minimum,
+        scan after scan into kilometres); register again from standing still and keep the better match."""
+        guess, kept = self.transform_cur.copy(), self._iterate(sharp, flat, wall, stats)
+        if not kept.corner_match_ratio < self.params.feature_association.lost_match_ratio or not guess.any():
+            return kept
+        estimate, self.transform_cur = self.transform_cur, np.zeros(6)
+        retry = self._iterate(sharp, flat, wall, OdometryStats())
+        retry.lost = kept.lost = True
+        retry.extra['lost_match_ratio'] = kept.extra['lost_match_ratio'] = kept.corner_match_ratio
+        retry.recovered = retry.corner_match_ratio > kept.corner_match_ratio
+        self.transform_cur = self.transform_cur if retry.recovered else estimate
+        return retry if retry.recovered else kept
+
+    def _iterate(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints,
+                 stats: OdometryStats) -> OdometryStats:
         """Both stages with full Gauss-Newton steps, in blocks of ``reassociate_every`` iterations.
 
         Each block associates the points anew and fixes their weights (1 in the first block, as the original;
@@ -257,6 +276,8 @@ class SweepStartOdometry(LaserOdometry):
             blocks = -(-fa.max_iterations // fa.reassociate_every)
             for block in range(blocks):
                 residual = self._residual_function(stage, weighted=block > 0)
+                if kind == 'corner':
+                    stats.corner_match_ratio = self._own_matches / max(1, len(stage.points))
                 if residual is None:
                     break
                 before = self.transform_cur.copy()
@@ -290,6 +311,7 @@ class SweepStartOdometry(LaserOdometry):
         """
         fa = self.params.feature_association
         own = self._term(stage.kind, stage.points, stage.last, weighted, self._forward_bound(stage.last, stage.points))
+        self._own_matches = 0 if own is None else own.points
         terms = [] if own is None else [own]
         if stage.walls is not None and (0 if own is None else own.points) < fa.wall_fallback_below:
             # Too few of the stage's own correspondences (the floor of a corridor is hardly seen): without

@@ -148,6 +148,11 @@ class FeatureAssociationParams:
     # integrated as constant velocity. 0: none, as the original.
     wall_feature_num: int = 4
     wall_fallback_below: int = 20
+    # Sweep-start model: when fewer than this share of the sweep's sharp points match a line at the end of the
+    # registration, the odometry is lost; it registers again from standing still and keeps the better match
+    # (0: never). The share is 0.5-1 while the odometry holds (0.49 at worst in the simulated 90 deg/s drive
+    # without IMU) and 0.1-0.4 once a turn too fast for the lidar alone has thrown the guess off.
+    lost_match_ratio: float = 0.3
     suppress_half_window: int = 5         # neighbours marked as picked around a feature
     suppress_column_jump: int = 10        # ... unless the column jumps by more than this
     less_flat_leaf_size: float = 0.2      # voxel leaf of the less-flat cloud [m]

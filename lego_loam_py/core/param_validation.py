@@ -142,6 +142,7 @@ def _validate(p: Params) -> None:
     need(fa.less_flat_leaf_size > 0, 'feature_association.less_flat_leaf_size', 'must be positive')
     need(fa.imu_que_length > 0, 'feature_association.imu_que_length', 'must be positive')
     need(fa.reassociate_every > 0, 'feature_association.reassociate_every', 'must be positive')
+    need(0.0 <= fa.lost_match_ratio <= 1.0, 'feature_association.lost_match_ratio', 'must be within 0..1')
     mo = p.map_optimization
     for name in ('corner_leaf_size', 'surf_leaf_size', 'outlier_leaf_size', 'surrounding_keypose_leaf_size',
                  'global_map_keypose_leaf_size', 'global_map_leaf_size', 'global_map_publish_period'):

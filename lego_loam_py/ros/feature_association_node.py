@@ -202,8 +202,17 @@ class FeatureAssociationNode(LegoLoamNode):
 
     def _report_conditioning(self, stats) -> None:
         """How well the scan held the odometry: each stage's condition (smallest eigenvalue of its normal
-        matrix, in the statistics and on /diagnostics), counters of degenerate scans, of stages that had to
-        use the walls and of stages that could not run, and a throttled warning for the last two."""
+        matrix) and the share of sharp points matched (in the statistics and on /diagnostics), counters of
+        degenerate scans, of stages that had to use the walls, of stages that could not run and of scans
+        where the odometry was lost, and a throttled warning for the last three."""
+        if stats.corner_match_ratio == stats.corner_match_ratio:
+            self.record_value('corner_match_ratio', stats.corner_match_ratio)
+        if stats.lost:
+            self.count('odometry_lost')
+            self.warn('odometry_lost', f'odometry lost (only {stats.extra["lost_match_ratio"]:.0%} of the sharp points '
+                      'matched, a turn too fast for the lidar alone?): ' +
+                      ('registered again from standing still' if stats.recovered else
+                       'standing still matched no better; the estimate is kept'))
         for stage, label in (('surf', 'roll, pitch and height'), ('corner', 'yaw and horizontal position')):
             condition = getattr(stats, f'{stage}_condition')
             if condition == condition:   # NaN: the stage did not run
