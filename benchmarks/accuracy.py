@@ -2,10 +2,13 @@
 
     .venv/bin/python benchmarks/accuracy.py [--scenarios campus forest corridor aggressive] [--configs ...]
                                             [--bags bags/campus_8s ...] [--odometry-only] [--loop-closure]
+                                            [--turn-rate DEG_S] [--duration S]
 
 Scenarios are generated into the cache on first use (lego_loam_py.sim.simulator.cached_scenario). For each
 bag and configuration the offline runner (the same cores as the nodes) is run with and without the IMU and
 evo's metrics are printed: ATE RMSE (SE(3)-aligned), RPE over 10 m, end-point error and drift.
+``--turn-rate`` adds the simulator's whole in-place turns (at 10 s, then every 30 s) peaking at that yaw rate,
+e.g. ``--scenarios corridor --imu off --turn-rate 150 --duration 60``.
 """
 from __future__ import annotations
 
@@ -41,11 +44,14 @@ def main() -> None:
     parser.add_argument('--imu', choices=['both', 'on', 'off'], default='both')
     parser.add_argument('--odometry-only', action='store_true', help='skip mapOptimization')
     parser.add_argument('--loop-closure', action='store_true', help='enable loop closure (mapping runs)')
+    parser.add_argument('--turn-rate', type=float, default=0.0,
+                        help='whole in-place turns peaking at this yaw rate [deg/s] in the scenarios (0: none)')
+    parser.add_argument('--duration', type=float, help='simulated seconds of each scenario (default: a whole lap)')
     args = parser.parse_args()
     bags = [Path(b) for b in args.bags]
     if not bags:
         from lego_loam_py.sim.simulator import cached_scenario
-        bags = [cached_scenario(name) for name in args.scenarios]
+        bags = [cached_scenario(name, duration=args.duration, turn_rate=args.turn_rate) for name in args.scenarios]
     imu_modes = {'both': [False, True], 'on': [True], 'off': [False]}[args.imu]
     print(f'{"bag":<28s} {"config":<22s} {"imu":<4s} {"what":<9s} {"ATE m":>7s} {"RPE %":>7s} {"end m":>7s} '
           f'{"drift %":>8s} {"rot deg":>8s} {"path m":>7s} {"x RT":>6s}')

@@ -28,7 +28,8 @@ from scipy.spatial import cKDTree
 
 from lego_loam_py.sim.scene import (GROUND_ID, Scene, SceneBuilder, Terrain, box_mesh, cylinder_mesh,
                                     ellipsoid_mesh, heightfield_mesh, material_index, transform_mesh)
-from lego_loam_py.sim.trajectory import ClosedPath, InPlaceTurns, Oscillation, PathTrajectory, SpeedProfile, Trajectory
+from lego_loam_py.sim.trajectory import (ClosedPath, InPlaceTurns, Oscillation, PathTrajectory, SpeedProfile,
+                                         Trajectory)
 
 __all__ = ['World', 'SCENARIOS', 'ScenarioInfo', 'build_world', 'scenario_names', 'scenario_rng']
 
