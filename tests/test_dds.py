@@ -129,17 +129,22 @@ def test_a_node_serves_with_either_executor(rclpy_context, processes, executor):
     from lego_loam_py.ros import qos
     from lego_loam_py.ros.conversions import make_header, pose_to_odometry
     from lego_loam_py.ros.conversions import stamp_to_ns
-    from tests.support.ros import publish_in_lockstep
+    from tests.support.ros import Diagnostics, links_matched, publish_in_lockstep
 
     env = dict(os.environ, LEGO_LOAM_PY_EXECUTOR=executor)
     node = rclpy.create_node(f'executor_probe_{executor}', context=rclpy_context)
     fused = {}
-    node.create_subscription(Odometry, '/integrated_to_init',
-                             lambda m: fused.setdefault(stamp_to_ns(m.header.stamp), m), qos.reliable(10))
+    subscription = node.create_subscription(Odometry, '/integrated_to_init',
+                                            lambda m: fused.setdefault(stamp_to_ns(m.header.stamp), m),
+                                            qos.reliable(10))
     odometry = node.create_publisher(Odometry, '/laser_odom_to_init', qos.reliable(10))
+    diagnostics = Diagnostics(node)
     fusion = processes.start([VENV_BIN / 'transformFusion'], env=env)
-    assert spin_until(rclpy_context, node, lambda: odometry.get_subscription_count() > 0 and
-                      node.count_publishers('/integrated_to_init') > 0 or fusion.poll() is not None, 30)
+    # Both links matched at both ends before the first message: transformFusion drops a resent stamp as not
+    # newer, so a first fused pose sent before its writer knew this reader would never come again.
+    links = [(odometry, '/laser_odom_to_init', ['transformFusion']),
+             ('transformFusion', '/integrated_to_init', [subscription])]
+    assert spin_until(rclpy_context, node, lambda: links_matched(diagnostics, links) or fusion.poll() is not None, 60)
     assert fusion.poll() is None, fusion.communicate()[1]
     items = []
     for k in range(3):
