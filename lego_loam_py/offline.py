@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lego_loam_py.allocator import keep_heap_pages
 from lego_loam_py.bag.io import BagError, BagReader, cloud_msg_to_array
 from lego_loam_py.core.imu import imu_sample
 from lego_loam_py.core.params import Params, load_params, parse_overrides
@@ -127,6 +128,7 @@ def _positive_int(text: str) -> int:
 
 
 def main(args: argparse.Namespace) -> int:
+    keep_heap_pages()   # as the nodes do (see lego_loam_py.allocator)
     params = load_params(args.params_file, parse_overrides(args.param))
     out = Path(args.output or Path('output') / Path(args.bag).resolve().name)
     result = run_bag(args.bag, params, imu_topic='' if args.no_imu else None, max_scans=args.max_scans,

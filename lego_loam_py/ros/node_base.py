@@ -14,6 +14,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
+from lego_loam_py.allocator import release_memory
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.core.imu import imu_sample
@@ -31,21 +32,6 @@ LARGE_MESSAGE_BYTES = 8 << 20
 
 # rclpy's own endpoints of every node, left out of the matched counts on /diagnostics.
 _HOUSEKEEPING_TOPICS = frozenset(('/parameter_events', '/rosout', '/diagnostics'))
-
-
-def release_memory() -> None:
-    """Give the memory freed by a huge rejected message back to the operating system (glibc's malloc_trim;
-    a no-op where it does not exist)."""
-    import ctypes
-    import ctypes.util
-    import gc
-
-    gc.collect()
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6')
-        libc.malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
 
 
 _NUMBERS = re.compile(r'[0-9]+')

@@ -18,6 +18,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
+from lego_loam_py.allocator import keep_heap_pages
 from lego_loam_py.errors import LegoLoamError, UsageError
 
 __all__ = ['run_node', 'teardown_guard', 'finish_within', 'stuck_teardowns']
@@ -125,6 +126,7 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
 
     Returns the process exit code: 0 after a normal shutdown, 2 for invalid parameters.
     """
+    keep_heap_pages()   # freed scan-sized blocks stay in the heap instead of being faulted in again each scan
     rclpy.init(args=list(sys.argv if args is None else args), signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
