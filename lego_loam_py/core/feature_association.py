@@ -202,7 +202,8 @@ class FeatureAssociation:
 
     def _finish(self, scan: ScanInput, features, corner_last, surf_last, outlier_last, initialized, imu_used,
                 stats, timings) -> FeatureAssociationResult:
-        """Publication decision (every skip_frame_num + 1 scans after the first) and the result."""
+        """Publication decision (every skip_frame_num + 1 scans after the first) and the result; ``outlier_last``
+        may be a function making it, called only for a scan that is published (only mapOptimization uses it)."""
         fa = self.params.feature_association
         if initialized:
             return FeatureAssociationResult(scan.stamp_ns, features, self.transform_sum.copy(), corner_last,
@@ -211,6 +212,8 @@ class FeatureAssociation:
         publish = self.frame_count >= fa.skip_frame_num + 1
         if publish:
             self.frame_count = 0
+        if publish and callable(outlier_last):
+            outlier_last = outlier_last()
         return FeatureAssociationResult(scan.stamp_ns, features, self.transform_sum.copy(),
                                         corner_last if publish else None, surf_last if publish else None,
                                         outlier_last if publish else None, False, imu_used, stats, timings)
@@ -282,9 +285,10 @@ class FeatureAssociation:
         surf_last = self._deskew_to_start(features.less_flat, None, motion, attitude, points)
         odometry.set_last(corner_last, surf_last)
         self._previous_attitude = attitude
-        outlier = self._outlier_at_start(scan, motion, attitude)
-        timings['total'] = (time.perf_counter() - t0) * 1e3
-        return self._finish(scan, features, corner_last, surf_last, outlier, False, use_imu, stats, timings)
+        result = self._finish(scan, features, corner_last, surf_last,
+                              lambda: self._outlier_at_start(scan, motion, attitude), False, use_imu, stats, timings)
+        result.timings_ms['total'] = (time.perf_counter() - t0) * 1e3
+        return result
 
     def _registration_input(self, cloud: np.ndarray, index: np.ndarray, to_reference: np.ndarray | None,
                             attitude: SweepAttitude | None) -> np.ndarray:
