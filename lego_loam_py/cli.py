@@ -50,6 +50,12 @@ COMMANDS = [
      'recorder, then print a summary (scans in and processed per node, drops, trajectory length, accuracy against the '
      'ground truth beside the bag, ms per scan per node) and write the trajectory (TUM), the map (PCD), a PNG and '
      'summary.json.'),
+    ('batch', 'lego_loam_py.batch.cli', 'many recordings x parameter sets through the offline pipeline, on Dask',
+     'Run every recording x parameter set (a grid from -p NAME:=V1,V2 and repeated --params-file; x IMU on/off) '
+     'through the offline pipeline, each run in its own worker process of a Dask cluster (local on 127.0.0.1 by '
+     'default, or --scheduler). Every run gets a directory (trajectory, map, summary, parameters, code version, '
+     'command, log); running again resumes: finished runs are kept, failed ones retried. Writes report.md, '
+     'report.csv and plots.'),
     ('eval', 'lego_loam_py.evaluation', 'accuracy of a trajectory against ground truth (ATE, RPE, drift) with evo',
      'Compare an estimated TUM trajectory with a ground truth (a TUM file, or the ground_truth.tum beside a '
      'bag): ATE after SE(3) alignment, RPE over segments, end-point error and drift; optional plot.'),
