@@ -97,8 +97,9 @@ def format_summary(summary: OfflineSummary) -> str:
     """The report of ``lego_loam_py run``, as printed at the end of a run."""
     lines = [f"bag: {summary.bag}"]
     c = summary.counts   # (a counter the run never touched is 0)
+    degenerate = f" ({c['mapping_degenerate']} degenerate)" if c.get('mapping_degenerate') else ''
     lines.append(f"scans in {c.get('scans_in', 0)}, processed {c.get('scans_processed', 0)}, dropped "
-                 f"{c.get('scans_dropped', 0)}; mapping steps {c.get('mapping_steps', 0)}, keyframes "
+                 f"{c.get('scans_dropped', 0)}; mapping steps {c.get('mapping_steps', 0)}{degenerate}, keyframes "
                  f"{c.get('keyframes', 0)}, IMU used on {c.get('scans_with_imu', 0)} scans")
     for name, t in summary.timings_ms.items():
         lines.append(f"  {name:<20s} median {t.median:7.1f} ms   p95 {t.p95:7.1f} ms   (n={t.count})")

@@ -71,6 +71,9 @@ class MappingStep:
     correspondences: int = 0
     iterations: int = 0
     degenerate: bool = False
+    # Smallest eigenvalue of the registration's normal matrix: how many full-weight correspondences held its
+    # worst direction (see core.scan_to_map); NaN without a registration.
+    condition: float = float('nan')
     optimised: bool = False
     corner_map_points: int = 0
     surf_map_points: int = 0
@@ -278,7 +281,7 @@ class MapOptimization:
         if step is not None:
             step.optimised = True
             step.iterations, step.correspondences = counts.iterations, counts.correspondences
-            step.degenerate = counts.degenerate
+            step.degenerate, step.condition = counts.degenerate, counts.condition
         return pose
 
     def _transform_update(self, stamp_ns: int) -> None:

@@ -297,6 +297,8 @@ class _BackEnd:
                 if step is not None:
                     result.time('mapOptimization', ms)
                     result.count('mapping_steps')
+                    if step.degenerate:   # (a direction held at the prediction, see core.scan_to_map)
+                        result.count('mapping_degenerate')
                     aft, bef = pose6_to_matrix(step.transform_aft), pose6_to_matrix(step.transform_bef)
                     self.fusion.on_mapped(aft, bef)
                     result.mapped_stamps.append(event.stamp_ns)

@@ -2,9 +2,15 @@
 
 For each downsampled corner point, the 5 nearest map corners must span a line (largest eigenvalue > 3 × the
 middle one); for each surface point, the 5 nearest map surface points must fit a plane within 0.2 m. Up to 10
-full Gauss-Newton steps with the original's weights, degeneracy projection (eigenvalues < 100 on the first
-iteration, :class:`~lego_loam_py.core.gauss_newton.DegeneracyProjection`) and convergence test (0.05 deg,
-0.05 cm). Poses are world-convention six-vectors in camera axes (:mod:`lego_loam_py.core.frames`).
+full Gauss-Newton steps with the original's weights, degeneracy projection (eigenvalues of the first
+iteration's normal matrix below ``degeneracy_threshold``,
+:class:`~lego_loam_py.core.gauss_newton.DegeneracyProjection`) and convergence test (0.05 deg, 0.05 cm). Poses
+are world-convention six-vectors in camera axes (:mod:`lego_loam_py.core.frames`).
+
+The rows of the normal matrix are weight × (unit normal or unit line gradient, its moment about the sensor),
+so an eigenvalue is the number of full-weight correspondences that hold that direction, a rotation counting
+as the displacement it gives 1 m from the sensor: the smallest one (the step's *condition*) says how well the
+worst direction was held.
 """
 from __future__ import annotations
 
@@ -24,8 +30,6 @@ __all__ = ['map_jacobian_rows', 'edge_correspondences', 'plane_correspondences',
            'RegistrationCounts']
 
 _F32 = np.float32
-
-
 
 
 def map_jacobian_rows(points: np.ndarray, coeff: np.ndarray, pose6: np.ndarray) -> np.ndarray:
@@ -94,6 +98,9 @@ class RegistrationCounts:
     iterations: int = 0
     correspondences: int = 0     # point-to-line and point-to-plane pairs of the last iteration
     degenerate: bool = False     # a direction was projected out (found on the first iteration)
+    # Smallest eigenvalue of the first iteration's normal matrix [full-weight correspondences], NaN when too
+    # few correspondences were found to register.
+    condition: float = float('nan')
 
 
 def register_scan_to_map(corner_map: np.ndarray, surf_map: np.ndarray, corner_ds: np.ndarray, surf_ds: np.ndarray,
@@ -124,6 +131,7 @@ def register_scan_to_map(corner_map: np.ndarray, surf_map: np.ndarray, corner_ds
         a = map_jacobian_rows(points, coeff, pose)
         x = degeneracy.step(a, -coeff[:, 3], iteration == 0, mo.degeneracy_threshold)
         counts.degenerate = degeneracy.degenerate
+        counts.condition = degeneracy.smallest_eigenvalue
         if not np.isfinite(x).all():
             break
         pose = pose + x

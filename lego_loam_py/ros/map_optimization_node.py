@@ -232,9 +232,22 @@ class MapOptimizationNode(LegoLoamNode):
         self.count('steps')
         if step.keyframe_added:
             self.count('keyframes')
+        self._report_conditioning(step)
         self._publish(step, odometry.header.stamp)
         self.output_published()
         self.record_time('step', time.perf_counter() - start)
+
+    def _report_conditioning(self, step) -> None:
+        """How well the step held the map pose: its condition (smallest eigenvalue of the registration's normal
+        matrix, in full-weight correspondences) in the statistics and on /diagnostics, a counter of degenerate
+        steps and a throttled warning for them."""
+        if step.condition == step.condition:   # NaN: no registration (no map yet, too few correspondences)
+            self.record_value('condition', step.condition)
+        if step.degenerate:
+            self.count('degenerate')
+            self.warn('degenerate', 'scan-to-map: a direction is held by fewer than '
+                      f'{self.params.map_optimization.degeneracy_threshold:g} correspondences (degenerate '
+                      'surroundings, e.g. a featureless tunnel); the odometry is kept along it')
 
     def _heal(self, problem: str) -> None:
         """The mapping state is poisoned: reset what is, keep the map and the trajectory."""
