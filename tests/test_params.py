@@ -52,10 +52,12 @@ def test_deliberate_deviations_and_the_file_that_restores_the_original():
             default.feature_association.odometry_model, default.feature_association.step_scale) == \
         ('refined', 'azimuth', 'sweep_start', 1.0)
     assert default.feature_association.imu_rotation_prior > 0
+    assert default.map_optimization.degeneracy_threshold == 10.0
     original = load_params(default_params_file().parent / 'original.yaml')
     assert (original.image_projection.ground_rule, original.feature_association.relative_time_source,
             original.feature_association.odometry_model, original.feature_association.step_scale,
             original.feature_association.imu_rotation_prior) == ('original', 'original', 'original', 0.05, 0.0)
+    assert original.map_optimization.degeneracy_threshold == 100.0
 
 
 def test_config_file_equals_the_defaults():

@@ -203,7 +203,12 @@ class MapOptimizationParams:
     min_correspondences: int = 50
     min_corner_map_points: int = 10         # map must have more than this
     min_surf_map_points: int = 100
-    degeneracy_threshold: float = 100.0
+    # Scan-to-map degeneracy: a direction of the normal matrix A^T A whose eigenvalue is below this is held at
+    # the prediction. The eigenvalue counts full-weight correspondences along the direction (plane normals and
+    # line gradients are unit vectors; a rotation counts as the displacement it gives 1 m from the sensor). The
+    # original's 100 flagged the height in corridors, which 50-200 floor and ceiling matches hold to a few mm,
+    # and kept the odometry's height and roll error there (config/original.yaml sets it back).
+    degeneracy_threshold: float = 10.0
     convergence_rotation: float = 0.05      # [deg]
     convergence_translation: float = 0.05   # [cm]
     imu_blend_weight: float = 0.002         # roll/pitch <- (1 - w) * estimate + w * IMU
