@@ -9,6 +9,10 @@ Metrics (all on trajectories in REP-103 axes, associated by timestamp):
 * **end-point error** and **drift**: distance between the estimated and true last pose, with both
   trajectories expressed relative to their first pose (no alignment), and that distance over the path
   length [%]; for loops this is also the "return to start" error of the LeGO-LOAM paper (Table V).
+
+:func:`error_over_time` gives the error of every pose as it happens (both trajectories relative to their first
+pose, no alignment): the position error in the true heading's frame (along, left, up), the attitude error as a
+tilt and a heading error, beside the true yaw rate, to tell where a run goes wrong (a turn, a straight part).
 """
 from __future__ import annotations
 
@@ -20,7 +24,8 @@ import numpy as np
 
 from lego_loam_py.errors import LegoLoamError, UsageError
 
-__all__ = ['TrajectoryMetrics', 'evaluate', 'path_length', 'plot_trajectories', 'relative_to_first']
+__all__ = ['TrajectoryMetrics', 'ErrorOverTime', 'evaluate', 'error_over_time', 'path_length', 'plot_trajectories',
+           'relative_to_first']
 
 
 @dataclass
@@ -115,6 +120,67 @@ def evaluate(ground_truth: tuple[np.ndarray, np.ndarray], estimate: tuple[np.nda
         rpe_percent=rpe_percent, rpe_delta_m=float(delta), rpe_rmse_m=rpe_rmse, end_point_error_m=end_error,
         drift_percent=float(end_error / length * 100.0) if length > 0 else float('nan'),
         rotation_end_error_deg=rotation_end_deg)
+
+
+@dataclass
+class ErrorOverTime:
+    """The error of each matched pose of an estimate (see :func:`error_over_time`); arrays of one length."""
+
+    time_s: np.ndarray          # since the first matched pose [s]
+    position_m: np.ndarray      # (n, 3) estimated minus true position, world axes (z up) [m]
+    rotation_deg: np.ndarray    # (n, 3) rotation vector of R_est R_true^T, world axes [deg]
+    heading_rad: np.ndarray     # the true heading (of the x axis, seen from above) [rad]
+    yaw_rate_deg_s: np.ndarray  # the true yaw rate [deg/s]
+
+    @property
+    def along_m(self) -> np.ndarray:
+        """Position error along the true heading [m]."""
+        return np.cos(self.heading_rad) * self.position_m[:, 0] + np.sin(self.heading_rad) * self.position_m[:, 1]
+
+    @property
+    def left_m(self) -> np.ndarray:
+        """Position error to the left of the true heading [m]."""
+        return -np.sin(self.heading_rad) * self.position_m[:, 0] + np.cos(self.heading_rad) * self.position_m[:, 1]
+
+    @property
+    def up_m(self) -> np.ndarray:
+        return self.position_m[:, 2]
+
+    @property
+    def tilt_deg(self) -> np.ndarray:
+        """Roll/pitch part of the attitude error, whatever the heading [deg]."""
+        return np.linalg.norm(self.rotation_deg[:, :2], axis=1)
+
+    @property
+    def heading_deg(self) -> np.ndarray:
+        """Heading error (about the vertical, anticlockwise) [deg]."""
+        return self.rotation_deg[:, 2]
+
+
+def error_over_time(ground_truth: tuple[np.ndarray, np.ndarray], estimate: tuple[np.ndarray, np.ndarray],
+                    max_time_diff: float = 0.01) -> ErrorOverTime:
+    """Error of every pose of ``estimate`` = (stamps [ns], (N, 4, 4) poses, REP-103 axes) that has a
+    ground-truth pose within ``max_time_diff`` [s], both relative to their first matched pose (no alignment:
+    the error as it builds up), in the world (z up): positions, and the attitude error ``R_est R_true^T`` as a
+    rotation vector."""
+    from scipy.spatial.transform import Rotation
+
+    truth_stamps, truth_poses = (np.asarray(a) for a in ground_truth)
+    stamps, poses = (np.asarray(a) for a in estimate)
+    index = np.clip(np.searchsorted(truth_stamps, stamps), 1, max(len(truth_stamps) - 1, 1))
+    nearest = np.where(np.abs(truth_stamps[index - 1] - stamps) <= np.abs(truth_stamps[index] - stamps),
+                       index - 1, index)
+    matched = np.abs(truth_stamps[nearest] - stamps) <= max_time_diff * 1e9
+    if matched.sum() < 2:
+        raise ValueError(f'only {int(matched.sum())} poses of the estimate match the ground truth in time')
+    truth = relative_to_first(truth_poses[nearest[matched]])
+    ours = relative_to_first(poses[matched])
+    time_s = (stamps[matched] - stamps[matched][0]) * 1e-9
+    heading = np.arctan2(truth[:, 1, 0], truth[:, 0, 0])
+    attitude = np.einsum('nij,nkj->nik', ours[:, :3, :3], truth[:, :3, :3])
+    return ErrorOverTime(time_s=time_s, position_m=ours[:, :3, 3] - truth[:, :3, 3],
+                         rotation_deg=np.degrees(Rotation.from_matrix(attitude).as_rotvec()), heading_rad=heading,
+                         yaw_rate_deg_s=np.degrees(np.gradient(np.unwrap(heading), time_s)))
 
 
 def plot_trajectories(path: str | Path, trajectories: dict[str, np.ndarray], map_points: np.ndarray | None = None,
