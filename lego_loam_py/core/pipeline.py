@@ -24,11 +24,13 @@ from typing import Callable
 import numpy as np
 
 from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
-from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix
+from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix, transform_cloud
 from lego_loam_py.core.image_projection import ImageProjection, InputError, prepare_input
 from lego_loam_py.core.map_optimization import MapOptimization
 from lego_loam_py.core.odometry_continuity import OdometryContinuity
 from lego_loam_py.core.param_types import Params
+from lego_loam_py.core.pipeline_events import (LoopChecked, MapStepped, PipelineListener, ScanFused,
+                                               ScanProcessed)
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.core.transform_fusion import TransformFusion
 
@@ -92,10 +94,11 @@ def _to_stderr(text: str) -> None:
 
 class Pipeline:
     """The four cores on one scan at a time (see the module docstring). ``mapping=False``: odometry and
-    fusion only. ``warn`` receives a line for each scan or step dropped or repaired (default: stderr)."""
+    fusion only. ``warn`` receives a line for each scan or step dropped or repaired (default: stderr).
+    ``listener`` receives the run's events (core.pipeline_events) as they happen; without one none is made."""
 
     def __init__(self, params: Params, *, mapping: bool = True, mapping_thread: bool = False,
-                 warn: Callable[[str], None] | None = None):
+                 warn: Callable[[str], None] | None = None, listener: PipelineListener | None = None):
         self.params = params
         self.ip, self.fa = ImageProjection(params), FeatureAssociation(params)
         self.mo = MapOptimization(params)
@@ -104,8 +107,9 @@ class Pipeline:
         self.record = RunResult(mapper=self.mo if mapping else None)
         self.record.pose_time_offset_ns = pose_time_offset_ns(params)
         self._warn = warn or _to_stderr
+        self._listener = listener
         self._back_end = _BackEnd(self.mo if mapping else None, self.fusion, self.record, self._warn,
-                                  threaded=mapping and mapping_thread)
+                                  threaded=mapping and mapping_thread, listener=listener)
         self._next_loop_check: int | None = None
 
     def add_imu(self, sample: tuple) -> None:
@@ -168,7 +172,8 @@ class Pipeline:
         t1 = time.perf_counter()
         record.time('imageProjection', (t1 - t0) * 1e3)
         features = self.fa.process(ScanInput.from_segmentation(stamp, segmentation))
-        record.time('featureAssociation', (time.perf_counter() - t1) * 1e3)
+        t2 = time.perf_counter()
+        record.time('featureAssociation', (t2 - t1) * 1e3)
         problem = self.fa.health_problem()
         if problem is not None:   # the same self-check as the node's: start the odometry again, keep the pose
             self.fa.restart()
@@ -179,10 +184,14 @@ class Pipeline:
         record.count('scans_processed')
         if features.imu_used:
             record.count('scans_with_imu')
+        if self._listener is not None:   # (before the fusion, whose event follows)
+            self._listener(ScanProcessed(stamp, segmentation, features, None if features.initialized else
+                                         features.pose, {'imageProjection': (t1 - t0) * 1e3,
+                                                         'featureAssociation': (t2 - t1) * 1e3}))
         if not features.initialized:
             record.stamps.append(stamp)
             record.odometry.append(features.pose)
-            self._back_end.fuse(features.pose)
+            self._back_end.fuse(stamp, features.pose)
         if features.corner_last is not None and features.outlier_last is not None:
             self._back_end.map(stamp, features.transform_sum, features.corner_last, features.surf_last,
                                features.outlier_last)
@@ -193,12 +202,14 @@ class Pipeline:
 class _Fuse:
     """transformFusion integrates a scan's odometry (4x4, camera_init)."""
 
+    stamp_ns: int
     odometry: np.ndarray
 
 
 @dataclass(frozen=True)
 class _Mapped:
-    """A mapping step of the scan stamped ``stamp_ns``; the future gives (MappingStep or None, CPU ms)."""
+    """A mapping step of the scan stamped ``stamp_ns``; the future gives (MappingStep or None, CPU ms, what a
+    listener gets besides: (new keyframe's cloud or None, keyframe positions), or None without a listener)."""
 
     stamp_ns: int
     future: Future
@@ -206,7 +217,7 @@ class _Mapped:
 
 @dataclass(frozen=True)
 class _LoopChecked:
-    """A loop-closure check; the future gives (LoopResult or None, wall ms)."""
+    """A loop-closure check; the future gives (LoopResult or None, wall ms, keyframe positions for a listener)."""
 
     future: Future
 
@@ -221,8 +232,9 @@ class _BackEnd:
     """
 
     def __init__(self, mo: MapOptimization | None, fusion: TransformFusion, result: RunResult,
-                 warn: Callable[[str], None], threaded: bool):
+                 warn: Callable[[str], None], threaded: bool, listener: PipelineListener | None = None):
         self.mo, self.fusion, self.result, self.warn = mo, fusion, result, warn
+        self.listener = listener
         self.continuity = OdometryContinuity()   # (used on the mapping worker only)
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix='mapping') if threaded else None
         self._imu: list[tuple] = []
@@ -246,8 +258,8 @@ class _BackEnd:
         if self.mo is not None:
             self._imu.append(sample)
 
-    def fuse(self, odometry: np.ndarray) -> None:
-        self._events.append(_Fuse(odometry))
+    def fuse(self, stamp_ns: int, odometry: np.ndarray) -> None:
+        self._events.append(_Fuse(stamp_ns, odometry))
         self.drain()
 
     def map(self, stamp: int, *inputs) -> None:
@@ -269,7 +281,10 @@ class _BackEnd:
             if problem is not None:   # the same self-check as the node's: reset what is poisoned, keep the map
                 self.warn(f'mapping step at {stamp * 1e-9:.3f} s: {problem}: {self.mo.heal()}')
                 mapped = None
-            return mapped, (time.thread_time() - t) * 1e3
+            cpu_ms = (time.thread_time() - t) * 1e3
+            # (Read here, on the worker, where the keyframes cannot change meanwhile.)
+            seen = self._keyframes_seen(mapped is not None and mapped.keyframe_added) if self.listener else None
+            return mapped, cpu_ms, seen
 
         self._events.append(_Mapped(stamp, self._submit(step)))
 
@@ -278,7 +293,8 @@ class _BackEnd:
             t = time.perf_counter()
             candidate = self.mo.detect_loop()
             loop = self.mo.close_loop(candidate) if candidate is not None else None
-            return loop, (time.perf_counter() - t) * 1e3
+            wall_ms = (time.perf_counter() - t) * 1e3
+            return loop, wall_ms, self._keyframes_seen(False)[1] if self.listener else None
 
         self._events.append(_LoopChecked(self._submit(close)))
 
@@ -292,8 +308,10 @@ class _BackEnd:
             self._events.popleft()
             if isinstance(event, _Fuse):
                 result.integrated.append(self.fusion.integrate(event.odometry))
+                if self.listener is not None:
+                    self.listener(ScanFused(event.stamp_ns, result.integrated[-1]))
             elif isinstance(event, _Mapped):
-                step, ms = event.future.result()
+                step, ms, seen = event.future.result()
                 if step is not None:
                     result.time('mapOptimization', ms)
                     result.count('mapping_steps')
@@ -303,11 +321,26 @@ class _BackEnd:
                     self.fusion.on_mapped(aft, bef)
                     result.mapped_stamps.append(event.stamp_ns)
                     result.mapped.append(aft)
+                    if self.listener is not None:
+                        self.listener(MapStepped(event.stamp_ns, step, aft, *seen, cpu_ms=ms))
             else:
-                loop, ms = event.future.result()
+                loop, ms, positions = event.future.result()
                 if loop is not None:
                     result.count('loops_closed' if loop.accepted else 'loops_rejected')
                 result.time('loop_closure', ms)
+                if self.listener is not None:
+                    self.listener(LoopChecked(loop, positions, ms))
+
+    def _keyframes_seen(self, new_keyframe: bool) -> tuple[np.ndarray | None, np.ndarray]:
+        """(the newest keyframe's corner, surface and outlier clouds in camera_init when ``new_keyframe``, else
+        None; (K, 3) positions of every keyframe in camera_init), for a listener."""
+        poses = self.mo.keyframe_poses()
+        cloud = None
+        if new_keyframe and self.mo.keyframes:
+            keyframe = self.mo.keyframes[-1]
+            cloud = transform_cloud(np.concatenate([keyframe.corner, keyframe.surf, keyframe.outlier]),
+                                    keyframe.pose6)
+        return cloud, poses[:, 3:6].copy()
 
     def close(self) -> None:
         if self._executor is not None:
