@@ -1,15 +1,17 @@
-"""``lego_loam_py run BAG``: the four nodes' cores in one process, without DDS, as fast as the machine goes.
+"""``lego_loam_py run PATH``: the four nodes' cores in one process, without DDS, as fast as the machine goes.
 
-Messages are taken in recording order, as a replay delivers them: IMU samples go to featureAssociation and
+The recording is any :class:`lego_loam_py.inputs.Source`: a ROS bag, a KITTI sequence, a folder of scans or a
+pcap, its kind guessed from the path (``--dataloader`` forces it). Messages are taken in recording order, as a replay delivers them: IMU samples go to featureAssociation and
 mapOptimization, each cloud goes through imageProjection -> featureAssociation -> transformFusion, and the
 'last' clouds to mapOptimization, whose result corrects the fused poses of the following scans (in the
 running system /aft_mapped_to_init of a scan arrives after that scan's /integrated_to_init). Loop closure,
 when enabled, runs every ``loop_closure.period`` seconds of bag time. The outputs are those of the demo:
-trajectories (TUM, REP-103 and camera_init axes), maps (PCD), a PNG and a summary with the accuracy against
-the ground truth found beside the bag.
+trajectories (TUM, REP-103 and camera_init axes; ``--format kitti`` adds KITTI's), maps (PCD), a PNG and a
+summary with the accuracy against the recording's ground truth (beside a simulated bag, a KITTI poses.txt).
+``--viewer`` / ``--viewer-save`` show the run in Rerun (:mod:`lego_loam_py.viewer`).
 
-The pipeline is :class:`lego_loam_py.core.pipeline.Pipeline`, the one-scan call, in a loop over the bag.
-mapOptimization runs on its worker thread beside imageProjection and featureAssociation (see :func:`run_bag`);
+The pipeline is :class:`lego_loam_py.core.pipeline.Pipeline`, the one-scan call, in a loop over the recording.
+mapOptimization runs on its worker thread beside imageProjection and featureAssociation (see :func:`run_source`);
 the result is identical to a sequential run, and its ms per mapping step are the worker's CPU time.
 """
 from __future__ import annotations
@@ -22,71 +24,72 @@ from pathlib import Path
 import numpy as np
 
 from lego_loam_py.allocator import keep_heap_pages
-from lego_loam_py.bag.io import BagError, BagReader, cloud_msg_to_array
-from lego_loam_py.core.imu import imu_sample
-from lego_loam_py.core.params import Params, load_params, parse_overrides
+from lego_loam_py.core.params import Params, SensorParams, load_params, parse_overrides
 from lego_loam_py.core.pipeline import Pipeline, RunResult
-from lego_loam_py.core.pointcloud import CloudLayoutError
-from lego_loam_py.outputs import result_lines, write_outputs
+from lego_loam_py.core.pipeline_events import PipelineListener
+from lego_loam_py.inputs import SOURCE_KINDS, ImuSample, Scan, Source, open_source
+from lego_loam_py.outputs import TRAJECTORY_FORMATS, result_lines, write_outputs
 from lego_loam_py.results import OfflineSummary, TimingStats
 
-__all__ = ['RunResult', 'run_bag', 'format_summary', 'add_arguments', 'main']
+__all__ = ['RunResult', 'run_bag', 'run_source', 'format_summary', 'add_arguments', 'main']
 
 
 def run_bag(bag: str | Path, params: Params, *, cloud_topic: str | None = None, imu_topic: str | None = None,
             max_scans: int | None = None, progress: bool = True, mapping: bool = True,
-            mapping_thread: bool = True) -> RunResult:
-    """Run the pipeline over a bag and return what it produced (``mapping=False``: odometry only).
+            mapping_thread: bool = True, listener: PipelineListener | None = None) -> RunResult:
+    """Run the pipeline over a bag and return what it produced (``mapping=False``: odometry only); the topics
+    default to the parameters' (``imu_topic=''``: no IMU). See :func:`run_source`."""
+    cloud_topic = cloud_topic or params.sensor.point_cloud_topic
+    imu_topic = params.sensor.imu_topic if imu_topic is None else imu_topic
+    with open_source(bag, 'rosbag', cloud_topic=cloud_topic, imu_topic=imu_topic) as source:
+        return run_source(source, params, max_scans=max_scans, progress=progress, mapping=mapping,
+                          mapping_thread=mapping_thread, listener=listener)
+
+
+def run_source(source: Source, params: Params, *, max_scans: int | None = None, progress: bool = True,
+               mapping: bool = True, mapping_thread: bool = True,
+               listener: PipelineListener | None = None) -> RunResult:
+    """Run the pipeline over a recording (any :class:`~lego_loam_py.inputs.Source`) and return what it produced.
 
     ``mapping_thread``: mapOptimization runs on a worker thread, overlapping the next scans' imageProjection
     and featureAssociation (it spends most of its time in numpy and scipy, which release the GIL). The result
     is the same as without it: the worker takes the mapping inputs and IMU samples in recording order, and
     transformFusion applies each mapping result before the scans that follow it, as the sequential run does.
+    ``listener`` receives the pipeline's events (a viewer, see core.pipeline_events).
     """
-    cloud_topic = cloud_topic or params.sensor.point_cloud_topic
-    imu_topic = params.sensor.imu_topic if imu_topic is None else imu_topic
-    pipeline = Pipeline(params, mapping=mapping, mapping_thread=mapping_thread)
+    pipeline = Pipeline(params, mapping=mapping, mapping_thread=mapping_thread, listener=listener)
     result = pipeline.record
     start = time.perf_counter()
     try:
-        with BagReader(bag) as reader:
-            topics = reader.topics()
-            if cloud_topic not in topics:
-                raise BagError(f'{bag}: no {cloud_topic} topic (topics: {", ".join(sorted(topics)) or "none"})')
-            wanted = [cloud_topic] + ([imu_topic] if imu_topic and imu_topic in topics else [])
-            total = reader.topic_counts().get(cloud_topic, 0)
-            result.bag_duration = reader.duration
-            bar = None
-            if progress:
-                from tqdm import tqdm
-                bar = tqdm(total=min(total, max_scans or total), unit='scan', desc='run', file=sys.stderr,
-                           dynamic_ncols=True, mininterval=0.5)
-            first_ns = None
-            try:
-                for message in reader.messages(topics=wanted):
-                    if message.topic == cloud_topic and max_scans is not None and \
-                            result.counts.get('scans_in', 0) >= max_scans:
-                        # The data processed ends here: the real-time factor is about that part of the bag.
-                        result.bag_duration = (message.timestamp - first_ns) * 1e-9 if first_ns is not None else 0.0
-                        break
-                    first_ns = message.timestamp if first_ns is None else first_ns
-                    msg = reader.deserialize(message)
-                    stamp = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
-                    if message.topic != cloud_topic:
-                        pipeline.add_imu(imu_sample(msg))
-                        continue
-                    try:
-                        points = cloud_msg_to_array(msg)
-                    except CloudLayoutError as exc:
-                        pipeline.skip_scan(stamp, str(exc))
-                    else:
-                        pipeline.process_scan(points, stamp)
-                    if bar is not None:
-                        bar.update(1)
-            finally:
+        result.bag_duration = source.duration_s
+        bar = None
+        if progress:
+            from tqdm import tqdm
+            total = source.scan_count()
+            bar = tqdm(total=None if total is None else min(total, max_scans or total), unit='scan', desc='run',
+                       file=sys.stderr, dynamic_ncols=True, mininterval=0.5)
+        first_ns = None
+        try:
+            for item in source.items():
+                is_scan = not isinstance(item, ImuSample)
+                if is_scan and max_scans is not None and result.counts.get('scans_in', 0) >= max_scans:
+                    # The data processed ends here: the real-time factor is about that part of the recording.
+                    result.bag_duration = (item.received_ns - first_ns) * 1e-9 if first_ns is not None else 0.0
+                    break
+                first_ns = item.received_ns if first_ns is None else first_ns
+                if not is_scan:
+                    pipeline.add_imu(item.sample)
+                    continue
+                if isinstance(item, Scan):
+                    pipeline.process_scan(item.points, item.stamp_ns)
+                else:   # UnreadableScan
+                    pipeline.skip_scan(item.stamp_ns, item.reason)
                 if bar is not None:
-                    bar.close()
-            pipeline.finish()
+                    bar.update(1)
+        finally:
+            if bar is not None:
+                bar.close()
+        pipeline.finish()
     finally:
         pipeline.close()
     result.wall_time = time.perf_counter() - start
@@ -112,13 +115,32 @@ def format_summary(summary: OfflineSummary) -> str:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from lego_loam_py.cli import add_parameter_arguments
 
-    parser.add_argument('bag', help='ROS 1 .bag or ROS 2 bag directory with PointCloud2 (and optionally Imu)')
-    parser.add_argument('-o', '--output', default=None, help='output directory (default: output/<bag name>)')
+    parser.add_argument('bag', metavar='PATH', help='a recording: ROS 1 .bag or ROS 2 bag (PointCloud2, optionally Imu), '
+                        'KITTI odometry sequence folder, folder of .pcd/.ply/.bin scans, or Velodyne/Ouster pcap')
+    parser.add_argument('-o', '--output', default=None, help='output directory (default: output/<recording name>)')
     add_parameter_arguments(parser, 'ROS 2 parameter file (default: built-in defaults)',
                             'loop_closure.loop_closure_enable_flag:=true')
-    parser.add_argument('--no-imu', action='store_true', help='ignore the IMU topic')
+    parser.add_argument('--no-imu', action='store_true', help='ignore the IMU')
     parser.add_argument('--max-scans', type=_positive_int, default=None, help='stop after this many scans')
     parser.add_argument('--no-progress', action='store_true', help='no progress bar')
+    inputs = parser.add_argument_group('recordings other than bags')
+    inputs.add_argument('--dataloader', choices=SOURCE_KINDS, default=None,
+                        help='the kind of recording (default: guessed from the path)')
+    inputs.add_argument('--rate-hz', type=_positive_float, default=10.0,
+                        help='scans per second of a folder without times.txt (default 10)')
+    inputs.add_argument('--model', choices=['auto', 'VLP-16'], default='auto',
+                        help="a Velodyne pcap's model: auto = as its packets claim (must be VLP-16); VLP-16 = decode as "
+                             'VLP-16 whatever they claim (early VLP-16 firmware reports HDL-32E)')
+    inputs.add_argument('--metadata', type=Path, default=None, metavar='JSON',
+                        help="an Ouster pcap's sensor metadata (default: a .json beside it whose name starts the pcap's)")
+    parser.add_argument('--format', choices=TRAJECTORY_FORMATS, default='tum', dest='trajectory_format',
+                        help='trajectory files: tum (default: trajectory.tum, trajectory_camera_init.tum) or kitti '
+                             '(those and trajectory_kitti.txt)')
+    viewer = parser.add_argument_group('viewer (Rerun, rerun-sdk)')
+    viewer.add_argument('--viewer', action='store_true', help='show the run live in a Rerun viewer window')
+    viewer.add_argument('--viewer-save', type=Path, default=None, metavar='FILE.rrd',
+                        help='write what the viewer shows to a Rerun recording (no display needed; open it later with '
+                             '`rerun FILE.rrd`)')
 
 
 def _positive_int(text: str) -> int:
@@ -128,18 +150,59 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f'must be positive, got {text}')
+    return value
+
+
+def _topic_asked_for(value: str, default: str) -> str | None:
+    """A topic parameter as the user set it, or None when it is the default (the source may then choose)."""
+    return None if value == default else value
+
+
+def _open_viewer(args: argparse.Namespace, source: Source):
+    """The pipeline listener showing the run, or None without --viewer / --viewer-save."""
+    if not args.viewer and args.viewer_save is None:
+        return None
+    from lego_loam_py.viewer.pipeline_view import PipelineView
+    from lego_loam_py.viewer.scene import SceneLog
+
+    scene = SceneLog(source.name, save=args.viewer_save, spawn=args.viewer)
+    return PipelineView(scene, source.ground_truth())
+
+
 def main(args: argparse.Namespace) -> int:
     keep_heap_pages()   # as the nodes do (see lego_loam_py.allocator)
     params = load_params(args.params_file, parse_overrides(args.param))
-    out = Path(args.output or Path('output') / Path(args.bag).resolve().name)
-    result = run_bag(args.bag, params, imu_topic='' if args.no_imu else None, max_scans=args.max_scans,
-                     progress=not args.no_progress)
+    defaults = SensorParams()
+    imu_topic = '' if args.no_imu else _topic_asked_for(params.sensor.imu_topic, defaults.imu_topic)
+    with open_source(args.bag, args.dataloader, rate_hz=args.rate_hz, model=args.model, metadata=args.metadata,
+                     cloud_topic=_topic_asked_for(params.sensor.point_cloud_topic, defaults.point_cloud_topic),
+                     imu_topic=imu_topic) as source:
+        for note in getattr(source, 'notes', ()):
+            print(f'note: {note}', file=sys.stderr)
+        if source.kind != 'rosbag':
+            print(f'reading {source.describe()}', file=sys.stderr)
+        out = Path(args.output or Path('output') / source.name)
+        view = _open_viewer(args, source)
+        try:
+            result = run_source(source, params, max_scans=args.max_scans, progress=not args.no_progress,
+                                listener=view)
+        finally:
+            if view is not None:
+                view.finish()
+        ground_truth = source.ground_truth()
     stamps, _ = result.trajectory()
     summary = OfflineSummary(bag=str(args.bag), counts=result.counts,
                              timings_ms={name: TimingStats.of(v) for name, v in result.timings_ms.items() if v},
                              wall_time_s=result.wall_time, bag_duration_s=result.bag_duration)
-    write_outputs(out, args.bag, stamps, np.array(result.integrated), result.mapper, summary, params)
+    write_outputs(out, args.bag, stamps, np.array(result.integrated), result.mapper, summary, params,
+                  ground_truth=ground_truth, trajectory_format=args.trajectory_format)
     print(format_summary(summary))
     written = sorted(p.name + ('/' if p.is_dir() else '') for p in out.iterdir() if not p.name.startswith('.'))
     print(f'outputs in {out}/: {", ".join(written)}')
+    if args.viewer_save is not None:
+        print(f'viewer recording: {args.viewer_save} (open it with: rerun {args.viewer_save})')
     return 0

@@ -9,13 +9,16 @@ from pathlib import Path
 import numpy as np
 
 from lego_loam_py.core.frames import camera_pose_to_lidar
-from lego_loam_py.core.io import write_text_atomic, write_tum_atomic
+from lego_loam_py.core.io import write_kitti_poses_atomic, write_text_atomic, write_tum_atomic
 from lego_loam_py.core.map_optimization import MapOptimization
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.pipeline import pose_time_offset_ns
 from lego_loam_py.results import DemoSummary, MapToScene, OfflineSummary, RunOutputs
 
-__all__ = ['write_outputs', 'write_summary', 'result_lines', 'pose_time_offset_ns']
+__all__ = ['write_outputs', 'write_summary', 'result_lines', 'pose_time_offset_ns', 'TRAJECTORY_FORMATS']
+
+TRAJECTORY_FORMATS = ('tum', 'kitti')
+_BESIDE_THE_BAG = object()   # write_outputs' default ground truth: the simulator's ground_truth.tum beside the bag
 
 
 def write_summary(out_dir: str | Path, summary: OfflineSummary | DemoSummary) -> None:
@@ -25,9 +28,14 @@ def write_summary(out_dir: str | Path, summary: OfflineSummary | DemoSummary) ->
 
 def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, poses_camera_init: np.ndarray,
                   mapper: MapOptimization | None, summary: OfflineSummary | DemoSummary, params: Params,
-                  map_dir: str | Path | None = None) -> RunOutputs:
+                  map_dir: str | Path | None = None, *, ground_truth=_BESIDE_THE_BAG,
+                  trajectory_format: str = 'tum') -> RunOutputs:
     """Trajectories, maps, PNG and summary.json into ``out_dir``; measures what they show (with the accuracy
-    when a ground truth sits beside the bag) into ``summary.outputs``, which it returns.
+    when there is a ground truth) into ``summary.outputs``, which it returns.
+
+    ``ground_truth``: (stamps [ns], lidar poses) of the recording, None for none (default: the one beside the
+    bag). ``trajectory_format`` 'kitti' adds ``trajectory_kitti.txt``: the TUM file's poses (lidar in ``map``,
+    REP-103) in KITTI's layout, 12 numbers a line, one line per pose.
 
     The maps come from ``mapper`` (saved into ``out_dir/map``) or, without one, from ``map_dir`` where they
     were saved already (by the mapOptimization node): listed in the summary and drawn under the PNG."""
@@ -42,6 +50,8 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
     if len(poses_map):   # (no pose, no file: an empty trajectory file would look like a broken one)
         write_tum_atomic(out / 'trajectory.tum', stamps, poses_map)
         write_tum_atomic(out / 'trajectory_camera_init.tum', stamps, poses_camera_init)
+        if trajectory_format == 'kitti':
+            write_kitti_poses_atomic(out / 'trajectory_kitti.txt', poses_map)
     result.trajectory_length_m = path_length(poses_map)
     map_points = None
     if mapper is not None and mapper.keyframes:
@@ -54,7 +64,8 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
         saved_files = sorted(p for p in Path(map_dir).iterdir() if p.suffix in ('.pcd', '.tum'))
         result.map_files = {p.name: str(p) for p in saved_files}
         map_points = read_pcd(Path(map_dir) / 'global_map.pcd')
-    ground_truth = load_ground_truth(bag)
+    if ground_truth is _BESIDE_THE_BAG:
+        ground_truth = load_ground_truth(bag)
     trajectories = {'lego_loam_py': poses_map}
     if ground_truth is not None and len(stamps) < 3:
         result.accuracy_error = (f'not evaluated: {len(stamps)} pose(s); the evaluation needs at least 3 (the '

@@ -40,7 +40,8 @@ from lego_loam_py.sensors.velodyne import PACKET_SIZE, VelodyneFormatError, Vlp1
 from lego_loam_py.errors import LegoLoamError, UsageError
 
 __all__ = ['add_arguments', 'main', 'convert', 'ConvertOptions', 'ConvertSummary', 'VELODYNE_SCAN_TYPES',
-           'velodyne_scan_typestore', 'velodyne_bag_packets', 'detect_format', 'ConvertError']
+           'velodyne_scan_typestore', 'velodyne_bag_packets', 'detect_format', 'ConvertError', 'velodyne_decoder',
+           'pcap_velodyne_chunks', 'find_ouster_metadata', 'ouster_lidar_packets', 'ouster_scans']
 
 VELODYNE_DATA_PORT = 2368
 VELODYNE_SCAN = 'velodyne_msgs/msg/VelodyneScan'
@@ -140,7 +141,7 @@ def _layout(name: str) -> np.dtype:
     return VELODYNE_PACKED_DTYPE if name == 'packed' else VELODYNE_POINT_DTYPE
 
 
-def _find_ouster_metadata(pcap: Path) -> Path | None:
+def find_ouster_metadata(pcap: Path) -> Path | None:
     """A .json beside the pcap whose stem starts the pcap's name (longest match), as Ouster tools name them."""
     candidates = [p for p in pcap.parent.glob('*.json') if pcap.stem.startswith(p.stem)]
     return max(candidates, key=lambda p: len(p.stem)) if candidates else None
@@ -206,7 +207,8 @@ class _Output:
 
 
 # ---------------------------------------------------------------------------------------------- Velodyne
-def _velodyne_decoder(options: ConvertOptions) -> Vlp16Decoder:
+def velodyne_decoder(options: ConvertOptions) -> Vlp16Decoder:
+    """The VLP-16 decoder the options ask for (model, split, completeness, restamping, point layout)."""
     period = None if options.restamp_period is None else int(round(options.restamp_period * 1e9))
     return Vlp16Decoder(force_model=options.model.upper() == 'VLP-16', split=options.split,
                         min_completeness=options.min_completeness, restamp_period_ns=period,
@@ -214,7 +216,7 @@ def _velodyne_decoder(options: ConvertOptions) -> Vlp16Decoder:
 
 
 def _run_velodyne(chunks: Iterator[tuple[np.ndarray, np.ndarray]], output: _Output, options: ConvertOptions) -> None:
-    decoder = _velodyne_decoder(options)
+    decoder = velodyne_decoder(options)
     frame_id = options.frame_id or 'velodyne'
     summary = output.summary
     try:
@@ -239,7 +241,7 @@ def _run_velodyne(chunks: Iterator[tuple[np.ndarray, np.ndarray]], output: _Outp
     summary.sensor = f'VLP-16 ({mode}{", model forced" if decoder.force_model else ""})'
 
 
-def _pcap_velodyne_chunks(udp: UdpDatagrams) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+def pcap_velodyne_chunks(udp: UdpDatagrams) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     for start in range(0, len(udp), _FEED_PACKETS):
         index = np.arange(start, min(start + _FEED_PACKETS, len(udp)))
         yield udp.gather(PACKET_SIZE, index), udp.stamps_ns[index]
@@ -271,37 +273,20 @@ def _run_ouster(udp: UdpDatagrams, metadata_path: Path, output: _Output, options
         meta = OusterMetadata.from_json(metadata_path)
     except (OSError, ValueError) as exc:
         raise ConvertError(f'cannot read Ouster metadata {metadata_path}: {exc}') from exc
-    lidar = udp.select((udp.dst_ports == meta.udp_port_lidar) & (udp.lengths == meta.lidar_packet_size))
-    if len(lidar) == 0:
-        raise ConvertError(f'no Ouster lidar packets ({meta.lidar_packet_size} bytes for {meta.udp_profile_lidar}, '
-                           f'port {meta.udp_port_lidar}) in the capture: does the metadata belong to it?')
+    lidar = ouster_lidar_packets(udp, meta)
     decoder = OusterDecoder(meta, min_completeness=options.min_completeness, point_dtype=_layout(options.layout))
     frame_id = options.frame_id or 'os_sensor'
     summary.sensor = (f'Ouster {meta.prod_line} {meta.columns_per_frame}x{meta.pixels_per_column} '
                       f'{meta.udp_profile_lidar}')
     summary.packets += len(lidar)
-    frames = decoder.frame_ids(lidar.gather(OusterDecoder.HEAD_BYTES))
-    starts = np.concatenate([[0], np.flatnonzero(np.diff(frames)) + 1])
     period = None if options.restamp_period is None else int(round(options.restamp_period * 1e9))
     first_stamp = None
-    batch_start = 0
-    try:
-        for k in range(1, len(starts) + 1):
-            end = int(starts[k]) if k < len(starts) else len(lidar)
-            if end - batch_start < _OUSTER_BATCH_PACKETS and k < len(starts):
-                continue
-            index = np.arange(batch_start, end)
-            for scan in decoder.decode(lidar.gather(meta.lidar_packet_size, index), lidar.stamps_ns[index]):
-                if output.done():
-                    break
-                first_stamp = scan.stamp_ns if first_stamp is None else first_stamp
-                stamp = scan.stamp_ns if period is None else first_stamp + summary.rotations * period
-                output.cloud(stamp, frame_id, scan.points)
-            batch_start = end
-            if output.done():
-                break
-    except OusterFormatError as exc:
-        raise ConvertError(str(exc)) from exc
+    for scan in ouster_scans(lidar, decoder, meta):
+        if output.done():
+            break
+        first_stamp = scan.stamp_ns if first_stamp is None else first_stamp
+        stamp = scan.stamp_ns if period is None else first_stamp + summary.rotations * period
+        output.cloud(stamp, frame_id, scan.points)
     summary.dropped_incomplete += decoder.stats.incomplete_scans
     summary.bad_packets += decoder.stats.bad_packets
     imu = udp.select((udp.dst_ports == meta.udp_port_imu) & (udp.lengths == IMU_PACKET_SIZE))
@@ -318,6 +303,32 @@ def _run_ouster(udp: UdpDatagrams, metadata_path: Path, output: _Output, options
         for stamp, acceleration, gyro in zip(samples.stamps_ns[keep], samples.linear_acceleration[keep],
                                              samples.angular_velocity[keep]):
             output.imu(int(stamp), 'os_imu', acceleration, gyro)
+
+
+def ouster_lidar_packets(udp: UdpDatagrams, meta: OusterMetadata) -> UdpDatagrams:
+    """The capture's Ouster lidar packets (the metadata's port and packet size); ConvertError without any."""
+    lidar = udp.select((udp.dst_ports == meta.udp_port_lidar) & (udp.lengths == meta.lidar_packet_size))
+    if len(lidar) == 0:
+        raise ConvertError(f'no Ouster lidar packets ({meta.lidar_packet_size} bytes for {meta.udp_profile_lidar}, '
+                           f'port {meta.udp_port_lidar}) in the capture: does the metadata belong to it?')
+    return lidar
+
+
+def ouster_scans(lidar: UdpDatagrams, decoder: OusterDecoder, meta: OusterMetadata) -> Iterator:
+    """The decoder's scans of the lidar packets, in order, decoded in batches of whole frames (bounded memory)."""
+    frames = decoder.frame_ids(lidar.gather(OusterDecoder.HEAD_BYTES))
+    starts = np.concatenate([[0], np.flatnonzero(np.diff(frames)) + 1])
+    batch_start = 0
+    try:
+        for k in range(1, len(starts) + 1):
+            end = int(starts[k]) if k < len(starts) else len(lidar)
+            if end - batch_start < _OUSTER_BATCH_PACKETS and k < len(starts):
+                continue
+            index = np.arange(batch_start, end)
+            yield from decoder.decode(lidar.gather(meta.lidar_packet_size, index), lidar.stamps_ns[index])
+            batch_start = end
+    except OusterFormatError as exc:
+        raise ConvertError(str(exc)) from exc
 
 
 # ---------------------------------------------------------------------------------------------- driver
@@ -368,7 +379,7 @@ def _convert(source: Path, destination: Path, kind: str, options: ConvertOptions
         velodyne = udp.select((udp.dst_ports == options.port) & (udp.lengths == PACKET_SIZE))
         metadata = options.metadata
         if metadata is None and len(velodyne) == 0:
-            metadata = _find_ouster_metadata(source)
+            metadata = find_ouster_metadata(source)
             if metadata is not None:
                 summary.notes.append(f'Ouster metadata: {metadata}')
         if metadata is None and len(velodyne) == 0:
@@ -379,7 +390,7 @@ def _convert(source: Path, destination: Path, kind: str, options: ConvertOptions
             if metadata is not None:
                 _run_ouster(udp, Path(metadata), output, options)
             else:
-                _run_velodyne(_pcap_velodyne_chunks(velodyne), output, options)
+                _run_velodyne(pcap_velodyne_chunks(velodyne), output, options)
         finally:
             output.close()
     elif kind == 'rosbag':

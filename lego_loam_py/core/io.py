@@ -294,3 +294,31 @@ def read_pcd(path: str | Path) -> np.ndarray:
     if 'intensity' in cloud.point:
         return np.concatenate([xyz, cloud.point['intensity'].numpy().reshape(-1, 1).astype(np.float32)], axis=1)
     return xyz
+
+
+def kitti_pose_lines(poses: np.ndarray) -> str:
+    """KITTI odometry trajectory text: per pose the first three rows of its 4x4 matrix, row-major, 12 numbers."""
+    rows = np.asarray(poses, dtype=float).reshape(-1, 4, 4)[:, :3, :].reshape(-1, 12)
+    return ''.join(' '.join(f'{v:.9e}' for v in row) + '\n' for row in rows)
+
+
+def write_kitti_poses_atomic(path: str | Path, poses: np.ndarray) -> Path:
+    """Write (N, 4, 4) poses as a KITTI trajectory (``poses.txt`` layout, no stamps) atomically."""
+    with atomic_path(path) as temporary:
+        temporary.write_text(kitti_pose_lines(poses))
+    return Path(path)
+
+
+def read_kitti_poses(path: str | Path) -> np.ndarray:
+    """(N, 4, 4) poses of a KITTI trajectory (12 numbers a line; blank lines skipped)."""
+    rows = []
+    for number, line in enumerate(Path(path).read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        values = line.split()
+        if len(values) != 12:
+            raise ValueError(f'{path}, line {number}: a KITTI pose has 12 numbers, got {len(values)}')
+        rows.append([float(v) for v in values])
+    poses = np.tile(np.eye(4), (len(rows), 1, 1))
+    poses[:, :3, :] = np.array(rows, dtype=float).reshape(-1, 3, 4)
+    return poses
