@@ -17,6 +17,7 @@ import math
 from dataclasses import dataclass, field, fields
 from typing import Any, Literal
 
+from lego_loam_py.core.beam_table import HDL64E_NOMINAL_ELEVATIONS
 from lego_loam_py.errors import LegoLoamError
 
 __all__ = [
@@ -49,6 +50,11 @@ class SensorParams:
     ang_res_y: float = 2.0             # vertical resolution [deg] (only without the ring field)
     ang_bottom: float = 15.1           # offset of the lowest beam below horizontal [deg] (without ring)
     ground_scan_ind: int = 7           # rows 0..ground_scan_ind-1 (and the row above) may be ground
+    # Elevation of every beam [deg], lowest first (row r = r-th lowest beam), for sensors whose beams are unevenly
+    # spaced: rows without a ring field go to the nearest beam, and the segmentation uses each pair of rows'
+    # own spacing. Empty: evenly spaced (ang_bottom, ang_res_y), as the original.
+    beam_elevations: tuple[float, ...] = ()
+    beam_calibration: str = ''         # Velodyne calibration YAML (velodyne_pointcloud layout) giving the table
     scan_period: float = 0.1           # sweep duration [s]
     use_cloud_ring: bool = True        # row from the ring field; falls back to elevation when absent
     ring_field: str = 'ring'           # name of the beam index field
@@ -70,7 +76,8 @@ class SensorParams:
 
 
 # Geometry of the sensor blocks of utility.h (docs/original.md §2.3) plus the HDL-64E values the original's
-# author suggested (issue #12, ang_res_y as 26.9/63). Keys are the values accepted by ``sensor.preset``.
+# author suggested (issue #12, ang_res_y as 26.9/63), which also carries the sensor's nominal beam table (rows
+# without a ring field come from it; see core.beam_table). Keys are the values accepted by ``sensor.preset``.
 SENSOR_PRESETS: dict[str, dict[str, Any]] = {
     'VLP-16': dict(n_scan=16, horizon_scan=1800, ang_res_x=0.2, ang_res_y=2.0, ang_bottom=15.0 + 0.1,
                    ground_scan_ind=7),
@@ -79,13 +86,14 @@ SENSOR_PRESETS: dict[str, dict[str, Any]] = {
     'VLS-128': dict(n_scan=128, horizon_scan=1800, ang_res_x=0.2, ang_res_y=0.3, ang_bottom=25.0,
                     ground_scan_ind=10),
     'HDL-64E': dict(n_scan=64, horizon_scan=1800, ang_res_x=0.2, ang_res_y=26.9 / 63, ang_bottom=24.9,
-                    ground_scan_ind=50),
+                    ground_scan_ind=50, beam_elevations=HDL64E_NOMINAL_ELEVATIONS),
     'OS1-16': dict(n_scan=16, horizon_scan=1024, ang_res_x=360.0 / 1024, ang_res_y=33.2 / 15,
                    ang_bottom=16.6 + 0.1, ground_scan_ind=7),
     'OS1-64': dict(n_scan=64, horizon_scan=1024, ang_res_x=360.0 / 1024, ang_res_y=33.2 / 63,
                    ang_bottom=16.6 + 0.1, ground_scan_ind=15),
 }
-_PRESET_FIELDS = ('n_scan', 'horizon_scan', 'ang_res_x', 'ang_res_y', 'ang_bottom', 'ground_scan_ind')
+_PRESET_FIELDS = ('n_scan', 'horizon_scan', 'ang_res_x', 'ang_res_y', 'ang_bottom', 'ground_scan_ind',
+                  'beam_elevations')
 
 
 @dataclass(frozen=True)

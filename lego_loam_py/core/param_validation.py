@@ -102,6 +102,8 @@ def params_from_mapping(values: Mapping[str, Any], apply_preset: bool = True) ->
         grouped[section][name] = _coerce(key, value, _field_types(sections[section])[name])
 
     sensor_values = grouped['sensor']
+    if sensor_values.get('beam_calibration'):   # (before the preset: the file's beams override the preset's)
+        sensor_values = _with_calibrated_beams(sensor_values)
     if apply_preset:
         preset = sensor_values.get('preset', SensorParams.preset)
         if preset not in SENSOR_PRESETS:
@@ -112,6 +114,18 @@ def params_from_mapping(values: Mapping[str, Any], apply_preset: bool = True) ->
     params = Params(sensor=SensorParams(**sensor_values), **built)
     _validate(params)
     return params
+
+
+def _with_calibrated_beams(sensor_values: dict[str, Any]) -> dict[str, Any]:
+    """The sensor values with ``beam_elevations`` read from the calibration file ``beam_calibration`` (and
+    ``n_scan`` from its number of lasers unless given explicitly)."""
+    from lego_loam_py.core.beam_table import read_velodyne_calibration
+
+    try:
+        table = read_velodyne_calibration(sensor_values['beam_calibration'])
+    except ValueError as exc:
+        raise ParameterError(f"parameter 'sensor.beam_calibration': {exc}") from None
+    return {**sensor_values, 'beam_elevations': table, 'n_scan': sensor_values.get('n_scan', len(table))}
 
 
 def _validate(p: Params) -> None:
@@ -126,6 +140,12 @@ def _validate(p: Params) -> None:
     need(s.ang_res_x > 0, 'sensor.ang_res_x', 'must be positive')
     need(s.ang_res_y > 0, 'sensor.ang_res_y', 'must be positive')
     need(0 < s.ground_scan_ind < s.n_scan, 'sensor.ground_scan_ind', 'must lie in 1..n_scan-1')
+    if s.beam_elevations:
+        from lego_loam_py.core.beam_table import table_problem
+
+        problem = table_problem(s.beam_elevations, s.n_scan)
+        need(problem is None, 'sensor.beam_calibration' if s.beam_calibration else 'sensor.beam_elevations',
+             f'{problem}' + (f' ({s.beam_calibration})' if s.beam_calibration else ''))
     need(s.scan_period > 0, 'sensor.scan_period', 'must be positive')
     need(s.sensor_minimum_range >= 0, 'sensor.sensor_minimum_range', 'must not be negative')
     need(s.point_cloud_topic != '', 'sensor.point_cloud_topic', 'must not be empty')

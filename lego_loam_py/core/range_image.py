@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lego_loam_py.core.beam_table import BeamRows
 from lego_loam_py.core.atan2f_decisions import Atan2fSteps, decide_on_atan2f, first_float32_where
 from lego_loam_py.core.libm import atan2f, float_degrees, round_half_away
 from lego_loam_py.core.param_types import Params
@@ -116,6 +117,8 @@ class RangeImageProjection:
         self._ang_res_y = _F32(s.ang_res_y)
         self._ang_bottom = _F32(s.ang_bottom)
         self._min_range = _F32(s.sensor_minimum_range)
+        # Unevenly spaced beams: rows without a ring field from the nearest beam of the table.
+        self._beam_rows = BeamRows(s.beam_elevations) if s.beam_elevations else None
         n, h = self.n_scan, self.horizon_scan
         rows, cols = np.repeat(np.arange(n), h), np.tile(np.arange(h), n)
         self._pixel_intensity = (rows + cols / 10000.0).astype(_F32)
@@ -145,6 +148,8 @@ class RangeImageProjection:
         None) and float32 sensor-frame coordinates [m]."""
         if ring is not None:
             row = ring.copy()
+        elif self._beam_rows is not None:
+            row = self._beam_rows.rows(z, np.sqrt(x * x + y * y))
         else:
             row = decide_on_atan2f(z, np.sqrt(x * x + y * y), self._row_of_elevation).astype(np.int64)
         row[(row < 0) | (row >= self.n_scan)] = -1

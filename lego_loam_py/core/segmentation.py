@@ -37,6 +37,10 @@ class Segmentation:
         alpha_y = _F32(s.ang_res_y / 180.0 * math.pi)
         self._sin_alpha = (sinf(alpha_x), sinf(alpha_y))
         self._cos_alpha = (cosf(alpha_x), cosf(alpha_y))
+        if s.beam_elevations:   # unevenly spaced beams: each row and the row above it have their own angle
+            rows_apart = np.diff(np.radians(np.asarray(s.beam_elevations, dtype=np.float64)))   # (n_scan - 1,)
+            self._sin_alpha = (self._sin_alpha[0], np.sin(rows_apart).astype(_F32))
+            self._cos_alpha = (self._cos_alpha[0], np.cos(rows_apart).astype(_F32))
         self._theta = _F32(self._settings.segment_theta)
 
     def labels(self, range_image: np.ndarray, filled: np.ndarray, ground: np.ndarray) -> np.ndarray:
@@ -118,7 +122,8 @@ class Segmentation:
         return labels.reshape(h, n).T.reshape(-1)
 
     def _joins(self, range_a: np.ndarray, range_b: np.ndarray, direction: int) -> np.ndarray:
-        """The segmentation criterion beta > theta for neighbour pairs (direction 0: horizontal, 1: vertical).
+        """The segmentation criterion beta > theta for neighbour pairs (direction 0: horizontal, 1: vertical;
+        vertical pairs are (columns, rows - 1) arrays, so a beam table's per-row angles broadcast along rows).
 
         Computed for every pixel, pair or not (empty pixels' FLT_MAX ranges give finite angles far from theta):
         cheaper than gathering the pairs. beta is libm's atan2f(y, x) with y >= 0, so it lies in [0, pi].

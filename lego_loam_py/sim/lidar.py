@@ -5,7 +5,8 @@ Geometry and timing of a sweep (lidar frame, REP-103 axes: x forward, y left, z 
 * Beams: ring ``r`` (0 = lowest) has elevation ``lowest + r * ang_res_y`` with ``ang_res_y`` from
   :data:`lego_loam_py.core.params.SENSOR_PRESETS` and ``lowest`` the real lowest beam of the sensor (the
   presets' ``ang_bottom`` carries LeGO-LOAM's +0.1 deg rounding margin for some sensors). VLP-16: -15, -13,
-  ..., +15 deg.
+  ..., +15 deg. A preset with a beam table (HDL-64E: its nominal, unevenly spaced layout) has its beams
+  there instead, unless ``uniform_beams`` asks for the even spacing.
 * Columns: ``horizon_scan`` of them per sweep. The head spins **clockwise** seen from above, as every
   Velodyne does: column ``k`` looks at azimuth ``atan2(y, x) = -2 pi k / N``. The sweep starts and ends
   straight ahead (+x), where the velodyne driver cuts its clouds, so LeGO-LOAM's start/end orientation
@@ -85,14 +86,18 @@ class LidarModel:
     ideal: bool = False                  # no noise, no quantisation, every hit in range is returned
 
     @staticmethod
-    def from_preset(preset: str = 'VLP-16', scan_period: float = 0.1, ideal: bool = False) -> 'LidarModel':
-        """The model of a sensor preset (:data:`SENSOR_PRESETS` geometry + :data:`LIDAR_SPECS`)."""
+    def from_preset(preset: str = 'VLP-16', scan_period: float = 0.1, ideal: bool = False,
+                    uniform_beams: bool = False) -> 'LidarModel':
+        """The model of a sensor preset (:data:`SENSOR_PRESETS` geometry + :data:`LIDAR_SPECS`); its beam table
+        when it has one, unless ``uniform_beams``."""
         if preset not in SENSOR_PRESETS or preset not in LIDAR_SPECS:
             raise ValueError(f"unknown sensor preset '{preset}' (known: {', '.join(SENSOR_PRESETS)})")
         geometry = SENSOR_PRESETS[preset]
         spec = LIDAR_SPECS[preset]
         n = int(geometry['n_scan'])
         elevations = tuple(round(spec['lowest'] + r * float(geometry['ang_res_y']), 6) for r in range(n))
+        if geometry.get('beam_elevations') and not uniform_beams:
+            elevations = tuple(float(e) for e in geometry['beam_elevations'])
         if spec['firing'] == 'interleaved':
             half = n // 2
             firing = tuple(i // 2 if i % 2 == 0 else half + i // 2 for i in range(n))

@@ -52,6 +52,7 @@ class SimConfig:
     imu_extrinsic_rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)   # IMU axes in the lidar frame [deg]
     ideal: bool = False                           # no noise, no bias, no dropped returns
     turn_rate: float = 0.0                        # peak yaw rate of inserted in-place turns [deg/s]; 0: none
+    uniform_beams: bool = False                   # evenly spaced beams even where the preset has a beam table
 
     def validate(self) -> 'SimConfig':
         from lego_loam_py.core.params import SENSOR_PRESETS
@@ -80,7 +81,14 @@ class SimConfig:
         out['imu_extrinsic_rpy'] = list(self.imu_extrinsic_rpy)
         if not self.turn_rate:
             del out['turn_rate']   # recordings without turns keep the cache keys they had before the option
+        del out['uniform_beams']
+        if self._has_beam_table():   # (a preset whose beams moved to a table gets new cache keys, no other)
+            out['beams'] = 'uniform' if self.uniform_beams else 'table'
         return out
+
+    def _has_beam_table(self) -> bool:
+        from lego_loam_py.core.params import SENSOR_PRESETS
+        return bool(SENSOR_PRESETS.get(self.preset, {}).get('beam_elevations'))
 
     def command(self, output: str | Path) -> str:
         """The ``lego_loam_py simulate`` command line that reproduces this configuration."""
@@ -106,6 +114,8 @@ class SimConfig:
             parts.append('--ideal')
         if self.turn_rate:
             parts += ['--turn-rate', f'{self.turn_rate:g}']
+        if self.uniform_beams and self._has_beam_table():
+            parts.append('--uniform-beams')
         return ' '.join(parts)
 
     def cache_key(self) -> str:
@@ -201,7 +211,7 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
     if bag_path.exists():
         raise FileExistsError(f'{bag_path} exists already; choose another output (bags are never overwritten)')
     world = build_world(config.scenario, config.seed, config.turn_rate)
-    lidar = LidarModel.from_preset(config.preset, ideal=config.ideal)
+    lidar = LidarModel.from_preset(config.preset, ideal=config.ideal, uniform_beams=config.uniform_beams)
     imu = ImuModel(rate=config.imu_rate, noise=ImuNoise.none() if config.ideal else ImuNoise(),
                    extrinsic_rpy_deg=config.imu_extrinsic_rpy)
     period_ns = int(round(lidar.scan_period * 1e9))
