@@ -41,6 +41,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--turn-rate', type=float, default=0.0, metavar='DEG_S',
                         help='stop for whole in-place turns (at 10 s, then every 30 s) peaking at this yaw rate '
                         '[deg/s] (default 0: none)')
+    parser.add_argument('--uniform-beams', action='store_true', help='evenly spaced beams even for a preset with a '
+                        'beam table (HDL-64E: its nominal, unevenly spaced layout by default)')
+    parser.add_argument('--kitti', metavar='DIR', default=None, help='also write the recording as a KITTI odometry '
+                        'sequence folder (velodyne/*.bin, times.txt, calib.txt, poses.txt)')
+    parser.add_argument('--pcd', metavar='DIR', default=None, help='also write the recording as a folder of PCD scans '
+                        '(every field) with times.txt and poses.txt')
     parser.add_argument('--cached', action='store_true', help='generate into the cache (~/.cache/lego_loam_py/sim, '
                         '$LEGO_LOAM_CACHE) unless present; print the bag path')
     parser.add_argument('--list', action='store_true', help='list the scenarios and sensor presets, then exit')
@@ -69,6 +75,8 @@ def main(args: argparse.Namespace) -> int:
         raise UsageError('name a scenario (campus, forest, corridor, aggressive) or use --list')
     if args.compress and args.ros1:
         raise UsageError('--compress applies to ROS 2 bags only')
+    if args.cached and (args.kitti or args.pcd):
+        raise UsageError('--kitti and --pcd write beside a bag given with -o, not with --cached')
     if args.cached and args.output:
         raise UsageError('--cached chooses the output itself; drop -o')
     if not args.cached and not args.output:
@@ -78,7 +86,7 @@ def main(args: argparse.Namespace) -> int:
     options = dict(duration=args.duration, seed=args.seed, preset=args.preset, imu_rate=args.imu_rate,
                    storage=args.storage, ros1=args.ros1, layout=args.layout, compress=args.compress,
                    imu_extrinsic_rpy=tuple(args.imu_extrinsic_rpy), ideal=args.ideal,
-                   turn_rate=args.turn_rate)
+                   turn_rate=args.turn_rate, uniform_beams=args.uniform_beams)
     try:
         if args.cached:
             print(cached_scenario(args.scenario, progress=not args.no_progress, **options))
@@ -88,4 +96,18 @@ def main(args: argparse.Namespace) -> int:
         raise LegoLoamError(str(exc)) from None
     print(f'wrote {result.bag_path}: {result.scans} scans, {result.imu_messages} IMU messages, {result.points} points '
           f'({result.duration:.1f} s); ground truth and labels beside it', file=sys.stderr)
+    _export(result.bag_path, args)
     return 0
+
+
+def _export(bag, args: argparse.Namespace) -> None:
+    """--kitti / --pcd: the recording again as dataset folders (lego_loam_py.sim.export)."""
+    from lego_loam_py.sim.export import export_recording
+
+    for kind, folder in (('kitti', args.kitti), ('pcd', args.pcd)):
+        if folder:
+            try:
+                scans = export_recording(bag, folder, kind)
+            except (ValueError, FileExistsError) as exc:
+                raise LegoLoamError(str(exc)) from None
+            print(f'wrote {folder}: {scans} scans as a {kind} folder', file=sys.stderr)
