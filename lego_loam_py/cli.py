@@ -56,6 +56,10 @@ COMMANDS = [
      'default, or --scheduler). Every run gets a directory (trajectory, map, summary, parameters, code version, '
      'command, log); running again resumes: finished runs are kept, failed ones retried. Writes report.md, '
      'report.csv and plots.'),
+    ('viewer', 'lego_loam_py.ros.viewer_node', 'show the running nodes in Rerun (or save it as .rrd)',
+     'Subscribe to the standard topics of the running nodes (scan by label, features, map, keyframes, the three '
+     'odometries, /diagnostics) and show them live in a Rerun viewer, or save them with --save FILE.rrd. Needs '
+     'rerun-sdk.'),
     ('eval', 'lego_loam_py.evaluation', 'accuracy of a trajectory against ground truth (ATE, RPE, drift) with evo',
      'Compare an estimated TUM trajectory with a ground truth (a TUM file, or the ground_truth.tum beside a '
      'bag): ATE after SE(3) alignment, RPE over segments, end-point error and drift; optional plot.'),

@@ -162,7 +162,7 @@ def _node_summary(stats: dict[str, dict]) -> NodeFigures:
 def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_file: Path | None = None,
              overrides: list[str] | None = None, progress: bool = False, stop: threading.Event | None = None,
              hurry: threading.Event | None = None, announce: Callable[[str], None] | None = None,
-             ready_timeout: float = 60.0) -> DemoResult:
+             ready_timeout: float = 60.0, viewer: bool = False, viewer_save: Path | None = None) -> DemoResult:
     """Run the pipeline over DDS on ``bag`` and write the outputs into ``out_dir`` (see the module
     docstring). Raises ``BagError``, ``ParameterError`` or ``UsageError`` before starting anything when the
     bag, the parameters or the output directory cannot be used."""
@@ -184,7 +184,8 @@ def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_
     config = PipelineConfig(
         params_file=params_file, overrides=node_overrides, bag=Path(bag), rate=rate, player_progress=progress,
         record_topics=DEFAULT_RECORD_TOPICS, record_output=out / 'recording', stats_dir=out / 'stats',
-        output='log', log_dir=out / 'logs', ready_timeout=ready_timeout)
+        output='log', log_dir=out / 'logs', ready_timeout=ready_timeout, viewer=viewer,
+        viewer_save=Path(viewer_save).resolve() if viewer_save is not None else None)
     outcome = run_pipeline(config, stop=stop, hurry=hurry, announce=announce)
 
     stats = read_stats(out / 'stats')
@@ -266,6 +267,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_parameter_arguments(parser, 'ROS 2 parameter file for the nodes (default: config/params.yaml)',
                             'sensor.imu_topic:=""')
     parser.add_argument('--no-progress', action='store_true', help='no progress bar while the bag plays')
+    parser.add_argument('--viewer', action='store_true', help='show the run live in Rerun (lego_loam_py viewer)')
+    parser.add_argument('--viewer-save', type=Path, default=None, metavar='FILE.rrd',
+                        help='save what the viewer shows to a Rerun recording (no display needed)')
 
 
 def main(args: argparse.Namespace) -> int:
@@ -279,7 +283,8 @@ def main(args: argparse.Namespace) -> int:
           f'transformFusion (separate processes, DDS); logs in {out}/logs/', file=sys.stderr, flush=True)
     with Interrupts() as interrupts:
         result = run_demo(bag, out, rate=args.rate, params_file=args.params_file, overrides=args.param,
-                          progress=progress, stop=interrupts.stop, hurry=interrupts.hurry)
+                          progress=progress, stop=interrupts.stop, hurry=interrupts.hurry, viewer=args.viewer,
+                          viewer_save=args.viewer_save)
     print(format_demo_summary(result.summary, result.out_dir))
     if result.summary.interrupted:
         return 130

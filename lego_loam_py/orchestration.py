@@ -82,6 +82,8 @@ class PipelineConfig:
     stats_dir: Path | None = None
     rviz: bool = False
     rviz_config: Path | None = None
+    viewer: bool = False                      # `lego_loam_py viewer` beside the nodes: a Rerun window ...
+    viewer_save: Path | None = None           # ... and/or a .rrd recording of it
     keep_alive: bool = False                  # keep the nodes running after the bag ended
     ready_timeout: float = 60.0
     settle: float = 0.5                       # after ready, for the nodes to match each other's endpoints
@@ -173,6 +175,9 @@ def run_pipeline(config: PipelineConfig, stop: threading.Event | None = None, hu
         rviz_command = shutil.which('rviz2')
         if rviz_command is None:
             raise UsageError('rviz2 not found: it comes with a full ROS 2 install (source its setup.bash first)')
+    if config.viewer or config.viewer_save is not None:
+        from lego_loam_py.viewer import require_rerun
+        require_rerun()   # (says what to install before anything starts)
     if config.stats_dir is not None:
         Path(config.stats_dir).mkdir(parents=True, exist_ok=True)
 
@@ -198,6 +203,10 @@ def run_pipeline(config: PipelineConfig, stop: threading.Event | None = None, hu
             argv = [rviz_command, '-d', str(rviz_config)] + (
                 ['--ros-args', '-p', 'use_sim_time:=true'] if use_sim_time else [])
             supervisor.start(ProcessSpec('rviz2', argv, role='tool', stop_timeout=config.stop_timeout))
+        if config.viewer or config.viewer_save is not None:
+            argv = cli + ['viewer'] + (['--save', str(config.viewer_save)] if config.viewer_save else []) + \
+                ([] if config.viewer else ['--no-window'])
+            supervisor.start(ProcessSpec('viewer', argv, role='tool', stop_timeout=config.stop_timeout))
 
         # ready: every node up (and the recorder subscribed), nothing crashed
         deadline = time.monotonic() + config.ready_timeout
