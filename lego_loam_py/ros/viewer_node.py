@@ -84,6 +84,8 @@ class ViewerNode(Node):
             self.scene.scan(*(clouds.get(t, empty) for t in SCAN_TOPICS[:3]))
             self.scene.features(*(clouds.get(t, empty) for t in SCAN_TOPICS[3:]))
             self.logged_scans += 1
+            if self.logged_scans == 1:   # (on stdout: tools and tests wait for it)
+                print(f'viewer: first scan logged (stamp {stamp})', flush=True)
 
     def on_map(self, msg: PointCloud2) -> None:
         self._at(stamp_to_ns(msg.header.stamp))
@@ -117,6 +119,7 @@ class ViewerNode(Node):
 
     def on_shutdown(self) -> None:
         self.scene.finish()
+        print(f'viewer: {self.logged_scans} scans logged', flush=True)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
