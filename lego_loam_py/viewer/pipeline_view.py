@@ -54,11 +54,10 @@ class PipelineView:
             scene.scalar(f'timings/{stage}', ms)
         stats = getattr(event.features, 'odometry', None)
         if stats is not None:
-            scene.scalar('health/odometry_corner_condition', stats.corner_condition)
-            scene.scalar('health/odometry_surf_condition', stats.surf_condition)
-            scene.scalar('health/odometry_corner_match_ratio', stats.corner_match_ratio)
-            scene.scalar('health/odometry_degenerate', float(stats.corner_degenerate or stats.surf_degenerate))
-            scene.scalar('health/odometry_lost', float(stats.lost))
+            scene.scalars('health/odometry', {
+                'corner condition': stats.corner_condition, 'surface condition': stats.surf_condition,
+                'corner match ratio': stats.corner_match_ratio,
+                'degenerate': float(stats.corner_degenerate or stats.surf_degenerate), 'lost': float(stats.lost)})
         segmentation, features = event.segmentation, event.features.features
         clouds = (segmentation.ground_cloud, segmentation.segmented_cloud_pure, segmentation.outlier_cloud,
                   _to_map(features.sharp), _to_map(features.flat))
@@ -100,9 +99,8 @@ class PipelineView:
         scene.keyframes(_to_map(event.keyframe_positions))
         step = event.step
         scene.scalar('timings/mapOptimization', event.cpu_ms)
-        scene.scalar('health/mapping_iterations', step.iterations)
-        scene.scalar('health/mapping_correspondences', step.correspondences)
-        scene.scalar('health/mapping_degenerate', float(step.degenerate))
+        scene.scalars('health/mapping', {'iterations': step.iterations, 'correspondences': step.correspondences,
+                                         'degenerate': float(step.degenerate)})
 
     def _loop(self, event: LoopChecked) -> None:
         loop = event.loop

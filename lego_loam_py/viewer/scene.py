@@ -72,6 +72,7 @@ class SceneLog:
         self._trajectories = {name: _Trajectory(self, name) for name in TRAJECTORY_COLOURS}
         self._map_voxels = np.zeros(0, dtype=np.int64)
         self._map_pieces = 0
+        self._series: set[str] = set()
 
     def _blueprint(self):
         import rerun.blueprint as rrb
@@ -150,6 +151,13 @@ class SceneLog:
         """A plotted value, e.g. ``timings/imageProjection`` [ms] or ``health/corner_condition``."""
         if value is not None and np.isfinite(value):
             self.rec.log(path, self.rr.Scalars(float(value)))
+
+    def scalars(self, path: str, values: dict[str, float]) -> None:
+        """Several plotted values of one entity (one log call), each its own named series; NaN leaves a gap."""
+        if path not in self._series:
+            self._series.add(path)
+            self.rec.log(path, self.rr.SeriesLines(names=list(values)), static=True)
+        self.rec.log(path, self.rr.Scalars(np.array(list(values.values()), dtype=np.float64)))
 
     def finish(self) -> None:
         """Log what is still pending and flush the sinks."""
