@@ -227,3 +227,20 @@ def test_the_sensor_decoders_are_an_input_layer_outside_the_core():
         if bad:
             offenders[str(path.relative_to(CORE))] = sorted(bad)
     assert not offenders, offenders
+
+
+def test_the_inputs_and_the_viewer_know_no_ros_and_the_core_knows_neither():
+    """The recordings' sources (lego_loam_py/inputs) and the viewer's logging (lego_loam_py/viewer) import no ROS
+    (the live viewer's node is lego_loam_py/ros/viewer_node.py); the core imports neither, nor Rerun."""
+    offenders = {}
+    for package in ('inputs', 'viewer'):
+        for path in sorted((PACKAGE_DIR / package).glob('*.py')):
+            if ros_imports(path):
+                offenders[f'{package}/{path.name}'] = sorted(ros_imports(path))
+    assert len(list((PACKAGE_DIR / 'inputs').glob('*.py'))) >= 5
+    for path in sorted(CORE.rglob('*.py')):
+        bad = {m for m in imported_modules(path)
+               if m.startswith(('lego_loam_py.inputs', 'lego_loam_py.viewer')) or m.split('.')[0] == 'rerun'}
+        if bad:
+            offenders[str(path.relative_to(CORE))] = sorted(bad)
+    assert not offenders, offenders

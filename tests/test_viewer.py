@@ -36,7 +36,7 @@ def test_viewer_save_on_the_campus_bag_holds_scan_map_and_trajectories_one_step_
     entities, steps = _entities_and_scan_steps(rrd)
     for entity in ('/world/lidar', '/world/lidar/scan', '/world/lidar/features', '/world/keyframes',
                    '/world/trajectory/ground_truth', '/timings/imageProjection', '/timings/mapOptimization',
-                   '/health/odometry', '/health/mapping'):
+                   '/health/odometry', '/health/odometry_condition', '/health/mapping'):
         assert entity in entities, entity
     for kind in ('map', 'trajectory/fused', 'trajectory/odometry', 'trajectory/mapped'):
         assert any(e.startswith(f'/world/{kind}/') for e in entities), kind

@@ -54,8 +54,9 @@ class PipelineView:
             scene.scalar(f'timings/{stage}', ms)
         stats = getattr(event.features, 'odometry', None)
         if stats is not None:
+            scene.scalars('health/odometry_condition', {'corner stage': stats.corner_condition,
+                                                        'surface stage': stats.surf_condition})
             scene.scalars('health/odometry', {
-                'corner condition': stats.corner_condition, 'surface condition': stats.surf_condition,
                 'corner match ratio': stats.corner_match_ratio,
                 'degenerate': float(stats.corner_degenerate or stats.surf_degenerate), 'lost': float(stats.lost)})
         segmentation, features = event.segmentation, event.features.features
@@ -99,8 +100,7 @@ class PipelineView:
         scene.keyframes(_to_map(event.keyframe_positions))
         step = event.step
         scene.scalar('timings/mapOptimization', event.cpu_ms)
-        scene.scalars('health/mapping', {'iterations': step.iterations, 'correspondences': step.correspondences,
-                                         'degenerate': float(step.degenerate)})
+        scene.scalars('health/mapping', {'iterations': step.iterations, 'degenerate': float(step.degenerate)})
 
     def _loop(self, event: LoopChecked) -> None:
         loop = event.loop

@@ -20,7 +20,7 @@ MAP_VOXEL = 0.4         # [m] the map keeps one point per voxel of this size (th
 SCAN_CLASSES = {0: ('ground', (120, 200, 80)), 1: ('segmented', (80, 160, 255)), 2: ('outlier', (150, 150, 150)),
                 3: ('corner', (255, 60, 40)), 4: ('surface', (255, 200, 0))}
 TRAJECTORY_COLOURS = {'odometry': (255, 140, 0), 'mapped': (200, 0, 200), 'fused': (0, 120, 255),
-                      'ground_truth': (40, 40, 40)}
+                      'ground_truth': (230, 230, 230)}
 
 
 class _Trajectory:
@@ -43,7 +43,8 @@ class _Trajectory:
         points = ([self.last] if self.last is not None else []) + self.pending
         rr = self.log.rr
         self.log.rec.log(f'world/trajectory/{self.name}/{self.pieces:05d}',
-                         rr.LineStrips3D([np.array(points)], colors=[TRAJECTORY_COLOURS[self.name]], radii=0.05))
+                         rr.LineStrips3D([np.array(points)], colors=[TRAJECTORY_COLOURS[self.name]],
+                                         radii=rr.Radius.ui_points(3.0)))
         self.last, self.pending = self.pending[-1], []
         self.pieces += 1
 
@@ -78,9 +79,14 @@ class SceneLog:
         import rerun.blueprint as rrb
 
         plots = rrb.Vertical(rrb.TimeSeriesView(origin='timings', name='ms per scan'),
-                             rrb.TimeSeriesView(origin='health', name='odometry and mapping health'))
-        return rrb.Blueprint(rrb.Horizontal(rrb.Spatial3DView(origin='world', name='map'), plots,
-                                            column_shares=[3, 1]), collapse_panels=True)
+                             rrb.TimeSeriesView(origin='health/odometry_condition', name='odometry: stage condition'),
+                             rrb.TimeSeriesView(origin='health/odometry', name='odometry: matched, degenerate, lost'),
+                             rrb.TimeSeriesView(origin='health/mapping', name='mapping: iterations, degenerate'))
+        # Seen from behind and above the sensor, following it (orbit with the mouse).
+        eye = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=(-30.0, -18.0, 28.0), look_target=(0.0, 0.0, 0.0),
+                                eye_up=(0.0, 0.0, 1.0), tracking_entity='world/lidar')
+        scene = rrb.Spatial3DView(origin='world', name='map', background=(12, 14, 18), eye_controls=eye)
+        return rrb.Blueprint(rrb.Horizontal(scene, plots, column_shares=[3, 1]), collapse_panels=True)
 
     # ------------------------------------------------------------------------------------------- time
     def at_scan(self, index: int, stamp_ns: int) -> None:
@@ -96,13 +102,13 @@ class SceneLog:
     def scan(self, ground: np.ndarray, segmented: np.ndarray, outlier: np.ndarray) -> None:
         """The scan's points by label, sensor frame."""
         clouds = (ground, segmented, outlier)
-        self._classified('world/lidar/scan', clouds, (0, 1, 2), radius=0.03)
+        self._classified('world/lidar/scan', clouds, (0, 1, 2), radius=self.rr.Radius.ui_points(2.0))
 
     def features(self, corner: np.ndarray, surface: np.ndarray) -> None:
         """The scan's corner and surface features, sensor frame."""
-        self._classified('world/lidar/features', (corner, surface), (3, 4), radius=0.08)
+        self._classified('world/lidar/features', (corner, surface), (3, 4), radius=self.rr.Radius.ui_points(4.0))
 
-    def _classified(self, path: str, clouds, classes, radius: float) -> None:
+    def _classified(self, path: str, clouds, classes, radius) -> None:
         positions = np.concatenate([np.asarray(c)[:, :3] for c in clouds]).astype(np.float32)
         ids = np.repeat(np.array(classes, dtype=np.uint16), [len(c) for c in clouds])
         self.rec.log(path, self.rr.Points3D(positions, class_ids=ids, radii=radius))
@@ -122,7 +128,8 @@ class SceneLog:
         self._map_voxels = np.union1d(self._map_voxels, keys[new])
         fresh = xyz[first[new]]
         self.rec.log(f'world/map/{self._map_pieces:05d}',
-                     self.rr.Points3D(fresh.astype(np.float32), colors=_height_colours(fresh[:, 2]), radii=0.05))
+                     self.rr.Points3D(fresh.astype(np.float32), colors=_height_colours(fresh[:, 2]),
+                                      radii=self.rr.Radius.ui_points(1.5)))
         self._map_pieces += 1
         return int(new.sum())
 
@@ -134,17 +141,19 @@ class SceneLog:
     def ground_truth(self, poses: np.ndarray) -> None:
         """The whole true trajectory (poses in ``map``), logged once for every time."""
         self.rec.log('world/trajectory/ground_truth', self.rr.LineStrips3D(
-            [np.asarray(poses)[:, :3, 3]], colors=[TRAJECTORY_COLOURS['ground_truth']], radii=0.03), static=True)
+            [np.asarray(poses)[:, :3, 3]], colors=[TRAJECTORY_COLOURS['ground_truth']],
+            radii=self.rr.Radius.ui_points(2.0)), static=True)
 
     def keyframes(self, positions: np.ndarray) -> None:
         """Every keyframe's position in ``map``."""
         self.rec.log('world/keyframes', self.rr.Points3D(np.asarray(positions, dtype=np.float32),
-                                                         colors=[(255, 255, 255)], radii=0.12))
+                                                         colors=[(255, 80, 200)], radii=self.rr.Radius.ui_points(5.0)))
 
     def loop(self, index: int, start: np.ndarray, end: np.ndarray) -> None:
         """An accepted loop closure between two keyframe positions in ``map``."""
         self.rec.log(f'world/loops/{index:04d}', self.rr.LineStrips3D([np.array([start, end])],
-                                                                      colors=[(0, 230, 0)], radii=0.1))
+                                                                      colors=[(0, 230, 0)],
+                                                                      radii=self.rr.Radius.ui_points(4.0)))
 
     # ---------------------------------------------------------------------------------------- plots
     def scalar(self, path: str, value: float) -> None:
