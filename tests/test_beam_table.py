@@ -120,3 +120,14 @@ def test_rows_from_the_hdl64e_table_match_the_simulated_true_rings(hdl64e_record
     uniform = table.replace(sensor__beam_elevations=[])
     assert _row_match(bag, table) >= 0.99
     assert _row_match(bag, uniform) < 0.5   # (7 % on this recording: the uniform rows are shifted and compressed)
+
+
+def test_simulated_hdl64e_recordings_name_their_beams_and_other_recordings_keep_their_cache_keys():
+    from lego_loam_py.sim.simulator import SimConfig
+
+    vlp = SimConfig('campus', duration=8.0).to_dict()
+    assert 'beams' not in vlp and 'uniform_beams' not in vlp   # (so VLP-16 recordings keep their cache entries)
+    table, uniform = SimConfig('campus', preset='HDL-64E'), SimConfig('campus', preset='HDL-64E', uniform_beams=True)
+    assert table.to_dict()['beams'] == 'table' and uniform.to_dict()['beams'] == 'uniform'
+    assert table.cache_key() != uniform.cache_key()
+    assert '--uniform-beams' in uniform.command('out') and '--uniform-beams' not in table.command('out')

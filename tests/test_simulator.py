@@ -196,7 +196,12 @@ def test_other_presets_use_their_geometry(preset):
     model = LidarModel.from_preset(preset)
     geometry = SENSOR_PRESETS[preset]
     assert model.n_rings == geometry['n_scan'] and model.columns == geometry['horizon_scan']
-    assert np.allclose(np.diff(model.ring_elevations), geometry['ang_res_y'], atol=1e-5)
+    if geometry.get('beam_elevations'):   # a preset with a beam table (HDL-64E): those beams, or evenly spaced
+        assert model.ring_elevations == pytest.approx(geometry['beam_elevations'])
+        uniform = LidarModel.from_preset(preset, uniform_beams=True)
+        assert np.allclose(np.diff(uniform.ring_elevations), geometry['ang_res_y'], atol=1e-5)
+    else:
+        assert np.allclose(np.diff(model.ring_elevations), geometry['ang_res_y'], atol=1e-5)
     sweep = simulate_sweep(model, world.scene, world.trajectory, 0.0, np.random.default_rng(0))
     points = sweep.points
     assert points['ring'].max() == geometry['n_scan'] - 1 and points['ring'].min() == 0
