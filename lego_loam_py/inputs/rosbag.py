@@ -7,7 +7,6 @@ their header stamp; the ground truth is the simulator's ``ground_truth.tum`` bes
 """
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Iterator
 
@@ -96,8 +95,3 @@ class BagSource(Source):
     def close(self) -> None:
         self._reader.close()
 
-
-def print_notes(source: Source) -> None:
-    """The choices a source made on its own (a topic taken instead of a missing one), on stderr."""
-    for note in getattr(source, 'notes', ()):
-        print(f'note: {note}', file=sys.stderr)
