@@ -35,16 +35,16 @@ def test_viewer_save_on_the_campus_bag_holds_scan_map_and_trajectories_one_step_
     assert f'viewer recording: {rrd}' in done.stdout
     entities, steps = _entities_and_scan_steps(rrd)
     for entity in ('/world/lidar', '/world/lidar/scan', '/world/lidar/features', '/world/keyframes',
-                   '/world/trajectory/ground_truth', '/timings/imageProjection', '/timings/mapOptimization',
+                   '/world/trajectory/ground_truth', '/timings/scan', '/timings/mapping',
                    '/health/odometry', '/health/odometry_condition', '/health/mapping'):
         assert entity in entities, entity
     for kind in ('map', 'trajectory/fused', 'trajectory/odometry', 'trajectory/mapped'):
         assert any(e.startswith(f'/world/{kind}/') for e in entities), kind
     # One step per scan: the campus bag's 80 scans, each shown once, at 0..79.
     assert steps['/world/lidar/scan'] == set(range(80))
-    assert steps['/timings/imageProjection'] == set(range(80))
-    assert len(steps['/timings/mapOptimization']) == 20   # the mapping steps, at their scans
-    assert steps['/timings/mapOptimization'] <= set(range(80))
+    assert steps['/timings/scan'] == set(range(80))
+    assert len(steps['/timings/mapping']) == 20   # the mapping steps, at their scans
+    assert steps['/timings/mapping'] <= set(range(80))
     # The outputs are those of a run without the viewer.
     plain = subprocess.run([str(CLI), 'run', str(BAG), '-o', str(tmp_path / 'plain'), '--no-progress'],
                            capture_output=True, text=True, timeout=600)

@@ -50,8 +50,7 @@ class PipelineView:
         self._last_index = index
         scene = self.scene
         scene.at_scan(index, event.stamp_ns)
-        for stage, ms in event.timings_ms.items():
-            scene.scalar(f'timings/{stage}', ms)
+        scene.scalars('timings/scan', event.timings_ms)   # imageProjection, featureAssociation [ms]
         stats = getattr(event.features, 'odometry', None)
         if stats is not None:
             scene.scalars('health/odometry_condition', {'corner stage': stats.corner_condition,
@@ -99,7 +98,7 @@ class PipelineView:
             scene.map_points(_to_map(event.keyframe_cloud))
         scene.keyframes(_to_map(event.keyframe_positions))
         step = event.step
-        scene.scalar('timings/mapOptimization', event.cpu_ms)
+        scene.scalars('timings/mapping', {'mapOptimization': event.cpu_ms})
         scene.scalars('health/mapping', {'iterations': step.iterations, 'degenerate': float(step.degenerate)})
 
     def _loop(self, event: LoopChecked) -> None:
