@@ -122,10 +122,15 @@ class SceneLog:
         cells = np.floor(xyz / MAP_VOXEL).astype(np.int64) + (1 << 20)   # (within +-400 km of the origin)
         keys = (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
         keys, first = np.unique(keys, return_index=True)
-        new = ~np.isin(keys, self._map_voxels, assume_unique=True)
+        # Membership in the sorted voxels of the map by binary search: O(new points x log map), not a sort of the
+        # whole map per keyframe; the new keys go in at their places (one copy of the key array).
+        at = np.searchsorted(self._map_voxels, keys)
+        known = at < len(self._map_voxels)
+        known[known] = self._map_voxels[at[known]] == keys[known]
+        new = ~known
         if not new.any():
             return 0
-        self._map_voxels = np.union1d(self._map_voxels, keys[new])
+        self._map_voxels = np.insert(self._map_voxels, at[new], keys[new])
         fresh = xyz[first[new]]
         self.rec.log(f'world/map/{self._map_pieces:05d}',
                      self.rr.Points3D(fresh.astype(np.float32), colors=_height_colours(fresh[:, 2]),
