@@ -36,10 +36,11 @@ COMMANDS = [
     ('convert', 'lego_loam_py.bag.convert', 'convert Velodyne/Ouster pcaps or raw-packet bags into PointCloud2 bags',
      'Convert a real recording (Velodyne VLP-16 pcap, single or dual return; Ouster pcap + metadata JSON; ROS 1/2 bag '
      'of velodyne_msgs/VelodyneScan raw packets) into a bag of PointCloud2 sweeps with ring and per-point time.'),
-    ('run', 'lego_loam_py.offline', 'run the pipeline on a bag in one process, without DDS (offline mode)',
-     'Run imageProjection, featureAssociation, mapOptimization and transformFusion on a bag in one process, as '
-     'fast as the machine goes; writes the trajectory (TUM, REP-103 and camera_init axes), the map (PCD), a PNG '
-     'and a summary with the accuracy against a ground truth found beside the bag.'),
+    ('run', 'lego_loam_py.offline', 'run the pipeline on a recording in one process, without DDS (offline mode)',
+     'Run imageProjection, featureAssociation, mapOptimization and transformFusion on a recording (a ROS bag, a '
+     'KITTI sequence, a folder of PCD/PLY/BIN scans or a Velodyne/Ouster pcap) in one process, as fast as the '
+     'machine goes; writes the trajectory (TUM, REP-103 and camera_init axes; KITTI with --format kitti), the map '
+     '(PCD), a PNG and a summary with the accuracy against the recording\'s ground truth when it has one.'),
     ('launch', 'lego_loam_py.launch', 'start the four nodes as supervised processes (optionally player, recorder)',
      'Start imageProjection, featureAssociation, mapOptimization and transformFusion as separate processes with one '
      'parameter file (ros2 launch is not installable from PyPI), optionally replaying a bag with /clock '
