@@ -240,3 +240,20 @@ def test_a_run_whose_worker_is_killed_mid_run_is_run_again(tmp_path, recordings,
     assert status['pid'] != worker
     for child in children:   # the killed worker's run did not live on
         assert not Path(f'/proc/{child}').exists() or 'zombie' in Path(f'/proc/{child}/status').read_text()
+
+
+def test_a_batch_reads_what_run_reads_with_its_loader_options(tmp_path, recordings, client):
+    """A KITTI sequence folder (the campus recording exported) and its bag in one batch: run's loader options
+    reach every run, enter its identity, and the folder's runs are evaluated against its poses.txt."""
+    from lego_loam_py.sim.export import export_recording
+
+    folder = tmp_path / 'seq00'
+    export_recording(recordings[0], folder, 'kitti')
+    result = run_batch([folder], None, tmp_path / 'batch', client=client, progress=False,
+                       run_args=['--format', 'kitti'])
+    assert not result.failed and result.records[0]['ate_rmse_m'] is not None
+    run_dir = tmp_path / 'batch' / 'runs' / result.records[0]['run']
+    assert (run_dir / 'trajectory_kitti.txt').is_file()
+    assert '--format kitti' in (run_dir / 'command.txt').read_text()
+    plain = plan_runs([folder], [ParameterSet()], 'on', VERSION)[0]
+    assert plan_runs([folder], [ParameterSet()], 'on', VERSION, ['--format', 'kitti'])[0].run_id != plain.run_id

@@ -7,6 +7,8 @@ import sys
 from pathlib import Path
 
 from lego_loam_py.errors import UsageError
+from lego_loam_py.inputs import SOURCE_KINDS
+from lego_loam_py.outputs import TRAJECTORY_FORMATS
 
 __all__ = ['add_arguments', 'main']
 
@@ -33,6 +35,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='a run still going after this many seconds is stopped and failed (default 3600)')
     parser.add_argument('--retries', type=int, default=1,
                         help='times a failed run is tried again, in this batch or when resuming (default 1)')
+    inputs = parser.add_argument_group('recordings other than bags (as for run)')
+    inputs.add_argument('--dataloader', choices=SOURCE_KINDS, default=None, help='force the kind of every recording')
+    inputs.add_argument('--rate-hz', type=float, default=None, help='scans per second of folders without times.txt')
+    inputs.add_argument('--model', choices=['auto', 'VLP-16'], default=None, help="a Velodyne pcap's model")
+    parser.add_argument('--format', choices=TRAJECTORY_FORMATS, default=None, dest='trajectory_format',
+                        help='trajectory files besides TUM (as for run)')
     parser.add_argument('--report', type=Path, default=None, metavar='DIR',
                         help='only rebuild the report of the batch folder DIR from its finished runs')
     parser.add_argument('--no-progress', action='store_true', help='no progress bar')
@@ -54,7 +62,12 @@ def main(args: argparse.Namespace) -> int:
     recordings = expand_recordings(args.recordings, args.list)
     if args.workers is not None and args.workers < 1:
         raise UsageError(f'--workers must be at least 1, got {args.workers}')
+    run_args = [*(['--dataloader', args.dataloader] if args.dataloader else []),
+                *(['--rate-hz', f'{args.rate_hz:g}'] if args.rate_hz is not None else []),
+                *(['--model', args.model] if args.model else []),
+                *(['--format', args.trajectory_format] if args.trajectory_format else [])]
     result = run_batch(recordings, parameter_grid(args.param, args.params_file), args.output, imu=args.imu,
+                       run_args=run_args,
                        scheduler=args.scheduler, workers=args.workers, timeout_s=args.timeout,
                        retries=args.retries, progress=not args.no_progress,
                        command_line=['lego_loam_py', *sys.argv[1:]] if sys.argv[1:2] == ['batch'] else None)

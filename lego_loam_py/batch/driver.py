@@ -103,20 +103,22 @@ def _pending(specs: Sequence[RunSpec], out: Path, retries: int) -> tuple[list[tu
 def run_batch(recordings: Sequence[str | Path], parameter_sets: Sequence[ParameterSet] | None = None,
               out: str | Path = 'batch', *, imu: str = 'on', client=None, scheduler: str | None = None,
               workers: int | None = None, timeout_s: float | None = 3600.0, retries: int = 1,
-              progress: bool = True, command_line: Sequence[str] | None = None) -> BatchResult:
+              progress: bool = True, command_line: Sequence[str] | None = None,
+              run_args: Sequence[str] = ()) -> BatchResult:
     """Run every recording x parameter set x IMU mode (``'on'``, ``'off'``, ``'both'``) and write the report.
 
     ``recordings``: paths or glob patterns. ``parameter_sets``: from :func:`~lego_loam_py.batch.plan.
     parameter_grid` (default: the defaults). Runs go to ``client`` (a ``dask.distributed.Client``), else to
     the scheduler at ``scheduler``, else to a new :func:`local_cluster` of ``workers`` workers, closed at the
-    end. Runs finished by an earlier batch into ``out`` are reused; failed ones are tried again.
+    end. Runs finished by an earlier batch into ``out`` are reused; failed ones are tried again. ``run_args``:
+    more arguments of every ``lego_loam_py run`` (how to read the recordings, e.g. ``['--dataloader', 'kitti']``).
     """
     if retries < 0:
         raise UsageError(f'retries must be 0 or more, got {retries}')
     out = Path(out).resolve()
     paths = expand_recordings([str(r) for r in recordings])
     version = code_version()
-    specs = plan_runs(paths, list(parameter_sets or [ParameterSet()]), imu, version)
+    specs = plan_runs(paths, list(parameter_sets or [ParameterSet()]), imu, version, run_args)
     out.mkdir(parents=True, exist_ok=True)
     lock = _acquire_lock(out)
     try:

@@ -38,7 +38,7 @@ _PR_SET_PDEATHSIG = 1
 def run_command(spec: RunSpec, output: Path, params_file: Path) -> list[str]:
     """The ``lego_loam_py run`` arguments of a run (what a user would type, with every parameter in a file)."""
     command = ['lego_loam_py', 'run', str(spec.recording), '-o', str(output), '--params-file', str(params_file),
-               '--no-progress']
+               '--no-progress', *spec.run_args]
     return command + ([] if spec.imu else ['--no-imu'])
 
 

@@ -49,6 +49,7 @@ class RunSpec:
     imu: bool
     flat_params: Mapping[str, Any]
     run_id: str
+    run_args: tuple[str, ...] = ()   # more arguments of ``run``: how to read the recording (--dataloader, ...)
 
     @property
     def name(self) -> str:
@@ -58,7 +59,8 @@ class RunSpec:
     def describe(self) -> dict:
         """What the report shows of the run's inputs (JSON-ready)."""
         return {'recording': str(self.recording), 'params_file': str(self.parameters.params_file or ''),
-                'overrides': dict(self.parameters.overrides), 'imu': self.imu, 'run_id': self.run_id}
+                'overrides': dict(self.parameters.overrides), 'imu': self.imu, 'run_args': list(self.run_args),
+                'run_id': self.run_id}
 
 
 def recording_name(path: Path) -> str:
@@ -174,9 +176,10 @@ def _fingerprint(recording: Path) -> list:
 
 
 def plan_runs(recordings: Iterable[Path], parameter_sets: Sequence[ParameterSet], imu: str = 'on',
-              version: Mapping[str, Any] | None = None) -> list[RunSpec]:
-    """Every recording x parameter set x IMU mode (``on``, ``off`` or ``both``), with its run id. Parameters
-    are resolved (and checked) here, once, so that a typo fails before anything starts."""
+              version: Mapping[str, Any] | None = None, run_args: Sequence[str] = ()) -> list[RunSpec]:
+    """Every recording x parameter set x IMU mode (``on``, ``off`` or ``both``), with its run id; ``run_args``
+    go to every ``run`` (how to read the recordings: ``--dataloader``, ``--rate-hz``, ...) and into the id.
+    Parameters are resolved (and checked) here, once, so that a typo fails before anything starts."""
     if imu not in IMU_MODES:
         raise UsageError(f"--imu must be one of {', '.join(IMU_MODES)}, got '{imu}'")
     version = dict(version or code_version())
@@ -186,8 +189,9 @@ def plan_runs(recordings: Iterable[Path], parameter_sets: Sequence[ParameterSet]
         fingerprint = _fingerprint(recording)
         for parameters, flat in zip(parameter_sets, resolved):
             for use_imu in IMU_MODES[imu]:
-                identity = json.dumps({'recording': fingerprint, 'params': flat, 'imu': use_imu,
-                                       'version': version}, sort_keys=True, default=str)
-                specs.append(RunSpec(recording, parameters, use_imu, flat,
-                                     hashlib.sha256(identity.encode()).hexdigest()))
+                identity = {'recording': fingerprint, 'params': flat, 'imu': use_imu, 'version': version}
+                if run_args:   # (absent when empty: the ids of plain bag runs stay as they were)
+                    identity['run_args'] = list(run_args)
+                digest = hashlib.sha256(json.dumps(identity, sort_keys=True, default=str).encode()).hexdigest()
+                specs.append(RunSpec(recording, parameters, use_imu, flat, digest, tuple(run_args)))
     return specs
