@@ -147,6 +147,10 @@ class Pipeline:
         finally:
             self.close()
         self.record.counts['keyframes'] = len(self.mo.keyframes) if self.mapping else 0
+        if self.mapping and self.params.loop_closure.loop_closure_enable_flag:
+            # (a loop verified and left waiting for a second one that never came counts as rejected)
+            accepted = sum(loop.accepted for loop in self.mo.loops)
+            self.record.counts.update(loops_closed=accepted, loops_rejected=len(self.mo.loops) - accepted)
         return self.record
 
     def close(self) -> None:
@@ -206,7 +210,7 @@ class _Mapped:
 
 @dataclass(frozen=True)
 class _LoopChecked:
-    """A loop-closure check; the future gives (LoopResult or None, wall ms)."""
+    """A loop-closure check; the future gives (LoopResult or None, CPU ms)."""
 
     future: Future
 
@@ -225,6 +229,10 @@ class _BackEnd:
         self.mo, self.fusion, self.result, self.warn = mo, fusion, result, warn
         self.continuity = OdometryContinuity()   # (used on the mapping worker only)
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix='mapping') if threaded else None
+        # CPU time of mapping and loop closure: the worker thread's own (wall time would count its waits for the
+        # GIL while the main thread runs the next scans), or the whole process's when nothing else runs beside
+        # them (then the threads of open3d and scipy count too).
+        self._cpu_time = time.thread_time if threaded else time.process_time
         self._imu: list[tuple] = []
         self._events: deque[_Fuse | _Mapped | _LoopChecked] = deque()
 
@@ -255,9 +263,7 @@ class _BackEnd:
             return
 
         def step():
-            # CPU time of the thread: on the worker, wall time would also count the waits for the GIL while
-            # the main thread runs the next scans.
-            t = time.thread_time()
+            t = self._cpu_time()
             transform_sum = inputs[0]
             pose = pose6_to_matrix(transform_sum)
             jump = self.continuity.check(stamp, pose)
@@ -269,16 +275,16 @@ class _BackEnd:
             if problem is not None:   # the same self-check as the node's: reset what is poisoned, keep the map
                 self.warn(f'mapping step at {stamp * 1e-9:.3f} s: {problem}: {self.mo.heal()}')
                 mapped = None
-            return mapped, (time.thread_time() - t) * 1e3
+            return mapped, (self._cpu_time() - t) * 1e3
 
         self._events.append(_Mapped(stamp, self._submit(step)))
 
     def loop_closure(self) -> None:
         def close():
-            t = time.perf_counter()
+            t = self._cpu_time()
             candidate = self.mo.detect_loop()
             loop = self.mo.close_loop(candidate) if candidate is not None else None
-            return loop, (time.perf_counter() - t) * 1e3
+            return loop, (self._cpu_time() - t) * 1e3
 
         self._events.append(_LoopChecked(self._submit(close)))
 
@@ -302,9 +308,7 @@ class _BackEnd:
                     result.mapped_stamps.append(event.stamp_ns)
                     result.mapped.append(aft)
             else:
-                loop, ms = event.future.result()
-                if loop is not None:
-                    result.count('loops_closed' if loop.accepted else 'loops_rejected')
+                _, ms = event.future.result()
                 result.time('loop_closure', ms)
 
     def close(self) -> None:
