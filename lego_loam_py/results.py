@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     from lego_loam_py.evaluation import TrajectoryMetrics
     from lego_loam_py.supervisor import ProcessResult
 
-__all__ = ['TimingStats', 'MapToScene', 'RunOutputs', 'OfflineSummary', 'DemoSummary']
+__all__ = ['TimingStats', 'MapToScene', 'RunOutputs', 'LoopClosures', 'OfflineSummary', 'DemoSummary']
 
 
 @dataclass(frozen=True)
@@ -51,6 +51,46 @@ class MapToScene:
     median_m: float
     p90_m: float
     points: int     # map points measured
+
+
+@dataclass(frozen=True)
+class LoopClosures:
+    """The loops mapOptimization closed and turned down. ``loops``: one dict per accepted loop, in the order they
+    went into the pose graph: ``time_s`` (of the newest keyframe, since the first keyframe), ``latest`` and
+    ``candidate`` (keyframe indices and stamps [ns]), ``detector`` ('radius' or 'scan_context'), ``score``
+    (descriptor distance, 0 same .. 1 unrelated; None for the radius search), ``rmse_m`` and ``overlap`` of the
+    registration, ``correction_m`` / ``correction_deg`` (how far the loop said the newest keyframe was from where
+    the graph had it) and ``applied_m`` (how far it moved when the loops went in)."""
+
+    accepted: int
+    rejected: int                     # verified and turned down, or never confirmed by a second loop
+    rejected_because: dict[str, int]  # first word of the reason -> count ('overlap', 'rmse', 'correction', ...)
+    loops: list[dict]
+
+    @classmethod
+    def of(cls, loops: Sequence, first_stamp_ns: int) -> LoopClosures:
+        """From a mapper's ``loops`` (:class:`lego_loam_py.core.loop_closure.LoopResult`)."""
+        accepted = [loop for loop in loops if loop.accepted]
+        reasons: dict[str, int] = {}
+        for loop in loops:
+            if not loop.accepted:
+                key = loop.reason.split()[0] if loop.reason else 'unknown'
+                reasons[key] = reasons.get(key, 0) + 1
+        return cls(accepted=len(accepted), rejected=len(loops) - len(accepted), rejected_because=reasons,
+                   loops=[dict(time_s=round((loop.latest_stamp_ns - first_stamp_ns) * 1e-9, 3), **loop.summary())
+                          for loop in accepted])
+
+    def lines(self) -> list[str]:
+        """The summary's lines about them."""
+        because = ', '.join(f'{k} {v}' for k, v in sorted(self.rejected_because.items()))
+        out = [f'loop closures: {self.accepted} accepted, {self.rejected} rejected' + (f' ({because})' if because
+                                                                                       else '')]
+        for loop in self.loops:
+            score = f", score {loop['score']:.3f}" if loop['score'] is not None else ''
+            out.append(f"  t {loop['time_s']:7.1f} s  keyframe {loop['latest']} -> {loop['candidate']} "
+                       f"({loop['detector']}{score}), rmse {loop['rmse_m']:.3f} m, overlap {loop['overlap']:.2f}, "
+                       f"correction {loop['correction_m']:.3f} m / {loop['correction_deg']:.2f} deg")
+        return out
 
 
 @dataclass
@@ -102,6 +142,7 @@ class OfflineSummary(_Summary):
     wall_time_s: float
     bag_duration_s: float                   # of the data processed
     outputs: RunOutputs = field(default_factory=RunOutputs)
+    loop_closures: LoopClosures | None = None   # None: loop closure off (or no mapping)
 
     @property
     def realtime_factor(self) -> float:
@@ -112,7 +153,8 @@ class OfflineSummary(_Summary):
         return dict(bag=self.bag, mode=self.mode, counts=self.counts,
                     timings_ms={name: t.as_dict() for name, t in self.timings_ms.items()},
                     wall_time_s=self.wall_time_s, bag_duration_s=self.bag_duration_s,
-                    realtime_factor=self.realtime_factor, **self.outputs.as_dict())
+                    realtime_factor=self.realtime_factor, **self.outputs.as_dict(),
+                    **({} if self.loop_closures is None else {'loop_closures': asdict(self.loop_closures)}))
 
 
 @dataclass

@@ -184,3 +184,17 @@ def test_scan_context_config_follows_the_parameters():
     closer = LoopCloser(Params().replace(loop_closure__scan_context_rings=10,
                                          loop_closure__scan_context_sectors=36).loop_closure)
     assert closer.places.config == ScanContextConfig(rings=10, sectors=36, max_radius=50.0)
+
+
+def test_loop_markers_join_the_keyframes_of_each_accepted_loop():
+    from std_msgs.msg import Header
+
+    from lego_loam_py.ros.map_optimization_node import loop_markers
+
+    positions = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.5, 0.0], [0.2, 0.1, 30.0]])
+    markers = loop_markers(Header(frame_id='camera_init'), positions, [(3, 0), (2, 1)]).markers
+    clear, lines, ends = markers
+    assert clear.action == clear.DELETEALL and lines.type == lines.LINE_LIST and ends.type == ends.SPHERE_LIST
+    assert [(p.x, p.y, p.z) for p in lines.points] == [(0.2, 0.1, 30.0), (0.0, 0.0, 0.0), (2.0, 0.5, 0.0),
+                                                       (1.0, 0.0, 0.0)]
+    assert all(m.header.frame_id == 'camera_init' for m in markers)

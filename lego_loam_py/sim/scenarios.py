@@ -11,6 +11,8 @@
                pillars, side openings into rooms; a handheld lidar at 1.7 m with walking bob and sway.
 ``aggressive`` a campus-like area driven hard: straights at 8 m/s, hairpins and chicanes with yaw rates
                up to 90 deg/s and up to ~1 g of lateral acceleration: the scenario where deskewing matters.
+``rows``       a city block between rows of identical buildings, poles and cars (every 26 m), a lap and a
+               half: repeated structure where false loop closures tempt.
 =============  ==============================================================================================
 
 The seed fixes the scenery (placement, sizes, materials) and, in the simulator, the noise; the roads and
@@ -717,6 +719,59 @@ def _build_corridor(seed: int) -> World:
                  SCENARIOS['corridor'].description, _facts(path, speed, trajectory))
 
 
+# -------------------------------------------------------------------------------------------- city rows
+
+_ROWS_HALF = (80.0, 25.0)   # centre line of the block loop: rectangle half-extents [m]
+_ROWS_PERIOD = 26.0         # identical buildings (and poles, cars) repeat every this along the long streets [m]
+
+
+def _build_rows(seed: int) -> World:
+    """A city block driven around: along both long streets, rows of identical buildings, lamp posts and parked
+    cars repeat every :data:`_ROWS_PERIOD` on both sides, so places one period apart (and on the other street,
+    seen the other way round) look alike; only the two short streets, lined with trees, tell them apart. The
+    drive is a lap and a half: the second half-lap runs over the first, where false loops tempt."""
+    hx, hy = _ROWS_HALF
+    path = ClosedPath(_rounded_rectangle(hx, hy, 12.0, step=2.0))
+    terrain = Terrain()
+    rng = scenario_rng(seed, 'rows-scene')
+    builder = SceneBuilder()
+    clearance = _Clearance(path)
+    polyline = path.polyline(0.5)
+    x_range, y_range = _extent(polyline, 70.0)
+    road, sidewalk = 4.5, 7.1
+    asphalt, concrete, grass = (material_index(m) for m in ('asphalt', 'concrete', 'grass'))
+
+    def ground_material(centroids: np.ndarray) -> np.ndarray:
+        d = clearance.distance(centroids)
+        return np.where(d < road, asphalt, np.where(d < sidewalk, concrete, grass)).astype(np.uint8)
+
+    _ground(builder, terrain, x_range, y_range, 1.0, ground_material)
+    _add_curbs(builder, terrain, path, clearance, road)
+    slots = np.arange(-hx + 14.0, hx - 13.0, _ROWS_PERIOD)
+    for street_y in (-hy, hy):
+        for side in (-1.0, 1.0):
+            for x in slots:   # the same building, pole and car (same random draws) in every slot
+                _add_building(builder, terrain, np.array([x, street_y + side * 18.0]), 0.0, 20.0, 10.0, 12.0,
+                              'concrete', scenario_rng(0, 'rows-building'))
+                _add_pole(builder, terrain, np.array([x + 0.5 * _ROWS_PERIOD, street_y + side * (road + 1.0)]),
+                          0.5 * math.pi * (1.0 - side), sign=False)
+                if side > 0:
+                    _add_car(builder, terrain, np.array([x, street_y + side * (road - 1.25)]), 0.0,
+                             scenario_rng(0, 'rows-car'))
+    # The short streets: trees of random sizes and places, the only thing that tells the two ends apart.
+    for end_x in (-hx, hx):
+        for _ in range(14):
+            xy = np.array([end_x + np.sign(end_x) * rng.uniform(sidewalk + 1.0, 30.0), rng.uniform(-hy - 20, hy + 20)])
+            if clearance.distance(_disc_samples(xy, 1.5)).min() > sidewalk:
+                _add_tree(builder, terrain, xy, rng, conifer=rng.random() < 0.3, trunk_radius=rng.uniform(0.15, 0.3),
+                          height=rng.uniform(3.0, 6.0), crown_radius=rng.uniform(1.5, 3.0))
+    scene = builder.build()
+    speed = SpeedProfile(path, cruise_speed=3.0, max_lateral_acceleration=0.6, smoothing=6.0)
+    trajectory = PathTrajectory(path, speed, terrain, sensor_height=1.8, wheelbase=2.7, track=1.6)
+    return World('rows', seed, scene, trajectory, _whole_scans(1.5 * speed.lap_time),
+                 SCENARIOS['rows'].description, _facts(path, speed, trajectory))
+
+
 # ------------------------------------------------------------------------------------------------- registry
 
 def _whole_scans(seconds: float, scan_period: float = 0.1) -> float:
@@ -752,6 +807,9 @@ SCENARIOS: dict[str, ScenarioInfo] = {
                              _build_corridor),
     'aggressive': ScenarioInfo('aggressive', 'campus-like circuit driven hard: 8 m/s straights, hairpins and a '
                                'chicane, yaw rates up to 90 deg/s: deskewing matters', _build_aggressive),
+    'rows': ScenarioInfo('rows', 'city block loop (~400 m, a lap and a half) between rows of identical buildings, '
+                         'lamp posts and parked cars repeating every 26 m: places that look alike tempt false '
+                         'loops; car-mounted lidar at 1.8 m, ~3 m/s', _build_rows),
 }
 
 
