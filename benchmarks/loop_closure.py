@@ -35,6 +35,7 @@ from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix  # no
 from lego_loam_py.core.params import Params, default_params_file, load_params  # noqa: E402
 from lego_loam_py.evaluation import evaluate  # noqa: E402
 from lego_loam_py.offline import run_bag  # noqa: E402
+from lego_loam_py.results import LoopClosures  # noqa: E402
 from lego_loam_py.sim.output import load_ground_truth  # noqa: E402
 
 FALSE_LOOP_M, FALSE_LOOP_DEG = 0.5, 2.0
@@ -83,7 +84,9 @@ def closure_errors(mapper, ground_truth) -> list[dict]:
         error = pose_error(camera_pose_to_lidar(loop.relative), true_relative)
         before = pose_error(camera_pose_to_lidar(loop.relative_before), true_relative)
         error.update(latest=loop.latest, candidate=loop.candidate, time_s=(stamps[loop.latest] - stamps[0]) * 1e-9,
-                     fitness=float(loop.fitness), variances=[float(v) for v in loop.variances],
+                     fitness=float(loop.fitness), detector=loop.detector, overlap=float(loop.overlap),
+                     variances=[float(v) for v in (loop.variances if loop.variances is not None else
+                                                   np.diag(np.linalg.inv(loop.information)))],
                      drift_before_m=before['translation_m'], drift_before_deg=before['rotation_deg'],
                      false=bool(error['translation_m'] > FALSE_LOOP_M or error['rotation_deg'] > FALSE_LOOP_DEG))
         out.append(error)
@@ -105,6 +108,8 @@ def run_one(bag: Path, mode: str, imu: bool) -> dict:
     closures = closure_errors(mapper, ground_truth) if params.loop_closure.loop_closure_enable_flag else []
     mapping_ms = float(np.sum(result.timings_ms.get('mapOptimization', [0.0])))
     loop_ms = float(np.sum(result.timings_ms.get('loop_closure', [0.0])))
+    detection_ms = float(np.sum(result.timings_ms.get('loop_detection', [0.0])))
+    verification = result.timings_ms.get('loop_verification', [])
     return dict(bag=bag.name, mode=mode, imu=imu, ate_published_m=published.ate_rmse_m,
                 ate_published_max_m=published.ate_max_m, ate_keyframes_m=keyframes.ate_rmse_m,
                 end_point_m=published.end_point_error_m, path_m=published.path_length_m,
@@ -112,6 +117,10 @@ def run_one(bag: Path, mode: str, imu: bool) -> dict:
                 false=sum(c['false'] for c in closures),
                 drift_before_m=closures[0]['drift_before_m'] if closures else float('nan'),
                 loop_cpu_share=loop_ms / mapping_ms if mapping_ms else float('nan'), wall_s=wall,
+                detection_share=detection_ms / mapping_ms if mapping_ms else float('nan'),
+                verifications=len(verification), rejected_because=LoopClosures.of(mapper.loops, 0).rejected_because
+                if params.loop_closure.loop_closure_enable_flag else {}, verification_ms_median=float(np.median(verification)) if
+                verification else float('nan'), mapping_steps=result.counts.get('mapping_steps', 0),
                 closures=closures)
 
 
@@ -145,12 +154,15 @@ def main() -> None:
                       f'{row["ate_keyframes_m"]:9.3f} {row["ate_published_max_m"]:7.3f} {row["accepted"]:4d} '
                       f'{row["rejected"]:4d} {row["false"]:5d} {row["drift_before_m"]:8.3f} '
                       f'{100 * row["loop_cpu_share"]:7.2f} {row["wall_s"]:7.1f}', flush=True)
+                print(f'    mapping {row["mapping_steps"]} steps; detection {100 * row["detection_share"]:.2f} % of '
+                      f'mapping CPU; {row["verifications"]} verifications, median {row["verification_ms_median"]:.0f} '
+                      f'ms CPU each; rejected: {row["rejected_because"]}', flush=True)
                 if args.closures:
                     for c in row['closures']:
                         print(f'    t {c["time_s"]:6.1f} s  kf {c["latest"]:4d} -> {c["candidate"]:4d}  error '
                               f'{c["translation_m"]:.3f} m {c["rotation_deg"]:.2f} deg (dz {c["dz_m"]:+.3f} m, roll '
                               f'{c["roll_deg"]:+.2f}, pitch {c["pitch_deg"]:+.2f}, yaw {c["yaw_deg"]:+.2f} deg)  '
-                              f'before {c["drift_before_m"]:.3f} m  fitness {c["fitness"]:.3f}  '
+                              f'before {c["drift_before_m"]:.3f} m  {c["detector"]} fit {c["fitness"]:.3f}  '
                               f'sigma {np.sqrt(c["variances"][0]):.3g} rad / {np.sqrt(c["variances"][3]):.3g} m'
                               f'{"  FALSE" if c["false"] else ""}', flush=True)
     if args.json:

@@ -196,6 +196,7 @@ class LoopCloser:
     confirmed: list[_Pending] = field(default_factory=list)    # in the graph, within the consistency window
     _tried: dict[int, int] = field(default_factory=dict)   # candidate stamp -> latest stamp when last tried
     _last_verified_ns: int | None = None                   # latest keyframe of the last verification
+    _last_detected_ns: int | None = None                   # latest keyframe of the last detection
 
     def __post_init__(self):
         lc = self.params
@@ -223,6 +224,9 @@ class LoopCloser:
         self.describe(keyframes)
         latest = len(keyframes) - 1
         latest_kf = keyframes[latest]
+        if latest_kf.stamp_ns == self._last_detected_ns and not self.pending:
+            return None   # no new keyframe since the last look: nothing new to find
+        self._last_detected_ns = latest_kf.stamp_ns
         stamps = np.array([kf.stamp_ns for kf in keyframes], dtype=np.int64)
         old = np.abs(stamps - latest_kf.stamp_ns) > lc.time_gap * 1e9
         if not old.any():
@@ -240,9 +244,12 @@ class LoopCloser:
             choices.append(('radius', int(near[np.argmin(distance[near])]), float('nan'), None))
         if choices and not self.pending and self._last_verified_ns in index_of:
             # Verifications are spaced along the path (they cost a registration each), unless a loop waits for
-            # its confirmation.
+            # its confirmation; wider once loops went in here.
+            recently_closed = any(latest_kf.stamp_ns - p.latest_stamp_ns <= lc.consistency_window * 1e9
+                                  for p in self.confirmed)
+            spacing = lc.closed_verification_spacing if recently_closed else lc.verification_spacing
             steps = np.linalg.norm(np.diff(positions[index_of[self._last_verified_ns]:], axis=0), axis=1)
-            if steps.sum() < lc.verification_spacing:
+            if steps.sum() < spacing:
                 return None
         for detector, candidate, score, yaw in choices:
             previous = self._tried.get(int(stamps[candidate]))
@@ -259,8 +266,7 @@ class LoopCloser:
         lc = self.params
         poses = {i: camera_pose_to_lidar(pose6_to_matrix(keyframes[i].pose6)) for i in
                  set(range(max(0, latest - lc.source_keyframes), latest + 1)) |
-                 set(range(max(0, candidate - lc.history_keyframe_search_num),
-                           min(latest, candidate + lc.history_keyframe_search_num + 1)))}
+                 set(range(max(0, candidate - lc.target_keyframes), min(latest, candidate + lc.target_keyframes + 1)))}
 
         def cloud_in(frame: int, ids) -> np.ndarray:
             to_frame = invert_pose(poses[frame])
@@ -272,9 +278,8 @@ class LoopCloser:
         source = cloud_in(latest, range(max(0, latest - lc.source_keyframes), latest + 1))
         source = voxel_downsample(np.column_stack([source, np.zeros(len(source))]).astype(np.float32),
                                   lc.history_keyframe_leaf_size)[:, :3].astype(np.float64)
-        near = range(max(0, candidate - lc.history_keyframe_search_num),
-                     min(latest, candidate + lc.history_keyframe_search_num + 1))
-        target = cloud_in(candidate, near)
+        target = cloud_in(candidate, range(max(0, candidate - lc.target_keyframes),
+                                           min(latest, candidate + lc.target_keyframes + 1)))
         target = voxel_downsample(np.column_stack([target, np.zeros(len(target))]).astype(np.float32),
                                   lc.history_keyframe_leaf_size)[:, :3].astype(np.float64)
         graph_relative = invert_pose(poses[candidate]) @ poses[latest]

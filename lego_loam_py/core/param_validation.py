@@ -168,3 +168,4 @@ def _validate(p: Params) -> None:
          'loop_closure.registration_distances', 'must be one or more positive distances [m]')
     need(0.0 <= lc.min_overlap <= 1.0, 'loop_closure.min_overlap', 'must be within 0..1')
     need(lc.source_keyframes >= 0, 'loop_closure.source_keyframes', 'must not be negative')
+    need(lc.target_keyframes >= 0, 'loop_closure.target_keyframes', 'must not be negative')

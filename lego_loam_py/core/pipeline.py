@@ -210,7 +210,7 @@ class _Mapped:
 
 @dataclass(frozen=True)
 class _LoopChecked:
-    """A loop-closure check; the future gives (LoopResult or None, CPU ms)."""
+    """A loop-closure check; the future gives (LoopResult or None, CPU ms of detection, of verification)."""
 
     future: Future
 
@@ -283,8 +283,9 @@ class _BackEnd:
         def close():
             t = self._cpu_time()
             candidate = self.mo.detect_loop()
+            detected = self._cpu_time()
             loop = self.mo.close_loop(candidate) if candidate is not None else None
-            return loop, (self._cpu_time() - t) * 1e3
+            return loop, (detected - t) * 1e3, (self._cpu_time() - detected) * 1e3
 
         self._events.append(_LoopChecked(self._submit(close)))
 
@@ -308,8 +309,11 @@ class _BackEnd:
                     result.mapped_stamps.append(event.stamp_ns)
                     result.mapped.append(aft)
             else:
-                _, ms = event.future.result()
-                result.time('loop_closure', ms)
+                loop, detection_ms, verification_ms = event.future.result()
+                result.time('loop_closure', detection_ms + verification_ms)
+                result.time('loop_detection', detection_ms)
+                if loop is not None:
+                    result.time('loop_verification', verification_ms)
 
     def close(self) -> None:
         if self._executor is not None:

@@ -70,15 +70,25 @@ def descriptor_distance(query: np.ndarray, others: np.ndarray) -> tuple[np.ndarr
     query = np.asarray(query, dtype=np.float64)
     others = np.asarray(others, dtype=np.float64).reshape(-1, *query.shape)
     sectors = query.shape[1]
-    # Every circular shift of every other descriptor: (M, shifts, rings, sectors).
-    index = (np.arange(sectors)[None, :] - np.arange(sectors)[:, None]) % sectors
-    shifted = others[:, :, index].transpose(0, 2, 1, 3)
-    dot = np.einsum('rs,mkrs->mks', query, shifted)
-    norms = np.linalg.norm(query, axis=0)[None, None, :] * np.linalg.norm(shifted, axis=2)
-    valid = norms > 0
-    cosine = np.where(valid, dot / np.where(valid, norms, 1.0), 0.0)
-    counted = valid.sum(axis=2)
-    similarity = np.where(counted > 0, cosine.sum(axis=2) / np.maximum(counted, 1), 0.0)
+
+    def unit_columns(grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        norm = np.linalg.norm(grid, axis=-2, keepdims=True)
+        filled = norm > 0
+        return np.where(filled, grid / np.where(filled, norm, 1.0), 0.0), filled[..., 0, :].astype(np.float64)
+
+    def correlate(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """sum_s a[..., s] b[m, ..., (s - k) % sectors] for every shift k, by FFT along the sectors."""
+        spectrum = np.fft.rfft(a, axis=-1)[None] * np.conj(np.fft.rfft(b, axis=-1))
+        if spectrum.ndim == 3:            # (M, rings, bins): sum over the rings
+            spectrum = spectrum.sum(axis=1)
+        return np.fft.irfft(spectrum, n=sectors, axis=-1)
+
+    query_unit, query_filled = unit_columns(query)
+    others_unit, others_filled = unit_columns(others)
+    # Per shift: the summed cosine of the column pairs, over the number of pairs filled in both.
+    cosine_sum = correlate(query_unit, others_unit)
+    counted = np.rint(correlate(query_filled, others_filled))
+    similarity = np.where(counted > 0, cosine_sum / np.maximum(counted, 1.0), 0.0)
     best = np.argmax(similarity, axis=1)
     distance = 1.0 - similarity[np.arange(len(others)), best]
     return distance, best
