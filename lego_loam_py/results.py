@@ -181,6 +181,7 @@ class DemoSummary(_Summary):
     interrupted: bool
     ready_after_s: float | None                 # from the start until every node was up (None: never)
     outputs: RunOutputs = field(default_factory=RunOutputs)
+    loop_closures: LoopClosures | None = None   # from mapOptimization's statistics (None: off, or none written)
 
     @property
     def integrated_fraction(self) -> float:
@@ -202,4 +203,5 @@ class DemoSummary(_Summary):
             processes=[dict(name=p.name, pid=p.pid, returncode=p.returncode, how=p.how, failure=p.failure)
                        for p in self.processes],
             failures=list(self.failures), interrupted=self.interrupted, ready_after_s=self.ready_after_s,
-            dropped=self.dropped, **self.outputs.as_dict())
+            dropped=self.dropped, **self.outputs.as_dict(),
+            **({} if self.loop_closures is None else {'loop_closures': asdict(self.loop_closures)}))

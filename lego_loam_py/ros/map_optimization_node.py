@@ -376,8 +376,11 @@ class MapOptimizationNode(LegoLoamNode):
         points = sum(len(kf.corner) + len(kf.surf) + len(kf.outlier) for kf in keyframes)
         nbytes = sum(kf.corner.nbytes + kf.surf.nbytes + kf.outlier.nbytes for kf in keyframes)
         out['map'] = dict(keyframes=len(keyframes), points=int(points), bytes=int(nbytes))
-        if self.params.loop_closure.loop_closure_enable_flag:
-            out['loop_closures'] = [loop.summary() for loop in list(self.core.loops) if loop.accepted]
+        if self.params.loop_closure.loop_closure_enable_flag and keyframes:
+            from dataclasses import asdict
+
+            from lego_loam_py.results import LoopClosures
+            out['loop_closures'] = asdict(LoopClosures.of(list(self.core.loops), keyframes[0].stamp_ns))
         return out
 
     def on_shutdown(self) -> None:
