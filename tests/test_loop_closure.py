@@ -235,7 +235,7 @@ def test_a_drifted_lap_of_the_yard_is_closed_with_right_loops_only():
     """1.25 laps with 0.05 deg/m of yaw drift: back at the start the mapper is ~1 m off. Loops found and verified
     on the way take out most of the newest keyframe's error (the drift after the last loop stays), and every
     accepted loop's constraint is within 0.1 m / 0.5 deg of the true relative pose, while the places that look
-    alike across the small yard (descriptor distances 0.19-0.29) are turned down by the drift gate."""
+    alike across the small yard (descriptor distances 0.19-0.29) are left out by the drift bound."""
     from lego_loam_py.core.frames import camera_pose_to_lidar, lidar_pose_to_camera, matrix_to_pose6, pose6_to_matrix
     from lego_loam_py.core.map_optimization import MapOptimization
 
@@ -261,7 +261,8 @@ def test_a_drifted_lap_of_the_yard_is_closed_with_right_loops_only():
     accepted = [loop for loop in mapper.loops if loop.accepted]
     assert error_before > 0.8
     assert len(accepted) >= 2 and error_after < 0.25 * error_before
-    assert any(loop.reason.startswith('correction') and loop.detector == 'scan_context' for loop in mapper.loops)
+    # Places alike 15-28 m from the graph's estimate were never registered: beyond the drift the path allows.
+    assert mapper.loop_closer.too_far > 0
     for loop in accepted:
         true_relative = np.linalg.inv(truth[loop.latest]) @ truth[loop.candidate]
         error = np.linalg.inv(true_relative) @ camera_pose_to_lidar(loop.relative)

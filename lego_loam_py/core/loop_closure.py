@@ -197,6 +197,7 @@ class LoopCloser:
     _tried: dict[int, int] = field(default_factory=dict)   # candidate stamp -> latest stamp when last tried
     _last_verified_ns: int | None = None                   # latest keyframe of the last verification
     _last_detected_ns: int | None = None                   # latest keyframe of the last detection
+    too_far: int = 0   # descriptor matches beyond the drift bound of the graph's estimate, never registered
 
     def __post_init__(self):
         lc = self.params
@@ -235,10 +236,21 @@ class LoopCloser:
         place_keys = np.array(self.places._keys, dtype=np.int64)
         allowed = np.isin(place_keys, stamps[old])
         choices = []
-        for match in self.places.query(self.places.descriptor(latest_kf.stamp_ns), allowed):
-            if match.distance <= lc.scan_context_threshold and match.key in index_of:
-                choices.append(('scan_context', index_of[match.key], match.distance, match.yaw))
         distance = np.linalg.norm(positions - positions[latest], axis=1)
+        path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
+        for match in self.places.query(self.places.descriptor(latest_kf.stamp_ns), allowed, count=3):
+            if match.distance > lc.scan_context_threshold or match.key not in index_of:
+                continue
+            candidate = index_of[match.key]
+            # A place that looks the same but lies farther from the graph's estimate than the drift over the path
+            # between them (and the registration's reach) allows is another place alike: not worth a registration.
+            reach = lc.max_drift_base + lc.max_drift_ratio * (path[latest] - path[candidate]) + \
+                lc.registration_distances[0]
+            if distance[candidate] > reach:
+                self.too_far += 1
+                continue
+            choices.append(('scan_context', candidate, match.distance, match.yaw))
+            break
         near = np.flatnonzero(old & (distance <= lc.history_keyframe_search_radius))
         if len(near):
             choices.append(('radius', int(near[np.argmin(distance[near])]), float('nan'), None))
