@@ -254,13 +254,13 @@ class LoopClosureParams:
     scan_context_max_radius: float = 50.0
     scan_context_threshold: float = 0.3
     # The registration's source: the latest keyframe and this many before it (a denser view of the place).
-    source_keyframes: int = 4
+    source_keyframes: int = 2
     # Verifications (a registration each) at most once per this much path of the newest keyframe [m], unless a
     # verified loop waits for a second one to confirm it; once loops went in (within consistency_window), once
     # per closed_verification_spacing: the place is closed, and each further loop costs a registration.
-    verification_spacing: float = 3.0
-    closed_verification_spacing: float = 20.0
-    target_keyframes: int = 15          # the registration's target: the candidate and this many either side
+    verification_spacing: float = 5.0
+    closed_verification_spacing: float = 40.0
+    target_keyframes: int = 10          # the registration's target: the candidate and this many either side
     registration_distances: tuple[float, ...] = (2.0, 1.0, 0.5)   # ICP correspondence distances in turn [m]
     registration_iterations: int = 20                            # per distance
     inlier_distance: float = 0.5        # a source point within this of the target after the fit is an inlier [m]
