@@ -287,3 +287,25 @@ def test_the_summary_lists_accepted_loops_and_counts_why_others_were_turned_down
     lines = loops.lines()
     assert lines[0] == 'loop closures: 1 accepted, 2 rejected (correction 1, pending 1)'
     assert 'keyframe 83 -> 3 (scan_context, score 0.004)' in lines[1] and 'correction 0.790 m / 3.95 deg' in lines[1]
+
+
+def test_the_original_method_is_kept_radius_candidate_icp_and_fitness_variances():
+    """method: original (what config/original.yaml selects when loop closure is switched on): the nearest old
+    keyframe within 7 m, point-to-point ICP, accepted on its fitness, variances = fitness on all six axes."""
+    from lego_loam_py.core.frames import lidar_pose_to_camera, matrix_to_pose6
+    from lego_loam_py.core.map_optimization import MapOptimization
+
+    stamps, truth, _, clouds = drive_around_the_yard(0.0, laps=1.1)
+    mapper = MapOptimization(Params().replace(loop_closure__method='original'))
+    empty = np.zeros((0, 4), np.float32)
+    for stamp, pose, cloud in zip(stamps, truth, clouds):
+        mapper.transform_aft = mapper.transform_tobe = matrix_to_pose6(lidar_pose_to_camera(pose))
+        mapper.latest_odometry_ns = int(stamp)
+        mapper.current_position = mapper.transform_aft[3:].copy()
+        mapper._save_keyframe(int(stamp), cloud, cloud, empty)
+    candidate = mapper.detect_loop()
+    assert candidate is not None and candidate.latest == len(stamps) - 1
+    assert np.linalg.norm(mapper._positions[candidate.candidate] - mapper._positions[candidate.latest]) <= 7.0
+    loop = mapper.close_loop(candidate)
+    assert loop.accepted and loop.fitness <= 0.3
+    np.testing.assert_array_equal(loop.variances, np.full(6, loop.fitness))
