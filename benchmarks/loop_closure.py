@@ -1,7 +1,7 @@
 """Loop closure against the simulator's ground truth: does it make the map better, never worse?
 
     .venv/bin/python benchmarks/loop_closure.py [--scenarios campus forest corridor aggressive ...]
-        [--imu both|on|off] [--modes off on original] [--closures] [--json out.json] [--seed N]
+        [--imu both|on|off] [--modes off on original] [--closures] [--json out.json] [--seed N] [--skip 0 1 3]
 
 For every scenario (generated into the cache on first use), IMU on and off, and each mode (``off``: loop closure
 off; ``on``: the defaults' loop closure; ``original``: the C++ original's loop closure, radius search + ICP with
@@ -93,12 +93,39 @@ def closure_errors(mapper, ground_truth) -> list[dict]:
     return out
 
 
-def run_one(bag: Path, mode: str, imu: bool) -> dict:
+def run_shifted(bag: Path, params: Params, imu: bool, skip: int):
+    """``run_bag`` without the first ``skip`` clouds (and the IMU samples before them): the mapping steps fall on
+    other scans, as a run over DDS may have them. The spread this gives is the run-to-run noise."""
+    from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
+    from lego_loam_py.core.imu import imu_sample
+    from lego_loam_py.core.pipeline import Pipeline
+
+    pipeline = Pipeline(params, mapping_thread=False, warn=lambda text: None)
+    clouds = 0
+    with BagReader(bag) as reader:
+        topics = [params.sensor.point_cloud_topic] + ([params.sensor.imu_topic] if imu else [])
+        for message in reader.messages(topics=topics):
+            msg = reader.deserialize(message)
+            if message.topic != params.sensor.point_cloud_topic:
+                if clouds >= skip:
+                    pipeline.add_imu(imu_sample(msg))
+                continue
+            clouds += 1
+            if clouds > skip:
+                stamp = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+                pipeline.process_scan(cloud_msg_to_array(msg), stamp)
+    return pipeline.finish()
+
+
+def run_one(bag: Path, mode: str, imu: bool, skip: int = 0) -> dict:
     params = mode_params(mode)
     ground_truth = load_ground_truth(bag)
     start = time.perf_counter()
     # Sequential, so that the CPU times of mapping and loop closure are the whole process's (open3d's threads too).
-    result = run_bag(bag, params, imu_topic=None if imu else '', progress=False, mapping_thread=False)
+    if skip:
+        result = run_shifted(bag, params, imu, skip)
+    else:
+        result = run_bag(bag, params, imu_topic=None if imu else '', progress=False, mapping_thread=False)
     wall = time.perf_counter() - start
     published = evaluate(ground_truth, result.trajectory(which='integrated'))
     mapper = result.mapper
@@ -134,6 +161,9 @@ def main() -> None:
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--closures', action='store_true', help='print every accepted closure')
     parser.add_argument('--json', help='write every figure here')
+    parser.add_argument('--skip', type=int, nargs='*', default=[0],
+                        help='also run without the first N clouds (the mapping steps on other scans): the spread '
+                             'of the results is the run-to-run noise')
     args = parser.parse_args()
     bags = [Path(b) for b in args.bags]
     if not bags:
@@ -146,9 +176,9 @@ def main() -> None:
     for bag in bags:
         name = bag.name if bag.name != bag.parent.name else bag.parent.name
         for imu in imu_modes:
-            for mode in args.modes:
-                row = run_one(bag, mode, imu)
-                row['bag'] = name
+            for mode, skip in [(m, k) for m in args.modes for k in args.skip]:
+                row = run_one(bag, mode, imu, skip)
+                row['bag'] = name if not skip else f'{name}+{skip}'
                 rows.append(row)
                 print(f'{name[:26]:<26s} {"on" if imu else "off":<4s} {mode:<9s} {row["ate_published_m"]:9.3f} '
                       f'{row["ate_keyframes_m"]:9.3f} {row["ate_published_max_m"]:7.3f} {row["accepted"]:4d} '
