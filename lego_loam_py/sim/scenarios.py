@@ -778,8 +778,8 @@ def _build_rows(seed: int) -> World:
 
 def _build_open_road(seed: int) -> World:
     """A 690 m stadium-shaped road across open fields driven at 8 m/s: two 250 m straights with nothing beside
-    them but a lamp post every 45 m and a few scattered trees, so the mapping has little to hold the motion along
-    the road and drifts; a cluster of buildings, cars and trees around the start, where the loop closes."""
+    them but a lamp post every 45 m and trees scattered over the fields, so the mapping has little to hold the
+    motion along the road and drifts; a cluster of buildings, cars and trees around the start, where the loop closes."""
     straight, radius = 250.0, 30.0
     waypoints = [(x, -radius) for x in np.arange(0.0, straight, 10.0)]
     waypoints += [(straight + radius * math.sin(a), -radius * math.cos(a)) for a in np.linspace(0.0, math.pi, 13)[1:-1]]
@@ -800,7 +800,7 @@ def _build_open_road(seed: int) -> World:
         normal = np.array([-tangent[1], tangent[0]])
         side = 1.0 if k % 2 == 0 else -1.0
         _add_pole(builder, terrain, path.xy(np.array([s]))[0] + side * 5.5 * normal, 0.0, sign=False)
-    for _ in range(40):   # scattered trees in the fields
+    for _ in range(100):   # scattered trees in the fields
         xy = np.array([rng.uniform(*x_range), rng.uniform(*y_range)])
         if clearance.distance(_disc_samples(xy, 2.0)).min() > 8.0:
             _add_tree(builder, terrain, xy, rng, conifer=rng.random() < 0.3, trunk_radius=rng.uniform(0.15, 0.35),
