@@ -124,7 +124,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('bag', help='ROS 1 .bag or ROS 2 bag directory with PointCloud2 (and optionally Imu)')
     parser.add_argument('-o', '--output', default=None, help='output directory (default: output/<bag name>)')
     add_parameter_arguments(parser, 'ROS 2 parameter file (default: built-in defaults)',
-                            'loop_closure.loop_closure_enable_flag:=false')
+                            'loop_closure.loop_closure_enable_flag:=true')
     parser.add_argument('--no-imu', action='store_true', help='ignore the IMU topic')
     parser.add_argument('--max-scans', type=_positive_int, default=None, help='stop after this many scans')
     parser.add_argument('--no-progress', action='store_true', help='no progress bar')

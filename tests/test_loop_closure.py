@@ -17,6 +17,7 @@ from lego_loam_py.core.pose_graph import PoseGraph
 from tests.support.sweeps import room_world, sweep
 
 LC = Params().loop_closure
+ON = Params().replace(loop_closure__loop_closure_enable_flag=True)
 
 
 def xyz(points) -> np.ndarray:
@@ -171,9 +172,9 @@ def test_a_right_loop_closes_a_long_drifted_chain_under_the_robust_kernel():
     assert before > 3.0 and after < 0.1 * before
 
 
-def test_loop_closure_is_on_by_default_and_original_yaml_switches_it_off():
+def test_the_verified_method_is_the_default_and_original_yaml_keeps_the_originals():
     default = Params().loop_closure
-    assert default.loop_closure_enable_flag and default.method == 'verified'
+    assert not default.loop_closure_enable_flag and default.method == 'verified'
     original = load_params(default_params_file().parent / 'original.yaml').loop_closure
     assert not original.loop_closure_enable_flag and original.method == 'original'
     assert (original.history_keyframe_search_radius, original.history_keyframe_fitness_score,
@@ -240,7 +241,7 @@ def test_a_drifted_lap_of_the_yard_is_closed_with_right_loops_only():
     from lego_loam_py.core.map_optimization import MapOptimization
 
     stamps, truth, drifted, clouds = drive_around_the_yard(0.05)
-    mapper = MapOptimization(Params())
+    mapper = MapOptimization(ON)
     empty = np.zeros((0, 4), np.float32)
     for k, (stamp, pose, cloud) in enumerate(zip(stamps, drifted, clouds)):
         if k:   # the mapper's own motion since its last keyframe (it keeps any correction a loop made)
@@ -296,7 +297,7 @@ def test_the_original_method_is_kept_radius_candidate_icp_and_fitness_variances(
     from lego_loam_py.core.map_optimization import MapOptimization
 
     stamps, truth, _, clouds = drive_around_the_yard(0.0, laps=1.1)
-    mapper = MapOptimization(Params().replace(loop_closure__method='original'))
+    mapper = MapOptimization(ON.replace(loop_closure__method='original'))
     empty = np.zeros((0, 4), np.float32)
     for stamp, pose, cloud in zip(stamps, truth, clouds):
         mapper.transform_aft = mapper.transform_tobe = matrix_to_pose6(lidar_pose_to_camera(pose))

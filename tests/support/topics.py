@@ -36,7 +36,7 @@ GATED = {
     '/laser_cloud_surround': ('mapOptimization', 'sensor_msgs/msg/PointCloud2', 'camera_init', None),
 }
 
-# Loop closure only (on by default, but they need a loop): /history_cloud, /corrected_cloud (camera_init), and,
+# Loop closure only (off by default): /history_cloud, /corrected_cloud (camera_init), and,
 # not in the original, /loop_closures (latched markers of the accepted loops).
 LOOP_CLOSURE = {
     '/history_cloud': ('mapOptimization', 'sensor_msgs/msg/PointCloud2', 'camera_init', None),
