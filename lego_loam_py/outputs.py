@@ -90,6 +90,8 @@ def result_lines(outputs: RunOutputs) -> list[str]:
     lines = [f"trajectory length {outputs.trajectory_length_m:.1f} m"]
     if outputs.accuracy is not None:
         lines.append('accuracy vs ground truth: ' + outputs.accuracy.summary())
+    if outputs.accuracy_optimized is not None:
+        lines.append('  after the loop closures (trajectory_optimized.tum): ' + outputs.accuracy_optimized.summary())
     elif outputs.accuracy_error is not None:
         lines.append(f"accuracy: {outputs.accuracy_error}")
     else:

@@ -103,6 +103,9 @@ class RunOutputs:
     map_files: dict[str, str] | None = None     # map name -> path of the file
     accuracy: TrajectoryMetrics | None = None   # against the ground truth beside the bag
     accuracy_error: str | None = None           # why there is a ground truth but no accuracy
+    # Loop closure on: the trajectory moved into the pose graph's final frame (trajectory_optimized.tum) and its
+    # accuracy; the published one keeps the poses before a closure in the drifted frame.
+    accuracy_optimized: TrajectoryMetrics | None = None
     map_to_scene: MapToScene | None = None
     png: str | None = None                      # path of trajectory.png
 
@@ -115,6 +118,8 @@ class RunOutputs:
             out['accuracy_error'] = self.accuracy_error
         if self.accuracy is not None:
             out['accuracy'] = self.accuracy.as_dict()
+        if self.accuracy_optimized is not None:
+            out['accuracy_optimized'] = self.accuracy_optimized.as_dict()
         if self.map_to_scene is not None:
             out['map_to_scene'] = asdict(self.map_to_scene)
         if self.png is not None:

@@ -310,3 +310,25 @@ def test_the_original_method_is_kept_radius_candidate_icp_and_fitness_variances(
     loop = mapper.close_loop(candidate)
     assert loop.accepted and loop.fitness <= 0.3
     np.testing.assert_array_equal(loop.variances, np.full(6, loop.fitness))
+
+
+def test_the_optimized_trajectory_moves_each_pose_with_its_last_keyframe():
+    """Keyframes at 1 s and 3 s, mapped at x = 1 and 3 m; the graph later moved the second by 0.5 m along y. Poses
+    before the first keyframe stay, those from 1 s on follow the first (unmoved), from 3 s on the second."""
+    from types import SimpleNamespace
+
+    from lego_loam_py.core.frames import camera_pose_to_lidar, lidar_pose_to_camera, matrix_to_pose6
+    from lego_loam_py.core.pipeline import RunResult
+
+    s = 1_000_000_000
+    camera = [lidar_pose_to_camera(lidar_pose(x, 0.0, 0.0)) for x in (0.5, 1.0, 2.0, 3.0, 3.5)]
+    record = RunResult(stamps=[0, 1 * s, 2 * s, 3 * s, 4 * s], integrated=camera,
+                       mapped_stamps=[1 * s, 3 * s], mapped=[camera[1], camera[3]])
+    moved = lidar_pose_to_camera(lidar_pose(3.0, 0.5, 0.0))
+    record.mapper = SimpleNamespace(keyframes=[SimpleNamespace(stamp_ns=1 * s, pose6=matrix_to_pose6(camera[1])),
+                                               SimpleNamespace(stamp_ns=3 * s, pose6=matrix_to_pose6(moved))])
+    stamps, poses = record.optimized_trajectory()
+    assert list(stamps) == [0, s, 2 * s, 3 * s, 4 * s]
+    np.testing.assert_allclose(poses[:, :3, 3], [[0.5, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0.5, 0], [3.5, 0.5, 0]],
+                               atol=1e-9)
+    assert np.allclose(camera_pose_to_lidar(camera[0]), poses[0])

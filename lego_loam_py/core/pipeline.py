@@ -74,6 +74,25 @@ class RunResult:
             poses = np.array([camera_pose_to_lidar(p) for p in poses]).reshape(-1, 4, 4)
         return np.array(self.stamps, dtype=np.int64) + self.pose_time_offset_ns, poses
 
+    def optimized_trajectory(self, axes: str = 'map') -> tuple[np.ndarray, np.ndarray]:
+        """The fused trajectory as the pose graph has it at the end: each pose moved by the correction its last
+        keyframe (at or before it) received since it was mapped (the loops closed later), so that the whole path
+        is in the corrected frame. Without a mapper, or without corrections, it is :meth:`trajectory`."""
+        stamps, poses = self.trajectory(axes='camera_init')
+        if self.mapper is not None and self.mapper.keyframes and len(poses):
+            mapped = dict(zip(self.mapped_stamps, self.mapped))
+            keyframes = [kf for kf in self.mapper.keyframes if kf.stamp_ns in mapped]
+            key_stamps = np.array([kf.stamp_ns for kf in keyframes], dtype=np.int64) + self.pose_time_offset_ns
+            corrections = np.array([pose6_to_matrix(kf.pose6) @ np.linalg.inv(mapped[kf.stamp_ns])
+                                    for kf in keyframes]).reshape(-1, 4, 4)
+            which = np.searchsorted(key_stamps, stamps, side='right') - 1
+            if len(keyframes):
+                moved = np.einsum('nij,njk->nik', corrections[np.maximum(which, 0)], poses)
+                poses = np.where((which >= 0)[:, None, None], moved, poses)
+        if axes == 'map':
+            poses = np.array([camera_pose_to_lidar(p) for p in poses]).reshape(-1, 4, 4)
+        return stamps, poses
+
 
 @dataclass(frozen=True)
 class ScanOutput:
