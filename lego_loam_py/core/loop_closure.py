@@ -248,10 +248,10 @@ class LoopCloser:
         self._last_detected_ns = latest_kf.stamp_ns
         stamps = np.array([kf.stamp_ns for kf in keyframes], dtype=np.int64)
         old = np.abs(stamps - latest_kf.stamp_ns) > lc.time_gap * 1e9
-        # Not the first keyframes: their map is one-sided, and the mapping's attitude settles over them (on the
-        # simulated campus the 5th keyframe is pitched 1 deg against the 1st, as seen from those after it), which
-        # a constraint to them would carry into the graph.
-        old[:lc.target_keyframes] = False
+        # Not the first keyframes: the mapping's attitude settles over them (on the simulated campus the 5th
+        # keyframe is pitched 1 deg against the 1st as seen from those after it), which a constraint to them would
+        # carry into the graph.
+        old[:lc.skip_first_keyframes] = False
         if not old.any():
             return None
         index_of = {int(s): i for i, s in enumerate(stamps)}

@@ -263,6 +263,9 @@ class LoopClosureParams:
     verification_spacing: float = 5.0
     closed_verification_spacing: float = 40.0
     target_keyframes: int = 10          # the registration's target: the candidate and this many either side
+    # The first keyframes are no candidates: the mapping's attitude settles over them (the 5th pitched 1 deg
+    # against the 1st on the simulated campus), and a loop to them carries that into the graph.
+    skip_first_keyframes: int = 5
     registration_distances: tuple[float, ...] = (2.0, 1.0, 0.5)   # ICP correspondence distances in turn [m]
     registration_iterations: int = 20                            # per distance
     inlier_distance: float = 0.5        # a source point within this of the target after the fit is an inlier [m]

@@ -169,3 +169,4 @@ def _validate(p: Params) -> None:
     need(0.0 <= lc.min_overlap <= 1.0, 'loop_closure.min_overlap', 'must be within 0..1')
     need(lc.source_keyframes >= 0, 'loop_closure.source_keyframes', 'must not be negative')
     need(lc.target_keyframes >= 0, 'loop_closure.target_keyframes', 'must not be negative')
+    need(lc.skip_first_keyframes >= 0, 'loop_closure.skip_first_keyframes', 'must not be negative')
