@@ -332,3 +332,21 @@ def test_the_optimized_trajectory_moves_each_pose_with_its_last_keyframe():
     np.testing.assert_allclose(poses[:, :3, 3], [[0.5, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0.5, 0], [3.5, 0.5, 0]],
                                atol=1e-9)
     assert np.allclose(camera_pose_to_lidar(camera[0]), poses[0])
+
+
+def test_the_loop_clouds_for_rviz_are_put_into_the_world():
+    """/history_cloud is the candidate's map in camera_init, /corrected_cloud the newest keyframes where the
+    registration put them: a candidate at 10 m forward, the newest keyframe found 2 m further (lidar axes)."""
+    from types import SimpleNamespace
+
+    from lego_loam_py.core.frames import lidar_pose_to_camera, lidar_to_camera
+    from lego_loam_py.ros.map_optimization_node import loop_cloud_in_world
+
+    params = Params().replace(loop_closure__loop_closure_enable_flag=True)
+    candidate = SimpleNamespace(candidate_pose=lidar_pose_to_camera(lidar_pose(10.0, 0.0, 0.0)),
+                                target=np.array([[1.0, 0.0, 0.0]]), source=np.array([[1.0, 0.0, 0.0]]))
+    result = SimpleNamespace(relative=lidar_pose_to_camera(np.linalg.inv(lidar_pose(2.0, 0.0, 0.0))))
+    target = loop_cloud_in_world(candidate, params, 'target')
+    corrected = loop_cloud_in_world(candidate, params, 'corrected', result)
+    np.testing.assert_allclose(target[:, :3], lidar_to_camera(np.array([[11.0, 0.0, 0.0]])), atol=1e-6)
+    np.testing.assert_allclose(corrected[:, :3], lidar_to_camera(np.array([[13.0, 0.0, 0.0]])), atol=1e-6)
