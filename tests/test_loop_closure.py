@@ -313,8 +313,8 @@ def test_the_original_method_is_kept_radius_candidate_icp_and_fitness_variances(
 
 
 def test_the_optimized_trajectory_moves_each_pose_with_its_last_keyframe():
-    """Keyframes at 1 s and 3 s, mapped at x = 1 and 3 m; the graph later moved the second by 0.5 m along y. Poses
-    before the first keyframe stay, those from 1 s on follow the first (unmoved), from 3 s on the second."""
+    """Keyframes at 1 s and 3 s at x = 1 and 3 m; the graph later moved the second by 0.5 m along y. Poses before
+    the second keyframe stay (the first keyframe is the graph's anchor), from 3 s on they follow the second."""
     from types import SimpleNamespace
 
     from lego_loam_py.core.frames import camera_pose_to_lidar, lidar_pose_to_camera, matrix_to_pose6
@@ -322,8 +322,9 @@ def test_the_optimized_trajectory_moves_each_pose_with_its_last_keyframe():
 
     s = 1_000_000_000
     camera = [lidar_pose_to_camera(lidar_pose(x, 0.0, 0.0)) for x in (0.5, 1.0, 2.0, 3.0, 3.5)]
+    # (the first mapping step has no map yet: it publishes the identity, while its keyframe sits at the odometry)
     record = RunResult(stamps=[0, 1 * s, 2 * s, 3 * s, 4 * s], integrated=camera,
-                       mapped_stamps=[1 * s, 3 * s], mapped=[camera[1], camera[3]])
+                       mapped_stamps=[1 * s, 3 * s], mapped=[np.eye(4), camera[3]])
     moved = lidar_pose_to_camera(lidar_pose(3.0, 0.5, 0.0))
     record.mapper = SimpleNamespace(keyframes=[SimpleNamespace(stamp_ns=1 * s, pose6=matrix_to_pose6(camera[1])),
                                                SimpleNamespace(stamp_ns=3 * s, pose6=matrix_to_pose6(moved))])

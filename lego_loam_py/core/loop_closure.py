@@ -276,11 +276,11 @@ class LoopCloser:
         near = np.flatnonzero(old & (distance <= lc.history_keyframe_search_radius))
         if len(near):
             choices.append(('radius', int(near[np.argmin(distance[near])]), float('nan'), None))
-        if choices and not self.pending and self._last_verified_ns in index_of:
-            # Verifications are spaced along the path (they cost a registration each), unless a loop waits for
-            # its confirmation; wider once loops went in here.
-            recently_closed = any(latest_kf.stamp_ns - p.latest_stamp_ns <= lc.consistency_window * 1e9
-                                  for p in self.confirmed)
+        recently_closed = any(latest_kf.stamp_ns - p.latest_stamp_ns <= lc.consistency_window * 1e9
+                              for p in self.confirmed)
+        if choices and (recently_closed or not self.pending) and self._last_verified_ns in index_of:
+            # Verifications are spaced along the path (they cost a registration each), unless a first loop waits
+            # for its confirmation; wider once loops went in here (a loop still pending then disagreed with them).
             spacing = lc.closed_verification_spacing if recently_closed else lc.verification_spacing
             steps = np.linalg.norm(np.diff(positions[index_of[self._last_verified_ns]:], axis=0), axis=1)
             if steps.sum() < spacing:

@@ -83,7 +83,10 @@ class RunResult:
             mapped = dict(zip(self.mapped_stamps, self.mapped))
             keyframes = [kf for kf in self.mapper.keyframes if kf.stamp_ns in mapped]
             key_stamps = np.array([kf.stamp_ns for kf in keyframes], dtype=np.int64) + self.pose_time_offset_ns
-            corrections = np.array([pose6_to_matrix(kf.pose6) @ np.linalg.inv(mapped[kf.stamp_ns])
+            # (the first keyframe is the graph's anchor: it never moves, though the step that made it published
+            # no mapped pose of its own yet)
+            corrections = np.array([np.eye(4) if kf is self.mapper.keyframes[0] else
+                                    pose6_to_matrix(kf.pose6) @ np.linalg.inv(mapped[kf.stamp_ns])
                                     for kf in keyframes]).reshape(-1, 4, 4)
             which = np.searchsorted(key_stamps, stamps, side='right') - 1
             if len(keyframes):
