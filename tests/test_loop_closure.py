@@ -351,3 +351,18 @@ def test_the_loop_clouds_for_rviz_are_put_into_the_world():
     corrected = loop_cloud_in_world(candidate, params, 'corrected', result)
     np.testing.assert_allclose(target[:, :3], lidar_to_camera(np.array([[11.0, 0.0, 0.0]])), atol=1e-6)
     np.testing.assert_allclose(corrected[:, :3], lidar_to_camera(np.array([[13.0, 0.0, 0.0]])), atol=1e-6)
+
+
+def test_the_result_lines_give_the_optimised_accuracy_after_the_published_one():
+    from lego_loam_py.evaluation import TrajectoryMetrics
+    from lego_loam_py.outputs import result_lines
+    from lego_loam_py.results import RunOutputs
+
+    def metrics(ate: float) -> TrajectoryMetrics:
+        return TrajectoryMetrics(100, 50.0, ate, ate, ate, ate, 1.0, 10.0, 0.1, 0.2, 0.4, 0.5)
+
+    lines = result_lines(RunOutputs(trajectory_length_m=50.0, poses=100, accuracy=metrics(0.2),
+                                    accuracy_optimized=metrics(0.1)))
+    assert lines[1].startswith('accuracy vs ground truth: ATE RMSE 0.200 m')
+    assert lines[2].startswith('  after the loop closures (trajectory_optimized.tum): ATE RMSE 0.100 m')
+    assert len(lines) == 3
