@@ -1,7 +1,7 @@
 """Accuracy on the simulator's ground truth: odometry alone and the whole pipeline, per scenario.
 
     .venv/bin/python benchmarks/accuracy.py [--scenarios campus forest corridor aggressive] [--configs ...]
-                                            [--bags bags/campus_8s ...] [--odometry-only] [--loop-closure]
+                                            [--bags bags/campus_8s ...] [--odometry-only] [--loop-closure on|off]
                                             [--turn-rate DEG_S] [--duration S]
 
 Scenarios are generated into the cache on first use (lego_loam_py.sim.simulator.cached_scenario). For each
@@ -43,7 +43,8 @@ def main() -> None:
     parser.add_argument('--configs', nargs='*', default=['default'], choices=sorted(CONFIGS))
     parser.add_argument('--imu', choices=['both', 'on', 'off'], default='both')
     parser.add_argument('--odometry-only', action='store_true', help='skip mapOptimization')
-    parser.add_argument('--loop-closure', action='store_true', help='enable loop closure (mapping runs)')
+    parser.add_argument('--loop-closure', choices=['on', 'off'], default=None,
+                        help='switch loop closure on or off (default: the configuration\'s, on in the defaults)')
     parser.add_argument('--turn-rate', type=float, default=0.0,
                         help='whole in-place turns peaking at this yaw rate [deg/s] in the scenarios (0: none)')
     parser.add_argument('--duration', type=float, help='simulated seconds of each scenario (default: a whole lap)')
@@ -60,8 +61,8 @@ def main() -> None:
         name = bag.name if bag.name != bag.parent.name else bag.parent.name
         for config in args.configs:
             overrides = dict(CONFIGS[config])
-            if args.loop_closure:
-                overrides['loop_closure__loop_closure_enable_flag'] = True
+            if args.loop_closure is not None:
+                overrides['loop_closure__loop_closure_enable_flag'] = args.loop_closure == 'on'
             params = Params().replace(**overrides)
             for imu in imu_modes:
                 start = time.perf_counter()

@@ -31,7 +31,7 @@ import numpy as np
 
 from lego_loam_py.errors import UsageError
 from lego_loam_py.orchestration import DEFAULT_RECORD_TOPICS, NODES, PipelineConfig, run_pipeline
-from lego_loam_py.results import DemoSummary, TimingStats
+from lego_loam_py.results import DemoSummary, LoopClosures, TimingStats
 from lego_loam_py.supervisor import Interrupts, package_file
 
 __all__ = ['DemoResult', 'run_demo', 'read_trajectory', 'read_stats', 'format_demo_summary', 'default_bag',
@@ -209,7 +209,8 @@ def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_
         drop_counters=figures.drops, queue_overwritten=overwritten,
         keyframes=counters['mapOptimization'].get('keyframes', 0), scans_with_imu=fa.get('scans_with_imu', 0),
         timings_ms=figures.timings, processes=list(outcome.processes), failures=list(outcome.failures),
-        interrupted=outcome.interrupted, ready_after_s=outcome.ready_after_s)
+        interrupted=outcome.interrupted, ready_after_s=outcome.ready_after_s,
+        loop_closures=_loop_closures(stats))
     if len(stamps):
         write_outputs(out, bag, stamps, poses, None, summary, params, map_dir=map_dir)
     else:   # no pose, no trajectory file, picture or accuracy: the summary says 0 m
@@ -220,6 +221,12 @@ def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_
         write_summary(out, summary)
         exit_code = 1
     return DemoResult(exit_code, summary, out)
+
+
+def _loop_closures(stats: dict[str, dict]) -> LoopClosures | None:
+    """The loops mapOptimization wrote into its statistics (None when it wrote none: loop closure off)."""
+    entry = stats.get('mapOptimization', {}).get('loop_closures')
+    return LoopClosures(**entry) if isinstance(entry, dict) else None
 
 
 def format_demo_summary(summary: DemoSummary, out_dir: Path | None = None) -> str:
@@ -248,6 +255,8 @@ def format_demo_summary(summary: DemoSummary, out_dir: Path | None = None) -> st
             unit = '  (per mapping step)' if node == 'mapOptimization' else ''
             lines.append(f"  {node:<20s}{t.median:8.1f}{t.p95:9.1f}{t.count:7d}{unit}")
     from lego_loam_py.outputs import result_lines
+    if summary.loop_closures is not None:
+        lines.extend(summary.loop_closures.lines())
     lines.extend(result_lines(summary.outputs))
     if out_dir is not None:
         lines.append(f'outputs in {_display(out_dir)}/: trajectory.tum (REP-103 map axes), trajectory_camera_init.tum, '

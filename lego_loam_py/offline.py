@@ -29,9 +29,9 @@ from lego_loam_py.core.pipeline import Pipeline, RunResult
 from lego_loam_py.core.pipeline_events import PipelineListener
 from lego_loam_py.inputs import SOURCE_KINDS, ImuSample, Scan, Source, open_source
 from lego_loam_py.outputs import TRAJECTORY_FORMATS, result_lines, write_outputs
-from lego_loam_py.results import OfflineSummary, TimingStats
+from lego_loam_py.results import LoopClosures, OfflineSummary, TimingStats
 
-__all__ = ['RunResult', 'run_bag', 'run_source', 'format_summary', 'add_arguments', 'main']
+__all__ = ['RunResult', 'run_bag', 'run_source', 'format_summary', 'loop_closures_of', 'add_arguments', 'main']
 
 
 def run_bag(bag: str | Path, params: Params, *, cloud_topic: str | None = None, imu_topic: str | None = None,
@@ -96,6 +96,31 @@ def run_source(source: Source, params: Params, *, max_scans: int | None = None, 
     return result
 
 
+def loop_closures_of(result: RunResult, params: Params) -> LoopClosures | None:
+    """The loops of a run for its summary (None when loop closure was off or nothing was mapped)."""
+    mapper = result.mapper
+    if mapper is None or not params.loop_closure.loop_closure_enable_flag or not mapper.keyframes:
+        return None
+    return LoopClosures.of(mapper.loops, mapper.keyframes[0].stamp_ns)
+
+
+def write_optimized_trajectory(out: Path, ground_truth, result: RunResult, summary: OfflineSummary) -> None:
+    """``trajectory_optimized.tum`` (REP-103 map axes): the fused trajectory in the pose graph's final frame, and
+    its accuracy in the summary against ``ground_truth`` ((stamps [ns], lidar poses) of the recording, or None)."""
+    from lego_loam_py.core.io import write_tum_atomic
+    from lego_loam_py.evaluation import evaluate
+    from lego_loam_py.outputs import write_summary
+
+    stamps, poses = result.optimized_trajectory()
+    write_tum_atomic(out / 'trajectory_optimized.tum', stamps, poses)
+    if ground_truth is not None:
+        try:
+            summary.outputs.accuracy_optimized = evaluate(ground_truth, (stamps, poses))
+        except ValueError:
+            pass   # (the published trajectory's accuracy_error says why)
+    write_summary(out, summary)
+
+
 def format_summary(summary: OfflineSummary) -> str:
     """The report of ``lego_loam_py run``, as printed at the end of a run."""
     lines = [f"bag: {summary.bag}"]
@@ -108,6 +133,8 @@ def format_summary(summary: OfflineSummary) -> str:
         lines.append(f"  {name:<20s} median {t.median:7.1f} ms   p95 {t.p95:7.1f} ms   (n={t.count})")
     lines.append(f"{summary.bag_duration_s:.1f} s of data in {summary.wall_time_s:.1f} s: "
                  f"{summary.realtime_factor:.2f}x real time")
+    if summary.loop_closures is not None:
+        lines.extend(summary.loop_closures.lines())
     lines.extend(result_lines(summary.outputs))
     return '\n'.join(lines)
 
@@ -197,9 +224,12 @@ def main(args: argparse.Namespace) -> int:
     stamps, _ = result.trajectory()
     summary = OfflineSummary(bag=str(args.bag), counts=result.counts,
                              timings_ms={name: TimingStats.of(v) for name, v in result.timings_ms.items() if v},
-                             wall_time_s=result.wall_time, bag_duration_s=result.bag_duration)
+                             wall_time_s=result.wall_time, bag_duration_s=result.bag_duration,
+                             loop_closures=loop_closures_of(result, params))
     write_outputs(out, args.bag, stamps, np.array(result.integrated), result.mapper, summary, params,
                   ground_truth=ground_truth, trajectory_format=args.trajectory_format)
+    if summary.loop_closures is not None and summary.loop_closures.accepted and len(stamps) >= 3:
+        write_optimized_trajectory(out, ground_truth, result, summary)
     print(format_summary(summary))
     written = sorted(p.name + ('/' if p.is_dir() else '') for p in out.iterdir() if not p.name.startswith('.'))
     print(f'outputs in {out}/: {", ".join(written)}')

@@ -105,6 +105,8 @@ def result_lines(outputs: RunOutputs) -> list[str]:
         lines.append(f"accuracy: {outputs.accuracy_error}")
     else:
         lines.append('accuracy: no ground truth beside the bag')
+    if outputs.accuracy_optimized is not None:
+        lines.append('  after the loop closures (trajectory_optimized.tum): ' + outputs.accuracy_optimized.summary())
     m = outputs.map_to_scene
     if m is not None:
         lines.append(f"map vs the simulated scene: median point-to-mesh distance {m.median_m:.3f} m, 90th "

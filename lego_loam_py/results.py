@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     from lego_loam_py.evaluation import TrajectoryMetrics
     from lego_loam_py.supervisor import ProcessResult
 
-__all__ = ['TimingStats', 'MapToScene', 'RunOutputs', 'OfflineSummary', 'DemoSummary']
+__all__ = ['TimingStats', 'MapToScene', 'RunOutputs', 'LoopClosures', 'OfflineSummary', 'DemoSummary']
 
 
 @dataclass(frozen=True)
@@ -53,6 +53,46 @@ class MapToScene:
     points: int     # map points measured
 
 
+@dataclass(frozen=True)
+class LoopClosures:
+    """The loops mapOptimization closed and turned down. ``loops``: one dict per accepted loop, in the order they
+    went into the pose graph: ``time_s`` (of the newest keyframe, since the first keyframe), ``latest`` and
+    ``candidate`` (keyframe indices and stamps [ns]), ``detector`` ('radius' or 'scan_context'), ``score``
+    (descriptor distance, 0 same .. 1 unrelated; None for the radius search), ``rmse_m`` and ``overlap`` of the
+    registration, ``correction_m`` / ``correction_deg`` (how far the loop said the newest keyframe was from where
+    the graph had it) and ``applied_m`` (how far it moved when the loops went in)."""
+
+    accepted: int
+    rejected: int                     # verified and turned down, or never confirmed by a second loop
+    rejected_because: dict[str, int]  # first word of the reason -> count ('overlap', 'rmse', 'correction', ...)
+    loops: list[dict]
+
+    @classmethod
+    def of(cls, loops: Sequence, first_stamp_ns: int) -> LoopClosures:
+        """From a mapper's ``loops`` (:class:`lego_loam_py.core.loop_closure.LoopResult`)."""
+        accepted = [loop for loop in loops if loop.accepted]
+        reasons: dict[str, int] = {}
+        for loop in loops:
+            if not loop.accepted:
+                key = loop.reason.split()[0] if loop.reason else 'unknown'
+                reasons[key] = reasons.get(key, 0) + 1
+        return cls(accepted=len(accepted), rejected=len(loops) - len(accepted), rejected_because=reasons,
+                   loops=[dict(time_s=round((loop.latest_stamp_ns - first_stamp_ns) * 1e-9, 3), **loop.summary())
+                          for loop in accepted])
+
+    def lines(self) -> list[str]:
+        """The summary's lines about them."""
+        because = ', '.join(f'{k} {v}' for k, v in sorted(self.rejected_because.items()))
+        out = [f'loop closures: {self.accepted} accepted, {self.rejected} rejected' + (f' ({because})' if because
+                                                                                       else '')]
+        for loop in self.loops:
+            score = f", score {loop['score']:.3f}" if loop['score'] is not None else ''
+            out.append(f"  t {loop['time_s']:7.1f} s  keyframe {loop['latest']} -> {loop['candidate']} "
+                       f"({loop['detector']}{score}), rmse {loop['rmse_m']:.3f} m, overlap {loop['overlap']:.2f}, "
+                       f"correction {loop['correction_m']:.3f} m / {loop['correction_deg']:.2f} deg")
+        return out
+
+
 @dataclass
 class RunOutputs:
     """What :func:`~lego_loam_py.outputs.write_outputs` wrote and measured. ``poses`` is None when it did not run
@@ -63,6 +103,9 @@ class RunOutputs:
     map_files: dict[str, str] | None = None     # map name -> path of the file
     accuracy: TrajectoryMetrics | None = None   # against the ground truth beside the bag
     accuracy_error: str | None = None           # why there is a ground truth but no accuracy
+    # Loop closure on: the trajectory moved into the pose graph's final frame (trajectory_optimized.tum) and its
+    # accuracy; the published one keeps the poses before a closure in the drifted frame.
+    accuracy_optimized: TrajectoryMetrics | None = None
     map_to_scene: MapToScene | None = None
     png: str | None = None                      # path of trajectory.png
 
@@ -75,6 +118,8 @@ class RunOutputs:
             out['accuracy_error'] = self.accuracy_error
         if self.accuracy is not None:
             out['accuracy'] = self.accuracy.as_dict()
+        if self.accuracy_optimized is not None:
+            out['accuracy_optimized'] = self.accuracy_optimized.as_dict()
         if self.map_to_scene is not None:
             out['map_to_scene'] = asdict(self.map_to_scene)
         if self.png is not None:
@@ -102,6 +147,7 @@ class OfflineSummary(_Summary):
     wall_time_s: float
     bag_duration_s: float                   # of the data processed
     outputs: RunOutputs = field(default_factory=RunOutputs)
+    loop_closures: LoopClosures | None = None   # None: loop closure off (or no mapping)
 
     @property
     def realtime_factor(self) -> float:
@@ -112,7 +158,8 @@ class OfflineSummary(_Summary):
         return dict(bag=self.bag, mode=self.mode, counts=self.counts,
                     timings_ms={name: t.as_dict() for name, t in self.timings_ms.items()},
                     wall_time_s=self.wall_time_s, bag_duration_s=self.bag_duration_s,
-                    realtime_factor=self.realtime_factor, **self.outputs.as_dict())
+                    realtime_factor=self.realtime_factor, **self.outputs.as_dict(),
+                    **({} if self.loop_closures is None else {'loop_closures': asdict(self.loop_closures)}))
 
 
 @dataclass
@@ -139,6 +186,7 @@ class DemoSummary(_Summary):
     interrupted: bool
     ready_after_s: float | None                 # from the start until every node was up (None: never)
     outputs: RunOutputs = field(default_factory=RunOutputs)
+    loop_closures: LoopClosures | None = None   # from mapOptimization's statistics (None: off, or none written)
 
     @property
     def integrated_fraction(self) -> float:
@@ -160,4 +208,5 @@ class DemoSummary(_Summary):
             processes=[dict(name=p.name, pid=p.pid, returncode=p.returncode, how=p.how, failure=p.failure)
                        for p in self.processes],
             failures=list(self.failures), interrupted=self.interrupted, ready_after_s=self.ready_after_s,
-            dropped=self.dropped, **self.outputs.as_dict())
+            dropped=self.dropped, **self.outputs.as_dict(),
+            **({} if self.loop_closures is None else {'loop_closures': asdict(self.loop_closures)}))

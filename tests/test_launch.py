@@ -385,10 +385,13 @@ def test_rviz_config_shows_the_pipeline_in_the_map_frame():
     for topic in ('/laser_cloud_surround', '/registered_cloud', '/key_pose_origin', '/segmented_cloud_pure'):
         assert by_topic[topic]['Class'] == 'rviz_default_plugins/PointCloud2' and by_topic[topic]['Enabled'], topic
     assert by_topic['/integrated_to_init']['Class'] == 'rviz_default_plugins/Odometry'
+    # The loop markers are latched: the display must ask for transient local to get them after they were sent.
+    assert by_topic['/loop_closures']['Topic']['Durability Policy'] == 'Transient Local'
     assert any(d['Class'] == 'rviz_default_plugins/TF' and d['Enabled'] for d in displays)
     for topic, display in by_topic.items():   # only topics the pipeline publishes, with a matching display
         assert topic in ALL, topic
-        expected = {'sensor_msgs/msg/PointCloud2': 'PointCloud2', 'nav_msgs/msg/Odometry': 'Odometry'}[ALL[topic][1]]
+        expected = {'sensor_msgs/msg/PointCloud2': 'PointCloud2', 'nav_msgs/msg/Odometry': 'Odometry',
+                    'visualization_msgs/msg/MarkerArray': 'MarkerArray'}[ALL[topic][1]]
         assert display['Class'] == f'rviz_default_plugins/{expected}', topic
         assert display['Topic']['Reliability Policy'] == 'Reliable'   # the nodes publish reliable
     # Subscriber-gated clouds that are off by default cost nothing until switched on.

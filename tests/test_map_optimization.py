@@ -249,7 +249,11 @@ def test_surrounding_map_radius_and_recent_modes():
     mo.current_position = np.array([0, 0, 0.0])
     ids = mo._surrounding_ids()
     assert max(ids) <= 25 and min(ids) == 0              # within 50 m
-    loop_mode = MapOptimization(PARAMS.replace(loop_closure__loop_closure_enable_flag=True))
+    verified = MapOptimization(PARAMS.replace(loop_closure__loop_closure_enable_flag=True))
+    verified.keyframes, verified._positions, verified.current_position = mo.keyframes, mo._positions, mo.current_position
+    assert verified._surrounding_ids() == ids                     # the verified loop closure keeps the radius
+    loop_mode = MapOptimization(PARAMS.replace(loop_closure__loop_closure_enable_flag=True,
+                                               loop_closure__method='original'))
     loop_mode.keyframes, loop_mode._positions = mo.keyframes, mo._positions
     assert loop_mode._surrounding_ids() == list(range(10, 60))   # the last 50
 

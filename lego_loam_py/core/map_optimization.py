@@ -15,10 +15,8 @@ of their positions: the latest, or the original's truncated averaged index, quir
 on, the last ``surrounding_keyframe_search_num`` keyframes. The voxel-filtered map is kept in two
 :class:`~lego_loam_py.core.voxel.VoxelAccumulator` (corner, surface + outlier): a keyframe's world clouds are
 computed and merged in when it enters the set and subtracted when it leaves, so a step costs the change of
-the set, not a new filter of some 50 keyframes; a loop closure that moves the poses rebuilds it.
-
-Scan-to-map registration is :mod:`lego_loam_py.core.scan_to_map`; the loop candidate search and its ICP are
-:mod:`lego_loam_py.core.loop_closure`. This module holds the mapper's state, keyframes and pose graph.
+the set, not a new filter of some 50 keyframes; a loop closure that moves the poses rebuilds it. Scan-to-map
+registration is :mod:`lego_loam_py.core.scan_to_map`; loop closure :mod:`lego_loam_py.core.loop_closure`.
 
 Thread safety: :meth:`process`, :meth:`detect_loop`, :meth:`close_loop`, :meth:`global_map` and
 :meth:`save` take one lock, so loop closure can run in another thread (as the original's 1 Hz thread).
@@ -36,7 +34,7 @@ from lego_loam_py.core.frames import (camera_pose_to_lidar, camera_to_lidar, inv
                                       pose6_to_matrix, transform_cloud)
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
 from lego_loam_py.core.imu import ImuBuffer
-from lego_loam_py.core.loop_closure import LoopCandidate, LoopResult, align_loop, find_loop_candidate
+from lego_loam_py.core.loop_closure import LoopCandidate, LoopCloser, LoopResult, align_loop, find_loop_candidate
 from lego_loam_py.core.odometry_continuity import OdometryJump, anchored_transform_bef
 from lego_loam_py.core.param_types import Params
 from lego_loam_py.core.pose_graph import PoseGraph
@@ -71,9 +69,7 @@ class MappingStep:
     correspondences: int = 0
     iterations: int = 0
     degenerate: bool = False
-    # Smallest eigenvalue of the registration's normal matrix: how many full-weight correspondences held its
-    # worst direction (see core.scan_to_map); NaN without a registration.
-    condition: float = float('nan')
+    condition: float = float('nan')   # the registration's, see core.scan_to_map (NaN: none)
     optimised: bool = False
     corner_map_points: int = 0
     surf_map_points: int = 0
@@ -104,7 +100,8 @@ class MapOptimization:
         self._last_processing_ns: int | None = None
         self.latest_odometry_ns = 0
         self.loop_closed = False
-        self.loops: list[LoopResult] = []
+        self.loops: list[LoopResult] = []            # every loop verified, accepted or not
+        self.loop_closer = LoopCloser(params.loop_closure)
         self.lock = threading.RLock()
         self.last_maps: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 4), _F32), np.zeros((0, 4), _F32))
         self.last_scan: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 4), _F32), np.zeros((0, 4), _F32))
@@ -217,7 +214,7 @@ class MapOptimization:
         n = len(self.keyframes)
         if n == 0:
             return []
-        if lc.loop_closure_enable_flag:
+        if lc.loop_closure_enable_flag and lc.method == 'original':
             return list(range(max(0, n - mo.surrounding_keyframe_search_num), n))
         near = np.flatnonzero(np.linalg.norm(self._positions - self.current_position, axis=1)
                               <= mo.surrounding_keyframe_search_radius)
@@ -328,24 +325,52 @@ class MapOptimization:
 
     # ------------------------------------------------------------------------------------ loop closure
     def detect_loop(self) -> LoopCandidate | None:
-        """The original's candidate search (:func:`~lego_loam_py.core.loop_closure.find_loop_candidate`)."""
+        """A loop candidate for the newest keyframe (:mod:`lego_loam_py.core.loop_closure`), or None."""
         with self.lock:
+            if self.params.loop_closure.method == 'verified':
+                return self.loop_closer.detect(self.keyframes, self._positions)
             return find_loop_candidate(self.keyframes, self._positions, self.current_position,
                                        self.latest_odometry_ns, self.params.loop_closure)
 
     def close_loop(self, candidate: LoopCandidate) -> LoopResult:
-        """ICP of the latest keyframe against the candidate's neighbourhood; adds a loop factor when the fit
-        is good enough. The ICP runs without the lock (it can take a while)."""
-        loop = align_loop(candidate, self.params.loop_closure)
-        if loop.accepted:
-            with self.lock:
-                latest_pose = pose6_to_matrix(self.keyframes[candidate.latest].pose6)
-                corrected = loop.correction @ latest_pose
-                target_pose = pose6_to_matrix(self.keyframes[candidate.candidate].pose6)
-                self.add_loop_factor(candidate.latest, candidate.candidate, invert_pose(corrected) @ target_pose,
-                                     np.full(6, max(loop.fitness, 1e-12)))
-        self.loops.append(loop)
+        """Verify the candidate (without the lock: it takes a while); its constraint goes into the graph if it passes."""
+        if self.params.loop_closure.method == 'original':
+            loop = align_loop(candidate, self.params.loop_closure)
+            if loop.accepted:
+                with self.lock:
+                    loop.constrain(pose6_to_matrix(self.keyframes[candidate.latest].pose6),
+                                   pose6_to_matrix(self.keyframes[candidate.candidate].pose6))
+                    self.add_loop_factor(candidate.latest, candidate.candidate, loop.relative, loop.variances)
+            self.loops.append(loop)
+            return loop
+        loop, fit = self.loop_closer.verify(candidate)
+        with self.lock:
+            ready = self.loop_closer.admit(loop, fit, self.keyframes, self.latest_odometry_ns)
+            if ready:
+                self._add_verified_loops(ready)
+            self.loops.append(loop)
         return loop
+
+    def _add_verified_loops(self, loops) -> None:
+        """Constraints of verified loops into the graph; every keyframe and the pose being mapped follow."""
+        lc = self.params.loop_closure
+        newest = pose6_to_matrix(self.keyframes[-1].pose6)
+        index = {kf.stamp_ns: kf.index for kf in self.keyframes}
+        for pending in loops:
+            latest, candidate = index[pending.latest_stamp_ns], index[pending.candidate_stamp_ns]
+            self.graph.add_loop_constraint(candidate, latest, pending.relative_lidar, pending.result.information,
+                                           lc.robust_kernel, lc.robust_kernel_width)
+        self.loop_closed = True
+        self._correct_poses()
+        # The pose being mapped moves with the newest keyframe, so that the next step starts where the corrected
+        # map is (the original waits for the next keyframe and registers the old pose against the moved map).
+        moved = pose6_to_matrix(self.keyframes[-1].pose6) @ invert_pose(newest)
+        loops[-1].result.applied_m = float(np.linalg.norm(self.keyframes[-1].pose6[3:] - newest[:3, 3]))
+        self.transform_aft = matrix_to_pose6(moved @ pose6_to_matrix(self.transform_aft))
+        self.transform_tobe = matrix_to_pose6(moved @ pose6_to_matrix(self.transform_tobe))
+        self.transform_last = self.keyframes[-1].pose6.copy()
+        self.current_position = self.transform_aft[3:].copy()
+        self._previous_keyframe_position = self.transform_last[3:].copy()
 
     def add_loop_factor(self, latest: int, candidate: int, relative: np.ndarray, variances: np.ndarray) -> None:
         """Add the constraint 'keyframe ``candidate`` seen from keyframe ``latest`` is ``relative``' (4x4,
@@ -363,7 +388,7 @@ class MapOptimization:
             return np.array([kf.pose6 for kf in self.keyframes]).reshape(-1, 6)
 
     def keyframe_stamps(self) -> np.ndarray:
-        with self.lock:
+        with self.lock:   # [ns]
             return np.array([kf.stamp_ns for kf in self.keyframes], dtype=np.int64)
 
     def global_map(self, radius: float | None = None) -> np.ndarray:

@@ -23,7 +23,7 @@ from lego_loam_py.errors import LegoLoamError
 __all__ = [
     'ParameterError', 'SensorParams', 'ImageProjectionParams', 'FeatureAssociationParams',
     'MapOptimizationParams', 'LoopClosureParams', 'ReliabilityParams', 'Params', 'SENSOR_PRESETS', 'GroundRule',
-    'RelativeTimeSource', 'OdometryModel', 'KeyposePick',
+    'RelativeTimeSource', 'OdometryModel', 'KeyposePick', 'LoopClosureMethod', 'RobustKernel',
 ]
 
 
@@ -32,6 +32,8 @@ GroundRule = Literal['refined', 'original']
 RelativeTimeSource = Literal['azimuth', 'point_time', 'original']
 OdometryModel = Literal['sweep_start', 'original']
 KeyposePick = Literal['averaged_index', 'latest']
+LoopClosureMethod = Literal['verified', 'original']
+RobustKernel = Literal['huber', 'cauchy', 'none']
 
 class ParameterError(LegoLoamError, ValueError):
     """A parameter file or override is invalid; the message names the offending key."""
@@ -236,20 +238,72 @@ class MapOptimizationParams:
 
 @dataclass(frozen=True)
 class LoopClosureParams:
-    """ICP loop closure (mapOptmization.cpp, off by default as in the original)."""
+    """Loop closure of mapOptimization (off by default, as in the original): when on, candidates verified before
+    they reach the pose graph ('verified'); 'original' is the C++'s radius search and ICP (mapOptmization.cpp)."""
 
+    # Off by default: it makes the optimised trajectory and the map better in every simulated scenario, but the
+    # trajectory published as the robot drives gets worse where loops correct drift (see the README, Loop closure).
     loop_closure_enable_flag: bool = False
+    # 'verified': candidates from the radius search and a Scan Context descriptor, each verified by a
+    # point-to-plane registration with fitness, overlap, constraint and consistency gates, added with the
+    # registration's information under a robust kernel, the map around the robot within its radius as without
+    # loop closure. 'original': the nearest keyframe in the radius, point-to-point ICP gated by its fitness
+    # alone, variances = fitness on every axis, the map = the last surrounding_keyframe_search_num keyframes.
+    method: LoopClosureMethod = 'verified'
     history_keyframe_search_radius: float = 7.0   # candidate search radius [m]
     history_keyframe_search_num: int = 25         # target submap = candidate +- this many keyframes
-    history_keyframe_fitness_score: float = 0.3   # ICP fitness gate (mean squared NN distance) [m^2]
+    history_keyframe_fitness_score: float = 0.3   # ICP fitness gate (mean squared NN distance) [m^2] ('original')
     history_keyframe_leaf_size: float = 0.4
     time_gap: float = 30.0                        # candidate must be older than this [s]
     period: float = 1.0                           # loop detection period [s]
-    icp_max_correspondence_distance: float = 100.0
-    icp_max_iterations: int = 100
-    icp_transformation_epsilon: float = 1e-6
-    icp_euclidean_fitness_epsilon: float = 1e-6
-    icp_ransac_iterations: int = 0
+    icp_max_correspondence_distance: float = 100.0  # ('original')
+    icp_max_iterations: int = 100                 # ('original')
+    icp_transformation_epsilon: float = 1e-6      # ('original')
+    icp_euclidean_fitness_epsilon: float = 1e-6   # ('original')
+    icp_ransac_iterations: int = 0                # ('original'; declared, unused by the original too)
+    # -- 'verified' --
+    # Scan Context descriptor of each keyframe (levelled clouds): rings x sectors out to a radius [m]; a place
+    # whose descriptor distance (0 same .. 1 unrelated) is below the threshold is a candidate.
+    scan_context_rings: int = 20
+    scan_context_sectors: int = 60
+    scan_context_max_radius: float = 50.0
+    scan_context_threshold: float = 0.3
+    # The registration's source: the latest keyframe and this many before it (a denser view of the place).
+    source_keyframes: int = 2
+    # Verifications (a registration each) at most once per this much path of the newest keyframe [m], unless a
+    # verified loop waits for a second one to confirm it; once loops went in (within consistency_window), once
+    # per closed_verification_spacing: the place is closed, and each further loop costs a registration.
+    verification_spacing: float = 5.0
+    closed_verification_spacing: float = 40.0
+    target_keyframes: int = 10          # the registration's target: the candidate and this many either side
+    # The first keyframes are no candidates: the mapping's attitude settles over them (the 5th pitched 1 deg
+    # against the 1st on the simulated campus), and a loop to them carries that into the graph.
+    skip_first_keyframes: int = 5
+    registration_distances: tuple[float, ...] = (2.0, 1.0, 0.5)   # ICP correspondence distances in turn [m]
+    registration_iterations: int = 20                            # per distance
+    inlier_distance: float = 0.5        # a source point within this of the target after the fit is an inlier [m]
+    min_overlap: float = 0.5            # gate: share of inliers among the source points
+    max_rmse: float = 0.15              # gate: point-to-plane RMS residual of the inliers [m]
+    min_constraint: float = 0.03        # gate: least-constrained direction (smallest eigenvalue, 0..1/3)
+    # Gate on the correction against the graph's relative pose: at most base + ratio x the path between the two
+    # keyframes (the drift the mapping can have built up), in metres and degrees.
+    max_drift_base: float = 1.0         # [m]
+    max_drift_ratio: float = 0.02       # [m per m of path]
+    max_drift_rotation_base: float = 3.0   # [deg]
+    max_drift_rotation_ratio: float = 0.02  # [deg per m of path]
+    # Pairwise consistency: a loop goes into the graph once another loop, verified within consistency_window
+    # seconds of data, agrees with it (the cycle of the two loops and the odometry between them closes within
+    # these bounds); 1 loop: no pairwise check.
+    min_consistent_loops: int = 2
+    consistency_window: float = 20.0      # [s]
+    consistency_translation: float = 0.3  # [m]
+    consistency_rotation: float = 1.0     # [deg]
+    # The constraint's information: the registration's point-to-plane information as if from this many
+    # independent points, with its RMS residual as their noise (at least min_registration_sigma [m]).
+    registration_points: float = 20.0
+    min_registration_sigma: float = 0.05
+    robust_kernel: RobustKernel = 'huber'
+    robust_kernel_width: float = 1.345    # in standard deviations of the constraint
 
 
 @dataclass(frozen=True)

@@ -179,3 +179,14 @@ def _validate(p: Params) -> None:
     lc = p.loop_closure
     need(lc.period > 0, 'loop_closure.period', 'must be positive')
     need(lc.history_keyframe_leaf_size > 0, 'loop_closure.history_keyframe_leaf_size', 'must be positive')
+    for name in ('scan_context_rings', 'scan_context_sectors', 'registration_iterations', 'min_consistent_loops'):
+        need(getattr(lc, name) >= 1, f'loop_closure.{name}', 'must be at least 1')
+    for name in ('scan_context_max_radius', 'inlier_distance', 'max_rmse', 'registration_points',
+                 'min_registration_sigma', 'robust_kernel_width'):
+        need(getattr(lc, name) > 0, f'loop_closure.{name}', 'must be positive')
+    need(len(lc.registration_distances) >= 1 and all(d > 0 for d in lc.registration_distances),
+         'loop_closure.registration_distances', 'must be one or more positive distances [m]')
+    need(0.0 <= lc.min_overlap <= 1.0, 'loop_closure.min_overlap', 'must be within 0..1')
+    need(lc.source_keyframes >= 0, 'loop_closure.source_keyframes', 'must not be negative')
+    need(lc.target_keyframes >= 0, 'loop_closure.target_keyframes', 'must not be negative')
+    need(lc.skip_first_keyframes >= 0, 'loop_closure.skip_first_keyframes', 'must not be negative')

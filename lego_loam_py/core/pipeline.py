@@ -76,6 +76,28 @@ class RunResult:
             poses = np.array([camera_pose_to_lidar(p) for p in poses]).reshape(-1, 4, 4)
         return np.array(self.stamps, dtype=np.int64) + self.pose_time_offset_ns, poses
 
+    def optimized_trajectory(self, axes: str = 'map') -> tuple[np.ndarray, np.ndarray]:
+        """The fused trajectory as the pose graph has it at the end: each pose moved by the correction its last
+        keyframe (at or before it) received since it was mapped (the loops closed later), so that the whole path
+        is in the corrected frame. Without a mapper, or without corrections, it is :meth:`trajectory`."""
+        stamps, poses = self.trajectory(axes='camera_init')
+        if self.mapper is not None and self.mapper.keyframes and len(poses):
+            mapped = dict(zip(self.mapped_stamps, self.mapped))
+            keyframes = [kf for kf in self.mapper.keyframes if kf.stamp_ns in mapped]
+            key_stamps = np.array([kf.stamp_ns for kf in keyframes], dtype=np.int64) + self.pose_time_offset_ns
+            # (the first keyframe is the graph's anchor: it never moves, though the step that made it published
+            # no mapped pose of its own yet)
+            corrections = np.array([np.eye(4) if kf is self.mapper.keyframes[0] else
+                                    pose6_to_matrix(kf.pose6) @ np.linalg.inv(mapped[kf.stamp_ns])
+                                    for kf in keyframes]).reshape(-1, 4, 4)
+            which = np.searchsorted(key_stamps, stamps, side='right') - 1
+            if len(keyframes):
+                moved = np.einsum('nij,njk->nik', corrections[np.maximum(which, 0)], poses)
+                poses = np.where((which >= 0)[:, None, None], moved, poses)
+        if axes == 'map':
+            poses = np.array([camera_pose_to_lidar(p) for p in poses]).reshape(-1, 4, 4)
+        return stamps, poses
+
 
 @dataclass(frozen=True)
 class ScanOutput:
@@ -151,6 +173,10 @@ class Pipeline:
         finally:
             self.close()
         self.record.counts['keyframes'] = len(self.mo.keyframes) if self.mapping else 0
+        if self.mapping and self.params.loop_closure.loop_closure_enable_flag:
+            # (a loop verified and left waiting for a second one that never came counts as rejected)
+            accepted = sum(loop.accepted for loop in self.mo.loops)
+            self.record.counts.update(loops_closed=accepted, loops_rejected=len(self.mo.loops) - accepted)
         return self.record
 
     def close(self) -> None:
@@ -217,7 +243,8 @@ class _Mapped:
 
 @dataclass(frozen=True)
 class _LoopChecked:
-    """A loop-closure check; the future gives (LoopResult or None, wall ms, keyframe positions for a listener)."""
+    """A loop-closure check; the future gives (LoopResult or None, CPU ms of detection, of verification,
+    keyframe positions for a listener or None without one)."""
 
     future: Future
 
@@ -237,6 +264,10 @@ class _BackEnd:
         self.listener = listener
         self.continuity = OdometryContinuity()   # (used on the mapping worker only)
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix='mapping') if threaded else None
+        # CPU time of mapping and loop closure: the worker thread's own (wall time would count its waits for the
+        # GIL while the main thread runs the next scans), or the whole process's when nothing else runs beside
+        # them (then the threads of open3d and scipy count too).
+        self._cpu_time = time.thread_time if threaded else time.process_time
         self._imu: list[tuple] = []
         self._events: deque[_Fuse | _Mapped | _LoopChecked] = deque()
 
@@ -267,9 +298,7 @@ class _BackEnd:
             return
 
         def step():
-            # CPU time of the thread: on the worker, wall time would also count the waits for the GIL while
-            # the main thread runs the next scans.
-            t = time.thread_time()
+            t = self._cpu_time()
             transform_sum = inputs[0]
             pose = pose6_to_matrix(transform_sum)
             jump = self.continuity.check(stamp, pose)
@@ -281,7 +310,7 @@ class _BackEnd:
             if problem is not None:   # the same self-check as the node's: reset what is poisoned, keep the map
                 self.warn(f'mapping step at {stamp * 1e-9:.3f} s: {problem}: {self.mo.heal()}')
                 mapped = None
-            cpu_ms = (time.thread_time() - t) * 1e3
+            cpu_ms = (self._cpu_time() - t) * 1e3
             # (Read here, on the worker, where the keyframes cannot change meanwhile.)
             seen = self._keyframes_seen(mapped is not None and mapped.keyframe_added) if self.listener else None
             return mapped, cpu_ms, seen
@@ -290,11 +319,13 @@ class _BackEnd:
 
     def loop_closure(self) -> None:
         def close():
-            t = time.perf_counter()
+            t = self._cpu_time()
             candidate = self.mo.detect_loop()
+            detected = self._cpu_time()
             loop = self.mo.close_loop(candidate) if candidate is not None else None
-            wall_ms = (time.perf_counter() - t) * 1e3
-            return loop, wall_ms, self._keyframes_seen(False)[1] if self.listener else None
+            verified = self._cpu_time()
+            positions = self._keyframes_seen(False)[1] if self.listener else None
+            return loop, (detected - t) * 1e3, (verified - detected) * 1e3, positions
 
         self._events.append(_LoopChecked(self._submit(close)))
 
@@ -324,12 +355,13 @@ class _BackEnd:
                     if self.listener is not None:
                         self.listener(MapStepped(event.stamp_ns, step, aft, *seen, cpu_ms=ms))
             else:
-                loop, ms, positions = event.future.result()
+                loop, detection_ms, verification_ms, positions = event.future.result()
+                result.time('loop_closure', detection_ms + verification_ms)
+                result.time('loop_detection', detection_ms)
                 if loop is not None:
-                    result.count('loops_closed' if loop.accepted else 'loops_rejected')
-                result.time('loop_closure', ms)
+                    result.time('loop_verification', verification_ms)
                 if self.listener is not None:
-                    self.listener(LoopChecked(loop, positions, ms))
+                    self.listener(LoopChecked(loop, positions, detection_ms + verification_ms))
 
     def _keyframes_seen(self, new_keyframe: bool) -> tuple[np.ndarray | None, np.ndarray]:
         """(the newest keyframe's corner, surface and outlier clouds in camera_init when ``new_keyframe``, else

@@ -53,7 +53,7 @@ class LoopChecked:
 
     loop: object | None
     keyframe_positions: np.ndarray          # (K, 3) after the correction, camera_init
-    wall_ms: float
+    cpu_ms: float                           # detection and verification, the mapping worker's CPU time
 
 
 PipelineEvent = Union[ScanProcessed, ScanFused, MapStepped, LoopChecked]

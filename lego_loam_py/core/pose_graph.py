@@ -88,6 +88,24 @@ class PoseGraph:
                                            gtsam.noiseModel.Diagonal.Variances(np.asarray(variances, float))))
         self._update(graph, gtsam.Values())
 
+    def add_loop_constraint(self, from_key: int, to_key: int, pose_lidar: np.ndarray, information: np.ndarray,
+                            kernel: str = 'huber', width: float = 1.345) -> None:
+        """The constraint 'keyframe ``to_key`` sits at ``pose_lidar`` (4x4, lidar axes) in keyframe ``from_key``'s
+        frame' with a 6x6 ``information`` (rot, trans; gtsam's tangent order on the ``to_key`` side) under a robust
+        kernel ('huber': the pull of a constraint that disagrees with the odometry grows no faster than linearly,
+        so a wrong one cannot bend a stiff chain; 'cauchy': it fades; 'none') of ``width`` standard deviations."""
+        gtsam = self._gtsam
+        information = 0.5 * (information + information.T) + np.eye(6) * 1e-9   # symmetric, positive definite
+        noise = gtsam.noiseModel.Gaussian.Information(information)
+        if kernel != 'none':
+            estimator = (gtsam.noiseModel.mEstimator.Huber if kernel == 'huber' else
+                         gtsam.noiseModel.mEstimator.Cauchy).Create(width)
+            noise = gtsam.noiseModel.Robust.Create(estimator, noise)
+        pose = self._gtsam.Pose3(self._gtsam.Rot3(pose_lidar[:3, :3]), pose_lidar[:3, 3].copy())
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(gtsam.BetweenFactorPose3(from_key, to_key, pose, noise))
+        self._update(graph, gtsam.Values())
+
     def poses(self, indices: Sequence[int]) -> list[np.ndarray]:
         """The current estimates of the keyframes ``indices`` (six-vectors)."""
         estimate = self._isam.calculateEstimate()

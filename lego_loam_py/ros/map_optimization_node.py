@@ -9,7 +9,9 @@ Subscribes /laser_cloud_corner_last, /laser_cloud_surf_last, /outlier_cloud_last
   which transformFusion needs;
 * while subscribed: /key_pose_origin (keyframe positions, intensity = index), /recent_cloud (surface map
   around the robot), /registered_cloud (the current scan in the map), /laser_cloud_surround (global map,
-  every ``global_map_publish_period`` s), /history_cloud and /corrected_cloud (loop closure).
+  every ``global_map_publish_period`` s), /history_cloud and /corrected_cloud (loop closure);
+* /loop_closures (visualization_msgs/MarkerArray, latched): a line between the two keyframes of every accepted
+  loop and a sphere at each end, at their current optimised positions (camera_init), for RViz.
 
 Loop closure (``loop_closure.loop_closure_enable_flag``) runs every ``loop_closure.period`` s on a worker
 thread of its own, so the ICP does not hold up the mapping steps. The service ``save_map``
@@ -35,6 +37,7 @@ import numpy as np
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu, PointCloud2
 from std_srvs.srv import Trigger
+from visualization_msgs.msg import Marker, MarkerArray
 
 from lego_loam_py.core.frames import (AFT_MAPPED_FRAME, CAMERA_INIT_FRAME, matrix_to_pose6, pose6_to_matrix,
                                       transform_cloud)
@@ -90,6 +93,8 @@ class MapOptimizationNode(LegoLoamNode):
         self.pub_registered = self.create_publisher(PointCloud2, '/registered_cloud', depth2)
         self.pub_history = self.create_publisher(PointCloud2, '/history_cloud', depth2)
         self.pub_corrected = self.create_publisher(PointCloud2, '/corrected_cloud', depth2)
+        self.pub_loops = self.create_publisher(MarkerArray, '/loop_closures', qos.latched())
+        self._loops_counted = 0   # accepted loops counted so far (a verified loop may be accepted later)
         # Saves run on a worker thread, one at a time; callers during a save share the next one (see services.py).
         self.saves = CoalescingRunner(self._save_now, 'save_map')
         create_deferred_service(self, Trigger, 'save_map', self._save_requested, _fill_save_response)
@@ -331,17 +336,32 @@ class MapOptimizationNode(LegoLoamNode):
             return
         stamp = self.last_step_stamp
         if stamp is not None and self.pub_history.get_subscription_count():
-            self.pub_history.publish(serialized_xyzi_cloud(candidate.target, make_header(stamp, CAMERA_INIT_FRAME)))
-        if result.accepted:
-            self.count('loops_closed')
-            self.get_logger().info(f'loop closed: keyframe {result.latest} -> {result.candidate} '
-                                   f'(ICP fitness {result.fitness:.3f})')
+            self.pub_history.publish(serialized_xyzi_cloud(loop_cloud_in_world(candidate, self.params, 'target'),
+                                                           make_header(stamp, CAMERA_INIT_FRAME)))
+        accepted = sum(loop.accepted for loop in self.core.loops)
+        if accepted > self._loops_counted:
+            self.count('loops_closed', accepted - self._loops_counted)
+            self._loops_counted = accepted
+            self.get_logger().info(f'loop closed: keyframe {result.latest} -> {result.candidate} ({result.detector}, '
+                                   f'fit {result.fitness:.3f}, correction {result.correction_m:.2f} m / '
+                                   f'{result.correction_deg:.2f} deg); {accepted} loops in the graph')
+            self.publish_loop_markers()
             if stamp is not None and self.pub_corrected.get_subscription_count():
-                corrected = candidate.source.copy()
-                corrected[:, :3] = corrected[:, :3] @ result.correction[:3, :3].T + result.correction[:3, 3]
-                self.pub_corrected.publish(serialized_xyzi_cloud(corrected, make_header(stamp, CAMERA_INIT_FRAME)))
-        else:
-            self.count('loops_rejected')
+                self.pub_corrected.publish(serialized_xyzi_cloud(
+                    loop_cloud_in_world(candidate, self.params, 'corrected', result),
+                    make_header(stamp, CAMERA_INIT_FRAME)))
+        if not result.accepted:
+            self.count('loops_pending' if result.reason == 'pending' else 'loops_rejected')
+
+    def publish_loop_markers(self) -> None:
+        """/loop_closures: every accepted loop as a line between its keyframes' current positions."""
+        with self.core.lock:
+            positions = self.core.keyframe_poses()[:, 3:]
+            index = {kf.stamp_ns: kf.index for kf in self.core.keyframes}
+            pairs = [(index[loop.latest_stamp_ns], index[loop.candidate_stamp_ns]) for loop in self.core.loops
+                     if loop.accepted and loop.latest_stamp_ns in index and loop.candidate_stamp_ns in index]
+        if self.last_step_stamp is not None:
+            self.pub_loops.publish(loop_markers(make_header(self.last_step_stamp, CAMERA_INIT_FRAME), positions, pairs))
 
     def _save_requested(self, request):
         self.count('save_requests')
@@ -369,6 +389,11 @@ class MapOptimizationNode(LegoLoamNode):
         points = sum(len(kf.corner) + len(kf.surf) + len(kf.outlier) for kf in keyframes)
         nbytes = sum(kf.corner.nbytes + kf.surf.nbytes + kf.outlier.nbytes for kf in keyframes)
         out['map'] = dict(keyframes=len(keyframes), points=int(points), bytes=int(nbytes))
+        if self.params.loop_closure.loop_closure_enable_flag and keyframes:
+            from dataclasses import asdict
+
+            from lego_loam_py.results import LoopClosures
+            out['loop_closures'] = asdict(LoopClosures.of(list(self.core.loops), keyframes[0].stamp_ns))
         return out
 
     def on_shutdown(self) -> None:
@@ -382,6 +407,46 @@ class MapOptimizationNode(LegoLoamNode):
             else:
                 self.get_logger().error(message)
         super().on_shutdown()
+
+
+def loop_markers(header, positions: np.ndarray, pairs) -> MarkerArray:
+    """Markers of loops (pairs of keyframe indices) between keyframe ``positions`` (K, 3, camera_init): one
+    LINE_LIST (green) and one SPHERE_LIST (the keyframes, yellow); a DELETEALL first, so that the array replaces
+    what was shown."""
+    from geometry_msgs.msg import Point
+
+    clear = Marker(header=header, action=Marker.DELETEALL)
+    lines = Marker(header=header, ns='loop_closures', id=0, type=Marker.LINE_LIST, action=Marker.ADD)
+    ends = Marker(header=header, ns='loop_closures', id=1, type=Marker.SPHERE_LIST, action=Marker.ADD)
+    lines.pose.orientation.w = ends.pose.orientation.w = 1.0
+    lines.scale.x = 0.3
+    ends.scale.x = ends.scale.y = ends.scale.z = 1.0
+    lines.color.g, lines.color.a = 1.0, 1.0
+    ends.color.r, ends.color.g, ends.color.a = 1.0, 1.0, 1.0
+    for a, b in pairs:
+        for k in (a, b):
+            x, y, z = (float(v) for v in positions[k])
+            lines.points.append(Point(x=x, y=y, z=z))
+            ends.points.append(Point(x=x, y=y, z=z))
+    return MarkerArray(markers=[clear, lines, ends])
+
+
+def loop_cloud_in_world(candidate, params, which: str, result=None) -> np.ndarray:
+    """(n, 4) world points (camera_init) of a loop candidate's target map ('target') or of its source aligned by the
+    registration ('corrected'), for /history_cloud and /corrected_cloud."""
+    from lego_loam_py.core.frames import camera_pose_to_lidar, lidar_to_camera
+
+    if params.loop_closure.method == 'original':   # (its clouds are in the world already)
+        points = candidate.target if which == 'target' else candidate.source.copy()
+        if which == 'corrected':
+            points[:, :3] = points[:, :3] @ result.correction[:3, :3].T + result.correction[:3, 3]
+        return points
+    to_world = camera_pose_to_lidar(candidate.candidate_pose)        # the verified method's are in lidar axes
+    if which == 'corrected':   # the source where the registration put it: latest in the candidate's frame
+        to_world = to_world @ camera_pose_to_lidar(np.linalg.inv(result.relative))
+    points = candidate.target if which == 'target' else candidate.source
+    world = points[:, :3] @ to_world[:3, :3].T + to_world[:3, 3]
+    return np.concatenate([lidar_to_camera(world), np.zeros((len(world), 1))], axis=1).astype(np.float32)
 
 
 def _fill_save_response(response, finished) -> None:

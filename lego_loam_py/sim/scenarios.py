@@ -11,6 +11,10 @@
                pillars, side openings into rooms; a handheld lidar at 1.7 m with walking bob and sway.
 ``aggressive`` a campus-like area driven hard: straights at 8 m/s, hairpins and chicanes with yaw rates
                up to 90 deg/s and up to ~1 g of lateral acceleration: the scenario where deskewing matters.
+``rows``       a city block between rows of identical buildings, poles and cars (every 26 m), a lap and a
+               half: repeated structure where false loop closures tempt.
+``open_road``  a 690 m road across open fields at 8 m/s, little beside it: the mapping drifts along it
+               before the loop closes at a built-up start.
 =============  ==============================================================================================
 
 The seed fixes the scenery (placement, sizes, materials) and, in the simulator, the noise; the roads and
@@ -717,6 +721,108 @@ def _build_corridor(seed: int) -> World:
                  SCENARIOS['corridor'].description, _facts(path, speed, trajectory))
 
 
+# -------------------------------------------------------------------------------------------- city rows
+
+_ROWS_HALF = (80.0, 25.0)   # centre line of the block loop: rectangle half-extents [m]
+_ROWS_PERIOD = 26.0         # identical buildings (and poles, cars) repeat every this along the long streets [m]
+
+
+def _build_rows(seed: int) -> World:
+    """A city block driven around: along both long streets, rows of identical buildings, lamp posts and parked
+    cars repeat every :data:`_ROWS_PERIOD` on both sides, so places one period apart (and on the other street,
+    seen the other way round) look alike; only the two short streets, lined with trees, tell them apart. The
+    drive is a lap and a half: the second half-lap runs over the first, where false loops tempt."""
+    hx, hy = _ROWS_HALF
+    path = ClosedPath(_rounded_rectangle(hx, hy, 12.0, step=2.0))
+    terrain = Terrain()
+    rng = scenario_rng(seed, 'rows-scene')
+    builder = SceneBuilder()
+    clearance = _Clearance(path)
+    polyline = path.polyline(0.5)
+    x_range, y_range = _extent(polyline, 70.0)
+    road, sidewalk = 4.5, 7.1
+    asphalt, concrete, grass = (material_index(m) for m in ('asphalt', 'concrete', 'grass'))
+
+    def ground_material(centroids: np.ndarray) -> np.ndarray:
+        d = clearance.distance(centroids)
+        return np.where(d < road, asphalt, np.where(d < sidewalk, concrete, grass)).astype(np.uint8)
+
+    _ground(builder, terrain, x_range, y_range, 1.0, ground_material)
+    _add_curbs(builder, terrain, path, clearance, road)
+    slots = np.arange(-hx + 14.0, hx - 13.0, _ROWS_PERIOD)
+    for street_y in (-hy, hy):
+        for side in (-1.0, 1.0):
+            for x in slots:   # the same building, pole and car (same random draws) in every slot
+                _add_building(builder, terrain, np.array([x, street_y + side * 18.0]), 0.0, 20.0, 10.0, 12.0,
+                              'concrete', scenario_rng(0, 'rows-building'))
+                _add_pole(builder, terrain, np.array([x + 0.5 * _ROWS_PERIOD, street_y + side * (road + 1.0)]),
+                          0.5 * math.pi * (1.0 - side), sign=False)
+                if side > 0:
+                    _add_car(builder, terrain, np.array([x, street_y + side * (road - 1.25)]), 0.0,
+                             scenario_rng(0, 'rows-car'))
+    # The short streets: trees of random sizes and places, the only thing that tells the two ends apart.
+    for end_x in (-hx, hx):
+        for _ in range(14):
+            xy = np.array([end_x + np.sign(end_x) * rng.uniform(sidewalk + 1.0, 30.0), rng.uniform(-hy - 20, hy + 20)])
+            if clearance.distance(_disc_samples(xy, 1.5)).min() > sidewalk:
+                _add_tree(builder, terrain, xy, rng, conifer=rng.random() < 0.3, trunk_radius=rng.uniform(0.15, 0.3),
+                          height=rng.uniform(3.0, 6.0), crown_radius=rng.uniform(1.5, 3.0))
+    scene = builder.build()
+    speed = SpeedProfile(path, cruise_speed=3.0, max_lateral_acceleration=0.6, smoothing=6.0)
+    trajectory = PathTrajectory(path, speed, terrain, sensor_height=1.8, wheelbase=2.7, track=1.6)
+    return World('rows', seed, scene, trajectory, _whole_scans(1.5 * speed.lap_time),
+                 SCENARIOS['rows'].description, _facts(path, speed, trajectory))
+
+
+# ------------------------------------------------------------------------------------------------ open road
+
+def _build_open_road(seed: int) -> World:
+    """A 690 m stadium-shaped road across open fields driven at 8 m/s: two 250 m straights with nothing beside
+    them but a lamp post every 45 m and trees scattered over the fields, so the mapping has little to hold the
+    motion along the road and drifts; a cluster of buildings, cars and trees around the start, where the loop closes."""
+    straight, radius = 250.0, 30.0
+    waypoints = [(x, -radius) for x in np.arange(0.0, straight, 10.0)]
+    waypoints += [(straight + radius * math.sin(a), -radius * math.cos(a)) for a in np.linspace(0.0, math.pi, 13)[1:-1]]
+    waypoints += [(x, radius) for x in np.arange(straight, 0.0, -10.0)]
+    waypoints += [(-radius * math.sin(a), radius * math.cos(a)) for a in np.linspace(0.0, math.pi, 13)[1:-1]]
+    path = ClosedPath(np.array(waypoints) - [0.5 * straight, 0.0])
+    terrain = Terrain.random(scenario_rng(0, 'open-road-terrain'), [(1.0, 150.0), (0.3, 60.0)])
+    rng = scenario_rng(seed, 'open-road-scene')
+    builder = SceneBuilder()
+    clearance = _Clearance(path)
+    x_range, y_range = _extent(path.polyline(0.5), 70.0)
+    asphalt, grass = material_index('asphalt'), material_index('grass')
+    _ground(builder, terrain, x_range, y_range, 1.5,
+            lambda c: np.where(clearance.distance(c) < 4.0, asphalt, grass).astype(np.uint8))
+    start = path.xy(np.array([0.0]))[0]
+    for k, s in enumerate(np.arange(10.0, path.length, 45.0)):
+        tangent = path.tangent(np.array([s]))[0]
+        normal = np.array([-tangent[1], tangent[0]])
+        side = 1.0 if k % 2 == 0 else -1.0
+        _add_pole(builder, terrain, path.xy(np.array([s]))[0] + side * 5.5 * normal, 0.0, sign=False)
+    for _ in range(100):   # scattered trees in the fields
+        xy = np.array([rng.uniform(*x_range), rng.uniform(*y_range)])
+        if clearance.distance(_disc_samples(xy, 2.0)).min() > 8.0:
+            _add_tree(builder, terrain, xy, rng, conifer=rng.random() < 0.3, trunk_radius=rng.uniform(0.15, 0.35),
+                      height=rng.uniform(4.0, 8.0), crown_radius=rng.uniform(2.0, 3.5))
+    # The start: buildings, parked cars and trees within 40 m (what the loop closure recognises).
+    for dx, dy, yaw, length, width, height in ((-15.0, -50.0, 0.0, 24.0, 12.0, 9.0), (18.0, -48.0, 0.3, 16.0, 10.0, 6.0),
+                                               (2.0, -12.0, 0.0, 30.0, 10.0, 12.0), (-25.0, -14.0, 0.1, 12.0, 8.0, 5.0)):
+        _add_building(builder, terrain, start + [dx, dy], yaw, length, width, height, 'brick', rng)
+    for dx in (-20.0, -13.0, 4.0, 15.0):
+        _add_car(builder, terrain, start + [dx, -3.0 + 0.5 * rng.uniform(-1, 1)], 0.0, rng)
+    for _ in range(12):
+        xy = start + rng.uniform([-40.0, -40.0], [40.0, 40.0])
+        if clearance.distance(_disc_samples(xy, 2.0)).min() > 6.0:
+            _add_tree(builder, terrain, xy, rng, conifer=rng.random() < 0.3, trunk_radius=rng.uniform(0.15, 0.3),
+                      height=rng.uniform(3.0, 6.0), crown_radius=rng.uniform(1.5, 3.0))
+    scene = builder.build()
+    speed = SpeedProfile(path, cruise_speed=8.0, max_lateral_acceleration=2.0, smoothing=10.0)
+    trajectory = PathTrajectory(path, speed, terrain, sensor_height=1.8, wheelbase=2.7, track=1.6)
+    return World('open_road', seed, scene, trajectory, _whole_scans(speed.lap_time + 10.0),
+                 SCENARIOS['open_road'].description, _facts(path, speed, trajectory))
+
+
 # ------------------------------------------------------------------------------------------------- registry
 
 def _whole_scans(seconds: float, scan_period: float = 0.1) -> float:
@@ -752,6 +858,13 @@ SCENARIOS: dict[str, ScenarioInfo] = {
                              _build_corridor),
     'aggressive': ScenarioInfo('aggressive', 'campus-like circuit driven hard: 8 m/s straights, hairpins and a '
                                'chicane, yaw rates up to 90 deg/s: deskewing matters', _build_aggressive),
+    'rows': ScenarioInfo('rows', 'city block loop (~400 m, a lap and a half) between rows of identical buildings, '
+                         'lamp posts and parked cars repeating every 26 m: places that look alike tempt false '
+                         'loops; car-mounted lidar at 1.8 m, ~3 m/s', _build_rows),
+    'open_road': ScenarioInfo('open_road', 'stadium-shaped road (~690 m, a lap and 10 s) across open fields at 8 m/s: '
+                              'little beside the straights but sparse lamp posts and trees, so the mapping drifts '
+                              'along them; buildings and cars around the start, where the loop closes',
+                              _build_open_road),
 }
 
 

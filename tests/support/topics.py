@@ -36,10 +36,12 @@ GATED = {
     '/laser_cloud_surround': ('mapOptimization', 'sensor_msgs/msg/PointCloud2', 'camera_init', None),
 }
 
-# Loop closure only (off by default): /history_cloud, /corrected_cloud (sensor_msgs/PointCloud2, camera_init).
+# Loop closure only (off by default): /history_cloud, /corrected_cloud (camera_init), and,
+# not in the original, /loop_closures (latched markers of the accepted loops).
 LOOP_CLOSURE = {
     '/history_cloud': ('mapOptimization', 'sensor_msgs/msg/PointCloud2', 'camera_init', None),
     '/corrected_cloud': ('mapOptimization', 'sensor_msgs/msg/PointCloud2', 'camera_init', None),
+    '/loop_closures': ('mapOptimization', 'visualization_msgs/msg/MarkerArray', 'camera_init', None),
 }
 
 # (parent, child) on /tf, and on the latched /tf_static.
