@@ -7,7 +7,9 @@ restamped (the header stamps in the serialized messages are shifted by whole lap
 drive; a bag whose trajectory returns to its start (the campus lap) then becomes an arbitrarily long run.
 ``--jump-back`` keeps the original stamps instead (time jumps back at every lap, like ``play --loop``).
 ``--burst N`` publishes N clouds back to back (with consecutive stamps) after the first second, as a driver
-that stalled and flushed its queue would. Prints ``ready`` once every topic has a subscriber, ``lap K`` at
+that stalled and flushed its queue would; with ``--burst-handshake`` it first prints ``burst ready`` and waits
+for a line on stdin (the test stops a subscriber meanwhile, so that the burst arrives faster than it can
+work, on any machine). Prints ``ready`` once every topic has a subscriber, ``lap K`` at
 the start of each lap and ``done N`` at the end (N = clouds published).
 """
 from __future__ import annotations
@@ -49,6 +51,8 @@ def main(argv=None) -> int:
     parser.add_argument('--laps', type=int, default=None, help='laps to publish')
     parser.add_argument('--jump-back', action='store_true', help='keep the original stamps at every lap')
     parser.add_argument('--burst', type=int, default=0, help='clouds to publish at once after one second')
+    parser.add_argument('--burst-handshake', action='store_true',
+                        help="print 'burst ready' and wait for a line on stdin before the burst")
     parser.add_argument('--no-imu', action='store_true')
     parser.add_argument('--imu-start', type=float, default=0.0, help='publish IMU only after this many seconds')
     parser.add_argument('--imu-gap', type=float, nargs=2, default=None, metavar=('FROM', 'TO'),
@@ -115,6 +119,9 @@ def main(argv=None) -> int:
                     clouds += 1
                     if not burst_done and data_s >= 1.0:
                         burst_done = True
+                        if args.burst_handshake:
+                            print('burst ready', flush=True)
+                            sys.stdin.readline()
                         for k in range(1, args.burst + 1):   # stamps 0.9 ms apart, before the next sweep
                             publishers[LIDAR].publish(restamp(data, k * 900_000))
                         clouds += args.burst
