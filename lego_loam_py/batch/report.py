@@ -116,7 +116,9 @@ def _plots(records: Sequence[dict], keys: Sequence[str], out: Path) -> list[str]
     written = []
     fig, ax = plt.subplots(figsize=(max(6.0, 0.35 * len(done)), 4.0))
     ax.bar(range(len(done)), [r['ate_rmse_m'] for r in done], color='tab:blue')
-    ax.set_xticks(range(len(done)), [r['run'] for r in done], rotation=75, ha='right', fontsize=7)
+    # A run is told apart by its recording and the values swept, not by its hash.
+    labels = [' '.join([r['recording'], *(f'{k.rsplit(".", 1)[-1]}={_value(r, k)}' for k in keys)]) for r in done]
+    ax.set_xticks(range(len(done)), labels, rotation=75, ha='right', fontsize=7)
     ax.set_ylabel('ATE RMSE [m]')
     ax.set_title('ATE per run')
     fig.tight_layout()
