@@ -21,11 +21,14 @@ DATA_FILES = [
     (f'share/{PACKAGE}/launch', _files('launch/*.launch.py')),
 ]
 
-# Optional C helper: libm's atan2f on arrays, for bit-exact range-image columns (lego_loam_py/core/libm.py
+# Optional C helpers: libm's atan2f on arrays, for bit-exact range-image columns (lego_loam_py/core/libm.py
 # falls back to NumPy when it cannot be built).
 EXT_MODULES = [
     Extension(f'{PACKAGE}.core._libm_compat', [f'{PACKAGE}/core/native/libm_compat.c'], libraries=['m'],
               extra_compile_args=['-O2', '-fno-fast-math'], optional=True),
+    # The greedy feature selection in C (lego_loam_py/core/features.py runs the same loop in Python without it).
+    Extension(f'{PACKAGE}.core._feature_selection', [f'{PACKAGE}/core/native/feature_selection.c'],
+              extra_compile_args=['-O2'], optional=True),
 ]
 
 CONSOLE_SCRIPTS = [

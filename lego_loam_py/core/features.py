@@ -33,6 +33,11 @@ from lego_loam_py.core.indexing import ragged
 from lego_loam_py.core.param_types import Params
 from lego_loam_py.core.voxel import voxel_downsample_groups
 
+try:   # the greedy selection in C (native/feature_selection.c); optional, as the Python loop gives the same
+    from lego_loam_py.core import _feature_selection
+except ImportError:
+    _feature_selection = None
+
 __all__ = ['ScanFeatures', 'FeatureExtractor', 'smoothness', 'occluded_mask']
 
 _F32 = np.float32
@@ -177,52 +182,22 @@ class FeatureExtractor:
         edge_list, edge_bounds = _candidates(edge_order, is_edge_candidate[edge_order], slot)
         flat_list, flat_bounds = _candidates(flat_order, is_flat_candidate[flat_order], slot)
 
-        # The greedy selection is sequential (each pick suppresses its neighbours for the later ones): plain
-        # Python on lists and a bytearray, with every candidate's suppression slice prepared beforehand.
+        # The greedy selection is sequential (each pick suppresses its neighbours for the later ones), with
+        # every candidate's suppression slice prepared beforehand: in C when the extension is built.
         jumps = _column_jumps(columns, fa.suppress_column_jump)
         edge_slices = _suppression_slices(edge_list, jumps, fa.suppress_half_window)
         flat_slices = _suppression_slices(flat_list, jumps, fa.suppress_half_window)
-        edges, flats = edge_list.tolist(), flat_list.tolist()
-        fill = [b'\x01' * k for k in range(2 * fa.suppress_half_window + 2)]
         taken = bytearray(picked.tobytes())
-        sharp, less_sharp, less_sharp_region, flat = [], [], [], []
-        edge_num, less_edge_num, surf_num = fa.edge_feature_num, fa.less_edge_feature_num, fa.surf_feature_num
-        for region in range(regions):
-            count = 0
-            first, stop, low, high = edge_bounds[region], edge_bounds[region + 1], edge_slices[0], edge_slices[1]
-            for i in range(first, stop):
-                k = edges[i]
-                if taken[k]:
-                    continue
-                count += 1
-                if count <= edge_num:
-                    sharp.append(k)
-                elif count > less_edge_num:
-                    break
-                less_sharp.append(k)
-                less_sharp_region.append(region)
-                taken[low[i]:high[i]] = fill[high[i] - low[i]]
-            count = 0
-            first, stop, low, high = flat_bounds[region], flat_bounds[region + 1], flat_slices[0], flat_slices[1]
-            for i in range(first, stop):
-                k = flats[i]
-                if taken[k]:
-                    continue
-                flat.append(k)
-                count += 1
-                if count >= surf_num:
-                    break
-                taken[low[i]:high[i]] = fill[high[i] - low[i]]
+        sharp_index, less_sharp_index, flat_index, less_sharp_region = greedy_selection(
+            edge_list, edge_bounds, edge_slices, flat_list, flat_bounds, flat_slices, taken, regions,
+            fa.edge_feature_num, fa.less_edge_feature_num, fa.surf_feature_num)
         self._stale_picked[:head] = np.frombuffer(taken, dtype=bool)[:head]
-        sharp_index = np.asarray(sharp, dtype=np.int64)
-        less_sharp_index = np.asarray(less_sharp, dtype=np.int64)
-        flat_index = np.asarray(flat, dtype=np.int64)
 
         # Less flat: the points of each region [sp, ep] not picked as edges by the end of that region (only the
         # phantom point 0 can be picked from another region), voxel-filtered ring by ring (one grouped filter
         # gives the same points in the same order).
         edge_region = np.full(n, regions, dtype=np.int64)
-        edge_region[less_sharp_index] = np.asarray(less_sharp_region, dtype=np.int64)
+        edge_region[less_sharp_index] = less_sharp_region
         region_of, position = ragged(sp, ep + 1)
         kept = edge_region[position] > region_of
         if kept.any():
@@ -260,7 +235,7 @@ def _candidates(order: np.ndarray, usable: np.ndarray, slot: np.ndarray):
     """The usable entries of ``order`` and, per region (slots starting at ``slot``), where they start and end
     in that list (region r: [bounds[r], bounds[r + 1]))."""
     before = np.concatenate(([0], np.cumsum(usable)))
-    return order[usable], np.append(before[slot], before[-1]).tolist()
+    return order[usable], np.append(before[slot], before[-1])
 
 
 def _column_jumps(columns: np.ndarray, column_jump: int) -> np.ndarray:
@@ -271,7 +246,7 @@ def _column_jumps(columns: np.ndarray, column_jump: int) -> np.ndarray:
 
 
 def _suppression_slices(index: np.ndarray, jumps: np.ndarray, half_window: int):
-    """(start, stop) lists of the slice a pick at each ``index`` marks, as the original walks l = 1..w (and
+    """(start, stop) arrays of the slice a pick at each ``index`` marks, as the original walks l = 1..w (and
     -1..-w) and stops at the first column jump; 0 <= start < stop <= n for indices in [0, n)."""
     n = int(jumps[-1])
     negative = len(index) > 0 and index.min() < 0
@@ -283,4 +258,62 @@ def _suppression_slices(index: np.ndarray, jumps: np.ndarray, half_window: int):
     if negative:   # normalised as Python slices are, so that stop - start stays the slice's length
         start = np.clip(np.where(start < 0, start + n, start), 0, n)
         stop = np.maximum(np.clip(np.where(stop < 0, stop + n, stop), 0, n), start)
-    return start.tolist(), stop.tolist()
+    return start.astype(np.int64, copy=False), stop.astype(np.int64, copy=False)
+
+
+def greedy_selection(edges: np.ndarray, edge_bounds: np.ndarray, edge_slices, flats: np.ndarray,
+                     flat_bounds: np.ndarray, flat_slices, taken: bytearray, regions: int, edge_num: int,
+                     less_edge_num: int, surf_num: int, native: bool = True):
+    """The original's sequential picks, region by region: up to ``edge_num`` sharp and ``less_edge_num`` less
+    sharp points from ``edges`` (largest curvature first), then up to ``surf_num`` flat points from ``flats``
+    (smallest first), skipping points already ``taken`` and marking each pick's suppression slice
+    (``*_slices``: start and stop arrays per candidate) in ``taken``, which is updated in place.
+
+    ``*_bounds``: region r's candidates are entries [bounds[r], bounds[r + 1]). Returns the sharp, less sharp,
+    flat point indices and the region of each less sharp point (int64 arrays). ``native=False`` runs the Python
+    loop even when the C extension is there (the tests compare the two)."""
+    edges, flats = np.ascontiguousarray(edges, np.int64), np.ascontiguousarray(flats, np.int64)
+    edge_bounds = np.ascontiguousarray(edge_bounds, np.int64)
+    flat_bounds = np.ascontiguousarray(flat_bounds, np.int64)
+    if native and _feature_selection is not None:
+        sharp = np.empty(regions * edge_num, np.int64)
+        less_sharp = np.empty(regions * less_edge_num, np.int64)
+        less_sharp_region = np.empty_like(less_sharp)
+        flat = np.empty(regions * surf_num, np.int64)
+        slices = [np.ascontiguousarray(a, np.int64) for a in (*edge_slices, *flat_slices)]
+        n_sharp, n_less, n_flat = _feature_selection.select(
+            edges, edge_bounds, slices[0], slices[1], flats, flat_bounds, slices[2], slices[3], taken,
+            edge_num, less_edge_num, surf_num, sharp, less_sharp, less_sharp_region, flat)
+        return sharp[:n_sharp], less_sharp[:n_less], flat[:n_flat], less_sharp_region[:n_less]
+    edge_list, flat_list = edges.tolist(), flats.tolist()
+    edge_bounds, flat_bounds = edge_bounds.tolist(), flat_bounds.tolist()
+    edge_low, edge_high = (np.asarray(a).tolist() for a in edge_slices)
+    flat_low, flat_high = (np.asarray(a).tolist() for a in flat_slices)
+    fill = [b'\x01' * k for k in range(max([0, *(h - l for l, h in zip(edge_low + flat_low,
+                                                                          edge_high + flat_high))]) + 1)]
+    sharp, less_sharp, less_sharp_region, flat = [], [], [], []
+    for region in range(regions):
+        count = 0
+        for i in range(edge_bounds[region], edge_bounds[region + 1]):
+            k = edge_list[i]
+            if taken[k]:
+                continue
+            count += 1
+            if count <= edge_num:
+                sharp.append(k)
+            elif count > less_edge_num:
+                break
+            less_sharp.append(k)
+            less_sharp_region.append(region)
+            taken[edge_low[i]:edge_high[i]] = fill[edge_high[i] - edge_low[i]]
+        count = 0
+        for i in range(flat_bounds[region], flat_bounds[region + 1]):
+            k = flat_list[i]
+            if taken[k]:
+                continue
+            flat.append(k)
+            count += 1
+            if count >= surf_num:
+                break
+            taken[flat_low[i]:flat_high[i]] = fill[flat_high[i] - flat_low[i]]
+    return tuple(np.asarray(a, dtype=np.int64) for a in (sharp, less_sharp, flat, less_sharp_region))

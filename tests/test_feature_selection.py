@@ -1,0 +1,55 @@
+"""The greedy feature selection: by hand on a small region, and the C extension against the Python loop."""
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from lego_loam_py.core import features
+from lego_loam_py.core.features import greedy_selection
+
+
+def _select(native, edges, edge_bounds, edge_slices, flats, flat_bounds, flat_slices, taken, regions, *limits):
+    taken = bytearray(taken)
+    out = greedy_selection(np.array(edges), np.array(edge_bounds), [np.array(a) for a in edge_slices],
+                           np.array(flats), np.array(flat_bounds), [np.array(a) for a in flat_slices], taken,
+                           regions, *limits, native=native)
+    return [a.tolist() for a in out], bytes(taken)
+
+
+@pytest.mark.parametrize('native', [False, True])
+def test_picks_suppress_their_neighbours_by_hand(native):
+    if native and features._feature_selection is None:
+        pytest.skip('the C extension is not built here')
+    # 10 points, one region. Edge candidates by curvature: 5, 6, 2, 8; each pick marks [k - 1, k + 2).
+    # 5 is sharp and marks 4..6, so 6 is skipped; 2 is the second (less sharp, limit 2), marks 1..3; 8 exceeds
+    # the limit. Flats: 3 (taken by 2's mark), then 0 and 9: surf_num 1 stops after 0, without marking it.
+    edges, flats = [5, 6, 2, 8], [3, 0, 9]
+    edge_slices = ([k - 1 for k in edges], [k + 2 for k in edges])
+    flat_slices = ([max(k - 1, 0) for k in flats], [min(k + 2, 10) for k in flats])
+    (sharp, less_sharp, flat, region), taken = _select(native, edges, [0, 4], edge_slices, flats, [0, 3],
+                                                        flat_slices, bytes(10), 1, 1, 2, 1)
+    assert sharp == [5] and less_sharp == [5, 2] and region == [0, 0] and flat == [0]
+    assert taken == bytes([0, 1, 1, 1, 1, 1, 1, 0, 0, 0])
+
+
+@pytest.mark.skipif(features._feature_selection is None, reason='the C extension is not built here')
+@settings(max_examples=200, deadline=None)
+@given(st.data())
+def test_native_selection_equals_the_python_loop(data):
+    rng = np.random.default_rng(data.draw(st.integers(0, 2 ** 32 - 1)))
+    n = int(rng.integers(1, 200))
+    regions = int(rng.integers(0, 8))
+    limits = (int(rng.integers(0, 4)), int(rng.integers(0, 10)), int(rng.integers(1, 6)))
+    limits = (limits[0], max(limits[0], limits[1]), limits[2])
+
+    def candidates():
+        counts = rng.integers(0, 12, regions)
+        index = rng.integers(-1, n, int(counts.sum()))       # -1: the phantom entry, read as point n - 1
+        start = np.clip(np.where(index < 0, index + n, index) - rng.integers(0, 6, len(index)), 0, n)
+        stop = np.clip(np.where(index < 0, index + n, index) + rng.integers(1, 6, len(index)), 0, n)
+        return index, np.concatenate(([0], np.cumsum(counts))), (start, np.maximum(stop, start))
+
+    edges, edge_bounds, edge_slices = candidates()
+    flats, flat_bounds, flat_slices = candidates()
+    taken = (rng.random(n) < 0.2).astype(np.uint8).tobytes()
+    args = (edges, edge_bounds, edge_slices, flats, flat_bounds, flat_slices, taken, regions, *limits)
+    assert _select(True, *args) == _select(False, *args)
