@@ -26,9 +26,9 @@ DATA_FILES = [
 EXT_MODULES = [
     Extension(f'{PACKAGE}.core._libm_compat', [f'{PACKAGE}/core/native/libm_compat.c'], libraries=['m'],
               extra_compile_args=['-O2', '-fno-fast-math'], optional=True),
-    # The greedy feature selection in C (lego_loam_py/core/features.py runs the same loop in Python without it).
-    Extension(f'{PACKAGE}.core._feature_selection', [f'{PACKAGE}/core/native/feature_selection.c'],
-              extra_compile_args=['-O2'], optional=True),
+    # featureAssociation's inner loops in C (features.py and correspondences.py run NumPy/Python without it).
+    Extension(f'{PACKAGE}.core._feature_kernels', [f'{PACKAGE}/core/native/feature_kernels.c'],
+              extra_compile_args=['-O2', '-fno-fast-math', '-ffp-contract=off'], libraries=['m'], optional=True),
 ]
 
 CONSOLE_SCRIPTS = [

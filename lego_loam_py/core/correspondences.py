@@ -17,6 +17,11 @@ from lego_loam_py.core.indexing import ragged, ranges
 from lego_loam_py.core.param_types import Params
 from lego_loam_py.core.sweep import ring_of
 
+try:   # the window search in C (native/feature_kernels.c); optional, the NumPy version gives the same
+    from lego_loam_py.core import _feature_kernels
+except ImportError:
+    _feature_kernels = None
+
 __all__ = ['SurfCorrespondences', 'CornerCorrespondences', 'LastCloud', 'find_surf_correspondences',
            'find_corner_correspondences']
 
@@ -146,12 +151,21 @@ class LastCloud:
 
 
 def _nearest_in_segments(query: np.ndarray, last: LastCloud, position: np.ndarray, lengths: np.ndarray,
-                         limit: float):
+                         limit: float, native: bool = True):
     """Per query and segment, the candidate the original's scan keeps: the smallest squared distance below
     ``limit`` (its float32 expression), the first index met on ties (the highest in a backward segment).
 
-    Returns (n, 4) indices (-1: none) and squared distances (inf: none).
+    Returns (n, 4) indices (-1: none) and squared distances (inf: none). In C when the extension is built
+    (one pass, no (3, m) temporaries); ``native=False`` runs the NumPy version (the tests compare the two).
     """
+    if native and _feature_kernels is not None and last.xyz_rows.dtype == _F32 and query.dtype == _F32:
+        # (Both float32, as the features are: the NumPy expression is then float32 too.)
+        index = np.empty(lengths.size, dtype=np.int64)
+        best = np.empty(lengths.size, dtype=_F32)
+        _feature_kernels.nearest_in_segments(last.xyz_rows, np.ascontiguousarray(query[:, :3]),
+                                             np.ascontiguousarray(position, dtype=np.int64),
+                                             np.ascontiguousarray(lengths, dtype=np.int64), limit, index, best)
+        return index.reshape(-1, 4), best.reshape(-1, 4)
     flat_lengths = lengths.reshape(-1)
     index = np.full(len(flat_lengths), -1, dtype=np.int64)
     best = np.full(len(flat_lengths), np.inf, dtype=_F32)

@@ -33,10 +33,10 @@ from lego_loam_py.core.indexing import ragged
 from lego_loam_py.core.param_types import Params
 from lego_loam_py.core.voxel import voxel_downsample_groups
 
-try:   # the greedy selection in C (native/feature_selection.c); optional, as the Python loop gives the same
-    from lego_loam_py.core import _feature_selection
+try:   # the greedy selection in C (native/feature_kernels.c); optional, as the Python loop gives the same
+    from lego_loam_py.core import _feature_kernels
 except ImportError:
-    _feature_selection = None
+    _feature_kernels = None
 
 __all__ = ['ScanFeatures', 'FeatureExtractor', 'smoothness', 'occluded_mask']
 
@@ -275,13 +275,13 @@ def greedy_selection(edges: np.ndarray, edge_bounds: np.ndarray, edge_slices, fl
     edges, flats = np.ascontiguousarray(edges, np.int64), np.ascontiguousarray(flats, np.int64)
     edge_bounds = np.ascontiguousarray(edge_bounds, np.int64)
     flat_bounds = np.ascontiguousarray(flat_bounds, np.int64)
-    if native and _feature_selection is not None:
+    if native and _feature_kernels is not None:
         sharp = np.empty(regions * edge_num, np.int64)
         less_sharp = np.empty(regions * less_edge_num, np.int64)
         less_sharp_region = np.empty_like(less_sharp)
         flat = np.empty(regions * surf_num, np.int64)
         slices = [np.ascontiguousarray(a, np.int64) for a in (*edge_slices, *flat_slices)]
-        n_sharp, n_less, n_flat = _feature_selection.select(
+        n_sharp, n_less, n_flat = _feature_kernels.select(
             edges, edge_bounds, slices[0], slices[1], flats, flat_bounds, slices[2], slices[3], taken,
             edge_num, less_edge_num, surf_num, sharp, less_sharp, less_sharp_region, flat)
         return sharp[:n_sharp], less_sharp[:n_less], flat[:n_flat], less_sharp_region[:n_less]

@@ -1,4 +1,4 @@
-"""The greedy feature selection: by hand on a small region, and the C extension against the Python loop."""
+"""featureAssociation's C kernels (native/feature_kernels.c): by hand, and against the NumPy/Python code they replace."""
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
@@ -17,7 +17,7 @@ def _select(native, edges, edge_bounds, edge_slices, flats, flat_bounds, flat_sl
 
 @pytest.mark.parametrize('native', [False, True])
 def test_picks_suppress_their_neighbours_by_hand(native):
-    if native and features._feature_selection is None:
+    if native and features._feature_kernels is None:
         pytest.skip('the C extension is not built here')
     # 10 points, one region. Edge candidates by curvature: 5, 6, 2, 8; each pick marks [k - 1, k + 2).
     # 5 is sharp and marks 4..6, so 6 is skipped; 2 is the second (less sharp, limit 2), marks 1..3; 8 exceeds
@@ -31,7 +31,7 @@ def test_picks_suppress_their_neighbours_by_hand(native):
     assert taken == bytes([0, 1, 1, 1, 1, 1, 1, 0, 0, 0])
 
 
-@pytest.mark.skipif(features._feature_selection is None, reason='the C extension is not built here')
+@pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
 @settings(max_examples=200, deadline=None)
 @given(st.data())
 def test_native_selection_equals_the_python_loop(data):
@@ -53,3 +53,45 @@ def test_native_selection_equals_the_python_loop(data):
     taken = (rng.random(n) < 0.2).astype(np.uint8).tobytes()
     args = (edges, edge_bounds, edge_slices, flats, flat_bounds, flat_slices, taken, regions, *limits)
     assert _select(True, *args) == _select(False, *args)
+
+
+def _cloud(rng, n, nan=False):
+    """n float32 points on a 1 m grid (so that distances tie), rings ascending in the intensity; with ``nan``
+    a few NaN coordinates (queries may have them; a last cloud's KD-tree refuses them)."""
+    points = np.zeros((n, 4), np.float32)
+    points[:, :3] = rng.integers(-3, 4, (n, 3))
+    if nan:
+        points[rng.random(n) < 0.1, 0] = np.nan
+    points[:, 3] = np.sort(rng.integers(0, 16, n)) + 0.05
+    return points
+
+
+@pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
+@settings(max_examples=200, deadline=None)
+@given(st.data())
+def test_native_window_search_equals_numpy(data):
+    from lego_loam_py.core.correspondences import LastCloud, _nearest_in_segments
+    rng = np.random.default_rng(data.draw(st.integers(0, 2 ** 32 - 1)))
+    last = LastCloud(_cloud(rng, int(rng.integers(1, 60))), 16)
+    queries = _cloud(rng, int(rng.integers(0, 12)), nan=True)[:, :3]
+    lengths = rng.integers(0, 6, (len(queries), 4))
+    position = rng.integers(0, len(last.points), int(lengths.sum()))
+    limit = float(rng.choice([0.5, 2.0, 25.0]))
+    native = _nearest_in_segments(queries, last, position, lengths, limit)
+    reference = _nearest_in_segments(queries, last, position, lengths, limit, native=False)
+    np.testing.assert_array_equal(native[0], reference[0])
+    np.testing.assert_array_equal(native[1], reference[1])
+
+
+def test_the_window_search_keeps_the_first_tie_forward_and_the_last_backward():
+    from lego_loam_py.core.correspondences import LastCloud, _nearest_in_segments
+    # Points 0 and 2 are 1 m from the query, point 1 is 2 m: a backward segment (kind 0) over [0, 1, 2] keeps 2,
+    # a forward one (kind 2) keeps 0; a segment whose nearest point is beyond the limit keeps none.
+    points = np.array([[1, 0, 0, 0], [2, 0, 0, 0], [-1, 0, 0, 0]], np.float32)
+    last = LastCloud(points, 16)
+    query = np.zeros((1, 3), np.float32)
+    for native in (True, False):
+        index, best = _nearest_in_segments(query, last, np.array([0, 1, 2, 0, 1, 2, 1]), np.array([[3, 0, 3, 1]]),
+                                           1.5, native=native)
+        assert index.tolist() == [[2, -1, 0, -1]]
+        assert best.tolist() == [[1.0, np.inf, 1.0, np.inf]]

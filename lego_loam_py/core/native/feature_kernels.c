@@ -1,0 +1,176 @@
+/*
+ * featureAssociation's inner loops that NumPy can only express with many small calls or not at all, in C with
+ * the same float32 arithmetic as the NumPy code they replace (built with -ffp-contract=off: no fused
+ * multiply-adds). lego_loam_py/core/features.py and correspondences.py keep the NumPy/Python versions as the
+ * fallback when this extension is not built, and the tests compare the two.
+ *
+ * select(edges, edge_bounds, edge_start, edge_stop, flats, flat_bounds, flat_start, flat_stop, taken,
+ *        edge_num, less_edge_num, surf_num, sharp, less_sharp, less_sharp_region, flat)
+ *     -> (number of sharp, less sharp, flat)
+ *   The greedy part of the feature extraction, sequential by nature: in each sub-region the candidates are
+ *   visited in curvature order and every pick suppresses its neighbours for the picks after it. Index arrays
+ *   are contiguous int64; *_bounds hold regions + 1 entries (region r: [bounds[r], bounds[r + 1])); taken is
+ *   a writable uint8 array of the n points (1: picked or suppressed); the four outputs are int64 arrays large
+ *   enough for regions x the per-region limits. A negative candidate index reads point index + n, as Python
+ *   indexing does; the slices [start, stop) are kept within [0, n].
+ *
+ * nearest_in_segments(xyz_rows, query, position, lengths, limit, index, best)
+ *   For each window segment (lengths: int64, 4 per query, back to back; position: the last cloud's point
+ *   indices of all segments, int64), the point nearest to its query: squared distance (dx^2 + dy^2) + dz^2 in
+ *   float32 from xyz_rows (3, N) float32 and query (n, 3) float32; ties go to the first point of a forward
+ *   segment (kinds 2 and 3) and the last of a backward one (kinds 0 and 1), as the original's scans meet
+ *   them. Writes index (int64, -1: none) and best (float32, inf: none) for every segment; only distances
+ *   below limit count.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <stdint.h>
+#include <math.h>
+#include <string.h>
+
+#define N_BUFFERS 13
+
+/* taken[start:stop] = 1, within the array whatever the slice says. */
+static inline void mark(uint8_t *taken, Py_ssize_t n, int64_t start, int64_t stop) {
+    if (start < 0) start = 0;
+    if (stop > n) stop = n;
+    if (stop > start) memset(taken + start, 1, (size_t)(stop - start));
+}
+
+static PyObject *py_select(PyObject *self, PyObject *args) {
+    (void)self;
+    Py_buffer b[N_BUFFERS];
+    long long edge_num, less_edge_num, surf_num;
+    memset(b, 0, sizeof(b));
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*y*w*LLLw*w*w*w*", &b[0], &b[1], &b[2], &b[3], &b[4], &b[5], &b[6],
+                          &b[7], &b[8], &edge_num, &less_edge_num, &surf_num, &b[9], &b[10], &b[11], &b[12])) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    const int64_t *edges = b[0].buf, *edge_bounds = b[1].buf, *edge_start = b[2].buf, *edge_stop = b[3].buf;
+    const int64_t *flats = b[4].buf, *flat_bounds = b[5].buf, *flat_start = b[6].buf, *flat_stop = b[7].buf;
+    uint8_t *taken = b[8].buf;
+    int64_t *sharp = b[9].buf, *less_sharp = b[10].buf, *less_region = b[11].buf, *flat = b[12].buf;
+    Py_ssize_t n = b[8].len;
+    Py_ssize_t regions = b[1].len / 8 - 1;
+    Py_ssize_t n_edges = b[0].len / 8, n_flats = b[4].len / 8;
+    if (regions < 0 || b[5].len != b[1].len || b[2].len != b[0].len || b[3].len != b[0].len ||
+        b[6].len != b[4].len || b[7].len != b[4].len || edge_bounds[regions] > n_edges ||
+        flat_bounds[regions] > n_flats || b[9].len / 8 < regions * edge_num ||
+        b[10].len / 8 < regions * less_edge_num || b[11].len != b[10].len || b[12].len / 8 < regions * surf_num) {
+        PyErr_SetString(PyExc_ValueError, "select: inconsistent buffer sizes");
+        goto done;
+    }
+    Py_ssize_t n_sharp = 0, n_less = 0, n_flat = 0;
+    for (Py_ssize_t region = 0; region < regions; ++region) {
+        long long count = 0;
+        for (int64_t i = edge_bounds[region]; i < edge_bounds[region + 1]; ++i) {
+            int64_t k = edges[i] < 0 ? edges[i] + n : edges[i];
+            if (k < 0 || k >= n || taken[k]) {
+                continue;
+            }
+            ++count;
+            if (count <= edge_num) {
+                sharp[n_sharp++] = edges[i];
+            } else if (count > less_edge_num) {
+                break;
+            }
+            less_sharp[n_less] = edges[i];
+            less_region[n_less++] = region;
+            mark(taken, n, edge_start[i], edge_stop[i]);
+        }
+        count = 0;
+        for (int64_t i = flat_bounds[region]; i < flat_bounds[region + 1]; ++i) {
+            int64_t k = flats[i] < 0 ? flats[i] + n : flats[i];
+            if (k < 0 || k >= n || taken[k]) {
+                continue;
+            }
+            flat[n_flat++] = flats[i];
+            if (++count >= surf_num) {
+                break;
+            }
+            mark(taken, n, flat_start[i], flat_stop[i]);
+        }
+    }
+    result = Py_BuildValue("nnn", n_sharp, n_less, n_flat);
+done:
+    for (int i = 0; i < N_BUFFERS; ++i) {
+        if (b[i].obj != NULL) {
+            PyBuffer_Release(&b[i]);
+        }
+    }
+    return result;
+}
+
+static PyObject *py_nearest_in_segments(PyObject *self, PyObject *args) {
+    Py_buffer rows, query, position, lengths, index, best;
+    float limit;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*fw*w*", &rows, &query, &position, &lengths, &limit, &index, &best)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    Py_ssize_t n_points = rows.len / (3 * (Py_ssize_t)sizeof(float));
+    Py_ssize_t n_segments = lengths.len / 8, n_positions = position.len / 8;
+    const float *x = rows.buf, *y = x + n_points, *z = y + n_points, *q = query.buf;
+    const int64_t *pos = position.buf, *len = lengths.buf;
+    int64_t *out_index = index.buf;
+    float *out_best = best.buf;
+    if (rows.len != 3 * n_points * (Py_ssize_t)sizeof(float) || n_segments % 4 != 0 ||
+        query.len != (n_segments / 4) * 3 * (Py_ssize_t)sizeof(float) || index.len != lengths.len ||
+        best.len != n_segments * (Py_ssize_t)sizeof(float)) {
+        PyErr_SetString(PyExc_ValueError, "nearest_in_segments: inconsistent buffer sizes");
+        goto done;
+    }
+    Py_ssize_t at = 0;
+    for (Py_ssize_t segment = 0; segment < n_segments; ++segment) {
+        const float *p = q + 3 * (segment / 4);
+        int backward = segment % 4 < 2;
+        int64_t chosen = -1;
+        float nearest = INFINITY;
+        if (len[segment] < 0 || at + len[segment] > n_positions) {
+            PyErr_SetString(PyExc_ValueError, "nearest_in_segments: segments beyond the positions");
+            goto done;
+        }
+        for (int64_t k = 0; k < len[segment]; ++k, ++at) {
+            int64_t j = pos[at];
+            if (j < 0 || j >= n_points) {
+                PyErr_SetString(PyExc_IndexError, "nearest_in_segments: position outside the cloud");
+                goto done;
+            }
+            float dx = x[j] - p[0], dy = y[j] - p[1], dz = z[j] - p[2];
+            float d = dx * dx + dy * dy;
+            d = d + dz * dz;
+            if (d < nearest || (backward && d == nearest && chosen >= 0)) {
+                nearest = d;
+                chosen = j;
+            }
+        }
+        if (!(nearest < limit)) {
+            chosen = -1;
+            nearest = INFINITY;
+        }
+        out_index[segment] = chosen;
+        out_best[segment] = nearest;
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&rows);
+    PyBuffer_Release(&query);
+    PyBuffer_Release(&position);
+    PyBuffer_Release(&lengths);
+    PyBuffer_Release(&index);
+    PyBuffer_Release(&best);
+    return result;
+}
+
+static PyMethodDef methods[] = {
+    {"select", py_select, METH_VARARGS, "The greedy edge and flat selection of every sub-region (see the file)."},
+    {"nearest_in_segments", py_nearest_in_segments, METH_VARARGS, "The nearest point of every window segment."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_feature_kernels", NULL, -1, methods, NULL, NULL, NULL, NULL};
+
+PyMODINIT_FUNC PyInit__feature_kernels(void) { return PyModule_Create(&module); }
