@@ -32,7 +32,7 @@ SIGMA = 0.015   # VLP-16 range noise [m]
 
 def read_bag(path: Path) -> dict:
     """Clouds (stamp, points) and IMU arrays of a simulated bag."""
-    clouds, imu = [], {'stamp': [], 'gyro': [], 'accel': [], 'quat': [], 'frame': set(), 'cov': None}
+    clouds, imu = [], {'stamp': [], 'bag_time': [], 'gyro': [], 'accel': [], 'quat': [], 'frame': set(), 'cov': None}
     with BagReader(path) as reader:
         topics = reader.topics()
         for message in reader.messages():
@@ -43,13 +43,14 @@ def read_bag(path: Path) -> dict:
                                message.timestamp))
             else:
                 imu['stamp'].append(stamp)
+                imu['bag_time'].append(message.timestamp)
                 imu['gyro'].append([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
                 imu['accel'].append([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
                 imu['quat'].append([msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w])
                 imu['frame'].add(msg.header.frame_id)
                 imu['cov'] = (np.array(msg.orientation_covariance), np.array(msg.angular_velocity_covariance),
                               np.array(msg.linear_acceleration_covariance))
-    for key in ('stamp', 'gyro', 'accel', 'quat'):
+    for key in ('stamp', 'bag_time', 'gyro', 'accel', 'quat'):
         imu[key] = np.array(imu[key])
     return {'topics': topics, 'clouds': clouds, 'imu': imu}
 
@@ -469,6 +470,37 @@ def test_imu_extrinsic_rotation(tmp_path):
     scenario = sidecars.load_scenario(path)
     assert np.allclose(scenario['imu']['rotation_lidar_imu'], r_li, atol=1e-12)
     assert '--imu-extrinsic-rpy 0 0 90' in scenario['command']
+
+
+def test_imu_lever_arm_orientation_frame_and_time_offset(tmp_path):
+    """The IMU 0.3 m from the lidar, its orientation output in a frame yawed 90 deg and upside down, its clock
+    20 ms ahead: the accelerometer feels the rotation's centripetal and tangential acceleration at its own
+    position, the orientation is that frame's, the stamps are 20 ms late against the bag time (the time of
+    measurement, when a recorder receives the sample)."""
+    lever_arm, orientation_rpy = np.array([0.2, 0.1, -0.2]), (180.0, 0.0, 90.0)
+    config = SimConfig('aggressive', duration=3.0, ideal=True, imu_lever_arm=tuple(lever_arm),
+                       imu_orientation_rpy=orientation_rpy, imu_time_offset=0.02)
+    path = simulate(config, tmp_path / 'mounted').bag_path
+    data = read_bag(path)['imu']
+    assert np.all(data['stamp'] - data['bag_time'] == 20_000_000)
+    t = (data['bag_time'] - START_STAMP_NS) / 1e9
+    trajectory = build_world('aggressive', 0).trajectory
+    rotation, _ = trajectory.pose(t)
+    omega = trajectory.angular_velocity(t)
+    h = 1e-3
+    alpha = (trajectory.angular_velocity(t + h) - trajectory.angular_velocity(t - h)) / (2 * h)
+    at_lidar = np.einsum('nji,nj->ni', rotation, trajectory.acceleration(t) - [0.0, 0.0, -GRAVITY])
+    lever = np.cross(alpha, lever_arm) + np.cross(omega, np.cross(omega, lever_arm))
+    assert np.abs(lever).max() > 0.3          # the hairpin: up to 90 deg/s, enough to feel at 0.3 m
+    assert np.allclose(data['accel'], at_lidar + lever, atol=2e-3)
+    orientation = rotation @ Rotation.from_euler('xyz', orientation_rpy, degrees=True).as_matrix()
+    assert np.allclose(Rotation.from_quat(data['quat']).as_matrix(), orientation, atol=1e-9)
+    scenario = sidecars.load_scenario(path)
+    assert scenario['imu']['lever_arm_m'] == list(lever_arm) and scenario['imu']['time_offset_s'] == 0.02
+    for option in ('--imu-lever-arm 0.2 0.1 -0.2', '--imu-orientation-rpy 180 0 90', '--imu-time-offset 0.02'):
+        assert option in scenario['command']
+    # Recordings without the options keep their cache keys (the options are left out of the configuration).
+    assert 'imu_time_offset' not in SimConfig('campus').to_dict() and 'imu_time_offset' in config.to_dict()
 
 
 # ------------------------------------------------------------------------------------- determinism, outputs

@@ -18,8 +18,28 @@ The TF tree of the original launch file::
     map --(static)--> camera_init --> camera --(static)--> base_link
 
 where ``map -> camera_init`` turns camera axes into lidar axes and ``camera -> base_link`` does the reverse.
+
+**The IMU on the lidar** (:class:`ImuMounting`, set by the ``imu.*`` parameters): the IMU is a rigid body
+fixed to the lidar (``base_link``), described as the static transform ``base_link -> imu`` would be:
+
+* ``rotation`` ``R_lidar_imu``: the IMU axes in lidar axes, ``v_lidar = R_lidar_imu v_imu`` for its angular
+  velocity and acceleration; given as (roll, pitch, yaw) [deg], ``R = Rz(yaw) Ry(pitch) Rx(roll)`` about the
+  fixed x, y, z axes (:func:`rpy_to_matrix`; tf2's ``setRPY`` and ``static_transform_publisher --roll --pitch
+  --yaw --frame-id base_link --child-frame-id imu``). An IMU yawed 90 deg to the left has its x axis along the
+  lidar's y: ``(0, 0, 90)``; one mounted upside down about its x axis: ``(180, 0, 0)``.
+* ``lever_arm`` [m]: the IMU origin in the lidar frame (lidar axes), the translation of that transform. The
+  accelerometer there feels ``a_lidar + alpha x r + omega x (omega x r)``.
+* ``orientation_rotation`` ``R_imu_orientation``: the axes of the frame whose attitude the orientation field
+  reports, in IMU axes (identity: the IMU's own, as REP-145 asks; some 9-axis units report another one). The
+  orientation is that frame's attitude in a gravity-aligned world with z up, so the lidar's attitude is
+  ``R_world_lidar = R_world_orientation (R_lidar_imu R_imu_orientation)^T``.
+* ``time_offset`` [s]: the IMU's stamp minus the lidar's stamp of the same instant (Kalibr's
+  ``timeshift_cam_imu`` sign, ``t_imu = t_lidar + offset``); a sample stamped ``t`` was measured at lidar time
+  ``t - time_offset``.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -32,6 +52,7 @@ __all__ = [
     'matrix_to_quaternion', 'euler_to_quaternion', 'quaternion_to_euler', 'make_pose', 'pose6_to_matrix',
     'matrix_to_pose6', 'invert_pose', 'camera_pose_to_lidar', 'lidar_pose_to_camera',
     'MAP_T_CAMERA_INIT', 'CAMERA_T_BASE_LINK', 'transform_points', 'transform_cloud', 'wrap_angle',
+    'rpy_to_matrix', 'matrix_to_rpy', 'ImuMounting',
 ]
 
 # Frame ids, without the original's leading slashes (invalid in tf2).
@@ -233,3 +254,59 @@ def transform_cloud(points: np.ndarray, pose6: np.ndarray) -> np.ndarray:
 def wrap_angle(angle: np.ndarray | float) -> np.ndarray | float:
     """Angle(s) wrapped into [-pi, pi)."""
     return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def rpy_to_matrix(roll_pitch_yaw_deg) -> np.ndarray:
+    """(roll, pitch, yaw) [deg] -> 3x3 ``Rz(yaw) Ry(pitch) Rx(roll)`` (REP-103 angles about the fixed x, y, z axes,
+    as tf2's ``setRPY``)."""
+    return Rotation.from_euler('xyz', np.asarray(roll_pitch_yaw_deg, dtype=float), degrees=True).as_matrix()
+
+
+def matrix_to_rpy(rotation: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`rpy_to_matrix`: (roll, pitch, yaw) [deg], pitch within [-90, 90] (at +-90 deg the roll and
+    yaw share one axis and the yaw takes all of it)."""
+    return Rotation.from_matrix(np.asarray(rotation, dtype=float)).as_euler('xyz', degrees=True)
+
+
+@dataclass(frozen=True, eq=False)
+class ImuMounting:
+    """How the IMU sits on the lidar and how its clock relates to the lidar's (see the module docstring, which
+    spells the conventions out; :func:`lego_loam_py.core.imu.imu_mounting` builds it from the ``imu.*``
+    parameters)."""
+
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))              # R_lidar_imu
+    lever_arm: np.ndarray = field(default_factory=lambda: np.zeros(3))           # IMU origin, lidar frame [m]
+    orientation_rotation: np.ndarray = field(default_factory=lambda: np.eye(3))  # R_imu_orientation
+    time_offset: float = 0.0                                                     # IMU stamp - lidar stamp [s]
+
+    @classmethod
+    def from_rpy(cls, rotation_rpy=(0.0, 0.0, 0.0), lever_arm=(0.0, 0.0, 0.0), orientation_rpy=(0.0, 0.0, 0.0),
+                 time_offset: float = 0.0) -> 'ImuMounting':
+        """From (roll, pitch, yaw) angles [deg], the lever arm [m] and the time offset [s]. Zero angles give
+        exact identity matrices."""
+        def rotation(rpy) -> np.ndarray:
+            return np.eye(3) if not np.any(rpy) else rpy_to_matrix(rpy)
+        return cls(rotation(rotation_rpy), np.asarray(lever_arm, dtype=float).copy(), rotation(orientation_rpy),
+                   float(time_offset))
+
+    @property
+    def rotates(self) -> bool:
+        """True unless the IMU axes and its orientation's axes are exactly the lidar's."""
+        return not (np.array_equal(self.rotation, np.eye(3)) and np.array_equal(self.orientation_rotation, np.eye(3)))
+
+    @property
+    def is_identity(self) -> bool:
+        """True when the IMU is taken as it is: lidar axes, at the lidar origin, on the lidar's clock."""
+        return not self.rotates and not np.any(self.lever_arm) and self.time_offset == 0.0
+
+    @property
+    def rotation_lidar_orientation(self) -> np.ndarray:
+        """3x3 ``R_lidar_imu R_imu_orientation``: the axes of the orientation field's frame in lidar axes."""
+        return self.rotation @ self.orientation_rotation
+
+    def describe(self) -> str:
+        """The mounting as the parameters spell it, e.g. ``rotation_rpy [0, 0, 90] deg, ...``."""
+        def angles(matrix: np.ndarray) -> str:
+            return '[' + ', '.join(f'{a:.6g}' for a in np.round(matrix_to_rpy(matrix), 4) + 0.0) + ']'
+        return (f'rotation_rpy {angles(self.rotation)} deg, translation [{", ".join(f"{v:g}" for v in self.lever_arm)}]'
+                f' m, orientation_rpy {angles(self.orientation_rotation)} deg, time_offset {self.time_offset:g} s')

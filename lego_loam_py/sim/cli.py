@@ -36,6 +36,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--compress', action='store_true', help='zstd-compress the bag (ROS 2 only)')
     parser.add_argument('--imu-extrinsic-rpy', type=float, nargs=3, metavar=('R', 'P', 'Y'), default=(0.0, 0.0, 0.0),
                         help='rotate the IMU axes relative to the lidar: roll pitch yaw [deg] (default 0 0 0)')
+    parser.add_argument('--imu-lever-arm', type=float, nargs=3, metavar=('X', 'Y', 'Z'), default=(0.0, 0.0, 0.0),
+                        help='IMU origin in the lidar frame [m] (default 0 0 0): its accelerometer then feels the '
+                        'centripetal and tangential acceleration of the rotation')
+    parser.add_argument('--imu-orientation-rpy', type=float, nargs=3, metavar=('R', 'P', 'Y'),
+                        default=(0.0, 0.0, 0.0), help='rotate the frame whose attitude the orientation field reports, '
+                        'relative to the IMU axes: roll pitch yaw [deg] (default 0 0 0: the IMU\'s own)')
+    parser.add_argument('--imu-time-offset', type=float, default=0.0, metavar='S',
+                        help='IMU stamps run this far ahead of the lidar clock [s] (default 0; negative: behind)')
     parser.add_argument('--ideal', action='store_true', help='noise-free sensors: no range/IMU noise, no biases, '
                         'no dropped returns')
     parser.add_argument('--turn-rate', type=float, default=0.0, metavar='DEG_S',
@@ -86,7 +94,9 @@ def main(args: argparse.Namespace) -> int:
     options = dict(duration=args.duration, seed=args.seed, preset=args.preset, imu_rate=args.imu_rate,
                    storage=args.storage, ros1=args.ros1, layout=args.layout, compress=args.compress,
                    imu_extrinsic_rpy=tuple(args.imu_extrinsic_rpy), ideal=args.ideal,
-                   turn_rate=args.turn_rate, uniform_beams=args.uniform_beams)
+                   turn_rate=args.turn_rate, uniform_beams=args.uniform_beams,
+                   imu_lever_arm=tuple(args.imu_lever_arm), imu_orientation_rpy=tuple(args.imu_orientation_rpy),
+                   imu_time_offset=args.imu_time_offset)
     try:
         if args.cached:
             print(cached_scenario(args.scenario, progress=not args.no_progress, **options))

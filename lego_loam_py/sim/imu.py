@@ -1,17 +1,22 @@
 """IMU model: a 9-axis unit (orientation + gyroscope + accelerometer) rigidly attached to the lidar.
 
-Frames: the IMU sits at the lidar origin (no lever arm). By default its axes are the lidar's (x forward,
-y left, z up), as LeGO-LOAM assumes; ``extrinsic_rpy_deg`` rotates them: ``R_lidar_imu = Rz(yaw) Ry(pitch)
-Rx(roll)`` maps IMU coordinates into lidar coordinates (``p_lidar = R_lidar_imu p_imu``).
+Frames (the conventions of :class:`lego_loam_py.core.frames.ImuMounting`, which the pipeline's ``imu.*``
+parameters undo): by default the IMU sits at the lidar origin with the lidar's axes (x forward, y left, z up),
+as LeGO-LOAM assumes. ``extrinsic_rpy_deg`` rotates its axes: ``R_lidar_imu = Rz(yaw) Ry(pitch) Rx(roll)``
+maps IMU coordinates into lidar coordinates (``p_lidar = R_lidar_imu p_imu``); ``lever_arm`` [m] is the IMU
+origin in the lidar frame; ``orientation_rpy_deg`` rotates the frame whose attitude the orientation field
+reports (``R_imu_orientation``, as a 9-axis unit whose orientation output uses other axes than its rates);
+``time_offset`` [s] is added to the stamps (the IMU clock runs that far ahead of the lidar's).
 
 Measurements at time t (all from the very trajectory functions that place the lidar):
 
 * ``angular_velocity`` = R_lidar_imu^T omega_lidar(t) + b_g + n_g [rad/s], body (IMU) frame;
-* ``linear_acceleration`` = R_lidar_imu^T R_world_lidar^T (a_world(t) - g_world) + b_a + n_a [m/s^2]: the
-  specific force, gravity included as a real accelerometer reports it (+9.81 on z when level at rest);
-  ``g_world = (0, 0, -9.81)`` (LeGO-LOAM's constant);
-* ``orientation`` = Exp(e_bias + e_noise) R_world_lidar(t) R_lidar_imu, as (x, y, z, w): the IMU frame in a
-  gravity-aligned world frame (z up; the yaw reference is the simulator world's), like an AHRS output.
+* ``linear_acceleration`` = R_lidar_imu^T R_world_lidar^T (a_world(t, lever_arm) - g_world) + b_a + n_a
+  [m/s^2]: the specific force at the IMU's own position (on a lever arm the rotation adds centripetal and
+  tangential acceleration), gravity included as a real accelerometer reports it (+9.81 on z when level at
+  rest); ``g_world = (0, 0, -9.81)`` (LeGO-LOAM's constant);
+* ``orientation`` = Exp(e_bias + e_noise) R_world_lidar(t) R_lidar_imu R_imu_orientation, as (x, y, z, w):
+  in a gravity-aligned world frame (z up; the yaw reference is the simulator world's), like an AHRS output.
 
 Noise (:class:`ImuNoise`, defaults of a good MEMS unit such as an Xsens MTi-300 after turn-on): white
 noise given as a density and discretised as ``sigma = density * sqrt(rate)``; constant biases drawn once
@@ -25,7 +30,8 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from lego_loam_py.sim.trajectory import Trajectory, rotation_zyx
+from lego_loam_py.core.frames import rpy_to_matrix
+from lego_loam_py.sim.trajectory import Trajectory
 
 __all__ = ['GRAVITY', 'ImuNoise', 'ImuBiases', 'ImuModel', 'ImuSamples']
 
@@ -76,6 +82,9 @@ class ImuModel:
     noise: ImuNoise = field(default_factory=ImuNoise)
     extrinsic_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)   # IMU axes in the lidar frame [deg]
     gravity: float = GRAVITY
+    lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0)           # IMU origin in the lidar frame [m]
+    orientation_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # orientation frame in the IMU frame [deg]
+    time_offset: float = 0.0                                          # IMU stamp - lidar stamp [s]
 
     def ideal(self) -> 'ImuModel':
         return replace(self, noise=ImuNoise.none())
@@ -83,8 +92,12 @@ class ImuModel:
     @property
     def rotation_lidar_imu(self) -> np.ndarray:
         """3x3 ``R_lidar_imu`` (p_lidar = R p_imu)."""
-        roll, pitch, yaw = (math.radians(a) for a in self.extrinsic_rpy_deg)
-        return rotation_zyx(np.array(yaw), np.array(pitch), np.array(roll))
+        return rpy_to_matrix(self.extrinsic_rpy_deg)
+
+    @property
+    def rotation_imu_orientation(self) -> np.ndarray:
+        """3x3 ``R_imu_orientation``: the axes of the frame the orientation field reports, in IMU axes."""
+        return rpy_to_matrix(self.orientation_rpy_deg)
 
     @property
     def gyro_sigma(self) -> float:
@@ -118,13 +131,15 @@ class ImuModel:
         times = np.asarray(times, dtype=float)
         rotation, _ = trajectory.pose(times)
         omega_lidar = trajectory.angular_velocity(times)
-        accel_world = trajectory.acceleration(times)
+        lever_arm = np.asarray(self.lever_arm, dtype=float)
+        accel_world = trajectory.acceleration(times, lever_arm if lever_arm.any() else None)
         r_li = self.rotation_lidar_imu
         gravity = np.array([0.0, 0.0, -self.gravity])
         specific_lidar = np.einsum('nji,nj->ni', rotation, accel_world - gravity)
         gyro = omega_lidar @ r_li + np.asarray(biases.gyro)          # R_li^T omega for each row
         accel = specific_lidar @ r_li + np.asarray(biases.accel)
-        world_imu = Rotation.from_matrix(rotation @ r_li)
+        world_imu = Rotation.from_matrix(rotation @ (r_li @ self.rotation_imu_orientation
+                                                     if any(self.orientation_rpy_deg) else r_li))
         error = np.broadcast_to(np.asarray(biases.orientation), (len(times), 3)).copy()
         if rng is not None:
             n = len(times)
@@ -137,8 +152,16 @@ class ImuModel:
 
     def describe(self, biases: ImuBiases) -> dict:
         """Plain-data summary for scenario.yaml (SI units; the drawn biases included)."""
+        mounting = {}
+        if any(self.lever_arm):   # (only when set: the sidecars of recordings without them stay as they were)
+            mounting['lever_arm_m'] = list(self.lever_arm)
+        if any(self.orientation_rpy_deg):
+            mounting['orientation_rpy_deg'] = list(self.orientation_rpy_deg)
+            mounting['rotation_imu_orientation'] = (self.rotation_imu_orientation.round(12) + 0.0).tolist()
+        if self.time_offset:
+            mounting['time_offset_s'] = self.time_offset
         return dict(rate_hz=self.rate, gravity=self.gravity, extrinsic_rpy_deg=list(self.extrinsic_rpy_deg),
-                    rotation_lidar_imu=(self.rotation_lidar_imu.round(12) + 0.0).tolist(),
+                    rotation_lidar_imu=(self.rotation_lidar_imu.round(12) + 0.0).tolist(), **mounting,
                     noise={k: float(v) for k, v in asdict(self.noise).items()},
                     gyro_sigma_per_sample=self.gyro_sigma, accel_sigma_per_sample=self.accel_sigma,
                     biases=dict(gyro=list(biases.gyro), accel=list(biases.accel),

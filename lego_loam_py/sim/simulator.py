@@ -53,6 +53,13 @@ class SimConfig:
     ideal: bool = False                           # no noise, no bias, no dropped returns
     turn_rate: float = 0.0                        # peak yaw rate of inserted in-place turns [deg/s]; 0: none
     uniform_beams: bool = False                   # evenly spaced beams even where the preset has a beam table
+    imu_lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0)        # IMU origin in the lidar frame [m]
+    imu_orientation_rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)  # orientation frame in the IMU frame [deg]
+    imu_time_offset: float = 0.0                  # IMU stamp - lidar stamp of the same instant [s]
+
+    # Options added after recordings were cached: left out of to_dict (and so of the cache key) at their defaults.
+    _OPTIONAL = {'turn_rate': 0.0, 'imu_lever_arm': (0.0, 0.0, 0.0), 'imu_orientation_rpy': (0.0, 0.0, 0.0),
+                 'imu_time_offset': 0.0}
 
     def validate(self) -> 'SimConfig':
         from lego_loam_py.core.params import SENSOR_PRESETS
@@ -71,16 +78,31 @@ class SimConfig:
             raise ValueError(f'imu rate must be within 1..2000 Hz, got {self.imu_rate}')
         if not 0.0 <= self.turn_rate <= 720.0:
             raise ValueError(f'turn rate must be within 0..720 deg/s, got {self.turn_rate}')
-        if len(self.imu_extrinsic_rpy) != 3:
-            raise ValueError('the IMU extrinsic needs roll, pitch and yaw')
+        for name, what in (('imu_extrinsic_rpy', 'roll, pitch and yaw'), ('imu_orientation_rpy', 'roll, pitch and yaw'),
+                           ('imu_lever_arm', 'x, y and z')):
+            value = getattr(self, name)
+            if len(value) != 3 or not all(math.isfinite(float(v)) for v in value):
+                raise ValueError(f'{name.replace("_", " ")} needs {what} (finite numbers)')
+        if any(abs(float(v)) > 10.0 for v in self.imu_lever_arm):
+            raise ValueError(f'the IMU lever arm must be within 10 m of the lidar, got {tuple(self.imu_lever_arm)}')
+        if not abs(float(self.imu_time_offset)) <= 1.0:
+            raise ValueError(f'the IMU time offset must be within 1 s, got {self.imu_time_offset}')
         return replace(self, imu_extrinsic_rpy=tuple(float(a) for a in self.imu_extrinsic_rpy),
+                       imu_orientation_rpy=tuple(float(a) for a in self.imu_orientation_rpy),
+                       imu_lever_arm=tuple(float(a) for a in self.imu_lever_arm),
+                       imu_time_offset=float(self.imu_time_offset),
                        seed=int(self.seed), imu_rate=float(self.imu_rate), turn_rate=float(self.turn_rate))
 
     def to_dict(self) -> dict[str, Any]:
         out = asdict(self)
+        for name, default in self._OPTIONAL.items():
+            # Recordings without the option keep the cache keys (and scenario.yaml) they had before it.
+            value = tuple(out[name]) if isinstance(default, tuple) else out[name]
+            if value == default:
+                del out[name]
+            elif isinstance(default, tuple):
+                out[name] = list(value)
         out['imu_extrinsic_rpy'] = list(self.imu_extrinsic_rpy)
-        if not self.turn_rate:
-            del out['turn_rate']   # recordings without turns keep the cache keys they had before the option
         del out['uniform_beams']
         if self._has_beam_table():   # (a preset whose beams moved to a table gets new cache keys, no other)
             out['beams'] = 'uniform' if self.uniform_beams else 'table'
@@ -116,6 +138,12 @@ class SimConfig:
             parts += ['--turn-rate', f'{self.turn_rate:g}']
         if self.uniform_beams and self._has_beam_table():
             parts.append('--uniform-beams')
+        if any(self.imu_lever_arm):
+            parts += ['--imu-lever-arm', *(f'{a:g}' for a in self.imu_lever_arm)]
+        if any(self.imu_orientation_rpy):
+            parts += ['--imu-orientation-rpy', *(f'{a:g}' for a in self.imu_orientation_rpy)]
+        if self.imu_time_offset:
+            parts += ['--imu-time-offset', f'{self.imu_time_offset:g}']
         return ' '.join(parts)
 
     def cache_key(self) -> str:
@@ -213,7 +241,11 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
     world = build_world(config.scenario, config.seed, config.turn_rate)
     lidar = LidarModel.from_preset(config.preset, ideal=config.ideal, uniform_beams=config.uniform_beams)
     imu = ImuModel(rate=config.imu_rate, noise=ImuNoise.none() if config.ideal else ImuNoise(),
-                   extrinsic_rpy_deg=config.imu_extrinsic_rpy)
+                   extrinsic_rpy_deg=config.imu_extrinsic_rpy, lever_arm=config.imu_lever_arm,
+                   orientation_rpy_deg=config.imu_orientation_rpy, time_offset=config.imu_time_offset)
+    # The IMU's clock runs imu_time_offset ahead of the lidar's: its stamps say so, while the bag records each
+    # sample when it was measured (as a recorder receives it).
+    imu_stamp_offset_ns = int(round(config.imu_time_offset * 1e9))
     period_ns = int(round(lidar.scan_period * 1e9))
     duration = world.default_duration if config.duration is None else config.duration
     n_scans = max(1, int(math.floor(duration / lidar.scan_period + 1e-9)))
@@ -248,7 +280,7 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
                                               None if config.ideal else scenario_rng(config.seed, 'imu-noise', k))
                         for j, stamp in enumerate(times_ns):
                             absolute = START_STAMP_NS + int(stamp)
-                            header = bag.header(absolute, IMU_FRAME, seq=imu_index + j)
+                            header = bag.header(absolute + imu_stamp_offset_ns, IMU_FRAME, seq=imu_index + j)
                             message = _imu_message(types, header, (samples.orientation[j], samples.angular_velocity[j],
                                                                    samples.linear_acceleration[j]), covariances)
                             bag.write_msg(IMU_TOPIC, absolute, message)

@@ -78,11 +78,18 @@ class Trajectory:
         p = [self.pose(t + k * h)[1] for k in (-2, -1, 1, 2)]
         return (p[0] - 8.0 * p[1] + 8.0 * p[2] - p[3]) / (12.0 * h)
 
-    def acceleration(self, t: np.ndarray) -> np.ndarray:
-        """(N, 3) acceleration of the lidar origin in the world [m/s^2] (gravity not included)."""
+    def acceleration(self, t: np.ndarray, offset: np.ndarray | None = None) -> np.ndarray:
+        """(N, 3) acceleration in the world [m/s^2] (gravity not included) of the lidar origin, or of the point
+        fixed to the lidar at ``offset`` (3,) [m, lidar axes] (an IMU on a lever arm: the rotation adds the
+        centripetal and tangential terms, which the differences of its world position contain)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         h = _STEP
-        p = [self.pose(t + k * h)[1] for k in (-2, -1, 0, 1, 2)]
+
+        def position(times: np.ndarray) -> np.ndarray:
+            rotation, origin = self.pose(times)
+            return origin if offset is None else origin + rotation @ np.asarray(offset, dtype=float)
+
+        p = [position(t + k * h) for k in (-2, -1, 0, 1, 2)]
         return (-p[0] + 16.0 * p[1] - 30.0 * p[2] + 16.0 * p[3] - p[4]) / (12.0 * h * h)
 
     def angular_velocity(self, t: np.ndarray) -> np.ndarray:
