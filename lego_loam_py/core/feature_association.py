@@ -33,7 +33,7 @@ from lego_loam_py.core.features import FeatureExtractor, ScanFeatures
 from lego_loam_py.core.frames import (euler_to_matrix, invert_pose, lidar_to_camera, make_pose, matrix_to_euler,
                                       matrix_to_pose6)
 from lego_loam_py.core.image_projection import CloudInfo
-from lego_loam_py.core.imu import ImuBuffer, imu_rotate, imu_world_rotation
+from lego_loam_py.core.imu import ImuBuffer, imu_mounting, imu_rotate, imu_world_rotation
 from lego_loam_py.core.laser_odometry import OdometryStats, make_laser_odometry
 from lego_loam_py.core.param_types import Params
 from lego_loam_py.core.sweep import (accumulate, motion_to_theta, relative_time, relative_time_from_azimuth,
@@ -117,7 +117,7 @@ class FeatureAssociation:
         # model keeps the original's rows (derivative at the full θ). The scan path is chosen with it, once.
         self.odometry = make_laser_odometry(params, fix_scan_bound)
         self._process = self._process_original if fa.odometry_model == 'original' else self._process_sweep_start
-        self.imu = ImuBuffer(fa.imu_que_length, fa.gravity, params.sensor.scan_period)
+        self.imu = ImuBuffer(fa.imu_que_length, fa.gravity, params.sensor.scan_period, imu_mounting(params))
         self.transform_sum = np.zeros(6)
         self.initialized = False
         self.frame_count = fa.skip_frame_num

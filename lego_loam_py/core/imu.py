@@ -4,7 +4,15 @@ Each sample (sensor_msgs/Imu, 9-axis: orientation required) is processed as the 
 roll, pitch, yaw from the orientation (REP-103, about x, y, z of the lidar), the gravity component
 ``g · R^T e_z`` removed from the specific force, the acceleration rotated into the gravity-aligned world
 frame (LOAM camera axes), and shift, velocity and gyro angles integrated with constant acceleration
-between samples. The IMU is assumed axis-aligned with the lidar unless ``imu_to_lidar`` says otherwise.
+between samples.
+
+The IMU's mounting (:class:`~lego_loam_py.core.frames.ImuMounting`, the ``imu.*`` parameters) is applied once,
+as each sample enters the buffer, so that everything after it sees a sample of an IMU at the lidar origin with
+its axes, on its clock: the stamp moves back by the time offset, the angular velocity and acceleration are
+rotated into lidar axes, the attitude becomes the lidar's, and the lever arm's centripetal and tangential
+acceleration ``alpha x r + omega x (omega x r)`` is taken off the accelerometer (``alpha`` from the rates of
+consecutive samples, so that its integral is exactly the change of ``omega x r``). Identity mountings take the
+original's path, untouched.
 
 Robustness (deviations from the original, which would corrupt its ring buffer): samples with non-finite
 values, a quaternion that is not of unit length (zero, or off by more than 10 %), an angular velocity above
@@ -25,14 +33,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lego_loam_py.core.frames import euler_to_matrices, rotate_by_euler
+from lego_loam_py.core.frames import ImuMounting, euler_to_matrices, rotate_by_euler
 from lego_loam_py.core.validation import MAX_ACCELERATION, MAX_ANGULAR_VELOCITY, MAX_SPEED
 
-__all__ = ['ImuBuffer', 'ImuState', 'imu_sample', 'imu_world_rotation', 'imu_rotate', 'MAX_ANGULAR_VELOCITY',
-           'MAX_ACCELERATION']
+__all__ = ['ImuBuffer', 'ImuState', 'imu_sample', 'imu_mounting', 'imu_world_rotation', 'imu_rotate',
+           'MAX_ANGULAR_VELOCITY', 'MAX_ACCELERATION']
 
 QUATERNION_NORM_TOLERANCE = 0.1
 RESYNC_AFTER = 3   # samples in a row stamped before the newest one that show the newest one's stamp was wrong
+
+
+def imu_mounting(params) -> ImuMounting:
+    """The IMU's mounting from the ``imu.*`` parameters (a :class:`~lego_loam_py.core.param_types.Params`)."""
+    imu = params.imu
+    return ImuMounting.from_rpy(imu.rotation_rpy, imu.translation, imu.orientation_rpy, imu.time_offset)
 
 
 def imu_world_rotation(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
@@ -75,11 +89,19 @@ class ImuBuffer:
     """
 
     def __init__(self, capacity: int = 200, gravity: float = 9.81, scan_period: float = 0.1,
-                 imu_to_lidar: np.ndarray | None = None, reset_after: float = 1.0):
+                 mounting: ImuMounting | None = None, reset_after: float = 1.0):
         self.capacity = int(capacity)
         self.gravity = float(gravity)
         self.scan_period = float(scan_period)
-        self.imu_to_lidar = None if imu_to_lidar is None else np.asarray(imu_to_lidar, dtype=float)
+        self.mounting = mounting if mounting is not None and not mounting.is_identity else None
+        # What add() applies (None: nothing to do): rates and accelerations into lidar axes; the orientation's
+        # frame to the lidar's (R_world_lidar = R_world_orientation @ this); the lever arm [m]; the offset [s].
+        m = self.mounting
+        self._to_lidar = m.rotation if m is not None and not np.array_equal(m.rotation, np.eye(3)) else None
+        self._orientation_to_lidar = m.rotation_lidar_orientation.T if m is not None and m.rotates else None
+        self._lever_arm = tuple(float(v) for v in m.lever_arm) if m is not None and np.any(m.lever_arm) else None
+        self._time_offset = m.time_offset if m is not None else 0.0
+        self._last_rate: tuple[float, float, float] | None = None   # lidar-axes rate of the newest sample
         self.reset_after = float(reset_after)
         self.resets = 0
         # One row per sample: time, roll, pitch, yaw, velocity (3), shift (3), angle (3).
@@ -137,6 +159,7 @@ class ImuBuffer:
         self._rows.clear()
         self._arrays = None
         self._behind = []
+        self._last_rate = None
 
     def _reject(self, reason: str) -> str:
         self.rejected[reason] = self.rejected.get(reason, 0) + 1
@@ -165,6 +188,8 @@ class ImuBuffer:
             return self._reject(f'angular velocity beyond {MAX_ANGULAR_VELOCITY:g} rad/s')
         if max(abs(ax), abs(ay), abs(az)) > MAX_ACCELERATION:
             return self._reject(f'acceleration beyond {MAX_ACCELERATION:g} m/s^2')
+        if self._time_offset:
+            stamp -= self._time_offset   # the lidar's time of the measurement
         last = self._rows[-1] if self._rows else None
         if last is not None and stamp < last[0] - self.reset_after:
             self.clear()   # the source restarted (a bag looped): start again from this sample
@@ -184,20 +209,21 @@ class ImuBuffer:
             last = None
         self._behind = []
         qx, qy, qz, qw = qx / norm, qy / norm, qz / norm, qw / norm
-        if self.imu_to_lidar is None:
+        if self._orientation_to_lidar is None:
             # Fixed-axis x, y, z angles (tf getRPY) of the unit quaternion.
             roll = math.atan2(2.0 * (qw * qx + qy * qz), 1.0 - 2.0 * (qx * qx + qy * qy))
             pitch = math.asin(max(-1.0, min(1.0, 2.0 * (qw * qy - qz * qx))))
             yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
-        else:
-            # Measurements in lidar axes: rotate vectors; the attitude becomes that of the lidar.
-            m = self.imu_to_lidar
-            gx, gy, gz = (m @ np.array([gx, gy, gz])).tolist()
-            ax, ay, az = (m @ np.array([ax, ay, az])).tolist()
-            r = _quaternion_matrix(qx, qy, qz, qw) @ m.T
+        else:   # the attitude of the lidar: R_world_lidar = R_world_orientation R_orientation_lidar
+            r = _quaternion_matrix(qx, qy, qz, qw) @ self._orientation_to_lidar
             roll = math.atan2(r[2, 1], r[2, 2])
             pitch = math.asin(max(-1.0, min(1.0, -r[2, 0])))
             yaw = math.atan2(r[1, 0], r[0, 0])
+        if self._to_lidar is not None:   # rates and accelerations in lidar axes
+            gx, gy, gz = (self._to_lidar @ np.array([gx, gy, gz])).tolist()
+            ax, ay, az = (self._to_lidar @ np.array([ax, ay, az])).tolist()
+        if self._lever_arm is not None:
+            ax, ay, az = self._at_lidar_origin((ax, ay, az), (gx, gy, gz), stamp, last)
         # Gravity-free acceleration in the body frame, re-ordered into camera axes (x=y_l, y=z_l, z=x_l).
         g = self.gravity
         cr, sr, cp, sp, cy, sy = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), \
@@ -221,6 +247,25 @@ class ImuBuffer:
         self._rows.append((stamp, roll, pitch, yaw, *velocity, *shift, *angle))
         self._arrays = None
         return None
+
+    def _at_lidar_origin(self, acceleration, rate, stamp: float, last) -> tuple[float, float, float]:
+        """The specific force at the lidar origin from the one at the IMU's (lidar axes, m/s^2): without the
+        rotation's tangential ``alpha x r`` and centripetal ``omega x (omega x r)`` terms, ``r`` the lever arm.
+        ``alpha`` is the change of rate since the previous sample over the time between them (the interval this
+        sample's acceleration is integrated over), 0 for the first sample and after a gap."""
+        rx, ry, rz = self._lever_arm
+        wx, wy, wz = rate
+        previous, self._last_rate = self._last_rate, rate
+        alpha = (0.0, 0.0, 0.0)
+        if previous is not None and last is not None and 0.0 < stamp - last[0] < self.scan_period:
+            dt = stamp - last[0]
+            alpha = ((wx - previous[0]) / dt, (wy - previous[1]) / dt, (wz - previous[2]) / dt)
+        # omega x r, then omega x (omega x r) and alpha x r.
+        vx, vy, vz = wy * rz - wz * ry, wz * rx - wx * rz, wx * ry - wy * rx
+        cx, cy, cz = wy * vz - wz * vy, wz * vx - wx * vz, wx * vy - wy * vx
+        tx, ty, tz = alpha[1] * rz - alpha[2] * ry, alpha[2] * rx - alpha[0] * rz, alpha[0] * ry - alpha[1] * rx
+        ax, ay, az = acceleration
+        return ax - tx - cx, ay - ty - cy, az - tz - cz
 
     def covers(self, start: float, end: float, tolerance: float = 0.02) -> bool:
         """True when samples exist at or before ``start`` and at or after ``end - tolerance``."""

@@ -33,7 +33,7 @@ import numpy as np
 from lego_loam_py.core.frames import (camera_pose_to_lidar, camera_to_lidar, invert_pose, matrix_to_pose6,
                                       pose6_to_matrix, transform_cloud)
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
-from lego_loam_py.core.imu import ImuBuffer
+from lego_loam_py.core.imu import ImuBuffer, imu_mounting
 from lego_loam_py.core.loop_closure import LoopCandidate, LoopCloser, LoopResult, align_loop, find_loop_candidate
 from lego_loam_py.core.odometry_continuity import OdometryJump, anchored_transform_bef
 from lego_loam_py.core.param_types import Params
@@ -95,7 +95,7 @@ class MapOptimization:
         self._previous_keyframe_position: np.ndarray | None = None
         self.graph = PoseGraph(mo)
         self.imu = ImuBuffer(params.feature_association.imu_que_length, params.feature_association.gravity,
-                             params.sensor.scan_period)
+                             params.sensor.scan_period, imu_mounting(params))
         self._degeneracy = DegeneracyProjection(6)
         self._last_processing_ns: int | None = None
         self.latest_odometry_ns = 0

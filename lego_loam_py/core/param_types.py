@@ -22,8 +22,8 @@ from lego_loam_py.errors import LegoLoamError
 
 __all__ = [
     'ParameterError', 'SensorParams', 'ImageProjectionParams', 'FeatureAssociationParams',
-    'MapOptimizationParams', 'LoopClosureParams', 'ReliabilityParams', 'Params', 'SENSOR_PRESETS', 'GroundRule',
-    'RelativeTimeSource', 'OdometryModel', 'KeyposePick', 'LoopClosureMethod', 'RobustKernel',
+    'MapOptimizationParams', 'LoopClosureParams', 'ReliabilityParams', 'ImuParams', 'Params', 'SENSOR_PRESETS',
+    'GroundRule', 'RelativeTimeSource', 'OdometryModel', 'KeyposePick', 'LoopClosureMethod', 'RobustKernel',
 ]
 
 
@@ -322,6 +322,20 @@ class ReliabilityParams:
 
 
 @dataclass(frozen=True)
+class ImuParams:
+    """How the IMU sits on the lidar, and the check that it does (not in the original, which assumes an IMU with
+    the lidar's axes, at its origin, on its clock). The conventions: :class:`lego_loam_py.core.frames.ImuMounting`."""
+
+    # The IMU axes in the lidar frame (R_lidar_imu = Rz(yaw) Ry(pitch) Rx(roll), as static_transform_publisher
+    # --roll --pitch --yaw from the lidar to the IMU) for the angular velocity and acceleration [deg].
+    rotation_rpy: tuple[float, ...] = (0.0, 0.0, 0.0)
+    translation: tuple[float, ...] = (0.0, 0.0, 0.0)      # the IMU origin in the lidar frame (lever arm) [m]
+    # The frame whose attitude the orientation field reports, in the IMU frame [deg]; 0 0 0: the IMU's own.
+    orientation_rpy: tuple[float, ...] = (0.0, 0.0, 0.0)
+    time_offset: float = 0.0                              # IMU stamp - lidar stamp of the same instant [s]
+
+
+@dataclass(frozen=True)
 class Params:
     """Every parameter of the four nodes; ``Params()`` is the original's VLP-16 configuration."""
 
@@ -331,6 +345,7 @@ class Params:
     map_optimization: MapOptimizationParams = field(default_factory=MapOptimizationParams)
     loop_closure: LoopClosureParams = field(default_factory=LoopClosureParams)
     reliability: ReliabilityParams = field(default_factory=ReliabilityParams)
+    imu: ImuParams = field(default_factory=ImuParams)
 
     def to_flat(self) -> dict[str, Any]:
         """``{'section.name': value}`` for every parameter (tuples become lists, as ROS stores them)."""

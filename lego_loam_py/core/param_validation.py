@@ -176,6 +176,12 @@ def _validate(p: Params) -> None:
     need(r.max_points_per_pixel >= 1, 'reliability.max_points_per_pixel', 'must be at least 1')
     need(r.reset_after_failures >= 1, 'reliability.reset_after_failures', 'must be at least 1')
     need(r.watchdog_inputs >= 0, 'reliability.watchdog_inputs', 'must not be negative (0: off)')
+    imu = p.imu
+    for name in ('rotation_rpy', 'translation', 'orientation_rpy'):
+        need(len(getattr(imu, name)) == 3, f'imu.{name}', 'must have 3 values' + (' (x, y, z)' if name == 'translation'
+                                                                                 else ' (roll, pitch, yaw)'))
+    need(all(abs(v) <= 10.0 for v in imu.translation), 'imu.translation', 'must be within 10 m of the lidar')
+    need(abs(imu.time_offset) <= 1.0, 'imu.time_offset', 'must be within 1 s')
     lc = p.loop_closure
     need(lc.period > 0, 'loop_closure.period', 'must be positive')
     need(lc.history_keyframe_leaf_size > 0, 'loop_closure.history_keyframe_leaf_size', 'must be positive')
