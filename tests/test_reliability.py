@@ -393,15 +393,19 @@ def odometry_messages(draw):
 
 
 def test_fuzz_odometry(context, tmp_path):
-    """transformFusion (both inputs) and mapOptimization: non-finite, non-unit, absurd poses are dropped; the
-    fused pose stays finite."""
+    """transformFusion (both inputs), mapOptimization and featureAssociation's IMU check (/aft_mapped_to_init):
+    non-finite, non-unit, absurd poses are dropped; the fused pose stays finite."""
     from lego_loam_py.ros.conversions import stamp_to_ns
+    from lego_loam_py.ros.feature_association_node import FeatureAssociationNode
     from lego_loam_py.ros.map_optimization_node import MapOptimizationNode
     from lego_loam_py.ros.transform_fusion_node import TransformFusionNode
 
     outputs = pipeline_outputs(context, tmp_path)
     tf, rec = make_node(context, TransformFusionNode)
     mo, mo_rec = make_node(context, MapOptimizationNode, tmp_path)
+    fa, fa_rec = make_node(context, FeatureAssociationNode)
+    for msg in outputs['imu']:
+        fa.on_imu(msg)
 
     @fuzz_settings(300)
     @given(odometry_messages(), st.booleans())
@@ -425,8 +429,12 @@ def test_fuzz_odometry(context, tmp_path):
             mo.on_part(name, restamped(outputs[key][k], stamp))
         mo.on_odometry(msg, {})
         assert not mo_rec.errors
+        TRIED['featureAssociation /aft_mapped_to_init'] += 1
+        fa.on_mapped(msg)
+        assert not fa_rec.errors
 
     check()
+    assert fa.counters['mapped_dropped'] > 0
     # Still serving: good odometry is fused.
     before = len(rec.out('/integrated_to_init'))
     t0 = (tf.last_stamp_ns or 0) + 10_000_000_000
@@ -435,6 +443,7 @@ def test_fuzz_odometry(context, tmp_path):
     assert len(rec.out('/integrated_to_init')) >= before + 3
     tf.destroy_node()
     mo.destroy_node()
+    fa.destroy_node()
 
 
 def test_fuzz_mapping_inputs(context, tmp_path):

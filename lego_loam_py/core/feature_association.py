@@ -33,7 +33,8 @@ from lego_loam_py.core.features import FeatureExtractor, ScanFeatures
 from lego_loam_py.core.frames import (euler_to_matrix, invert_pose, lidar_to_camera, make_pose, matrix_to_euler,
                                       matrix_to_pose6)
 from lego_loam_py.core.image_projection import CloudInfo
-from lego_loam_py.core.imu import ImuBuffer, imu_mounting, imu_rotate, imu_world_rotation
+from lego_loam_py.core.imu import ImuBuffer, ImuSweep, SweepAttitude, imu_mounting, imu_rotate, imu_world_rotation
+from lego_loam_py.core.imu_monitor import SweepImuCheck
 from lego_loam_py.core.laser_odometry import OdometryStats, make_laser_odometry
 from lego_loam_py.core.param_types import Params
 from lego_loam_py.core.sweep import (accumulate, motion_to_theta, relative_time, relative_time_from_azimuth,
@@ -77,33 +78,12 @@ class FeatureAssociationResult:
     odometry: OdometryStats | None = None
     timings_ms: dict = field(default_factory=dict)
     resumed: bool = False                # initialised again after a restart, at the pose reached before it
+    imu_alignment: object = None         # what the IMU check decided on this scan (core.imu_monitor.AlignmentEvent)
 
     @property
     def pose(self) -> np.ndarray:
         """4x4 pose of laser_odom in camera_init (camera axes)."""
         return make_pose(euler_to_matrix(*self.transform_sum[:3]), self.transform_sum[3:])
-
-
-@dataclass
-class SweepAttitude:
-    """The IMU over one sweep, for the sweep-start model (camera axes)."""
-
-    t_start: float            # sweep start [s]
-    r_start: np.ndarray       # (3, 3) IMU attitude at the sweep start
-    rel: np.ndarray           # (n,) relative times of the prepared points, for their own attitudes
-    roll_start: float         # [rad]
-    pitch_start: float        # [rad]
-
-
-@dataclass
-class ImuSweep:
-    """What the original model takes from the IMU over one sweep (camera axes, sweep-start frame)."""
-
-    roll_start: float           # [rad]
-    pitch_start: float          # [rad]
-    delta_end: np.ndarray       # (3, 3) rotation from the sweep end's attitude to the start's
-    shift_end: np.ndarray       # (3,) non-linear shift at the sweep end [m]
-    velocity_change: np.ndarray  # (3,) velocity change over the sweep [m/s]
 
 
 class FeatureAssociation:
@@ -125,13 +105,19 @@ class FeatureAssociation:
         self._last_full_motion = np.zeros(6)   # sweep motion as a full (IMU-free) six-vector
         self._world_pose = np.eye(4)          # sweep-start model: pose of the current sweep start
         self._previous_attitude: SweepAttitude | None = None
+        self.imu_check = SweepImuCheck(params, lambda: self.imu)   # is the IMU mounted as the parameters say?
+        self._imu_event = None   # what the check decided on this scan (an AlignmentEvent), for the result
         self._first_features = None
         self._resumed = False   # restarted after a poisoned state: the first scan keeps transform_sum as it is
         self.scans = 0
 
-    def reset(self) -> None:
-        """Forget everything (a bag restarted or time jumped back)."""
+    def reset(self, keep_imu: bool = False) -> None:
+        """Forget everything (a bag restarted or time jumped back); ``keep_imu``: but the IMU samples and what
+        its check found (they follow their own timeline)."""
+        imu, check = self.imu, self.imu_check
         self.__init__(self.params, self.odometry.fix_scan_bound)
+        if keep_imu:
+            self.imu, self.imu_check = imu, check
 
     def health_problem(self) -> str | None:
         """Why the odometry state is poisoned (non-finite or beyond what a sensor can produce), or None.
@@ -158,10 +144,7 @@ class FeatureAssociation:
         jumping back to the origin; the IMU samples are kept when they are sane, else they are dropped too.
         """
         pose = self.transform_sum.copy() if pose6_problem('pose', self.transform_sum) is None else np.zeros(6)
-        imu = self.imu if self.imu.health_problem() is None else None
-        self.reset()
-        if imu is not None:
-            self.imu = imu
+        self.reset(keep_imu=self.imu.health_problem() is None)
         self.transform_sum = pose
         self._resumed = bool(np.any(pose != 0.0))
 
@@ -205,9 +188,11 @@ class FeatureAssociation:
         """Publication decision (every skip_frame_num + 1 scans after the first) and the result; ``outlier_last``
         may be a function making it, called only for a scan that is published (only mapOptimization uses it)."""
         fa = self.params.feature_association
+        event, self._imu_event = self._imu_event, None
         if initialized:
             return FeatureAssociationResult(scan.stamp_ns, features, self.transform_sum.copy(), corner_last,
-                                            surf_last, None, True, imu_used, None, timings, resumed=self._resumed)
+                                            surf_last, None, True, imu_used, None, timings, resumed=self._resumed,
+                                            imu_alignment=event)
         self.frame_count += 1
         publish = self.frame_count >= fa.skip_frame_num + 1
         if publish:
@@ -216,7 +201,8 @@ class FeatureAssociation:
             outlier_last = outlier_last()
         return FeatureAssociationResult(scan.stamp_ns, features, self.transform_sum.copy(),
                                         corner_last if publish else None, surf_last if publish else None,
-                                        outlier_last if publish else None, False, imu_used, stats, timings)
+                                        outlier_last if publish else None, False, imu_used, stats, timings,
+                                        imu_alignment=event)
 
     def _process_sweep_start(self, scan: ScanInput) -> FeatureAssociationResult:
         """The default model: poses and 'last' clouds at the sweep start (header stamp).
@@ -232,7 +218,10 @@ class FeatureAssociation:
         points, attitude, features, timings = self._prepare_scan(
             scan, lambda prepared, rel, stamp_ns: self._imu_attitudes(rel, stamp_ns))
         t2 = time.perf_counter()
-        odometry = self.odometry
+        odometry, check = self.odometry, self.imu_check
+        self._imu_event = check.scan(scan.stamp_ns, lambda: self._ground(scan, points),
+                                     None if attitude is None else attitude.r_start)
+        attitude = attitude if check.trusted else None   # an IMU that disagrees with the lidar is not used
         if not self.initialized:
             if attitude is not None and not self._resumed:
                 self.transform_sum[0] += attitude.pitch_start
@@ -279,6 +268,9 @@ class FeatureAssociation:
         motion = invert_pose(make_pose(sweep_rotation(*theta[:3]), theta[3:]))
         if use_imu:
             motion = motion @ make_pose(previous.r_start.T @ attitude.r_start)
+            if check.looking(previous.t_start):   # is the IMU grossly misaligned? (its first seconds only)
+                self._imu_event = check.quick_look(odometry, sharp, flat, wall, previous.t_start, attitude.t_start,
+                                                   previous.r_start.T @ attitude.r_start)
         self._world_pose = self._world_pose @ motion
         self.transform_sum = matrix_to_pose6(self._world_pose)
         corner_last = self._deskew_to_start(features.less_sharp, features.less_sharp_index, motion, attitude, points)
@@ -289,6 +281,11 @@ class FeatureAssociation:
                               lambda: self._outlier_at_start(scan, motion, attitude), False, use_imu, stats, timings)
         result.timings_ms['total'] = (time.perf_counter() - t0) * 1e3
         return result
+
+    @staticmethod
+    def _ground(scan: ScanInput, points: np.ndarray) -> np.ndarray:
+        """The scan's ground points (camera axes), for the IMU check's look at gravity."""
+        return points[np.asarray(scan.info.segmented_cloud_ground_flag[:len(points)], dtype=bool)]
 
     def _registration_input(self, cloud: np.ndarray, index: np.ndarray, to_reference: np.ndarray | None,
                             attitude: SweepAttitude | None) -> np.ndarray:
@@ -360,11 +357,14 @@ class FeatureAssociation:
     def _process_original(self, scan: ScanInput) -> FeatureAssociationResult:
         """The original's model: registration against the previous features moved to that sweep's end."""
         t0 = time.perf_counter()
-        points, imu, features, timings = self._prepare_scan(scan, self._imu_deskew)
+        check = self.imu_check
+        points, imu, features, timings = self._prepare_scan(
+            scan, lambda prepared, rel, stamp_ns: self._imu_deskew(prepared, rel, stamp_ns) if check.trusted else None)
+        self._imu_event = check.scan(scan.stamp_ns, lambda: self._ground(scan, points))
         t2 = time.perf_counter()
         if not self.initialized:
             self.odometry.set_last(features.less_sharp, features.less_flat)
-            if imu is not None and not self._resumed:
+            if imu is not None and not self._resumed and check.trusted:
                 self.transform_sum[0] += imu.pitch_start
                 self.transform_sum[2] += imu.roll_start
             self.initialized = True
@@ -393,6 +393,11 @@ class FeatureAssociation:
                             timings)
 
     # ----------------------------------------------------------------------------------------- IMU
+    def add_mapped_pose(self, stamp_ns: int, pose: np.ndarray):
+        """mapOptimization's pose (4x4, camera_init) of the scan stamped ``stamp_ns``, for the IMU check; returns
+        what the check decided (a :class:`~lego_loam_py.core.imu_monitor.AlignmentEvent`) or None."""
+        return self.imu_check.mapped_pose(stamp_ns, np.asarray(pose, dtype=float)[:3, :3])
+
     def add_imu(self, stamp_s: float, orientation_xyzw, angular_velocity, linear_acceleration) -> str | None:
         """Feed one IMU sample (REP-103 body axes); returns the rejection reason or None."""
         return self.imu.add(stamp_s, orientation_xyzw, angular_velocity, linear_acceleration)

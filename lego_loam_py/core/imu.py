@@ -36,8 +36,8 @@ import numpy as np
 from lego_loam_py.core.frames import ImuMounting, euler_to_matrices, rotate_by_euler
 from lego_loam_py.core.validation import MAX_ACCELERATION, MAX_ANGULAR_VELOCITY, MAX_SPEED
 
-__all__ = ['ImuBuffer', 'ImuState', 'imu_sample', 'imu_mounting', 'imu_world_rotation', 'imu_rotate',
-           'MAX_ANGULAR_VELOCITY', 'MAX_ACCELERATION']
+__all__ = ['ImuBuffer', 'ImuState', 'SweepAttitude', 'ImuSweep', 'imu_sample', 'imu_mounting', 'imu_world_rotation',
+           'imu_rotate', 'MAX_ANGULAR_VELOCITY', 'MAX_ACCELERATION']
 
 QUATERNION_NORM_TOLERANCE = 0.1
 RESYNC_AFTER = 3   # samples in a row stamped before the newest one that show the newest one's stamp was wrong
@@ -78,6 +78,28 @@ class ImuState:
     velocity: np.ndarray   # (n, 3) world, camera axes
     shift: np.ndarray      # (n, 3) world, camera axes
     angle: np.ndarray      # (n, 3) integrated gyro, lidar axes
+
+
+@dataclass
+class SweepAttitude:
+    """The IMU over one sweep, as featureAssociation's sweep-start model takes it (camera axes)."""
+
+    t_start: float            # sweep start [s]
+    r_start: np.ndarray       # (3, 3) IMU attitude at the sweep start
+    rel: np.ndarray           # (n,) relative times of the prepared points, for their own attitudes
+    roll_start: float         # [rad]
+    pitch_start: float        # [rad]
+
+
+@dataclass
+class ImuSweep:
+    """What featureAssociation's original model takes from the IMU over one sweep (camera axes, sweep-start frame)."""
+
+    roll_start: float           # [rad]
+    pitch_start: float          # [rad]
+    delta_end: np.ndarray       # (3, 3) rotation from the sweep end's attitude to the start's
+    shift_end: np.ndarray       # (3,) non-linear shift at the sweep end [m]
+    velocity_change: np.ndarray  # (3,) velocity change over the sweep [m/s]
 
 
 class ImuBuffer:

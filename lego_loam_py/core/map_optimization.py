@@ -30,10 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
-from lego_loam_py.core.frames import (camera_pose_to_lidar, camera_to_lidar, invert_pose, matrix_to_pose6,
-                                      pose6_to_matrix, transform_cloud)
+from lego_loam_py.core.frames import (camera_pose_to_lidar, camera_to_lidar, euler_to_matrix, invert_pose,
+                                      matrix_to_pose6, pose6_to_matrix, transform_cloud)
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
 from lego_loam_py.core.imu import ImuBuffer, imu_mounting
+from lego_loam_py.core.imu_monitor import MappingImuCheck
 from lego_loam_py.core.loop_closure import LoopCandidate, LoopCloser, LoopResult, align_loop, find_loop_candidate
 from lego_loam_py.core.odometry_continuity import OdometryJump, anchored_transform_bef
 from lego_loam_py.core.param_types import Params
@@ -74,6 +75,7 @@ class MappingStep:
     corner_map_points: int = 0
     surf_map_points: int = 0
     timings_ms: dict = field(default_factory=dict)
+    imu_alignment: object = None      # what the IMU check decided at this step (core.imu_monitor.AlignmentEvent)
 
 
 class MapOptimization:
@@ -96,6 +98,7 @@ class MapOptimization:
         self.graph = PoseGraph(mo)
         self.imu = ImuBuffer(params.feature_association.imu_que_length, params.feature_association.gravity,
                              params.sensor.scan_period, imu_mounting(params))
+        self.imu_check = MappingImuCheck(params, lambda: self.imu)   # is the IMU mounted as the parameters say?
         self._degeneracy = DegeneracyProjection(6)
         self._last_processing_ns: int | None = None
         self.latest_odometry_ns = 0
@@ -188,7 +191,7 @@ class MapOptimization:
                 self._scan_to_map(corner_map, surf_map, corner_ds, surf_total_ds, step)
                 # As in the original, the poses only move on when a map was there to register against: the
                 # first step (no map yet) keeps transform_aft/bef at their previous values.
-                self._transform_update(stamp_ns)
+                self._transform_update(stamp_ns, step)
             t2 = _time.perf_counter()
             step.keyframe_added = self._save_keyframe(stamp_ns, corner_ds, surf_ds, outlier_ds)
             self._correct_poses()
@@ -281,9 +284,11 @@ class MapOptimization:
             step.degenerate, step.condition = counts.degenerate, counts.condition
         return pose
 
-    def _transform_update(self, stamp_ns: int) -> None:
+    def _transform_update(self, stamp_ns: int, step: MappingStep) -> None:
         mo = self.params.map_optimization
-        if len(self.imu):
+        # The IMU check compares the mapped turn with the IMU's: an IMU that disagrees sets no roll and pitch.
+        step.imu_alignment = self.imu_check.step(stamp_ns, euler_to_matrix(*self.transform_tobe[:3]))
+        if len(self.imu) and self.imu_check.trusted:
             state = self.imu.interpolate([stamp_ns * 1e-9 + self.params.sensor.scan_period])
             w = mo.imu_blend_weight
             self.transform_tobe[0] = (1 - w) * self.transform_tobe[0] + w * float(state.pitch[0])

@@ -333,6 +333,13 @@ class ImuParams:
     # The frame whose attitude the orientation field reports, in the IMU frame [deg]; 0 0 0: the IMU's own.
     orientation_rpy: tuple[float, ...] = (0.0, 0.0, 0.0)
     time_offset: float = 0.0                              # IMU stamp - lidar stamp of the same instant [s]
+    # featureAssociation and mapOptimization compare the IMU's turn with the lidar's over the last
+    # alignment_window seconds; an IMU whose turn a rotation beyond alignment_max_rotation [deg] or a clock offset
+    # beyond alignment_max_offset [s] explains (significantly) is warned about and not used until they agree.
+    alignment_check: bool = True
+    alignment_window: float = 5.0
+    alignment_max_rotation: float = 3.0
+    alignment_max_offset: float = 0.01
 
 
 @dataclass(frozen=True)

@@ -182,6 +182,9 @@ def _validate(p: Params) -> None:
                                                                                  else ' (roll, pitch, yaw)'))
     need(all(abs(v) <= 10.0 for v in imu.translation), 'imu.translation', 'must be within 10 m of the lidar')
     need(abs(imu.time_offset) <= 1.0, 'imu.time_offset', 'must be within 1 s')
+    need(imu.alignment_window >= 1.0, 'imu.alignment_window', 'must be at least 1 s')
+    need(imu.alignment_max_rotation > 0, 'imu.alignment_max_rotation', 'must be positive')
+    need(imu.alignment_max_offset > 0, 'imu.alignment_max_offset', 'must be positive')
     lc = p.loop_closure
     need(lc.period > 0, 'loop_closure.period', 'must be positive')
     need(lc.history_keyframe_leaf_size > 0, 'loop_closure.history_keyframe_leaf_size', 'must be positive')

@@ -36,6 +36,10 @@ from lego_loam_py.core.transform_fusion import TransformFusion
 
 __all__ = ['Pipeline', 'ScanOutput', 'RunResult', 'pose_time_offset_ns']
 
+# featureAssociation hears of mapOptimization's pose of a scan (/aft_mapped_to_init, for its IMU check) before the
+# first scan stamped this much later [ns]: a fixed lag, so that a run does not depend on the mapping thread's pace.
+MAPPED_POSE_LAG_NS = 300_000_000
+
 
 def pose_time_offset_ns(params: Params) -> int:
     """[ns] to add to a scan's stamp to get the time of the sensor pose the pipeline publishes for it: one
@@ -61,6 +65,8 @@ class RunResult:
     bag_duration: float = 0.0
     mapper: MapOptimization | None = None
     pose_time_offset_ns: int = 0   # the original odometry model's pose of scan k is the sensor's at k + one sweep
+    # What the IMU checks decided, in order: (node, core.imu_monitor.AlignmentEvent).
+    imu_alignment: list[tuple[str, object]] = field(default_factory=list)
 
     def count(self, name: str, amount: int = 1) -> None:
         self.counts[name] = self.counts.get(name, 0) + amount
@@ -197,6 +203,10 @@ class Pipeline:
             return self._dropped(stamp, str(exc))
         t1 = time.perf_counter()
         record.time('imageProjection', (t1 - t0) * 1e3)
+        for mapped_stamp, pose6 in self._back_end.mapped_before(stamp - MAPPED_POSE_LAG_NS):
+            event = self.fa.add_mapped_pose(mapped_stamp, pose6_to_matrix(pose6))   # (featureAssociation's IMU check)
+            if event is not None:
+                self._back_end.imu_alignment('featureAssociation', event)
         features = self.fa.process(ScanInput.from_segmentation(stamp, segmentation))
         t2 = time.perf_counter()
         record.time('featureAssociation', (t2 - t1) * 1e3)
@@ -210,6 +220,8 @@ class Pipeline:
         record.count('scans_processed')
         if features.imu_used:
             record.count('scans_with_imu')
+        if features.imu_alignment is not None:
+            self._back_end.imu_alignment('featureAssociation', features.imu_alignment)
         if self._listener is not None:   # (before the fusion, whose event follows)
             self._listener(ScanProcessed(stamp, segmentation, features, None if features.initialized else
                                          features.pose, {'imageProjection': (t1 - t0) * 1e3,
@@ -270,6 +282,7 @@ class _BackEnd:
         self._cpu_time = time.thread_time if threaded else time.process_time
         self._imu: list[tuple] = []
         self._events: deque[_Fuse | _Mapped | _LoopChecked] = deque()
+        self._unheard: deque[_Mapped] = deque()   # mapping steps featureAssociation has not heard of yet
 
     def _submit(self, job) -> Future:
         imu, self._imu = self._imu, []
@@ -315,7 +328,19 @@ class _BackEnd:
             seen = self._keyframes_seen(mapped is not None and mapped.keyframe_added) if self.listener else None
             return mapped, cpu_ms, seen
 
-        self._events.append(_Mapped(stamp, self._submit(step)))
+        mapped = _Mapped(stamp, self._submit(step))
+        self._events.append(mapped)
+        self._unheard.append(mapped)
+
+    def mapped_before(self, stamp_ns: int) -> list[tuple[int, np.ndarray]]:
+        """(stamp, mapped pose six-vector) of every mapping step of a scan stamped up to ``stamp_ns`` not asked for
+        before, waiting for them (the same steps whether the mapping has its own thread or not)."""
+        out = []
+        while self._unheard and self._unheard[0].stamp_ns <= stamp_ns:
+            step = self._unheard.popleft().future.result()[0]
+            if step is not None:
+                out.append((step.stamp_ns, step.transform_aft))
+        return out
 
     def loop_closure(self) -> None:
         def close():
@@ -343,6 +368,8 @@ class _BackEnd:
                     self.listener(ScanFused(event.stamp_ns, result.integrated[-1]))
             elif isinstance(event, _Mapped):
                 step, ms, seen = event.future.result()
+                if step is not None and step.imu_alignment is not None:
+                    self.imu_alignment('mapOptimization', step.imu_alignment)
                 if step is not None:
                     result.time('mapOptimization', ms)
                     result.count('mapping_steps')
@@ -373,6 +400,13 @@ class _BackEnd:
             cloud = transform_cloud(np.concatenate([keyframe.corner, keyframe.surf, keyframe.outlier]),
                                     keyframe.pose6)
         return cloud, poses[:, 3:6].copy()
+
+    def imu_alignment(self, node: str, event) -> None:
+        """An IMU check's decision: recorded, counted and warned about (the check itself repeats its advice only
+        every so many seconds of data)."""
+        self.result.imu_alignment.append((node, event))
+        self.result.count('imu_alignment_warnings' if not event.trusted else 'imu_alignment_recoveries')
+        self.warn(event.message)
 
     def close(self) -> None:
         if self._executor is not None:

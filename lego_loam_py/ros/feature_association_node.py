@@ -3,7 +3,9 @@
 Subscribes /segmented_cloud, /segmented_cloud_info and /outlier_cloud (reliable, depth 1 as the original)
 and synchronises them by stamp (within ``feature_association.sync_tolerance``); /imu/data (best effort,
 depth 200, polled: the samples are taken with each scan, no wake-up per sample) when ``sensor.imu_topic`` is
-set. Publishes, stamped with the scan:
+set, and then /aft_mapped_to_init (reliable, depth 5), mapOptimization's poses, against which the IMU check
+compares the IMU's turn (``imu.alignment_check``; an IMU that disagrees is warned about and not used, see
+:mod:`lego_loam_py.core.imu_monitor`). Publishes, stamped with the scan:
 
 * every scan: /laser_odom_to_init (nav_msgs/Odometry, camera_init -> laser_odom) and its TF;
 * every ``skip_frame_num + 1`` scans: /laser_cloud_corner_last, /laser_cloud_surf_last, /outlier_cloud_last
@@ -36,8 +38,8 @@ from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, LASER_ODOM
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import (cloud_info_from_msg, cloud_info_from_serialized, cloud_msg_to_array,
-                                          cloud_msg_to_xyzi, make_header, serialized_odometry, serialized_stamp_ns,
-                                          serialized_xyzi_cloud, stamp_to_ns)
+                                          cloud_msg_to_xyzi, make_header, odometry_to_pose, serialized_odometry,
+                                          serialized_stamp_ns, serialized_xyzi_cloud, stamp_to_ns)
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 from lego_loam_py.ros.tf import TransformBroadcaster
@@ -67,6 +69,8 @@ class FeatureAssociationNode(LegoLoamNode):
         if self.params.sensor.imu_topic:   # taken with each scan (1 s of samples wait at 200 Hz)
             self.imu_subscription = self.create_polled_subscription(Imu, self.params.sensor.imu_topic,
                                                                     qos.sensor_input(IMU_QUEUE_DEPTH), raw=True)
+            if self.params.imu.alignment_check:   # mapOptimization's poses: the lidar's turn, for the IMU check
+                self.create_subscription(Odometry, '/aft_mapped_to_init', self.on_mapped, qos.reliable(5))
         self.pub_odometry = self.create_publisher(Odometry, '/laser_odom_to_init', qos.reliable(5))
         self.tf = TransformBroadcaster(self)
         last = qos.reliable(2)
@@ -130,6 +134,16 @@ class FeatureAssociationNode(LegoLoamNode):
         """A sensor_msgs/Imu, or its serialized bytes (see :meth:`LegoLoamNode.take_imu`)."""
         self.take_imu(msg, self.core.add_imu)
 
+    def on_mapped(self, msg: Odometry) -> None:
+        """mapOptimization's pose of a scan: compared with the IMU's turn by the core's IMU check."""
+        try:
+            pose = odometry_to_pose(msg)
+        except ValueError as exc:
+            self.count('mapped_dropped')
+            self.warn('bad_mapped', f'/aft_mapped_to_init dropped: {exc}')
+            return
+        self.report_imu_alignment(self.core.add_mapped_pose(stamp_to_ns(msg.header.stamp), pose))
+
     @property
     def last_stamp_ns(self) -> int | None:
         """Stamp of the last scan processed [ns]."""
@@ -154,9 +168,7 @@ class FeatureAssociationNode(LegoLoamNode):
 
     def _reset(self) -> None:
         """Start the odometry again (the IMU samples stay: they follow their own timeline)."""
-        imu = self.core.imu
-        self.core.reset()
-        self.core.imu = imu
+        self.core.reset(keep_imu=True)
         self.order.reset()
         self.count('resets')
 
@@ -196,6 +208,7 @@ class FeatureAssociationNode(LegoLoamNode):
         self.count('scans')
         if result.imu_used:
             self.count('scans_with_imu')
+        self.report_imu_alignment(result.imu_alignment)
         if result.odometry is not None:
             self._report_conditioning(result.odometry)
         self.record_time('scan', time.perf_counter() - start)

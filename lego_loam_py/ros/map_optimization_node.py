@@ -2,7 +2,8 @@
 
 Subscribes /laser_cloud_corner_last, /laser_cloud_surf_last, /outlier_cloud_last (reliable, depth 2),
 /laser_odom_to_init (depth 5), synchronised by stamp within ``map_optimization.sync_tolerance``, and
-/imu/data for the roll/pitch blend. Processes at most every ``mapping_process_interval`` and publishes:
+/imu/data for the roll/pitch blend (not used while the IMU check finds it disagrees with the mapped poses, see
+:mod:`lego_loam_py.core.imu_monitor`). Processes at most every ``mapping_process_interval`` and publishes:
 
 * /aft_mapped_to_init (nav_msgs/Odometry, camera_init -> aft_mapped) and its TF; as in the original its
   twist fields carry the odometry pose the step started from (angular = rx, ry, rz; linear = tx, ty, tz),
@@ -238,6 +239,7 @@ class MapOptimizationNode(LegoLoamNode):
         if step.keyframe_added:
             self.count('keyframes')
         self._report_conditioning(step)
+        self.report_imu_alignment(step.imu_alignment)
         self._publish(step, odometry.header.stamp)
         self.output_published()
         self.record_time('step', time.perf_counter() - start)

@@ -75,6 +75,7 @@ class LegoLoamNode(Node):
         self._last_problem = ''            # the latest warning or error: the watchdog's reason
         self._inputs_without_output = 0
         self._failures_in_a_row = 0
+        self._imu_disagreement: str | None = None   # why the IMU is not used (its check found it misaligned)
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', qos.reliable(10))
         # Wall time: with use_sim_time and no /clock the ROS clock stands still, and so would the diagnostics.
         self.create_timer(self.DIAGNOSTICS_PERIOD, self.publish_diagnostics,
@@ -275,6 +276,19 @@ class LegoLoamNode(Node):
         while len(self._warned) > self.MAX_WARNING_KINDS:
             self._warned.popitem(last=False)
 
+    def report_imu_alignment(self, event) -> None:
+        """What the core's IMU check decided (a :class:`lego_loam_py.core.imu_monitor.AlignmentEvent`, or None):
+        counted, warned about (throttled; the check itself repeats its advice only every 30 s of data), and while
+        the IMU is not used the node's /diagnostics status is WARN with the reason."""
+        if event is None:
+            return
+        self.count('imu_misaligned' if not event.trusted else 'imu_aligned_again')
+        self._imu_disagreement = None if event.trusted else event.message
+        if event.trusted:
+            self.get_logger().info(event.message)
+        else:
+            self.warn('imu_alignment', event.message)
+
     def error(self, key: str, text: str) -> None:
         """Unexpected failure while handling a message: log with the traceback (throttled) and carry on."""
         self.warn(key, f'{text}: {traceback.format_exc(limit=6)}', level='error')
@@ -433,6 +447,8 @@ class LegoLoamNode(Node):
         values += [KeyValue(key=key, value=str(count)) for key, count in self.matched_endpoints().items()]
         if self.silent:
             level, message = DiagnosticStatus.WARN, self.watchdog_message()
+        elif self._imu_disagreement is not None:
+            level, message = DiagnosticStatus.WARN, self._imu_disagreement
         else:
             level, message = DiagnosticStatus.OK, 'running'
         return DiagnosticStatus(level=level, name=self.get_name(), message=message, hardware_id='lego_loam_py',

@@ -1,0 +1,424 @@
+"""The online check that the IMU is mounted as the parameters say: featureAssociation and mapOptimization compare
+the IMU's turn with the lidar's over a sliding window and stop using an IMU that disagrees.
+
+Each node feeds :class:`ImuAlignmentMonitor` intervals (featureAssociation: from one sweep start to the next;
+mapOptimization: from one mapping step to the next) with the lidar's turn and the IMU's over the same interval,
+both as the IMU buffer sees them (the ``imu.*`` mounting applied, lidar axes). Over the last
+``imu.alignment_window`` seconds :func:`~lego_loam_py.core.imu_alignment.fit_alignment` finds the rotation and
+clock offset that map the IMU's turns onto the lidar's. The IMU **disagrees** when that correction
+
+* is material: more than ``imu.alignment_max_rotation`` degrees or ``imu.alignment_max_offset`` seconds;
+* is significant: at least :data:`SIGNIFICANCE` standard deviations from none (the noise is the residuals'
+  spread, so the lidar's own noise never makes one), and
+* explains the disagreement: at least :data:`EXPLAINED` of its square goes with it. A lidar odometry in
+  trouble disagrees with any IMU, but no rotation of the IMU explains that, so it never condemns one.
+
+Then the monitor warns, naming the rotation and offset found and the parameters that would absorb them, and
+the node stops using the IMU. It is trusted again once a window shows it agrees: a fitted correction below half
+the bounds, with the rotation known to within that about every axis (motion that turned about all of them).
+A car on flat roads never shows that for the rotation about the vertical, so an IMU distrusted there stays
+off: no worse than no IMU. The same advice is repeated at most every :data:`REPEAT_AFTER` seconds of data.
+
+Before any motion, featureAssociation compares the IMU's up direction with the normal of the ground under the
+lidar (:meth:`ImuAlignmentMonitor.check_gravity`): an IMU more than :data:`MAX_GROUND_TILT` from it (upside down,
+on its side) is not trusted from the first scan, and the odometry does not start from its roll and pitch.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from lego_loam_py.core.frames import CAMERA_TO_LIDAR, LIDAR_TO_CAMERA, ImuMounting, invert_pose, make_pose, matrix_to_rpy
+from lego_loam_py.core.imu import ImuBuffer, imu_mounting, imu_world_rotation
+from lego_loam_py.core.imu_alignment import AlignmentFit, fit_alignment, shifted_increments
+from lego_loam_py.core.laser_odometry import make_laser_odometry
+from lego_loam_py.core.sweep import motion_to_theta, sweep_rotation
+
+__all__ = ['ImuAlignmentMonitor', 'AlignmentEvent', 'SweepImuCheck', 'MappingImuCheck', 'nearest_right_angle_rotation',
+           'SIGNIFICANCE', 'EXPLAINED', 'MAX_GROUND_TILT', 'REPEAT_AFTER']
+
+SIGNIFICANCE = 6.0        # standard deviations a correction must lie from none
+EXPLAINED = 0.5           # share of the squared disagreement it must explain
+MIN_INTERVALS = 6         # intervals in a window before it is judged (and it must span 90 % of the window)
+STRIKES = 3               # evaluations in a row that must find the IMU disagreeing
+MIN_TURN_DEG = 10.0       # the window must turn by this much in all (a standing sensor tells nothing)
+MAX_GROUND_TILT = 30.0    # [deg] IMU up vs the ground's normal at start-up
+MIN_GROUND_POINTS = 30    # ground points the start-up check needs
+REPEAT_AFTER = 30.0       # [s of data] between two warnings while the IMU stays distrusted
+QUICK_WINDOW = 2.0        # [s] featureAssociation's quick look at a gross misalignment ...
+QUICK_INTERVALS = 5       # ... judged from this many sweeps on ...
+QUICK_DISAGREEMENT = 0.25  # ... when they disagree by this much per sweep [deg RMS] or more
+QUICK_TURN_DEG = 5.0      # ... once they turned this much in all
+QUICK_SECONDS = 3.0       # [s] how long featureAssociation looks, from the IMU's first use
+OFFSETS = np.round(np.arange(-0.2, 0.2 + 1e-9, 0.01), 6)   # clock offsets searched [s]
+
+
+def nearest_right_angle_rotation(rotation: np.ndarray, tolerance_deg: float = 10.0) -> np.ndarray | None:
+    """The rotation among the 24 that map axes onto axes (IMUs are mostly mounted so) within ``tolerance_deg``
+    of ``rotation``, or None."""
+    rounded = np.round(np.asarray(rotation))
+    if not (np.abs(rounded).sum(axis=0) == 1).all() or not (np.abs(rounded).sum(axis=1) == 1).all() \
+            or np.linalg.det(rounded) < 0.5:
+        return None
+    angle = np.degrees(np.linalg.norm(Rotation.from_matrix(rounded.T @ rotation).as_rotvec()))
+    return rounded if angle <= tolerance_deg else None
+
+
+def _angles(rpy) -> str:
+    return '[' + ', '.join(f'{a:.1f}' for a in np.round(np.asarray(rpy, dtype=float), 1) + 0.0) + ']'
+
+
+@dataclass(frozen=True)
+class AlignmentEvent:
+    """What the monitor decided: ``trusted`` says whether the IMU may be used from now on; ``message`` is the
+    warning (or the note that it agrees again)."""
+
+    stamp: float                 # [s] data time
+    trusted: bool
+    message: str
+    fit: AlignmentFit | None = None
+
+
+class ImuAlignmentMonitor:
+    """Judges, over a sliding window of intervals, whether the IMU turns as the lidar does (see the module
+    docstring). ``who`` names the node in the messages; ``interval`` is what one interval is ('sweep', 'mapping
+    step')."""
+
+    def __init__(self, params, mounting: ImuMounting, who: str):
+        imu = params.imu
+        self.enabled = bool(imu.alignment_check)
+        self.window = float(imu.alignment_window)
+        self.max_rotation = float(imu.alignment_max_rotation)
+        self.max_offset = float(imu.alignment_max_offset)
+        self.mounting = mounting
+        self.who = who
+        self.trusted = True
+        self.first_stamp: float | None = None   # the first interval's start [s], for the time to a decision
+        self._intervals: deque[tuple] = deque()  # (start, end, lidar rotvec, IMU turn, rate start, rate end)
+        self._quick: deque[tuple] = deque()      # the same, for add_quick
+        self._last_warning: float | None = None
+        self._reason = ''
+        self.distrusted_at: float | None = None   # [s] when the IMU was last found to disagree
+        self._refined = False                      # advice given from a window without the IMU's influence
+        self._strikes = 0          # windows in a row that found the IMU to disagree (STRIKES distrust it) ...
+        self._quick_strikes = 0    # ... and the same for the quick look
+        self.evaluations = 0
+        self.last_fit: AlignmentFit | None = None   # the latest window's fit (for diagnostics)
+
+    # --------------------------------------------------------------------------------------- inputs
+    def add(self, start: float, end: float, lidar_turn: np.ndarray, imu_turn: np.ndarray, rate_start: np.ndarray,
+            rate_end: np.ndarray) -> AlignmentEvent | None:
+        """One interval ``[start, end]`` [s]: the lidar's and the IMU's turn over it (3x3 rotations, the pose at
+        ``end`` in the frame at ``start``, lidar axes) and the IMU's body rates at its ends [rad/s, lidar axes].
+        Returns an event when the verdict changes (or a distrusted IMU's advice is due again)."""
+        if not self.enabled:
+            return None
+        if self.first_stamp is None:
+            self.first_stamp = start
+        window = self._window(self._intervals, self.window, (start, end, lidar_turn, imu_turn, rate_start, rate_end))
+        if len(window) < MIN_INTERVALS or end - window[0][0] < 0.9 * self.window:
+            return None
+        return self._judge(end, self._fit(window))
+
+    def add_quick(self, start: float, end: float, lidar_turn: np.ndarray, imu_turn: np.ndarray,
+                  rate_start: np.ndarray, rate_end: np.ndarray) -> AlignmentEvent | None:
+        """An interval (as :meth:`add`) of a quick look at a gross misalignment: over the last
+        :data:`QUICK_WINDOW` seconds, a disagreement of :data:`QUICK_DISAGREEMENT` degrees per interval or more
+        that a rotation or offset explains makes the IMU distrusted at once (featureAssociation's first seconds,
+        before a misaligned IMU spoils the map)."""
+        if not self.enabled or not self.trusted:
+            return None
+        window = self._window(self._quick, QUICK_WINDOW, (start, end, lidar_turn, imu_turn, rate_start, rate_end))
+        if len(window) < QUICK_INTERVALS:
+            return None
+        fit = self._fit(window, QUICK_TURN_DEG)
+        # What the correction explains, in degrees per sweep: here the lidar's turn (the quick registration's) can
+        # be noisy (0.2-0.3 deg per sweep in a corridor), so the share explained says less than the amount.
+        gross = fit is not None and fit.explained_deg >= QUICK_DISAGREEMENT and self._disagrees(fit, share=0.0)
+        self._quick_strikes = self._quick_strikes + 1 if gross else 0
+        if self._quick_strikes < STRIKES:
+            return None
+        self._reason = self._advice(fit, QUICK_WINDOW, 'sweep')
+        return self._distrust(end, fit)
+
+    @staticmethod
+    def _window(intervals: deque, seconds: float, interval: tuple) -> deque:
+        """``intervals`` with ``interval`` (start, end, turns, rates) appended and those older than ``seconds``
+        before its end dropped (all of them when time went back: a bag restarted)."""
+        start, end, lidar_turn, imu_turn, rate_start, rate_end = interval
+        if intervals and start < intervals[-1][0]:
+            intervals.clear()
+        intervals.append((start, end, Rotation.from_matrix(lidar_turn).as_rotvec(), Rotation.from_matrix(imu_turn),
+                          np.asarray(rate_start, float), np.asarray(rate_end, float)))
+        while intervals and intervals[0][0] < end - seconds:
+            intervals.popleft()
+        return intervals
+
+    def check_gravity(self, stamp: float, up: np.ndarray, imu_up: np.ndarray,
+                      reference: str = "the ground's normal under the lidar") -> AlignmentEvent | None:
+        """The up direction the lidar sees (``reference``: the ground's normal, pointing to the lidar's side) and the
+        IMU's, both unit vectors in lidar axes. An IMU whose up lies more than :data:`MAX_GROUND_TILT` from it is
+        not trusted."""
+        if not self.enabled or not self.trusted:
+            return None
+        tilt = math.degrees(math.acos(float(np.clip(np.dot(up, imu_up), -1.0, 1.0))))
+        if tilt <= MAX_GROUND_TILT:
+            return None
+        # The rotation taking the IMU's up onto the lidar's (the smallest one: its yaw is unknown yet).
+        axis = np.cross(imu_up, up)
+        norm = np.linalg.norm(axis)
+        axis = axis / norm if norm > 1e-9 else np.array([1.0, 0.0, 0.0])
+        correction = Rotation.from_rotvec(axis * math.radians(tilt)).as_matrix()
+        suggestion = correction @ self.mounting.rotation
+        self._reason = (f'its up direction is {tilt:.0f} deg from {reference} (mounted upside down or on its side?); '
+                        f'imu.rotation_rpy about {_angles(matrix_to_rpy(suggestion))} would level it (its yaw is not '
+                        'known until the sensor turns)')
+        return self._distrust(stamp, None)
+
+    # --------------------------------------------------------------------------------------- verdicts
+    def _fit(self, window: deque, min_turn: float = MIN_TURN_DEG) -> AlignmentFit | None:
+        """The rotation and offset best explaining the window (None: it turned less than ``min_turn`` degrees in
+        all, too little to tell anything)."""
+        lidar = np.array([i[2] for i in window])
+        if np.degrees(np.linalg.norm(lidar, axis=1).sum()) < min_turn:
+            return None
+        starts = np.array([i[4] for i in window])
+        ends = np.array([i[5] for i in window])
+        increments = Rotation.from_quat(np.array([i[3].as_quat() for i in window]))
+        fit = fit_alignment(lidar, lambda offsets: shifted_increments(increments, starts, ends, offsets), OFFSETS)
+        self.evaluations += 1
+        self.last_fit = fit
+        return fit
+
+    def _disagrees(self, fit: AlignmentFit | None, share: float = EXPLAINED) -> bool:
+        """A correction that is material, significant and explains ``share`` of the disagreement (module
+        docstring)."""
+        if fit is None:
+            return False
+        rotation_material = fit.angle_deg > self.max_rotation and fit.rotation_significance > SIGNIFICANCE
+        offset_material = abs(fit.offset) > self.max_offset and abs(fit.offset) > SIGNIFICANCE * fit.offset_sigma
+        return (rotation_material or offset_material) and fit.explained >= share
+
+    def _judge(self, stamp: float, fit: AlignmentFit | None) -> AlignmentEvent | None:
+        if fit is None:
+            return None
+        self._strikes = self._strikes + 1 if self._disagrees(fit) else 0
+        if self._strikes:
+            self._reason = self._advice(fit)
+            if self.trusted:
+                return self._distrust(stamp, fit) if self._strikes >= STRIKES else None
+            # Advice again once a whole window passed without the IMU (the lidar's turn then owes it nothing: a
+            # better estimate), then every REPEAT_AFTER seconds.
+            if (not self._refined and self._intervals[0][0] >= self.distrusted_at) or \
+                    stamp - self._last_warning >= REPEAT_AFTER:
+                self._refined = self._intervals[0][0] >= self.distrusted_at
+                return self._warning(stamp, fit)
+            return None
+        agrees = (fit.angle_deg < 0.5 * self.max_rotation and abs(fit.offset) < 0.5 * self.max_offset
+                  and float(fit.rotation_sigma_deg.max()) < 0.5 * self.max_rotation)
+        if not self.trusted and agrees:
+            self.trusted = True
+            self.distrusted_at = None
+            return AlignmentEvent(stamp, True, f'{self.who}: the IMU agrees with the lidar again (within '
+                                  f'{fit.angle_deg:.1f} deg and {1e3 * fit.offset:.0f} ms over the last '
+                                  f'{self.window:g} s): used again', fit)
+        return None
+
+    def _advice(self, fit: AlignmentFit, seconds: float | None = None, interval: str = 'interval') -> str:
+        """Why the IMU disagrees and what to set (``seconds``: the window fitted, the check's by default)."""
+        mounted = fit.rotation @ self.mounting.rotation   # R_lidar_imu that would explain what was seen
+        parts = []
+        if fit.angle_deg > self.max_rotation:
+            nearest = nearest_right_angle_rotation(mounted)
+            likely = f' (likely {_angles(matrix_to_rpy(nearest))})' if nearest is not None else ''
+            parts.append(f'it turns as if mounted with imu.rotation_rpy {_angles(matrix_to_rpy(mounted))}{likely}, '
+                         f'not {_angles(matrix_to_rpy(self.mounting.rotation))}')
+        if abs(fit.offset) > self.max_offset:
+            late = 'late' if fit.offset > 0 else 'early'
+            parts.append(f'its stamps are {1e3 * abs(fit.offset):.0f} ms {late} (imu.time_offset '
+                         f'{self.mounting.time_offset + fit.offset:.3f} s, not {self.mounting.time_offset:g})')
+        return (f'{" and ".join(parts)}: over the last {seconds or self.window:g} s its turn differs from the lidar\'s '
+                f'by {fit.rms_before_deg:.2f} deg per {interval}, {fit.rms_after_deg:.2f} deg with that correction')
+
+    def _distrust(self, stamp: float, fit: AlignmentFit | None) -> AlignmentEvent:
+        self.trusted = False
+        self.distrusted_at = stamp
+        self._refined = False
+        return self._warning(stamp, fit)
+
+    def _warning(self, stamp: float, fit: AlignmentFit | None) -> AlignmentEvent:
+        self._last_warning = stamp
+        return AlignmentEvent(stamp, False, f'{self.who}: the IMU disagrees with the lidar: {self._reason}. The IMU is '
+                              'not used until they agree; set the imu.* parameters (lego_loam_py calibrate BAG '
+                              'estimates them) or imu.alignment_check: false to use it anyway', fit)
+
+
+
+# ------------------------------------------------------------------------------------------- the two nodes
+
+RATE_STEP = 0.005   # [s] either side of a time for the IMU's body rate from its attitude
+KEPT_SCANS = 100    # featureAssociation keeps the IMU's state at this many scans, for their mapped poses
+
+
+def _to_lidar(rotation_camera: np.ndarray) -> np.ndarray:
+    """A rotation between two camera-axes frames, as the same rotation in lidar axes."""
+    return CAMERA_TO_LIDAR @ rotation_camera @ LIDAR_TO_CAMERA
+
+
+class _Check:
+    """What both nodes' checks share: the monitor, fed from one mapped pose to the next (mapOptimization's
+    scan-to-map registration: the lidar's own estimate, which the IMU's roll and pitch barely touch), and the
+    IMU's attitude and body rate at the same times, from the node's IMU buffer (``buffer`` gives it: a reset may
+    replace it)."""
+
+    def __init__(self, params, buffer: Callable[[], ImuBuffer], who: str):
+        self.monitor = ImuAlignmentMonitor(params, imu_mounting(params), who)
+        self._buffer = buffer
+        # A scan's pose is the sensor's at its stamp plus this [s] (the original odometry model: the sweep end).
+        original = params.feature_association.odometry_model == 'original'
+        self._pose_delay = params.sensor.scan_period if original else 0.0
+        self._previous: tuple | None = None   # (pose time, mapped rotation, IMU state) of the last mapped pose
+
+    @property
+    def trusted(self) -> bool:
+        return self.monitor.trusted
+
+    def imu_state(self, time: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """(the IMU's attitude of the lidar, camera axes; its body rate [rad/s, lidar axes]) at ``time`` [s], or
+        None when its buffer does not cover it."""
+        imu = self._buffer()
+        if not self.monitor.enabled or not imu.covers(time - RATE_STEP, time + RATE_STEP, 0.0):
+            return None
+        before, at, after = imu_world_rotation(*imu.attitude(np.array([time - RATE_STEP, time, time + RATE_STEP])))
+        turn = before.T @ after   # a small turn (under 2 deg at 180 deg/s): its axis-angle from the skew part
+        rate = 0.5 * np.array([turn[2, 1] - turn[1, 2], turn[0, 2] - turn[2, 0], turn[1, 0] - turn[0, 1]])
+        return at, CAMERA_TO_LIDAR @ rate / (2 * RATE_STEP)
+
+    def _mapped(self, time: float, rotation: np.ndarray, state) -> AlignmentEvent | None:
+        """A mapped pose's rotation (camera axes, in camera_init) at ``time`` [s] with the IMU's state then."""
+        previous, self._previous = self._previous, (time, rotation, state)
+        if previous is None or state is None or previous[2] is None or not time > previous[0]:
+            return None
+        (start, start_rotation, (start_attitude, start_rate)), (attitude, rate) = previous, state
+        return self.monitor.add(start, time, _to_lidar(start_rotation.T @ rotation),
+                                _to_lidar(start_attitude.T @ attitude), start_rate, rate)
+
+
+class SweepImuCheck(_Check):
+    """featureAssociation's check: the IMU's state at each scan's pose time is kept until mapOptimization's pose
+    of that scan comes back (/aft_mapped_to_init); the gravity check at start-up; and a quick look at each sweep
+    of the IMU's first :data:`QUICK_SECONDS` (:meth:`quick_look`) for a misalignment gross enough to spoil the map
+    before the mapped poses could tell."""
+
+    def __init__(self, params, buffer: Callable[[], ImuBuffer]):
+        super().__init__(params, buffer, 'featureAssociation')
+        self._states: dict[int, tuple] = {}
+        # The quick look's lidar-only registration: one block of iterations, no second try from standing still.
+        fa = params.feature_association
+        self._quick_params = params.replace(feature_association__max_iterations=fa.reassociate_every,
+                                            feature_association__lost_match_ratio=0.0)
+        self._lidar_odometry = None
+        self._first_look: float | None = None
+        self._gravity_checked = False
+
+    def looking(self, stamp: float) -> bool:
+        """Whether the sweep starting at ``stamp`` [s] gets a quick look (the IMU's first seconds in use)."""
+        if not self.monitor.enabled or not self.trusted:
+            return False
+        if self._first_look is None:
+            self._first_look = stamp
+        return stamp - self._first_look < QUICK_SECONDS
+
+    def quick_look(self, odometry, sharp: np.ndarray, flat: np.ndarray, wall, start: float, end: float,
+                   imu_turn: np.ndarray) -> AlignmentEvent | None:
+        """A sweep registered with the IMU: ``odometry`` has just matched ``sharp`` and ``flat`` (the registration
+        inputs, IMU-rotated) with the IMU's turn ``imu_turn`` (camera axes, sweep start ``start`` to ``end``) held
+        by its prior. Registering once more without the prior, from there against the same 'last' clouds, shows
+        which turn the lidar prefers (not all of it: the 'last' clouds were deskewed with the IMU too, but enough
+        for a gross misalignment). When the IMU is found to disagree, ``odometry`` continues from the lidar's own
+        motion."""
+        if self._lidar_odometry is None:
+            self._lidar_odometry = make_laser_odometry(self._quick_params, odometry.fix_scan_bound)
+        lidar = self._lidar_odometry
+        lidar.last_corner, lidar.last_surf = odometry.last_corner, odometry.last_surf
+        lidar.last_corner_count, lidar.last_surf_count = odometry.last_corner_count, odometry.last_surf_count
+        lidar.transform_cur = odometry.transform_cur.copy()
+        lidar.register(sharp, flat, wall)
+        theta = lidar.transform_cur
+        states = self.imu_state(start), self.imu_state(end)
+        if states[0] is None or states[1] is None:
+            return None
+        lidar_turn = sweep_rotation(*theta[:3]).T @ imu_turn
+        event = self.monitor.add_quick(start, end, _to_lidar(lidar_turn), _to_lidar(imu_turn), states[0][1],
+                                       states[1][1])
+        if event is not None:   # the next sweep without the IMU, starting from this one's motion as the lidar saw it
+            motion = invert_pose(make_pose(sweep_rotation(*theta[:3]), theta[3:])) @ make_pose(imu_turn)
+            odometry.transform_cur[:] = motion_to_theta(motion)
+        return event
+
+    def scan(self, stamp_ns: int, ground: Callable[[], np.ndarray],
+             attitude: np.ndarray | None = None) -> AlignmentEvent | None:
+        """A scan stamped ``stamp_ns``: keep the IMU's state at its pose time (for its mapped pose) and, on the first
+        scan the IMU covers, check gravity (:meth:`check_gravity_once`) with its ground points (``ground()``, camera
+        axes) and the IMU's ``attitude`` (camera axes) at the sweep start (None: read from the buffer)."""
+        if not self.monitor.enabled:
+            return None
+        state = self.imu_state(stamp_ns * 1e-9 + self._pose_delay)
+        if state is not None:
+            self._states[stamp_ns] = state
+            if len(self._states) > KEPT_SCANS:
+                del self._states[next(iter(self._states))]
+        if attitude is None and not self._gravity_checked:
+            at_start = self.imu_state(stamp_ns * 1e-9)
+            attitude = None if at_start is None else at_start[0]
+        return None if attitude is None else self.check_gravity_once(stamp_ns * 1e-9, ground, attitude)
+
+    def mapped_pose(self, stamp_ns: int, rotation: np.ndarray) -> AlignmentEvent | None:
+        """mapOptimization's pose of the scan stamped ``stamp_ns`` (its rotation, camera axes)."""
+        if not self.monitor.enabled:
+            return None
+        return self._mapped(stamp_ns * 1e-9 + self._pose_delay, rotation, self._states.get(stamp_ns))
+
+    def check_gravity_once(self, stamp: float, ground: Callable[[], np.ndarray],
+                           attitude: np.ndarray) -> AlignmentEvent | None:
+        """Start-up, on the first scan the IMU covers: the plane of the ground points (``ground()``, camera axes)
+        against the IMU's up direction in the lidar frame, from its attitude (camera axes) at the sweep start."""
+        if not self.monitor.enabled or self._gravity_checked:
+            return None
+        ground = ground()
+        if len(ground) < MIN_GROUND_POINTS:
+            return None
+        self._gravity_checked = True
+        xyz = np.asarray(ground[:, :3], dtype=np.float64)
+        normal = np.linalg.svd(xyz - xyz.mean(axis=0), full_matrices=False)[2][2]
+        normal = normal if normal[1] >= 0 else -normal           # towards the lidar's up (camera y)
+        imu_up = attitude.T @ np.array([0.0, 1.0, 0.0])           # the world's up in the lidar frame
+        return self.monitor.check_gravity(stamp, CAMERA_TO_LIDAR @ normal, CAMERA_TO_LIDAR @ imu_up)
+
+
+class MappingImuCheck(_Check):
+    """mapOptimization's check, at every mapping step."""
+
+    def __init__(self, params, buffer: Callable[[], ImuBuffer]):
+        super().__init__(params, buffer, 'mapOptimization')
+
+    def step(self, stamp_ns: int, rotation: np.ndarray) -> AlignmentEvent | None:
+        """A mapping step's pose of the scan stamped ``stamp_ns`` (its rotation in camera_init, camera axes). Its up
+        direction is checked against the IMU's at once (camera_init is level when the odometry started from the
+        IMU's roll and pitch, and the lidar's first pose otherwise), which catches an IMU upside down or on its side
+        before its roll and pitch are blended in."""
+        if not self.monitor.enabled:
+            return None
+        time = stamp_ns * 1e-9 + self._pose_delay
+        state = self.imu_state(time)
+        event = None
+        if state is not None:
+            up = np.array([0.0, 1.0, 0.0])
+            event = self.monitor.check_gravity(time, CAMERA_TO_LIDAR @ (rotation.T @ up),
+                                               CAMERA_TO_LIDAR @ (state[0].T @ up), 'the mapped pose\'s')
+        return self._mapped(time, rotation, state) or event
