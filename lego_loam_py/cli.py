@@ -61,6 +61,11 @@ COMMANDS = [
      'Subscribe to the standard topics of the running nodes (scan by label, features, map, keyframes, the three '
      'odometries, /diagnostics) and show them live in a Rerun viewer, or save them with --save FILE.rrd. Needs '
      'rerun-sdk.'),
+    ('calibrate', 'lego_loam_py.calibration', 'estimate the IMU-to-lidar rotation and time offset from a recording',
+     'Estimate how the IMU is mounted on the lidar (the rotation of its axes, imu.rotation_rpy) and how its clock '
+     'relates to the lidar\'s (imu.time_offset) from a recording with motion: the lidar-only odometry\'s turns '
+     'against the gyro\'s (hand-eye). Prints the values with their uncertainty as a parameter block to paste, or '
+     'refuses when the motion cannot tell them (too short, or not turning about every axis).'),
     ('eval', 'lego_loam_py.evaluation', 'accuracy of a trajectory against ground truth (ATE, RPE, drift) with evo',
      'Compare an estimated TUM trajectory with a ground truth (a TUM file, or the ground_truth.tum beside a '
      'bag): ATE after SE(3) alignment, RPE over segments, end-point error and drift; optional plot.'),

@@ -472,6 +472,17 @@ def test_imu_extrinsic_rotation(tmp_path):
     assert '--imu-extrinsic-rpy 0 0 90' in scenario['command']
 
 
+def test_the_straight_scenario_drives_straight_for_50_s():
+    """A drive that cannot show how an IMU is mounted (the calibration must refuse it): no turn, only the road's
+    undulations, at 8 m/s."""
+    trajectory = build_world('straight').trajectory
+    t = np.arange(0.0, 50.0, 0.05)
+    rates = np.degrees(np.abs(trajectory.angular_velocity(t)))
+    assert rates[:, 2].max() < 1.0 and rates.max() < 2.0
+    speed = np.linalg.norm(trajectory.velocity(t), axis=1)
+    assert 7.5 < speed.min() and speed.max() < 8.1
+
+
 def test_imu_lever_arm_orientation_frame_and_time_offset(tmp_path):
     """The IMU 0.3 m from the lidar, its orientation output in a frame yawed 90 deg and upside down, its clock
     20 ms ahead: the accelerometer feels the rotation's centripetal and tangential acceleration at its own

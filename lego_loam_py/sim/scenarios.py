@@ -470,6 +470,22 @@ def _build_aggressive(seed: int) -> World:
                  SCENARIOS['aggressive'].description, _facts(path, speed, trajectory))
 
 
+# The straight: a 480 m street and back, joined by two hairpins; a recording of up to 50 s from the start drives
+# straight on (roll and pitch from the road's undulations, under 1 deg/s).
+_STRAIGHT_COMMANDS = [('S', 480.0), ('A', 10.0, 180.0), ('S', 480.0), ('A', 10.0, 180.0)]
+
+
+def _build_straight(seed: int) -> World:
+    path = ClosedPath(_turtle_path(0.0, _STRAIGHT_COMMANDS))
+    terrain = Terrain.random(scenario_rng(0, 'straight-terrain'), [(0.8, 120.0), (0.2, 40.0)])
+    scene = _urban_scene(path, terrain, scenario_rng(seed, 'straight-scene'), road_half_width=5.0,
+                         ground_margin=60.0, building_rows=1)
+    speed = SpeedProfile(path, cruise_speed=8.0, max_lateral_acceleration=3.0, smoothing=10.0, start=10.0)
+    trajectory = PathTrajectory(path, speed, terrain, sensor_height=1.8, wheelbase=2.7, track=1.6)
+    return World('straight', seed, scene, trajectory, _whole_scans(speed.lap_time),
+                 SCENARIOS['straight'].description, _facts(path, speed, trajectory))
+
+
 def _speed_for_peak_yaw_rate(path: ClosedPath, cruise_speed: float, peak_yaw_rate: float,
                              smoothing: float, start: float) -> SpeedProfile:
     """Speed profile whose lateral-acceleration limit makes the largest yaw rate ``peak_yaw_rate``
@@ -865,6 +881,9 @@ SCENARIOS: dict[str, ScenarioInfo] = {
                               'little beside the straights but sparse lamp posts and trees, so the mapping drifts '
                               'along them; buildings and cars around the start, where the loop closes',
                               _build_open_road),
+    'straight': ScenarioInfo('straight', 'a 480 m street driven straight at 8 m/s and back (hairpins at the ends); '
+                             'its first 50 s have no turn at all: a drive that cannot show how an IMU is mounted',
+                             _build_straight),
 }
 
 
