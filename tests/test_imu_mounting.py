@@ -294,3 +294,16 @@ def test_the_nodes_warn_about_an_upside_down_imu_and_report_it_on_diagnostics(co
     assert mo.counters['imu_misaligned'] == 1 and mo.diagnostic_status().level == DiagnosticStatus.WARN
     for node in (ip, fa, mo):
         node.destroy_node()
+
+
+def test_a_sample_moved_back_onto_a_scans_stamp_covers_it():
+    """Stamps near 1.7e9 s are 2.4e-7 s apart as floats: an IMU sample stamped 20 ms after a scan, moved back by a
+    20 ms offset, may land a step after the scan's stamp; it still covers the sweep (the odometry then starts from
+    the IMU's roll and pitch, as with an aligned IMU)."""
+    start_ns = 1_700_000_000_000_000_000
+    buffer = ImuBuffer(mounting=ImuMounting.from_rpy(time_offset=0.02))
+    for k in range(25):
+        buffer.add((start_ns + 20_000_000 + k * 5_000_000) * 1e-9, (0, 0, 0, 1), (0, 0, 0), (0, 0, G))
+    start = start_ns * 1e-9
+    assert abs(buffer.times[0] - start) < 1e-6
+    assert buffer.covers(start, start + 0.1) and not buffer.covers(start - 0.005, start + 0.1)

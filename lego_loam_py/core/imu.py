@@ -41,6 +41,9 @@ __all__ = ['ImuBuffer', 'ImuState', 'SweepAttitude', 'ImuSweep', 'imu_sample', '
 
 QUATERNION_NORM_TOLERANCE = 0.1
 RESYNC_AFTER = 3   # samples in a row stamped before the newest one that show the newest one's stamp was wrong
+# [s] Stamps are float seconds (2.4e-7 s apart near 1.7e9 s): a stamp moved back by imu.time_offset may land one
+# step after a scan stamped at the same instant, which must still count as covered.
+STAMP_ROUNDING = 1e-6
 
 
 def imu_mounting(params) -> ImuMounting:
@@ -290,8 +293,9 @@ class ImuBuffer:
         return ax - tx - cx, ay - ty - cy, az - tz - cz
 
     def covers(self, start: float, end: float, tolerance: float = 0.02) -> bool:
-        """True when samples exist at or before ``start`` and at or after ``end - tolerance``."""
-        return len(self._time) >= 2 and self._time[0] <= start and self._time[-1] >= end - tolerance
+        """True when samples exist at or before ``start`` (within ``STAMP_ROUNDING``) and at or after
+        ``end - tolerance``."""
+        return len(self._time) >= 2 and self._time[0] <= start + STAMP_ROUNDING and self._time[-1] >= end - tolerance
 
     def interpolate(self, times: np.ndarray) -> ImuState:
         """Linear interpolation at ``times`` [s] (held at the ends); yaw interpolated across +-pi."""
