@@ -56,7 +56,8 @@ def run(bag: Path, params: Params, imu: bool = True) -> tuple[dict, object]:
 
 
 def line(label: str, row: dict) -> str:
-    text = f'  {label:<34s} ATE {row["ate_m"]:6.3f} m  RPE {row["rpe_percent"]:5.2f} %  drift {row["drift_percent"]:5.2f} %'
+    text = (f'  {label:<34s} ATE {row["ate_m"]:6.3f} m  RPE {row["rpe_percent"]:5.2f} %  '
+            f'drift {row["drift_percent"]:5.2f} %')
     if 'first_warning_s' in row:
         text += f'  warning after {row["first_warning_s"]:4.1f} s, IMU on {row["scans_with_imu"]}/{row["scans"]} scans'
     elif 'scans_with_imu' in row:

@@ -102,8 +102,9 @@ class Calibration:
         if self.orientation_rotation is not None:
             angles = matrix_to_rpy(self.orientation_rotation)
             if np.degrees(np.linalg.norm(Rotation.from_matrix(self.orientation_rotation).as_rotvec())) > 1.0:
-                lines.append(f'      orientation_rpy: [{", ".join(f"{a:.2f}" for a in np.round(angles, 2) + 0.0)}]   # deg: the '
-                             'orientation field reports another frame than the gyro')
+                values = ', '.join(f'{a:.2f}' for a in np.round(angles, 2) + 0.0)
+                lines.append(f'      orientation_rpy: [{values}]   # deg: the orientation field reports another frame '
+                             'than the gyro')
         lines.append('      # translation: [x, y, z]   # m: the lever arm is not estimated, measure it')
         return '\n'.join(lines)
 

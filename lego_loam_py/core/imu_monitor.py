@@ -1,27 +1,37 @@
 """The online check that the IMU is mounted as the parameters say: featureAssociation and mapOptimization compare
-the IMU's turn with the lidar's over a sliding window and stop using an IMU that disagrees.
+the IMU's turn with the lidar's and stop using an IMU that disagrees, until the two agree again.
 
-Each node feeds :class:`ImuAlignmentMonitor` intervals (featureAssociation: from one sweep start to the next;
-mapOptimization: from one mapping step to the next) with the lidar's turn and the IMU's over the same interval,
-both as the IMU buffer sees them (the ``imu.*`` mounting applied, lidar axes). Over the last
-``imu.alignment_window`` seconds :func:`~lego_loam_py.core.imu_alignment.fit_alignment` finds the rotation and
-clock offset that map the IMU's turns onto the lidar's. The IMU **disagrees** when that correction
+The lidar's turn is mapOptimization's: from one mapped pose to the next (:class:`MappingImuCheck`; its scan-to-map
+registration barely depends on the IMU, while featureAssociation's odometry holds the IMU's rotation with a
+strong prior and cannot contradict it); featureAssociation gets the same poses back on /aft_mapped_to_init
+(:class:`SweepImuCheck`). The IMU's turn over the same interval comes from its attitude, as the node's IMU buffer
+gives it (the ``imu.*`` mounting applied, lidar axes). Over the last ``imu.alignment_window`` seconds
+:func:`~lego_loam_py.core.imu_alignment.fit_alignment` finds the rotation and clock offset that map the IMU's
+turns onto the lidar's (:class:`ImuAlignmentMonitor`). The IMU **disagrees** when that correction
 
 * is material: more than ``imu.alignment_max_rotation`` degrees or ``imu.alignment_max_offset`` seconds;
 * is significant: at least :data:`SIGNIFICANCE` standard deviations from none (the noise is the residuals'
-  spread, so the lidar's own noise never makes one), and
-* explains the disagreement: at least :data:`EXPLAINED` of its square goes with it. A lidar odometry in
-  trouble disagrees with any IMU, but no rotation of the IMU explains that, so it never condemns one.
+  spread, so the lidar's own noise never makes one);
+* explains the disagreement: at least :data:`EXPLAINED` of its square goes with it (a lidar odometry in
+  trouble disagrees with any IMU, but no rotation of the IMU explains that, so it never condemns one), and
+* does so in :data:`STRIKES` windows in a row (one stretch of a struggling mapping can look like anything once).
 
 Then the monitor warns, naming the rotation and offset found and the parameters that would absorb them, and
 the node stops using the IMU. It is trusted again once a window shows it agrees: a fitted correction below half
 the bounds, with the rotation known to within that about every axis (motion that turned about all of them).
 A car on flat roads never shows that for the rotation about the vertical, so an IMU distrusted there stays
-off: no worse than no IMU. The same advice is repeated at most every :data:`REPEAT_AFTER` seconds of data.
+off: no worse than no IMU. The advice is given again once a whole window passed without the IMU (a better
+estimate), then at most every :data:`REPEAT_AFTER` seconds of data.
 
-Before any motion, featureAssociation compares the IMU's up direction with the normal of the ground under the
-lidar (:meth:`ImuAlignmentMonitor.check_gravity`): an IMU more than :data:`MAX_GROUND_TILT` from it (upside down,
-on its side) is not trusted from the first scan, and the odometry does not start from its roll and pitch.
+Two quicker looks catch what would spoil the map before a window is full:
+
+* gravity (:meth:`ImuAlignmentMonitor.check_gravity`): featureAssociation compares the IMU's up direction with
+  the normal of the ground under the lidar on the first scan the IMU covers, mapOptimization with its mapped
+  pose's at every step; more than :data:`MAX_GROUND_TILT` apart (upside down, on its side) and the IMU is not
+  trusted, so the odometry does not start from its roll and pitch nor does the mapping blend them in;
+* featureAssociation's first :data:`QUICK_SECONDS` of IMU use (:meth:`SweepImuCheck.quick_look`): each sweep is
+  registered once more without the IMU's prior, and :data:`QUICK_DISAGREEMENT` degrees per sweep or more that a
+  rotation explains, three sweeps in a row, is acted on at once.
 """
 from __future__ import annotations
 
@@ -33,7 +43,8 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from lego_loam_py.core.frames import CAMERA_TO_LIDAR, LIDAR_TO_CAMERA, ImuMounting, invert_pose, make_pose, matrix_to_rpy
+from lego_loam_py.core.frames import (CAMERA_TO_LIDAR, LIDAR_TO_CAMERA, ImuMounting, invert_pose, make_pose,
+                                      matrix_to_rpy)
 from lego_loam_py.core.imu import ImuBuffer, imu_mounting, imu_world_rotation
 from lego_loam_py.core.imu_alignment import AlignmentFit, fit_alignment, shifted_increments
 from lego_loam_py.core.laser_odometry import make_laser_odometry
