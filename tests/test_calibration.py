@@ -60,3 +60,50 @@ def test_the_command_refuses_the_real_ouster_capture_as_too_short(shared_data, t
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 1 and 'Traceback' not in done.stderr
     assert 'too short: 3 scans' in done.stderr and 's of IMU (30 samples)' in done.stderr
+
+
+def synthetic_bag(tmp_path, stamps, lidar, imu, base: float = 1000.0):
+    """``imu`` written as sensor_msgs/Imu on /imu/data and the lidar attitudes as a TUM file (the command's
+    --trajectory): the command end to end without running the pipeline."""
+    from lego_loam_py.bag.io import BagWriter
+
+    bag = tmp_path / 'bag'
+    with BagWriter(bag) as writer:
+        T = writer.types
+        unknown = np.zeros(9)
+        for stamp, rate, q in zip(imu['stamps'] + base, imu['rates'], imu['orientations']):
+            stamp_ns = int(round(stamp * 1e9))
+            writer.write_msg('/imu/data', stamp_ns, T['sensor_msgs/msg/Imu'](
+                header=writer.header(stamp_ns, 'imu_link'),
+                orientation=T['geometry_msgs/msg/Quaternion'](x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+                orientation_covariance=unknown,
+                angular_velocity=T['geometry_msgs/msg/Vector3'](x=float(rate[0]), y=float(rate[1]), z=float(rate[2])),
+                angular_velocity_covariance=unknown,
+                linear_acceleration=T['geometry_msgs/msg/Vector3'](x=0.0, y=0.0, z=9.81),
+                linear_acceleration_covariance=unknown))
+    tum = tmp_path / 'lidar.tum'
+    quaternions = Rotation.from_matrix(lidar).as_quat()
+    np.savetxt(tum, np.column_stack([stamps + base, np.zeros((len(stamps), 3)), quaternions]), fmt='%.9f')
+    return bag, tum
+
+
+def test_the_command_prints_a_parameter_block_or_refuses_a_straight_drive_with_exit_code_1(tmp_path, capsys):
+    """The IMU yawed 90 deg and 20 ms late: the output is a parameter block to paste (its comments say how well
+    each value is known). A straight drive (hardly any turn about any axis): exit code 1 and the reason."""
+    from lego_loam_py.cli import main
+
+    stamps, lidar, imu = imu_and_lidar(30.0, mount_rpy=(0.0, 0.0, 90.0), offset=0.02, lidar_noise_deg=0.05)
+    (tmp_path / 'turns').mkdir()
+    bag, tum = synthetic_bag(tmp_path / 'turns', stamps, lidar, imu)
+    assert main(['calibrate', str(bag), '--trajectory', str(tum), '--no-progress']) == 0
+    printed = yaml.safe_load(capsys.readouterr().out)['/**']['ros__parameters']['imu']
+    assert printed['rotation_rpy'] == pytest.approx([0.0, 0.0, 90.0], abs=0.5)   # within 0.5 deg, 2 ms here
+    assert printed['time_offset'] == pytest.approx(0.02, abs=0.002)
+
+    straight = imu | dict(rates=imu['rates'] * [0.02, 0.02, 0.02])
+    still = np.array([np.eye(3)] * len(stamps))
+    (tmp_path / 'straight').mkdir()
+    bag, tum = synthetic_bag(tmp_path / 'straight', stamps, still, straight)
+    assert main(['calibrate', str(bag), '--trajectory', str(tum), '--no-progress']) == 1
+    err = capsys.readouterr().err
+    assert 'error: ' in err and 'does not show' in err and 'Traceback' not in err
