@@ -266,7 +266,8 @@ def calibrate_bag(bag: str | Path, params, trajectory: str | Path | None = None,
         scans = result.counts.get('scans_in', 0)
     if len(stamps) < 3 or stamps[-1] - stamps[0] < MIN_DURATION:
         span = f'{stamps[-1] - stamps[0]:.2f} s' if len(stamps) > 1 else 'no motion'
-        raise CalibrationRefused(f'too short: {scans} scans ({len(stamps)} lidar odometry poses, {span}) and '
+        sweeps = f'{scans} scan' if scans == 1 else f'{scans} scans'
+        raise CalibrationRefused(f'too short: {sweeps} ({len(stamps)} lidar odometry poses, {span}) and '
                                  f'{imu_span}; the calibration needs {MIN_DURATION:g} s or more of motion')
     first = calibrate(stamps, rotations, imu)
     if trajectory is not None or not refine:
