@@ -43,8 +43,8 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from lego_loam_py.core.frames import (CAMERA_TO_LIDAR, LIDAR_TO_CAMERA, ImuMounting, invert_pose, make_pose,
-                                      matrix_to_rpy)
+from lego_loam_py.core.frames import (CAMERA_TO_LIDAR, LIDAR_TO_CAMERA, ImuMounting, euler_to_matrix, invert_pose,
+                                      make_pose, matrix_to_rpy)
 from lego_loam_py.core.imu import ImuBuffer, imu_mounting, imu_world_rotation
 from lego_loam_py.core.imu_alignment import AlignmentFit, fit_alignment, shifted_increments
 from lego_loam_py.core.laser_odometry import make_laser_odometry
@@ -417,6 +417,20 @@ class MappingImuCheck(_Check):
 
     def __init__(self, params, buffer: Callable[[], ImuBuffer]):
         super().__init__(params, buffer, 'mapOptimization')
+        self._params = params
+
+    def update(self, stamp_ns: int, transform: np.ndarray) -> AlignmentEvent | None:
+        """mapOptimization's use of the IMU at a mapping step: its pose six-vector ``transform`` (transform_tobe, of
+        the scan stamped ``stamp_ns``) checked (:meth:`step`), then the IMU's roll and pitch blended into it in place,
+        as the original does, unless the check distrusts the IMU."""
+        event = self.step(stamp_ns, euler_to_matrix(*transform[:3]))
+        imu = self._buffer()
+        if len(imu) and self.trusted:
+            state = imu.interpolate([stamp_ns * 1e-9 + self._params.sensor.scan_period])
+            w = self._params.map_optimization.imu_blend_weight
+            transform[0] = (1 - w) * transform[0] + w * float(state.pitch[0])
+            transform[2] = (1 - w) * transform[2] + w * float(state.roll[0])
+        return event
 
     def step(self, stamp_ns: int, rotation: np.ndarray) -> AlignmentEvent | None:
         """A mapping step's pose of the scan stamped ``stamp_ns`` (its rotation in camera_init, camera axes). Its up

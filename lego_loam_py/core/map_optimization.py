@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lego_loam_py.core.frames import (camera_pose_to_lidar, camera_to_lidar, euler_to_matrix, invert_pose,
-                                      matrix_to_pose6, pose6_to_matrix, transform_cloud)
+from lego_loam_py.core.frames import (camera_pose_to_lidar, camera_to_lidar, invert_pose, matrix_to_pose6,
+                                      pose6_to_matrix, transform_cloud)
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
 from lego_loam_py.core.imu import ImuBuffer, imu_mounting
 from lego_loam_py.core.imu_monitor import MappingImuCheck
@@ -285,14 +285,8 @@ class MapOptimization:
         return pose
 
     def _transform_update(self, stamp_ns: int, step: MappingStep) -> None:
-        mo = self.params.map_optimization
-        # The IMU check compares the mapped turn with the IMU's: an IMU that disagrees sets no roll and pitch.
-        step.imu_alignment = self.imu_check.step(stamp_ns, euler_to_matrix(*self.transform_tobe[:3]))
-        if len(self.imu) and self.imu_check.trusted:
-            state = self.imu.interpolate([stamp_ns * 1e-9 + self.params.sensor.scan_period])
-            w = mo.imu_blend_weight
-            self.transform_tobe[0] = (1 - w) * self.transform_tobe[0] + w * float(state.pitch[0])
-            self.transform_tobe[2] = (1 - w) * self.transform_tobe[2] + w * float(state.roll[0])
+        # The IMU's roll and pitch, blended in by the IMU check (which compares the mapped turn with the IMU's first).
+        step.imu_alignment = self.imu_check.update(stamp_ns, self.transform_tobe)
         self.transform_bef = self.transform_sum.copy()
         self.transform_aft = self.transform_tobe.copy()
 
