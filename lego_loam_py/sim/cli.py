@@ -55,6 +55,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         'sequence folder (velodyne/*.bin, times.txt, calib.txt, poses.txt)')
     parser.add_argument('--pcd', metavar='DIR', default=None, help='also write the recording as a folder of PCD scans '
                         '(every field) with times.txt and poses.txt')
+    parser.add_argument('--route-start', type=float, default=None, metavar='M',
+                        help="drive another route through the same scene: start at this arc length [m] along the "
+                        "scenario's path (default: the scenario's own start)")
+    parser.add_argument('--reverse', action='store_true', help="drive the scenario's path the other way round")
     parser.add_argument('--cached', action='store_true', help='generate into the cache (~/.cache/lego_loam_py/sim, '
                         '$LEGO_LOAM_CACHE) unless present; print the bag path')
     parser.add_argument('--list', action='store_true', help='list the scenarios and sensor presets, then exit')
@@ -96,7 +100,7 @@ def main(args: argparse.Namespace) -> int:
                    imu_extrinsic_rpy=tuple(args.imu_extrinsic_rpy), ideal=args.ideal,
                    turn_rate=args.turn_rate, uniform_beams=args.uniform_beams,
                    imu_lever_arm=tuple(args.imu_lever_arm), imu_orientation_rpy=tuple(args.imu_orientation_rpy),
-                   imu_time_offset=args.imu_time_offset)
+                   imu_time_offset=args.imu_time_offset, route_start=args.route_start, reverse=args.reverse)
     try:
         if args.cached:
             print(cached_scenario(args.scenario, progress=not args.no_progress, **options))

@@ -34,7 +34,7 @@ from lego_loam_py.core.io import read_tum, tum_lines
 
 __all__ = ['map_distance_to_scene', 'GROUND_TRUTH', 'GROUND_TRUTH_DENSE', 'LABELS', 'SCENARIO', 'NOTE', 'sidecar_path', 'write_tum',
            'read_tum', 'load_ground_truth', 'relative_poses', 'LabelWriter', 'Labels', 'load_labels',
-           'load_scenario', 'write_yaml']
+           'load_scenario', 'write_yaml', 'world_of']
 
 GROUND_TRUTH = 'ground_truth.tum'
 GROUND_TRUTH_DENSE = 'ground_truth_dense.tum'
@@ -95,15 +95,22 @@ def map_distance_to_scene(bag_path: str | Path, map_points: np.ndarray, stamp_ns
     scenario = load_scenario(bag_path)
     if scenario is None:
         return None
-    from lego_loam_py.sim.scenarios import build_world
-
-    config = scenario['config']
-    world = build_world(config['scenario'], int(config['seed']), float(config.get('turn_rate', 0.0)))
+    world = world_of(scenario)
     t = (int(stamp_ns) - int(scenario['recording']['start_stamp_ns'])) / 1e9
     world_from_map = world.trajectory.matrices(np.array([t]))[0] @ np.linalg.inv(lidar_pose_in_map)
     xyz = np.asarray(map_points, dtype=np.float64)[:, :3]
     xyz = xyz[np.isfinite(xyz).all(axis=1)]
     return world.scene.distance(xyz @ world_from_map[:3, :3].T + world_from_map[:3, 3])
+
+
+def world_of(scenario: dict[str, Any]):
+    """The simulated world (scene and trajectory) a recording's scenario.yaml describes."""
+    from lego_loam_py.sim.scenarios import build_world
+
+    config = scenario['config']
+    route_start = config.get('route_start')
+    return build_world(config['scenario'], int(config['seed']), float(config.get('turn_rate', 0.0)),
+                       None if route_start is None else float(route_start), bool(config.get('reverse', False)))
 
 
 def write_yaml(path: str | Path, data: dict[str, Any]) -> None:

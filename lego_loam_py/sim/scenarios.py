@@ -897,13 +897,28 @@ TURN_FIRST, TURN_EVERY = 10.0, 30.0
 
 
 @functools.lru_cache(maxsize=4)
-def build_world(name: str, seed: int = 0, turn_rate: float = 0.0) -> World:
+def build_world(name: str, seed: int = 0, turn_rate: float = 0.0, route_start: float | None = None,
+                reverse: bool = False) -> World:
     """The scenario ``name`` built with ``seed`` (cached: worlds are immutable). ``turn_rate`` > 0 [deg/s]
     stops the platform for a whole in-place turn, alternately left and right, with that peak yaw rate
-    at :data:`TURN_FIRST` s and every :data:`TURN_EVERY` s of the lap after it."""
+    at :data:`TURN_FIRST` s and every :data:`TURN_EVERY` s of the lap after it.
+
+    ``route_start`` [m of arc length along the scenario's path, in its own direction] and ``reverse`` drive
+    another route through the same scene (the scenery is built from the path, never from the route): from
+    another start, and with ``reverse`` the other way round. The default route is the scenario's own."""
     if name not in SCENARIOS:
         raise ValueError(f"unknown scenario '{name}' (known: {', '.join(SCENARIOS)})")
     world = SCENARIOS[name].build(int(seed))
+    if route_start is not None or reverse:
+        base = world.trajectory
+        trajectory = base.on_route(route_start, reverse)
+        start = base.speed.start if route_start is None else float(route_start) % base.path.length
+        route = f'from {start:.1f} m along the path' + (', driven the other way' if reverse else '')
+        world = World(name, world.seed, world.scene, trajectory,
+                      _whole_scans(trajectory.speed.lap_time + world.default_duration - base.speed.lap_time),
+                      f'{world.description}; route {route}',
+                      dict(_facts(trajectory.path, trajectory.speed, trajectory), route_start_m=round(start, 3),
+                           reverse=bool(reverse)))
     if not turn_rate:
         return world
     at = np.arange(TURN_FIRST, world.default_duration - 1.0, TURN_EVERY)

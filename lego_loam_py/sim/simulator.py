@@ -56,10 +56,14 @@ class SimConfig:
     imu_lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0)        # IMU origin in the lidar frame [m]
     imu_orientation_rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)  # orientation frame in the IMU frame [deg]
     imu_time_offset: float = 0.0                  # IMU stamp - lidar stamp of the same instant [s]
+    # Another route through the same scene: start at this arc length [m] along the scenario's path (None: the
+    # scenario's own start), and drive it the other way round (see scenarios.build_world).
+    route_start: float | None = None
+    reverse: bool = False
 
     # Options added after recordings were cached: left out of to_dict (and so of the cache key) at their defaults.
     _OPTIONAL = {'turn_rate': 0.0, 'imu_lever_arm': (0.0, 0.0, 0.0), 'imu_orientation_rpy': (0.0, 0.0, 0.0),
-                 'imu_time_offset': 0.0}
+                 'imu_time_offset': 0.0, 'route_start': None, 'reverse': False}
 
     def validate(self) -> 'SimConfig':
         from lego_loam_py.core.params import SENSOR_PRESETS
@@ -87,11 +91,15 @@ class SimConfig:
             raise ValueError(f'the IMU lever arm must be within 10 m of the lidar, got {tuple(self.imu_lever_arm)}')
         if not abs(float(self.imu_time_offset)) <= 1.0:
             raise ValueError(f'the IMU time offset must be within 1 s, got {self.imu_time_offset}')
+        if self.route_start is not None and not math.isfinite(self.route_start):
+            raise ValueError(f'route start must be a finite arc length [m], got {self.route_start}')
         return replace(self, imu_extrinsic_rpy=tuple(float(a) for a in self.imu_extrinsic_rpy),
                        imu_orientation_rpy=tuple(float(a) for a in self.imu_orientation_rpy),
                        imu_lever_arm=tuple(float(a) for a in self.imu_lever_arm),
                        imu_time_offset=float(self.imu_time_offset),
-                       seed=int(self.seed), imu_rate=float(self.imu_rate), turn_rate=float(self.turn_rate))
+                       seed=int(self.seed), imu_rate=float(self.imu_rate), turn_rate=float(self.turn_rate),
+                       route_start=None if self.route_start is None else float(self.route_start),
+                       reverse=bool(self.reverse))
 
     def to_dict(self) -> dict[str, Any]:
         out = asdict(self)
@@ -144,6 +152,10 @@ class SimConfig:
             parts += ['--imu-orientation-rpy', *(f'{a:g}' for a in self.imu_orientation_rpy)]
         if self.imu_time_offset:
             parts += ['--imu-time-offset', f'{self.imu_time_offset:g}']
+        if self.route_start is not None:
+            parts += ['--route-start', f'{self.route_start:g}']
+        if self.reverse:
+            parts.append('--reverse')
         return ' '.join(parts)
 
     def cache_key(self) -> str:
@@ -238,7 +250,7 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
     bag_path = _bag_output_path(config, output)
     if bag_path.exists():
         raise FileExistsError(f'{bag_path} exists already; choose another output (bags are never overwritten)')
-    world = build_world(config.scenario, config.seed, config.turn_rate)
+    world = build_world(config.scenario, config.seed, config.turn_rate, config.route_start, config.reverse)
     lidar = LidarModel.from_preset(config.preset, ideal=config.ideal, uniform_beams=config.uniform_beams)
     imu = ImuModel(rate=config.imu_rate, noise=ImuNoise.none() if config.ideal else ImuNoise(),
                    extrinsic_rpy_deg=config.imu_extrinsic_rpy, lever_arm=config.imu_lever_arm,

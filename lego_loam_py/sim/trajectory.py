@@ -135,6 +135,7 @@ class ClosedPath:
             raise ValueError('a closed path needs at least 4 waypoints (x, y)')
         if np.allclose(points[0], points[-1]):
             points = points[:-1]
+        self.waypoints = points.copy()
         closed = np.vstack([points, points[:1]])
         chord = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))])
         self._curve = make_interp_spline(chord, closed, k=5, bc_type='periodic')
@@ -171,6 +172,13 @@ class ClosedPath:
         d2 = self._curve.derivative(2)(u)
         return (d1[..., 0] * d2[..., 1] - d1[..., 1] * d2[..., 0]) / np.linalg.norm(d1, axis=-1) ** 3
 
+    def reversed(self) -> 'ClosedPath':
+        """The same curve travelled the other way, from the same first waypoint: the point at arc length
+        ``s`` of the reversed path is the one at ``length - s`` of this one. (The interpolating spline through
+        the reversed waypoints is this one's, run backwards: the periodic interpolant is unique and the chord
+        lengths are the same.)"""
+        return ClosedPath(np.vstack([self.waypoints[:1], self.waypoints[:0:-1]]))
+
     def polyline(self, spacing: float = 0.5) -> np.ndarray:
         """(N, 2) points along the path about ``spacing`` [m] apart (for placing scenery)."""
         n = max(8, int(np.ceil(self.length / spacing)))
@@ -190,6 +198,9 @@ class SpeedProfile:
                  smoothing: float = 10.0, start: float = 0.0, samples: int = 8192):
         self.cruise_speed = float(cruise_speed)
         self.start = float(start)
+        self.max_lateral_acceleration = max_lateral_acceleration
+        self.smoothing = float(smoothing)
+        self.samples = int(samples)
         length = path.length
         s = self.start + np.linspace(0.0, length, samples, endpoint=False)
         speed = np.full(samples, float(cruise_speed))
@@ -216,6 +227,11 @@ class SpeedProfile:
     def __call__(self, t: np.ndarray) -> np.ndarray:
         t = np.asarray(t, dtype=float)
         return self.start + t * (self.length / self.lap_time) + self._residual(np.mod(t, self.lap_time))
+
+    def on(self, path: ClosedPath, start: float) -> 'SpeedProfile':
+        """The same driving (cruise speed, lateral limit, smoothing) on ``path`` from arc length ``start`` [m]."""
+        return SpeedProfile(path, self.cruise_speed, self.max_lateral_acceleration, self.smoothing, start,
+                            self.samples)
 
 
 class PathTrajectory(Trajectory):
@@ -276,6 +292,16 @@ class PathTrajectory(Trajectory):
         mount[:, 1] = self._channel('sway', t)
         mount[:, 2] = self.sensor_height + self._channel('heave', t)
         return rotation, ground + np.einsum('nij,nj->ni', rotation, mount)
+
+    def on_route(self, start: float | None = None, reverse: bool = False) -> 'PathTrajectory':
+        """The same platform, driving and scene on another route along this path: from arc length ``start``
+        [m, measured along this path's direction; None: this trajectory's own start], and with ``reverse`` the
+        other way round (speed limits in curves, terrain and oscillations as before)."""
+        start = self.speed.start if start is None else float(start)
+        path = self.path.reversed() if reverse else self.path
+        arc = (-start) % self.path.length if reverse else start
+        return PathTrajectory(path, self.speed.on(path, arc), self.terrain, self.sensor_height, self.wheelbase,
+                              self.track, self.oscillations)
 
 
 def _smoothstep(x: np.ndarray) -> np.ndarray:
