@@ -25,7 +25,7 @@ import numpy as np
 from lego_loam_py.errors import LegoLoamError, UsageError
 
 __all__ = ['TrajectoryMetrics', 'ErrorOverTime', 'evaluate', 'error_over_time', 'path_length', 'plot_trajectories',
-           'relative_to_first']
+           'relative_to_first', 'rigid_fit', 'errors_in_map']
 
 
 @dataclass
@@ -181,6 +181,43 @@ def error_over_time(ground_truth: tuple[np.ndarray, np.ndarray], estimate: tuple
     return ErrorOverTime(time_s=time_s, position_m=ours[:, :3, 3] - truth[:, :3, 3],
                          rotation_deg=np.degrees(Rotation.from_matrix(attitude).as_rotvec()), heading_rad=heading,
                          yaw_rate_deg_s=np.degrees(np.gradient(np.unwrap(heading), time_s)))
+def rigid_fit(points: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """The 4x4 rotation and translation (no scale) that best maps (N, 3) ``points`` onto ``targets`` (least
+    squares, Umeyama)."""
+    mean_p, mean_t = points.mean(axis=0), targets.mean(axis=0)
+    u, _, vt = np.linalg.svd((points - mean_p).T @ (targets - mean_t))
+    flip = np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))])
+    fit = np.eye(4)
+    fit[:3, :3] = vt.T @ flip @ u.T
+    fit[:3, 3] = mean_t - fit[:3, :3] @ mean_p
+    return fit
+
+
+def errors_in_map(bag: str | Path, map_source: dict, keyframe_stamps: np.ndarray, keyframe_poses: np.ndarray,
+                  stamps: np.ndarray, poses: np.ndarray) -> list:
+    """Position errors of ``poses`` ((N, 4, 4) REP-103, in a saved map's frame, at ``stamps`` [ns]) against the
+    ground truth of a simulated ``bag`` expressed in that map's frame, without aligning the poses
+    (:class:`lego_loam_py.results.ErrorInMap`, one per placement of the map in the world; see there). [] when
+    either recording is not simulated, or they were made in different worlds. ``map_source``: the bundle's
+    ``source``; ``keyframe_stamps`` / ``keyframe_poses`` (K, 4, 4) REP-103: the map's keyframes."""
+    from lego_loam_py.results import ErrorInMap
+    from lego_loam_py.sim.output import load_scenario, same_scene, true_poses
+
+    scenario, mapped = load_scenario(bag), map_source.get('simulated')
+    if scenario is None or mapped is None or not len(poses) or not same_scene(scenario, mapped):
+        return []
+    here = {'config': scenario['config'], 'start_stamp_ns': int(scenario['recording']['start_stamp_ns'])}
+    truth = true_poses(here, stamps)
+    keyframes_true = true_poses(mapped, keyframe_stamps)
+    out = []
+    for anchor, world_from_map in (('first_keyframe', keyframes_true[0] @ np.linalg.inv(keyframe_poses[0])),
+                                   ('map_fit', rigid_fit(keyframe_poses[:, :3, 3], keyframes_true[:, :3, 3]))):
+        map_from_world = np.linalg.inv(world_from_map)
+        error = np.linalg.norm((map_from_world @ truth)[:, :3, 3] - poses[:, :3, 3], axis=1)
+        map_error = np.linalg.norm((map_from_world @ keyframes_true)[:, :3, 3] - keyframe_poses[:, :3, 3], axis=1)
+        out.append(ErrorInMap(anchor, float(np.median(error)), float(np.percentile(error, 95)), float(error.max()),
+                              int(len(error)), float(np.median(map_error)), float(np.percentile(map_error, 95))))
+    return out
 
 
 def plot_trajectories(path: str | Path, trajectories: dict[str, np.ndarray], map_points: np.ndarray | None = None,

@@ -8,7 +8,10 @@ running system /aft_mapped_to_init of a scan arrives after that scan's /integrat
 when enabled, runs every ``loop_closure.period`` seconds of bag time. The outputs are those of the demo:
 trajectories (TUM, REP-103 and camera_init axes; ``--format kitti`` adds KITTI's), maps (PCD), a PNG and a
 summary with the accuracy against the recording's ground truth (beside a simulated bag, a KITTI poses.txt).
-``--viewer`` / ``--viewer-save`` show the run in Rerun (:mod:`lego_loam_py.viewer`).
+``--viewer`` / ``--viewer-save`` show the run in Rerun (:mod:`lego_loam_py.viewer`). With ``--map DIR``
+mapOptimization localizes in the map bundle saved in DIR instead of building a map
+(``map_optimization.mode: localization``); the summary says when the first fix came and how much of the run was
+localized.
 
 The pipeline is :class:`lego_loam_py.core.pipeline.Pipeline`, the one-scan call, in a loop over the recording.
 mapOptimization runs on its worker thread beside imageProjection and featureAssociation (see :func:`run_source`);
@@ -29,9 +32,11 @@ from lego_loam_py.core.pipeline import Pipeline, RunResult
 from lego_loam_py.core.pipeline_events import PipelineListener
 from lego_loam_py.inputs import SOURCE_KINDS, ImuSample, Scan, Source, open_source
 from lego_loam_py.outputs import TRAJECTORY_FORMATS, result_lines, write_outputs
-from lego_loam_py.results import LoopClosures, OfflineSummary, TimingStats
+from lego_loam_py.results import LocalizationSummary, LoopClosures, OfflineSummary, TimingStats
+from lego_loam_py.sim.output import recording_source
 
-__all__ = ['RunResult', 'run_bag', 'run_source', 'format_summary', 'loop_closures_of', 'add_arguments', 'main']
+__all__ = ['RunResult', 'run_bag', 'run_source', 'format_summary', 'loop_closures_of', 'localization_of',
+           'add_arguments', 'main']
 
 
 def run_bag(bag: str | Path, params: Params, *, cloud_topic: str | None = None, imu_topic: str | None = None,
@@ -58,6 +63,7 @@ def run_source(source: Source, params: Params, *, max_scans: int | None = None, 
     ``listener`` receives the pipeline's events (a viewer, see core.pipeline_events).
     """
     pipeline = Pipeline(params, mapping=mapping, mapping_thread=mapping_thread, listener=listener)
+    pipeline.mo.map_source = recording_source(source.path)   # (noted in the map bundle it saves)
     result = pipeline.record
     start = time.perf_counter()
     try:
@@ -104,6 +110,23 @@ def loop_closures_of(result: RunResult, params: Params) -> LoopClosures | None:
     return LoopClosures.of(mapper.loops, mapper.keyframes[0].stamp_ns)
 
 
+def localization_of(bag: str | Path, result: RunResult) -> LocalizationSummary | None:
+    """How a run localized in its saved map, for its summary (None when it mapped)."""
+    from lego_loam_py.core.localization import Localization
+    from lego_loam_py.evaluation import errors_in_map
+
+    localization = result.mapper
+    if not isinstance(localization, Localization):
+        return None
+    for warning in localization.warnings:
+        print(f'warning: {warning}', file=sys.stderr)
+    bundle = localization.prior.bundle
+    stamps, poses = result.trajectory()
+    errors = errors_in_map(bag, bundle.source, bundle.stamps_ns, localization.prior.poses_lidar, stamps, poses)
+    return LocalizationSummary.of(localization, result.counts.get('scans_in', 0), len(stamps),
+                                  result.first_scan_ns or 0, errors)
+
+
 def write_optimized_trajectory(out: Path, ground_truth, result: RunResult, summary: OfflineSummary) -> None:
     """``trajectory_optimized.tum`` (REP-103 map axes): the fused trajectory in the pose graph's final frame, and
     its accuracy in the summary against ``ground_truth`` ((stamps [ns], lidar poses) of the recording, or None)."""
@@ -135,6 +158,8 @@ def format_summary(summary: OfflineSummary) -> str:
                  f"{summary.realtime_factor:.2f}x real time")
     if summary.loop_closures is not None:
         lines.extend(summary.loop_closures.lines())
+    if summary.localization is not None:
+        lines.extend(summary.localization.lines())
     lines.extend(result_lines(summary.outputs))
     return '\n'.join(lines)
 
@@ -147,6 +172,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('-o', '--output', default=None, help='output directory (default: output/<recording name>)')
     add_parameter_arguments(parser, 'ROS 2 parameter file (default: built-in defaults)',
                             'loop_closure.loop_closure_enable_flag:=true')
+    parser.add_argument('--map', type=Path, default=None, metavar='DIR',
+                        help='localize in the map bundle saved in DIR (by a mapping run: OUT/map, or mapOptimization) '
+                        'instead of mapping: map_optimization.mode localization')
     parser.add_argument('--no-imu', action='store_true', help='ignore the IMU')
     parser.add_argument('--max-scans', type=_positive_int, default=None, help='stop after this many scans')
     parser.add_argument('--no-progress', action='store_true', help='no progress bar')
@@ -202,7 +230,10 @@ def _open_viewer(args: argparse.Namespace, source: Source):
 
 def main(args: argparse.Namespace) -> int:
     keep_heap_pages()   # as the nodes do (see lego_loam_py.allocator)
-    params = load_params(args.params_file, parse_overrides(args.param))
+    overrides = parse_overrides(args.param)
+    if args.map is not None:
+        overrides.update({'map_optimization.mode': 'localization', 'map_optimization.map_path': str(args.map)})
+    params = load_params(args.params_file, overrides)
     defaults = SensorParams()
     imu_topic = '' if args.no_imu else _topic_asked_for(params.sensor.imu_topic, defaults.imu_topic)
     with open_source(args.bag, args.dataloader, rate_hz=args.rate_hz, model=args.model, metadata=args.metadata,
@@ -221,12 +252,15 @@ def main(args: argparse.Namespace) -> int:
             if view is not None:
                 view.finish()
         ground_truth = source.ground_truth()
-    stamps, _ = result.trajectory()
+    stamps, poses = result.trajectory(axes='camera_init')
     summary = OfflineSummary(bag=str(args.bag), counts=result.counts,
                              timings_ms={name: TimingStats.of(v) for name, v in result.timings_ms.items() if v},
                              wall_time_s=result.wall_time, bag_duration_s=result.bag_duration,
-                             loop_closures=loop_closures_of(result, params))
-    write_outputs(out, args.bag, stamps, np.array(result.integrated), result.mapper, summary, params,
+                             loop_closures=loop_closures_of(result, params),
+                             localization=localization_of(args.bag, result))
+    localized = summary.localization is not None
+    write_outputs(out, args.bag, stamps, poses, result.mapper, summary, params,
+                  map_dir=result.mapper.prior.bundle.path if localized else None, in_saved_map=localized,
                   ground_truth=ground_truth, trajectory_format=args.trajectory_format)
     if summary.loop_closures is not None and summary.loop_closures.accepted and len(stamps) >= 3:
         write_optimized_trajectory(out, ground_truth, result, summary)

@@ -28,7 +28,7 @@ def write_summary(out_dir: str | Path, summary: OfflineSummary | DemoSummary) ->
 
 def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, poses_camera_init: np.ndarray,
                   mapper: MapOptimization | None, summary: OfflineSummary | DemoSummary, params: Params,
-                  map_dir: str | Path | None = None, *, ground_truth=_BESIDE_THE_BAG,
+                  map_dir: str | Path | None = None, in_saved_map: bool = False, *, ground_truth=_BESIDE_THE_BAG,
                   trajectory_format: str = 'tum') -> RunOutputs:
     """Trajectories, maps, PNG and summary.json into ``out_dir``; measures what they show (with the accuracy
     when there is a ground truth) into ``summary.outputs``, which it returns.
@@ -38,7 +38,9 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
     REP-103) in KITTI's layout, 12 numbers a line, one line per pose.
 
     The maps come from ``mapper`` (saved into ``out_dir/map``) or, without one, from ``map_dir`` where they
-    were saved already (by the mapOptimization node): listed in the summary and drawn under the PNG."""
+    were saved already (by the mapOptimization node, or the saved map a localization ran in): listed in the summary
+    and drawn under the PNG. ``in_saved_map``: the poses are in a saved map's frame (localization), so the drawn
+    ground truth starts at the first pose instead of the origin."""
     from lego_loam_py.evaluation import evaluate, path_length, plot_trajectories
     from lego_loam_py.sim.output import load_ground_truth
 
@@ -77,10 +79,12 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
         except ValueError as exc:
             result.accuracy_error = str(exc)
     if ground_truth is not None and len(stamps):
-        # Show the ground truth in the estimate's frame (both start at identity at the first scan).
+        # Show the ground truth in the estimate's frame: both start at identity at the first scan (mapping), or the
+        # truth starts at the first pose (localization: the poses are in a saved map's frame).
         gt_stamps, gt_poses = ground_truth
         first = np.argmin(np.abs(gt_stamps - stamps[0]))
-        trajectories = {'ground truth': np.linalg.inv(gt_poses[first])[None] @ gt_poses, **trajectories}
+        start = poses_map[0] if in_saved_map else np.eye(4)
+        trajectories = {'ground truth': (start @ np.linalg.inv(gt_poses[first]))[None] @ gt_poses, **trajectories}
     if map_points is not None and len(map_points) and len(stamps):
         from lego_loam_py.sim.output import map_distance_to_scene
         distance = map_distance_to_scene(bag, map_points, int(stamps[0]), poses_map[0])

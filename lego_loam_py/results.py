@@ -17,7 +17,8 @@ if TYPE_CHECKING:
     from lego_loam_py.evaluation import TrajectoryMetrics
     from lego_loam_py.supervisor import ProcessResult
 
-__all__ = ['TimingStats', 'MapToScene', 'RunOutputs', 'LoopClosures', 'OfflineSummary', 'DemoSummary']
+__all__ = ['TimingStats', 'MapToScene', 'RunOutputs', 'LoopClosures', 'LocalizationSummary', 'ErrorInMap',
+           'OfflineSummary', 'DemoSummary']
 
 
 @dataclass(frozen=True)
@@ -93,6 +94,69 @@ class LoopClosures:
         return out
 
 
+@dataclass(frozen=True)
+class ErrorInMap:
+    """Position error [m] of the published poses against the ground truth expressed in the saved map's frame,
+    without aligning the trajectory. ``anchor`` says how the map frame is placed in the simulated world:
+    'first_keyframe' (where the map's first keyframe says it is: the map's own drift counts) or 'map_fit' (the
+    rigid fit of all the map's keyframes to their true poses: the map's own error mostly does not)."""
+
+    anchor: str
+    median_m: float
+    p95_m: float
+    max_m: float
+    poses: int
+    map_median_m: float      # the map's keyframes against their ground truth in the same placement
+    map_p95_m: float
+
+
+@dataclass(frozen=True)
+class LocalizationSummary:
+    """Localization in a saved map (``lego_loam_py run --map``). Times are seconds of data from the first scan."""
+
+    map_path: str
+    map_keyframes: int
+    time_to_first_fix_s: float | None     # to the first verified fix; None: never localized
+    localized_fraction: float             # scans whose fused pose was published (in the map) / scans in
+    fixes: int                            # verified fixes (the first and those after losing track)
+    losses: int
+    attempts: int                         # relocalization attempts
+    places_verified: int                  # candidate places that passed the verification
+    places_rejected: int
+    events: list[dict]                    # time_s, kind ('fix', 'lost', 'rejected', 'hint'), detail
+    error_in_map: list[ErrorInMap]        # when the ground truth can be put in the map's frame (simulated, same scene)
+
+    @classmethod
+    def of(cls, localization, scans_in: int, published: int, first_scan_ns: int,
+           error_in_map: Sequence[ErrorInMap] = ()) -> LocalizationSummary:
+        """From a :class:`lego_loam_py.core.localization.Localization` after a run."""
+        counters = localization.counters
+        first_fix = localization.first_fix_ns
+        return cls(map_path=str(localization.prior.bundle.path), map_keyframes=len(localization.prior),
+                   time_to_first_fix_s=None if first_fix is None else round((first_fix - first_scan_ns) * 1e-9, 3),
+                   localized_fraction=published / scans_in if scans_in else 0.0,
+                   fixes=counters.get('fixes', 0), losses=counters.get('losses', 0),
+                   attempts=counters.get('attempts', 0), places_verified=counters.get('places_verified', 0),
+                   places_rejected=counters.get('places_rejected', 0),
+                   events=[dict(time_s=round((e.stamp_ns - first_scan_ns) * 1e-9, 3), kind=e.kind, detail=e.detail)
+                           for e in localization.events],
+                   error_in_map=list(error_in_map))
+
+    def lines(self) -> list[str]:
+        fix = 'never localized' if self.time_to_first_fix_s is None else \
+            f'first fix after {self.time_to_first_fix_s:.1f} s'
+        out = [f'localization in {self.map_path} ({self.map_keyframes} keyframes): {fix}, '
+               f'{self.localized_fraction:.1%} of the scans localized; {self.fixes} fix(es), {self.losses} loss(es), '
+               f'{self.attempts} relocalization attempt(s), {self.places_verified} place(s) verified, '
+               f'{self.places_rejected} rejected']
+        out += [f"  t {e['time_s']:7.1f} s  {e['kind']}: {e['detail']}" for e in self.events if e['kind'] != 'hint']
+        for error in self.error_in_map:
+            out.append(f'  error in the map frame without alignment ({error.anchor}): median {error.median_m:.3f} m, '
+                       f'p95 {error.p95_m:.3f} m, max {error.max_m:.3f} m over {error.poses} poses (the map itself: '
+                       f'median {error.map_median_m:.3f} m, p95 {error.map_p95_m:.3f} m)')
+        return out
+
+
 @dataclass
 class RunOutputs:
     """What :func:`~lego_loam_py.outputs.write_outputs` wrote and measured. ``poses`` is None when it did not run
@@ -148,6 +212,7 @@ class OfflineSummary(_Summary):
     bag_duration_s: float                   # of the data processed
     outputs: RunOutputs = field(default_factory=RunOutputs)
     loop_closures: LoopClosures | None = None   # None: loop closure off (or no mapping)
+    localization: LocalizationSummary | None = None   # None: mapping (not --map)
 
     @property
     def realtime_factor(self) -> float:
@@ -159,7 +224,8 @@ class OfflineSummary(_Summary):
                     timings_ms={name: t.as_dict() for name, t in self.timings_ms.items()},
                     wall_time_s=self.wall_time_s, bag_duration_s=self.bag_duration_s,
                     realtime_factor=self.realtime_factor, **self.outputs.as_dict(),
-                    **({} if self.loop_closures is None else {'loop_closures': asdict(self.loop_closures)}))
+                    **({} if self.loop_closures is None else {'loop_closures': asdict(self.loop_closures)}),
+                    **({} if self.localization is None else {'localization': asdict(self.localization)}))
 
 
 @dataclass

@@ -99,6 +99,18 @@ def processes():
 
 
 @pytest.fixture(scope='session')
+def campus_map(tmp_path_factory) -> Path:
+    """The map bundle (and PCDs) that ``lego_loam_py run bags/campus_8s`` saves: 20 keyframes, 13 m of the campus."""
+    from lego_loam_py.core.params import Params
+    from lego_loam_py.offline import run_bag
+
+    directory = tmp_path_factory.mktemp('campus_map')
+    result = run_bag(REPO / 'bags' / 'campus_8s', Params(), progress=False)
+    result.mapper.save(directory)
+    return directory
+
+
+@pytest.fixture(scope='session')
 def shared_data() -> Path:
     """../shared/data; missing data fails when LEGO_LOAM_REQUIRE_SHARED=1 (CI), skips otherwise."""
     path = SHARED / 'data'

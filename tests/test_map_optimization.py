@@ -287,7 +287,7 @@ def test_save_writes_complete_files_atomically(tmp_path):
                    np.zeros((0, 4), np.float32))
     written = mo.save(tmp_path)
     assert set(written) == {'global_map', 'corner_map', 'surface_map', 'trajectory', 'trajectory_tum',
-                            'trajectory_camera_init_tum'}
+                            'trajectory_camera_init_tum', 'map_bundle', 'map_bundle_data'}
     stamps, poses = read_tum(written['trajectory_tum'])
     assert len(stamps) == len(mo.keyframes) == 4
     # REP-103 map axes: the 0.4 m steps along camera z are steps along x.

@@ -136,6 +136,7 @@ def test_every_mode_switch_is_typed_with_its_choices():
                      'feature_association.relative_time_source': ('azimuth', 'point_time', 'original'),
                      'feature_association.odometry_model': ('sweep_start', 'original'),
                      'map_optimization.keypose_pick': ('averaged_index', 'latest'),
+                     'map_optimization.mode': ('mapping', 'localization'),
                      'loop_closure.method': ('verified', 'original'),
                      'loop_closure.robust_kernel': ('huber', 'cauchy', 'none')}
 
@@ -164,11 +165,22 @@ def test_int_accepted_for_float():
      "'feature_association.relative_time_source' must be 'azimuth', 'point_time' or 'original'"),
     ('image_projection.ground_rule', 1, "'image_projection.ground_rule' must be 'refined' or 'original', got 1"),
     ('map_optimization.keypose_pick', 'first', "'map_optimization.keypose_pick' must be 'averaged_index' or 'latest'"),
+    ('map_optimization.mode', 'localisation', "'map_optimization.mode' must be 'mapping' or 'localization'"),
+    ('localization.initial_pose', [1.0, 2.0], "'localization.initial_pose' must be [] (none), [x, y, yaw] or"),
+    ('localization.min_overlap', 1.5, "'localization.min_overlap' must be within 0..1"),
 ])
 def test_errors_name_the_key(key, value, fragment):
     with pytest.raises(ParameterError) as info:
         load_params(overrides={key: value})
     assert fragment in str(info.value)
+
+
+def test_localization_needs_a_map_path():
+    with pytest.raises(ParameterError, match="'map_optimization.map_path' must name the directory of a map bundle"):
+        load_params(overrides={'map_optimization.mode': 'localization'})
+    p = load_params(overrides={'map_optimization.mode': 'localization', 'map_optimization.map_path': '/maps/site',
+                               'localization.initial_pose': [1, 2, 90]})
+    assert p.localization.initial_pose == (1.0, 2.0, 90.0) and Params().localization.initial_pose == ()
 
 
 def test_file_errors_name_the_file_and_key(tmp_path):

@@ -16,7 +16,8 @@ on, the last ``surrounding_keyframe_search_num`` keyframes. The voxel-filtered m
 :class:`~lego_loam_py.core.voxel.VoxelAccumulator` (corner, surface + outlier): a keyframe's world clouds are
 computed and merged in when it enters the set and subtracted when it leaves, so a step costs the change of
 the set, not a new filter of some 50 keyframes; a loop closure that moves the poses rebuilds it. Scan-to-map
-registration is :mod:`lego_loam_py.core.scan_to_map`; loop closure :mod:`lego_loam_py.core.loop_closure`.
+registration is :mod:`lego_loam_py.core.scan_to_map`; loop closure :mod:`lego_loam_py.core.loop_closure`; the
+saved map bundle :mod:`lego_loam_py.core.map_bundle`.
 
 Thread safety: :meth:`process`, :meth:`detect_loop`, :meth:`close_loop`, :meth:`global_map` and
 :meth:`save` take one lock, so loop closure can run in another thread (as the original's 1 Hz thread).
@@ -30,8 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lego_loam_py.core.frames import (camera_pose_to_lidar, camera_to_lidar, invert_pose, matrix_to_pose6,
-                                      pose6_to_matrix, transform_cloud)
+from lego_loam_py.core.frames import invert_pose, matrix_to_pose6, pose6_to_matrix, transform_cloud
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
 from lego_loam_py.core.imu import ImuBuffer, imu_mounting
 from lego_loam_py.core.imu_monitor import MappingImuCheck
@@ -108,6 +108,7 @@ class MapOptimization:
         self.lock = threading.RLock()
         self.last_maps: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 4), _F32), np.zeros((0, 4), _F32))
         self.last_scan: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 4), _F32), np.zeros((0, 4), _F32))
+        self.map_source: dict = {}   # where the data came from (a bag), noted in the saved map bundle
 
     # --------------------------------------------------------------------------------- self-checks
     def health_problem(self) -> str | None:
@@ -386,10 +387,6 @@ class MapOptimization:
         with self.lock:
             return np.array([kf.pose6 for kf in self.keyframes]).reshape(-1, 6)
 
-    def keyframe_stamps(self) -> np.ndarray:
-        with self.lock:   # [ns]
-            return np.array([kf.stamp_ns for kf in self.keyframes], dtype=np.int64)
-
     def global_map(self, radius: float | None = None) -> np.ndarray:
         """The original's /laser_cloud_surround: keyframes within ``radius`` of the current position (through a
         1 m voxel grid of positions), corner + surface + outlier in the world, voxel-filtered (camera axes)."""
@@ -423,27 +420,13 @@ class MapOptimization:
                     global_map=voxel_downsample(np.concatenate([corner_map, surface_map]), mo.global_map_leaf_size))
 
     def save(self, directory: str | Path) -> dict[str, Path]:
-        """Write the maps (PCD, REP-103 ``map`` axes, intensity kept) and the keyframe trajectory (PCD of
-        positions, and TUM in both REP-103 map axes and the original's camera_init axes). Each file is
-        written under a temporary name and renamed, so a crash never leaves a half-written file."""
-        from lego_loam_py.core.io import write_pcd_atomic, write_tum_atomic
+        """Write the maps (PCD, REP-103 ``map`` axes), the keyframe trajectory (PCD, TUM) and the map bundle that
+        localization loads, each atomically (see :mod:`lego_loam_py.core.map_files`)."""
+        from lego_loam_py.core.map_bundle import MapBundle
+        from lego_loam_py.core.map_files import write_map_files
 
-        directory = Path(directory)
-        directory.mkdir(parents=True, exist_ok=True)
         maps = self.maps()
-        poses = self.keyframe_poses()
-        stamps = self.keyframe_stamps()
-        camera_matrices = np.array([pose6_to_matrix(p) for p in poses]).reshape(-1, 4, 4)
-        lidar_matrices = np.array([camera_pose_to_lidar(m) for m in camera_matrices]).reshape(-1, 4, 4)
-        written = {}
-        for name, cloud in (('global_map', maps['global_map']), ('corner_map', maps['corner']),
-                            ('surface_map', maps['surface'])):
-            in_map = np.concatenate([camera_to_lidar(cloud[:, :3]), cloud[:, 3:]], axis=1)
-            written[name] = write_pcd_atomic(directory / f'{name}.pcd', in_map)
-        trajectory = np.concatenate([lidar_matrices[:, :3, 3], np.arange(len(poses))[:, None]], axis=1)
-        written['trajectory'] = write_pcd_atomic(directory / 'trajectory.pcd', trajectory.astype(_F32))
-        written['trajectory_tum'] = write_tum_atomic(directory / 'trajectory.tum', stamps, lidar_matrices)
-        written['trajectory_camera_init_tum'] = write_tum_atomic(directory / 'trajectory_camera_init.tum', stamps,
-                                                                 camera_matrices)
-        return written
-
+        with self.lock:   # (one consistent set of keyframes and factors)
+            bundle = MapBundle.of(list(self.keyframes), list(self.graph.factors), self.params, maps['corner'],
+                                  maps['surface'], self.map_source)
+        return write_map_files(directory, maps, bundle)

@@ -22,8 +22,9 @@ from lego_loam_py.errors import LegoLoamError
 
 __all__ = [
     'ParameterError', 'SensorParams', 'ImageProjectionParams', 'FeatureAssociationParams',
-    'MapOptimizationParams', 'LoopClosureParams', 'ReliabilityParams', 'ImuParams', 'Params', 'SENSOR_PRESETS',
-    'GroundRule', 'RelativeTimeSource', 'OdometryModel', 'KeyposePick', 'LoopClosureMethod', 'RobustKernel',
+    'MapOptimizationParams', 'LoopClosureParams', 'LocalizationParams', 'ReliabilityParams', 'ImuParams', 'Params',
+    'SENSOR_PRESETS', 'GroundRule', 'RelativeTimeSource', 'OdometryModel', 'KeyposePick', 'LoopClosureMethod',
+    'RobustKernel', 'MappingMode',
 ]
 
 
@@ -34,6 +35,7 @@ OdometryModel = Literal['sweep_start', 'original']
 KeyposePick = Literal['averaged_index', 'latest']
 LoopClosureMethod = Literal['verified', 'original']
 RobustKernel = Literal['huber', 'cauchy', 'none']
+MappingMode = Literal['mapping', 'localization']
 
 class ParameterError(LegoLoamError, ValueError):
     """A parameter file or override is invalid; the message names the offending key."""
@@ -234,6 +236,10 @@ class MapOptimizationParams:
     global_map_publish_period: float = 5.0  # [s] (the original's 0.2 Hz thread)
     file_directory: str = '/tmp/'           # where maps and trajectories are saved
     save_map_on_shutdown: bool = True
+    # 'mapping' builds a map (the original); 'localization' registers each scan against the saved map bundle in
+    # map_path (never modified) and publishes the same topics in that map's frame (see LocalizationParams).
+    mode: MappingMode = 'mapping'
+    map_path: str = ''                      # directory of a map bundle (written by save), for localization
 
 
 @dataclass(frozen=True)
@@ -307,6 +313,47 @@ class LoopClosureParams:
 
 
 @dataclass(frozen=True)
+class LocalizationParams:
+    """mapOptimization in ``mode: localization`` (not in the original): where the robot starts in the saved map,
+    when a fix counts as verified, when tracking counts as lost (lego_loam_py.core.localization)."""
+
+    # Initial pose in the saved map's ``map`` frame (REP-103 axes): [] none (relocalize globally), [x, y, yaw] or
+    # [x, y, z, roll, pitch, yaw] in metres and degrees (3 values: z, roll and pitch from the nearest keyframe).
+    # It is a hint: the fix is still searched within initial_pose_radius of it and verified.
+    initial_pose: tuple[float, ...] = ()
+    initial_pose_radius: float = 5.0       # [m] candidate places around an initial pose (or /initialpose)
+    # Global relocalization: Scan Context candidates (descriptor distance 0 same .. 1 unrelated) below the
+    # threshold, at most this many registered per attempt.
+    relocalization_threshold: float = 0.4
+    relocalization_candidates: int = 3
+    # Verification of a candidate by registration (point-to-plane ICP, the loop closure's gates): share of the
+    # scan within inlier_distance of the map, RMS residual, least-constrained direction, and the share of the
+    # scan's edge points within inlier_distance of the map's edges (what the ground alone cannot give).
+    min_overlap: float = 0.6
+    max_rmse: float = 0.15                 # [m]
+    min_constraint: float = 0.03
+    min_edge_overlap: float = 0.5
+    # Two verified places farther apart than this [m] in one attempt: ambiguous, no fix.
+    ambiguity_distance: float = 3.0
+    # A verified candidate becomes the fix after this many tracking steps from it agree (each within
+    # max_correction of the odometry's prediction and with the tracking overlap).
+    confirm_steps: int = 2
+    # Tracking: share of the scan's surface points within tracking_inlier_distance [m] of the map after each step;
+    # below min_tracking_overlap, or a step correcting the prediction by more than max_correction [m] / [deg],
+    # is a bad step; lost_after_steps bad steps in a row, or a gap in the data longer than max_gap [s], and the
+    # robot counts as lost: no pose is published until it is relocalized.
+    tracking_inlier_distance: float = 0.5
+    min_tracking_overlap: float = 0.5
+    max_correction: float = 1.0            # [m]
+    max_correction_rotation: float = 5.0   # [deg]
+    lost_after_steps: int = 3
+    max_gap: float = 2.0                   # [s]
+    # transformFusion publishes /integrated_to_init only while its map correction is at most this old [s of data]
+    # (the last verified step), so no pose goes out in the map frame once tracking is lost.
+    max_correction_age: float = 2.0
+
+
+@dataclass(frozen=True)
 class ReliabilityParams:
     """Bounds on inputs and the self-checks that keep a node serving (not in the original)."""
 
@@ -351,6 +398,7 @@ class Params:
     feature_association: FeatureAssociationParams = field(default_factory=FeatureAssociationParams)
     map_optimization: MapOptimizationParams = field(default_factory=MapOptimizationParams)
     loop_closure: LoopClosureParams = field(default_factory=LoopClosureParams)
+    localization: LocalizationParams = field(default_factory=LocalizationParams)
     reliability: ReliabilityParams = field(default_factory=ReliabilityParams)
     imu: ImuParams = field(default_factory=ImuParams)
 

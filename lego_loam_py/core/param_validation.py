@@ -199,3 +199,16 @@ def _validate(p: Params) -> None:
     need(lc.source_keyframes >= 0, 'loop_closure.source_keyframes', 'must not be negative')
     need(lc.target_keyframes >= 0, 'loop_closure.target_keyframes', 'must not be negative')
     need(lc.skip_first_keyframes >= 0, 'loop_closure.skip_first_keyframes', 'must not be negative')
+    need(mo.mode != 'localization' or mo.map_path.strip() != '', 'map_optimization.map_path',
+         'must name the directory of a map bundle in mode localization')
+    lo = p.localization
+    need(len(lo.initial_pose) in (0, 3, 6), 'localization.initial_pose',
+         'must be [] (none), [x, y, yaw] or [x, y, z, roll, pitch, yaw] (metres, degrees)')
+    for name in ('initial_pose_radius', 'max_rmse', 'ambiguity_distance', 'tracking_inlier_distance',
+                 'max_correction', 'max_correction_rotation', 'max_gap', 'max_correction_age'):
+        need(getattr(lo, name) > 0, f'localization.{name}', 'must be positive')
+    for name in ('relocalization_threshold', 'min_overlap', 'min_edge_overlap', 'min_tracking_overlap'):
+        need(0.0 <= getattr(lo, name) <= 1.0, f'localization.{name}', 'must be within 0..1')
+    for name in ('relocalization_candidates', 'lost_after_steps'):
+        need(getattr(lo, name) >= 1, f'localization.{name}', 'must be at least 1')
+    need(lo.confirm_steps >= 0, 'localization.confirm_steps', 'must not be negative')

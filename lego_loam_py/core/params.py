@@ -25,14 +25,14 @@ from typing import Any, Mapping, Sequence
 import yaml
 
 from lego_loam_py.core.param_types import (SENSOR_PRESETS, FeatureAssociationParams, ImageProjectionParams,
-                                           ImuParams, LoopClosureParams, MapOptimizationParams, ParameterError,
-                                           Params, ReliabilityParams, SensorParams)
+                                           ImuParams, LocalizationParams, LoopClosureParams, MapOptimizationParams,
+                                           ParameterError, Params, ReliabilityParams, SensorParams)
 from lego_loam_py.core.param_validation import flatten, params_from_mapping
 
 __all__ = [
     'ParameterError', 'SensorParams', 'ImageProjectionParams', 'FeatureAssociationParams',
-    'MapOptimizationParams', 'LoopClosureParams', 'ReliabilityParams', 'ImuParams', 'Params', 'SENSOR_PRESETS',
-    'load_params',
+    'MapOptimizationParams', 'LoopClosureParams', 'LocalizationParams', 'ReliabilityParams', 'ImuParams', 'Params',
+    'SENSOR_PRESETS', 'load_params',
     'params_from_mapping', 'flatten', 'read_params_file', 'write_params_file', 'default_params_file',
     'parse_overrides',
 ]

@@ -7,10 +7,13 @@ transformFusion, and mapOptimization on the mapping inputs, in the order a repla
     record = pipeline.finish()                    # every pose, count and timing
 
 The offline mode (``lego_loam_py run``) is this call in a loop over a bag; the ROS nodes run the same cores,
-one per process. mapOptimization may run on a worker thread (``mapping_thread``): it then overlaps the next
-scans' imageProjection and featureAssociation (numpy and scipy release the GIL), with the same result as
-without it, since the worker takes the mapping inputs and IMU samples in arrival order and transformFusion
-applies each mapping result before the scans that follow it.
+one per process. With ``map_optimization.mode: localization`` mapOptimization's core is
+:class:`~lego_loam_py.core.localization.Localization` in the saved map of ``map_optimization.map_path``, and
+transformFusion publishes only while its map correction is recent (see :class:`TransformFusion`).
+mapOptimization may run on a worker thread (``mapping_thread``): it then overlaps the next scans'
+imageProjection and featureAssociation (numpy and scipy release the GIL), with the same result as without it,
+since the worker takes the mapping inputs and IMU samples in arrival order and transformFusion applies each
+mapping result before the scans that follow it.
 """
 from __future__ import annotations
 
@@ -26,6 +29,7 @@ import numpy as np
 from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix, transform_cloud
 from lego_loam_py.core.image_projection import ImageProjection, InputError, prepare_input
+from lego_loam_py.core.localization import Localization
 from lego_loam_py.core.map_optimization import MapOptimization
 from lego_loam_py.core.odometry_continuity import OdometryContinuity
 from lego_loam_py.core.param_types import Params
@@ -55,7 +59,8 @@ class RunResult:
     """Everything a run produced; poses are 4x4 in camera_init (LOAM camera axes)."""
 
     stamps: list[int] = field(default_factory=list)            # scans with an odometry pose
-    integrated: list[np.ndarray] = field(default_factory=list)  # /integrated_to_init
+    integrated: list[np.ndarray] = field(default_factory=list)  # /integrated_to_init (those not published too)
+    published: list[bool] = field(default_factory=list)        # of each: published (localization: in the map)
     odometry: list[np.ndarray] = field(default_factory=list)    # /laser_odom_to_init
     mapped_stamps: list[int] = field(default_factory=list)
     mapped: list[np.ndarray] = field(default_factory=list)      # /aft_mapped_to_init
@@ -63,7 +68,8 @@ class RunResult:
     counts: dict[str, int] = field(default_factory=dict)
     wall_time: float = 0.0
     bag_duration: float = 0.0
-    mapper: MapOptimization | None = None
+    first_scan_ns: int | None = None   # stamp of the first cloud
+    mapper: MapOptimization | Localization | None = None
     pose_time_offset_ns: int = 0   # the original odometry model's pose of scan k is the sensor's at k + one sweep
     # What the IMU checks decided, in order: (node, core.imu_monitor.AlignmentEvent).
     imu_alignment: list[tuple[str, object]] = field(default_factory=list)
@@ -76,11 +82,15 @@ class RunResult:
 
     def trajectory(self, axes: str = 'map', which: str = 'integrated') -> tuple[np.ndarray, np.ndarray]:
         """(stamps [ns] of the sensor poses, poses) of the fused ('integrated') or odometry ('odometry')
-        trajectory; ``axes`` 'map' (REP-103) or 'camera_init'. Stamps include the model's pose time offset."""
+        trajectory; ``axes`` 'map' (REP-103) or 'camera_init'. Stamps include the model's pose time offset. The
+        fused trajectory holds the poses transformFusion published (in localization: those in the saved map)."""
+        stamps = np.array(self.stamps, dtype=np.int64) + self.pose_time_offset_ns
         poses = np.array(self.integrated if which == 'integrated' else self.odometry).reshape(-1, 4, 4)
+        if which == 'integrated' and not all(self.published):
+            stamps, poses = stamps[np.array(self.published, dtype=bool)], poses[np.array(self.published, dtype=bool)]
         if axes == 'map':
             poses = np.array([camera_pose_to_lidar(p) for p in poses]).reshape(-1, 4, 4)
-        return np.array(self.stamps, dtype=np.int64) + self.pose_time_offset_ns, poses
+        return stamps, poses
 
     def optimized_trajectory(self, axes: str = 'map') -> tuple[np.ndarray, np.ndarray]:
         """The fused trajectory as the pose graph has it at the end: each pose moved by the correction its last
@@ -129,8 +139,10 @@ class Pipeline:
                  warn: Callable[[str], None] | None = None, listener: PipelineListener | None = None):
         self.params = params
         self.ip, self.fa = ImageProjection(params), FeatureAssociation(params)
-        self.mo = MapOptimization(params)
-        self.fusion = TransformFusion()
+        self.localizing = params.map_optimization.mode == 'localization' and mapping
+        # (Localization.load raises MapBundleError, naming the problem, for a bundle it cannot use.)
+        self.mo = Localization.load(params) if self.localizing else MapOptimization(params)
+        self.fusion = TransformFusion(int(params.localization.max_correction_age * 1e9) if self.localizing else None)
         self.mapping = mapping
         self.record = RunResult(mapper=self.mo if mapping else None)
         self.record.pose_time_offset_ns = pose_time_offset_ns(params)
@@ -163,8 +175,10 @@ class Pipeline:
         return output
 
     def _after_scan(self, stamp_ns: int) -> None:
+        if self.record.first_scan_ns is None:
+            self.record.first_scan_ns = stamp_ns
         lc = self.params.loop_closure
-        if self.mapping and lc.loop_closure_enable_flag:   # every loop_closure.period s of data
+        if self.mapping and lc.loop_closure_enable_flag and not self.localizing:   # every loop_closure.period s
             if self._next_loop_check is None:
                 self._next_loop_check = stamp_ns + int(lc.period * 1e9)
             elif stamp_ns >= self._next_loop_check:
@@ -179,6 +193,8 @@ class Pipeline:
         finally:
             self.close()
         self.record.counts['keyframes'] = len(self.mo.keyframes) if self.mapping else 0
+        if self.localizing:
+            self.record.counts.update({f'localization_{k}': v for k, v in self.mo.counters.items()})
         if self.mapping and self.params.loop_closure.loop_closure_enable_flag:
             # (a loop verified and left waiting for a second one that never came counts as rejected)
             accepted = sum(loop.accepted for loop in self.mo.loops)
@@ -270,7 +286,7 @@ class _BackEnd:
     with exactly the mapping results of the scans before it, whether the worker is a thread or not.
     """
 
-    def __init__(self, mo: MapOptimization | None, fusion: TransformFusion, result: RunResult,
+    def __init__(self, mo: MapOptimization | Localization | None, fusion: TransformFusion, result: RunResult,
                  warn: Callable[[str], None], threaded: bool, listener: PipelineListener | None = None):
         self.mo, self.fusion, self.result, self.warn = mo, fusion, result, warn
         self.listener = listener
@@ -364,6 +380,7 @@ class _BackEnd:
             self._events.popleft()
             if isinstance(event, _Fuse):
                 result.integrated.append(self.fusion.integrate(event.odometry))
+                result.published.append(self.fusion.publishable(event.stamp_ns))
                 if self.listener is not None:
                     self.listener(ScanFused(event.stamp_ns, result.integrated[-1]))
             elif isinstance(event, _Mapped):
@@ -376,7 +393,7 @@ class _BackEnd:
                     if step.degenerate:   # (a direction held at the prediction, see core.scan_to_map)
                         result.count('mapping_degenerate')
                     aft, bef = pose6_to_matrix(step.transform_aft), pose6_to_matrix(step.transform_bef)
-                    self.fusion.on_mapped(aft, bef)
+                    self.fusion.on_mapped(aft, bef, event.stamp_ns)
                     result.mapped_stamps.append(event.stamp_ns)
                     result.mapped.append(aft)
                     if self.listener is not None:

@@ -4,6 +4,7 @@ constraints, under the original's noise.
 
 Poses go in and come out as world-convention six-vectors in camera axes (:mod:`lego_loam_py.core.frames`);
 inside the graph they are in lidar axes, as the original keeps them, so its variances mean the same.
+:attr:`PoseGraph.factors` lists what went in (for the saved map bundle, :mod:`lego_loam_py.core.map_bundle`).
 """
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from typing import Sequence
 import numpy as np
 
 from lego_loam_py.core.frames import camera_pose_to_lidar, lidar_pose_to_camera, matrix_to_pose6, pose6_to_matrix
+from lego_loam_py.core.map_bundle import GraphFactor
 from lego_loam_py.core.param_types import MapOptimizationParams
 
 __all__ = ['PoseGraph']
@@ -27,6 +29,8 @@ class PoseGraph:
         self._params = mo
         self._prior_noise = gtsam.noiseModel.Diagonal.Variances(np.asarray(mo.prior_noise_variances, dtype=float))
         self._odometry_noise = gtsam.noiseModel.Diagonal.Variances(np.asarray(mo.odometry_noise_variances, dtype=float))
+        self._prior_information = np.diag(1.0 / np.asarray(mo.prior_noise_variances, dtype=float))
+        self._odometry_information = np.diag(1.0 / np.asarray(mo.odometry_noise_variances, dtype=float))
         self.rebuild([])
 
     def _pose3(self, pose_camera: np.ndarray):
@@ -37,6 +41,12 @@ class PoseGraph:
     @staticmethod
     def _pose6(pose3) -> np.ndarray:
         return matrix_to_pose6(lidar_pose_to_camera(pose3.matrix()))
+
+    def _record(self, kind: str, keys: tuple[int, int], measured, information: np.ndarray, kernel: str = 'none',
+                width: float = 0.0) -> None:
+        """Note a factor as it goes in (``measured``: a gtsam Pose3)."""
+        self.factors.append(GraphFactor(kind, keys, measured.matrix(), np.asarray(information, float), kernel,
+                                        float(width) if kernel != 'none' else 0.0))
 
     def _update(self, graph, values) -> None:
         self._isam.update(graph, values)
@@ -53,14 +63,17 @@ class PoseGraph:
         # system indeterminate once the keyframes are some 50 m from the origin; QR stays well-conditioned.
         isam_params.setFactorization('QR')
         self._isam = gtsam.ISAM2(isam_params)
+        self.factors: list[GraphFactor] = []
         if not len(poses6):
             return
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         poses = [self._pose3(pose6_to_matrix(p)) for p in poses6]
         graph.add(gtsam.PriorFactorPose3(0, poses[0], self._prior_noise))
+        self._record('prior', (0, 0), poses[0], self._prior_information)
         values.insert(0, poses[0])
         for k in range(1, len(poses)):
             graph.add(gtsam.BetweenFactorPose3(k - 1, k, poses[k - 1].between(poses[k]), self._odometry_noise))
+            self._record('odometry', (k - 1, k), poses[k - 1].between(poses[k]), self._odometry_information)
             values.insert(k, poses[k])
         self._update(graph, values)
 
@@ -72,9 +85,11 @@ class PoseGraph:
         pose = self._pose3(pose6_to_matrix(pose6))
         if previous6 is None:
             graph.add(gtsam.PriorFactorPose3(k, pose, self._prior_noise))
+            self._record('prior', (k, k), pose, self._prior_information)
         else:
             previous = self._pose3(pose6_to_matrix(previous6))
             graph.add(gtsam.BetweenFactorPose3(k - 1, k, previous.between(pose), self._odometry_noise))
+            self._record('odometry', (k - 1, k), previous.between(pose), self._odometry_information)
         values.insert(k, pose)
         self._update(graph, values)
         return self._pose6(self._isam.calculateEstimatePose3(k))
@@ -86,6 +101,7 @@ class PoseGraph:
         graph = gtsam.NonlinearFactorGraph()
         graph.add(gtsam.BetweenFactorPose3(latest, candidate, self._pose3(relative),
                                            gtsam.noiseModel.Diagonal.Variances(np.asarray(variances, float))))
+        self._record('loop', (latest, candidate), self._pose3(relative), np.diag(1.0 / np.asarray(variances, float)))
         self._update(graph, gtsam.Values())
 
     def add_loop_constraint(self, from_key: int, to_key: int, pose_lidar: np.ndarray, information: np.ndarray,
@@ -104,6 +120,7 @@ class PoseGraph:
         pose = self._gtsam.Pose3(self._gtsam.Rot3(pose_lidar[:3, :3]), pose_lidar[:3, 3].copy())
         graph = gtsam.NonlinearFactorGraph()
         graph.add(gtsam.BetweenFactorPose3(from_key, to_key, pose, noise))
+        self._record('loop', (from_key, to_key), pose, information, kernel, width)
         self._update(graph, gtsam.Values())
 
     def poses(self, indices: Sequence[int]) -> list[np.ndarray]:

@@ -27,7 +27,7 @@ from lego_loam_py.core.geometry import fit_planes, line_coefficients, nearest_wi
 from lego_loam_py.core.param_types import Params
 
 __all__ = ['map_jacobian_rows', 'edge_correspondences', 'plane_correspondences', 'register_scan_to_map',
-           'RegistrationCounts']
+           'RegistrationCounts', 'map_trees']
 
 _F32 = np.float32
 
@@ -103,19 +103,25 @@ class RegistrationCounts:
     condition: float = float('nan')
 
 
+def map_trees(corner_map: np.ndarray, surf_map: np.ndarray) -> tuple[cKDTree, cKDTree]:
+    """The KD-trees :func:`register_scan_to_map` searches in a corner and a surface map."""
+    return (cKDTree(corner_map[:, :3].astype(np.float64), balanced_tree=False),
+            cKDTree(surf_map[:, :3].astype(np.float64), balanced_tree=False))
+
+
 def register_scan_to_map(corner_map: np.ndarray, surf_map: np.ndarray, corner_ds: np.ndarray, surf_ds: np.ndarray,
-                         initial: np.ndarray, params: Params,
-                         degeneracy: DegeneracyProjection) -> tuple[np.ndarray, RegistrationCounts]:
+                         initial: np.ndarray, params: Params, degeneracy: DegeneracyProjection,
+                         trees: tuple[cKDTree, cKDTree] | None = None) -> tuple[np.ndarray, RegistrationCounts]:
     """Scan-to-map Gauss-Newton from ``initial`` (pose six-vector): (the optimised pose, what it did).
 
     ``corner_ds`` / ``surf_ds`` are the scan's downsampled features in its sensor frame, the maps are in the
-    world (camera axes). ``degeneracy`` is the mapper's, kept across steps as the original does.
+    world (camera axes). ``degeneracy`` is the mapper's, kept across steps as the original does. ``trees``: the
+    maps' :func:`map_trees` when the caller keeps them across steps (a map that does not change), else built here.
     """
     mo = params.map_optimization
     counts = RegistrationCounts()
     pose = np.asarray(initial, dtype=float).copy()
-    corner_tree = cKDTree(corner_map[:, :3].astype(np.float64), balanced_tree=False)
-    surf_tree = cKDTree(surf_map[:, :3].astype(np.float64), balanced_tree=False)
+    corner_tree, surf_tree = map_trees(corner_map, surf_map) if trees is None else trees
     for iteration in range(mo.max_iterations):
         counts.iterations = iteration + 1
         world = pose6_to_matrix(pose)

@@ -20,6 +20,11 @@ thread of its own, so the ICP does not hold up the mapping steps. The service ``
 ``map_optimization.file_directory``, also on a worker thread (see :mod:`lego_loam_py.ros.services`). The IMU
 samples are taken with each mapping input (a polled subscription: no wake-up per sample).
 
+With ``map_optimization.mode: localization`` the core is :class:`~lego_loam_py.core.localization.Localization` in the
+saved map of ``map_optimization.map_path`` (never modified; no loop closure, no map saved): the same topics come
+out, in that map's frame, once a place is verified; /initialpose and /localization_status are
+:mod:`lego_loam_py.ros.localization`'s.
+
 Robustness: inputs older than the previous ones are dropped; a jump of more than a second is believed once
 later inputs continue the new timeline (forward the next one, back three in a row). Back to before the current
 timeline began (a bag restarted or looped) the map built so far is saved, then mapping starts afresh (the IMU
@@ -48,6 +53,7 @@ from lego_loam_py.core.map_optimization import MapOptimization
 from lego_loam_py.core.odometry_continuity import OdometryContinuity
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
+from lego_loam_py.ros.localization import LocalizationFrontEnd
 from lego_loam_py.ros.conversions import (cloud_msg_to_xyzi, make_header, odometry_to_pose,
                                           serialized_odometry, serialized_stamp_ns, serialized_xyzi_cloud, stamp_to_ns)
 from lego_loam_py.ros.node_base import LegoLoamNode
@@ -69,8 +75,10 @@ class MapOptimizationNode(LegoLoamNode):
 
     def __init__(self, **kwargs):
         super().__init__('mapOptimization', **kwargs)
-        self.core = MapOptimization(self.params)
         mo, lc = self.params.map_optimization, self.params.loop_closure
+        self.localization = LocalizationFrontEnd(self) if mo.mode == 'localization' else None
+        # (In localization, None until the saved map could be loaded.)
+        self.core = MapOptimization(self.params) if self.localization is None else self.localization.core
         self.sync = StampSynchronizer(['corner', 'surf', 'outlier', 'odometry'], int(mo.sync_tolerance * 1e9))
         depth2 = qos.reliable(2)
         # Serialized clouds, read from their bytes (cloud_from_serialized).
@@ -108,12 +116,13 @@ class MapOptimizationNode(LegoLoamNode):
         # timer only wakes it (the original's 1 Hz thread).
         self._loop_wanted = threading.Event()
         self._stopping = threading.Event()
-        if lc.loop_closure_enable_flag:
+        if lc.loop_closure_enable_flag and self.localization is None:
             self.create_timer(lc.period, self._loop_wanted.set)
             threading.Thread(target=self._loop_worker, name='loop closure', daemon=True).start()
         self._remove_stale_temporaries()
-        self.get_logger().info(f'mapOptimization: every {mo.mapping_process_interval} s, loop closure '
-                               f'{"on" if lc.loop_closure_enable_flag else "off"}, maps saved to {mo.file_directory}')
+        if self.localization is None:
+            self.get_logger().info(f'mapOptimization: every {mo.mapping_process_interval} s, loop closure '
+                                   f'{"on" if lc.loop_closure_enable_flag else "off"}, maps saved to {mo.file_directory}')
 
     def _remove_stale_temporaries(self) -> None:
         """A predecessor killed while saving left temporary files (its saved files are complete): remove them."""
@@ -184,7 +193,8 @@ class MapOptimizationNode(LegoLoamNode):
 
     def on_imu(self, msg) -> None:
         """A sensor_msgs/Imu, or its serialized bytes (see :meth:`LegoLoamNode.take_imu`)."""
-        self.take_imu(msg, self.core.imu.add)
+        if self.core is not None:
+            self.take_imu(msg, self.core.imu.add)
 
     @property
     def last_stamp_ns(self) -> int | None:
@@ -208,6 +218,11 @@ class MapOptimizationNode(LegoLoamNode):
 
     def _process(self, parts: dict) -> None:
         """One synchronised input: each part is (message, decoded content), checked on arrival."""
+        if self.localization is not None and self.core is None:
+            self.core = self.localization.core   # (loaded meanwhile, or still None: no map, no output)
+            if self.core is None:
+                self.count('inputs_without_map')
+                return
         start = time.perf_counter()
         odometry, odometry_pose = parts['odometry']
         stamp = stamp_to_ns(odometry.header.stamp)
@@ -224,6 +239,10 @@ class MapOptimizationNode(LegoLoamNode):
             problem = self.core.health_problem()
             if problem is not None or self.step_failed():
                 self._heal(problem or f'{self.params.reliability.reset_after_failures} mapping steps in a row failed')
+            return
+        if step is None and self.localization is not None and self.core.withheld:
+            self.count('steps_not_localized')   # (no fix in the saved map: nothing to publish, and it says so)
+            self.localization.after_step(published=False)
             return
         if step is None:   # (not due: the original maps every mapping_process_interval; no output expected)
             self.count('inputs_skipped_by_interval')
@@ -243,6 +262,8 @@ class MapOptimizationNode(LegoLoamNode):
         self._publish(step, odometry.header.stamp)
         self.output_published()
         self.record_time('step', time.perf_counter() - start)
+        if self.localization is not None:
+            self.localization.after_step(published=True)
 
     def _report_conditioning(self, step) -> None:
         """How well the step held the map pose: its condition (smallest eigenvalue of the registration's normal
@@ -275,6 +296,14 @@ class MapOptimizationNode(LegoLoamNode):
         """A bag restarted: keep the map built so far on disk, then start a new one (the IMU samples stay)."""
         mo = self.params.map_optimization
         jump = jump_ns * 1e-9
+        if self.localization is not None:   # the saved map stays; where the robot is must be found again
+            self.warn('reset', f'time jumped back by {jump:.1f} s (bag restarted?): relocalizing', period=0.0)
+            if self.core is not None:
+                self.core.restart()
+            self.order.reset()
+            self.continuity.forget()
+            self.count('resets')
+            return
         saved = ''
         if self.core.keyframes and mo.save_map_on_shutdown:
             try:
@@ -312,7 +341,7 @@ class MapOptimizationNode(LegoLoamNode):
             self.pub_registered.publish(serialized_xyzi_cloud(registered, header))
 
     def publish_global_map(self) -> None:
-        if self.last_step_stamp is None or not self.pub_surround.get_subscription_count():
+        if self.core is None or self.last_step_stamp is None or not self.pub_surround.get_subscription_count():
             return
         try:
             cloud = self.core.global_map()
@@ -373,6 +402,9 @@ class MapOptimizationNode(LegoLoamNode):
         """Write the maps and the trajectory now (the save_map service's job): (success, message)."""
         core = self.core
         directory = self.params.map_optimization.file_directory
+        if self.localization is not None:
+            return True, (f'localization: the saved map in {self.params.map_optimization.map_path} is never modified; '
+                          'nothing new to save')
         if not core.keyframes:   # nothing to write (and the files of an earlier run stay as they are)
             return False, 'no keyframe yet: nothing to save'
         try:
@@ -386,6 +418,12 @@ class MapOptimizationNode(LegoLoamNode):
     def statistics(self) -> dict:
         """The base statistics plus the size of the map held in memory (keyframe clouds)."""
         out = super().statistics()
+        if self.localization is not None:
+            status = self.core.status() if self.core is not None else None
+            out['localization'] = dict(state='no_map', error=self.localization.error) if status is None else dict(
+                status.values, message=status.message,
+                events=[dict(stamp_ns=e.stamp_ns, kind=e.kind, detail=e.detail) for e in self.core.events])
+            return out
         with self.core.lock:
             keyframes = list(self.core.keyframes)
         points = sum(len(kf.corner) + len(kf.surf) + len(kf.outlier) for kf in keyframes)
@@ -401,7 +439,7 @@ class MapOptimizationNode(LegoLoamNode):
     def on_shutdown(self) -> None:
         self._stopping.set()
         mo = self.params.map_optimization
-        if mo.save_map_on_shutdown and self.core.keyframes:
+        if mo.save_map_on_shutdown and self.localization is None and self.core.keyframes:
             # Through the runner: a save_map call in progress finishes first, then the final map is written.
             success, message = self.saves.request().result()
             if success:

@@ -5,6 +5,10 @@ the TF camera_init -> camera; once at start-up, latched on /tf_static, the origi
 transforms map -> camera_init and camera -> base_link, so the whole tree map -> ... -> base_link exists
 without any other node.
 
+In localization (``map_optimization.mode: localization``) a fused pose is published only while the last
+/aft_mapped_to_init is at most ``localization.max_correction_age`` older than the odometry: before the first fix
+in the saved map, and once mapOptimization lost track, no pose goes out as if it were in the map's frame.
+
 Odometry older than the previous message is dropped (out of order or duplicate); a jump of more than a
 second is believed once later messages continue the new timeline (forward the next one, back three in a
 row), and back to before the current timeline began (a bag restarted) it resets the map correction. A mapping
@@ -38,7 +42,8 @@ MAPPED_AHEAD_NS = 1_000_000_000   # a mapping result is never ahead of the odome
 class TransformFusionNode(LegoLoamNode):
     def __init__(self, **kwargs):
         super().__init__('transformFusion', **kwargs)
-        self.core = TransformFusion()
+        localizing = self.params.map_optimization.mode == 'localization'
+        self.core = TransformFusion(int(self.params.localization.max_correction_age * 1e9) if localizing else None)
         self.create_subscription(Odometry, '/laser_odom_to_init', self.on_odometry, qos.reliable(5))
         self.create_subscription(Odometry, '/aft_mapped_to_init', self.on_mapped, qos.reliable(5))
         self.pub_integrated = self.create_publisher(Odometry, '/integrated_to_init', qos.reliable(5))
@@ -76,7 +81,7 @@ class TransformFusionNode(LegoLoamNode):
             self.count('mapped_dropped')
             self.warn('bad_mapped', f'/aft_mapped_to_init dropped: {exc}')
             return
-        self.core.on_mapped(aft, bef)
+        self.core.on_mapped(aft, bef, stamp)
         self.count('mapped')
 
     def on_odometry(self, msg: Odometry) -> None:
@@ -101,6 +106,13 @@ class TransformFusionNode(LegoLoamNode):
         ok, odometry = self.take(lambda: odometry_to_pose(msg), 'odometry_dropped', '/laser_odom_to_init dropped',
                                  'bad_odometry')
         if not ok:
+            return
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        if not self.core.publishable(stamp_ns):   # (localization without a recent fix: withheld, not silent by fault)
+            self.order.processed(stamp_ns)
+            self.count('withheld_not_localized')
+            self.warn('not_localized', 'no /integrated_to_init: mapOptimization has no recent fix in the saved map '
+                                       '(see /localization_status)')
             return
         self.input_valid()
         problem = self.core.health_problem()

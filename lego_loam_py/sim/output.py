@@ -34,7 +34,7 @@ from lego_loam_py.core.io import read_tum, tum_lines
 
 __all__ = ['map_distance_to_scene', 'GROUND_TRUTH', 'GROUND_TRUTH_DENSE', 'LABELS', 'SCENARIO', 'NOTE', 'sidecar_path', 'write_tum',
            'read_tum', 'load_ground_truth', 'relative_poses', 'LabelWriter', 'Labels', 'load_labels',
-           'load_scenario', 'write_yaml', 'world_of']
+           'load_scenario', 'write_yaml', 'world_of', 'recording_source', 'true_poses', 'same_scene']
 
 GROUND_TRUTH = 'ground_truth.tum'
 GROUND_TRUTH_DENSE = 'ground_truth_dense.tum'
@@ -104,13 +104,36 @@ def map_distance_to_scene(bag_path: str | Path, map_points: np.ndarray, stamp_ns
 
 
 def world_of(scenario: dict[str, Any]):
-    """The simulated world (scene and trajectory) a recording's scenario.yaml describes."""
+    """The simulated world (scene and trajectory) a recording's scenario.yaml (or its 'config' alone) describes."""
     from lego_loam_py.sim.scenarios import build_world
 
     config = scenario['config']
     route_start = config.get('route_start')
     return build_world(config['scenario'], int(config['seed']), float(config.get('turn_rate', 0.0)),
                        None if route_start is None else float(route_start), bool(config.get('reverse', False)))
+
+
+def recording_source(bag_path: str | Path) -> dict[str, Any]:
+    """What a saved map notes about the recording it was made from (its bundle's ``source``): the bag, and for a
+    simulated one its configuration and start stamp, from which :func:`true_poses` gives the true sensor poses."""
+    source: dict[str, Any] = {'bag': str(Path(bag_path).expanduser().resolve())}
+    scenario = load_scenario(bag_path)
+    if scenario is not None:
+        source['simulated'] = {'config': scenario['config'],
+                               'start_stamp_ns': int(scenario['recording']['start_stamp_ns'])}
+    return source
+
+
+def true_poses(simulated: dict[str, Any], stamps_ns: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) true lidar poses in the simulated world (REP-103, z up) at ``stamps_ns``, for a recording
+    described by ``simulated`` ({'config': scenario.yaml's config, 'start_stamp_ns': ...})."""
+    t = (np.asarray(stamps_ns, dtype=np.int64) - int(simulated['start_stamp_ns'])) * 1e-9
+    return world_of(simulated).trajectory.matrices(t)
+
+
+def same_scene(a: dict[str, Any], b: dict[str, Any]) -> bool:
+    """Whether two simulated recordings ({'config': ...}) were made in the same world (scenario and seed)."""
+    return (a['config']['scenario'], int(a['config']['seed'])) == (b['config']['scenario'], int(b['config']['seed']))
 
 
 def write_yaml(path: str | Path, data: dict[str, Any]) -> None:
