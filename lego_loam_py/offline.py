@@ -24,8 +24,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 from lego_loam_py.allocator import keep_heap_pages
 from lego_loam_py.core.params import Params, SensorParams, load_params, parse_overrides
 from lego_loam_py.core.pipeline import Pipeline, RunResult

@@ -192,3 +192,197 @@ def test_run_with_a_map_localizes_and_reports_the_first_fix(campus_map, reverse_
     assert done.returncode == 1 and done.stderr.strip().splitlines()[-1] == \
         f'error: map bundle {tmp_path / "nowhere"}: no such directory'
     assert 'Traceback' not in done.stderr
+
+
+# ----------------------------------------------------------------------------------------------------- the node
+
+def _initial_pose(frame: str, x: float, y: float, yaw_deg: float, variance: float = 0.25):
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+
+    msg = PoseWithCovarianceStamped()
+    msg.header.frame_id = frame
+    msg.pose.pose.position.x, msg.pose.pose.position.y = x, y
+    msg.pose.pose.orientation.z = math.sin(math.radians(yaw_deg) / 2)
+    msg.pose.pose.orientation.w = math.cos(math.radians(yaw_deg) / 2)
+    msg.pose.covariance[0] = msg.pose.covariance[7] = variance
+    return msg
+
+
+def test_initial_pose_messages_as_rviz_sends_them():
+    from lego_loam_py.ros.localization import initial_pose_of
+
+    assert initial_pose_of(_initial_pose('map', 3.0, -2.0, 30.0), 5.0) == pytest.approx((3.0, -2.0, 30.0, 5.0))
+    # A wide covariance widens the search: 3 sigma of x and y, at most 100 m.
+    assert initial_pose_of(_initial_pose('map', 0.0, 0.0, 0.0, variance=16.0), 5.0)[3] == pytest.approx(12.0)
+    assert initial_pose_of(_initial_pose('map', 0.0, 0.0, 0.0, variance=1e6), 5.0)[3] == 100.0
+    # camera_init is the same frame in LOAM camera axes: x left, y up, z forward.
+    msg = _initial_pose('camera_init', 0.0, 0.0, 0.0)
+    msg.pose.pose.position.x, msg.pose.pose.position.z = 2.0, 7.0
+    msg.pose.pose.orientation.y, msg.pose.pose.orientation.z = msg.pose.pose.orientation.z, 0.0
+    assert initial_pose_of(msg, 5.0)[:3] == pytest.approx((7.0, 2.0, 0.0))
+    bad = _initial_pose('map', float('nan'), 0.0, 0.0)
+    for msg, reason in ((_initial_pose('odom', 0.0, 0.0, 0.0), "frame 'odom' is neither 'map' nor 'camera_init'"),
+                        (bad, 'the pose is not finite')):
+        with pytest.raises(ValueError, match=re.escape(reason)):
+            initial_pose_of(msg, 5.0)
+    msg = _initial_pose('map', 0.0, 0.0, 0.0)
+    msg.pose.pose.orientation.w = 3.0
+    with pytest.raises(ValueError, match='no unit quaternion'):
+        initial_pose_of(msg, 5.0)
+
+
+def test_the_node_publishes_nothing_until_localized_and_says_why(context, campus_map, tmp_path):
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from lego_loam_py.ros.conversions import odometry_to_pose, stamp_to_ns
+    from lego_loam_py.ros.map_optimization_node import MapOptimizationNode
+    from tests.support.inprocess import make_node, mapping_inputs, pipeline_outputs
+
+    inputs = mapping_inputs(pipeline_outputs(context, tmp_path))
+
+    def feed(node, parts):
+        for name, msg in zip(('corner', 'surf', 'outlier', 'odometry'), parts):
+            node.on_part(name, msg)
+
+    # A map that is not there: an error, said once in the log and on /localization_status, and the node carries on.
+    missing = tmp_path / 'no_map'
+    node, rec = make_node(context, MapOptimizationNode, tmp_path, **{'map_optimization.mode': 'localization',
+                                                                    'map_optimization.map_path': str(missing)})
+    node.localization.publish_status()   # (the recorder was installed after the node's first status)
+    status = rec.out('/localization_status')[-1]
+    assert status.level == DiagnosticStatus.ERROR and f'map bundle {missing}: no such directory' in status.message
+    for parts in inputs[:4]:
+        feed(node, parts)
+    node.localization.on_initial_pose(_initial_pose('map', 1.0, 0.0, 0.0))
+    assert not rec.errors and not rec.out('/aft_mapped_to_init') and node.counters['inputs_without_map'] >= 1
+    assert node.counters['initial_pose_dropped'] == 1
+    assert node._save_now()[0] is True and 'never modified' in node._save_now()[1]
+    node.destroy_node()
+
+    node, rec = make_node(context, MapOptimizationNode, tmp_path, **{'map_optimization.mode': 'localization',
+                                                                    'map_optimization.map_path': str(campus_map)})
+    # Bad /initialpose messages are dropped with a warning.
+    node.localization.on_initial_pose(_initial_pose('odom', 1.0, 0.0, 0.0))
+    node.localization.on_initial_pose(_initial_pose('map', float('inf'), 0.0, 0.0))
+    assert node.counters['initial_pose_dropped'] == 2
+    assert sum("/initialpose dropped: frame 'odom'" in text for _, text in rec.warnings) == 1
+    node.localization.publish_status()
+    assert rec.out('/localization_status')[-1].level == DiagnosticStatus.WARN
+    published = []
+    for parts in inputs:
+        feed(node, parts)
+        published.append(len(rec.out('/aft_mapped_to_init')))
+        if not published[-1]:   # until the fix: nothing out, and it says so
+            assert rec.out('/localization_status')[-1].level == DiagnosticStatus.WARN
+    assert not rec.errors and published[-1] >= 2, published
+    assert any(key == 'not_localized' and text.startswith('no pose yet: ') for key, text in rec.warnings)
+    last = rec.out('/localization_status')[-1]
+    assert last.level == DiagnosticStatus.OK and last.message.startswith('localized in the map')
+    assert node.counters['steps_not_localized'] >= 2
+    # The same drive the map was made from: the poses are on the map's keyframe trajectory (camera_init = the map's
+    # frame), between the keyframes before and after them in time.
+    bundle = node.core.prior.bundle
+    for msg in rec.out('/aft_mapped_to_init'):
+        position = odometry_to_pose(msg)[:3, 3]
+        on_the_way = [np.interp(stamp_to_ns(msg.header.stamp), bundle.stamps_ns, bundle.poses6[:, 3 + i])
+                      for i in range(3)]
+        assert np.linalg.norm(position - on_the_way) < 0.05, (position, on_the_way)
+    assert node.statistics()['localization']['fixes'] == 1
+    node.destroy_node()
+
+
+def test_no_initial_pose_message_breaks_the_node(context, campus_map, tmp_path):
+    """Random /initialpose messages (non-finite, huge, zero quaternions, other frames, odd covariances): each is
+    taken as a hint or dropped with a warning, and the node keeps localizing."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    from lego_loam_py.ros.map_optimization_node import MapOptimizationNode
+    from tests.support.inprocess import make_node, mapping_inputs, pipeline_outputs
+
+    node, rec = make_node(context, MapOptimizationNode, tmp_path, **{'map_optimization.mode': 'localization',
+                                                                    'map_optimization.map_path': str(campus_map)})
+    values = st.floats(allow_nan=True, allow_infinity=True, width=64) | st.sampled_from([0.0, 1.0, -1.0, 1e300])
+    tried = []
+
+    @settings(max_examples=300, deadline=None, derandomize=True, database=None,
+              suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+    @given(st.sampled_from(['map', '/map', 'camera_init', '', 'odom', 'base_link', 'map\x00']),
+           st.lists(values, min_size=7, max_size=7), st.lists(values, min_size=36, max_size=36))
+    def check(frame, pose, covariance):
+        msg = _initial_pose(frame, 0.0, 0.0, 0.0)
+        p = msg.pose.pose
+        p.position.x, p.position.y, p.position.z = pose[:3]
+        p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = pose[3:]
+        msg.pose.covariance = covariance
+        node.localization.on_initial_pose(msg)
+        tried.append(1)
+        assert not rec.errors
+
+    check()
+    counted = node.counters.get('initial_poses', 0) + node.counters.get('initial_pose_dropped', 0)
+    assert counted == len(tried) and node.counters['initial_pose_dropped'] > 0
+    for parts in mapping_inputs(pipeline_outputs(context, tmp_path))[:4]:   # (it still runs its steps)
+        for name, msg in zip(('corner', 'surf', 'outlier', 'odometry'), parts):
+            node.on_part(name, msg)
+    assert not rec.errors and node.core.counters['steps'] >= 1
+    node.destroy_node()
+
+
+# ------------------------------------------------------------------------------------------------------ over DDS
+
+def test_launch_in_localization_mode_publishes_integrated_to_init_in_the_saved_maps_frame(
+        campus_map, reverse_drive, tmp_path, ros_domain, processes):
+    """The four nodes as users start them, replaying the reverse drive: /integrated_to_init comes out in the saved
+    map's frame (camera_init of the map), only once a place was verified, and the map is left as it was."""
+    from lego_loam_py.bag.io import BagReader
+    from lego_loam_py.core.frames import quaternion_to_matrix
+    from lego_loam_py.core.map_bundle import read_bundle
+    from lego_loam_py.evaluation import errors_in_map
+    from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix
+
+    before = {p.name: p.read_bytes() for p in campus_map.iterdir()}
+    record = tmp_path / 'recording'
+    launcher = processes.start([BIN / 'lego_loam_py', 'launch', '--bag', reverse_drive, '--record', '/integrated_to_init',
+                                '/localization_status', '-o', record, '--stats-dir', tmp_path / 'stats', '--log-dir',
+                                tmp_path / 'logs', '--quiet-nodes',
+                                '-p', f'map_optimization.file_directory:={tmp_path / "maps"}',
+                                '-p', 'map_optimization.mode:=localization',
+                                '-p', f'map_optimization.map_path:={campus_map}'], stderr=subprocess.STDOUT)
+    out, _ = launcher.communicate(timeout=300)
+    logs = '\n'.join(p.read_text()[-3000:] for p in sorted((tmp_path / 'logs').glob('*.log')))
+    assert launcher.returncode == 0, out + logs
+    integrated, status = [], []
+    with BagReader(record) as reader:
+        for message in reader.messages():
+            msg = reader.deserialize(message)
+            (integrated if message.topic == '/integrated_to_init' else status).append(msg)
+    assert integrated and status, out + logs
+    assert {(m.header.frame_id, m.child_frame_id) for m in integrated} == {('camera_init', 'camera')}
+    stamps = np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in integrated])
+    poses = np.tile(np.eye(4), (len(integrated), 1, 1))
+    for pose, m in zip(poses, integrated):
+        p, q = m.pose.pose.position, m.pose.pose.orientation
+        pose[:3, :3], pose[:3, 3] = quaternion_to_matrix([q.x, q.y, q.z, q.w]), (p.x, p.y, p.z)
+    bundle = read_bundle(campus_map)
+    keyframes = np.array([camera_pose_to_lidar(pose6_to_matrix(p)) for p in bundle.poses6])
+    lidar_poses = np.array([camera_pose_to_lidar(p) for p in poses])
+    (fit,) = [e for e in errors_in_map(reverse_drive, bundle.source, bundle.stamps_ns, keyframes, stamps,
+                                       lidar_poses) if e.anchor == 'map_fit']
+    # In the map's frame: 12 m along it and the other way round, not at the odometry's origin (its first pose).
+    assert fit.max_m < 0.2 and np.linalg.norm(poses[0][:3, 3]) > 5.0, fit
+    statistics = json.loads((tmp_path / 'stats' / 'mapOptimization.json').read_text())['localization']
+    assert statistics['fixes'] >= 1 and statistics['state'] == 'localized', statistics
+    first_fix = min(e['stamp_ns'] for e in statistics['events'] if e['kind'] == 'fix')
+    assert stamps.min() > first_fix                        # nothing before the fix
+    assert status[-1].level == 0 and status[-1].message.startswith('localized in the map')
+    assert {p.name: p.read_bytes() for p in campus_map.iterdir()} == before   # the saved map, untouched
+    assert 'Traceback' not in logs
+
+
+def test_launch_refuses_a_saved_map_that_is_not_there(tmp_path, ros_domain):
+    done = subprocess.run([BIN / 'lego_loam_py', 'launch', '-p', 'map_optimization.mode:=localization',
+                           '-p', f'map_optimization.map_path:={tmp_path / "none"}'], capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 1 and f'error: map bundle {tmp_path / "none"}: no such directory' in done.stderr
+    assert 'started' not in done.stderr and 'Traceback' not in done.stderr

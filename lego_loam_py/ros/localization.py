@@ -47,8 +47,10 @@ def initial_pose_of(msg: PoseWithCovarianceStamped, default_radius: float) -> tu
         raise ValueError('the pose is not finite')
     if not (np.abs(t) <= MAX_POSITION).all():
         raise ValueError(f'the position is beyond {MAX_POSITION:g} m')
-    if abs(float(np.linalg.norm(q)) - 1.0) > 0.1:
-        raise ValueError(f'the orientation is no unit quaternion (norm {float(np.linalg.norm(q)):.3g})')
+    scale = float(np.abs(q).max())
+    norm = scale * float(np.linalg.norm(q / scale)) if scale > 0 else 0.0   # (no overflow for huge values)
+    if abs(norm - 1.0) > 0.1:
+        raise ValueError(f'the orientation is no unit quaternion (norm {norm:.3g})')
     pose = np.eye(4)
     pose[:3, :3], pose[:3, 3] = quaternion_to_matrix(q), t
     if frame == CAMERA_INIT_FRAME:   # (LOAM camera axes: the same frame as map, its axes turned)
