@@ -34,12 +34,12 @@ def reverse_drive() -> Path:
     return cached_scenario('campus', duration=6.0, route_start=12.0, reverse=True)
 
 
-def localize(bag: Path, map_dir: Path, **overrides):
+def localize(bag: Path, map_dir: Path, max_scans: int | None = None, **overrides):
     from lego_loam_py.offline import run_bag
 
     params = Params().replace(map_optimization__mode='localization', map_optimization__map_path=str(map_dir),
                               **overrides)
-    return run_bag(bag, params, progress=False)
+    return run_bag(bag, params, progress=False, max_scans=max_scans)
 
 
 def errors_against_truth(result, bag: Path) -> np.ndarray:
@@ -159,9 +159,47 @@ def test_a_gap_in_the_data_loses_track_and_the_place_is_found_again(campus_map, 
     assert errors_against_truth(result, cut).max_m < 0.15
 
 
+def test_a_robot_carried_elsewhere_without_a_gap_loses_track_and_is_found_again(campus_map, reverse_drive):
+    """A kidnap with no gap in the data: 3 s of the reverse drive (from 12 m back to 7 m along the loop), then, with
+    the stamps running on, the scans of bags/campus_8s from 1.5 m on, driven the other way: the scans no longer fit
+    where the odometry says the robot is, tracking fails 3 steps in a row, and the new place is found."""
+    from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
+    from lego_loam_py.core.pipeline import Pipeline
+
+    def clouds(bag, first, count):
+        with BagReader(bag) as reader:
+            messages = [m for m in reader.messages(topics=['/velodyne_points'])][first:first + count]
+            return [cloud_msg_to_array(reader.deserialize(m)) for m in messages]
+
+    params = Params().replace(map_optimization__mode='localization', map_optimization__map_path=str(campus_map),
+                              sensor__imu_topic='')
+    pipeline = Pipeline(params)
+    scans = clouds(reverse_drive, 0, 30) + clouds(CAMPUS, 10, 50)
+    for k, points in enumerate(scans):
+        pipeline.process_scan(points, 1_700_000_000_000_000_000 + k * 100_000_000)
+    result = pipeline.finish()
+    loc = result.mapper
+    assert [e.kind for e in loc.events] == ['fix', 'lost', 'fix'], [(e.kind, e.detail) for e in loc.events]
+    lost = [e for e in loc.events if e.kind == 'lost'][0]
+    assert lost.detail.startswith('3 tracking steps in a row failed')
+    assert lost.stamp_ns - 1_700_000_000_000_000_000 <= 4.5e9   # (the jump at 3 s, a step every 0.4 s)
+    again = [e for e in loc.events if e.kind == 'fix'][1]
+    assert again.stamp_ns - lost.stamp_ns <= 3e9
+    # The new place: bags/campus_8s's own poses are the map's keyframes there.
+    stamps, poses = result.trajectory(axes='camera_init')
+    after = poses[stamps > again.stamp_ns]
+    bundle = loc.prior.bundle
+    for stamp, pose in zip(stamps[stamps > again.stamp_ns], after):
+        k = int(round((stamp - 1_700_000_000_000_000_000) * 1e-8)) - 30 + 10   # the scan of campus_8s it was
+        truth = [np.interp(1_700_000_000_000_000_000 + k * 100_000_000, bundle.stamps_ns, bundle.poses6[:, 3 + i])
+                 for i in range(3)]
+        assert np.linalg.norm(pose[:3, 3] - truth) < 0.1
+
+
 def test_another_scene_never_localizes_its_look_alike_places_fail_the_verification(campus_map):
-    # Every keyframe a candidate (relocalization_threshold 1): each must be turned down by the registration's gates.
-    result = localize(AGGRESSIVE, campus_map, localization__relocalization_threshold=1.0)
+    # Every keyframe a candidate (relocalization_threshold 1): each must be turned down by the registration's gates
+    # (3 s of the hairpin: 7 attempts of 3 places).
+    result = localize(AGGRESSIVE, campus_map, max_scans=30, localization__relocalization_threshold=1.0)
     loc = result.mapper
     assert loc.counters.get('fixes', 0) == 0 and result.trajectory()[0].size == 0
     assert loc.counters['places_rejected'] >= 10 and loc.counters.get('places_verified', 0) == 0
@@ -288,6 +326,7 @@ def test_the_node_publishes_nothing_until_localized_and_says_why(context, campus
                       for i in range(3)]
         assert np.linalg.norm(position - on_the_way) < 0.05, (position, on_the_way)
     assert node.statistics()['localization']['fixes'] == 1
+    assert {v.key: v.value for v in node.diagnostic_status().values}['localization_state'] == 'localized'
     node.destroy_node()
 
 

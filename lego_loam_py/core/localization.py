@@ -44,7 +44,7 @@ from lego_loam_py.core.map_optimization import MappingStep
 from lego_loam_py.core.odometry_continuity import OdometryJump, anchored_transform_bef
 from lego_loam_py.core.param_types import Params
 from lego_loam_py.core.prior_map import PriorMap, levelling
-from lego_loam_py.core.relocalization import Attempt, Hint, Relocalizer, scan_points_lidar
+from lego_loam_py.core.relocalization import Attempt, Hint, Relocalizer, Verification, scan_points_lidar
 from lego_loam_py.core.scan_to_map import register_scan_to_map
 from lego_loam_py.core.validation import pose6_problem
 from lego_loam_py.core.voxel import voxel_downsample
@@ -94,6 +94,7 @@ class Localization:
         self.last_scan = (np.zeros((0, 4), _F32), np.zeros((0, 4), _F32))
         self.events: deque[LocalizationEvent] = deque(maxlen=1000)   # the latest
         self.event_count = 0                                         # events recorded in all
+        self.verifications: deque[tuple[int, Verification]] = deque(maxlen=1000)   # the latest (stamp, result)
         self.counters: dict[str, int] = {}
         self._degeneracy = DegeneracyProjection(6)
         self.first_input_ns: int | None = None
@@ -107,8 +108,9 @@ class Localization:
         warnings = check_compatible(bundle, params)
         return cls(params, PriorMap(bundle, params), warnings)
 
-    def restart(self) -> None:
-        """Forget where the robot is (a new timeline, a poisoned state): relocalize from the next input."""
+    def restart(self, from_the_start: bool = True) -> None:
+        """Forget where the robot is and relocalize from the next input: ``from_the_start`` (a new timeline, a bag
+        played again) with ``localization.initial_pose`` when there is one, else (a poisoned state) anywhere."""
         with self.lock:
             self.transform_sum, self.transform_bef, self.transform_aft = np.zeros(6), np.zeros(6), np.zeros(6)
             self.state = 'relocalizing'
@@ -124,7 +126,7 @@ class Localization:
             self.latest_odometry_ns = 0
             self._searching = 'relocalizing'
             pose = self.params.localization.initial_pose
-            if pose:   # [x, y, yaw] or [x, y, z, roll, pitch, yaw]
+            if pose and from_the_start:   # [x, y, yaw] or [x, y, z, roll, pitch, yaw]
                 self.set_initial_pose(pose[0], pose[1], pose[2] if len(pose) == 6 else None, pose[-1],
                                       *(pose[3:5] if len(pose) == 6 else (None, None)), origin='initial_pose parameter')
 
@@ -265,6 +267,7 @@ class Localization:
         attempt: Attempt = self.relocalizer.attempt(points, edges, camera_pose_to_lidar(odometry), self.hint)
         for verification in attempt.verifications:
             self._count('places_verified' if verification.accepted else 'places_rejected')
+            self.verifications.append((stamp_ns, verification))
         self.last_reason = attempt.reason
         if attempt.pose is None:
             if self.hint is not None:
@@ -340,7 +343,7 @@ class Localization:
 
     def heal(self) -> str:
         with self.lock:
-            self.restart()
+            self.restart(from_the_start=False)
             if self.imu.health_problem() is not None:
                 self.imu.clear()
             return 'localization starts again (relocalizing); the saved map is kept'

@@ -436,6 +436,15 @@ class MapOptimizationNode(LegoLoamNode):
             out['loop_closures'] = asdict(LoopClosures.of(list(self.core.loops), keyframes[0].stamp_ns))
         return out
 
+    def diagnostic_status(self):
+        """The base status plus, in localization, the state (localized, relocalizing, ... or no_map)."""
+        status = super().diagnostic_status()
+        if self.localization is not None:
+            from diagnostic_msgs.msg import KeyValue
+            state = self.core.status().state if self.core is not None else 'no_map'
+            status.values.append(KeyValue(key='localization_state', value=state))
+        return status
+
     def on_shutdown(self) -> None:
         self._stopping.set()
         mo = self.params.map_optimization
