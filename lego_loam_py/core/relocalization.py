@@ -85,6 +85,7 @@ class Relocalizer:
     def __init__(self, prior: PriorMap, params: Params):
         self.prior = prior
         self.params = params
+        import open3d  # noqa: F401  (its first import costs about 0.5 s of CPU: when the map loads, not in an attempt)
 
     def attempt(self, source_lidar: np.ndarray, edges_lidar: np.ndarray, odometry_lidar: np.ndarray,
                 hint: Hint | None = None) -> Attempt:
