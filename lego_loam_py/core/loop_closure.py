@@ -337,16 +337,10 @@ class LoopCloser:
                        lc.min_registration_sigma)
         change = invert_pose(candidate.graph_relative) @ fit.pose   # the graph's view -> the registration's
         correction_m, correction_deg = float(np.linalg.norm(change[:3, 3])), rotation_angle_deg(change)
-        reason = ''
-        if fit.overlap < lc.min_overlap:
-            reason = f'overlap {fit.overlap:.2f} < {lc.min_overlap:g}'
-        elif fit.rmse > lc.max_rmse:
-            reason = f'rmse {fit.rmse:.3f} m > {lc.max_rmse:g}'
-        elif fit.constraint < lc.min_constraint:
-            reason = f'constraint {fit.constraint:.3f} < {lc.min_constraint:g}'
-        elif correction_m > lc.max_drift_base + lc.max_drift_ratio * candidate.path_m:
+        reason = fit.gate_failure(lc.min_overlap, lc.max_rmse, lc.min_constraint)
+        if not reason and correction_m > lc.max_drift_base + lc.max_drift_ratio * candidate.path_m:
             reason = f'correction {correction_m:.2f} m beyond the drift possible over {candidate.path_m:.0f} m'
-        elif correction_deg > lc.max_drift_rotation_base + lc.max_drift_rotation_ratio * candidate.path_m:
+        if not reason and correction_deg > lc.max_drift_rotation_base + lc.max_drift_rotation_ratio * candidate.path_m:
             reason = f'correction {correction_deg:.2f} deg beyond the drift possible over {candidate.path_m:.0f} m'
         result = LoopResult(candidate.latest, candidate.candidate, fit.rmse, True, False, np.eye(4),
                             detector=candidate.detector, score=candidate.score, overlap=fit.overlap,

@@ -36,6 +36,17 @@ class Registration:
     #                           direction the fit does not constrain, e.g. along a featureless corridor)
     information: np.ndarray   # 6x6 (rot, trans) information of the constraint (see the module docstring)
 
+    def gate_failure(self, min_overlap: float, max_rmse: float, min_constraint: float) -> str:
+        """Why the fit fails the gates every verification applies ('' when it passes them): too little of the
+        source on the target, too large a residual, or a direction left unconstrained."""
+        if self.overlap < min_overlap:
+            return f'overlap {self.overlap:.2f} < {min_overlap:g}'
+        if self.rmse > max_rmse:
+            return f'rmse {self.rmse:.3f} m > {max_rmse:g}'
+        if self.constraint < min_constraint:
+            return f'constraint {self.constraint:.3f} < {min_constraint:g}'
+        return ''
+
 
 def _normals(target: np.ndarray, radius: float, neighbours: int) -> np.ndarray:
     import open3d as o3d

@@ -147,16 +147,10 @@ class Relocalizer:
             gap, _ = self.prior.edge_tree().query(transform_points(fit.pose, edges[:, :3]),
                                                   distance_upper_bound=lo.tracking_inlier_distance)
             edge_overlap = float(np.isfinite(gap).mean())
-        if fit.overlap < lo.min_overlap:
-            reason = f'overlap {fit.overlap:.2f} < {lo.min_overlap:g}'
-        elif fit.rmse > lo.max_rmse:
-            reason = f'rmse {fit.rmse:.3f} m > {lo.max_rmse:g}'
-        elif fit.constraint < lo.min_constraint:
-            reason = f'constraint {fit.constraint:.3f} < {lo.min_constraint:g}'
-        elif edge_overlap < lo.min_edge_overlap:
+        reason = fit.gate_failure(lo.min_overlap, lo.max_rmse, lo.min_constraint)
+        if not reason and edge_overlap < lo.min_edge_overlap:
             reason = f'edge overlap {edge_overlap:.2f} < {lo.min_edge_overlap:g}'
-        else:
-            reason = 'verified'
+        reason = reason or 'verified'
         return Verification(keyframe, score, fit.pose, fit.overlap, fit.rmse, fit.constraint, edge_overlap,
                             reason == 'verified', reason, (time.process_time() - start) * 1e3)
 
