@@ -63,10 +63,10 @@ def test_levelling_keeps_the_heading_and_removes_roll_and_pitch():
 
     pose = np.eye(4)
     pose[:3, :3] = Rotation.from_euler('ZYX', [30.0, 4.0, -3.0], degrees=True).as_matrix()
-    assert math.degrees(heading(pose)) == pytest.approx(30.0)
+    assert math.degrees(heading(pose)) == pytest.approx(30.0, abs=1e-9)   # [deg]
     tilt = levelling(pose)
-    assert np.allclose(Rotation.from_euler('z', 30.0, degrees=True).as_matrix() @ tilt, pose[:3, :3])
-    assert Rotation.from_matrix(tilt).as_euler('ZYX', degrees=True) == pytest.approx([0.0, 4.0, -3.0])
+    assert np.allclose(Rotation.from_euler('z', 30.0, degrees=True).as_matrix() @ tilt, pose[:3, :3], atol=1e-12)
+    assert Rotation.from_matrix(tilt).as_euler('ZYX', degrees=True) == pytest.approx([0.0, 4.0, -3.0], abs=1e-9)
 
 
 def test_a_hint_moves_on_with_the_odometry():
@@ -138,7 +138,7 @@ def test_an_initial_pose_is_used_and_verified_even_when_3_m_and_20_deg_off(campu
     assert 'near the initial_pose parameter' in fix.detail and (loc.first_fix_ns - result.first_scan_ns) < 3e9
     error = errors_against_truth(result, reverse_drive)
     assert error.median_m < 0.05 and error.max_m < 0.15, error
-    assert Rotation.from_matrix(truth[:3, :3]).as_euler('ZYX', degrees=True)[0] == pytest.approx(yaw)
+    assert Rotation.from_matrix(truth[:3, :3]).as_euler('ZYX', degrees=True)[0] == pytest.approx(yaw, abs=1e-9)
 
 
 def test_a_gap_in_the_data_loses_track_and_the_place_is_found_again(campus_map, reverse_drive, tmp_path):
@@ -202,7 +202,7 @@ def test_another_scene_never_localizes_its_look_alike_places_fail_the_verificati
     result = localize(AGGRESSIVE, campus_map, max_scans=30, localization__relocalization_threshold=1.0)
     loc = result.mapper
     assert loc.counters.get('fixes', 0) == 0 and result.trajectory()[0].size == 0
-    assert loc.counters['places_rejected'] >= 10 and loc.counters.get('places_verified', 0) == 0
+    assert loc.counters.get('places_rejected', 0) >= 10 and loc.counters.get('places_verified', 0) == 0, loc.counters
     status = loc.status()
     assert status.state == 'relocalizing' and not status.localized
     assert status.message.startswith('no pose yet: relocalizing in the whole map (') and 'last: ' in status.message
@@ -249,15 +249,16 @@ def _initial_pose(frame: str, x: float, y: float, yaw_deg: float, variance: floa
 def test_initial_pose_messages_as_rviz_sends_them():
     from lego_loam_py.ros.localization import initial_pose_of
 
-    assert initial_pose_of(_initial_pose('map', 3.0, -2.0, 30.0), 5.0) == pytest.approx((3.0, -2.0, 30.0, 5.0))
+    hint = initial_pose_of(_initial_pose('map', 3.0, -2.0, 30.0), 5.0)
+    assert hint == pytest.approx((3.0, -2.0, 30.0, 5.0), abs=1e-9)   # (x, y [m], yaw [deg], radius [m])
     # A wide covariance widens the search: 3 sigma of x and y, at most 100 m.
-    assert initial_pose_of(_initial_pose('map', 0.0, 0.0, 0.0, variance=16.0), 5.0)[3] == pytest.approx(12.0)
+    assert initial_pose_of(_initial_pose('map', 0.0, 0.0, 0.0, variance=16.0), 5.0)[3] == pytest.approx(12.0, abs=1e-9)
     assert initial_pose_of(_initial_pose('map', 0.0, 0.0, 0.0, variance=1e6), 5.0)[3] == 100.0
     # camera_init is the same frame in LOAM camera axes: x left, y up, z forward.
     msg = _initial_pose('camera_init', 0.0, 0.0, 0.0)
     msg.pose.pose.position.x, msg.pose.pose.position.z = 2.0, 7.0
     msg.pose.pose.orientation.y, msg.pose.pose.orientation.z = msg.pose.pose.orientation.z, 0.0
-    assert initial_pose_of(msg, 5.0)[:3] == pytest.approx((7.0, 2.0, 0.0))
+    assert initial_pose_of(msg, 5.0)[:3] == pytest.approx((7.0, 2.0, 0.0), abs=1e-9)
     bad = _initial_pose('map', float('nan'), 0.0, 0.0)
     for msg, reason in ((_initial_pose('odom', 0.0, 0.0, 0.0), "frame 'odom' is neither 'map' nor 'camera_init'"),
                         (bad, 'the pose is not finite')):
@@ -382,9 +383,9 @@ def test_launch_in_localization_mode_publishes_integrated_to_init_in_the_saved_m
 
     before = {p.name: p.read_bytes() for p in campus_map.iterdir()}
     record = tmp_path / 'recording'
-    launcher = processes.start([BIN / 'lego_loam_py', 'launch', '--bag', reverse_drive, '--record', '/integrated_to_init',
-                                '/localization_status', '-o', record, '--stats-dir', tmp_path / 'stats', '--log-dir',
-                                tmp_path / 'logs', '--quiet-nodes',
+    launcher = processes.start([BIN / 'lego_loam_py', 'launch', '--bag', reverse_drive, '--record',
+                                '/integrated_to_init', '/localization_status', '-o', record,
+                                '--stats-dir', tmp_path / 'stats', '--log-dir', tmp_path / 'logs', '--quiet-nodes',
                                 '-p', f'map_optimization.file_directory:={tmp_path / "maps"}',
                                 '-p', 'map_optimization.mode:=localization',
                                 '-p', f'map_optimization.map_path:={campus_map}'], stderr=subprocess.STDOUT)
