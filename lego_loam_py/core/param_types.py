@@ -329,8 +329,8 @@ class LocalizationParams:
     # Verification of a candidate by registration (point-to-plane ICP): share of the scan within
     # tracking_inlier_distance of the map, RMS residual, least-constrained direction, and the share of the scan's
     # edge points (poles, corners, trunks) within that distance of the map's edges. Measured (benchmarks/
-    # localization.py) on the right places: overlap >= 0.55, edges >= 0.97, rmse up to 0.21 m in the forest; on
-    # wrong ones (other places of the same scene, the campus roads with other scenery): overlap <= 0.50, edges <= 0.44.
+    # localization.py, README) on the right places that passed: overlap >= 0.59, edges >= 0.92, rmse up to 0.21 m
+    # in the forest; on wrong ones (other scenes, the campus roads with other scenery): overlap <= 0.25, edges <= 0.12.
     min_overlap: float = 0.45
     max_rmse: float = 0.25                 # [m]
     min_constraint: float = 0.03
