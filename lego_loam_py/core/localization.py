@@ -38,7 +38,7 @@ import numpy as np
 from lego_loam_py.core.frames import (camera_pose_to_lidar, invert_pose, lidar_pose_to_camera, matrix_to_pose6,
                                       pose6_to_matrix, rot_x, rot_y, rot_z, transform_cloud, transform_points)
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
-from lego_loam_py.core.imu import ImuBuffer
+from lego_loam_py.core.imu import ImuBuffer, imu_mounting
 from lego_loam_py.core.map_bundle import check_compatible, read_bundle
 from lego_loam_py.core.map_optimization import MappingStep
 from lego_loam_py.core.odometry_continuity import OdometryJump, anchored_transform_bef
@@ -85,7 +85,7 @@ class Localization:
         self.warnings = list(warnings or [])    # what differs between the map's parameters and these
         self.relocalizer = Relocalizer(prior, params)
         self.imu = ImuBuffer(params.feature_association.imu_que_length, params.feature_association.gravity,
-                             params.sensor.scan_period)
+                             params.sensor.scan_period, imu_mounting(params))
         self.lock = threading.RLock()
         self.keyframes: list = []      # (the saved map is not added to)
         self.loops: list = []
