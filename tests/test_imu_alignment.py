@@ -10,7 +10,8 @@ from scipy.spatial.transform import Rotation
 
 from lego_loam_py.core.frames import ImuMounting, rpy_to_matrix
 from lego_loam_py.core.imu_alignment import GyroTrack, best_rotation, fit_alignment, shifted_increments
-from lego_loam_py.core.imu_monitor import ImuAlignmentMonitor, nearest_right_angle_rotation
+from lego_loam_py.core.imu_monitor import (MIN_EXPLAINED_DEG, SIGNIFICANCE, ImuAlignmentMonitor,
+                                           nearest_right_angle_rotation)
 from lego_loam_py.core.params import Params
 
 RATE = 200.0   # IMU samples per second
@@ -138,6 +139,21 @@ def test_a_yawed_imu_is_found_within_one_window_and_named():
     check = monitor(imu__rotation_rpy=[0.0, 0.0, 90.0])
     events = feed(check, 30.0, mount_rpy=(0.0, 0.0, 90.0))
     assert events and 'likely [0.0, 0.0, 180.0]), not [0.0, 0.0, 90.0]' in events[0].message
+
+
+def test_a_correction_that_explains_less_than_the_floor_per_interval_condemns_no_imu():
+    """A few degrees about an axis the sensor hardly turns about: material, significant and all of the
+    disagreement, but 0.21 deg per interval, within what a window of noisy mapping steps lets a fit explain with a
+    right IMU (0.39 deg with an aligned IMU in the simulated corridor): not a reason to drop the IMU. The same
+    4 degrees about an axis it turns about (1.06 deg per interval) are."""
+    check = monitor()
+    assert feed(check, 30.0, mount_rpy=(0.0, 0.0, 4.0)) == [] and check.trusted
+    fit = check.last_fit
+    assert fit.angle_deg > 3.0 and fit.rotation_significance > SIGNIFICANCE and fit.explained > 0.99
+    assert fit.explained_deg == pytest.approx(0.21, abs=0.01) and fit.explained_deg < MIN_EXPLAINED_DEG
+    check = monitor()
+    events = feed(check, 30.0, mount_rpy=(4.0, 0.0, 0.0), tilt=0.3)
+    assert events and not check.trusted and check.last_fit.explained_deg > 2 * MIN_EXPLAINED_DEG
 
 
 def test_a_late_clock_is_found_and_the_offset_named():
