@@ -12,10 +12,9 @@ turns onto the lidar's (:class:`ImuAlignmentMonitor`). The IMU **disagrees** whe
 * is material: more than ``imu.alignment_max_rotation`` degrees or ``imu.alignment_max_offset`` seconds;
 * is significant: at least :data:`SIGNIFICANCE` standard deviations from none (the noise is the residuals'
   spread, so the lidar's own noise never makes one);
-* explains the disagreement: at least :data:`EXPLAINED` of its square goes with it (a lidar odometry in
-  trouble disagrees with any IMU, but no rotation of the IMU explains that, so it never condemns one), and at
-  least :data:`MIN_EXPLAINED_DEG` degrees per interval of it (what a dozen noisy intervals let a fit explain
-  with a right IMU stays below that; see :meth:`ImuAlignmentMonitor._disagrees`), and
+* explains the disagreement: at least :data:`EXPLAINED` of its square and :data:`MIN_EXPLAINED_DEG` degrees
+  per interval go with it (a lidar odometry in trouble disagrees with any IMU, but no rotation of the IMU
+  explains that, nor the few degrees a fit takes for a walking lidar's own errors), and
 * does so in :data:`STRIKES` windows in a row (one stretch of a struggling mapping can look like anything once).
 
 Then the monitor warns, naming the rotation and offset found and the parameters that would absorb them, and
@@ -151,8 +150,8 @@ class ImuAlignmentMonitor:
         if len(window) < QUICK_INTERVALS:
             return None
         fit = self._fit(window, QUICK_TURN_DEG)
-        # What the correction explains, in degrees per sweep: here the lidar's turn (the quick registration's) can
-        # be noisy (0.2-0.3 deg per sweep in a corridor), so the share explained says less than the amount.
+        # What the correction explains, in degrees per sweep: the quick registration's turn can be noisy (0.2-0.3
+        # deg per sweep in a corridor), so the share explained says less than the amount.
         gross = self._disagrees(fit, share=0.0, floor=QUICK_DISAGREEMENT)
         self._quick_strikes = self._quick_strikes + 1 if gross else 0
         if self._quick_strikes < STRIKES:
@@ -209,23 +208,9 @@ class ImuAlignmentMonitor:
         self.last_fit = fit
         return fit
 
-    def _disagrees(self, fit: AlignmentFit | None, share: float = EXPLAINED,
-                   floor: float = MIN_EXPLAINED_DEG) -> bool:
-        """A correction that is material, significant and explains ``share`` of the disagreement and at least
-        ``floor`` degrees of it per interval (module docstring).
-
-        The floor: a window of a dozen mapping steps of walking, turning mostly about the vertical, lets the fit
-        take a few degrees of rotation for the lidar's own slowly varying errors and call them significant (the
-        residuals are not independent). In the simulated corridor the mean fitted correction over the lap is
-        3.1 deg with a right IMU, the materiality bound; around 89 s an aligned IMU gets 4.3-4.6 deg (4.4 sigma),
-        one correctly configured at yaw 90 (0.3 m lever arm, 20 ms late) 4.7-5.5 deg at 6.0-6.1 sigma, which
-        explain 0.29 -> 0.19 deg per step (0.22 deg), and the second was distrusted for the rest of the lap. With a
-        right IMU no window of a whole lap explains more than 0.39 deg per step (aligned: corridor 0.39, forest
-        0.17, aggressive 0.16, campus 0.03; the windows with a material and significant correction are all in the
-        corridor: aligned 0.39, with the parameters yaw 90 0.22, roll 180 0.36, (10, -20, 130) 0.20); a wrong
-        mounting that must be caught explains at least 0.52 (yaw 90 on the aggressive drive, whose turns hardly
-        show a rotation about the vertical; the other wrong mountings explain degrees per step). The floor sits
-        between the two."""
+    def _disagrees(self, fit: AlignmentFit | None, share: float = EXPLAINED, floor=MIN_EXPLAINED_DEG) -> bool:
+        """A correction that is material, significant and explains ``share`` of the disagreement and ``floor``
+        degrees of it per interval (module docstring; the floor's figures: README, IMU mounting)."""
         if fit is None:
             return False
         rotation_material = fit.angle_deg > self.max_rotation and fit.rotation_significance > SIGNIFICANCE
@@ -284,7 +269,6 @@ class ImuAlignmentMonitor:
         return AlignmentEvent(stamp, False, f'{self.who}: the IMU disagrees with the lidar: {self._reason}. The IMU is '
                               'not used until they agree; set the imu.* parameters (lego_loam_py calibrate BAG '
                               'estimates them) or imu.alignment_check: false to use it anyway', fit)
-
 
 
 # ------------------------------------------------------------------------------------------- the two nodes
