@@ -289,8 +289,6 @@ def greedy_selection(edges: np.ndarray, edge_bounds: np.ndarray, edge_slices, fl
     edge_bounds, flat_bounds = edge_bounds.tolist(), flat_bounds.tolist()
     edge_low, edge_high = (np.asarray(a).tolist() for a in edge_slices)
     flat_low, flat_high = (np.asarray(a).tolist() for a in flat_slices)
-    fill = [b'\x01' * k for k in range(max([0, *(h - l for l, h in zip(edge_low + flat_low,
-                                                                          edge_high + flat_high))]) + 1)]
     sharp, less_sharp, less_sharp_region, flat = [], [], [], []
     for region in range(regions):
         count = 0
@@ -305,7 +303,7 @@ def greedy_selection(edges: np.ndarray, edge_bounds: np.ndarray, edge_slices, fl
                 break
             less_sharp.append(k)
             less_sharp_region.append(region)
-            taken[edge_low[i]:edge_high[i]] = fill[edge_high[i] - edge_low[i]]
+            taken[edge_low[i]:edge_high[i]] = b'\x01' * (edge_high[i] - edge_low[i])
         count = 0
         for i in range(flat_bounds[region], flat_bounds[region + 1]):
             k = flat_list[i]
@@ -315,5 +313,5 @@ def greedy_selection(edges: np.ndarray, edge_bounds: np.ndarray, edge_slices, fl
             count += 1
             if count >= surf_num:
                 break
-            taken[flat_low[i]:flat_high[i]] = fill[flat_high[i] - flat_low[i]]
+            taken[flat_low[i]:flat_high[i]] = b'\x01' * (flat_high[i] - flat_low[i])
     return tuple(np.asarray(a, dtype=np.int64) for a in (sharp, less_sharp, flat, less_sharp_region))
