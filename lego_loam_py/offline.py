@@ -169,7 +169,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         'KITTI odometry sequence folder, folder of .pcd/.ply/.bin scans, or Velodyne/Ouster pcap')
     parser.add_argument('-o', '--output', default=None, help='output directory (default: output/<recording name>)')
     add_parameter_arguments(parser, 'ROS 2 parameter file (default: built-in defaults)',
-                            'loop_closure.loop_closure_enable_flag:=true')
+                            'loop_closure.loop_closure_enable_flag:=false')
     parser.add_argument('--map', type=Path, default=None, metavar='DIR',
                         help='localize in the map bundle saved in DIR (by a mapping run: OUT/map, or mapOptimization) '
                         'instead of mapping: map_optimization.mode localization')

@@ -174,7 +174,7 @@ def test_a_right_loop_closes_a_long_drifted_chain_under_the_robust_kernel():
 
 def test_the_verified_method_is_the_default_and_original_yaml_keeps_the_originals():
     default = Params().loop_closure
-    assert not default.loop_closure_enable_flag and default.method == 'verified'
+    assert default.loop_closure_enable_flag and default.method == 'verified'   # on by default
     original = load_params(default_params_file().parent / 'original.yaml').loop_closure
     assert not original.loop_closure_enable_flag and original.method == 'original'
     assert (original.history_keyframe_search_radius, original.history_keyframe_fitness_score,

@@ -39,7 +39,7 @@ def test_defaults_are_the_originals_vlp16_values():
     assert (mo.corner_leaf_size, mo.surf_leaf_size, mo.keyframe_distance) == (0.2, 0.4, 0.3)
     assert mo.prior_noise_variances == (1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-6)
     lc = p.loop_closure
-    assert not lc.loop_closure_enable_flag and lc.method == 'verified'   # (the method used when it is switched on)
+    assert lc.loop_closure_enable_flag and lc.method == 'verified'   # a deliberate deviation: the original has it off
     assert (lc.history_keyframe_search_radius, lc.history_keyframe_search_num,
             lc.history_keyframe_fitness_score) == (7.0, 25, 0.3)
 
@@ -59,7 +59,7 @@ def test_deliberate_deviations_and_the_file_that_restores_the_original():
             original.feature_association.imu_rotation_prior) == ('original', 'original', 'original', 0.05, 0.0)
     assert original.map_optimization.degeneracy_threshold == 100.0
     assert (default.loop_closure.method, original.loop_closure.method) == ('verified', 'original')
-    assert not original.loop_closure.loop_closure_enable_flag
+    assert default.loop_closure.loop_closure_enable_flag and not original.loop_closure.loop_closure_enable_flag
 
 
 def test_config_file_equals_the_defaults():
