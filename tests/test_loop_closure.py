@@ -88,6 +88,35 @@ def test_registration_in_a_featureless_corridor_is_flagged_unconstrained():
     assert along > 10 * across
 
 
+@pytest.mark.parametrize('misplaced_m', [0.0, 0.4])
+def test_a_source_stacked_from_keyframes_that_disagree_is_turned_down(misplaced_m):
+    """The registered view stacks the newest keyframe on the ones before it by their mapped poses. When the
+    newest one was mapped 0.4 m off (to the side), the fit is a compromise about halfway between, and the
+    newest keyframe's points alone would move it about 0.2 m: the gate turns the loop down. The same stack
+    without the error passes with next to no shift."""
+    from lego_loam_py.core.loop_closure import LoopCandidate
+
+    scene = room_world(seed=3)
+    target = xyz(sweep(scene, lidar_pose(0.0, 0.0, 0.0), noise=0.01, seed=1))
+    before = xyz(sweep(scene, lidar_pose(0.8, 0.3, 5.0), noise=0.01, seed=2))
+    newest = xyz(sweep(scene, lidar_pose(0.8, 0.3, 5.0), noise=0.01, seed=3)) + [0.0, misplaced_m, 0.0]
+    source = np.concatenate([before, newest])
+    marked = np.arange(len(source)) >= len(before)
+    truth = lidar_pose(0.8, 0.3, 5.0)
+    fit = register(source, target, np.eye(4), LC.registration_distances, LC.registration_iterations,
+                   LC.inlier_distance, LC.registration_points, LC.min_registration_sigma, subset=marked)
+    if misplaced_m:
+        assert 0.12 < fit.subset_shift_m < 0.3 and fit.subset_shift_m > LC.max_source_shift
+    else:
+        assert fit.subset_shift_m < 0.03 and fit.subset_shift_deg < 0.2
+        assert np.linalg.norm((np.linalg.inv(truth) @ fit.pose)[:3, 3]) < 0.05
+    candidate = LoopCandidate(5, 0, source, target, detector='radius', initial=np.eye(4), graph_relative=truth,
+                              path_m=100.0, latest_stamp_ns=2, candidate_stamp_ns=1, source_latest=marked)
+    result, _ = LoopCloser(ON.loop_closure).verify(candidate)
+    assert result.reason.startswith('source inconsistent') == bool(misplaced_m), result.reason
+    assert (result.reason == 'verified') == (not misplaced_m)
+
+
 def verified(latest_stamp: int, candidate_stamp: int) -> LoopResult:
     return LoopResult(1, 0, 0.05, True, False, np.eye(4), reason='verified', latest_stamp_ns=latest_stamp,
                       candidate_stamp_ns=candidate_stamp, information=np.eye(6))

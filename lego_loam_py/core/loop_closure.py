@@ -59,6 +59,7 @@ class LoopCandidate:
     latest_stamp_ns: int = 0
     candidate_stamp_ns: int = 0
     candidate_pose: np.ndarray | None = None   # 4x4 world pose of the candidate (camera axes), for display
+    source_latest: np.ndarray | None = None    # 'verified': which source points are mostly the latest keyframe's
 
 
 @dataclass(eq=False)
@@ -84,6 +85,8 @@ class LoopResult:
     correction_deg: float = 0.0      # ... and turns it [deg]
     applied_m: float = float('nan')  # how far the latest keyframe actually moved when the loop went in [m]
     cpu_ms: float = 0.0              # CPU of the verifying registration and its gates (the process's) [ms]
+    source_shift_m: float = 0.0      # how far the latest keyframe alone would move the fit [m] (see verify)
+    source_shift_deg: float = 0.0    # ... and turn it [deg]
 
     def constrain(self, latest_pose: np.ndarray, candidate_pose: np.ndarray) -> None:
         """The original's constraint from its ICP correction, given both keyframes' world poses (4x4, camera
@@ -174,14 +177,16 @@ def _levelling(pose_lidar: np.ndarray) -> np.ndarray:
 _MAX_SOURCE_POINTS, _MAX_TARGET_POINTS = 6000, 20000
 
 
-def _thinned(points: np.ndarray, leaf: float, max_points: int) -> np.ndarray:
-    """(N, 3) points voxel-filtered with ``leaf`` [m], coarser (x1.25 at a time) until at most ``max_points``."""
-    cloud = np.column_stack([points, np.zeros(len(points))]).astype(np.float32)
+def _thinned(points: np.ndarray, leaf: float, max_points: int, marked: np.ndarray | None = None):
+    """(N, 3) points voxel-filtered with ``leaf`` [m], coarser (x1.25 at a time) until at most ``max_points``.
+    With ``marked`` (N booleans) also which of the thinned points come mostly from marked points."""
+    cloud = np.column_stack([points, np.zeros(len(points)) if marked is None else marked]).astype(np.float32)
     thinned = voxel_downsample(cloud, leaf)
     while len(thinned) > max_points:
         leaf *= 1.25
         thinned = voxel_downsample(cloud, leaf)
-    return thinned[:, :3].astype(np.float64)
+    xyz = thinned[:, :3].astype(np.float64)
+    return xyz if marked is None else (xyz, thinned[:, 3] > 0.5)
 
 
 def _rot_z(angle: float) -> np.ndarray:
@@ -309,8 +314,9 @@ class LoopCloser:
                 for j in ids]
             return np.concatenate(parts)
 
-        source = _thinned(cloud_in(latest, range(max(0, latest - lc.source_keyframes), latest + 1)),
-                          lc.history_keyframe_leaf_size, _MAX_SOURCE_POINTS)
+        stacked = [cloud_in(latest, [j]) for j in range(max(0, latest - lc.source_keyframes), latest + 1)]
+        source, source_latest = _thinned(np.concatenate(stacked), lc.history_keyframe_leaf_size, _MAX_SOURCE_POINTS,
+                                         marked=np.arange(sum(map(len, stacked))) >= sum(map(len, stacked[:-1])))
         target = _thinned(cloud_in(candidate, range(max(0, candidate - lc.target_keyframes),
                                                     min(latest, candidate + lc.target_keyframes + 1))),
                           lc.history_keyframe_leaf_size, _MAX_TARGET_POINTS)
@@ -326,7 +332,7 @@ class LoopCloser:
                              graph_relative=graph_relative, path_m=float(steps.sum()),
                              latest_stamp_ns=keyframes[latest].stamp_ns,
                              candidate_stamp_ns=keyframes[candidate].stamp_ns,
-                             candidate_pose=pose6_to_matrix(keyframes[candidate].pose6))
+                             candidate_pose=pose6_to_matrix(keyframes[candidate].pose6), source_latest=source_latest)
 
     def verify(self, candidate: LoopCandidate) -> tuple[LoopResult, Registration]:
         """Register the candidate and judge it by the registration and drift gates (no lock needed)."""
@@ -334,10 +340,13 @@ class LoopCloser:
         start = time.process_time()
         fit = register(candidate.source, candidate.target, candidate.initial, lc.registration_distances,
                        lc.registration_iterations, lc.inlier_distance, lc.registration_points,
-                       lc.min_registration_sigma)
+                       lc.min_registration_sigma, subset=candidate.source_latest if lc.source_keyframes else None)
         change = invert_pose(candidate.graph_relative) @ fit.pose   # the graph's view -> the registration's
         correction_m, correction_deg = float(np.linalg.norm(change[:3, 3])), rotation_angle_deg(change)
         reason = fit.gate_failure(lc.min_overlap, lc.max_rmse, lc.min_constraint)
+        if not reason and (fit.subset_shift_m > lc.max_source_shift or fit.subset_shift_deg > lc.max_source_shift_deg):
+            reason = (f'source inconsistent: the newest keyframe alone moves the fit {fit.subset_shift_m:.2f} m '
+                      f'{fit.subset_shift_deg:.2f} deg (its mapped pose disagrees with the keyframes before it)')
         if not reason and correction_m > lc.max_drift_base + lc.max_drift_ratio * candidate.path_m:
             reason = f'correction {correction_m:.2f} m beyond the drift possible over {candidate.path_m:.0f} m'
         if not reason and correction_deg > lc.max_drift_rotation_base + lc.max_drift_rotation_ratio * candidate.path_m:
@@ -349,7 +358,8 @@ class LoopCloser:
                             correction_m=correction_m, correction_deg=correction_deg, information=fit.information,
                             relative=lidar_pose_to_camera(invert_pose(fit.pose)),
                             relative_before=lidar_pose_to_camera(invert_pose(candidate.graph_relative)),
-                            cpu_ms=(time.process_time() - start) * 1e3)
+                            cpu_ms=(time.process_time() - start) * 1e3, source_shift_m=fit.subset_shift_m,
+                            source_shift_deg=fit.subset_shift_deg)
         return result, fit
 
     def admit(self, result: LoopResult, fit: Registration, keyframes: Sequence, now_ns: int) -> list[_Pending]:

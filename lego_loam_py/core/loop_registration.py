@@ -35,6 +35,10 @@ class Registration:
     constraint: float         # smallest eigenvalue of the per-inlier translational information (0..1/3; 0: a
     #                           direction the fit does not constrain, e.g. along a featureless corridor)
     information: np.ndarray   # 6x6 (rot, trans) information of the constraint (see the module docstring)
+    # How far the points of ``subset`` (see :func:`register`) would move the pose on their own: one Gauss-Newton
+    # step from the fit with their inliers alone, translation [m] and rotation [deg] (0: no subset given).
+    subset_shift_m: float = 0.0
+    subset_shift_deg: float = 0.0
 
     def gate_failure(self, min_overlap: float, max_rmse: float, min_constraint: float) -> str:
         """Why the fit fails the gates every verification applies ('' when it passes them): too little of the
@@ -58,7 +62,7 @@ def _normals(target: np.ndarray, radius: float, neighbours: int) -> np.ndarray:
 
 def register(source: np.ndarray, target: np.ndarray, initial: np.ndarray, distances: Sequence[float],
              iterations: int, inlier_distance: float, independent_points: float, min_sigma: float,
-             normal_radius: float = 1.0) -> Registration:
+             normal_radius: float = 1.0, subset: np.ndarray | None = None) -> Registration:
     """Register ``source`` (N, 3) points of the latest keyframe(s), in the latest keyframe's frame, to ``target``
     (M, 3), in the candidate's frame, from ``initial`` (4x4, source in target frame) by point-to-plane ICP with
     the correspondence ``distances`` [m] in turn (``iterations`` each).
@@ -67,7 +71,11 @@ def register(source: np.ndarray, target: np.ndarray, initial: np.ndarray, distan
     information is ``H * independent_points / N / sigma^2``: ``H`` the point-to-plane Gauss-Newton matrix of the
     N inliers, ``sigma`` their RMS residual (at least ``min_sigma`` [m]). Neighbouring residuals are not
     independent (a map's error is smooth), so the fit counts as ``independent_points`` measurements, whatever
-    the number of points."""
+    the number of points.
+
+    ``subset`` (N booleans) marks source points whose own view of the fit is checked: the step they would take
+    alone is in :attr:`Registration.subset_shift_m` / ``_deg`` (a source stacked from several keyframes whose
+    poses disagree gives a compromise that none of them agrees with)."""
     import open3d as o3d
 
     source = np.ascontiguousarray(source[:, :3], dtype=np.float64)
@@ -101,4 +109,21 @@ def register(source: np.ndarray, target: np.ndarray, initial: np.ndarray, distan
     constraint = float(np.linalg.eigvalsh(hessian[3:, 3:] / count)[0])
     sigma = max(rmse, min_sigma)
     information = hessian * (independent_points / count) / sigma ** 2
-    return Registration(pose, count / len(source), rmse, count, constraint, information)
+    shift_m, shift_deg = _subset_step(jacobian, residual, subset[inside]) if subset is not None else (0.0, 0.0)
+    return Registration(pose, count / len(source), rmse, count, constraint, information, shift_m, shift_deg)
+
+
+def _subset_step(jacobian: np.ndarray, residual: np.ndarray, chosen: np.ndarray) -> tuple[float, float]:
+    """The Gauss-Newton step (translation [m], rotation [deg]) of the ``chosen`` rows alone, over the directions
+    they constrain (eigenvalues above 1 % of the largest: a direction they leave open is no disagreement)."""
+    if chosen.sum() < 6:
+        return 0.0, 0.0
+    rows, r = jacobian[chosen], residual[chosen]
+    # Rotations scaled to metres at the points' RMS range, so that both kinds of direction compare.
+    arm = max(float(np.sqrt(np.mean(np.sum(rows[:, :3] ** 2, axis=1)))), 1e-6)
+    scale = np.array([1.0 / arm] * 3 + [1.0] * 3)
+    rows = rows * scale
+    values, vectors = np.linalg.eigh(rows.T @ rows)
+    keep = values > 0.01 * values[-1]
+    step = -vectors[:, keep] @ ((vectors[:, keep].T @ (rows.T @ r)) / values[keep]) * scale
+    return float(np.linalg.norm(step[3:])), float(np.degrees(np.linalg.norm(step[:3])))

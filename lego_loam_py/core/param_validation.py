@@ -191,7 +191,7 @@ def _validate(p: Params) -> None:
     for name in ('scan_context_rings', 'scan_context_sectors', 'registration_iterations', 'min_consistent_loops'):
         need(getattr(lc, name) >= 1, f'loop_closure.{name}', 'must be at least 1')
     for name in ('scan_context_max_radius', 'inlier_distance', 'max_rmse', 'registration_points',
-                 'min_registration_sigma', 'robust_kernel_width'):
+                 'min_registration_sigma', 'robust_kernel_width', 'max_source_shift', 'max_source_shift_deg'):
         need(getattr(lc, name) > 0, f'loop_closure.{name}', 'must be positive')
     need(len(lc.registration_distances) >= 1 and all(d > 0 for d in lc.registration_distances),
          'loop_closure.registration_distances', 'must be one or more positive distances [m]')
