@@ -58,6 +58,27 @@ def test_plane_fit_by_hand():
     assert len(plane_correspondences(cloud([[0.0, -1.25, 4.5]]), cKDTree(bumpy[:, :3]), bumpy, PARAMS)[0]) == 0
 
 
+def test_a_plane_needs_neighbours_that_span_one_not_a_ring_of_points_along_a_line():
+    """The 5 nearest map points along one lidar ring lie on a line, about which any plane fits within the
+    residual gate: with ``plane_min_aspect`` (0.2) such a neighbourhood makes no plane, a patch does. The
+    principal spreads are checked by hand."""
+    from lego_loam_py.core.geometry import fit_planes, principal_spreads
+
+    ring = np.array([[[x, -1.8, 10.0 + 0.002 * x * x] for x in (-0.8, -0.4, 0.0, 0.4, 0.8)]])   # a ring arc
+    patch = np.array([[[0.0, -1.8, 10.0], [1.0, -1.8, 10.0], [0.0, -1.8, 10.5], [1.0, -1.8, 10.5],
+                       [0.5, -1.8, 10.25]]])
+    # The patch: variance 4 x 0.5^2 / 5 = 0.2 m^2 across x, 4 x 0.25^2 / 5 = 0.05 m^2 along z.
+    along, across = principal_spreads(patch)
+    assert along[0] == pytest.approx(math.sqrt(0.2), rel=1e-9) and across[0] == pytest.approx(math.sqrt(0.05), rel=1e-9)
+    along, across = principal_spreads(ring)    # 0.57 m RMS along x; the arc bends by 1.3 mm
+    assert along[0] == pytest.approx(math.sqrt(0.32), rel=1e-3) and across[0] < 0.001
+    assert len(fit_planes(ring, 0.2)[0]) == 1 and len(fit_planes(ring, 0.2, 0.2)[0]) == 0
+    assert len(fit_planes(patch, 0.2, 0.2)[0]) == 1
+    assert PARAMS.map_optimization.plane_min_aspect == 0.2
+    original = load_params(default_params_file().parent / 'original.yaml').map_optimization
+    assert original.plane_min_aspect == 0.0
+
+
 @pytest.mark.parametrize('seed', range(3))
 def test_map_jacobian_matches_finite_differences(seed):
     rng = np.random.default_rng(seed)

@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 
-__all__ = ['plane_through', 'plane_distance', 'plane_coefficients', 'nearest_within', 'fit_planes', 'line_offsets',
-           'cross_rows', 'line_coefficients']
+__all__ = ['plane_through', 'plane_distance', 'plane_coefficients', 'nearest_within', 'fit_planes', 'principal_spreads',
+           'line_offsets', 'cross_rows', 'line_coefficients']
 
 _F32 = np.float32
 
@@ -49,10 +49,11 @@ def nearest_within(tree, points: np.ndarray, k: int, max_sq_dist: float):
     return used, index[used]
 
 
-def fit_planes(neighbours: np.ndarray, max_residual: float):
+def fit_planes(neighbours: np.ndarray, max_residual: float, min_aspect: float = 0.0):
     """Least-squares planes ``n · x + offset = 0`` through (m, k, 3) float64 neighbourhoods: (indices of the
-    neighbourhoods whose every point lies within ``max_residual`` [m] of their plane, unit normals (j, 3),
-    offsets (j,)).
+    neighbourhoods whose every point lies within ``max_residual`` [m] of their plane, and, with ``min_aspect``
+    > 0, that spread across their main direction at least that fraction of their spread along it (see
+    :func:`principal_spreads`), unit normals (j, 3), offsets (j,)).
 
     The plane is fitted as ``n · x = -1`` through the normal equations ``(A^T A) n = -A^T 1``, solved in closed
     form (Cramer's rule on the symmetric 3x3 systems, vectorised); it cannot pass through the origin, which
@@ -77,7 +78,39 @@ def fit_planes(neighbours: np.ndarray, max_residual: float):
     offset = 1.0 / norm
     residuals = np.abs(np.einsum('mki,mi->mk', neighbours, normal) + offset[:, None])
     valid = (residuals <= max_residual).all(axis=1)
+    if min_aspect > 0.0:   # (from the sums above; solvable rows only)
+        k = neighbours.shape[1]
+        along, across = _principal_spreads(-b[solvable] / k, *(m[solvable] / k for m in (xx, yy, zz, xy, xz, yz)))
+        valid &= across >= min_aspect * along
     return solvable[valid], normal[valid], offset[valid]
+
+
+def principal_spreads(neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """RMS spreads [m] of each (m, k, 3) neighbourhood along its first and second principal directions (the
+    square roots of the largest and middle eigenvalues of its covariance). Points along a line, such as the
+    nearest points of one lidar ring, spread along it only: any plane about the line fits them."""
+    k = neighbours.shape[1]
+    moments = [np.einsum('mk,mk->m', neighbours[..., i], neighbours[..., j]) / k for i, j in
+               ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))]
+    return _principal_spreads(neighbours.sum(axis=1) / k, *moments)
+
+
+def _principal_spreads(mean, xx, yy, zz, xy, xz, yz) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`principal_spreads` from the mean (m, 3) and the raw second moments (each (m,), divided by k), by
+    the closed form for the eigenvalues of symmetric 3x3 matrices, vectorised."""
+    mx, my, mz = mean[:, 0], mean[:, 1], mean[:, 2]
+    a, b, c = xx - mx * mx, yy - my * my, zz - mz * mz
+    e, f, g = xy - mx * my, xz - mx * mz, yz - my * mz
+    q = (a + b + c) / 3.0
+    p = np.sqrt(np.maximum(((a - q) ** 2 + (b - q) ** 2 + (c - q) ** 2 + 2.0 * (e * e + f * f + g * g)) / 6.0, 0.0))
+    safe = np.where(p > 1e-12, p, 1.0)
+    a, b, c, e, f, g = (a - q) / safe, (b - q) / safe, (c - q) / safe, e / safe, f / safe, g / safe
+    det = a * (b * c - g * g) - e * (e * c - g * f) + f * (e * g - b * f)
+    phi = np.arccos(np.clip(det / 2.0, -1.0, 1.0)) / 3.0
+    largest = np.where(p > 1e-12, q + 2.0 * p * np.cos(phi), q)
+    smallest = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    middle = np.where(p > 1e-12, 3.0 * q - largest - smallest, q)
+    return np.sqrt(np.maximum(largest, 0.0)), np.sqrt(np.maximum(middle, 0.0))
 
 
 def line_offsets(p: np.ndarray, anchor: np.ndarray, along: np.ndarray) -> np.ndarray:

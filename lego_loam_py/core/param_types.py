@@ -209,6 +209,11 @@ class MapOptimizationParams:
     edge_eigen_ratio: float = 3.0           # line if lambda1 > ratio * lambda2
     line_half_length: float = 0.1           # line points = centroid +- this * direction [m]
     plane_max_residual: float = 0.2         # every neighbour within this of the plane [m]
+    # A plane's neighbours must spread across their main direction at least this fraction of their spread
+    # along it (RMS; 0: any, the original). Neighbours along one lidar ring lie on a line about which the fitted
+    # plane turns freely; on the walls and ground of a young map such planes held the mapped pitch where it
+    # started (1.2-1.5 deg behind the truth within 5 s on the simulated campus: 2 m at 100 m).
+    plane_min_aspect: float = 0.2
     weight_gain: float = 0.9                # s = 1 - gain * |d|
     min_weight: float = 0.1
     max_iterations: int = 10

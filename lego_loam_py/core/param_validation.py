@@ -172,6 +172,7 @@ def _validate(p: Params) -> None:
         need(len(value) == 6 and all(v > 0 for v in value), f'map_optimization.{name}',
              'must be 6 positive variances (roll, pitch, yaw, x, y, z)')
     need(mo.knn >= 3, 'map_optimization.knn', 'must be at least 3')
+    need(0 <= mo.plane_min_aspect <= 1, 'map_optimization.plane_min_aspect', 'must be within 0..1 (0: any)')
     r = p.reliability
     need(r.max_points_per_pixel >= 1, 'reliability.max_points_per_pixel', 'must be at least 1')
     need(r.reset_after_failures >= 1, 'reliability.reset_after_failures', 'must be at least 1')

@@ -80,7 +80,7 @@ def plane_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: n
     if len(points_world) == 0 or tree is None:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 4))
     used, neighbours = _neighbourhoods(points_world, tree, map_points, mo)
-    planar, normal, offset = fit_planes(neighbours, mo.plane_max_residual)
+    planar, normal, offset = fit_planes(neighbours, mo.plane_max_residual, mo.plane_min_aspect)
     used = used[planar]
     p = points_world[used, :3].astype(np.float64)
     dist = np.einsum('mi,mi->m', p, normal) + offset
