@@ -208,7 +208,7 @@ class ImuAlignmentMonitor:
         self.last_fit = fit
         return fit
 
-    def _disagrees(self, fit: AlignmentFit | None, share: float = EXPLAINED, floor=MIN_EXPLAINED_DEG) -> bool:
+    def _disagrees(self, fit: AlignmentFit | None, share: float = EXPLAINED, floor: float = MIN_EXPLAINED_DEG) -> bool:
         """A correction that is material, significant and explains ``share`` of the disagreement and ``floor``
         degrees of it per interval (module docstring; the floor's figures: README, IMU mounting)."""
         if fit is None:

@@ -312,11 +312,12 @@ class LoopCloser:
             parts = [transform_points(to_frame @ poses[j], camera_to_lidar(np.concatenate(
                 [keyframes[j].corner, keyframes[j].surf, keyframes[j].outlier])[:, :3].astype(np.float64)))
                 for j in ids]
-            return np.concatenate(parts)
+            return np.concatenate(parts) if parts else np.zeros((0, 3))
 
-        stacked = [cloud_in(latest, [j]) for j in range(max(0, latest - lc.source_keyframes), latest + 1)]
-        source, source_latest = _thinned(np.concatenate(stacked), lc.history_keyframe_leaf_size, _MAX_SOURCE_POINTS,
-                                         marked=np.arange(sum(map(len, stacked))) >= sum(map(len, stacked[:-1])))
+        before = cloud_in(latest, range(max(0, latest - lc.source_keyframes), latest))
+        newest = cloud_in(latest, [latest])
+        source, source_latest = _thinned(np.concatenate([before, newest]), lc.history_keyframe_leaf_size,
+                                         _MAX_SOURCE_POINTS, marked=np.arange(len(before) + len(newest)) >= len(before))
         target = _thinned(cloud_in(candidate, range(max(0, candidate - lc.target_keyframes),
                                                     min(latest, candidate + lc.target_keyframes + 1))),
                           lc.history_keyframe_leaf_size, _MAX_TARGET_POINTS)

@@ -796,11 +796,11 @@ def _build_rows(seed: int) -> World:
 # ------------------------------------------------------------------------------------------------ open road
 
 def _build_open_road(seed: int, name: str = 'open_road', straight: float = 250.0, radius: float = 30.0,
-                     pole_spacing: float = 45.0, field_trees: int = 100, speed_mps: float = 8.0) -> World:
+                     field_trees: int = 100) -> World:
     """A 690 m stadium-shaped road across open fields driven at 8 m/s: two 250 m straights with nothing beside
     them but a lamp post every 45 m and trees scattered over the fields, so the mapping has little to hold the
     motion along the road and drifts; a cluster of buildings, cars and trees around the start, where the loop closes.
-    The keyword arguments give other sizes of it (``long_road``)."""
+    The keyword arguments give other sizes of it, with the same lamp posts and speed (``long_road``)."""
     waypoints = [(x, -radius) for x in np.arange(0.0, straight, 10.0)]
     waypoints += [(straight + radius * math.sin(a), -radius * math.cos(a)) for a in np.linspace(0.0, math.pi, 13)[1:-1]]
     waypoints += [(x, radius) for x in np.arange(straight, 0.0, -10.0)]
@@ -815,7 +815,7 @@ def _build_open_road(seed: int, name: str = 'open_road', straight: float = 250.0
     _ground(builder, terrain, x_range, y_range, 1.5,
             lambda c: np.where(clearance.distance(c) < 4.0, asphalt, grass).astype(np.uint8))
     start = path.xy(np.array([0.0]))[0]
-    for k, s in enumerate(np.arange(10.0, path.length, pole_spacing)):
+    for k, s in enumerate(np.arange(10.0, path.length, 45.0)):
         tangent = path.tangent(np.array([s]))[0]
         normal = np.array([-tangent[1], tangent[0]])
         side = 1.0 if k % 2 == 0 else -1.0
@@ -837,7 +837,7 @@ def _build_open_road(seed: int, name: str = 'open_road', straight: float = 250.0
             _add_tree(builder, terrain, xy, rng, conifer=rng.random() < 0.3, trunk_radius=rng.uniform(0.15, 0.3),
                       height=rng.uniform(3.0, 6.0), crown_radius=rng.uniform(1.5, 3.0))
     scene = builder.build()
-    speed = SpeedProfile(path, cruise_speed=speed_mps, max_lateral_acceleration=2.0, smoothing=10.0)
+    speed = SpeedProfile(path, cruise_speed=8.0, max_lateral_acceleration=2.0, smoothing=10.0)
     trajectory = PathTrajectory(path, speed, terrain, sensor_height=1.8, wheelbase=2.7, track=1.6)
     return World(name, seed, scene, trajectory, _whole_scans(speed.lap_time + 10.0),
                  SCENARIOS[name].description, _facts(path, speed, trajectory))
