@@ -10,8 +10,8 @@ from scipy.spatial.transform import Rotation
 
 from lego_loam_py.core.frames import ImuMounting, rpy_to_matrix
 from lego_loam_py.core.imu_alignment import GyroTrack, best_rotation, fit_alignment, shifted_increments
-from lego_loam_py.core.imu_monitor import (MIN_EXPLAINED_DEG, SIGNIFICANCE, ImuAlignmentMonitor,
-                                           nearest_right_angle_rotation)
+from lego_loam_py.core.imu_monitor import (MAPPING_PROBATION_MAX, MIN_EXPLAINED_DEG, SIGNIFICANCE,
+                                           ImuAlignmentMonitor, MappingImuCheck, nearest_right_angle_rotation)
 from lego_loam_py.core.params import Params
 
 RATE = 200.0   # IMU samples per second
@@ -170,6 +170,51 @@ def test_the_imu_is_used_again_once_it_agrees():
     assert not check.trusted
     events = feed(check, 20.0, start=20.0)
     assert check.trusted and events[-1].trusted and 'used again' in events[-1].message
+
+
+def feed_quick(monitor: ImuAlignmentMonitor, duration: float, mount_rpy=(0.0, 0.0, 0.0)) -> list:
+    """Sweeps (0.1 s) of featureAssociation's probation to ``monitor.add_quick``; returns the events."""
+    times = np.arange(0.0, duration + 1.0, 1.0 / RATE)
+    lidar_track = GyroTrack(times, wobbly_rates(times))
+    mount = rpy_to_matrix(mount_rpy)
+    imu_track = GyroTrack(times, wobbly_rates(times) @ mount)
+    events = []
+    for a in np.arange(0.5, duration, 0.1):
+        b = a + 0.1
+        lidar_turn = Rotation.from_rotvec(lidar_track.increments([a], [b], [0.0])[0, 0]).as_matrix()
+        imu_turn = Rotation.from_rotvec(imu_track.increments([a], [b], [0.0])[0, 0]).as_matrix()
+        rates = wobbly_rates(np.array([a, b])) @ mount
+        event = monitor.add_quick(a, b, lidar_turn, imu_turn, rates[0], rates[1])
+        events += [] if event is None else [event]
+    return events
+
+
+def test_the_probation_passes_an_imu_that_agrees_and_drops_one_that_does_not():
+    """featureAssociation's first seconds: sweeps whose turns agree end the probation (the IMU is then used);
+    a grossly rotated IMU is distrusted before it was ever used."""
+    check = monitor()
+    assert feed_quick(check, 3.0) == [] and check.probation_passed and check.trusted
+    check = monitor()
+    events = feed_quick(check, 3.0, mount_rpy=(10.0, -20.0, 130.0))
+    assert events and not check.trusted and not check.probation_passed
+    assert 'over the last 2 s' in events[0].message
+
+
+def test_the_mapping_blends_the_imu_only_once_a_window_check_passed_it():
+    """mapOptimization's probation: no roll and pitch from the IMU until three windows found nothing against it,
+    or MAPPING_PROBATION_MAX seconds when no window could judge; never from a distrusted IMU."""
+    check = MappingImuCheck(Params(), lambda: None)
+    assert not check.blending(100.0) and not check.blending(100.0 + MAPPING_PROBATION_MAX - 0.1)
+    assert check.blending(100.0 + MAPPING_PROBATION_MAX)
+    check = MappingImuCheck(Params(), lambda: None)
+    assert not check.blending(0.0)
+    feed(check.monitor, 10.0)          # an aligned IMU: a full window (from 0.5 s to 5.5 s) and three evaluations
+    assert check.monitor.vetted and check.blending(6.8)
+    check = MappingImuCheck(Params(), lambda: None)
+    feed(check.monitor, 30.0, mount_rpy=(0.0, 0.0, 90.0))
+    assert not check.monitor.vetted and not check.blending(30.0 + MAPPING_PROBATION_MAX)
+    check = MappingImuCheck(Params().replace(imu__alignment_check=False), lambda: None)
+    assert check.blending(0.0)   # the check off: blended from the start, as the original does
 
 
 def test_an_upside_down_imu_is_caught_by_gravity_before_any_motion():

@@ -199,21 +199,26 @@ def test_an_upside_down_imu_is_not_used_from_the_first_scan():
     assert np.array_equal(np.array(result.odometry), np.array(without.odometry))
 
 
-def test_a_grossly_rotated_imu_is_dropped_within_the_first_turn_and_costs_little():
-    """Rotated (10, -20, 130) deg: the yaw rate leaks into roll and pitch. featureAssociation's quick look drops it
-    as the hairpin begins; the drive then is about as accurate as without an IMU (its ATE is 0.04 m)."""
+def test_a_grossly_rotated_imu_is_dropped_on_probation_and_never_used():
+    """Rotated (10, -20, 130) deg: the yaw rate leaks into roll and pitch. featureAssociation compares the IMU with
+    the lidar for its first seconds before using it, and drops it as the hairpin begins (1.6 s): it was never used,
+    and the drive is as accurate as without an IMU (0.070 m against 0.071 m: only the start's levelling by the
+    IMU's gravity differs, which the ATE's alignment takes out; 5 % allowed)."""
     result = run((10.0, -20.0, 130.0))
     first = result.imu_alignment[0]
     assert first[0] == 'featureAssociation' and not first[1].trusted
     assert first[1].stamp - result.stamps[0] * 1e-9 < 2.5
-    assert ate(result) < 1.5 * ate(run(imu=False))
+    assert result.counts.get('scans_with_imu', 0) == 0
+    assert ate(result) < 1.05 * ate(run(imu=False))
 
 
 def test_a_rotated_imu_with_its_parameters_gives_the_aligned_result():
     aligned = run()
     rotated = run((25.0, -40.0, 130.0), imu__rotation_rpy=[25.0, -40.0, 130.0])
     assert rotated.imu_alignment == [] and aligned.imu_alignment == []
-    assert rotated.counts['scans_with_imu'] == aligned.counts['scans_with_imu'] == 60
+    # On probation for its first sweeps (3 s, 30 sweeps, at most), ended early by the hairpin's turns that agree.
+    assert rotated.counts['scans_with_imu'] == aligned.counts['scans_with_imu']
+    assert 30 < aligned.counts['scans_with_imu'] < 60
     # The same drive but for the rounding of the rotations (1e-16), which the odometry's iterations and
     # correspondence choices amplify: 3.8 mm and 0.06 deg at worst over the 40 m here; 1 cm and 0.1 deg allowed.
     a, b = np.array(aligned.integrated), np.array(rotated.integrated)

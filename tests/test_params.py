@@ -60,6 +60,7 @@ def test_deliberate_deviations_and_the_file_that_restores_the_original():
     assert original.map_optimization.degeneracy_threshold == 100.0
     assert (default.loop_closure.method, original.loop_closure.method) == ('verified', 'original')
     assert default.loop_closure.loop_closure_enable_flag and not original.loop_closure.loop_closure_enable_flag
+    assert default.imu.alignment_check and not original.imu.alignment_check
 
 
 def test_config_file_equals_the_defaults():

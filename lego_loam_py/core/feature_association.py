@@ -222,16 +222,21 @@ class FeatureAssociation:
         self._imu_event = check.scan(scan.stamp_ns, lambda: self._ground(scan, points),
                                      None if attitude is None else attitude.r_start)
         attitude = attitude if check.trusted else None   # an IMU that disagrees with the lidar is not used
+        # In its first seconds the IMU is on probation: compared with the lidar's own turn sweep by sweep but not
+        # used, so that a misaligned one is caught before it spoils anything (gravity, checked above, may level
+        # the start).
+        on_probation = attitude is not None and check.on_probation(scan.stamp_ns * 1e-9)
+        imu_attitude, attitude = attitude, None if on_probation else attitude
         if not self.initialized:
-            if attitude is not None and not self._resumed:
-                self.transform_sum[0] += attitude.pitch_start
-                self.transform_sum[2] += attitude.roll_start
+            if imu_attitude is not None and not self._resumed:
+                self.transform_sum[0] += imu_attitude.pitch_start
+                self.transform_sum[2] += imu_attitude.roll_start
             self._world_pose = make_pose(euler_to_matrix(*self.transform_sum[:3]), self.transform_sum[3:])
             motion = np.eye(4)
             corner_last = self._deskew_to_start(features.less_sharp, features.less_sharp_index, motion, attitude, points)
             surf_last = self._deskew_to_start(features.less_flat, None, motion, attitude, points)
             odometry.set_last(corner_last, surf_last)
-            self._previous_attitude = attitude
+            self._previous_attitude = imu_attitude
             self._first_features = (features, points, attitude)   # re-deskewed once the motion is known
             self.initialized = True
             return self._finish(scan, features, corner_last, surf_last, None, True, attitude is not None, None, timings)
@@ -268,15 +273,15 @@ class FeatureAssociation:
         motion = invert_pose(make_pose(sweep_rotation(*theta[:3]), theta[3:]))
         if use_imu:
             motion = motion @ make_pose(previous.r_start.T @ attitude.r_start)
-            if check.looking(previous.t_start):   # is the IMU grossly misaligned? (its first seconds only)
-                self._imu_event = check.quick_look(odometry, sharp, flat, wall, previous.t_start, attitude.t_start,
-                                                   previous.r_start.T @ attitude.r_start)
+        elif on_probation and previous is not None:
+            self._imu_event = check.compare(previous.t_start, imu_attitude.t_start, motion[:3, :3],
+                                            previous.r_start.T @ imu_attitude.r_start) or self._imu_event
         self._world_pose = self._world_pose @ motion
         self.transform_sum = matrix_to_pose6(self._world_pose)
         corner_last = self._deskew_to_start(features.less_sharp, features.less_sharp_index, motion, attitude, points)
         surf_last = self._deskew_to_start(features.less_flat, None, motion, attitude, points)
         odometry.set_last(corner_last, surf_last)
-        self._previous_attitude = attitude
+        self._previous_attitude = imu_attitude
         result = self._finish(scan, features, corner_last, surf_last,
                               lambda: self._outlier_at_start(scan, motion, attitude), False, use_imu, stats, timings)
         result.timings_ms['total'] = (time.perf_counter() - t0) * 1e3

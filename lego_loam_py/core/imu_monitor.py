@@ -30,9 +30,12 @@ Two quicker looks catch what would spoil the map before a window is full:
   the normal of the ground under the lidar on the first scan the IMU covers, mapOptimization with its mapped
   pose's at every step; more than :data:`MAX_GROUND_TILT` apart (upside down, on its side) and the IMU is not
   trusted, so the odometry does not start from its roll and pitch nor does the mapping blend them in;
-* featureAssociation's first :data:`QUICK_SECONDS` of IMU use (:meth:`SweepImuCheck.quick_look`): each sweep is
-  registered once more without the IMU's prior, and :data:`QUICK_DISAGREEMENT` degrees per sweep or more that a
-  rotation explains, three sweeps in a row, is acted on at once.
+* the IMU's probation, its first :data:`QUICK_SECONDS` in featureAssociation (:meth:`SweepImuCheck.on_probation`):
+  the odometry does not use it yet but compares its turn with each sweep's lidar-only registration, and
+  :data:`QUICK_DISAGREEMENT` degrees per sweep or more that a rotation explains, three sweeps in a row, distrusts
+  it before it was ever used; three sweeps in a row whose turns agree to what a mounting error of
+  ``alignment_max_rotation`` leaves end the probation early. From then on it is used (and watched by the window
+  check).
 """
 from __future__ import annotations
 
@@ -44,12 +47,9 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from lego_loam_py.core.frames import (CAMERA_TO_LIDAR, LIDAR_TO_CAMERA, ImuMounting, euler_to_matrix, invert_pose,
-                                      make_pose, matrix_to_rpy)
+from lego_loam_py.core.frames import CAMERA_TO_LIDAR, LIDAR_TO_CAMERA, ImuMounting, euler_to_matrix, matrix_to_rpy
 from lego_loam_py.core.imu import ImuBuffer, imu_mounting, imu_world_rotation
 from lego_loam_py.core.imu_alignment import AlignmentFit, fit_alignment, shifted_increments
-from lego_loam_py.core.laser_odometry import make_laser_odometry
-from lego_loam_py.core.sweep import motion_to_theta, sweep_rotation
 
 __all__ = ['ImuAlignmentMonitor', 'AlignmentEvent', 'SweepImuCheck', 'MappingImuCheck', 'nearest_right_angle_rotation',
            'SIGNIFICANCE', 'EXPLAINED', 'MAX_GROUND_TILT', 'REPEAT_AFTER']
@@ -67,7 +67,8 @@ QUICK_WINDOW = 2.0        # [s] featureAssociation's quick look at a gross misal
 QUICK_INTERVALS = 5       # ... judged from this many sweeps on ...
 QUICK_DISAGREEMENT = 0.25  # ... when they disagree by this much per sweep [deg RMS] or more
 QUICK_TURN_DEG = 5.0      # ... once they turned this much in all
-QUICK_SECONDS = 3.0       # [s] how long featureAssociation looks, from the IMU's first use
+MAPPING_PROBATION_MAX = 20.0   # [s] of IMU data after which mapOptimization blends an IMU no window could judge
+QUICK_SECONDS = 3.0       # [s] the IMU's probation in featureAssociation, from its first sweep
 OFFSETS = np.round(np.arange(-0.2, 0.2 + 1e-9, 0.01), 6)   # clock offsets searched [s]
 
 
@@ -119,7 +120,11 @@ class ImuAlignmentMonitor:
         self.distrusted_at: float | None = None   # [s] when the IMU was last found to disagree
         self._refined = False                      # advice given from a window without the IMU's influence
         self._strikes = 0          # windows in a row that found the IMU to disagree (STRIKES distrust it) ...
-        self._quick_strikes = 0    # ... and the same for the quick look
+        self._clean = 0            # ... or found nothing against it (STRIKES of them: vetted)
+        self.vetted = False        # a window check has passed the IMU (mapOptimization's probation, MappingImuCheck)
+        self._quick_strikes = 0    # ... and the same for the quick look ...
+        self._quick_agreements = 0  # ... which also counts windows in a row that show the IMU agreeing
+        self.probation_passed = False   # STRIKES of those: the IMU's probation is over (SweepImuCheck)
         self.evaluations = 0
         self.last_fit: AlignmentFit | None = None   # the latest window's fit (for diagnostics)
 
@@ -150,10 +155,18 @@ class ImuAlignmentMonitor:
         if len(window) < QUICK_INTERVALS:
             return None
         fit = self._fit(window, QUICK_TURN_DEG)
-        # What the correction explains, in degrees per sweep: the quick registration's turn can be noisy (0.2-0.3
-        # deg per sweep in a corridor), so the share explained says less than the amount.
+        # What the correction explains, in degrees per sweep: a sweep-to-sweep registration's turn can be noisy
+        # (0.2-0.3 deg per sweep in a corridor), so the share explained says less than the amount.
         gross = self._disagrees(fit, share=0.0, floor=QUICK_DISAGREEMENT)
         self._quick_strikes = self._quick_strikes + 1 if gross else 0
+        # Agreement shown early ends the probation: the IMU's turns match the lidar's per sweep to within what a
+        # mounting error of alignment_max_rotation would leave of the turns seen (a turn of a degrees per sweep
+        # about a misaligned axis differs by about a * angle), and within the gross level.
+        turn_deg = float(np.degrees(np.mean([np.linalg.norm(i[2]) for i in window])))
+        agrees = fit is not None and not gross and \
+            fit.rms_before_deg <= min(QUICK_DISAGREEMENT, math.radians(self.max_rotation) * turn_deg)
+        self._quick_agreements = self._quick_agreements + 1 if agrees else 0
+        self.probation_passed = self.probation_passed or self._quick_agreements >= STRIKES
         if self._quick_strikes < STRIKES:
             return None
         self._reason = self._advice(fit, QUICK_WINDOW, 'sweep')
@@ -221,6 +234,8 @@ class ImuAlignmentMonitor:
         if fit is None:
             return None
         self._strikes = self._strikes + 1 if self._disagrees(fit) else 0
+        self._clean = 0 if self._strikes else self._clean + 1
+        self.vetted = self.vetted or self._clean >= STRIKES
         if self._strikes:
             self._reason = self._advice(fit)
             if self.trusted:
@@ -323,55 +338,36 @@ class _Check:
 
 class SweepImuCheck(_Check):
     """featureAssociation's check: the IMU's state at each scan's pose time is kept until mapOptimization's pose
-    of that scan comes back (/aft_mapped_to_init); the gravity check at start-up; and a quick look at each sweep
-    of the IMU's first :data:`QUICK_SECONDS` (:meth:`quick_look`) for a misalignment gross enough to spoil the map
-    before the mapped poses could tell."""
+    of that scan comes back (/aft_mapped_to_init); the gravity check at start-up; and the IMU's probation, its
+    first :data:`QUICK_SECONDS` (:meth:`on_probation`), when featureAssociation does not use it and each sweep's
+    lidar-only turn is compared with it (:meth:`compare`) for a misalignment gross enough to spoil the map before
+    the mapped poses could tell."""
 
     def __init__(self, params, buffer: Callable[[], ImuBuffer]):
         super().__init__(params, buffer, 'featureAssociation')
         self._states: dict[int, tuple] = {}
-        # The quick look's lidar-only registration: one block of iterations, no second try from standing still.
-        fa = params.feature_association
-        self._quick_params = params.replace(feature_association__max_iterations=fa.reassociate_every,
-                                            feature_association__lost_match_ratio=0.0)
-        self._lidar_odometry = None
         self._first_look: float | None = None
         self._gravity_checked = False
 
-    def looking(self, stamp: float) -> bool:
-        """Whether the sweep starting at ``stamp`` [s] gets a quick look (the IMU's first seconds in use)."""
+    def on_probation(self, stamp: float) -> bool:
+        """Whether the sweep starting at ``stamp`` [s] falls in the IMU's probation, when it is compared with the
+        lidar (:meth:`compare`) but not used: its first :data:`QUICK_SECONDS` since it was first available and
+        trusted, or until the comparison shows it agrees."""
         if not self.monitor.enabled or not self.trusted:
             return False
         if self._first_look is None:
             self._first_look = stamp
-        return stamp - self._first_look < QUICK_SECONDS
+        return not self.monitor.probation_passed and stamp - self._first_look < QUICK_SECONDS
 
-    def quick_look(self, odometry, sharp: np.ndarray, flat: np.ndarray, wall, start: float, end: float,
-                   imu_turn: np.ndarray) -> AlignmentEvent | None:
-        """A sweep registered with the IMU: ``odometry`` has just matched ``sharp`` and ``flat`` (the registration
-        inputs, IMU-rotated) with the IMU's turn ``imu_turn`` (camera axes, sweep start ``start`` to ``end``) held
-        by its prior. Registering once more without the prior, from there against the same 'last' clouds, shows
-        which turn the lidar prefers (not all of it: the 'last' clouds were deskewed with the IMU too, but enough
-        for a gross misalignment). When the IMU is found to disagree, ``odometry`` continues from the lidar's own
-        motion."""
-        if self._lidar_odometry is None:
-            self._lidar_odometry = make_laser_odometry(self._quick_params, odometry.fix_scan_bound)
-        lidar = self._lidar_odometry
-        lidar.last_corner, lidar.last_surf = odometry.last_corner, odometry.last_surf
-        lidar.last_corner_count, lidar.last_surf_count = odometry.last_corner_count, odometry.last_surf_count
-        lidar.transform_cur = odometry.transform_cur.copy()
-        lidar.register(sharp, flat, wall)
-        theta = lidar.transform_cur
+    def compare(self, start: float, end: float, lidar_turn: np.ndarray, imu_turn: np.ndarray) -> AlignmentEvent | None:
+        """A sweep on probation: the lidar odometry's turn ``lidar_turn`` (registered without the IMU) and the
+        IMU's ``imu_turn`` from the sweep start ``start`` to the next one ``end`` [s] (rotations, camera axes, the
+        pose at ``end`` in the frame at ``start``), for the quick look at a gross misalignment."""
         states = self.imu_state(start), self.imu_state(end)
         if states[0] is None or states[1] is None:
             return None
-        lidar_turn = sweep_rotation(*theta[:3]).T @ imu_turn
-        event = self.monitor.add_quick(start, end, _to_lidar(lidar_turn), _to_lidar(imu_turn), states[0][1],
-                                       states[1][1])
-        if event is not None:   # the next sweep without the IMU, starting from this one's motion as the lidar saw it
-            motion = invert_pose(make_pose(sweep_rotation(*theta[:3]), theta[3:])) @ make_pose(imu_turn)
-            odometry.transform_cur[:] = motion_to_theta(motion)
-        return event
+        return self.monitor.add_quick(start, end, _to_lidar(lidar_turn), _to_lidar(imu_turn), states[0][1],
+                                      states[1][1])
 
     def scan(self, stamp_ns: int, ground: Callable[[], np.ndarray],
              attitude: np.ndarray | None = None) -> AlignmentEvent | None:
@@ -414,11 +410,26 @@ class SweepImuCheck(_Check):
 
 
 class MappingImuCheck(_Check):
-    """mapOptimization's check, at every mapping step."""
+    """mapOptimization's check, at every mapping step, and the IMU's probation there: its roll and pitch are
+    blended in only once the window check has passed it (:data:`STRIKES` windows in a row that found nothing
+    against it), or after :data:`MAPPING_PROBATION_MAX` seconds of its data when the motion never let a window
+    judge (a drive without turns). The blend is slow (its weight 0.002 per step takes minutes to level a map), so
+    waiting costs an IMU that is right nothing, while a wrong one's roll and pitch in those seconds tilt the map."""
 
     def __init__(self, params, buffer: Callable[[], ImuBuffer]):
         super().__init__(params, buffer, 'mapOptimization')
         self._params = params
+        self._first_stamp: float | None = None   # [s] the first step the IMU covered
+
+    def blending(self, time: float) -> bool:
+        """Whether the IMU's roll and pitch are blended in at a step at ``time`` [s] (trusted and past probation)."""
+        if not self.trusted:
+            return False
+        if not self.monitor.enabled:
+            return True
+        if self._first_stamp is None or time < self._first_stamp:   # (time went back: a bag restarted)
+            self._first_stamp = time
+        return self.monitor.vetted or time - self._first_stamp >= MAPPING_PROBATION_MAX
 
     def update(self, stamp_ns: int, transform: np.ndarray) -> AlignmentEvent | None:
         """mapOptimization's use of the IMU at a mapping step: its pose six-vector ``transform`` (transform_tobe, of
@@ -426,8 +437,9 @@ class MappingImuCheck(_Check):
         as the original does, unless the check distrusts the IMU."""
         event = self.step(stamp_ns, euler_to_matrix(*transform[:3]))
         imu = self._buffer()
-        if len(imu) and self.trusted:
-            state = imu.interpolate([stamp_ns * 1e-9 + self._params.sensor.scan_period])
+        time = stamp_ns * 1e-9 + self._params.sensor.scan_period
+        if len(imu) and self.blending(time):
+            state = imu.interpolate([time])
             w = self._params.map_optimization.imu_blend_weight
             transform[0] = (1 - w) * transform[0] + w * float(state.pitch[0])
             transform[2] = (1 - w) * transform[2] + w * float(state.roll[0])
