@@ -2,7 +2,8 @@
 and what ``lego_loam_py calibrate`` recovers, on simulated recordings whose mounting is known.
 
     .venv/bin/python benchmarks/imu_mounting.py [--scenarios aggressive corridor] [--mounts yaw90 roll180 arbitrary]
-                                                [--lever-arm 0.2 0.1 -0.2] [--time-offset 0.02] [--json out.json]
+                                                [--lever-arm 0.2 0.1 -0.2] [--time-offset 0.02] [--spread]
+                                                [--json out.json]
 
 For each scenario the recordings (aligned IMU, and each mounting with the lever arm and the clock offset) are
 generated into the simulator's cache on first use. The lidar data of a scenario is the same whatever the IMU's
@@ -73,6 +74,9 @@ def main() -> None:
     parser.add_argument('--time-offset', type=float, default=0.02, help='[s]')
     parser.add_argument('--duration', type=float, default=None, help='simulated seconds (default: a whole lap)')
     parser.add_argument('--calibration-only', action='store_true', help='only the calibrations (and the no-IMU run)')
+    parser.add_argument('--spread', action='store_true',
+                        help='also the run-to-run spread: the aligned IMU with imu.time_offset +-1 us and no IMU with '
+                             'map_optimization.plane_min_aspect +-1e-4 (changes that should change nothing)')
     parser.add_argument('--json', type=Path, default=None)
     args = parser.parse_args()
     report = {}
@@ -86,6 +90,15 @@ def main() -> None:
             print(line('aligned IMU', rows['aligned IMU']), flush=True)
         rows['no IMU'], lidar_only = run(aligned_bag, Params(), imu=False)
         print(line('no IMU', rows['no IMU']), flush=True)
+        if args.spread and not args.calibration_only:
+            for sign in (1, -1):
+                label = f'aligned IMU, time_offset {sign:+d} us'
+                rows[label], _ = run(aligned_bag, Params().replace(imu__time_offset=sign * 1e-6))
+                print(line(label, rows[label]), flush=True)
+                label = f'no IMU, plane_min_aspect {0.2 + sign * 1e-4:g}'
+                nudged = Params().replace(map_optimization__plane_min_aspect=0.2 + sign * 1e-4)
+                rows[label], _ = run(aligned_bag, nudged, imu=False)
+                print(line(label, rows[label]), flush=True)
         stamps_ns, poses = lidar_only.trajectory()
         for mount in args.mounts:
             rpy = MOUNTS[mount]

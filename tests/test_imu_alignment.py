@@ -10,8 +10,9 @@ from scipy.spatial.transform import Rotation
 
 from lego_loam_py.core.frames import ImuMounting, rpy_to_matrix
 from lego_loam_py.core.imu_alignment import GyroTrack, best_rotation, fit_alignment, shifted_increments
-from lego_loam_py.core.imu_monitor import (MAPPING_PROBATION_MAX, MIN_EXPLAINED_DEG, SIGNIFICANCE,
-                                           ImuAlignmentMonitor, MappingImuCheck, nearest_right_angle_rotation)
+from lego_loam_py.core.imu_monitor import (MAPPING_PROBATION_MAX, MIN_EXPLAINED_DEG, PROBATION_SWEEPS,
+                                           PROBATION_TURN_DEG, SIGNIFICANCE, ImuAlignmentMonitor, MappingImuCheck,
+                                           SweepImuCheck, nearest_right_angle_rotation)
 from lego_loam_py.core.params import Params
 
 RATE = 200.0   # IMU samples per second
@@ -190,14 +191,33 @@ def feed_quick(monitor: ImuAlignmentMonitor, duration: float, mount_rpy=(0.0, 0.
 
 
 def test_the_probation_passes_an_imu_that_agrees_and_drops_one_that_does_not():
-    """featureAssociation's first seconds: sweeps whose turns agree end the probation (the IMU is then used);
-    a grossly rotated IMU is distrusted before it was ever used."""
+    """featureAssociation's probation: sweeps whose turns agree end it (the IMU is then used on every sweep); a
+    grossly rotated IMU is distrusted."""
     check = monitor()
     assert feed_quick(check, 3.0) == [] and check.probation_passed and check.trusted
     check = monitor()
     events = feed_quick(check, 3.0, mount_rpy=(10.0, -20.0, 130.0))
     assert events and not check.trusted and not check.probation_passed
     assert 'over the last 2 s' in events[0].message
+
+
+def test_only_fast_turning_sweeps_are_held_without_the_imu_on_probation():
+    """featureAssociation registers a sweep without the IMU (and compares) only when the IMU turned
+    PROBATION_TURN_DEG or more since the last sweep, for the first PROBATION_SWEEPS such sweeps, and not once the
+    probation has passed."""
+    def turn(deg: float) -> np.ndarray:
+        return Rotation.from_rotvec([0.0, math.radians(deg), 0.0]).as_matrix()
+
+    check = SweepImuCheck(Params(), lambda: None)
+    assert not check.on_probation(None)                                  # the first sweep: no turn known
+    assert not check.on_probation(turn(0.9 * PROBATION_TURN_DEG))
+    assert all(check.on_probation(turn(2 * PROBATION_TURN_DEG)) for _ in range(PROBATION_SWEEPS))
+    assert not check.on_probation(turn(2 * PROBATION_TURN_DEG))         # the probation is over
+    check = SweepImuCheck(Params(), lambda: None)
+    check.monitor.probation_passed = True
+    assert not check.on_probation(turn(2 * PROBATION_TURN_DEG))
+    check = SweepImuCheck(Params().replace(imu__alignment_check=False), lambda: None)
+    assert not check.on_probation(turn(2 * PROBATION_TURN_DEG))
 
 
 def test_the_mapping_blends_the_imu_only_once_a_window_check_passed_it():

@@ -199,16 +199,16 @@ def test_an_upside_down_imu_is_not_used_from_the_first_scan():
     assert np.array_equal(np.array(result.odometry), np.array(without.odometry))
 
 
-def test_a_grossly_rotated_imu_is_dropped_on_probation_and_never_used():
-    """Rotated (10, -20, 130) deg: the yaw rate leaks into roll and pitch. featureAssociation compares the IMU with
-    the lidar for its first seconds before using it, and drops it as the hairpin begins (1.6 s): it was never used,
-    and the drive is as accurate as without an IMU (0.070 m against 0.071 m: only the start's levelling by the
-    IMU's gravity differs, which the ATE's alignment takes out; 5 % allowed)."""
+def test_a_grossly_rotated_imu_is_dropped_on_probation_before_a_fast_turn_used_it():
+    """Rotated (10, -20, 130) deg: the yaw rate leaks into roll and pitch. featureAssociation registers the
+    hairpin's fast sweeps without the IMU while it compares the two, and drops the IMU as the hairpin begins
+    (1.8 s): it was used only on the slow sweeps before (13), and the drive is as accurate as without an IMU
+    (0.0717 m against 0.0714 m; 5 % allowed)."""
     result = run((10.0, -20.0, 130.0))
     first = result.imu_alignment[0]
     assert first[0] == 'featureAssociation' and not first[1].trusted
     assert first[1].stamp - result.stamps[0] * 1e-9 < 2.5
-    assert result.counts.get('scans_with_imu', 0) == 0
+    assert result.counts.get('scans_with_imu', 0) < 20
     assert ate(result) < 1.05 * ate(run(imu=False))
 
 
@@ -216,7 +216,8 @@ def test_a_rotated_imu_with_its_parameters_gives_the_aligned_result():
     aligned = run()
     rotated = run((25.0, -40.0, 130.0), imu__rotation_rpy=[25.0, -40.0, 130.0])
     assert rotated.imu_alignment == [] and aligned.imu_alignment == []
-    # On probation for its first sweeps (3 s, 30 sweeps, at most), ended early by the hairpin's turns that agree.
+    # On probation, the hairpin's first fast sweeps are registered without the IMU until their turns agree with
+    # it (8 here; at most 30).
     assert rotated.counts['scans_with_imu'] == aligned.counts['scans_with_imu']
     assert 30 < aligned.counts['scans_with_imu'] < 60
     # The same drive but for the rounding of the rotations (1e-16), which the odometry's iterations and

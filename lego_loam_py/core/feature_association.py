@@ -222,10 +222,13 @@ class FeatureAssociation:
         self._imu_event = check.scan(scan.stamp_ns, lambda: self._ground(scan, points),
                                      None if attitude is None else attitude.r_start)
         attitude = attitude if check.trusted else None   # an IMU that disagrees with the lidar is not used
-        # In its first seconds the IMU is on probation: compared with the lidar's own turn sweep by sweep but not
-        # used, so that a misaligned one is caught before it spoils anything (gravity, checked above, may level
-        # the start).
-        on_probation = attitude is not None and check.on_probation(scan.stamp_ns * 1e-9)
+        # Until the IMU is shown to agree with the lidar it is on probation: a sweep that turns fast is registered
+        # without it and compared with its turn, so that a misaligned one is caught before it spoils anything
+        # (a slower sweep uses it: a mounting error matters in proportion to the turn; gravity, checked above,
+        # may level the start).
+        previous = self._previous_attitude
+        on_probation = attitude is not None and check.on_probation(
+            None if previous is None else previous.r_start.T @ attitude.r_start)
         imu_attitude, attitude = attitude, None if on_probation else attitude
         if not self.initialized:
             if imu_attitude is not None and not self._resumed:
@@ -240,7 +243,6 @@ class FeatureAssociation:
             self._first_features = (features, points, attitude)   # re-deskewed once the motion is known
             self.initialized = True
             return self._finish(scan, features, corner_last, surf_last, None, True, attitude is not None, None, timings)
-        previous = self._previous_attitude
         use_imu = attitude is not None and previous is not None
         to_reference = previous.r_start.T if use_imu else None
         sharp = self._registration_input(features.sharp, features.sharp_index, to_reference, attitude)
