@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from lego_loam_py.core.frames import ImuMounting, rpy_to_matrix
+from lego_loam_py.core.imu import ImuBuffer
 from lego_loam_py.core.imu_alignment import GyroTrack, best_rotation, fit_alignment, shifted_increments
 from lego_loam_py.core.imu_monitor import (MAPPING_PROBATION_MAX, MIN_EXPLAINED_DEG, PROBATION_SWEEPS,
                                            PROBATION_TURN_DEG, SIGNIFICANCE, ImuAlignmentMonitor, MappingImuCheck,
@@ -203,21 +204,21 @@ def test_the_probation_passes_an_imu_that_agrees_and_drops_one_that_does_not():
 
 def test_only_fast_turning_sweeps_are_held_without_the_imu_on_probation():
     """featureAssociation registers a sweep without the IMU (and compares) only when the IMU turned
-    PROBATION_TURN_DEG or more since the last sweep, for the first PROBATION_SWEEPS such sweeps, and not once the
-    probation has passed."""
+    PROBATION_TURN_DEG or more since the last sweep (the first sweep: over itself; not known: held too), for the
+    first PROBATION_SWEEPS such sweeps, and not once the probation has passed."""
     def turn(deg: float) -> np.ndarray:
         return Rotation.from_rotvec([0.0, math.radians(deg), 0.0]).as_matrix()
 
-    check = SweepImuCheck(Params(), lambda: None)
-    assert not check.on_probation(None)                                  # the first sweep: no turn known
-    assert not check.on_probation(turn(0.9 * PROBATION_TURN_DEG))
-    assert all(check.on_probation(turn(2 * PROBATION_TURN_DEG)) for _ in range(PROBATION_SWEEPS))
-    assert not check.on_probation(turn(2 * PROBATION_TURN_DEG))         # the probation is over
-    check = SweepImuCheck(Params(), lambda: None)
+    check = SweepImuCheck(Params(), ImuBuffer)           # (an empty buffer: the first sweep's turn is not known)
+    assert check.on_probation(0.0, None)
+    assert not check.on_probation(0.1, turn(0.9 * PROBATION_TURN_DEG))
+    assert all(check.on_probation(0.1, turn(2 * PROBATION_TURN_DEG)) for _ in range(PROBATION_SWEEPS - 1))
+    assert not check.on_probation(0.1, turn(2 * PROBATION_TURN_DEG))      # the probation is over
+    check = SweepImuCheck(Params(), ImuBuffer)
     check.monitor.probation_passed = True
-    assert not check.on_probation(turn(2 * PROBATION_TURN_DEG))
-    check = SweepImuCheck(Params().replace(imu__alignment_check=False), lambda: None)
-    assert not check.on_probation(turn(2 * PROBATION_TURN_DEG))
+    assert not check.on_probation(0.1, turn(2 * PROBATION_TURN_DEG))
+    check = SweepImuCheck(Params().replace(imu__alignment_check=False), ImuBuffer)
+    assert not check.on_probation(0.1, turn(2 * PROBATION_TURN_DEG))
 
 
 def test_the_mapping_blends_the_imu_only_once_a_window_check_passed_it():

@@ -228,7 +228,7 @@ class FeatureAssociation:
         # may level the start).
         previous = self._previous_attitude
         on_probation = attitude is not None and check.on_probation(
-            None if previous is None else previous.r_start.T @ attitude.r_start)
+            attitude.t_start, None if previous is None else previous.r_start.T @ attitude.r_start)
         imu_attitude, attitude = attitude, None if on_probation else attitude
         if not self.initialized:
             if imu_attitude is not None and not self._resumed:

@@ -72,8 +72,8 @@ QUICK_INTERVALS = 5       # ... judged from this many sweeps on ...
 QUICK_DISAGREEMENT = 0.25  # ... when they disagree by this much per sweep [deg RMS] or more
 QUICK_TURN_DEG = 5.0      # ... once they turned this much in all
 MAPPING_PROBATION_MAX = 20.0   # [s] of IMU data after which mapOptimization blends an IMU no window could judge
-PROBATION_SWEEPS = 30     # fast-turning sweeps the IMU's probation in featureAssociation lasts at most ...
-PROBATION_TURN_DEG = 1.0  # ... a sweep turning less than this [deg] uses the IMU on probation as well
+PROBATION_SWEEPS = 15     # fast-turning sweeps the IMU's probation in featureAssociation lasts at most ...
+PROBATION_TURN_DEG = 0.5  # ... a sweep turning less than this [deg] uses the IMU on probation as well
 OFFSETS = np.round(np.arange(-0.2, 0.2 + 1e-9, 0.01), 6)   # clock offsets searched [s]
 
 
@@ -351,17 +351,24 @@ class SweepImuCheck(_Check):
         super().__init__(params, buffer, 'featureAssociation')
         self._states: dict[int, tuple] = {}
         self._probation_sweeps = 0   # sweeps registered without the IMU on probation so far
+        self._scan_period = float(params.sensor.scan_period)
         self._gravity_checked = False
 
-    def on_probation(self, turn: np.ndarray | None) -> bool:
-        """Whether a sweep over which the IMU turned by ``turn`` since the last sweep start (camera axes; None: the
-        first) is registered without the IMU and compared with it (:meth:`compare`): one that turns by
-        :data:`PROBATION_TURN_DEG` or more, of the first :data:`PROBATION_SWEEPS` such, until the comparison
-        found the IMU agreeing or disagreeing."""
+    def on_probation(self, start: float, turn: np.ndarray | None) -> bool:
+        """Whether the sweep starting at ``start`` [s], over which the IMU turned by ``turn`` since the last sweep
+        start (camera axes; None: the first sweep, whose own turn is taken), is registered without the IMU and
+        compared with it (:meth:`compare`): one that turns by :data:`PROBATION_TURN_DEG` or more (or whose turn is
+        not known), of the first :data:`PROBATION_SWEEPS` such, until the comparison found the IMU agreeing or
+        disagreeing."""
         if not self.monitor.enabled or not self.trusted or self.monitor.probation_passed:
             return False
-        if self._probation_sweeps >= PROBATION_SWEEPS or turn is None or \
-                math.degrees(Rotation.from_matrix(turn).magnitude()) < PROBATION_TURN_DEG:
+        if turn is None:
+            imu, end = self._buffer(), start + self._scan_period
+            if imu.covers(start, end, 0.0):
+                at_start, at_end = imu_world_rotation(*imu.attitude(np.array([start, end])))
+                turn = at_start.T @ at_end
+        if self._probation_sweeps >= PROBATION_SWEEPS or \
+                (turn is not None and math.degrees(Rotation.from_matrix(turn).magnitude()) < PROBATION_TURN_DEG):
             return False
         self._probation_sweeps += 1
         return True
