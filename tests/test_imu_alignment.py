@@ -3,6 +3,7 @@ stops using a misaligned IMU (core.imu_monitor), on synthetic motion whose answe
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -10,10 +11,11 @@ from scipy.spatial.transform import Rotation
 
 from lego_loam_py.core.frames import ImuMounting, rpy_to_matrix
 from lego_loam_py.core.imu import ImuBuffer
-from lego_loam_py.core.imu_alignment import GyroTrack, best_rotation, fit_alignment, shifted_increments
+from lego_loam_py.core.imu_alignment import (GyroTrack, best_rotation, fit_alignment, nearest_right_angle_rotation,
+                                            shifted_increments)
 from lego_loam_py.core.imu_monitor import (MAPPING_PROBATION_MAX, MIN_EXPLAINED_DEG, PROBATION_SWEEPS,
                                            PROBATION_TURN_DEG, SIGNIFICANCE, ImuAlignmentMonitor, MappingImuCheck,
-                                           SweepImuCheck, nearest_right_angle_rotation)
+                                           SweepImuCheck)
 from lego_loam_py.core.params import Params
 
 RATE = 200.0   # IMU samples per second
@@ -206,19 +208,21 @@ def test_only_fast_turning_sweeps_are_held_without_the_imu_on_probation():
     """featureAssociation registers a sweep without the IMU (and compares) only when the IMU turned
     PROBATION_TURN_DEG or more since the last sweep (the first sweep: over itself; not known: held too), for the
     first PROBATION_SWEEPS such sweeps, and not once the probation has passed."""
-    def turn(deg: float) -> np.ndarray:
-        return Rotation.from_rotvec([0.0, math.radians(deg), 0.0]).as_matrix()
+    last = SimpleNamespace(t_start=0.0, r_start=np.eye(3))
+
+    def turned(deg: float) -> SimpleNamespace:   # (the IMU over a sweep, as featureAssociation has it)
+        return SimpleNamespace(t_start=0.1, r_start=Rotation.from_rotvec([0.0, math.radians(deg), 0.0]).as_matrix())
 
     check = SweepImuCheck(Params(), ImuBuffer)           # (an empty buffer: the first sweep's turn is not known)
-    assert check.on_probation(0.0, None)
-    assert not check.on_probation(0.1, turn(0.9 * PROBATION_TURN_DEG))
-    assert all(check.on_probation(0.1, turn(2 * PROBATION_TURN_DEG)) for _ in range(PROBATION_SWEEPS - 1))
-    assert not check.on_probation(0.1, turn(2 * PROBATION_TURN_DEG))      # the probation is over
+    assert check.on_probation(turned(0.0), None)
+    assert not check.on_probation(turned(0.9 * PROBATION_TURN_DEG), last)
+    assert all(check.on_probation(turned(2 * PROBATION_TURN_DEG), last) for _ in range(PROBATION_SWEEPS - 1))
+    assert not check.on_probation(turned(2 * PROBATION_TURN_DEG), last)      # the probation is over
     check = SweepImuCheck(Params(), ImuBuffer)
     check.monitor.probation_passed = True
-    assert not check.on_probation(0.1, turn(2 * PROBATION_TURN_DEG))
+    assert not check.on_probation(turned(2 * PROBATION_TURN_DEG), last)
     check = SweepImuCheck(Params().replace(imu__alignment_check=False), ImuBuffer)
-    assert not check.on_probation(0.1, turn(2 * PROBATION_TURN_DEG))
+    assert not check.on_probation(turned(2 * PROBATION_TURN_DEG), last)
 
 
 def test_the_mapping_blends_the_imu_only_once_a_window_check_passed_it():

@@ -222,14 +222,9 @@ class FeatureAssociation:
         self._imu_event = check.scan(scan.stamp_ns, lambda: self._ground(scan, points),
                                      None if attitude is None else attitude.r_start)
         attitude = attitude if check.trusted else None   # an IMU that disagrees with the lidar is not used
-        # Until the IMU is shown to agree with the lidar it is on probation: a sweep that turns fast is registered
-        # without it and compared with its turn, so that a misaligned one is caught before it spoils anything
-        # (a slower sweep uses it: a mounting error matters in proportion to the turn; gravity, checked above,
-        # may level the start).
+        # On probation a fast-turning sweep is registered without the IMU and compared with it (core.imu_monitor).
         previous = self._previous_attitude
-        on_probation = attitude is not None and check.on_probation(
-            attitude.t_start, None if previous is None else previous.r_start.T @ attitude.r_start)
-        imu_attitude, attitude = attitude, None if on_probation else attitude
+        imu_attitude, attitude = attitude, None if attitude and check.on_probation(attitude, previous) else attitude
         if not self.initialized:
             if imu_attitude is not None and not self._resumed:
                 self.transform_sum[0] += imu_attitude.pitch_start
@@ -275,9 +270,8 @@ class FeatureAssociation:
         motion = invert_pose(make_pose(sweep_rotation(*theta[:3]), theta[3:]))
         if use_imu:
             motion = motion @ make_pose(previous.r_start.T @ attitude.r_start)
-        elif on_probation and previous is not None:
-            self._imu_event = check.compare(previous.t_start, imu_attitude.t_start, motion[:3, :3],
-                                            previous.r_start.T @ imu_attitude.r_start) or self._imu_event
+        elif imu_attitude is not None and previous is not None:   # on probation
+            self._imu_event = check.compare(previous, imu_attitude, motion[:3, :3]) or self._imu_event
         self._world_pose = self._world_pose @ motion
         self.transform_sum = matrix_to_pose6(self._world_pose)
         corner_last = self._deskew_to_start(features.less_sharp, features.less_sharp_index, motion, attitude, points)

@@ -31,7 +31,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from lego_loam_py.core.frames import matrix_to_rpy
 
 __all__ = ['AlignmentFit', 'GyroTrack', 'OrientationTrack', 'best_rotation', 'fit_alignment', 'shifted_increments',
-           'axis_name']
+           'axis_name', 'nearest_right_angle_rotation']
 
 # The offsets tried first [s] (then refined between grid points).
 DEFAULT_OFFSETS = np.round(np.arange(-0.1, 0.1 + 1e-9, 0.004), 6)
@@ -227,3 +227,14 @@ def _skew(v: np.ndarray) -> np.ndarray:
     out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
     out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
     return out
+
+
+def nearest_right_angle_rotation(rotation: np.ndarray, tolerance_deg: float = 10.0) -> np.ndarray | None:
+    """The rotation among the 24 that map axes onto axes (IMUs are mostly mounted so) within ``tolerance_deg``
+    of ``rotation``, or None."""
+    rounded = np.round(np.asarray(rotation))
+    if not (np.abs(rounded).sum(axis=0) == 1).all() or not (np.abs(rounded).sum(axis=1) == 1).all() \
+            or np.linalg.det(rounded) < 0.5:
+        return None
+    angle = np.degrees(np.linalg.norm(Rotation.from_matrix(rounded.T @ rotation).as_rotvec()))
+    return rounded if angle <= tolerance_deg else None

@@ -18,28 +18,22 @@ turns onto the lidar's (:class:`ImuAlignmentMonitor`). The IMU **disagrees** whe
 * does so in :data:`STRIKES` windows in a row (one stretch of a struggling mapping can look like anything once).
 
 Then the monitor warns, naming the rotation and offset found and the parameters that would absorb them, and
-the node stops using the IMU. It is trusted again once a window shows it agrees: a fitted correction below half
-the bounds, with the rotation known to within that about every axis (motion that turned about all of them).
-A car on flat roads never shows that for the rotation about the vertical, so an IMU distrusted there stays
-off: no worse than no IMU. The advice is given again once a whole window passed without the IMU (a better
-estimate), then at most every :data:`REPEAT_AFTER` seconds of data.
+the node stops using the IMU, until a window shows a correction below half the bounds, known to within that
+about every axis (a car on flat roads never shows the rotation about the vertical: its IMU stays off, no worse
+than none). The advice is repeated once a whole window passed without the IMU, then every :data:`REPEAT_AFTER` s.
 
-Two quicker looks catch what would spoil the map before a window is full:
+Quicker looks catch what would spoil the map before a window is full:
 
 * gravity (:meth:`ImuAlignmentMonitor.check_gravity`): featureAssociation compares the IMU's up direction with
   the normal of the ground under the lidar on the first scan the IMU covers, mapOptimization with its mapped
   pose's at every step; more than :data:`MAX_GROUND_TILT` apart (upside down, on its side) and the IMU is not
   trusted, so the odometry does not start from its roll and pitch nor does the mapping blend them in;
-* the IMU's probation in featureAssociation (:meth:`SweepImuCheck.on_probation`): a sweep over which the IMU
-  turns :data:`PROBATION_TURN_DEG` or more is registered without it (lidar only) and its turn compared with the
-  IMU's, for the first :data:`PROBATION_SWEEPS` such sweeps; :data:`QUICK_DISAGREEMENT` degrees per sweep or
-  more that a rotation explains, three windows in a row, distrusts the IMU before a fast turn ever used it; three
-  windows whose turns agree to what a mounting error of ``alignment_max_rotation`` leaves end the probation
-  early. Slower sweeps use the IMU meanwhile: what a mounting error does grows with the turn, and a right IMU
-  helps most there (lidar-only sweeps in a car's first seconds cost the simulated campus 10 % of its ATE).
+* the IMU's probation in featureAssociation (:meth:`SweepImuCheck.on_probation`): the first
+  :data:`PROBATION_SWEEPS` sweeps over which the IMU turns :data:`PROBATION_TURN_DEG` or more are registered
+  without it and their turns compared (:meth:`ImuAlignmentMonitor.add_quick`): a gross disagreement distrusts the
+  IMU, agreement ends the probation. Slower sweeps use it (a mounting error matters in proportion to the turn).
 
-mapOptimization holds the IMU on probation too (:class:`MappingImuCheck`): its roll and pitch are blended in only
-once a window check has passed it.
+mapOptimization blends the IMU's roll and pitch in only once a window check has passed it (:class:`MappingImuCheck`).
 """
 from __future__ import annotations
 
@@ -53,10 +47,11 @@ from scipy.spatial.transform import Rotation
 
 from lego_loam_py.core.frames import CAMERA_TO_LIDAR, LIDAR_TO_CAMERA, ImuMounting, euler_to_matrix, matrix_to_rpy
 from lego_loam_py.core.imu import ImuBuffer, imu_mounting, imu_world_rotation
-from lego_loam_py.core.imu_alignment import AlignmentFit, fit_alignment, shifted_increments
+from lego_loam_py.core.imu_alignment import (AlignmentFit, fit_alignment, nearest_right_angle_rotation,
+                                            shifted_increments)
 
-__all__ = ['ImuAlignmentMonitor', 'AlignmentEvent', 'SweepImuCheck', 'MappingImuCheck', 'nearest_right_angle_rotation',
-           'SIGNIFICANCE', 'EXPLAINED', 'MAX_GROUND_TILT', 'REPEAT_AFTER']
+__all__ = ['ImuAlignmentMonitor', 'AlignmentEvent', 'SweepImuCheck', 'MappingImuCheck', 'SIGNIFICANCE', 'EXPLAINED',
+           'MAX_GROUND_TILT', 'REPEAT_AFTER']
 
 SIGNIFICANCE = 6.0        # standard deviations a correction must lie from none
 EXPLAINED = 0.5           # share of the squared disagreement it must explain ...
@@ -75,17 +70,6 @@ MAPPING_PROBATION_MAX = 20.0   # [s] of IMU data after which mapOptimization ble
 PROBATION_SWEEPS = 15     # fast-turning sweeps the IMU's probation in featureAssociation lasts at most ...
 PROBATION_TURN_DEG = 0.5  # ... a sweep turning less than this [deg] uses the IMU on probation as well
 OFFSETS = np.round(np.arange(-0.2, 0.2 + 1e-9, 0.01), 6)   # clock offsets searched [s]
-
-
-def nearest_right_angle_rotation(rotation: np.ndarray, tolerance_deg: float = 10.0) -> np.ndarray | None:
-    """The rotation among the 24 that map axes onto axes (IMUs are mostly mounted so) within ``tolerance_deg``
-    of ``rotation``, or None."""
-    rounded = np.round(np.asarray(rotation))
-    if not (np.abs(rounded).sum(axis=0) == 1).all() or not (np.abs(rounded).sum(axis=1) == 1).all() \
-            or np.linalg.det(rounded) < 0.5:
-        return None
-    angle = np.degrees(np.linalg.norm(Rotation.from_matrix(rounded.T @ rotation).as_rotvec()))
-    return rounded if angle <= tolerance_deg else None
 
 
 def _angles(rpy) -> str:
@@ -164,9 +148,8 @@ class ImuAlignmentMonitor:
         # (0.2-0.3 deg per sweep in a corridor), so the share explained says less than the amount.
         gross = self._disagrees(fit, share=0.0, floor=QUICK_DISAGREEMENT)
         self._quick_strikes = self._quick_strikes + 1 if gross else 0
-        # Agreement shown early ends the probation: the IMU's turns match the lidar's per sweep to within what a
-        # mounting error of alignment_max_rotation would leave of the turns seen (a turn of a degrees per sweep
-        # about a misaligned axis differs by about a * angle), and within the gross level.
+        # Agreement ends the probation: the turns match to within what a mounting error of alignment_max_rotation
+        # leaves of them (a turn of a deg about a misaligned axis differs by about a * angle).
         turn_deg = float(np.degrees(np.mean([np.linalg.norm(i[2]) for i in window])))
         agrees = fit is not None and not gross and \
             fit.rms_before_deg <= min(QUICK_DISAGREEMENT, math.radians(self.max_rotation) * turn_deg)
@@ -344,8 +327,7 @@ class _Check:
 class SweepImuCheck(_Check):
     """featureAssociation's check: the IMU's state at each scan's pose time is kept until mapOptimization's pose
     of that scan comes back (/aft_mapped_to_init); the gravity check at start-up; and the IMU's probation
-    (:meth:`on_probation`): fast-turning sweeps registered without it and their lidar-only turn compared with it
-    (:meth:`compare`), for a misalignment gross enough to spoil the map before the mapped poses could tell."""
+    (:meth:`on_probation`, :meth:`compare`), for a misalignment that would spoil the map before those could tell."""
 
     def __init__(self, params, buffer: Callable[[], ImuBuffer]):
         super().__init__(params, buffer, 'featureAssociation')
@@ -354,34 +336,30 @@ class SweepImuCheck(_Check):
         self._scan_period = float(params.sensor.scan_period)
         self._gravity_checked = False
 
-    def on_probation(self, start: float, turn: np.ndarray | None) -> bool:
-        """Whether the sweep starting at ``start`` [s], over which the IMU turned by ``turn`` since the last sweep
-        start (camera axes; None: the first sweep, whose own turn is taken), is registered without the IMU and
-        compared with it (:meth:`compare`): one that turns by :data:`PROBATION_TURN_DEG` or more (or whose turn is
-        not known), of the first :data:`PROBATION_SWEEPS` such, until the comparison found the IMU agreeing or
-        disagreeing."""
+    def on_probation(self, sweep, previous) -> bool:
+        """Whether a sweep (the IMU over it, a :class:`~lego_loam_py.core.imu.SweepAttitude`; ``previous`` the last
+        one's, None for the first sweep: judged by its own turn) is registered without the IMU and compared."""
         if not self.monitor.enabled or not self.trusted or self.monitor.probation_passed:
             return False
-        if turn is None:
-            imu, end = self._buffer(), start + self._scan_period
-            if imu.covers(start, end, 0.0):
-                at_start, at_end = imu_world_rotation(*imu.attitude(np.array([start, end])))
-                turn = at_start.T @ at_end
+        turn, imu, end = None, self._buffer(), sweep.t_start + self._scan_period
+        if previous is not None:
+            turn = previous.r_start.T @ sweep.r_start
+        elif imu.covers(sweep.t_start, end, 0.0):
+            at_start, at_end = imu_world_rotation(*imu.attitude(np.array([sweep.t_start, end])))
+            turn = at_start.T @ at_end
         if self._probation_sweeps >= PROBATION_SWEEPS or \
                 (turn is not None and math.degrees(Rotation.from_matrix(turn).magnitude()) < PROBATION_TURN_DEG):
             return False
         self._probation_sweeps += 1
         return True
 
-    def compare(self, start: float, end: float, lidar_turn: np.ndarray, imu_turn: np.ndarray) -> AlignmentEvent | None:
-        """A sweep on probation: the lidar odometry's turn ``lidar_turn`` (registered without the IMU) and the
-        IMU's ``imu_turn`` from the sweep start ``start`` to the next one ``end`` [s] (rotations, camera axes, the
-        pose at ``end`` in the frame at ``start``), for the quick look at a gross misalignment."""
-        states = self.imu_state(start), self.imu_state(end)
+    def compare(self, previous, sweep, lidar_turn: np.ndarray) -> AlignmentEvent | None:
+        """A sweep on probation: its lidar-only turn from ``previous``'s start (camera axes) against the IMU's."""
+        states = self.imu_state(previous.t_start), self.imu_state(sweep.t_start)
         if states[0] is None or states[1] is None:
             return None
-        return self.monitor.add_quick(start, end, _to_lidar(lidar_turn), _to_lidar(imu_turn), states[0][1],
-                                      states[1][1])
+        return self.monitor.add_quick(previous.t_start, sweep.t_start, _to_lidar(lidar_turn),
+                                      _to_lidar(previous.r_start.T @ sweep.r_start), states[0][1], states[1][1])
 
     def scan(self, stamp_ns: int, ground: Callable[[], np.ndarray],
              attitude: np.ndarray | None = None) -> AlignmentEvent | None:
@@ -424,11 +402,9 @@ class SweepImuCheck(_Check):
 
 
 class MappingImuCheck(_Check):
-    """mapOptimization's check, at every mapping step, and the IMU's probation there: its roll and pitch are
-    blended in only once the window check has passed it (:data:`STRIKES` windows in a row that found nothing
-    against it), or after :data:`MAPPING_PROBATION_MAX` seconds of its data when the motion never let a window
-    judge (a drive without turns). The blend is slow (its weight 0.002 per step takes minutes to level a map), so
-    waiting costs an IMU that is right nothing, while a wrong one's roll and pitch in those seconds tilt the map."""
+    """mapOptimization's check, at every mapping step; the IMU's roll and pitch are blended in once the window
+    check passed it (:data:`STRIKES` clean windows) or after :data:`MAPPING_PROBATION_MAX` s: the blend is slow, so
+    waiting costs a right IMU nothing, while a wrong one's roll and pitch in those seconds tilt the map."""
 
     def __init__(self, params, buffer: Callable[[], ImuBuffer]):
         super().__init__(params, buffer, 'mapOptimization')
@@ -437,10 +413,8 @@ class MappingImuCheck(_Check):
 
     def blending(self, time: float) -> bool:
         """Whether the IMU's roll and pitch are blended in at a step at ``time`` [s] (trusted and past probation)."""
-        if not self.trusted:
-            return False
-        if not self.monitor.enabled:
-            return True
+        if not self.trusted or not self.monitor.enabled:
+            return self.trusted
         if self._first_stamp is None or time < self._first_stamp:   # (time went back: a bag restarted)
             self._first_stamp = time
         return self.monitor.vetted or time - self._first_stamp >= MAPPING_PROBATION_MAX
