@@ -1047,7 +1047,11 @@ def test_a_node_keeps_serving_through_a_stream_of_bad_messages(rclpy_context, pr
     codes = nodes.stop_all()
     logs = {name: nodes.log(name) for name in codes}
     assert not left, (len(got['/segmented_cloud']), len(good_stamps), logs)
-    assert [stamp_of(m) for _, m in got['/segmented_cloud'] if stamp_of(m) in good_stamps] == good_stamps
+    published = [stamp_of(m) for _, m in got['/segmented_cloud'] if stamp_of(m) in good_stamps]
+    # Every good scan, in order. A scan the feed sent again because its output was slow to come (the first one's
+    # 'last' clouds on a busy machine) comes out twice: imageProjection keeps no order of its own, as the
+    # original; featureAssociation drops the copy as not newer.
+    assert sorted(set(published)) == good_stamps and published == sorted(published)
     odometry = [stamp_of(m) for _, m in got['/laser_odom_to_init']]
     assert set(good_stamps[1:]) <= set(odometry)
     assert codes == {'imageProjection': 0, 'featureAssociation': 0}
