@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/localization.py [--scenarios campus forest aggressive] [--starts 20]
         [--drive 20] [--start-drive 4] [--out DIR] [--json out.json] [--skip-load] [--map-loops] [--stress]
+        [--process-cpu N]
 
 For every scenario: a map from one drive (the scenario's own lap, generated into the cache on first use, mapped
 by ``lego_loam_py run``'s pipeline and saved as a bundle), then other drives through the same scene, driven the
@@ -75,6 +76,16 @@ def make_map(name: str, out: Path, loops: bool = False) -> tuple[Path, dict]:
                  cpu_ms_per_scan=float(steps.sum() / result.counts['scans_in']))
     stats_file.write_text(json.dumps(stats, indent=2))
     return directory, stats
+
+
+def process_cpu_per_scan(bag: Path, params: Params, first: int = 100, last: int = 200) -> float:
+    """Whole-process CPU (user + system, every thread) per scan [ms] of scans ``first``..``last`` of ``bag``: the
+    run to ``last`` less the run to ``first``, so start-up, the map's loading and the first fix do not count."""
+    def cpu(scans: int) -> float:
+        start = time.process_time()
+        run_bag(bag, params, progress=False, max_scans=scans)
+        return time.process_time() - start
+    return (cpu(last) - cpu(first)) / (last - first) * 1e3
 
 
 def mapping_cpu(bag: Path) -> dict:
@@ -230,6 +241,8 @@ def main() -> int:
     parser.add_argument('--out', type=Path, default=Path('output/bench_localization'))
     parser.add_argument('--json', type=Path, default=None)
     parser.add_argument('--skip-load', action='store_true')
+    parser.add_argument('--process-cpu', type=int, default=0, metavar='N',
+                        help='also whole-process CPU per scan, mapping vs localizing the drive, N times each')
     parser.add_argument('--map-loops', action='store_true', help='make the maps with loop closure on (less drift in '
                         'the map, so its frame is nearer the world the truth is in)')
     parser.add_argument('--stress', action='store_true', help='also run the other scenes with every keyframe a '
@@ -265,6 +278,16 @@ def main() -> int:
         report['drives'][name]['mapping'] = mapping = mapping_cpu(bag)
         print(f'  mapping this drive: mapOptimization {mapping["cpu_ms_per_step_mean"]:.1f} ms CPU per step (mean; '
               f'median {mapping["cpu_ms_per_step_median"]:.1f})', flush=True)
+        if args.process_cpu:   # the whole process, as the user pays it: mapping vs localizing, alternately
+            localizing = Params().replace(map_optimization__mode='localization',
+                                          map_optimization__map_path=str(map_dir), **cases['known'][1])
+            pairs = [(process_cpu_per_scan(bag, Params()), process_cpu_per_scan(bag, localizing))
+                     for _ in range(args.process_cpu)]
+            report['drives'][name]['process_cpu_ms_per_scan'] = pairs
+            print('  whole process CPU per scan (scans 100-200), mapping / localizing: '
+                  + ', '.join(f'{m:.1f} / {loc:.1f} ms' for m, loc in pairs)
+                  + f' (ratio of the means {np.mean([p[1] for p in pairs]) / np.mean([p[0] for p in pairs]):.2f})',
+                  flush=True)
         for case, (case_bag, overrides) in cases.items():
             figures = localize(case_bag, map_dir, truth, **overrides)
             report['drives'][name][case] = figures
