@@ -7,14 +7,10 @@ against them (:mod:`~lego_loam_py.core.laser_odometry`), the motion is accumulat
 ``transform_sum`` and the less-sharp / less-flat features re-projected to the sweep end become the next
 'last' clouds, handed to mapOptimization every ``skip_frame_num + 1`` scans.
 
-Relative time (``feature_association.relative_time_source``): by default from each point's azimuth,
-measured clockwise from the sweep's start orientation (``azimuth``): it needs no per-point time field, does
-not depend on how a driver encodes time, and is right for every spinning lidar whose sweep starts at the
-cut. ``point_time`` uses the cloud's own time field instead (exact for any firing pattern; needs a driver
-whose time field matches ``scan_period``). ``original`` reproduces the original's unwrapping bit for bit:
-it switches from the start to the end rule once per cloud, but the segmented cloud is ordered by ring and
-column, so from then on the first quarter of the sweep of every ring is timed as the sweep's end (1 + s). It exists for parity
-checks; it degrades deskewing, see the README.
+Relative time (``feature_association.relative_time_source``): from each point's azimuth, clockwise from the
+sweep's start orientation (default), the cloud's time field (``point_time``), or the original's unwrapping bit for
+bit (``original``, for parity checks: it times the first quarter of most rings as the sweep's end). Outputs refer
+to the header stamp's instant in the sweep (``sensor.stamp_position``, :class:`~lego_loam_py.core.sweep.StampInstant`).
 
 IMU (deliberate deviation, documented in the README): points are deskewed with the IMU attitude, so the
 odometry then estimates only the rotation the IMU did not explain; its initial rotation guess is
@@ -37,8 +33,8 @@ from lego_loam_py.core.imu import ImuBuffer, ImuSweep, SweepAttitude, imu_mounti
 from lego_loam_py.core.imu_monitor import SweepImuCheck
 from lego_loam_py.core.laser_odometry import OdometryStats, make_laser_odometry
 from lego_loam_py.core.param_types import Params
-from lego_loam_py.core.sweep import (accumulate, motion_to_theta, relative_time, relative_time_from_azimuth,
-                                     sweep_angles, sweep_rotation, transform_to_end, transform_to_start)
+from lego_loam_py.core.sweep import (StampInstant, accumulate, imu_free_motion, motion_to_theta, relative_time,
+                                     relative_time_from_azimuth, sweep_rotation, transform_to_end, transform_to_start)
 from lego_loam_py.core.validation import (MAX_POSITION, MAX_SWEEP_TRANSLATION, cloud_problem, pose6_problem,
                                           vector_problem)
 
@@ -104,6 +100,7 @@ class FeatureAssociation:
         self._previous_used_imu = False
         self._last_full_motion = np.zeros(6)   # sweep motion as a full (IMU-free) six-vector
         self._world_pose = np.eye(4)          # sweep-start model: pose of the current sweep start
+        self.stamp_instant = StampInstant(params)   # ... and its outputs at the header stamp's instant
         self._previous_attitude: SweepAttitude | None = None
         self.imu_check = SweepImuCheck(params, lambda: self.imu)   # is the IMU mounted as the parameters say?
         self._imu_event = None   # what the check decided on this scan (an AlignmentEvent), for the result
@@ -144,8 +141,9 @@ class FeatureAssociation:
         jumping back to the origin; the IMU samples are kept when they are sane, else they are dropped too.
         """
         pose = self.transform_sum.copy() if pose6_problem('pose', self.transform_sum) is None else np.zeros(6)
+        instant = self.stamp_instant
         self.reset(keep_imu=self.imu.health_problem() is None)
-        self.transform_sum = pose
+        self.transform_sum, self.stamp_instant = pose, instant
         self._resumed = bool(np.any(pose != 0.0))
 
     # ------------------------------------------------------------------------------------- per scan
@@ -184,9 +182,10 @@ class FeatureAssociation:
         return points, imu, features, {'deskew': (t1 - t0) * 1e3, 'features': (time.perf_counter() - t1) * 1e3}
 
     def _finish(self, scan: ScanInput, features, corner_last, surf_last, outlier_last, initialized, imu_used,
-                stats, timings) -> FeatureAssociationResult:
-        """Publication decision (every skip_frame_num + 1 scans after the first) and the result; ``outlier_last``
-        may be a function making it, called only for a scan that is published (only mapOptimization uses it)."""
+                stats, timings, pose6: np.ndarray | None = None) -> FeatureAssociationResult:
+        """Publication decision (every skip_frame_num + 1 scans after the first) and the result; the 'last' clouds
+        may be functions making them, called only for a scan that is published (only mapOptimization uses them);
+        ``pose6``: the published pose when it is not ``transform_sum`` (:class:`StampInstant`)."""
         fa = self.params.feature_association
         event, self._imu_event = self._imu_event, None
         if initialized:
@@ -197,9 +196,10 @@ class FeatureAssociation:
         publish = self.frame_count >= fa.skip_frame_num + 1
         if publish:
             self.frame_count = 0
-        if publish and callable(outlier_last):
-            outlier_last = outlier_last()
-        return FeatureAssociationResult(scan.stamp_ns, features, self.transform_sum.copy(),
+        if publish:
+            corner_last, surf_last, outlier_last = (c() if callable(c) else c for c in (corner_last, surf_last,
+                                                                                         outlier_last))
+        return FeatureAssociationResult(scan.stamp_ns, features, self.transform_sum.copy() if pose6 is None else pose6,
                                         corner_last if publish else None, surf_last if publish else None,
                                         outlier_last if publish else None, False, imu_used, stats, timings,
                                         imu_alignment=event)
@@ -230,6 +230,7 @@ class FeatureAssociation:
                 self.transform_sum[0] += imu_attitude.pitch_start
                 self.transform_sum[2] += imu_attitude.roll_start
             self._world_pose = make_pose(euler_to_matrix(*self.transform_sum[:3]), self.transform_sum[3:])
+            self.stamp_instant.begin(self._world_pose)
             motion = np.eye(4)
             corner_last = self._deskew_to_start(features.less_sharp, features.less_sharp_index, motion, attitude, points)
             surf_last = self._deskew_to_start(features.less_flat, None, motion, attitude, points)
@@ -278,8 +279,11 @@ class FeatureAssociation:
         surf_last = self._deskew_to_start(features.less_flat, None, motion, attitude, points)
         odometry.set_last(corner_last, surf_last)
         self._previous_attitude = imu_attitude
-        result = self._finish(scan, features, corner_last, surf_last,
-                              lambda: self._outlier_at_start(scan, motion, attitude), False, use_imu, stats, timings)
+        instant = self.stamp_instant
+        at_stamp = (lambda cloud: instant.cloud(cloud, motion)) if instant.active else (lambda cloud: cloud)
+        result = self._finish(scan, features, lambda: at_stamp(corner_last), lambda: at_stamp(surf_last),
+                              lambda: at_stamp(self._outlier_at_start(scan, motion, attitude)), False, use_imu, stats,
+                              timings, matrix_to_pose6(instant.pose(self._world_pose, motion)) if instant.active else None)
         result.timings_ms['total'] = (time.perf_counter() - t0) * 1e3
         return result
 
@@ -340,7 +344,7 @@ class FeatureAssociation:
         points' own times (``rel`` = relative times of the prepared points), or None when the IMU does not
         cover the sweep."""
         period = self.params.sensor.scan_period
-        t_start = stamp_ns * 1e-9
+        t_start = self.stamp_instant.sweep_start(stamp_ns)
         if not self.imu.covers(t_start, t_start + period):
             return None
         state = self.imu.interpolate([t_start])
@@ -407,7 +411,7 @@ class FeatureAssociation:
         """Rotate every point into the sweep-start frame with the IMU attitude and remove the IMU's non-linear
         shift; returns the sweep's IMU quantities, or None when the IMU does not cover the sweep."""
         period = self.params.sensor.scan_period
-        t_start = stamp_ns * 1e-9
+        t_start = self.stamp_instant.sweep_start(stamp_ns)
         t_end = t_start + period
         if not self.imu.covers(t_start, t_end):
             return None
@@ -440,11 +444,4 @@ class FeatureAssociation:
     def _remember_motion(self, theta: np.ndarray, imu: ImuSweep | None) -> None:
         """Store the sweep motion as an IMU-free six-vector (sweep convention) for the next prior."""
         self._previous_used_imu = imu is not None
-        if imu is None:
-            self._last_full_motion = theta.copy()
-            return
-        # Sweep end in the start frame: T(θ)^-1 · [ΔR, shift]; its inverse is the full T.
-        full_rotation = imu.delta_end.T @ sweep_rotation(*theta[:3])
-        full_translation = imu.delta_end.T @ (theta[3:] - imu.shift_end)
-        self._last_full_motion = np.array([*sweep_angles(full_rotation), *full_translation])
-
+        self._last_full_motion = theta.copy() if imu is None else imu_free_motion(theta, imu.delta_end, imu.shift_end)

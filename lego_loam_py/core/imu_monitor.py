@@ -47,6 +47,7 @@ from scipy.spatial.transform import Rotation
 
 from lego_loam_py.core.frames import CAMERA_TO_LIDAR, LIDAR_TO_CAMERA, ImuMounting, euler_to_matrix, matrix_to_rpy
 from lego_loam_py.core.imu import ImuBuffer, imu_mounting, imu_world_rotation
+from lego_loam_py.core.sweep import pose_delay
 from lego_loam_py.core.imu_alignment import (AlignmentFit, fit_alignment, nearest_right_angle_rotation,
                                             shifted_increments)
 
@@ -294,9 +295,7 @@ class _Check:
     def __init__(self, params, buffer: Callable[[], ImuBuffer], who: str):
         self.monitor = ImuAlignmentMonitor(params, imu_mounting(params), who)
         self._buffer = buffer
-        # A scan's pose is the sensor's at its stamp plus this [s] (the original odometry model: the sweep end).
-        original = params.feature_association.odometry_model == 'original'
-        self._pose_delay = params.sensor.scan_period if original else 0.0
+        self._pose_delay = pose_delay(params)   # a scan's pose is the sensor's at its stamp plus this [s]
         self._previous: tuple | None = None   # (pose time, mapped rotation, IMU state) of the last mapped pose
 
     @property

@@ -60,6 +60,11 @@ class SensorParams:
     beam_elevations: tuple[float, ...] = ()
     beam_calibration: str = ''         # Velodyne calibration YAML (velodyne_pointcloud layout) giving the table
     scan_period: float = 0.1           # sweep duration [s]
+    # Where in the sweep the cloud's header stamp was taken, as a fraction of the sweep: 0 at its first point
+    # (this package's convert and simulator, the Ouster, Hesai and Livox drivers), 1 at its last (the Velodyne
+    # ROS driver's default, the time of a sweep's last packet; KITTI's scans, which end as the laser faces
+    # forward). Poses, maps and the IMU's timing refer to that instant.
+    stamp_position: float = 0.0
     use_cloud_ring: bool = True        # row from the ring field; falls back to elevation when absent
     ring_field: str = 'ring'           # name of the beam index field
     time_field: str = 'time'           # name of the per-point time field [s since sweep start]
@@ -81,7 +86,8 @@ class SensorParams:
 
 # Geometry of the sensor blocks of utility.h (docs/original.md §2.3) plus the HDL-64E values the original's
 # author suggested (issue #12, ang_res_y as 26.9/63), which also carries the sensor's nominal beam table (rows
-# without a ring field come from it; see core.beam_table). Keys are the values accepted by ``sensor.preset``.
+# without a ring field come from it; see core.beam_table) and its stamp at the sweep's end (both sources of
+# HDL-64E clouds stamp there: the Velodyne driver, with its last packet, and KITTI). Keys are the values accepted by ``sensor.preset``.
 SENSOR_PRESETS: dict[str, dict[str, Any]] = {
     'VLP-16': dict(n_scan=16, horizon_scan=1800, ang_res_x=0.2, ang_res_y=2.0, ang_bottom=15.0 + 0.1,
                    ground_scan_ind=7),
@@ -90,14 +96,14 @@ SENSOR_PRESETS: dict[str, dict[str, Any]] = {
     'VLS-128': dict(n_scan=128, horizon_scan=1800, ang_res_x=0.2, ang_res_y=0.3, ang_bottom=25.0,
                     ground_scan_ind=10),
     'HDL-64E': dict(n_scan=64, horizon_scan=1800, ang_res_x=0.2, ang_res_y=26.9 / 63, ang_bottom=24.9,
-                    ground_scan_ind=50, beam_elevations=HDL64E_NOMINAL_ELEVATIONS),
+                    ground_scan_ind=50, beam_elevations=HDL64E_NOMINAL_ELEVATIONS, stamp_position=1.0),
     'OS1-16': dict(n_scan=16, horizon_scan=1024, ang_res_x=360.0 / 1024, ang_res_y=33.2 / 15,
                    ang_bottom=16.6 + 0.1, ground_scan_ind=7),
     'OS1-64': dict(n_scan=64, horizon_scan=1024, ang_res_x=360.0 / 1024, ang_res_y=33.2 / 63,
                    ang_bottom=16.6 + 0.1, ground_scan_ind=15),
 }
 _PRESET_FIELDS = ('n_scan', 'horizon_scan', 'ang_res_x', 'ang_res_y', 'ang_bottom', 'ground_scan_ind',
-                  'beam_elevations')
+                  'beam_elevations', 'stamp_position')
 
 
 @dataclass(frozen=True)

@@ -147,6 +147,7 @@ def _validate(p: Params) -> None:
         need(problem is None, 'sensor.beam_calibration' if s.beam_calibration else 'sensor.beam_elevations',
              f'{problem}' + (f' ({s.beam_calibration})' if s.beam_calibration else ''))
     need(s.scan_period > 0, 'sensor.scan_period', 'must be positive')
+    need(0.0 <= s.stamp_position <= 1.0, 'sensor.stamp_position', 'must be within 0..1 (a fraction of the sweep)')
     need(s.sensor_minimum_range >= 0, 'sensor.sensor_minimum_range', 'must not be negative')
     need(s.point_cloud_topic != '', 'sensor.point_cloud_topic', 'must not be empty')
     ip = p.image_projection

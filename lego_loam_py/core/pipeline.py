@@ -36,6 +36,7 @@ from lego_loam_py.core.param_types import Params
 from lego_loam_py.core.pipeline_events import (LoopChecked, MapStepped, PipelineListener, ScanFused,
                                                ScanProcessed)
 from lego_loam_py.core.pointcloud import CloudLayoutError
+from lego_loam_py.core.sweep import pose_delay
 from lego_loam_py.core.transform_fusion import TransformFusion
 
 __all__ = ['Pipeline', 'ScanOutput', 'RunResult', 'pose_time_offset_ns']
@@ -46,12 +47,9 @@ MAPPED_POSE_LAG_NS = 300_000_000
 
 
 def pose_time_offset_ns(params: Params) -> int:
-    """[ns] to add to a scan's stamp to get the time of the sensor pose the pipeline publishes for it: one
-    sweep with the original odometry model (its pose of scan k is the sensor's at the end of the sweep),
-    0 otherwise. Applies to /laser_odom_to_init and /integrated_to_init alike."""
-    if params.feature_association.odometry_model == 'original':
-        return int(round(params.sensor.scan_period * 1e9))
-    return 0
+    """[ns] to add to a scan's stamp to get the time of the sensor pose the pipeline publishes for it (see
+    :func:`~lego_loam_py.core.sweep.pose_delay`). Applies to /laser_odom_to_init and /integrated_to_init alike."""
+    return int(round(pose_delay(params) * 1e9))
 
 
 @dataclass

@@ -24,7 +24,7 @@ from lego_loam_py.core.libm import atan2f
 
 __all__ = ['sweep_rotation', 'sweep_angles', 'ring_of', 'relative_time_of', 'relative_time_from_azimuth',
            'relative_time', 'SweepStartFrame', 'transform_to_start', 'transform_to_end', 'start_jacobian',
-           'plane_jacobian_rows', 'accumulate', 'motion_to_theta']
+           'plane_jacobian_rows', 'accumulate', 'motion_to_theta', 'imu_free_motion', 'pose_delay', 'StampInstant']
 
 _F32 = np.float32
 TWO_PI = 2 * math.pi
@@ -244,3 +244,72 @@ def motion_to_theta(motion: np.ndarray) -> np.ndarray:
     """Six-vector θ (sweep convention) of a sweep whose end is at pose ``motion``: ``T(θ) = motion^-1``."""
     forward = invert_pose(motion)
     return np.array([*sweep_angles(forward[:3, :3]), *forward[:3, 3]])
+
+
+def imu_free_motion(theta: np.ndarray, delta_end: np.ndarray, shift_end: np.ndarray) -> np.ndarray:
+    """The whole motion of a sweep registered after IMU deskewing, as an IMU-free six-vector (sweep convention):
+    ``theta`` is what the registration found beyond the IMU's rotation ``delta_end`` and shift ``shift_end``. The
+    sweep end in the start frame is ``T(θ)^-1 · [ΔR, shift]``; its inverse is the full T."""
+    full_rotation = delta_end.T @ sweep_rotation(*theta[:3])
+    full_translation = delta_end.T @ (np.asarray(theta[3:]) - shift_end)
+    return np.array([*sweep_angles(full_rotation), *full_translation])
+
+
+def pose_delay(params) -> float:
+    """[s] from a scan's header stamp to the instant of the pose published for it: the sweep's end with the
+    original odometry model (its poses are the sweep end's), the stamp itself with the sweep-start model (its
+    outputs are moved there, :class:`StampInstant`)."""
+    if params.feature_association.odometry_model == 'original':
+        return (1.0 - params.sensor.stamp_position) * params.sensor.scan_period
+    return 0.0
+
+
+class StampInstant:
+    """The sweep-start model's outputs at the instant the header stamp was taken (``sensor.stamp_position`` s0,
+    a fraction of the sweep): the odometry registers sweep starts, and a driver that stamps a sweep with its last
+    packet (s0 = 1) would otherwise get every pose one sweep late.
+
+    With ``M`` the sensor's pose at s0 in its sweep-start frame (the sweep's motion, scaled), the published pose
+    is ``C W M`` and the published clouds ``M^-1 p``, where ``W`` is the sweep-start pose and ``C`` keeps the
+    first published pose where the odometry started (camera_init is the sensor at the first stamp). At s0 = 0
+    nothing changes."""
+
+    def __init__(self, params):
+        self.position = float(params.sensor.stamp_position)
+        self.offset_s = self.position * params.sensor.scan_period   # from the sweep start to the stamp [s]
+        self.active = self.position > 0.0
+        self._origin = np.eye(4)      # sweep-start pose the odometry started from
+        self._correction = None       # C, fixed by the first sweep motion (kept across restarts)
+
+    def sweep_start(self, stamp_ns: int) -> float:
+        """[s] the sweep stamped ``stamp_ns`` began."""
+        return stamp_ns * 1e-9 - self.offset_s
+
+    def begin(self, world_pose: np.ndarray) -> None:
+        """The odometry (re)starts at this sweep-start pose (4x4)."""
+        if self._correction is None:
+            self._origin = np.array(world_pose, dtype=float)
+
+    def within(self, motion: np.ndarray) -> np.ndarray:
+        """4x4 pose at s0 in the sweep-start frame, for a sweep that moved by ``motion`` (the next start's pose)."""
+        if self.position == 1.0:
+            return np.array(motion, dtype=float)
+        from scipy.spatial.transform import Rotation
+        out = np.eye(4)
+        out[:3, :3] = Rotation.from_rotvec(self.position * Rotation.from_matrix(motion[:3, :3]).as_rotvec()).as_matrix()
+        out[:3, 3] = self.position * np.asarray(motion[:3, 3], dtype=float)
+        return out
+
+    def pose(self, world_pose: np.ndarray, motion: np.ndarray) -> np.ndarray:
+        """The published pose (4x4) of a sweep starting at ``world_pose`` and moving by ``motion``."""
+        at_stamp = self.within(motion)
+        if self._correction is None:
+            self._correction = self._origin @ invert_pose(at_stamp) @ invert_pose(self._origin)
+        return self._correction @ world_pose @ at_stamp
+
+    def cloud(self, points: np.ndarray, motion: np.ndarray) -> np.ndarray:
+        """(n, 4) float32 points of the sweep-start frame in the frame at s0 (intensity kept)."""
+        to_stamp = invert_pose(self.within(motion))
+        out = points.copy()
+        out[:, :3] = (points[:, :3].astype(np.float64) @ to_stamp[:3, :3].T + to_stamp[:3, 3]).astype(_F32)
+        return out

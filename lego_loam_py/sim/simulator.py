@@ -1,8 +1,9 @@
 """The simulator's driver: a scenario -> a bag with /velodyne_points and /imu/data, plus its sidecar files.
 
 Timing: simulation time t = 0 is header stamp :data:`START_STAMP_NS`. Sweep k starts at ``k * scan_period``
-(its cloud's header stamp) and is recorded at its end (bag time = stamp + scan_period, as a driver
-publishes it); IMU sample j is stamped and recorded at ``j / imu_rate``, from t = 0 to the end of the last
+(its cloud's header stamp, or that much later for a preset whose drivers stamp later in the sweep:
+``sensor.stamp_position``, the HDL-64E's at its end) and is recorded at its end (bag time = sweep start +
+scan_period, as a driver publishes it); IMU sample j is stamped and recorded at ``j / imu_rate``, from t = 0 to the end of the last
 sweep, so every sweep is covered by IMU data recorded before its cloud.
 
 Determinism: every random draw comes from a generator seeded by (seed, purpose, index) -- the scenery, the
@@ -114,7 +115,15 @@ class SimConfig:
         del out['uniform_beams']
         if self._has_beam_table():   # (a preset whose beams moved to a table gets new cache keys, no other)
             out['beams'] = 'uniform' if self.uniform_beams else 'table'
+        if self.stamp_position():    # (likewise a preset whose clouds are stamped later than their sweep start)
+            out['stamp_position'] = self.stamp_position()
         return out
+
+    def stamp_position(self) -> float:
+        """Where in the sweep the clouds' header stamps are taken, as the preset's drivers do
+        (``sensor.stamp_position``: 0 the sweep start, 1 its end)."""
+        from lego_loam_py.core.params import SENSOR_PRESETS
+        return float(SENSOR_PRESETS.get(self.preset, {}).get('stamp_position', 0.0))
 
     def _has_beam_table(self) -> bool:
         from lego_loam_py.core.params import SENSOR_PRESETS
@@ -259,6 +268,7 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
     # sample when it was measured (as a recorder receives it).
     imu_stamp_offset_ns = int(round(config.imu_time_offset * 1e9))
     period_ns = int(round(lidar.scan_period * 1e9))
+    stamp_offset_ns = int(round(config.stamp_position() * period_ns))   # sweep start -> header stamp
     duration = world.default_duration if config.duration is None else config.duration
     n_scans = max(1, int(math.floor(duration / lidar.scan_period + 1e-9)))
     end_ns = n_scans * period_ns
@@ -299,7 +309,8 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
                         imu_index = stop
                     sweep = simulate_sweep(lidar, world.scene, world.trajectory, sweep_offsets_ns[k] / 1e9,
                                            None if config.ideal else scenario_rng(config.seed, 'lidar', k), dtype)
-                    header = bag.header(START_STAMP_NS + int(sweep_offsets_ns[k]), LIDAR_FRAME, seq=k)
+                    header = bag.header(START_STAMP_NS + int(sweep_offsets_ns[k]) + stamp_offset_ns, LIDAR_FRAME,
+                                        seq=k)
                     bag.write_msg(CLOUD_TOPIC, START_STAMP_NS + sweep_end, make_cloud_msg(types, header, sweep.points))
                     label_writer.add_scan(sweep.labels)
                     total_points += len(sweep.points)
@@ -308,12 +319,14 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
             label_writer.abort()
             raise
 
-    label_writer.close(START_STAMP_NS + sweep_offsets_ns, world.scene.classes)
-    # Ground truth: lidar poses relative to the first sweep start (t = 0, also the first IMU stamp).
-    poses = world.trajectory.matrices(sweep_offsets_ns / 1e9)
+    label_writer.close(START_STAMP_NS + sweep_offsets_ns + stamp_offset_ns, world.scene.classes)
+    # Ground truth: lidar poses at the header stamps relative to the first one (the first sweep start, t = 0, also
+    # the first IMU stamp, unless the preset stamps its sweeps later).
+    poses = world.trajectory.matrices((sweep_offsets_ns + stamp_offset_ns) / 1e9)
     dense = world.trajectory.matrices(imu_offsets_ns / 1e9)
     first = poses[0].copy()
-    sidecars.write_tum(sidecars.sidecar_path(bag_path, sidecars.GROUND_TRUTH), START_STAMP_NS + sweep_offsets_ns,
+    sidecars.write_tum(sidecars.sidecar_path(bag_path, sidecars.GROUND_TRUTH),
+                       START_STAMP_NS + sweep_offsets_ns + stamp_offset_ns,
                        sidecars.relative_poses(poses))
     dense_relative = np.einsum('ij,njk->nik', np.linalg.inv(first), dense)
     sidecars.write_tum(sidecars.sidecar_path(bag_path, sidecars.GROUND_TRUTH_DENSE), START_STAMP_NS + imu_offsets_ns,
