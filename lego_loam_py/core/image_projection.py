@@ -17,6 +17,7 @@ import numpy as np
 
 from lego_loam_py.core.ground import GroundRemoval
 from lego_loam_py.core.param_types import Params
+from lego_loam_py.core.elevation_bias import ElevationBias
 from lego_loam_py.core.range_image import InputError, ProjectionInput, RangeImage, RangeImageProjection, prepare_input
 from lego_loam_py.core.segmentation import NO_LABEL, OUTLIER_LABEL, Segmentation
 
@@ -66,6 +67,8 @@ class ImageProjection:
         self.n_scan = n = params.sensor.n_scan
         self.horizon_scan = h = params.sensor.horizon_scan
         self.projection = RangeImageProjection(params)
+        # A common error of the beams' elevation: the parameter's, or found from the ground (core.elevation_bias).
+        self.elevation = ElevationBias(params.sensor.elevation_offset, params.image_projection.estimate_elevation_offset)
         self.ground_removal = GroundRemoval(params)
         self.segmentation = Segmentation(params)
         # Per-pixel constants of the published clouds (row-major pixel indices).
@@ -81,10 +84,16 @@ class ImageProjection:
         """Project, remove ground, segment and assemble the published clouds for one scan."""
         if data.xyz.shape[0] == 0:
             raise InputError('the cloud has no valid point')
+        self.elevation.correct(data.xyz)
         image = self.projection.project(data)
         ground = self.ground_removal.ground(image.full_cloud, image.filled)
+        found = self.elevation.observe(image.full_cloud[ground, :3]) if self.elevation.looking else None
         labels = self.segmentation.labels(image.range, image.filled, ground)
-        return self._assemble(image, ground, labels, data)
+        result = self._assemble(image, ground, labels, data)
+        result.stats['elevation_offset_deg'] = self.elevation.offset_deg
+        if found is not None:   # (from the next scan on)
+            result.stats['elevation_offset_found'] = found
+        return result
 
     # --------------------------------------------------------------------------------- assembling
     def _assemble(self, image: RangeImage, ground: np.ndarray, labels: np.ndarray,

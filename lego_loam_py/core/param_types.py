@@ -70,6 +70,9 @@ class SensorParams:
     time_field: str = 'time'           # name of the per-point time field [s since sweep start]
     sensor_minimum_range: float = 1.0  # closer returns are dropped [m]
     sensor_mount_angle: float = 0.0    # expected ground slope in the ground test [deg]
+    # Added to every point's elevation [deg]: a common error of the beams' calibration (KITTI's HDL-64E reads
+    # about 0.2 deg low). 0: none, or found from the ground (image_projection.estimate_elevation_offset).
+    elevation_offset: float = 0.0
     point_cloud_topic: str = '/velodyne_points'
     imu_topic: str = '/imu/data'       # empty string: do not subscribe to an IMU
 
@@ -111,6 +114,9 @@ class ImageProjectionParams:
     """Range image, ground removal and segmentation (imageProjection.cpp)."""
 
     ground_slope_threshold: float = 10.0  # |slope - mount angle| <= this marks ground [deg]
+    # Find a common error of the beams' elevation from the ground ahead and behind, once scans agree on it, and
+    # correct the scans after it (core.elevation_bias); unused when sensor.elevation_offset is set.
+    estimate_elevation_offset: bool = True
     # 'refined' (default) removes from the original's ground the points that start a vertical surface (wall
     # bases, car sides) and those that step up from the ground below them in their column (car hoods, tables);
     # 'original' is the C++'s rule.

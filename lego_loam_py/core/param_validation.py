@@ -149,6 +149,7 @@ def _validate(p: Params) -> None:
     need(s.scan_period > 0, 'sensor.scan_period', 'must be positive')
     need(0.0 <= s.stamp_position <= 1.0, 'sensor.stamp_position', 'must be within 0..1 (a fraction of the sweep)')
     need(s.sensor_minimum_range >= 0, 'sensor.sensor_minimum_range', 'must not be negative')
+    need(abs(s.elevation_offset) <= 5.0, 'sensor.elevation_offset', 'must be within 5 degrees')
     need(s.point_cloud_topic != '', 'sensor.point_cloud_topic', 'must not be empty')
     ip = p.image_projection
     need(0 < ip.segment_theta < math.pi, 'image_projection.segment_theta', 'must lie in (0, pi) radians')

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lego_loam_py.core.beam_table import BeamRows
+from lego_loam_py.core.laser_order import rows_from_laser_order
 from lego_loam_py.core.atan2f_decisions import Atan2fSteps, decide_on_atan2f, first_float32_where
 from lego_loam_py.core.libm import atan2f, float_degrees, round_half_away
 from lego_loam_py.core.param_types import Params
@@ -119,6 +120,7 @@ class RangeImageProjection:
         self._min_range = _F32(s.sensor_minimum_range)
         # Unevenly spaced beams: rows without a ring field from the nearest beam of the table.
         self._beam_rows = BeamRows(s.beam_elevations) if s.beam_elevations else None
+        self._rows_from_order = s.use_cloud_ring   # (without a ring field: see core.laser_order)
         n, h = self.n_scan, self.horizon_scan
         rows, cols = np.repeat(np.arange(n), h), np.tile(np.arange(h), n)
         self._pixel_intensity = (rows + cols / 10000.0).astype(_F32)
@@ -146,11 +148,12 @@ class RangeImageProjection:
                          z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Range-image row and column of every point (int64; -1 where outside the image) from its ring (or
         None) and float32 sensor-frame coordinates [m]."""
-        if ring is not None:
-            row = ring.copy()
-        elif self._beam_rows is not None:
+        row = ring.copy() if ring is not None else None
+        if row is None and self._rows_from_order:   # a cloud stored laser by laser (KITTI's) tells its lasers
+            row = rows_from_laser_order(x, y, z, self.n_scan)
+        if row is None and self._beam_rows is not None:
             row = self._beam_rows.rows(z, np.sqrt(x * x + y * y))
-        else:
+        elif row is None:
             row = decide_on_atan2f(z, np.sqrt(x * x + y * y), self._row_of_elevation).astype(np.int64)
         row[(row < 0) | (row >= self.n_scan)] = -1
         col = self._columns(x, y)

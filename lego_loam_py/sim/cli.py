@@ -59,6 +59,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="drive another route through the same scene: start at this arc length [m] along the "
                         "scenario's path (default: the scenario's own start)")
     parser.add_argument('--reverse', action='store_true', help="drive the scenario's path the other way round")
+    parser.add_argument('--beam-elevation-error', type=float, default=0.0, metavar='DEG',
+                        help="every point reads this much lower than its beam really points, as a miscalibrated "
+                             "unit's (KITTI's HDL-64E: about 0.2; default 0)")
     parser.add_argument('--cached', action='store_true', help='generate into the cache (~/.cache/lego_loam_py/sim, '
                         '$LEGO_LOAM_CACHE) unless present; print the bag path')
     parser.add_argument('--list', action='store_true', help='list the scenarios and sensor presets, then exit')
@@ -100,7 +103,8 @@ def main(args: argparse.Namespace) -> int:
                    imu_extrinsic_rpy=tuple(args.imu_extrinsic_rpy), ideal=args.ideal,
                    turn_rate=args.turn_rate, uniform_beams=args.uniform_beams,
                    imu_lever_arm=tuple(args.imu_lever_arm), imu_orientation_rpy=tuple(args.imu_orientation_rpy),
-                   imu_time_offset=args.imu_time_offset, route_start=args.route_start, reverse=args.reverse)
+                   imu_time_offset=args.imu_time_offset, route_start=args.route_start, reverse=args.reverse,
+                   beam_elevation_error=args.beam_elevation_error)
     try:
         if args.cached:
             print(cached_scenario(args.scenario, progress=not args.no_progress, **options))

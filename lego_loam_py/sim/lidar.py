@@ -84,10 +84,14 @@ class LidarModel:
     detection_reference: float = 5.0     # a 100 %-reflective normal target gives signal 1 at this x max_range
     intensity_noise: float = 1.5         # sigma of the intensity noise [reflectivity units]
     ideal: bool = False                  # no noise, no quantisation, every hit in range is returned
+    # Every point reads this much lower than its beam really points [deg] (a calibration error common to the
+    # beams: KITTI's HDL-64E reads about 0.2 deg low); the returns are cast along the true beams and reported
+    # along the calibrated ones.
+    elevation_error: float = 0.0
 
     @staticmethod
     def from_preset(preset: str = 'VLP-16', scan_period: float = 0.1, ideal: bool = False,
-                    uniform_beams: bool = False) -> 'LidarModel':
+                    uniform_beams: bool = False, elevation_error: float = 0.0) -> 'LidarModel':
         """The model of a sensor preset (:data:`SENSOR_PRESETS` geometry + :data:`LIDAR_SPECS`); its beam table
         when it has one, unless ``uniform_beams``."""
         if preset not in SENSOR_PRESETS or preset not in LIDAR_SPECS:
@@ -107,7 +111,7 @@ class LidarModel:
                            columns=int(geometry['horizon_scan']), scan_period=scan_period,
                            firing_interval=spec['firing_interval'], min_range=spec['min_range'],
                            max_range=spec['max_range'], range_noise=spec['range_noise'],
-                           range_resolution=spec['range_resolution'])
+                           range_resolution=spec['range_resolution'], elevation_error=float(elevation_error))
         return model.make_ideal() if ideal else model
 
     def make_ideal(self) -> 'LidarModel':
@@ -127,10 +131,12 @@ class LidarModel:
         """(columns,) lidar-frame azimuth atan2(y, x) of each column [rad], decreasing (clockwise)."""
         return -2.0 * np.pi * np.arange(self.columns) / self.columns
 
-    def beam_directions(self) -> np.ndarray:
-        """(columns, lasers, 3) unit beam directions in the lidar frame, lasers in firing order."""
+    def beam_directions(self, true: bool = False) -> np.ndarray:
+        """(columns, lasers, 3) unit beam directions in the lidar frame, lasers in firing order: as calibrated, or
+        as the beams really point (``true``: :attr:`elevation_error` higher)."""
         azimuth = self.column_azimuths()[:, None]
-        elevation = np.radians(np.asarray(self.ring_elevations)[list(self.firing_rings)])[None, :]
+        elevation = np.asarray(self.ring_elevations)[list(self.firing_rings)] + (self.elevation_error if true else 0.0)
+        elevation = np.radians(elevation)[None, :]
         return np.stack(np.broadcast_arrays(np.cos(elevation) * np.cos(azimuth),
                                             np.cos(elevation) * np.sin(azimuth),
                                             np.sin(elevation)), axis=-1)
@@ -147,7 +153,8 @@ class LidarModel:
                     scan_period_s=self.scan_period, firing_interval_s=self.firing_interval,
                     min_range_m=self.min_range, max_range_m=self.max_range, range_noise_sigma_m=self.range_noise,
                     range_resolution_m=self.range_resolution, random_dropout=self.random_dropout,
-                    intensity_noise_sigma=self.intensity_noise, ideal=self.ideal)
+                    intensity_noise_sigma=self.intensity_noise, ideal=self.ideal,
+                    **({'elevation_error_deg': self.elevation_error} if self.elevation_error else {}))
 
 
 @dataclass
@@ -163,7 +170,9 @@ class _SweepGeometry:
     """Per-model constant arrays, computed once."""
 
     def __init__(self, model: LidarModel):
-        self.directions = model.beam_directions().reshape(-1, 3)          # (M, 3) lidar frame
+        self.directions = model.beam_directions().reshape(-1, 3)          # (M, 3) lidar frame, as reported
+        self.cast_directions = (model.beam_directions(true=True).reshape(-1, 3) if model.elevation_error
+                                else self.directions)                        # ... and as the beams point
         offsets = model.firing_offsets()
         self.time = offsets.reshape(-1)                                     # (M,) [s]
         self.column_fraction = ((offsets - offsets[:, :1]) / model.column_period).reshape(-1)
@@ -208,10 +217,10 @@ def simulate_sweep(model: LidarModel, scene: Scene, trajectory: Trajectory, swee
     frac = geometry.column_fraction
     if model.firing_interval > 0.0:
         step = (Rotation.from_matrix(rotations[:-1]).inv() * Rotation.from_matrix(rotations[1:])).as_rotvec()
-        local = _rotate(geometry.directions, step[col] * frac[:, None])
+        local = _rotate(geometry.cast_directions, step[col] * frac[:, None])
         origins = positions[col] + frac[:, None] * (positions[col + 1] - positions[col])
     else:
-        local = geometry.directions
+        local = geometry.cast_directions
         origins = positions[col]
     world_dirs = np.einsum('nij,nj->ni', rotations[:-1][col], local)
 

@@ -61,10 +61,11 @@ class SimConfig:
     # scenario's own start), and drive it the other way round (see scenarios.build_world).
     route_start: float | None = None
     reverse: bool = False
+    beam_elevation_error: float = 0.0             # every point reads this much lower than its beam points [deg]
 
     # Options added after recordings were cached: left out of to_dict (and so of the cache key) at their defaults.
     _OPTIONAL = {'turn_rate': 0.0, 'imu_lever_arm': (0.0, 0.0, 0.0), 'imu_orientation_rpy': (0.0, 0.0, 0.0),
-                 'imu_time_offset': 0.0, 'route_start': None, 'reverse': False}
+                 'imu_time_offset': 0.0, 'route_start': None, 'reverse': False, 'beam_elevation_error': 0.0}
 
     def validate(self) -> 'SimConfig':
         from lego_loam_py.core.params import SENSOR_PRESETS
@@ -92,6 +93,8 @@ class SimConfig:
             raise ValueError(f'the IMU lever arm must be within 10 m of the lidar, got {tuple(self.imu_lever_arm)}')
         if not abs(float(self.imu_time_offset)) <= 1.0:
             raise ValueError(f'the IMU time offset must be within 1 s, got {self.imu_time_offset}')
+        if not abs(float(self.beam_elevation_error)) <= 2.0:
+            raise ValueError(f'the beam elevation error must be within 2 deg, got {self.beam_elevation_error}')
         if self.route_start is not None and not math.isfinite(self.route_start):
             raise ValueError(f'route start must be a finite arc length [m], got {self.route_start}')
         return replace(self, imu_extrinsic_rpy=tuple(float(a) for a in self.imu_extrinsic_rpy),
@@ -100,7 +103,7 @@ class SimConfig:
                        imu_time_offset=float(self.imu_time_offset),
                        seed=int(self.seed), imu_rate=float(self.imu_rate), turn_rate=float(self.turn_rate),
                        route_start=None if self.route_start is None else float(self.route_start),
-                       reverse=bool(self.reverse))
+                       reverse=bool(self.reverse), beam_elevation_error=float(self.beam_elevation_error))
 
     def to_dict(self) -> dict[str, Any]:
         out = asdict(self)
@@ -165,6 +168,8 @@ class SimConfig:
             parts += ['--route-start', f'{self.route_start:g}']
         if self.reverse:
             parts.append('--reverse')
+        if self.beam_elevation_error:
+            parts += ['--beam-elevation-error', f'{self.beam_elevation_error:g}']
         return ' '.join(parts)
 
     def cache_key(self) -> str:
@@ -260,7 +265,8 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
     if bag_path.exists():
         raise FileExistsError(f'{bag_path} exists already; choose another output (bags are never overwritten)')
     world = build_world(config.scenario, config.seed, config.turn_rate, config.route_start, config.reverse)
-    lidar = LidarModel.from_preset(config.preset, ideal=config.ideal, uniform_beams=config.uniform_beams)
+    lidar = LidarModel.from_preset(config.preset, ideal=config.ideal, uniform_beams=config.uniform_beams,
+                                   elevation_error=config.beam_elevation_error)
     imu = ImuModel(rate=config.imu_rate, noise=ImuNoise.none() if config.ideal else ImuNoise(),
                    extrinsic_rpy_deg=config.imu_extrinsic_rpy, lever_arm=config.imu_lever_arm,
                    orientation_rpy_deg=config.imu_orientation_rpy, time_offset=config.imu_time_offset)
