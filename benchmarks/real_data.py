@@ -104,7 +104,8 @@ def time_shift_scan(ground_truth: tuple[np.ndarray, np.ndarray], estimate: tuple
     best = int(np.argmin(ates))
     zero = int(np.argmin(np.abs(shifts_ns)))
     return {'shifts_s': [float(s) for s in shifts_s], 'ate_m': [float(a) for a in ates], 'poses': int(inside.sum()),
-            'best_shift_s': float(shifts_s[best]), 'best_ate_m': float(ates[best]), 'ate_at_zero_m': float(ates[zero])}
+            'best_shift_s': float(shifts_s[best]), 'best_ate_m': float(ates[best]), 'ate_at_zero_m': float(ates[zero]),
+            'worst_ate_m': float(ates.max())}
 
 
 def median_summary(runs: list[dict]) -> dict:
@@ -234,7 +235,7 @@ def evaluate_run(ground_truth, trajectory: Path) -> dict:
         figures.update(ate_m=metrics.ate_rmse_m, rpe_percent=metrics.rpe_percent, matched_poses=metrics.matched_poses,
                        reference_path_m=metrics.path_length_m, best_shift_s=shift['best_shift_s'],
                        ate_best_shift_m=shift['best_ate_m'], ate_shift_zero_m=shift['ate_at_zero_m'],
-                       shift_poses=shift['poses'])
+                       ate_worst_shift_m=shift['worst_ate_m'], shift_poses=shift['poses'])
         figures['time_shift'] = shift
     return figures
 
@@ -349,6 +350,7 @@ def report(results: dict) -> str:
         line('  ATE m at 0 s, those poses', 'ate_shift_zero_m', '.3f')
         line('  best shift s in [-0.12, +0.12]', 'best_shift_s', '+.2f')
         line('  ATE m at the best shift', 'ate_best_shift_m', '.3f')
+        line('  ATE m at the worst shift', 'ate_worst_shift_m', '.3f')
     if results['repeat'] > 1:
         lines.append('every run:')
         for system in SYSTEMS:
