@@ -3,8 +3,9 @@
     .venv/bin/python benchmarks/bench_dds.py [--rates 1 2] [--pinned 1 2] [--repeat 3] [--seconds 20] [--idle 10]
                                              [--clock 40] [--profile] [--out DIR]
 
-The recording is a simulated 20 s campus drive with IMU (VLP-16, 200 scans; ``--bag`` for another one),
-generated into the cache on first use. For each configuration the four nodes are started with
+The recording is a simulated 20 s campus drive with IMU (VLP-16, 200 scans; ``--bag`` for another one, with
+``-p key:=value`` for the nodes' parameters, e.g. a real HDL-64E drive: ``lego_loam_py convert`` a KITTI folder,
+then ``--bag BAG -p sensor.preset:=HDL-64E``), generated into the cache on first use. For each configuration the four nodes are started with
 ``ros2 run``-style executables on sim time (as with a bag), this process waits until they are up and
 measures, per node, from /proc:
 
@@ -40,6 +41,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from lego_loam_py.core.params import parse_overrides, write_params_file  # noqa: E402
 from tests.support.domains import DomainLease  # noqa: E402
 from tests.support.measure import rss_mb  # noqa: E402
 from tests.support.ros import spin_in_background  # noqa: E402
@@ -81,7 +83,7 @@ def default_bag(seconds: float) -> Path:
 
 
 def run_configuration(bag: Path, out: Path, rate: float, pinned: bool, idle: float, profile: bool = False,
-                      clock_hz: float = 40.0, run: int = 0) -> dict:
+                      clock_hz: float = 40.0, run: int = 0, overrides: dict | None = None) -> dict:
     """Start the nodes, measure idle, play the bag at ``rate``, measure; returns the row."""
     import rclpy
     from nav_msgs.msg import Odometry
@@ -98,8 +100,8 @@ def run_configuration(bag: Path, out: Path, rate: float, pinned: bool, idle: flo
     folder = out / (label.replace(' ', '_').replace(',', '') + (f'_run{run}' if run else ''))
     (folder / 'logs').mkdir(parents=True, exist_ok=True)
     params = folder / 'params.yaml'
-    params.write_text(f'/**:\n  ros__parameters:\n    use_sim_time: true\n    map_optimization:\n'
-                      f'      file_directory: {folder / "maps"}\n')
+    write_params_file(params, {'use_sim_time': True, 'map_optimization.file_directory': folder / 'maps',
+                               **(overrides or {})})
     taskset = ['taskset', '-c', '0'] if pinned else []
     if pinned:
         os.sched_setaffinity(0, {1})   # this process (the listener) and the player on the other core
@@ -306,6 +308,8 @@ def main(argv=None) -> int:
                         help='runs of each configuration; the table shows the median of each figure')
     parser.add_argument('--clock', type=float, default=40.0, help='/clock rate of the player [Hz] (default 40, '
                         'as ros2 bag play --clock)')
+    parser.add_argument('-p', '--param', action='append', default=[], metavar='KEY:=VALUE',
+                        help='a parameter of the nodes, e.g. -p sensor.preset:=HDL-64E (repeatable)')
     parser.add_argument('--profile', action='store_true',
                         help='sample every node with py-spy while playing (adds CPU on the other core)')
     args = parser.parse_args(argv)
@@ -318,7 +322,7 @@ def main(argv=None) -> int:
             runs = []
             for run in range(args.repeat):
                 runs.append(run_configuration(bag, out, rate, pinned, args.idle, args.profile, args.clock,
-                                              run + 1 if args.repeat > 1 else 0))
+                                              run + 1 if args.repeat > 1 else 0, parse_overrides(args.param)))
                 print(json.dumps(runs[-1]), flush=True)
             rows.append(median_row(runs))
     summary = dict(bag=str(bag), machine=f'{platform.processor() or platform.machine()}, {os.cpu_count()} cores',

@@ -54,6 +54,10 @@ def test_half_a_sweep_interpolates_the_motion_and_the_stamp_moves_the_imu_timing
     np.testing.assert_allclose(half[:3, 3], [0.1, 0.0, 0.5], atol=1e-12)
     np.testing.assert_allclose(np.arctan2(half[1, 0], half[0, 0]), 0.02, atol=1e-12)
     assert instant.sweep_start(1_000_000_000) == pytest.approx(0.95)
+    # A scan dropped on the way: the motion registered next spans two sweeps, of which one sweep's share is taken.
+    instant.begin(np.eye(4), 1_000_000_000)
+    assert instant.share(1_100_000_000) == 1.0 and instant.share(1_300_000_000) == pytest.approx(0.5)
+    np.testing.assert_allclose(instant.within(motion, 0.5)[:3, 3], [0.05, 0.0, 0.25], atol=1e-12)
     assert not StampInstant(Params()).active
     # The original odometry model's poses are the sweep end's: they lag a stamp taken at the start by a sweep.
     original = Params().replace(feature_association__odometry_model='original')

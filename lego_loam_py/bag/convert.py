@@ -10,7 +10,11 @@ Inputs (auto-detected, or ``--format``):
   ``os_sensor -> os_imu``;
 * a **ROS 1 or ROS 2 bag** of raw Velodyne packets (``velodyne_msgs/msg/VelodyneScan``; the type need not
   be installed: its definition is registered here). The packets of all messages are re-cut into rotations
-  by the same decoder, anchored to the first ``VelodynePacket.stamp``.
+  by the same decoder, anchored to the first ``VelodynePacket.stamp``;
+* a **folder of scans** or a **KITTI sequence** (``--format scans|kitti``; a folder that is not a bag is taken
+  for one), read as ``lego_loam_py run`` reads it (:mod:`lego_loam_py.inputs`): every scan as its file has it
+  (its fields kept), stamped from ``times.txt``, and the folder's ground truth written beside the bag as
+  ``ground_truth.tum``, so that a replay over DDS can be scored as the offline run is.
 
 Output: a ROS 2 bag (mcap, or sqlite3) or a ROS 1 bag (``--ros1``) with one ``sensor_msgs/PointCloud2`` per
 rotation on ``--topic`` (header stamp = time of the rotation's first firing; bag time = header stamp), in the
@@ -127,7 +131,11 @@ def velodyne_scan_typestore():
 
 
 def detect_format(path: Path) -> str:
-    """'pcap' or 'rosbag' from the path (bag directory / .bag / .db3 / .mcap) or the file's magic."""
+    """'pcap', 'rosbag' or 'scans' from the path (bag directory / .bag / .db3 / .mcap, another folder) or the
+    file's magic."""
+    if path.is_dir() and not (path / 'metadata.yaml').is_file() and not any(path.glob('*.db3')) \
+            and not any(path.glob('*.mcap')):
+        return 'scans'
     if path.is_dir() or path.suffix in ('.bag', '.db3', '.mcap'):
         return 'rosbag'
     if path.is_file():
@@ -416,16 +424,48 @@ def _convert(source: Path, destination: Path, kind: str, options: ConvertOptions
                 output.close()
         finally:
             reader.close()
+    elif kind in ('scans', 'kitti'):
+        _run_scan_folder(source, kind, destination, options, summary)
     else:
-        raise ConvertError(f"unknown format '{kind}' (pcap or rosbag)")
+        raise ConvertError(f"unknown format '{kind}' (pcap, rosbag, scans or kitti)")
+
+
+def _run_scan_folder(source: Path, kind: str, destination: Path, options: ConvertOptions,
+                     summary: ConvertSummary) -> None:
+    """A folder of scans (or a KITTI sequence) -> clouds as its files hold them, and its ground truth beside."""
+    from lego_loam_py.core.io import write_tum_atomic
+    from lego_loam_py.inputs import Scan, SourceError, open_source
+    from lego_loam_py.sim.output import GROUND_TRUTH, sidecar_path
+
+    try:
+        recording = open_source(source, kind)
+    except SourceError as exc:
+        raise ConvertError(str(exc)) from exc
+    summary.sensor = f'{kind} folder'
+    output = _Output(destination, options, summary)
+    try:
+        with recording:
+            for item in recording.items():
+                if isinstance(item, Scan):
+                    output.cloud(item.stamp_ns, options.frame_id or 'velodyne', item.points)
+                    if output.done():
+                        break
+            truth = recording.ground_truth()
+    finally:
+        output.close()
+    if truth is not None:
+        write_tum_atomic(sidecar_path(destination, GROUND_TRUTH), *truth)
+        summary.notes.append(f'ground truth ({len(truth[0])} poses) beside the bag')
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument('input', type=Path, help='pcap file (Velodyne VLP-16 or Ouster) or a ROS 1/ROS 2 bag of '
-                                                 'velodyne_msgs/VelodyneScan raw packets')
+    parser.add_argument('input', type=Path, help='pcap file (Velodyne VLP-16 or Ouster), a ROS 1/ROS 2 bag of '
+                                                 'velodyne_msgs/VelodyneScan raw packets, or a folder of scans / '
+                                                 'KITTI sequence')
     parser.add_argument('-o', '--output', type=Path, required=True, metavar='OUT_BAG',
                         help='output bag: a ROS 2 bag directory, or a ROS 1 .bag file with --ros1 (must not exist)')
-    parser.add_argument('--format', choices=['auto', 'pcap', 'rosbag', 'rosbag1', 'rosbag2'], default='auto',
+    parser.add_argument('--format', choices=['auto', 'pcap', 'rosbag', 'rosbag1', 'rosbag2', 'scans', 'kitti'],
+                        default='auto',
                         help='input kind (default: auto-detected from the path and file magic)')
     parser.add_argument('--model', choices=['auto', 'VLP-16'], default='auto',
                         help='Velodyne model: auto = trust the packets\' product id (must say VLP-16); VLP-16 = decode '

@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-__all__ = ['ElevationBias', 'apply_elevation_offset', 'ground_cone_deg']
+__all__ = ['ElevationBias', 'apply_elevation_offset', 'ground_cone_deg', 'elevation_note']
 
 SECTOR_DEG = 30.0       # ground within this azimuth of straight ahead or behind
 MIN_RANGE, MAX_RANGE = 5.0, 35.0   # [m] horizontal range of the fitted ground
@@ -38,6 +38,13 @@ def apply_elevation_offset(xyz: np.ndarray, offset_deg: float) -> None:
     if offset_deg:
         rho = np.hypot(xyz[:, 0], xyz[:, 1], dtype=np.float32)
         xyz[:, 2] += np.float32(math.tan(math.radians(offset_deg))) * rho
+
+
+def elevation_note(offset_deg: float, stamp_ns: int) -> str:
+    """What a run tells its user when it found the correction (once)."""
+    return (f'scan at {stamp_ns * 1e-9:.3f} s: the ground ahead and behind says every point reads {abs(offset_deg):.2f} '
+            f'deg {"low" if offset_deg > 0 else "high"}; scans are corrected from here on (set '
+            f'sensor.elevation_offset: {offset_deg:g} to correct them from the first one)')
 
 
 def ground_cone_deg(ground_xyz: np.ndarray) -> float | None:

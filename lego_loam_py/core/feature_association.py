@@ -230,7 +230,7 @@ class FeatureAssociation:
                 self.transform_sum[0] += imu_attitude.pitch_start
                 self.transform_sum[2] += imu_attitude.roll_start
             self._world_pose = make_pose(euler_to_matrix(*self.transform_sum[:3]), self.transform_sum[3:])
-            self.stamp_instant.begin(self._world_pose)
+            self.stamp_instant.begin(self._world_pose, scan.stamp_ns)
             motion = np.eye(4)
             corner_last = self._deskew_to_start(features.less_sharp, features.less_sharp_index, motion, attitude, points)
             surf_last = self._deskew_to_start(features.less_flat, None, motion, attitude, points)
@@ -280,10 +280,12 @@ class FeatureAssociation:
         odometry.set_last(corner_last, surf_last)
         self._previous_attitude = imu_attitude
         instant = self.stamp_instant
-        at_stamp = (lambda cloud: instant.cloud(cloud, motion)) if instant.active else (lambda cloud: cloud)
+        share = instant.share(scan.stamp_ns) if instant.active else 1.0
+        at_stamp = (lambda cloud: instant.cloud(cloud, motion, share)) if instant.active else (lambda cloud: cloud)
         result = self._finish(scan, features, lambda: at_stamp(corner_last), lambda: at_stamp(surf_last),
                               lambda: at_stamp(self._outlier_at_start(scan, motion, attitude)), False, use_imu, stats,
-                              timings, matrix_to_pose6(instant.pose(self._world_pose, motion)) if instant.active else None)
+                              timings, matrix_to_pose6(instant.pose(self._world_pose, motion, share)) if instant.active
+                              else None)
         result.timings_ms['total'] = (time.perf_counter() - t0) * 1e3
         return result
 

@@ -28,6 +28,7 @@ import numpy as np
 
 from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix, transform_cloud
+from lego_loam_py.core.elevation_bias import elevation_note
 from lego_loam_py.core.image_projection import ImageProjection, InputError, prepare_input
 from lego_loam_py.core.localization import Localization
 from lego_loam_py.core.map_optimization import MapOptimization
@@ -217,6 +218,8 @@ class Pipeline:
             return self._dropped(stamp, str(exc))
         t1 = time.perf_counter()
         record.time('imageProjection', (t1 - t0) * 1e3)
+        if 'elevation_offset_found' in segmentation.stats:
+            self._warn(elevation_note(segmentation.stats['elevation_offset_found'], stamp))
         for mapped_stamp, pose6 in self._back_end.mapped_before(stamp - MAPPED_POSE_LAG_NS):
             event = self.fa.add_mapped_pose(mapped_stamp, pose6_to_matrix(pose6))   # (featureAssociation's IMU check)
             if event is not None:

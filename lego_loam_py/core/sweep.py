@@ -271,45 +271,58 @@ class StampInstant:
 
     With ``M`` the sensor's pose at s0 in its sweep-start frame (the sweep's motion, scaled), the published pose
     is ``C W M`` and the published clouds ``M^-1 p``, where ``W`` is the sweep-start pose and ``C`` keeps the
-    first published pose where the odometry started (camera_init is the sensor at the first stamp). At s0 = 0
-    nothing changes."""
+    first published pose where the odometry started (camera_init is the sensor at the first stamp). The motion
+    registered after a gap (a scan dropped on the way) spans more than a sweep: only one sweep's share of it is
+    taken. At s0 = 0 nothing changes."""
 
     def __init__(self, params):
         self.position = float(params.sensor.stamp_position)
+        self.period_ns = params.sensor.scan_period * 1e9
         self.offset_s = self.position * params.sensor.scan_period   # from the sweep start to the stamp [s]
         self.active = self.position > 0.0
         self._origin = np.eye(4)      # sweep-start pose the odometry started from
         self._correction = None       # C, fixed by the first sweep motion (kept across restarts)
+        self._last_stamp_ns = None
 
     def sweep_start(self, stamp_ns: int) -> float:
         """[s] the sweep stamped ``stamp_ns`` began."""
         return stamp_ns * 1e-9 - self.offset_s
 
-    def begin(self, world_pose: np.ndarray) -> None:
-        """The odometry (re)starts at this sweep-start pose (4x4)."""
+    def begin(self, world_pose: np.ndarray, stamp_ns: int | None = None) -> None:
+        """The odometry (re)starts at this sweep-start pose (4x4), on the scan stamped ``stamp_ns``."""
+        self._last_stamp_ns = stamp_ns
         if self._correction is None:
             self._origin = np.array(world_pose, dtype=float)
 
-    def within(self, motion: np.ndarray) -> np.ndarray:
-        """4x4 pose at s0 in the sweep-start frame, for a sweep that moved by ``motion`` (the next start's pose)."""
-        if self.position == 1.0:
+    def within(self, motion: np.ndarray, share: float = 1.0) -> np.ndarray:
+        """4x4 pose at s0 in the sweep-start frame, for a sweep that moved by ``motion`` (the next start's pose);
+        ``share``: the part of ``motion`` one sweep makes."""
+        fraction = self.position * share
+        if fraction == 1.0:
             return np.array(motion, dtype=float)
         from scipy.spatial.transform import Rotation
         out = np.eye(4)
-        out[:3, :3] = Rotation.from_rotvec(self.position * Rotation.from_matrix(motion[:3, :3]).as_rotvec()).as_matrix()
-        out[:3, 3] = self.position * np.asarray(motion[:3, 3], dtype=float)
+        out[:3, :3] = Rotation.from_rotvec(fraction * Rotation.from_matrix(motion[:3, :3]).as_rotvec()).as_matrix()
+        out[:3, 3] = fraction * np.asarray(motion[:3, 3], dtype=float)
         return out
 
-    def pose(self, world_pose: np.ndarray, motion: np.ndarray) -> np.ndarray:
-        """The published pose (4x4) of a sweep starting at ``world_pose`` and moving by ``motion``."""
-        at_stamp = self.within(motion)
+    def share(self, stamp_ns: int) -> float:
+        """The part of the motion registered at the scan stamped ``stamp_ns`` that one sweep makes."""
+        last, self._last_stamp_ns = self._last_stamp_ns, stamp_ns
+        gap = 0.0 if last is None else float(stamp_ns - last)
+        return min(1.0, self.period_ns / gap) if gap > 1.5 * self.period_ns else 1.0
+
+    def pose(self, world_pose: np.ndarray, motion: np.ndarray, share: float = 1.0) -> np.ndarray:
+        """The published pose (4x4) of a sweep starting at ``world_pose`` and moving by ``motion`` (``share``:
+        :meth:`share`)."""
+        at_stamp = self.within(motion, share)
         if self._correction is None:
             self._correction = self._origin @ invert_pose(at_stamp) @ invert_pose(self._origin)
         return self._correction @ world_pose @ at_stamp
 
-    def cloud(self, points: np.ndarray, motion: np.ndarray) -> np.ndarray:
+    def cloud(self, points: np.ndarray, motion: np.ndarray, share: float = 1.0) -> np.ndarray:
         """(n, 4) float32 points of the sweep-start frame in the frame at s0 (intensity kept)."""
-        to_stamp = invert_pose(self.within(motion))
+        to_stamp = invert_pose(self.within(motion, share))
         out = points.copy()
         out[:, :3] = (points[:, :3].astype(np.float64) @ to_stamp[:3, :3].T + to_stamp[:3, 3]).astype(_F32)
         return out

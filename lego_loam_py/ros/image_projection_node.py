@@ -21,13 +21,15 @@ import numpy as np
 from cloud_msgs.msg import CloudInfo
 from sensor_msgs.msg import PointCloud2
 
+from lego_loam_py.core.elevation_bias import elevation_note
 from lego_loam_py.core.frames import BASE_LINK_FRAME
 from lego_loam_py.core import validation
 from lego_loam_py.core.image_projection import ImageProjection, InputError, prepare_input
 from lego_loam_py.core.validation import MAX_COORDINATE
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.ros import qos
-from lego_loam_py.ros.conversions import cloud_msg_to_array, make_header, serialized_cloud_info, serialized_xyzi_cloud
+from lego_loam_py.ros.conversions import (cloud_msg_to_array, make_header, serialized_cloud_info, serialized_xyzi_cloud,
+                                          stamp_to_ns)
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 
@@ -112,6 +114,8 @@ class ImageProjectionNode(LegoLoamNode):
             self.pub_ground.publish(serialized_xyzi_cloud(result.ground_cloud, header))
         if self.pub_pure.get_subscription_count():
             self.pub_pure.publish(serialized_xyzi_cloud(result.segmented_cloud_pure, header))
+        if 'elevation_offset_found' in result.stats:
+            self.get_logger().info(elevation_note(result.stats['elevation_offset_found'], stamp_to_ns(msg.header.stamp)))
         self.count('clouds_out')
         self.output_published()
         self.record_time('scan', time.perf_counter() - start)
@@ -121,8 +125,9 @@ class ImageProjectionNode(LegoLoamNode):
         s = self.params.sensor
         names = points.dtype.names or ()
         if s.use_cloud_ring and s.ring_field not in names:
-            self.warn('no_ring', f"the cloud has no '{s.ring_field}' field: rows come from the elevation angle "
-                                 f'(set sensor.use_cloud_ring: false to silence this)')
+            self.warn('no_ring', f"the cloud has no '{s.ring_field}' field: rows come from the point order of a "
+                                 'cloud stored laser by laser, else from the elevation angle (set '
+                                 'sensor.use_cloud_ring: false for the elevation angle always and no warning)')
         if data.ring is not None and data.ring.size:
             highest = int(data.ring.max())
             if highest >= s.n_scan:
