@@ -335,14 +335,18 @@ def test_organised_cloud():
     assert np.array_equal(run(organised).segmented_cloud, run(scan[:n]).segmented_cloud)
 
 
-def test_cloud_without_ring_uses_the_elevation_angle():
-    scan = base_scan()
+def test_cloud_without_ring_takes_its_rows_from_the_laser_order_or_the_elevation_angle():
+    scan = base_scan()   # (stored ring by ring, the upper rings only arcs across the wall)
     no_ring = np.zeros(len(scan), dtype=[('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', '<f4')])
     for name in ('x', 'y', 'z', 'intensity'):
         no_ring[name] = scan[name]
     with_ring = run(scan)
-    from_elevation = run(no_ring)
-    assert np.array_equal(with_ring.segmented_cloud, from_elevation.segmented_cloud)
+    assert np.array_equal(with_ring.segmented_cloud, run(no_ring).segmented_cloud)   # from the laser order
+    # Column by column, as a driver fires: the order says nothing of the lasers, the elevation angle does.
+    firing = no_ring[np.argsort(np.arctan2(no_ring['y'], no_ring['x']), kind='stable')]
+    from lego_loam_py.core.laser_order import rows_from_laser_order
+    assert rows_from_laser_order(firing['x'], firing['y'], firing['z'], 16) is None
+    assert np.array_equal(with_ring.label_image, run(firing).label_image)
     assert np.array_equal(run(scan, PARAMS.replace(sensor__use_cloud_ring=False)).label_image, with_ring.label_image)
 
 
