@@ -237,6 +237,10 @@ def test_rings_counted_from_the_top_are_turned_round_and_others_are_not(sweeps):
     flipped['ring'] = 15 - points['ring']
     read = prepare_input(flipped, PARAMS)
     assert read.rings_from_top and np.array_equal(read.ring, points['ring'])
+    # Rings beyond the image (a wrong preset) stay beyond it, to be dropped and warned about.
+    flipped['ring'] = 23 - points['ring']   # 8..23 from the top
+    read = prepare_input(flipped, PARAMS)
+    assert read.rings_from_top and np.array_equal(np.sort(np.unique(read.ring)), np.r_[0:8, 16:24])
 
 
 def test_float64_coordinates_and_an_xyz_only_cloud(sweeps):

@@ -15,7 +15,7 @@ drivers users have (README, "Driver layouts"):
 * **Beam**: the ring field, 0 the lowest beam as LeGO-LOAM's range image needs. ouster-ros numbers its rows from
   the top beam and Hesai its channels; which way a cloud counts is read from its points (each ring's mean
   elevation rises or falls with the ring number), and a cloud counted from the top is turned round within
-  ``sensor.n_scan`` rows.
+  ``sensor.n_scan`` rows (rings beyond them stay beyond).
 * **Time**: the package's convention is seconds since the sweep start (``sensor.time_field``). The field is
   ``sensor.time_field`` when the cloud has it, else the first of ``time`` (Velodyne, s), ``t`` (Ouster, uint32 ns
   since the scan start), ``offset_time`` (Livox, uint32 ns since the header stamp), ``timestamp`` (Hesai,
@@ -196,7 +196,8 @@ def read_cloud(points: np.ndarray, n_scan: int, ring_field: str | None, time_fie
         out.time, out.time_reading = seconds_since_sweep_start(raw_time, time_name, scan_period)
         _put_in_time_order(out, scan_period)
     if out.ring is not None and rings_count_down(out.ring, out.xyz, n_scan):
-        out.ring = (n_scan - 1) - out.ring
+        inside = (out.ring >= 0) & (out.ring < n_scan)   # (rings beyond the image stay there: dropped, warned about)
+        out.ring = np.where(inside, (n_scan - 1) - out.ring, out.ring)
         out.rings_from_top = True
     return out
 
