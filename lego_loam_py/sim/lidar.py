@@ -70,7 +70,8 @@ _OUSTER = dict(firing='ascending', firing_interval=0.0, range_resolution=0.001)
 LIDAR_SPECS.update({
     'VLP-32C': dict(lowest=-25.0, firing='ascending', firing_interval=1.152e-6, min_range=1.0, max_range=200.0,
                     range_noise=0.015, range_resolution=0.004),
-    **{f'OS0-{n}': dict(_OUSTER, lowest=-46.26, min_range=0.5, max_range=50.0, range_noise=0.02) for n in (32, 64, 128)},
+    **{f'OS0-{n}': dict(_OUSTER, lowest=-46.26, min_range=0.5, max_range=50.0, range_noise=0.02)
+       for n in (32, 64, 128)},
     **{f'OS1-{n}': dict(_OUSTER, lowest=-21.82, min_range=0.5, max_range=120.0, range_noise=0.015) for n in (32, 128)},
     **{f'OS2-{n}': dict(_OUSTER, lowest=-11.25, min_range=1.0, max_range=240.0, range_noise=0.025)
        for n in (32, 64, 128)},
