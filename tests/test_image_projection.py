@@ -9,7 +9,7 @@ import pytest
 from lego_loam_py.core.image_projection import (NO_LABEL, OUTLIER_LABEL, ImageProjection, InputError,
                                                 ProjectionInput, prepare_input)
 from lego_loam_py.core.params import Params, default_params_file, load_params
-from lego_loam_py.core.pointcloud import VELODYNE_POINT_DTYPE, velodyne_points
+from lego_loam_py.core.pointcloud import VELODYNE_POINT_DTYPE, CloudLayoutError, velodyne_points
 from lego_loam_py.core.segmentation import Segmentation
 from tests.support.reference_bfs import reference_labels
 from tests.support.scenes import floor_ranges, pixel_points, scene_points, wall_ranges
@@ -321,11 +321,16 @@ def test_nan_and_inf_points_are_dropped_and_do_not_change_the_result():
 
 
 def test_zero_range_and_close_points_are_dropped():
-    points = np.concatenate([base_scan(), velodyne_points(np.zeros((50, 3)), ring=np.arange(50) % 16),
-                             velodyne_points(np.full((20, 3), 0.3), ring=np.full(20, 9))])
-    result = run(points)
-    assert np.array_equal(result.segmented_cloud, run(base_scan()).segmented_cloud)
-    assert result.stats['dropped_close'] == 70
+    """Points at the origin (no return) never enter the image nor the sweep's orientation; close ones are dropped."""
+    scan = base_scan()
+    points = np.concatenate([velodyne_points(np.zeros((50, 3)), ring=np.arange(50) % 16), scan,
+                             velodyne_points(np.full((20, 3), 0.3), ring=np.full(20, 9)),
+                             velodyne_points(np.zeros((5, 3)), ring=np.arange(5))])
+    result, reference = run(points), run(scan)
+    assert np.array_equal(result.segmented_cloud, reference.segmented_cloud)
+    assert result.cloud_info.start_orientation == reference.cloud_info.start_orientation
+    assert result.stats['at_origin'] == 55 and result.stats['dropped_close'] == 20
+    assert result.stats['input_points'] == len(points)
 
 
 def test_organised_cloud():
@@ -384,7 +389,7 @@ def test_empty_and_fieldless_clouds_raise_clear_errors():
     all_nan = velodyne_points(np.full((10, 3), np.nan))
     with pytest.raises(InputError, match='no valid point'):
         run(all_nan)
-    with pytest.raises(InputError, match='no z field'):
+    with pytest.raises(CloudLayoutError, match='no z field'):
         prepare_input(np.zeros(3, dtype=[('x', '<f4'), ('y', '<f4')]), PARAMS)
 
 

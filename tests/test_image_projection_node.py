@@ -110,8 +110,13 @@ def make_bad_clouds():
                                   PointField(name='z', offset=4, datatype=7, count=1)])
     empty = array_to_cloud_msg(velodyne_points(np.zeros((0, 3))), header)
     all_nan = array_to_cloud_msg(velodyne_points(np.full((100, 3), np.nan)), header)
+    # Ouster's organized cloud without a single return: every point at the origin.
+    all_at_origin = array_to_cloud_msg(velodyne_points(np.zeros((100, 3))).reshape(4, 25), header)
+    # Times spanning 5 s (or 5 ms): about a 0.1 s sweep in no unit.
+    bad_time = array_to_cloud_msg(velodyne_points(np.ones((10, 3)), time=np.linspace(0.0, 5.0, 10)), header)
     return [('truncated data', truncated), ('no x/y/z', no_xyz), ('overlapping fields', overlap),
-            ('empty cloud', empty), ('all NaN', all_nan)], good
+            ('empty cloud', empty), ('all NaN', all_nan), ('all at the origin', all_at_origin),
+            ('time in an unknown unit', bad_time)], good
 
 
 def test_bad_clouds_are_dropped_and_the_node_keeps_serving(rclpy_context, processes):
@@ -146,7 +151,7 @@ def test_bad_clouds_are_dropped_and_the_node_keeps_serving(rclpy_context, proces
     assert ip.poll() is None
     _, err = processes.stop(ip)
     assert ip.returncode == 0
-    for fragment in ('data has', 'no x/y/z field', "'x' and 'y' overlap", 'no valid point'):
+    for fragment in ('data has', 'no x/y/z field', "'x' and 'y' overlap", 'no valid point', "time field 'time'"):
         assert fragment in err, fragment
     assert 'Traceback' not in err
     release(node)

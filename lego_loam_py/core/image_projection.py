@@ -54,7 +54,7 @@ class SegmentationResult:
     range_image: np.ndarray           # float32 (N_SCAN, H) [m], FLT_MAX where empty
     ground_mask: np.ndarray           # bool (N_SCAN, H)
     label_image: np.ndarray           # int32 (N_SCAN, H): -1 ground/empty, 999999 outlier, >= 1 segment
-    stats: dict = field(default_factory=dict)
+    stats: dict = field(default_factory=dict)  # point counts: input_points, non_finite, at_origin, dropped_*, ...
     segmented_time: np.ndarray | None = None  # float32 (M,) per-point time of the segmented cloud [s]
     pixel_point: np.ndarray | None = None     # int64 (N_SCAN*H,): index of the input point in each pixel, -1 empty
 
@@ -127,8 +127,10 @@ class ImageProjection:
         pure[:, 3] = pure_labels
         stats = dict(image.stats)
         stats.update(
-            input_points=int(data.xyz.shape[0] + data.dropped_non_finite),
-            non_finite=data.dropped_non_finite, projected=int(np.count_nonzero(filled)),
+            input_points=int(data.xyz.shape[0] + data.dropped_non_finite + data.dropped_origin),
+            non_finite=data.dropped_non_finite, at_origin=data.dropped_origin,
+            time_ordered=int(data.time_ordered), rings_from_top=int(data.rings_from_top),
+            projected=int(np.count_nonzero(filled)),
             ground=int(np.count_nonzero(ground)), segments=int(pure_labels.max(initial=0)),
             segmented=len(segmented_index), outliers=len(outlier_index))
         segmented_time = image.time[segmented_index] if image.time is not None else None

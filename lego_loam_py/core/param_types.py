@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, fields
 from typing import Any, Literal
 
 from lego_loam_py.core.beam_table import HDL64E_NOMINAL_ELEVATIONS
+from lego_loam_py.core.sensor_presets import MORE_SENSOR_PRESETS
 from lego_loam_py.errors import LegoLoamError
 
 __all__ = [
@@ -105,6 +106,7 @@ SENSOR_PRESETS: dict[str, dict[str, Any]] = {
                    ang_bottom=16.6 + 0.1, ground_scan_ind=7),
     'OS1-64': dict(n_scan=64, horizon_scan=1024, ang_res_x=360.0 / 1024, ang_res_y=33.2 / 63,
                    ang_bottom=16.6 + 0.1, ground_scan_ind=15),
+    **MORE_SENSOR_PRESETS,   # VLP-32C, Ouster OS0/OS1/OS2, Hesai Pandar, RoboSense (core.sensor_presets)
 }
 _PRESET_FIELDS = ('n_scan', 'horizon_scan', 'ang_res_x', 'ang_res_y', 'ang_bottom', 'ground_scan_ind',
                   'beam_elevations', 'stamp_position')

@@ -13,12 +13,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lego_loam_py.core.beam_table import BeamRows
-from lego_loam_py.core.laser_order import rows_from_laser_order
 from lego_loam_py.core.atan2f_decisions import Atan2fSteps, decide_on_atan2f, first_float32_where
+from lego_loam_py.core.beam_table import BeamRows
+from lego_loam_py.core.driver_layouts import read_cloud
+from lego_loam_py.core.laser_order import rows_from_laser_order
 from lego_loam_py.core.libm import atan2f, float_degrees, round_half_away
 from lego_loam_py.core.param_types import Params
-from lego_loam_py.core.validation import MAX_COORDINATE
 from lego_loam_py.errors import LegoLoamError
 
 __all__ = ['InputError', 'ProjectionInput', 'prepare_input', 'RangeImage', 'RangeImageProjection']
@@ -27,67 +27,38 @@ _F32 = np.float32
 
 
 class InputError(LegoLoamError, ValueError):
-    """The cloud cannot be projected at all (no x/y/z, no valid point)."""
+    """The cloud cannot be projected at all (no valid point)."""
 
 
 @dataclass
 class ProjectionInput:
-    """Valid points of one cloud, in message order: sensor-frame coordinates and optional ring."""
+    """Valid points of one cloud, in measurement order: sensor-frame coordinates and optional ring and time."""
 
     xyz: np.ndarray               # float32 (n, 3) [m], all finite
     ring: np.ndarray | None       # int64 (n,) or None (rows from the elevation angle)
     dropped_non_finite: int = 0   # points removed because x, y or z was NaN/inf or beyond MAX_COORDINATE
     time: np.ndarray | None = None  # float32 (n,) [s since the sweep start] when the cloud has it
-    source_index: np.ndarray | None = None  # index in the message of each kept point (None: all were kept)
+    source_index: np.ndarray | None = None  # index in the message of each kept point (None: all, in order)
+    dropped_origin: int = 0       # points removed because x = y = z = 0 (no return: Ouster's organized clouds)
+    time_ordered: bool = False    # the points were put in time order (the cloud was stored beam by beam)
+    rings_from_top: bool = False  # the ring field counted from the top beam and was turned round
 
 
 def prepare_input(points: np.ndarray, params: Params) -> ProjectionInput:
-    """Valid (finite) points of a structured cloud, with the ring field when it exists and is used.
+    """The valid points of a structured cloud in any driver's layout, in measurement order: coordinates, the ring
+    counted from the lowest beam, the time in seconds since the sweep start (:mod:`lego_loam_py.core.driver_layouts`).
 
-    Mirrors the original's ``removeNaNFromPointCloud``; inf is dropped as well, and so are coordinates
-    beyond ``MAX_COORDINATE`` (10 km: no lidar measures that; such values would overflow float32 squares).
-    Unlike the original, which shuts down on a non-dense cloud in ring mode, the ring is filtered together
-    with the coordinates.
+    Mirrors the original's ``removeNaNFromPointCloud``; inf is dropped as well, and so are coordinates beyond
+    ``MAX_COORDINATE`` (10 km: no lidar measures that; such values would overflow float32 squares) and points at
+    the origin (no return). The sweep's start and end orientation thus come from measured points. Unlike the
+    original, which shuts down on a non-dense cloud in ring mode, the ring is filtered together with the
+    coordinates. Raises CloudLayoutError for a layout that cannot be read.
     """
-    names = points.dtype.names or ()
-    missing = [n for n in 'xyz' if n not in names]
-    if missing:
-        raise InputError(f'the cloud has no {"/".join(missing)} field (fields: {", ".join(names) or "none"})')
-    used = ['x', 'y', 'z'] + ([params.sensor.ring_field] if params.sensor.use_cloud_ring and
-                              params.sensor.ring_field in names else [])
-    several = [n for n in used if points.dtype[n].shape != ()]
-    if several:
-        raise InputError(f'field(s) {", ".join(several)} hold several values per point (count > 1)')
-    flat = points.reshape(-1)
-    xyz = np.empty((flat.size, 3), dtype=_F32)
-    with np.errstate(invalid='ignore', over='ignore'):
-        xyz[:, 0], xyz[:, 1], xyz[:, 2] = flat['x'], flat['y'], flat['z']
-    # NaN and inf fail the bound too; column by column: ~30x faster than reducing (n, 3) along axis 1.
-    finite = np.abs(xyz[:, 0]) <= MAX_COORDINATE
-    finite &= np.abs(xyz[:, 1]) <= MAX_COORDINATE
-    finite &= np.abs(xyz[:, 2]) <= MAX_COORDINATE
-    ring = None
-    ring_field = params.sensor.ring_field
-    if params.sensor.use_cloud_ring and ring_field in names:
-        ring = flat[ring_field]
-        if ring.dtype.kind == 'f':
-            finite &= np.isfinite(ring)
-            ring = np.where(finite, ring, 0)
-        ring = ring.astype(np.int64)
-    time = None
-    time_field = params.sensor.time_field
-    if time_field and time_field in names and flat[time_field].ndim == 1:
-        time = flat[time_field].astype(_F32)
-        if time_field == 't' and np.issubdtype(flat[time_field].dtype, np.integer):
-            time = (flat[time_field] * 1e-9).astype(_F32)  # Ouster: ns since the scan start
-        finite &= np.isfinite(time)
-    dropped = int(flat.size - np.count_nonzero(finite))
-    if dropped:
-        xyz = xyz[finite]
-        ring = ring[finite] if ring is not None else None
-        time = time[finite] if time is not None else None
-    return ProjectionInput(xyz=xyz, ring=ring, dropped_non_finite=dropped, time=time,
-                           source_index=np.flatnonzero(finite) if dropped else None)
+    s = params.sensor
+    cloud = read_cloud(points, s.n_scan, s.ring_field if s.use_cloud_ring else None, s.time_field, s.scan_period)
+    return ProjectionInput(xyz=cloud.xyz, ring=cloud.ring, dropped_non_finite=cloud.dropped_non_finite,
+                           time=cloud.time, source_index=cloud.source_index, dropped_origin=cloud.dropped_origin,
+                           time_ordered=cloud.time_ordered, rings_from_top=cloud.rings_from_top)
 
 
 @dataclass

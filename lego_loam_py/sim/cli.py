@@ -26,7 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--duration', type=float, help='simulated time [s] (default: one full lap of the scenario)')
     parser.add_argument('--seed', type=int, default=0, help='scenery and noise seed (default 0)')
     parser.add_argument('--preset', default='VLP-16', help='sensor preset: VLP-16 (default), HDL-32E, VLS-128, '
-                        'HDL-64E, OS1-16, OS1-64')
+                        'HDL-64E, OS1-64, VLP-32C, OS1-128, Pandar64, RS-LiDAR-32, ... (--list shows them all)')
     parser.add_argument('--imu-rate', type=float, default=200.0, help='IMU rate [Hz] (default 200)')
     parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap', help='ROS 2 storage (default mcap)')
     parser.add_argument('--ros1', action='store_true', help='write a ROS 1 .bag instead of a ROS 2 bag')
@@ -77,7 +77,7 @@ def _list() -> int:
     print('sensor presets (--preset):')
     for name in LIDAR_SPECS:
         model = LidarModel.from_preset(name)
-        print(f'  {name:<8s} {model.n_rings:3d} beams {model.ring_elevations[0]:+.2f}..{model.ring_elevations[-1]:+.2f} '
+        print(f'  {name:<14s} {model.n_rings:3d} beams {model.ring_elevations[0]:+.2f}..{model.ring_elevations[-1]:+.2f} '
               f'deg, {model.columns} columns, range {model.min_range:g}-{model.max_range:g} m, '
               f'noise {100 * model.range_noise:.1f} cm')
     return 0

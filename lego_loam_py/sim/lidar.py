@@ -64,6 +64,34 @@ LIDAR_SPECS: dict[str, dict] = {
     'OS1-64': dict(lowest=-16.6, firing='ascending', firing_interval=0.0, min_range=0.8,
                    max_range=120.0, range_noise=0.015, range_resolution=0.001),
 }
+# The presets of core.sensor_presets, with round figures of their kind (approximate: they make plausible clouds,
+# the beams are the presets'): Ouster fires a column at once, the others laser after laser within a column.
+_OUSTER = dict(firing='ascending', firing_interval=0.0, range_resolution=0.001)
+LIDAR_SPECS.update({
+    'VLP-32C': dict(lowest=-25.0, firing='ascending', firing_interval=1.152e-6, min_range=1.0, max_range=200.0,
+                    range_noise=0.015, range_resolution=0.004),
+    **{f'OS0-{n}': dict(_OUSTER, lowest=-46.26, min_range=0.5, max_range=50.0, range_noise=0.02)
+       for n in (32, 64, 128)},
+    **{f'OS1-{n}': dict(_OUSTER, lowest=-21.82, min_range=0.5, max_range=120.0, range_noise=0.015) for n in (32, 128)},
+    **{f'OS2-{n}': dict(_OUSTER, lowest=-11.25, min_range=1.0, max_range=240.0, range_noise=0.025)
+       for n in (32, 64, 128)},
+    'Pandar64': dict(lowest=-24.897, firing='ascending', firing_interval=0.8e-6, min_range=0.3, max_range=200.0,
+                     range_noise=0.02, range_resolution=0.004),
+    'Pandar40P': dict(lowest=-25.0, firing='ascending', firing_interval=1.3e-6, min_range=0.3, max_range=200.0,
+                      range_noise=0.02, range_resolution=0.004),
+    'PandarXT-32': dict(lowest=-16.0, firing='ascending', firing_interval=1.5e-6, min_range=0.05, max_range=120.0,
+                        range_noise=0.01, range_resolution=0.004),
+    'RS-LiDAR-16': dict(lowest=-15.0, firing='ascending', firing_interval=2.8e-6, min_range=0.4, max_range=150.0,
+                        range_noise=0.02, range_resolution=0.005),
+    'RS-LiDAR-32': dict(lowest=-25.0, firing='ascending', firing_interval=1.44e-6, min_range=0.4, max_range=200.0,
+                        range_noise=0.02, range_resolution=0.005),
+    'RS-Helios-1615': dict(lowest=-16.0, firing='ascending', firing_interval=1.5e-6, min_range=0.2, max_range=150.0,
+                           range_noise=0.02, range_resolution=0.0025),
+    'RS-Helios-5515': dict(lowest=-55.0, firing='ascending', firing_interval=1.5e-6, min_range=0.2, max_range=150.0,
+                           range_noise=0.02, range_resolution=0.0025),
+    'RS-Ruby-128': dict(lowest=-25.0, firing='ascending', firing_interval=0.4e-6, min_range=0.4, max_range=250.0,
+                        range_noise=0.03, range_resolution=0.005),
+})
 
 
 @dataclass(frozen=True)
