@@ -44,14 +44,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         'relative to the IMU axes: roll pitch yaw [deg] (default 0 0 0: the IMU\'s own)')
     parser.add_argument('--imu-time-offset', type=float, default=0.0, metavar='S',
                         help='IMU stamps run this far ahead of the lidar clock [s] (default 0; negative: behind)')
-    imu = parser.add_argument_group('IMU errors (issue 34; each replaces the profile\'s own, and applies with --ideal too)')
+    imu = parser.add_argument_group("IMU errors (each replaces the profile's own, and applies with --ideal too)")
     imu.add_argument('--imu-profile', default='default', metavar='NAME',
                      help='the IMU unit: default (a good MEMS unit, as before), consumer (a BNO055 / MPU-9250 class '
                      '9-axis module), industrial (an Xsens MTi / VectorNav VN-100 class AHRS); see the README')
     imu.add_argument('--imu-gyro-bias', type=float, nargs=2, metavar=('LOW', 'HIGH'), default=None,
                      help='constant gyro bias per axis: magnitude drawn in LOW..HIGH [deg/s], random sign')
     imu.add_argument('--imu-gyro-bias-walk', type=float, nargs=2, metavar=('SIGMA', 'TAU'), default=None,
-                     help='wandering gyro bias per axis: Gauss-Markov, stationary SIGMA [deg/s], correlation time TAU [s]')
+                     help='wandering gyro bias per axis: Gauss-Markov, stationary SIGMA [deg/s], correlation '
+                     'time TAU [s]')
     imu.add_argument('--imu-accel-bias', type=float, nargs=2, metavar=('LOW', 'HIGH'), default=None,
                      help='constant accelerometer bias per axis: magnitude in LOW..HIGH [m/s^2], random sign')
     imu.add_argument('--imu-accel-bias-walk', type=float, nargs=2, metavar=('SIGMA', 'TAU'), default=None,
@@ -63,9 +64,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     imu.add_argument('--imu-misalignment', type=float, default=None, metavar='DEG',
                      help='cross-axis terms of gyro and accelerometer, each drawn within +-DEG')
     imu.add_argument('--imu-tilt-error', type=float, nargs=2, metavar=('LOW', 'HIGH'), default=None,
-                     help='constant roll/pitch error of the orientation: magnitude in LOW..HIGH [deg], random direction')
+                     help='constant roll/pitch error of the orientation: magnitude in LOW..HIGH [deg], random '
+                     'direction')
     imu.add_argument('--imu-yaw-offset', type=float, default=None, metavar='DEG',
-                     help='constant yaw offset of the orientation [deg] (profiles other than default: drawn in -180..180)')
+                     help='constant yaw offset of the orientation [deg] (profiles other than default: drawn in '
+                     '-180..180)')
     imu.add_argument('--imu-orientation-noise', type=float, default=None, metavar='DEG',
                      help='white noise of the orientation per axis [deg]')
     imu.add_argument('--imu-heading-drift', type=float, nargs=2, metavar=('SIGMA', 'TAU'), default=None,

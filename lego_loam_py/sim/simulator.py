@@ -4,11 +4,14 @@ Timing: simulation time t = 0 is header stamp :data:`START_STAMP_NS`. Sweep k st
 (its cloud's header stamp, or that much later for a preset whose drivers stamp later in the sweep:
 ``sensor.stamp_position``, the HDL-64E's at its end) and is recorded at its end (bag time = sweep start +
 scan_period, as a driver publishes it); IMU sample j is stamped and recorded at ``j / imu_rate``, from t = 0 to the end of the last
-sweep, so every sweep is covered by IMU data recorded before its cloud.
+sweep, so every sweep is covered by IMU data recorded before its cloud. (``imu_time_offset`` and
+``imu_stamp_jitter`` move the IMU's stamps, not its bag times; ``imu_record_late`` records each sample at its stamp,
+so that a late IMU's last samples of a sweep come after its cloud, as from a late driver.)
 
 Determinism: every random draw comes from a generator seeded by (seed, purpose, index) -- the scenery, the
-IMU biases, each sweep's lidar noise, each sweep's IMU noise -- and nothing depends on the wall clock, so the
-same configuration always gives byte-identical messages and sidecar files.
+IMU biases, each sweep's lidar noise, each sweep's IMU noise (and bias wander), the IMU stamps' jitter -- and
+nothing depends on the wall clock, so the same configuration always gives byte-identical messages and sidecar
+files.
 """
 from __future__ import annotations
 
@@ -158,15 +161,17 @@ class SimConfig:
             if value is None:
                 continue
             value = float(value)
-            bound = {'imu_yaw_offset': 360.0, 'imu_gyro_scale_error': 50.0, 'imu_accel_scale_error': 50.0}.get(name, 10.0)
+            bound = {'imu_yaw_offset': 360.0, 'imu_gyro_scale_error': 50.0,
+                     'imu_accel_scale_error': 50.0}.get(name, 10.0)   # (deg, %, deg)
             if not (math.isfinite(value) and (value >= 0.0 or name == 'imu_yaw_offset') and abs(value) <= bound):
                 raise ValueError(f'{name.replace("_", " ")} must be within {"-" if name == "imu_yaw_offset" else "0"}'
                                  f'..{bound:g}, got {value:g}')
             out[name] = value
         period = 1.0 / float(self.imu_rate)
         if not (math.isfinite(float(self.imu_stamp_jitter)) and 0.0 <= float(self.imu_stamp_jitter) <= period / 6):
-            raise ValueError(f'the IMU stamp jitter must be within 0..{period / 6:g} s (a sixth of the sample period, '
-                             f'so that clipping it to keep the stamps increasing hardly shows), got {self.imu_stamp_jitter}')
+            raise ValueError(f'the IMU stamp jitter must be within 0..{period / 6:g} s (a sixth of the sample '
+                             f'period, so that clipping it to keep the stamps increasing hardly shows), '
+                             f'got {self.imu_stamp_jitter}')
         out.update(imu_stamp_jitter=float(self.imu_stamp_jitter), imu_record_late=bool(self.imu_record_late))
         return out
 
@@ -200,7 +205,8 @@ class SimConfig:
         if self.imu_orientation_noise is not None:
             changes.update(orientation_noise=deg(self.imu_orientation_noise))
         if self.imu_heading_drift is not None:
-            changes.update(heading_drift=deg(self.imu_heading_drift[0]), heading_drift_time=float(self.imu_heading_drift[1]))
+            changes.update(heading_drift=deg(self.imu_heading_drift[0]),
+                           heading_drift_time=float(self.imu_heading_drift[1]))
         return ImuModel(rate=self.imu_rate, noise=replace(noise, **changes) if changes else noise,
                         extrinsic_rpy_deg=self.imu_extrinsic_rpy, lever_arm=self.imu_lever_arm,
                         orientation_rpy_deg=self.imu_orientation_rpy, time_offset=self.imu_time_offset,
@@ -210,7 +216,8 @@ class SimConfig:
         out = asdict(self)
         for name, default in self._OPTIONAL.items():
             # Recordings without the option keep the cache keys (and scenario.yaml) they had before it.
-            value = tuple(out[name]) if isinstance(default, tuple) or isinstance(out[name], (tuple, list)) else out[name]
+            value = tuple(out[name]) if isinstance(default, tuple) or isinstance(out[name], (tuple, list)) \
+                else out[name]
             if value == default:
                 del out[name]
             elif isinstance(value, tuple):
@@ -420,11 +427,11 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
                 if stop > start:
                     wander = None
                     if imu.noise.wanders:
-                        wander = imu.wander(stop - start, scenario_rng(config.seed, 'imu-wander', chunk), state['wander'])
+                        wander = imu.wander(stop - start, scenario_rng(config.seed, 'imu-wander', chunk),
+                                            state['wander'])
                         state['wander'] = wander[-1]
-                    samples = imu.measure(world.trajectory, imu_offsets_ns[start:stop] / 1e9, biases,
-                                          scenario_rng(config.seed, 'imu-noise', chunk) if imu.has_white_noise else None,
-                                          wander)
+                    noise = scenario_rng(config.seed, 'imu-noise', chunk) if imu.has_white_noise else None
+                    samples = imu.measure(world.trajectory, imu_offsets_ns[start:stop] / 1e9, biases, noise, wander)
                     for array, values in zip(measured, (samples.orientation, samples.angular_velocity,
                                                         samples.linear_acceleration)):
                         array[start:stop] = values
