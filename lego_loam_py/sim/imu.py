@@ -366,7 +366,7 @@ class ImuModel:
         if self.stamp_jitter:
             mounting['stamp_jitter_s'] = self.stamp_jitter
         if self.record_late:
-            mounting['recorded'] = 'at its stamp (late: after the sweep it belongs to when its stamps are)'
+            mounting['recorded'] = 'at its stamp, as a late driver delivers it (not when measured)'
         if self.profile != 'default':
             mounting['profile'] = self.profile
         noise = {k: float(v) for k, v in asdict(self.noise).items() if k in _ORIGINAL_NOISE_FIELDS}
