@@ -44,6 +44,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         'relative to the IMU axes: roll pitch yaw [deg] (default 0 0 0: the IMU\'s own)')
     parser.add_argument('--imu-time-offset', type=float, default=0.0, metavar='S',
                         help='IMU stamps run this far ahead of the lidar clock [s] (default 0; negative: behind)')
+    imu = parser.add_argument_group("IMU errors (each replaces the profile's own, and applies with --ideal too)")
+    imu.add_argument('--imu-profile', default='default', metavar='NAME',
+                     help='the IMU unit: default (a good MEMS unit, as before), consumer (a BNO055 / MPU-9250 class '
+                     '9-axis module), industrial (an Xsens MTi / VectorNav VN-100 class AHRS); see the README')
+    imu.add_argument('--imu-gyro-bias', type=float, nargs=2, metavar=('LOW', 'HIGH'), default=None,
+                     help='constant gyro bias per axis: magnitude drawn in LOW..HIGH [deg/s], random sign')
+    imu.add_argument('--imu-gyro-bias-walk', type=float, nargs=2, metavar=('SIGMA', 'TAU'), default=None,
+                     help='wandering gyro bias per axis: Gauss-Markov, stationary SIGMA [deg/s], correlation '
+                     'time TAU [s]')
+    imu.add_argument('--imu-accel-bias', type=float, nargs=2, metavar=('LOW', 'HIGH'), default=None,
+                     help='constant accelerometer bias per axis: magnitude in LOW..HIGH [m/s^2], random sign')
+    imu.add_argument('--imu-accel-bias-walk', type=float, nargs=2, metavar=('SIGMA', 'TAU'), default=None,
+                     help='wandering accelerometer bias per axis: SIGMA [m/s^2], TAU [s]')
+    imu.add_argument('--imu-gyro-scale-error', type=float, default=None, metavar='PERCENT',
+                     help='scale-factor error of each gyro axis, drawn within +-PERCENT')
+    imu.add_argument('--imu-accel-scale-error', type=float, default=None, metavar='PERCENT',
+                     help='scale-factor error of each accelerometer axis, drawn within +-PERCENT')
+    imu.add_argument('--imu-misalignment', type=float, default=None, metavar='DEG',
+                     help='cross-axis terms of gyro and accelerometer, each drawn within +-DEG')
+    imu.add_argument('--imu-tilt-error', type=float, nargs=2, metavar=('LOW', 'HIGH'), default=None,
+                     help='constant roll/pitch error of the orientation: magnitude in LOW..HIGH [deg], random '
+                     'direction')
+    imu.add_argument('--imu-yaw-offset', type=float, default=None, metavar='DEG',
+                     help='constant yaw offset of the orientation [deg] (profiles other than default: drawn in '
+                     '-180..180)')
+    imu.add_argument('--imu-orientation-noise', type=float, default=None, metavar='DEG',
+                     help='white noise of the orientation per axis [deg]')
+    imu.add_argument('--imu-heading-drift', type=float, nargs=2, metavar=('SIGMA', 'TAU'), default=None,
+                     help='wandering heading error of the orientation: Gauss-Markov, SIGMA [deg], TAU [s]')
+    imu.add_argument('--imu-stamp-jitter', type=float, default=0.0, metavar='S',
+                     help='Gaussian jitter of the IMU stamps, sigma [s] (at most a sixth of the sample period)')
+    imu.add_argument('--imu-record-late', action='store_true',
+                     help='record each IMU message at its stamp, as a late driver delivers it (with --imu-time-offset: '
+                     'after the lidar sweep it belongs to), not when it was measured')
     parser.add_argument('--ideal', action='store_true', help='noise-free sensors: no range/IMU noise, no biases, '
                         'no dropped returns')
     parser.add_argument('--turn-rate', type=float, default=0.0, metavar='DEG_S',
@@ -80,6 +114,10 @@ def _list() -> int:
         print(f'  {name:<14s} {model.n_rings:3d} beams {model.ring_elevations[0]:+.2f}..{model.ring_elevations[-1]:+.2f} '
               f'deg, {model.columns} columns, range {model.min_range:g}-{model.max_range:g} m, '
               f'noise {100 * model.range_noise:.1f} cm')
+    from lego_loam_py.sim.imu import PROFILE_SOURCES
+    print('IMU profiles (--imu-profile):')
+    for name, source in PROFILE_SOURCES.items():
+        print(f'  {name:<11s} {source}')
     return 0
 
 
@@ -104,7 +142,7 @@ def main(args: argparse.Namespace) -> int:
                    turn_rate=args.turn_rate, uniform_beams=args.uniform_beams,
                    imu_lever_arm=tuple(args.imu_lever_arm), imu_orientation_rpy=tuple(args.imu_orientation_rpy),
                    imu_time_offset=args.imu_time_offset, route_start=args.route_start, reverse=args.reverse,
-                   beam_elevation_error=args.beam_elevation_error)
+                   beam_elevation_error=args.beam_elevation_error, **_imu_errors(args))
     try:
         if args.cached:
             print(cached_scenario(args.scenario, progress=not args.no_progress, **options))
@@ -116,6 +154,17 @@ def main(args: argparse.Namespace) -> int:
           f'({result.duration:.1f} s); ground truth and labels beside it', file=sys.stderr)
     _export(result.bag_path, args)
     return 0
+
+
+def _imu_errors(args: argparse.Namespace) -> dict:
+    """The IMU error options (SimConfig's imu_* fields of issue 34) as given."""
+    pairs = ('imu_gyro_bias', 'imu_gyro_bias_walk', 'imu_accel_bias', 'imu_accel_bias_walk', 'imu_tilt_error',
+             'imu_heading_drift')
+    out = {name: None if getattr(args, name) is None else tuple(getattr(args, name)) for name in pairs}
+    for name in ('imu_profile', 'imu_gyro_scale_error', 'imu_accel_scale_error', 'imu_misalignment', 'imu_yaw_offset',
+                 'imu_orientation_noise', 'imu_stamp_jitter', 'imu_record_late'):
+        out[name] = getattr(args, name)
+    return out
 
 
 def _export(bag, args: argparse.Namespace) -> None:

@@ -4,11 +4,14 @@ Timing: simulation time t = 0 is header stamp :data:`START_STAMP_NS`. Sweep k st
 (its cloud's header stamp, or that much later for a preset whose drivers stamp later in the sweep:
 ``sensor.stamp_position``, the HDL-64E's at its end) and is recorded at its end (bag time = sweep start +
 scan_period, as a driver publishes it); IMU sample j is stamped and recorded at ``j / imu_rate``, from t = 0 to the end of the last
-sweep, so every sweep is covered by IMU data recorded before its cloud.
+sweep, so every sweep is covered by IMU data recorded before its cloud. (``imu_time_offset`` and
+``imu_stamp_jitter`` move the IMU's stamps, not its bag times; ``imu_record_late`` records each sample at its stamp,
+so that a late IMU's last samples of a sweep come after its cloud, as from a late driver.)
 
 Determinism: every random draw comes from a generator seeded by (seed, purpose, index) -- the scenery, the
-IMU biases, each sweep's lidar noise, each sweep's IMU noise -- and nothing depends on the wall clock, so the
-same configuration always gives byte-identical messages and sidecar files.
+IMU biases, each sweep's lidar noise, each sweep's IMU noise (and bias wander), the IMU stamps' jitter -- and
+nothing depends on the wall clock, so the same configuration always gives byte-identical messages and sidecar
+files.
 """
 from __future__ import annotations
 
@@ -62,10 +65,36 @@ class SimConfig:
     route_start: float | None = None
     reverse: bool = False
     beam_elevation_error: float = 0.0             # every point reads this much lower than its beam points [deg]
+    # The IMU's errors (issue 34): a named unit (sim.imu.IMU_PROFILES), and each error of it replaced when set
+    # (None: the profile's). Bias and tilt ranges are magnitudes (each axis' sign, the tilt's direction drawn);
+    # walks and drift are (stationary sigma, correlation time [s]) of a Gauss-Markov process.
+    imu_profile: str = 'default'
+    imu_gyro_bias: tuple[float, float] | None = None          # [deg/s] |constant bias| range per axis
+    imu_gyro_bias_walk: tuple[float, float] | None = None     # ([deg/s], [s]) wandering bias
+    imu_accel_bias: tuple[float, float] | None = None         # [m/s^2] |constant bias| range per axis
+    imu_accel_bias_walk: tuple[float, float] | None = None    # ([m/s^2], [s])
+    imu_gyro_scale_error: float | None = None                 # [%] bound of each axis' scale-factor error
+    imu_accel_scale_error: float | None = None                # [%]
+    imu_misalignment: float | None = None                     # [deg] bound of each cross-axis term
+    imu_tilt_error: tuple[float, float] | None = None         # [deg] |constant roll/pitch error| of the orientation
+    imu_yaw_offset: float | None = None                       # [deg] constant yaw offset of the orientation
+    imu_orientation_noise: float | None = None                # [deg] its white noise per axis
+    imu_heading_drift: tuple[float, float] | None = None      # ([deg], [s]) its wandering heading error
+    imu_stamp_jitter: float = 0.0                 # [s] sigma of the stamps' Gaussian jitter
+    imu_record_late: bool = False                 # record each IMU message at its stamp, not when measured
 
     # Options added after recordings were cached: left out of to_dict (and so of the cache key) at their defaults.
     _OPTIONAL = {'turn_rate': 0.0, 'imu_lever_arm': (0.0, 0.0, 0.0), 'imu_orientation_rpy': (0.0, 0.0, 0.0),
-                 'imu_time_offset': 0.0, 'route_start': None, 'reverse': False, 'beam_elevation_error': 0.0}
+                 'imu_time_offset': 0.0, 'route_start': None, 'reverse': False, 'beam_elevation_error': 0.0,
+                 'imu_profile': 'default', 'imu_gyro_bias': None, 'imu_gyro_bias_walk': None,
+                 'imu_accel_bias': None, 'imu_accel_bias_walk': None, 'imu_gyro_scale_error': None,
+                 'imu_accel_scale_error': None, 'imu_misalignment': None, 'imu_tilt_error': None,
+                 'imu_yaw_offset': None, 'imu_orientation_noise': None, 'imu_heading_drift': None,
+                 'imu_stamp_jitter': 0.0, 'imu_record_late': False}
+    _IMU_PAIRS = ('imu_gyro_bias', 'imu_gyro_bias_walk', 'imu_accel_bias', 'imu_accel_bias_walk', 'imu_tilt_error',
+                  'imu_heading_drift')
+    _IMU_VALUES = ('imu_gyro_scale_error', 'imu_accel_scale_error', 'imu_misalignment', 'imu_yaw_offset',
+                   'imu_orientation_noise')
 
     def validate(self) -> 'SimConfig':
         from lego_loam_py.core.params import SENSOR_PRESETS
@@ -97,7 +126,8 @@ class SimConfig:
             raise ValueError(f'the beam elevation error must be within 2 deg, got {self.beam_elevation_error}')
         if self.route_start is not None and not math.isfinite(self.route_start):
             raise ValueError(f'route start must be a finite arc length [m], got {self.route_start}')
-        return replace(self, imu_extrinsic_rpy=tuple(float(a) for a in self.imu_extrinsic_rpy),
+        imu = self._validate_imu_errors()
+        return replace(self, **imu, imu_extrinsic_rpy=tuple(float(a) for a in self.imu_extrinsic_rpy),
                        imu_orientation_rpy=tuple(float(a) for a in self.imu_orientation_rpy),
                        imu_lever_arm=tuple(float(a) for a in self.imu_lever_arm),
                        imu_time_offset=float(self.imu_time_offset),
@@ -105,14 +135,92 @@ class SimConfig:
                        route_start=None if self.route_start is None else float(self.route_start),
                        reverse=bool(self.reverse), beam_elevation_error=float(self.beam_elevation_error))
 
+    def _validate_imu_errors(self) -> dict[str, Any]:
+        """The IMU error options checked and converted to plain numbers (returned for ``replace``)."""
+        from lego_loam_py.sim.imu import IMU_PROFILES
+        if self.imu_profile not in IMU_PROFILES:
+            raise ValueError(f"unknown IMU profile '{self.imu_profile}' (known: {', '.join(IMU_PROFILES)})")
+        out: dict[str, Any] = {}
+        limits = {'imu_gyro_bias': 10.0, 'imu_accel_bias': 5.0, 'imu_tilt_error': 10.0}   # deg/s, m/s^2, deg
+        for name in self._IMU_PAIRS:
+            value = getattr(self, name)
+            if value is None:
+                continue
+            if len(value) != 2 or not all(math.isfinite(float(v)) and float(v) >= 0.0 for v in value):
+                raise ValueError(f'{name.replace("_", " ")} needs two non-negative finite numbers, got {value}')
+            first, second = (float(v) for v in value)
+            if name in limits:
+                if not first <= second <= limits[name]:
+                    raise ValueError(f'{name.replace("_", " ")} needs a range low <= high <= {limits[name]:g}, '
+                                     f'got {first:g} {second:g}')
+            elif not second > 0.0:
+                raise ValueError(f'{name.replace("_", " ")} needs a positive correlation time [s], got {second:g}')
+            out[name] = (first, second)
+        for name in self._IMU_VALUES:
+            value = getattr(self, name)
+            if value is None:
+                continue
+            value = float(value)
+            bound = {'imu_yaw_offset': 360.0, 'imu_gyro_scale_error': 50.0,
+                     'imu_accel_scale_error': 50.0}.get(name, 10.0)   # (deg, %, deg)
+            if not (math.isfinite(value) and (value >= 0.0 or name == 'imu_yaw_offset') and abs(value) <= bound):
+                raise ValueError(f'{name.replace("_", " ")} must be within {"-" if name == "imu_yaw_offset" else "0"}'
+                                 f'..{bound:g}, got {value:g}')
+            out[name] = value
+        period = 1.0 / float(self.imu_rate)
+        if not (math.isfinite(float(self.imu_stamp_jitter)) and 0.0 <= float(self.imu_stamp_jitter) <= period / 6):
+            raise ValueError(f'the IMU stamp jitter must be within 0..{period / 6:g} s (a sixth of the sample '
+                             f'period, so that clipping it to keep the stamps increasing hardly shows), '
+                             f'got {self.imu_stamp_jitter}')
+        out.update(imu_stamp_jitter=float(self.imu_stamp_jitter), imu_record_late=bool(self.imu_record_late))
+        return out
+
+    def imu_model(self) -> 'ImuModel':
+        """The simulated IMU: the profile's unit (no errors with ``ideal``) with the errors given here replacing
+        its own (so ``ideal`` and one option give an IMU with that error alone)."""
+        from lego_loam_py.sim.imu import IMU_PROFILES, ImuModel, ImuNoise
+        noise = ImuNoise.none() if self.ideal else IMU_PROFILES[self.imu_profile]
+        deg = math.radians
+        changes: dict[str, Any] = {}
+        if self.imu_gyro_bias is not None:
+            changes.update(gyro_bias_sigma=0.0, gyro_bias_range=tuple(deg(v) for v in self.imu_gyro_bias))
+        if self.imu_accel_bias is not None:
+            changes.update(accel_bias_sigma=0.0, accel_bias_range=tuple(float(v) for v in self.imu_accel_bias))
+        if self.imu_gyro_bias_walk is not None:
+            changes.update(gyro_bias_instability=deg(self.imu_gyro_bias_walk[0]),
+                           gyro_bias_time=float(self.imu_gyro_bias_walk[1]))
+        if self.imu_accel_bias_walk is not None:
+            changes.update(accel_bias_instability=float(self.imu_accel_bias_walk[0]),
+                           accel_bias_time=float(self.imu_accel_bias_walk[1]))
+        if self.imu_gyro_scale_error is not None:
+            changes.update(gyro_scale_error=self.imu_gyro_scale_error / 100.0)
+        if self.imu_accel_scale_error is not None:
+            changes.update(accel_scale_error=self.imu_accel_scale_error / 100.0)
+        if self.imu_misalignment is not None:
+            changes.update(misalignment=deg(self.imu_misalignment))
+        if self.imu_tilt_error is not None:
+            changes.update(tilt_bias_sigma=0.0, tilt_range=tuple(deg(v) for v in self.imu_tilt_error))
+        if self.imu_yaw_offset is not None:   # exactly this offset
+            changes.update(heading_bias_sigma=0.0, yaw_offset_range=(deg(self.imu_yaw_offset),) * 2)
+        if self.imu_orientation_noise is not None:
+            changes.update(orientation_noise=deg(self.imu_orientation_noise))
+        if self.imu_heading_drift is not None:
+            changes.update(heading_drift=deg(self.imu_heading_drift[0]),
+                           heading_drift_time=float(self.imu_heading_drift[1]))
+        return ImuModel(rate=self.imu_rate, noise=replace(noise, **changes) if changes else noise,
+                        extrinsic_rpy_deg=self.imu_extrinsic_rpy, lever_arm=self.imu_lever_arm,
+                        orientation_rpy_deg=self.imu_orientation_rpy, time_offset=self.imu_time_offset,
+                        stamp_jitter=self.imu_stamp_jitter, record_late=self.imu_record_late, profile=self.imu_profile)
+
     def to_dict(self) -> dict[str, Any]:
         out = asdict(self)
         for name, default in self._OPTIONAL.items():
             # Recordings without the option keep the cache keys (and scenario.yaml) they had before it.
-            value = tuple(out[name]) if isinstance(default, tuple) else out[name]
+            value = tuple(out[name]) if isinstance(default, tuple) or isinstance(out[name], (tuple, list)) \
+                else out[name]
             if value == default:
                 del out[name]
-            elif isinstance(default, tuple):
+            elif isinstance(value, tuple):
                 out[name] = list(value)
         out['imu_extrinsic_rpy'] = list(self.imu_extrinsic_rpy)
         del out['uniform_beams']
@@ -170,6 +278,17 @@ class SimConfig:
             parts.append('--reverse')
         if self.beam_elevation_error:
             parts += ['--beam-elevation-error', f'{self.beam_elevation_error:g}']
+        if self.imu_profile != 'default':
+            parts += ['--imu-profile', self.imu_profile]
+        for name in (*self._IMU_PAIRS, *self._IMU_VALUES):
+            value = getattr(self, name)
+            if value is not None:
+                values = value if isinstance(value, (tuple, list)) else (value,)
+                parts += ['--' + name.replace('_', '-'), *(f'{float(v):g}' for v in values)]
+        if self.imu_stamp_jitter:
+            parts += ['--imu-stamp-jitter', f'{self.imu_stamp_jitter:g}']
+        if self.imu_record_late:
+            parts.append('--imu-record-late')
         return ' '.join(parts)
 
     def cache_key(self) -> str:
@@ -256,7 +375,6 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
 
     from lego_loam_py.bag.io import BagWriter, make_cloud_msg
     from lego_loam_py.sim import output as sidecars
-    from lego_loam_py.sim.imu import ImuModel, ImuNoise
     from lego_loam_py.sim.lidar import LidarModel, simulate_sweep
     from lego_loam_py.sim.scenarios import build_world, scenario_rng
 
@@ -267,12 +385,7 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
     world = build_world(config.scenario, config.seed, config.turn_rate, config.route_start, config.reverse)
     lidar = LidarModel.from_preset(config.preset, ideal=config.ideal, uniform_beams=config.uniform_beams,
                                    elevation_error=config.beam_elevation_error)
-    imu = ImuModel(rate=config.imu_rate, noise=ImuNoise.none() if config.ideal else ImuNoise(),
-                   extrinsic_rpy_deg=config.imu_extrinsic_rpy, lever_arm=config.imu_lever_arm,
-                   orientation_rpy_deg=config.imu_orientation_rpy, time_offset=config.imu_time_offset)
-    # The IMU's clock runs imu_time_offset ahead of the lidar's: its stamps say so, while the bag records each
-    # sample when it was measured (as a recorder receives it).
-    imu_stamp_offset_ns = int(round(config.imu_time_offset * 1e9))
+    imu = config.imu_model()
     period_ns = int(round(lidar.scan_period * 1e9))
     stamp_offset_ns = int(round(config.stamp_position() * period_ns))   # sweep start -> header stamp
     duration = world.default_duration if config.duration is None else config.duration
@@ -282,6 +395,14 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
     imu_offsets_ns = np.round(np.arange(int(math.floor(end_ns / imu_period + 1e-9)) + 1) * imu_period).astype(np.int64)
     biases = imu.draw_biases(scenario_rng(config.seed, 'imu-bias'))
     covariances = imu.covariances()
+    # The IMU's clock runs imu_time_offset ahead of the lidar's (and jitters): its stamps say so, while the bag
+    # records each sample when it was measured (as a recorder receives it), or, for a late driver, at its stamp.
+    imu_stamps_ns = imu.stamps_ns(imu_offsets_ns, scenario_rng(config.seed, 'imu-jitter') if imu.stamp_jitter else None)
+    imu_recorded_ns = imu_stamps_ns if imu.record_late else imu_offsets_ns
+    # Samples are measured sweep by sweep (sweep k's noise generator draws those measured during it, up to its end)
+    # and written once their recording time has come: before the cloud of the sweep that ends after it.
+    chunk_stops = np.searchsorted(imu_offsets_ns, (np.arange(n_scans, dtype=np.int64) + 1) * period_ns, side='right')
+    chunk_stops[-1] = len(imu_offsets_ns)   # (the samples reach the end of the last sweep, no further)
     dtype = _point_dtype(config.layout)
 
     bag_path.parent.mkdir(parents=True, exist_ok=True)
@@ -294,25 +415,44 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
         bag.add_topic(CLOUD_TOPIC, 'sensor_msgs/msg/PointCloud2')
         bag.add_topic(IMU_TOPIC, 'sensor_msgs/msg/Imu')
         label_writer = sidecars.LabelWriter(labels_path)
-        imu_index = 0
+        n_imu = len(imu_offsets_ns)
+        measured = (np.zeros((n_imu, 4)), np.zeros((n_imu, 3)), np.zeros((n_imu, 3)))   # orientation, gyro, accel
+        state = {'measured': 0, 'written': 0, 'chunk': 0, 'wander': None}
+
+        def measure_until(count: int) -> None:
+            """Measure sweep by sweep until the first ``count`` samples are."""
+            while state['measured'] < count:
+                chunk, start = state['chunk'], state['measured']
+                stop = int(chunk_stops[chunk])
+                if stop > start:
+                    wander = None
+                    if imu.noise.wanders:
+                        wander = imu.wander(stop - start, scenario_rng(config.seed, 'imu-wander', chunk),
+                                            state['wander'])
+                        state['wander'] = wander[-1]
+                    noise = scenario_rng(config.seed, 'imu-noise', chunk) if imu.has_white_noise else None
+                    samples = imu.measure(world.trajectory, imu_offsets_ns[start:stop] / 1e9, biases, noise, wander)
+                    for array, values in zip(measured, (samples.orientation, samples.angular_velocity,
+                                                        samples.linear_acceleration)):
+                        array[start:stop] = values
+                state['measured'], state['chunk'] = stop, chunk + 1
+
+        def write_imu_until(count: int) -> None:
+            """Write the first ``count`` IMU messages (those not written yet)."""
+            measure_until(count)
+            for j in range(state['written'], count):
+                header = bag.header(START_STAMP_NS + int(imu_stamps_ns[j]), IMU_FRAME, seq=j)
+                message = _imu_message(types, header, (measured[0][j], measured[1][j], measured[2][j]), covariances)
+                bag.write_msg(IMU_TOPIC, START_STAMP_NS + int(imu_recorded_ns[j]), message)
+            state['written'] = max(state['written'], count)
+
         try:
             with tqdm(total=n_scans, unit='scan', disable=not progress, file=sys.stderr,
                       desc=f'simulate {config.scenario}') as bar:
                 for k in range(n_scans):
                     sweep_end = int(sweep_offsets_ns[k] + period_ns)
-                    # IMU samples up to and including the end of this sweep, recorded before its cloud.
-                    stop = int(np.searchsorted(imu_offsets_ns, sweep_end, side='right'))
-                    if stop > imu_index:
-                        times_ns = imu_offsets_ns[imu_index:stop]
-                        samples = imu.measure(world.trajectory, times_ns / 1e9, biases,
-                                              None if config.ideal else scenario_rng(config.seed, 'imu-noise', k))
-                        for j, stamp in enumerate(times_ns):
-                            absolute = START_STAMP_NS + int(stamp)
-                            header = bag.header(absolute + imu_stamp_offset_ns, IMU_FRAME, seq=imu_index + j)
-                            message = _imu_message(types, header, (samples.orientation[j], samples.angular_velocity[j],
-                                                                   samples.linear_acceleration[j]), covariances)
-                            bag.write_msg(IMU_TOPIC, absolute, message)
-                        imu_index = stop
+                    # IMU samples recorded up to and including the end of this sweep, before its cloud.
+                    write_imu_until(int(np.searchsorted(imu_recorded_ns, sweep_end, side='right')))
                     sweep = simulate_sweep(lidar, world.scene, world.trajectory, sweep_offsets_ns[k] / 1e9,
                                            None if config.ideal else scenario_rng(config.seed, 'lidar', k), dtype)
                     header = bag.header(START_STAMP_NS + int(sweep_offsets_ns[k]) + stamp_offset_ns, LIDAR_FRAME,
@@ -321,6 +461,7 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
                     label_writer.add_scan(sweep.labels)
                     total_points += len(sweep.points)
                     bar.update(1)
+                write_imu_until(n_imu)   # a late IMU's last messages, after the last cloud
         except BaseException:
             label_writer.abort()
             raise
