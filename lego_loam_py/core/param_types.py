@@ -17,8 +17,7 @@ import math
 from dataclasses import dataclass, field, fields
 from typing import Any, Literal
 
-from lego_loam_py.core.beam_table import HDL64E_NOMINAL_ELEVATIONS
-from lego_loam_py.core.sensor_presets import MORE_SENSOR_PRESETS
+from lego_loam_py.core.sensor_presets import PRESET_FIELDS, SENSOR_PRESETS
 from lego_loam_py.errors import LegoLoamError
 
 __all__ = [
@@ -88,28 +87,7 @@ class SensorParams:
         return math.radians(self.ang_res_y)
 
 
-# Geometry of the sensor blocks of utility.h (docs/original.md §2.3) plus the HDL-64E values the original's
-# author suggested (issue #12, ang_res_y as 26.9/63) but its real azimuth step (0.1728 deg at 10 Hz: 2083 columns;
-# the suggested 1800 dropped 16 % of a real KITTI scan's points on shared pixels), the sensor's nominal beam table (rows
-# without a ring field come from it; see core.beam_table) and its stamp at the sweep's end (both sources of
-# HDL-64E clouds stamp there: the Velodyne driver, with its last packet, and KITTI). Keys are the values accepted by ``sensor.preset``.
-SENSOR_PRESETS: dict[str, dict[str, Any]] = {
-    'VLP-16': dict(n_scan=16, horizon_scan=1800, ang_res_x=0.2, ang_res_y=2.0, ang_bottom=15.0 + 0.1,
-                   ground_scan_ind=7),
-    'HDL-32E': dict(n_scan=32, horizon_scan=1800, ang_res_x=360.0 / 1800, ang_res_y=41.33 / 31,
-                    ang_bottom=30.67, ground_scan_ind=20),
-    'VLS-128': dict(n_scan=128, horizon_scan=1800, ang_res_x=0.2, ang_res_y=0.3, ang_bottom=25.0,
-                    ground_scan_ind=10),
-    'HDL-64E': dict(n_scan=64, horizon_scan=2083, ang_res_x=360.0 / 2083, ang_res_y=26.9 / 63, ang_bottom=24.9,
-                    ground_scan_ind=50, beam_elevations=HDL64E_NOMINAL_ELEVATIONS, stamp_position=1.0),
-    'OS1-16': dict(n_scan=16, horizon_scan=1024, ang_res_x=360.0 / 1024, ang_res_y=33.2 / 15,
-                   ang_bottom=16.6 + 0.1, ground_scan_ind=7),
-    'OS1-64': dict(n_scan=64, horizon_scan=1024, ang_res_x=360.0 / 1024, ang_res_y=33.2 / 63,
-                   ang_bottom=16.6 + 0.1, ground_scan_ind=15),
-    **MORE_SENSOR_PRESETS,   # VLP-32C, Ouster OS0/OS1/OS2, Hesai Pandar, RoboSense (core.sensor_presets)
-}
-_PRESET_FIELDS = ('n_scan', 'horizon_scan', 'ang_res_x', 'ang_res_y', 'ang_bottom', 'ground_scan_ind',
-                  'beam_elevations', 'stamp_position')
+# The geometry of every sensor ``sensor.preset`` names, and the fields a preset fills: core.sensor_presets.
 
 
 @dataclass(frozen=True)
@@ -446,7 +424,7 @@ class Params:
         overrides = {k.replace('__', '.'): v for k, v in flat_overrides.items()}
         merged = self.to_flat()
         if 'sensor.preset' in overrides:  # a new preset brings its own geometry unless given explicitly
-            for name in _PRESET_FIELDS:
+            for name in PRESET_FIELDS:
                 merged.pop(f'sensor.{name}')
         merged.update(overrides)
         from lego_loam_py.core.param_validation import params_from_mapping   # (it imports this module)

@@ -1,7 +1,7 @@
-"""Range-image geometry of the lidars users have beyond the original's ``utility.h`` blocks.
+"""Range-image geometry of every sensor ``sensor.preset`` names (:data:`SENSOR_PRESETS`): the original's
+``utility.h`` blocks and the lidars users have beyond them (:data:`MORE_SENSOR_PRESETS`).
 
-:data:`SENSOR_PRESETS` (core.param_types) holds these beside the original's; ``sensor.preset`` selects one. Each
-entry gives ``n_scan``, ``horizon_scan`` and ``ang_res_x`` (the sensor's columns per sweep at 10 Hz; Ouster: the
+Each of the latter gives ``n_scan``, ``horizon_scan`` and ``ang_res_x`` (the sensor's columns per sweep at 10 Hz; Ouster: the
 1024x10 mode), ``ang_res_y`` and ``ang_bottom`` (its beams' span evenly divided, ``ang_bottom`` with the original's
 0.1 deg margin below the lowest beam), ``ground_scan_ind`` (the highest beam at or below -1 deg, as the VLP-16's
 7) and, where the maker publishes one, ``beam_elevations`` (core.beam_table). Without a table the geometry is the
@@ -13,10 +13,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from lego_loam_py.core.beam_table import (OS0_128_UNIT_ELEVATIONS, OS1_128_UNIT_ELEVATIONS, PANDAR40P_ELEVATIONS,
-                                          PANDAR64_ELEVATIONS, VLP32C_ELEVATIONS)
+from lego_loam_py.core.beam_table import (HDL64E_NOMINAL_ELEVATIONS, OS0_128_UNIT_ELEVATIONS, OS1_128_UNIT_ELEVATIONS,
+                                          PANDAR40P_ELEVATIONS, PANDAR64_ELEVATIONS, VLP32C_ELEVATIONS)
 
-__all__ = ['MORE_SENSOR_PRESETS']
+__all__ = ['SENSOR_PRESETS', 'MORE_SENSOR_PRESETS', 'PRESET_FIELDS']
 
 
 def _preset(n_scan: int, columns: int, lowest: float, highest: float, ground_scan_ind: int,
@@ -60,3 +60,28 @@ MORE_SENSOR_PRESETS: dict[str, dict[str, Any]] = {
     'RS-Helios-5515': _preset(32, 1800, -55.0, 15.0, 23),
     'RS-Ruby-128': _preset(128, 1800, -25.0, 15.0, 76),
 }
+
+
+# Geometry of the sensor blocks of utility.h (docs/original.md §2.3) plus the HDL-64E values the original's
+# author suggested (issue #12, ang_res_y as 26.9/63) but its real azimuth step (0.1728 deg at 10 Hz: 2083 columns;
+# the suggested 1800 dropped 16 % of a real KITTI scan's points on shared pixels), the sensor's nominal beam
+# table (rows without a ring field come from it; see core.beam_table) and its stamp at the sweep's end (both
+# sources of HDL-64E clouds stamp there: the Velodyne driver, with its last packet, and KITTI). Keys are the
+# values accepted by ``sensor.preset``.
+SENSOR_PRESETS: dict[str, dict[str, Any]] = {
+    'VLP-16': dict(n_scan=16, horizon_scan=1800, ang_res_x=0.2, ang_res_y=2.0, ang_bottom=15.0 + 0.1,
+                   ground_scan_ind=7),
+    'HDL-32E': dict(n_scan=32, horizon_scan=1800, ang_res_x=360.0 / 1800, ang_res_y=41.33 / 31,
+                    ang_bottom=30.67, ground_scan_ind=20),
+    'VLS-128': dict(n_scan=128, horizon_scan=1800, ang_res_x=0.2, ang_res_y=0.3, ang_bottom=25.0,
+                    ground_scan_ind=10),
+    'HDL-64E': dict(n_scan=64, horizon_scan=2083, ang_res_x=360.0 / 2083, ang_res_y=26.9 / 63, ang_bottom=24.9,
+                    ground_scan_ind=50, beam_elevations=HDL64E_NOMINAL_ELEVATIONS, stamp_position=1.0),
+    'OS1-16': dict(n_scan=16, horizon_scan=1024, ang_res_x=360.0 / 1024, ang_res_y=33.2 / 15,
+                   ang_bottom=16.6 + 0.1, ground_scan_ind=7),
+    'OS1-64': dict(n_scan=64, horizon_scan=1024, ang_res_x=360.0 / 1024, ang_res_y=33.2 / 63,
+                   ang_bottom=16.6 + 0.1, ground_scan_ind=15),
+    **MORE_SENSOR_PRESETS,   # VLP-32C, Ouster OS0/OS1/OS2, Hesai Pandar, RoboSense (above)
+}
+PRESET_FIELDS = ('n_scan', 'horizon_scan', 'ang_res_x', 'ang_res_y', 'ang_bottom', 'ground_scan_ind',
+                  'beam_elevations', 'stamp_position')
