@@ -85,7 +85,9 @@ class FeatureAssociationNode(LegoLoamNode):
         self.order = StampOrder(RESET_JUMP_NS)
         self.get_logger().info(
             f'featureAssociation: IMU {self.params.sensor.imu_topic or "off"}, relative point time: '
-            f'{fa.relative_time_source}, mapping every {fa.skip_frame_num + 1} scans')
+            f'{fa.relative_time_source}, mapping every {fa.skip_frame_num + 1} scans; poses at the header stamp, '
+            f'taken at {self.params.sensor.stamp_position:g} of the sweep (sensor.stamp_position: 0 its start, 1 its '
+            'end, as the Velodyne ROS driver stamps unless timestamp_first_packet is true)')
 
     # ----------------------------------------------------------------------------------- inputs
     def on_part(self, name: str, msg) -> None:
