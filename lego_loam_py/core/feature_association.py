@@ -29,10 +29,11 @@ from lego_loam_py.core.features import FeatureExtractor, ScanFeatures
 from lego_loam_py.core.frames import (euler_to_matrix, invert_pose, lidar_to_camera, make_pose, matrix_to_euler,
                                       matrix_to_pose6)
 from lego_loam_py.core.image_projection import CloudInfo
-from lego_loam_py.core.imu import ImuBuffer, ImuSweep, SweepAttitude, imu_mounting, imu_rotate, imu_world_rotation
+from lego_loam_py.core.imu import ImuBuffer, ImuSweep, SweepAttitude, imu_mounting, imu_rotate
 from lego_loam_py.core.imu_monitor import SweepImuCheck
 from lego_loam_py.core.laser_odometry import OdometryStats, make_laser_odometry
 from lego_loam_py.core.param_types import Params
+from lego_loam_py.core.sweep_imu import deskew_with_imu, rotate_at_points, sweep_attitude
 from lego_loam_py.core.sweep import (StampInstant, accumulate, imu_free_motion, motion_to_theta, relative_time,
                                      relative_time_from_azimuth, sweep_rotation, transform_to_end, transform_to_start)
 from lego_loam_py.core.validation import (MAX_POSITION, MAX_SWEEP_TRANSLATION, cloud_problem, pose6_problem,
@@ -75,6 +76,7 @@ class FeatureAssociationResult:
     timings_ms: dict = field(default_factory=dict)
     resumed: bool = False                # initialised again after a restart, at the pose reached before it
     imu_alignment: object = None         # what the IMU check decided on this scan (core.imu_monitor.AlignmentEvent)
+    imu_uncovered: str | None = None     # why the IMU samples could not cover this sweep (core.imu.UNCOVERED)
 
     @property
     def pose(self) -> np.ndarray:
@@ -94,6 +96,8 @@ class FeatureAssociation:
         self.odometry = make_laser_odometry(params, fix_scan_bound)
         self._process = self._process_original if fa.odometry_model == 'original' else self._process_sweep_start
         self.imu = ImuBuffer(fa.imu_que_length, fa.gravity, params.sensor.scan_period, imu_mounting(params))
+        self._period = params.sensor.scan_period
+        self._imu_uncovered: str | None = None   # why the IMU did not cover this scan's sweep
         self.transform_sum = np.zeros(6)
         self.initialized = False
         self.frame_count = fa.skip_frame_num
@@ -102,6 +106,7 @@ class FeatureAssociation:
         self._world_pose = np.eye(4)          # sweep-start model: pose of the current sweep start
         self.stamp_instant = StampInstant(params)   # ... and its outputs at the header stamp's instant
         self._previous_attitude: SweepAttitude | None = None
+        self._previous_start: float | None = None   # [s] the last sweep's start
         self.imu_check = SweepImuCheck(params, lambda: self.imu)   # is the IMU mounted as the parameters say?
         self._imu_event = None   # what the check decided on this scan (an AlignmentEvent), for the result
         self._first_features = None
@@ -188,10 +193,11 @@ class FeatureAssociation:
         ``pose6``: the published pose when it is not ``transform_sum`` (:class:`StampInstant`)."""
         fa = self.params.feature_association
         event, self._imu_event = self._imu_event, None
+        uncovered, self._imu_uncovered = self._imu_uncovered, None
         if initialized:
             return FeatureAssociationResult(scan.stamp_ns, features, self.transform_sum.copy(), corner_last,
                                             surf_last, None, True, imu_used, None, timings, resumed=self._resumed,
-                                            imu_alignment=event)
+                                            imu_alignment=event, imu_uncovered=uncovered)
         self.frame_count += 1
         publish = self.frame_count >= fa.skip_frame_num + 1
         if publish:
@@ -202,7 +208,7 @@ class FeatureAssociation:
         return FeatureAssociationResult(scan.stamp_ns, features, self.transform_sum.copy() if pose6 is None else pose6,
                                         corner_last if publish else None, surf_last if publish else None,
                                         outlier_last if publish else None, False, imu_used, stats, timings,
-                                        imu_alignment=event)
+                                        imu_alignment=event, imu_uncovered=uncovered)
 
     def _process_sweep_start(self, scan: ScanInput) -> FeatureAssociationResult:
         """The default model: poses and 'last' clouds at the sweep start (header stamp).
@@ -216,7 +222,7 @@ class FeatureAssociation:
         """
         t0 = time.perf_counter()
         points, attitude, features, timings = self._prepare_scan(
-            scan, lambda prepared, rel, stamp_ns: self._imu_attitudes(rel, stamp_ns))
+            scan, lambda prepared, rel, stamp_ns: self._covered(sweep_attitude(self.imu, rel, *self._sweep(stamp_ns))))
         t2 = time.perf_counter()
         odometry, check = self.odometry, self.imu_check
         self._imu_event = check.scan(scan.stamp_ns, lambda: self._ground(scan, points),
@@ -224,6 +230,9 @@ class FeatureAssociation:
         attitude = attitude if check.trusted else None   # an IMU that disagrees with the lidar is not used
         # On probation a fast-turning sweep is registered without the IMU and compared with it (core.imu_monitor).
         previous = self._previous_attitude
+        if previous is None and attitude is not None and self._previous_start is not None:
+            # The last sweep went without the IMU (a gap, late samples): its start may be covered by now.
+            previous = self._covered(sweep_attitude(self.imu, attitude.rel[:0], self._previous_start, 0.0))
         imu_attitude, attitude = attitude, None if attitude and check.on_probation(attitude, previous) else attitude
         if not self.initialized:
             if imu_attitude is not None and not self._resumed:
@@ -235,7 +244,7 @@ class FeatureAssociation:
             corner_last = self._deskew_to_start(features.less_sharp, features.less_sharp_index, motion, attitude, points)
             surf_last = self._deskew_to_start(features.less_flat, None, motion, attitude, points)
             odometry.set_last(corner_last, surf_last)
-            self._previous_attitude = imu_attitude
+            self._previous_attitude, self._previous_start = imu_attitude, self._sweep(scan.stamp_ns)[0]
             self._first_features = (features, points, attitude)   # re-deskewed once the motion is known
             self.initialized = True
             return self._finish(scan, features, corner_last, surf_last, None, True, attitude is not None, None, timings)
@@ -278,7 +287,7 @@ class FeatureAssociation:
         corner_last = self._deskew_to_start(features.less_sharp, features.less_sharp_index, motion, attitude, points)
         surf_last = self._deskew_to_start(features.less_flat, None, motion, attitude, points)
         odometry.set_last(corner_last, surf_last)
-        self._previous_attitude = imu_attitude
+        self._previous_attitude, self._previous_start = imu_attitude, self._sweep(scan.stamp_ns)[0]
         instant = self.stamp_instant
         share = instant.share(scan.stamp_ns) if instant.active else 1.0
         at_stamp = (lambda cloud: instant.cloud(cloud, motion, share)) if instant.active else (lambda cloud: cloud)
@@ -300,7 +309,7 @@ class FeatureAssociation:
         (when used) and timed ``1 + s`` (the reference is the previous sweep's start)."""
         out = cloud.copy()
         if to_reference is not None:
-            out[:, :3] = self._rotate_at_points(to_reference, attitude, index, cloud).astype(_F32)
+            out[:, :3] = rotate_at_points(self.imu, to_reference, attitude, index, cloud, self._period).astype(_F32)
         ring = np.trunc(cloud[:, 3]).astype(np.float64)
         s = 10.0 * (cloud[:, 3].astype(np.float64) - ring)
         out[:, 3] = (ring + 0.1 * (1.0 + s)).astype(_F32)
@@ -316,7 +325,7 @@ class FeatureAssociation:
         out = np.empty_like(cloud)
         out[:, 3] = ring.astype(_F32)
         if attitude is not None and index is not None:
-            rotated = self._rotate_at_points(attitude.r_start.T, attitude, index, cloud)
+            rotated = rotate_at_points(self.imu, attitude.r_start.T, attitude, index, cloud, self._period)
         elif attitude is not None:   # voxel centroids (less-flat): attitude at each point's own time
             times = attitude.t_start + s * self.params.sensor.scan_period
             rotated = imu_rotate(attitude.r_start.T, *self.imu.attitude(times), cloud)
@@ -341,32 +350,25 @@ class FeatureAssociation:
         deskewed[:, 3] = scan.outlier[:, 3]
         return deskewed
 
-    def _imu_attitudes(self, rel: np.ndarray, stamp_ns: int) -> SweepAttitude | None:
-        """IMU attitude (camera axes) at the sweep start, and what :meth:`_rotate_at_points` needs for the
-        points' own times (``rel`` = relative times of the prepared points), or None when the IMU does not
-        cover the sweep."""
-        period = self.params.sensor.scan_period
-        t_start = self.stamp_instant.sweep_start(stamp_ns)
-        if not self.imu.covers(t_start, t_start + period):
-            return None
-        state = self.imu.interpolate([t_start])
-        r_start = imu_world_rotation(state.roll, state.pitch, state.yaw)[0]
-        return SweepAttitude(t_start=t_start, r_start=r_start, rel=rel, roll_start=float(state.roll[0]),
-                             pitch_start=float(state.pitch[0]))
+    def _sweep(self, stamp_ns: int) -> tuple[float, float]:
+        """(start [s], period [s]) of the sweep stamped ``stamp_ns``."""
+        return self.stamp_instant.sweep_start(stamp_ns), self._period
 
-    def _rotate_at_points(self, left: np.ndarray, attitude: SweepAttitude, index: np.ndarray,
-                          cloud: np.ndarray) -> np.ndarray:
-        """(n, 3) float64 ``left @ R @ p`` of the ``cloud`` points, R the IMU attitude at the time of the prepared
-        point ``index`` each comes from (only the features need them)."""
-        times = attitude.t_start + attitude.rel[index] * self.params.sensor.scan_period
-        return imu_rotate(left, *self.imu.attitude(times), cloud)
+    def _covered(self, imu):
+        """The IMU's part of a sweep (core.sweep_imu), or None with the reason noted when it did not cover it (none
+        for a lidar without IMU: no sample has ever come)."""
+        if isinstance(imu, str):
+            self._imu_uncovered, imu = (imu if imu != 'no_samples' or self.imu.accepted else None), None
+        return imu
 
     def _process_original(self, scan: ScanInput) -> FeatureAssociationResult:
         """The original's model: registration against the previous features moved to that sweep's end."""
         t0 = time.perf_counter()
         check = self.imu_check
         points, imu, features, timings = self._prepare_scan(
-            scan, lambda prepared, rel, stamp_ns: self._imu_deskew(prepared, rel, stamp_ns) if check.trusted else None)
+            scan, lambda prepared, rel, stamp_ns: self._covered(deskew_with_imu(self.imu, prepared, rel,
+                                                                                *self._sweep(stamp_ns)))
+            if check.trusted else None)
         self._imu_event = check.scan(scan.stamp_ns, lambda: self._ground(scan, points))
         t2 = time.perf_counter()
         if not self.initialized:
@@ -408,29 +410,6 @@ class FeatureAssociation:
     def add_imu(self, stamp_s: float, orientation_xyzw, angular_velocity, linear_acceleration) -> str | None:
         """Feed one IMU sample (REP-103 body axes); returns the rejection reason or None."""
         return self.imu.add(stamp_s, orientation_xyzw, angular_velocity, linear_acceleration)
-
-    def _imu_deskew(self, points: np.ndarray, rel: np.ndarray, stamp_ns: int) -> ImuSweep | None:
-        """Rotate every point into the sweep-start frame with the IMU attitude and remove the IMU's non-linear
-        shift; returns the sweep's IMU quantities, or None when the IMU does not cover the sweep."""
-        period = self.params.sensor.scan_period
-        t_start = self.stamp_instant.sweep_start(stamp_ns)
-        t_end = t_start + period
-        if not self.imu.covers(t_start, t_end):
-            return None
-        point_times = t_start + rel * period
-        # The start attitude is the IMU's at the sweep start (s = 0). The original takes the segmented cloud's
-        # first point, which is ordered by ring and column and therefore lies behind the sensor, mid-sweep.
-        state = self.imu.interpolate(np.concatenate(([t_start, t_end], point_times)))
-        r_start, r_end = imu_world_rotation(state.roll[:2], state.pitch[:2], state.yaw[:2])
-        v_start = state.velocity[0]
-        dt = point_times - t_start
-        shift = (state.shift[2:] - state.shift[0] - v_start[None, :] * dt[:, None]) @ r_start   # R_S^T (.)
-        rotated = imu_rotate(r_start.T, state.roll[2:], state.pitch[2:], state.yaw[2:], points)
-        points[:, :3] = (rotated + shift).astype(_F32)
-        shift_end = r_start.T @ (state.shift[1] - state.shift[0] - v_start * period)
-        velocity_change = r_start.T @ (state.velocity[1] - v_start)
-        return ImuSweep(roll_start=float(state.roll[0]), pitch_start=float(state.pitch[0]),
-                        delta_end=r_start.T @ r_end, shift_end=shift_end, velocity_change=velocity_change)
 
     def _initial_guess(self, imu: ImuSweep | None) -> None:
         """Constant-velocity prior (``transform_cur`` kept), adapted when the IMU use changes."""

@@ -37,13 +37,49 @@ from lego_loam_py.core.frames import ImuMounting, euler_to_matrices, rotate_by_e
 from lego_loam_py.core.validation import MAX_ACCELERATION, MAX_ANGULAR_VELOCITY, MAX_SPEED
 
 __all__ = ['ImuBuffer', 'ImuState', 'SweepAttitude', 'ImuSweep', 'imu_sample', 'imu_mounting', 'imu_world_rotation',
-           'imu_rotate', 'MAX_ANGULAR_VELOCITY', 'MAX_ACCELERATION']
+           'imu_rotate', 'MAX_ANGULAR_VELOCITY', 'MAX_ACCELERATION', 'UNCOVERED', 'MAX_REACH', 'MAX_GAP',
+           'uncovered_counter', 'uncovered_warning', 'warn_uncovered']
 
 QUATERNION_NORM_TOLERANCE = 0.1
 RESYNC_AFTER = 3   # samples in a row stamped before the newest one that show the newest one's stamp was wrong
 # [s] Stamps are float seconds (2.4e-7 s apart near 1.7e9 s): a stamp moved back by imu.time_offset may land one
 # step after a scan stamped at the same instant, which must still count as covered.
 STAMP_ROUNDING = 1e-6
+# [s] A sweep may end this long after the newest sample (an IMU whose messages arrive late, or whose imu.time_offset
+# moves them back a little too far): its attitude there is carried on at the last rate. Further, and across a gap
+# this long between samples within a sweep, the IMU does not cover it.
+MAX_REACH = 0.05
+MAX_GAP = 0.05
+RATE_BASELINE = 0.03   # [s] the last rate is measured over at least this much of the newest samples
+# Why the IMU cannot cover a sweep (ImuBuffer.coverage), and what the user can do about it.
+UNCOVERED = {
+    'no_samples': 'no IMU sample has come yet',
+    'starts_after_sweep': 'the IMU samples begin after the sweep began',
+    'ends_before_sweep': 'the newest IMU sample is older than the sweep\'s end by more than {reach:g} s: its messages '
+                         'arrive late, or imu.time_offset moves their stamps back too far',
+    'gap': 'the IMU samples have a gap of more than {gap:g} s within the sweep (lost messages?)',
+}
+
+
+def uncovered_counter(reason: str) -> str:
+    """The counter of the scans that went without the IMU for ``reason`` (a key of :data:`UNCOVERED`)."""
+    return f'imu_unused_{reason}'
+
+
+def warn_uncovered(count: int) -> bool:
+    """Whether the ``count``-th scan without the IMU for one reason is warned about: from the third (a scan or two
+    before the first samples is a normal start) and then every hundredth."""
+    return count == 3 or (count > 3 and count % 100 == 0)
+
+
+def uncovered_warning(reason: str, count: int, stamp_ns: int, time_offset: float) -> str:
+    """The warning for scans without the IMU: why, how many so far, and what to change."""
+    text = UNCOVERED[reason].format(reach=MAX_REACH, gap=MAX_GAP)
+    advice = {'ends_before_sweep': f'; set imu.time_offset (now {time_offset:g} s) to the IMU stamp minus the lidar '
+                                   'stamp of the same instant (lego_loam_py calibrate measures it)',
+              'starts_after_sweep': f'; imu.time_offset (now {time_offset:g} s) may be too small',
+              'no_samples': '; is sensor.imu_topic right, and is the IMU publishing?'}.get(reason, '')
+    return (f'IMU not used on the scan at {stamp_ns * 1e-9:.3f} s ({count} scans so far): {text}{advice}')
 
 
 def imu_mounting(params) -> ImuMounting:
@@ -134,6 +170,7 @@ class ImuBuffer:
         self._arrays: np.ndarray | None = None
         self._behind: list[float] = []   # stamps of the samples rejected in a row as older than the newest
         self.rejected: dict[str, int] = {}
+        self.accepted = 0   # samples taken since the buffer was made (a clear keeps the count)
 
     def __len__(self) -> int:
         return len(self._rows)
@@ -271,6 +308,7 @@ class ImuBuffer:
             angle = last[10:13] if last is not None else (0.0, 0.0, 0.0)
         self._rows.append((stamp, roll, pitch, yaw, *velocity, *shift, *angle))
         self._arrays = None
+        self.accepted += 1
         return None
 
     def _at_lidar_origin(self, acceleration, rate, stamp: float, last) -> tuple[float, float, float]:
@@ -292,10 +330,28 @@ class ImuBuffer:
         ax, ay, az = acceleration
         return ax - tx - cx, ay - ty - cy, az - tz - cz
 
-    def covers(self, start: float, end: float, tolerance: float = 0.02) -> bool:
+    def covers(self, start: float, end: float, tolerance: float = MAX_REACH) -> bool:
         """True when samples exist at or before ``start`` (within ``STAMP_ROUNDING``) and at or after
         ``end - tolerance``."""
         return len(self._time) >= 2 and self._time[0] <= start + STAMP_ROUNDING and self._time[-1] >= end - tolerance
+
+    def coverage(self, start: float, end: float) -> str | None:
+        """Why the samples cannot cover the sweep from ``start`` to ``end`` [s] (a key of :data:`UNCOVERED`), or
+        None when they can: from a sample at or before its start to one at most :data:`MAX_REACH` before its end
+        (the attitude is carried on beyond it), with no gap over :data:`MAX_GAP` between."""
+        times = self._time
+        if len(times) < 2:
+            return 'no_samples'
+        if times[0] > start + STAMP_ROUNDING:
+            return 'starts_after_sweep'
+        if times[-1] < end - MAX_REACH:
+            return 'ends_before_sweep'
+        first = max(int(np.searchsorted(times, start + STAMP_ROUNDING, side='right')) - 1, 0)
+        last = int(np.searchsorted(times, end, side='left'))
+        within = times[first:last + 1]
+        if len(within) > 1 and float(np.max(np.diff(within))) > MAX_GAP:
+            return 'gap'
+        return None
 
     def interpolate(self, times: np.ndarray) -> ImuState:
         """Linear interpolation at ``times`` [s] (held at the ends); yaw interpolated across +-pi."""
@@ -306,13 +362,14 @@ class ImuBuffer:
             r = ratio.reshape((-1,) + (1,) * (values.ndim - 1))
             return a + (b - a) * r
 
-        rpy = self._lerp_attitude(back, front, ratio)
+        rpy = self._lerp_attitude(back, front, ratio, np.atleast_1d(np.asarray(times, dtype=float)))
         return ImuState(roll=rpy[:, 0], pitch=rpy[:, 1], yaw=rpy[:, 2], velocity=lerp(self._velocity),
                         shift=lerp(self._shift), angle=lerp(self._angle))
 
     def attitude(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(roll, pitch, yaw) of :meth:`interpolate`, without the other quantities (deskewing needs only these)."""
-        rpy = self._lerp_attitude(*self._bracket(times))
+        times = np.atleast_1d(np.asarray(times, dtype=float))
+        rpy = self._lerp_attitude(*self._bracket(times), times)
         return rpy[:, 0], rpy[:, 1], rpy[:, 2]
 
     def _bracket(self, times: np.ndarray):
@@ -329,15 +386,32 @@ class ImuBuffer:
         ratio[beyond] = 1.0
         return back, front, ratio
 
-    def _lerp_attitude(self, back: np.ndarray, front: np.ndarray, ratio: np.ndarray) -> np.ndarray:
-        """(n, 3) roll, pitch, yaw, the yaw unwrapped across +-pi."""
+    def _lerp_attitude(self, back: np.ndarray, front: np.ndarray, ratio: np.ndarray,
+                       times: np.ndarray | None = None) -> np.ndarray:
+        """(n, 3) roll, pitch, yaw, the yaw unwrapped across +-pi; beyond the newest sample (``times`` given)
+        carried on at the last rate (at most :data:`MAX_REACH`)."""
         rpy_back, rpy_front = self._rpy[back], self._rpy[front]
         rpy = rpy_back + (rpy_front - rpy_back) * ratio[:, None]
         yaw_back, yaw_front = rpy_back[:, 2], rpy_front[:, 2]
         jump = yaw_front - yaw_back
         unwrapped_back = yaw_back + np.where(jump > np.pi, 2 * np.pi, np.where(jump < -np.pi, -2 * np.pi, 0.0))
         rpy[:, 2] = unwrapped_back + (yaw_front - unwrapped_back) * ratio
+        if times is not None:
+            ahead = np.minimum(times - self._time[-1], MAX_REACH)
+            if np.any(ahead > 0.0):
+                rpy += np.maximum(ahead, 0.0)[:, None] * self._newest_rate()[None, :]
         return rpy
+
+    def _newest_rate(self) -> np.ndarray:
+        """(3,) roll, pitch, yaw rates [rad/s] over the newest :data:`RATE_BASELINE` s of samples (0 with one)."""
+        times = self._time
+        back = max(int(np.searchsorted(times, times[-1] - RATE_BASELINE, side='right')) - 1, 0)
+        span = times[-1] - times[back]
+        if span <= 0.0:
+            return np.zeros(3)
+        change = self._rpy[-1] - self._rpy[back]
+        change[2] = (change[2] + np.pi) % (2 * np.pi) - np.pi
+        return change / span
 
 
 def imu_sample(msg) -> tuple[float, tuple, tuple, tuple]:

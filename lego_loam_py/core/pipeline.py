@@ -30,6 +30,7 @@ from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix, transform_cloud
 from lego_loam_py.core.elevation_bias import elevation_note
 from lego_loam_py.core.image_projection import ImageProjection, InputError, prepare_input
+from lego_loam_py.core.imu import uncovered_counter, uncovered_warning, warn_uncovered
 from lego_loam_py.core.localization import Localization
 from lego_loam_py.core.map_optimization import MapOptimization
 from lego_loam_py.core.odometry_continuity import OdometryContinuity
@@ -237,6 +238,12 @@ class Pipeline:
         record.count('scans_processed')
         if features.imu_used:
             record.count('scans_with_imu')
+        if features.imu_uncovered is not None:
+            counter = uncovered_counter(features.imu_uncovered)
+            record.count(counter)
+            if warn_uncovered(record.counts[counter]):
+                self._warn(uncovered_warning(features.imu_uncovered, record.counts[counter], stamp,
+                                             self.params.imu.time_offset))
         if features.imu_alignment is not None:
             self._back_end.imu_alignment('featureAssociation', features.imu_alignment)
         if self._listener is not None:   # (before the fusion, whose event follows)

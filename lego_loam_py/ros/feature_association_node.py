@@ -35,6 +35,7 @@ from sensor_msgs.msg import Imu, PointCloud2
 from lego_loam_py.core import validation
 from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, LASER_ODOM_FRAME
+from lego_loam_py.core.imu import uncovered_counter, uncovered_warning, warn_uncovered
 from lego_loam_py.core.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import (cloud_info_from_msg, cloud_info_from_serialized, cloud_msg_to_array,
@@ -210,6 +211,12 @@ class FeatureAssociationNode(LegoLoamNode):
         self.count('scans')
         if result.imu_used:
             self.count('scans_with_imu')
+        if result.imu_uncovered is not None:
+            counter = uncovered_counter(result.imu_uncovered)
+            self.count(counter)
+            if warn_uncovered(self.counters[counter]):
+                self.warn(counter, uncovered_warning(result.imu_uncovered, self.counters[counter], result.stamp_ns,
+                                                     self.params.imu.time_offset))
         self.report_imu_alignment(result.imu_alignment)
         if result.odometry is not None:
             self._report_conditioning(result.odometry)
