@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/accuracy.py [--scenarios campus forest corridor aggressive] [--configs ...]
                                             [--bags bags/campus_8s ...] [--odometry-only] [--loop-closure on|off]
-                                            [--turn-rate DEG_S] [--duration S]
+                                            [--turn-rate DEG_S] [--duration S] [--imu-profile consumer]
 
 Scenarios are generated into the cache on first use (lego_loam_py.sim.simulator.cached_scenario). For each
 bag and configuration the offline runner (the same cores as the nodes) is run with and without the IMU and
@@ -20,7 +20,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from lego_loam_py.core.params import Params  # noqa: E402
-from lego_loam_py.evaluation import evaluate  # noqa: E402
+import numpy as np  # noqa: E402
+
+from lego_loam_py.evaluation import error_over_time, evaluate  # noqa: E402
 from lego_loam_py.offline import run_bag  # noqa: E402
 from lego_loam_py.sim.output import load_ground_truth  # noqa: E402
 
@@ -33,6 +35,12 @@ CONFIGS = {
     'imu_prior_0': dict(feature_association__imu_rotation_prior=0.0),
     'imu_prior_1e5': dict(feature_association__imu_rotation_prior=1e5),
     'imu_prior_1e6': dict(feature_association__imu_rotation_prior=1e6),
+    # Each use of the IMU left out on its own (issue 34): the rotation between sweeps held by the prior, the
+    # mapping's roll and pitch blend, the IMU check.
+    'imu_no_prior': dict(feature_association__imu_rotation_prior=0.0),
+    'imu_no_blend': dict(map_optimization__imu_blend_weight=0.0),
+    'imu_no_check': dict(imu__alignment_check=False),
+    'imu_no_prior_no_blend': dict(feature_association__imu_rotation_prior=0.0, map_optimization__imu_blend_weight=0.0),
 }
 
 
@@ -48,14 +56,18 @@ def main() -> None:
     parser.add_argument('--turn-rate', type=float, default=0.0,
                         help='whole in-place turns peaking at this yaw rate [deg/s] in the scenarios (0: none)')
     parser.add_argument('--duration', type=float, help='simulated seconds of each scenario (default: a whole lap)')
+    parser.add_argument('--imu-profile', default=None,
+                        help="the simulated IMU unit (lego_loam_py simulate --imu-profile: default, consumer, industrial)")
     args = parser.parse_args()
     bags = [Path(b) for b in args.bags]
     if not bags:
         from lego_loam_py.sim.simulator import cached_scenario
-        bags = [cached_scenario(name, duration=args.duration, turn_rate=args.turn_rate) for name in args.scenarios]
+        profile = {} if args.imu_profile is None else {'imu_profile': args.imu_profile}
+        bags = [cached_scenario(name, duration=args.duration, turn_rate=args.turn_rate, **profile)
+                for name in args.scenarios]
     imu_modes = {'both': [False, True], 'on': [True], 'off': [False]}[args.imu]
     print(f'{"bag":<28s} {"config":<22s} {"imu":<4s} {"what":<9s} {"ATE m":>7s} {"RPE %":>7s} {"end m":>7s} '
-          f'{"drift %":>8s} {"rot deg":>8s} {"path m":>7s} {"x RT":>6s}')
+          f'{"drift %":>8s} {"rot deg":>8s} {"up m":>6s} {"path m":>7s} {"x RT":>6s} {"IMU scans":>9s}')
     for bag in bags:
         ground_truth = load_ground_truth(bag)
         name = bag.name if bag.name != bag.parent.name else bag.parent.name
@@ -74,9 +86,12 @@ def main() -> None:
                     rows.append(('mapped', result.trajectory(which='integrated')))
                 for what, estimate in rows:
                     m = evaluate(ground_truth, estimate)
+                    # The vertical error as it builds up (both from their first pose), RMS over the drive.
+                    up = float(np.sqrt(np.mean(error_over_time(ground_truth, estimate).up_m ** 2)))
                     print(f'{name[:28]:<28s} {config:<22s} {"on" if imu else "off":<4s} {what:<9s} {m.ate_rmse_m:7.3f} '
                           f'{m.rpe_percent:7.2f} {m.end_point_error_m:7.3f} {m.drift_percent:8.2f} '
-                          f'{m.rotation_end_error_deg:8.2f} {m.path_length_m:7.1f} {realtime:6.2f}', flush=True)
+                          f'{m.rotation_end_error_deg:8.2f} {up:6.3f} {m.path_length_m:7.1f} {realtime:6.2f} '
+                          f'{result.counts.get("scans_with_imu", 0):9d}', flush=True)
 
 
 if __name__ == '__main__':

@@ -396,10 +396,10 @@ class ImuBuffer:
         jump = yaw_front - yaw_back
         unwrapped_back = yaw_back + np.where(jump > np.pi, 2 * np.pi, np.where(jump < -np.pi, -2 * np.pi, 0.0))
         rpy[:, 2] = unwrapped_back + (yaw_front - unwrapped_back) * ratio
-        if times is not None:
+        if times is not None:   # (float stamps near 1.7e9 s land up to a microsecond past an equal sample's)
             ahead = np.minimum(times - self._time[-1], MAX_REACH)
-            if np.any(ahead > 0.0):
-                rpy += np.maximum(ahead, 0.0)[:, None] * self._newest_rate()[None, :]
+            if np.any(ahead > STAMP_ROUNDING):
+                rpy += np.where(ahead > STAMP_ROUNDING, ahead, 0.0)[:, None] * self._newest_rate()[None, :]
         return rpy
 
     def _newest_rate(self) -> np.ndarray:
