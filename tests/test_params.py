@@ -136,6 +136,7 @@ def test_every_mode_switch_is_typed_with_its_choices():
     assert modes == {'image_projection.ground_rule': typing.get_args(param_types.GroundRule),
                      'feature_association.relative_time_source': ('azimuth', 'point_time', 'original'),
                      'feature_association.odometry_model': ('sweep_start', 'original'),
+                     'feature_association.imu_attitude': ('gyro', 'orientation'),
                      'map_optimization.keypose_pick': ('averaged_index', 'latest'),
                      'map_optimization.mode': ('mapping', 'localization'),
                      'loop_closure.method': ('verified', 'original'),

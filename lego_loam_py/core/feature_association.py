@@ -26,10 +26,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lego_loam_py.core.features import FeatureExtractor, ScanFeatures
-from lego_loam_py.core.frames import (euler_to_matrix, invert_pose, lidar_to_camera, make_pose, matrix_to_euler,
+from lego_loam_py.core.frames import (CAMERA_TO_LIDAR, euler_to_matrix, invert_pose, lidar_to_camera, make_pose, matrix_to_euler,
                                       matrix_to_pose6)
 from lego_loam_py.core.image_projection import CloudInfo
-from lego_loam_py.core.imu import ImuBuffer, ImuSweep, SweepAttitude, imu_mounting, imu_rotate
+from lego_loam_py.core.imu import ImuBuffer, ImuSweep, SweepAttitude, imu_mounting, imu_rotate, imu_world_rotation
+from lego_loam_py.core.imu_agreement import ImuAgreement
 from lego_loam_py.core.imu_monitor import SweepImuCheck
 from lego_loam_py.core.laser_odometry import OdometryStats, make_laser_odometry
 from lego_loam_py.core.param_types import Params
@@ -95,7 +96,10 @@ class FeatureAssociation:
         # model keeps the original's rows (derivative at the full θ). The scan path is chosen with it, once.
         self.odometry = make_laser_odometry(params, fix_scan_bound)
         self._process = self._process_original if fa.odometry_model == 'original' else self._process_sweep_start
-        self.imu = ImuBuffer(fa.imu_que_length, fa.gravity, params.sensor.scan_period, imu_mounting(params))
+        gyro = fa.imu_attitude == 'gyro' and fa.odometry_model == 'sweep_start'
+        self.imu = ImuBuffer(fa.imu_que_length, fa.gravity, params.sensor.scan_period, imu_mounting(params),
+                             gyro_attitude=gyro)
+        self.imu_agreement = ImuAgreement(params.sensor.scan_period) if gyro else None
         self._period = params.sensor.scan_period
         self._imu_uncovered: str | None = None   # why the IMU did not cover this scan's sweep
         self.transform_sum = np.zeros(6)
@@ -116,10 +120,10 @@ class FeatureAssociation:
     def reset(self, keep_imu: bool = False) -> None:
         """Forget everything (a bag restarted or time jumped back); ``keep_imu``: but the IMU samples and what
         its check found (they follow their own timeline)."""
-        imu, check = self.imu, self.imu_check
+        imu, check, agreement = self.imu, self.imu_check, self.imu_agreement
         self.__init__(self.params, self.odometry.fix_scan_bound)
         if keep_imu:
-            self.imu, self.imu_check = imu, check
+            self.imu, self.imu_check, self.imu_agreement = imu, check, agreement
 
     def health_problem(self) -> str | None:
         """Why the odometry state is poisoned (non-finite or beyond what a sensor can produce), or None.
@@ -227,6 +231,9 @@ class FeatureAssociation:
         odometry, check = self.odometry, self.imu_check
         self._imu_event = check.scan(scan.stamp_ns, lambda: self._ground(scan, points),
                                      None if attitude is None else attitude.r_start)
+        if attitude is not None and self.imu_agreement is not None:   # (its pose time is its stamp)
+            self.imu_agreement.keep(scan.stamp_ns, scan.stamp_ns * 1e-9,
+                                    imu_world_rotation(*self.imu.attitude([scan.stamp_ns * 1e-9]))[0])
         attitude = attitude if check.trusted else None   # an IMU that disagrees with the lidar is not used
         # On probation a fast-turning sweep is registered without the IMU and compared with it (core.imu_monitor).
         previous = self._previous_attitude
@@ -257,7 +264,9 @@ class FeatureAssociation:
                                                                 attitude))
         if use_imu:
             odometry.transform_cur[:3] = 0.0   # the IMU explains the rotation; only what it missed is left
-        odometry.rotation_prior = self.params.feature_association.imu_rotation_prior if use_imu else 0.0
+        largest = self.params.feature_association.imu_rotation_prior
+        odometry.rotation_prior = (largest if self.imu_agreement is None else self.imu_agreement.prior_weight(largest)) \
+            if use_imu else 0.0
         stats = odometry.register(sharp, flat, wall)
         if self._first_features is not None:
             # The first reference was deskewed without knowing the motion (the sensor may already be moving):
@@ -405,6 +414,9 @@ class FeatureAssociation:
     def add_mapped_pose(self, stamp_ns: int, pose: np.ndarray):
         """mapOptimization's pose (4x4, camera_init) of the scan stamped ``stamp_ns``, for the IMU check; returns
         what the check decided (a :class:`~lego_loam_py.core.imu_monitor.AlignmentEvent`) or None."""
+        if self.imu_agreement is not None:   # the gyro's bias, and how far to trust it (core.imu_agreement)
+            self.imu_agreement.mapped(stamp_ns, np.asarray(pose, dtype=float)[:3, :3])
+            self.imu.gyro.bias = CAMERA_TO_LIDAR @ self.imu_agreement.bias
         return self.imu_check.mapped_pose(stamp_ns, np.asarray(pose, dtype=float)[:3, :3])
 
     def add_imu(self, stamp_s: float, orientation_xyzw, angular_velocity, linear_acceleration) -> str | None:

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lego_loam_py.core.frames import ImuMounting, euler_to_matrices, rotate_by_euler
+from lego_loam_py.core.gyro_attitude import GyroAttitude
 from lego_loam_py.core.validation import MAX_ACCELERATION, MAX_ANGULAR_VELOCITY, MAX_SPEED
 
 __all__ = ['ImuBuffer', 'ImuState', 'SweepAttitude', 'ImuSweep', 'imu_sample', 'imu_mounting', 'imu_world_rotation',
@@ -150,7 +151,7 @@ class ImuBuffer:
     """
 
     def __init__(self, capacity: int = 200, gravity: float = 9.81, scan_period: float = 0.1,
-                 mounting: ImuMounting | None = None, reset_after: float = 1.0):
+                 mounting: ImuMounting | None = None, reset_after: float = 1.0, gyro_attitude: bool = False):
         self.capacity = int(capacity)
         self.gravity = float(gravity)
         self.scan_period = float(scan_period)
@@ -171,6 +172,8 @@ class ImuBuffer:
         self._behind: list[float] = []   # stamps of the samples rejected in a row as older than the newest
         self.rejected: dict[str, int] = {}
         self.accepted = 0   # samples taken since the buffer was made (a clear keeps the count)
+        # The attitude of the rows: the orientation field's, or integrated from the gyro (core.gyro_attitude).
+        self.gyro = GyroAttitude() if gyro_attitude else None
 
     def __len__(self) -> int:
         return len(self._rows)
@@ -222,6 +225,8 @@ class ImuBuffer:
         self._arrays = None
         self._behind = []
         self._last_rate = None
+        if self.gyro is not None:
+            self.gyro.restart()
 
     def _reject(self, reason: str) -> str:
         self.rejected[reason] = self.rejected.get(reason, 0) + 1
@@ -286,6 +291,10 @@ class ImuBuffer:
             ax, ay, az = (self._to_lidar @ np.array([ax, ay, az])).tolist()
         if self._lever_arm is not None:
             ax, ay, az = self._at_lidar_origin((ax, ay, az), (gx, gy, gz), stamp, last)
+        attitude = (roll, pitch, yaw)
+        if self.gyro is not None:   # (the orientation field's roll and pitch still take gravity off below)
+            following = last is not None and stamp - last[0] < self.scan_period
+            attitude = self.gyro.update(stamp - last[0] if following else None, (gx, gy, gz), attitude)
         # Gravity-free acceleration in the body frame, re-ordered into camera axes (x=y_l, y=z_l, z=x_l).
         g = self.gravity
         cr, sr, cp, sp, cy, sy = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), \
@@ -306,7 +315,7 @@ class ImuBuffer:
             velocity = (0.0, 0.0, 0.0)
             shift = last[7:10] if last is not None else (0.0, 0.0, 0.0)
             angle = last[10:13] if last is not None else (0.0, 0.0, 0.0)
-        self._rows.append((stamp, roll, pitch, yaw, *velocity, *shift, *angle))
+        self._rows.append((stamp, *attitude, *velocity, *shift, *angle))
         self._arrays = None
         self.accepted += 1
         return None

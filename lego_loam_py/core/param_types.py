@@ -31,6 +31,7 @@ __all__ = [
 # The mode switches: the values each may take, checked when parameters are loaded (see the fields' comments).
 GroundRule = Literal['refined', 'original']
 RelativeTimeSource = Literal['azimuth', 'point_time', 'original']
+ImuAttitudeSource = Literal['gyro', 'orientation']
 OdometryModel = Literal['sweep_start', 'original']
 KeyposePick = Literal['averaged_index', 'latest']
 LoopClosureMethod = Literal['verified', 'original']
@@ -173,6 +174,11 @@ class FeatureAssociationParams:
     # Scan-to-scan matching has a small scene-dependent yaw bias (0.01 deg/scan on the simulated campus) that an
     # attitude-measuring IMU does not have; lower this for an IMU whose heading drifts fast.
     imu_rotation_prior: float = 1e6
+    # Where the sweep-start model takes the IMU's attitude over a sweep and between sweeps from: 'gyro' (its rates
+    # integrated from the orientation, their bias and the prior's weight found from how well its turns agreed with
+    # the mapped poses: core.imu_agreement; the weight above is then the largest) or 'orientation' (the 9-axis
+    # unit's orientation field, as the original; noisier from sample to sample).
+    imu_attitude: ImuAttitudeSource = 'gyro'
     degeneracy_threshold: float = 10.0    # eigenvalues below are degenerate directions
     convergence_rotation: float = 0.1     # [deg]
     convergence_translation: float = 0.1  # [cm]
