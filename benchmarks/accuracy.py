@@ -25,6 +25,7 @@ import numpy as np  # noqa: E402
 from lego_loam_py.evaluation import error_over_time, evaluate  # noqa: E402
 from lego_loam_py.offline import run_bag  # noqa: E402
 from lego_loam_py.sim.output import load_ground_truth  # noqa: E402
+from benchmarks.common import run_shifted  # noqa: E402
 
 CONFIGS = {
     'default': {},
@@ -41,6 +42,7 @@ CONFIGS = {
     'imu_no_blend': dict(map_optimization__imu_blend_weight=0.0),
     'imu_no_check': dict(imu__alignment_check=False),
     'imu_no_prior_no_blend': dict(feature_association__imu_rotation_prior=0.0, map_optimization__imu_blend_weight=0.0),
+    'imu_orientation': dict(feature_association__imu_attitude='orientation'),
 }
 
 
@@ -56,6 +58,8 @@ def main() -> None:
     parser.add_argument('--turn-rate', type=float, default=0.0,
                         help='whole in-place turns peaking at this yaw rate [deg/s] in the scenarios (0: none)')
     parser.add_argument('--duration', type=float, help='simulated seconds of each scenario (default: a whole lap)')
+    parser.add_argument('--skip', type=int, nargs='*', default=[0],
+                        help='runs without the first N clouds each (e.g. 0 1 2): their spread is the run-to-run noise')
     parser.add_argument('--imu-profile', default=None,
                         help="the simulated IMU unit (lego_loam_py simulate --imu-profile: default, consumer, industrial)")
     args = parser.parse_args()
@@ -76,10 +80,13 @@ def main() -> None:
             if args.loop_closure is not None:
                 overrides['loop_closure__loop_closure_enable_flag'] = args.loop_closure == 'on'
             params = Params().replace(**overrides)
-            for imu in imu_modes:
+            for imu, skip in [(i, k) for i in imu_modes for k in args.skip]:
                 start = time.perf_counter()
-                result = run_bag(bag, params, imu_topic=None if imu else '', progress=False,
-                                 mapping=not args.odometry_only)
+                if skip:
+                    result = run_shifted(bag, params, imu, skip)
+                else:
+                    result = run_bag(bag, params, imu_topic=None if imu else '', progress=False,
+                                     mapping=not args.odometry_only)
                 realtime = result.bag_duration / (time.perf_counter() - start)
                 rows = [('odometry', result.trajectory(which='odometry'))]
                 if not args.odometry_only:
@@ -88,7 +95,8 @@ def main() -> None:
                     m = evaluate(ground_truth, estimate)
                     # The vertical error as it builds up (both from their first pose), RMS over the drive.
                     up = float(np.sqrt(np.mean(error_over_time(ground_truth, estimate).up_m ** 2)))
-                    print(f'{name[:28]:<28s} {config:<22s} {"on" if imu else "off":<4s} {what:<9s} {m.ate_rmse_m:7.3f} '
+                    label = config if not skip else f'{config} -{skip}'
+                    print(f'{name[:28]:<28s} {label:<22s} {"on" if imu else "off":<4s} {what:<9s} {m.ate_rmse_m:7.3f} '
                           f'{m.rpe_percent:7.2f} {m.end_point_error_m:7.3f} {m.drift_percent:8.2f} '
                           f'{m.rotation_end_error_deg:8.2f} {up:6.3f} {m.path_length_m:7.1f} {realtime:6.2f} '
                           f'{result.counts.get("scans_with_imu", 0):9d}', flush=True)

@@ -22,3 +22,27 @@ def time_ms(function: Callable[[], object], repeat: int = 200, warmup: int = 10)
 def summary(name: str, samples_ms: np.ndarray) -> str:
     return (f'{name:<44s} median {np.median(samples_ms):8.3f} ms   p95 {np.percentile(samples_ms, 95):8.3f} ms   '
             f'(n={len(samples_ms)})')
+
+
+def run_shifted(bag, params, imu: bool, skip: int):
+    """``run_bag`` without the first ``skip`` clouds (and the IMU samples before them): the mapping steps fall on
+    other scans, as a run over DDS may have them. The spread this gives is the run-to-run noise."""
+    from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
+    from lego_loam_py.core.imu import imu_sample
+    from lego_loam_py.core.pipeline import Pipeline
+
+    pipeline = Pipeline(params, mapping_thread=False, warn=lambda text: None)
+    clouds = 0
+    with BagReader(bag) as reader:
+        topics = [params.sensor.point_cloud_topic] + ([params.sensor.imu_topic] if imu else [])
+        for message in reader.messages(topics=topics):
+            msg = reader.deserialize(message)
+            if message.topic != params.sensor.point_cloud_topic:
+                if clouds >= skip:
+                    pipeline.add_imu(imu_sample(msg))
+                continue
+            clouds += 1
+            if clouds > skip:
+                stamp = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+                pipeline.process_scan(cloud_msg_to_array(msg), stamp)
+    return pipeline.finish()

@@ -38,6 +38,7 @@ from lego_loam_py.evaluation import evaluate  # noqa: E402
 from lego_loam_py.offline import run_bag  # noqa: E402
 from lego_loam_py.results import LoopClosures  # noqa: E402
 from lego_loam_py.sim.output import load_ground_truth  # noqa: E402
+from benchmarks.common import run_shifted  # noqa: E402
 
 FALSE_LOOP_M, FALSE_LOOP_DEG = 0.5, 2.0
 
@@ -92,30 +93,6 @@ def closure_errors(mapper, ground_truth) -> list[dict]:
                      false=bool(error['translation_m'] > FALSE_LOOP_M or error['rotation_deg'] > FALSE_LOOP_DEG))
         out.append(error)
     return out
-
-
-def run_shifted(bag: Path, params: Params, imu: bool, skip: int):
-    """``run_bag`` without the first ``skip`` clouds (and the IMU samples before them): the mapping steps fall on
-    other scans, as a run over DDS may have them. The spread this gives is the run-to-run noise."""
-    from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
-    from lego_loam_py.core.imu import imu_sample
-    from lego_loam_py.core.pipeline import Pipeline
-
-    pipeline = Pipeline(params, mapping_thread=False, warn=lambda text: None)
-    clouds = 0
-    with BagReader(bag) as reader:
-        topics = [params.sensor.point_cloud_topic] + ([params.sensor.imu_topic] if imu else [])
-        for message in reader.messages(topics=topics):
-            msg = reader.deserialize(message)
-            if message.topic != params.sensor.point_cloud_topic:
-                if clouds >= skip:
-                    pipeline.add_imu(imu_sample(msg))
-                continue
-            clouds += 1
-            if clouds > skip:
-                stamp = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
-                pipeline.process_scan(cloud_msg_to_array(msg), stamp)
-    return pipeline.finish()
 
 
 def run_one(bag: Path, mode: str, imu: bool, skip: int = 0) -> dict:
