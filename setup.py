@@ -21,7 +21,7 @@ DATA_FILES = [
     (f'share/{PACKAGE}/launch', _files('launch/*.launch.py')),
 ]
 
-# Optional C helpers: libm's atan2f on arrays, for bit-exact range-image columns (lego_loam_py/core/libm.py
+# Optional C helpers: libm's atan2f on arrays, for bit-exact range-image columns (lego_loam_py/core/parity/libm.py
 # falls back to NumPy when it cannot be built).
 EXT_MODULES = [
     Extension(f'{PACKAGE}.core._libm_compat', [f'{PACKAGE}/core/native/libm_compat.c'], libraries=['m'],

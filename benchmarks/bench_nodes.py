@@ -27,9 +27,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import summary  # noqa: E402
 
 from lego_loam_py.bag.io import BagReader, cloud_msg_to_array  # noqa: E402
-from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput  # noqa: E402
-from lego_loam_py.core.image_projection import ImageProjection, ProjectionInput, prepare_input  # noqa: E402
-from lego_loam_py.core.map_optimization import MapOptimization  # noqa: E402
+from lego_loam_py.core.odometry.feature_association import FeatureAssociation, ScanInput  # noqa: E402
+from lego_loam_py.core.projection.image_projection import ImageProjection, ProjectionInput, prepare_input  # noqa: E402
+from lego_loam_py.core.mapping.map_optimization import MapOptimization  # noqa: E402
 from lego_loam_py.core.params import Params  # noqa: E402
 from lego_loam_py.sim.simulator import cached_scenario  # noqa: E402
 

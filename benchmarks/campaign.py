@@ -41,7 +41,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from lego_loam_py.core.io import pcd_is_complete  # noqa: E402
+from lego_loam_py.formats import pcd_is_complete  # noqa: E402
 from tests.support.domains import DomainLease  # noqa: E402
 from tests.support.inprocess import restamped, stamp_of  # noqa: E402
 from tests.support.malformed import MUTATORS  # noqa: E402

@@ -28,7 +28,7 @@ def run_shifted(bag, params, imu: bool, skip: int):
     """``run_bag`` without the first ``skip`` clouds (and the IMU samples before them): the mapping steps fall on
     other scans, as a run over DDS may have them. The spread this gives is the run-to-run noise."""
     from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
-    from lego_loam_py.core.imu import imu_sample
+    from lego_loam_py.core.imu.buffer import imu_sample
     from lego_loam_py.core.pipeline import Pipeline
 
     pipeline = Pipeline(params, mapping_thread=False, warn=lambda text: None)

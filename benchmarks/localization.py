@@ -40,7 +40,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix  # noqa: E402
-from lego_loam_py.core.map_bundle import MapBundle, read_bundle, write_bundle  # noqa: E402
+from lego_loam_py.core.mapping.map_bundle import MapBundle, read_bundle, write_bundle  # noqa: E402
 from lego_loam_py.core.params import Params  # noqa: E402
 from lego_loam_py.evaluation import errors_in_map, rigid_fit  # noqa: E402
 from lego_loam_py.offline import run_bag  # noqa: E402
@@ -202,7 +202,7 @@ def gate_figures(verifications: list[dict]) -> dict:
 
 def load_time(map_dir: Path, out: Path, keyframes: int = 1000, repeat: int = 3) -> dict:
     """Seconds to load (read, check, index) a ``keyframes``-keyframe bundle built from the map in ``map_dir``."""
-    from lego_loam_py.core.localization import Localization
+    from lego_loam_py.core.localization.localizer import Localization
 
     bundle = read_bundle(map_dir)
     copies = math.ceil(keyframes / len(bundle))

@@ -224,7 +224,7 @@ def lego_executable() -> str:
 
 
 def evaluate_run(ground_truth, trajectory: Path) -> dict:
-    from lego_loam_py.core.io import read_tum
+    from lego_loam_py.formats import read_tum
     from lego_loam_py.evaluation import evaluate, path_length
 
     estimate = read_tum(trajectory)

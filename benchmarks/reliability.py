@@ -31,7 +31,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from lego_loam_py.core.io import pcd_is_complete, tum_is_complete  # noqa: E402
+from lego_loam_py.formats import pcd_is_complete, tum_is_complete  # noqa: E402
 from lego_loam_py.core.params import write_params_file  # noqa: E402
 from tests.support.domains import DomainLease  # noqa: E402
 from tests.support.measure import rss_mb  # noqa: E402

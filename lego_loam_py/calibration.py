@@ -1,6 +1,6 @@
 """``lego_loam_py calibrate BAG``: the IMU-to-lidar rotation and the lidar-IMU time offset from a recording.
 
-Hand-eye calibration of the rotation (:mod:`lego_loam_py.core.imu_alignment`): the lidar's turn between
+Hand-eye calibration of the rotation (:mod:`lego_loam_py.core.imu.alignment`): the lidar's turn between
 sweeps comes from the pipeline run on the lidar alone (``lego_loam_py run --no-imu``: scan-to-scan odometry
 corrected by the scan-to-map registration), the IMU's from its gyro integrated over the same intervals on its
 own clock. The rotation that maps the gyro's turns onto the lidar's (over 1, 2 and 4 sweeps), and the clock
@@ -32,7 +32,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from lego_loam_py.core.frames import matrix_to_rpy
-from lego_loam_py.core.imu_alignment import GyroTrack, OrientationTrack, fit_alignment
+from lego_loam_py.core.imu.alignment import GyroTrack, OrientationTrack, fit_alignment
 from lego_loam_py.errors import LegoLoamError
 
 __all__ = ['Calibration', 'CalibrationRefused', 'calibrate_bag', 'calibrate', 'refine_calibration', 'read_imu',

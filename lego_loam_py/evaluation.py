@@ -228,7 +228,7 @@ def plot_trajectories(path: str | Path, trajectories: dict[str, np.ndarray], map
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
-    from lego_loam_py.core.io import atomic_path
+    from lego_loam_py.formats import atomic_path
 
     figure, axes = plt.subplots(figsize=(9, 9), dpi=110)
     if map_points is not None and len(map_points):
@@ -274,7 +274,7 @@ def add_arguments(parser) -> None:
 def main(args) -> int:
     import json
 
-    from lego_loam_py.core.io import read_tum
+    from lego_loam_py.formats import read_tum
     from lego_loam_py.sim.output import load_ground_truth
 
     source = args.bag or args.ground_truth
@@ -291,7 +291,7 @@ def main(args) -> int:
         raise LegoLoamError(str(exc)) from None
     print(metrics.summary())
     if args.json:
-        from lego_loam_py.core.io import write_text_atomic
+        from lego_loam_py.formats import write_text_atomic
         write_text_atomic(args.json, json.dumps(metrics.as_dict(), indent=2))
     if args.plot:
         first = int(np.argmin(np.abs(ground_truth[0] - estimate[0][0])))

@@ -110,7 +110,7 @@ def loop_closures_of(result: RunResult, params: Params) -> LoopClosures | None:
 
 def localization_of(bag: str | Path, result: RunResult) -> LocalizationSummary | None:
     """How a run localized in its saved map, for its summary (None when it mapped)."""
-    from lego_loam_py.core.localization import Localization
+    from lego_loam_py.core.localization.localizer import Localization
     from lego_loam_py.evaluation import errors_in_map
 
     localization = result.mapper
@@ -128,7 +128,7 @@ def localization_of(bag: str | Path, result: RunResult) -> LocalizationSummary |
 def write_optimized_trajectory(out: Path, ground_truth, result: RunResult, summary: OfflineSummary) -> None:
     """``trajectory_optimized.tum`` (REP-103 map axes): the fused trajectory in the pose graph's final frame, and
     its accuracy in the summary against ``ground_truth`` ((stamps [ns], lidar poses) of the recording, or None)."""
-    from lego_loam_py.core.io import write_tum_atomic
+    from lego_loam_py.formats import write_tum_atomic
     from lego_loam_py.evaluation import evaluate
     from lego_loam_py.outputs import write_summary
 

@@ -165,7 +165,7 @@ def run_pipeline(config: PipelineConfig, stop: threading.Event | None = None, hu
         raise UsageError("output 'log' needs a log directory")
     params = _load_run_params(config)          # invalid parameters stop here, before any process starts
     if params.map_optimization.mode == 'localization' and 'mapOptimization' in config.nodes:
-        from lego_loam_py.core.map_bundle import read_manifest
+        from lego_loam_py.core.mapping.map_bundle import read_manifest
         read_manifest(params.map_optimization.map_path)   # (and so does a saved map that is not there)
     bag, play_topics = None, []
     if config.bag is not None:

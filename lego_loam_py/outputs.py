@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from lego_loam_py.core.frames import camera_pose_to_lidar
-from lego_loam_py.core.io import write_kitti_poses_atomic, write_text_atomic, write_tum_atomic
-from lego_loam_py.core.map_optimization import MapOptimization
+from lego_loam_py.formats import write_kitti_poses_atomic, write_text_atomic, write_tum_atomic
+from lego_loam_py.core.mapping.map_optimization import MapOptimization
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.pipeline import pose_time_offset_ns
 from lego_loam_py.results import DemoSummary, MapToScene, OfflineSummary, RunOutputs
@@ -59,10 +59,10 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
     if mapper is not None and mapper.keyframes:
         saved = mapper.save(out / 'map')
         result.map_files = {k: str(v) for k, v in saved.items()}
-        from lego_loam_py.core.io import read_pcd
+        from lego_loam_py.formats import read_pcd
         map_points = read_pcd(saved['global_map'])
     elif map_dir is not None and (Path(map_dir) / 'global_map.pcd').is_file():
-        from lego_loam_py.core.io import read_pcd
+        from lego_loam_py.formats import read_pcd
         saved_files = sorted(p for p in Path(map_dir).iterdir() if p.suffix in ('.pcd', '.tum'))
         result.map_files = {p.name: str(p) for p in saved_files}
         map_points = read_pcd(Path(map_dir) / 'global_map.pcd')

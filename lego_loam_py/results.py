@@ -70,7 +70,7 @@ class LoopClosures:
 
     @classmethod
     def of(cls, loops: Sequence, first_stamp_ns: int) -> LoopClosures:
-        """From a mapper's ``loops`` (:class:`lego_loam_py.core.loop_closure.LoopResult`)."""
+        """From a mapper's ``loops`` (:class:`lego_loam_py.core.loop.closure.LoopResult`)."""
         accepted = [loop for loop in loops if loop.accepted]
         reasons: dict[str, int] = {}
         for loop in loops:
@@ -129,7 +129,7 @@ class LocalizationSummary:
     @classmethod
     def of(cls, localization, scans_in: int, published: int, first_scan_ns: int,
            error_in_map: Sequence[ErrorInMap] = ()) -> LocalizationSummary:
-        """From a :class:`lego_loam_py.core.localization.Localization` after a run."""
+        """From a :class:`lego_loam_py.core.localization.localizer.Localization` after a run."""
         counters = localization.counters
         first_fix = localization.first_fix_ns
         return cls(map_path=str(localization.prior.bundle.path), map_keyframes=len(localization.prior),

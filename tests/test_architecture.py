@@ -1,5 +1,7 @@
-"""The core is ROS-free: no module under lego_loam_py/core imports rclpy or any ROS message package; and what the
-code cites of the original resolves inside the repository (docs/original.md)."""
+"""The house's rules: the core is ROS-free (no module under lego_loam_py/core imports rclpy or any ROS message
+package); it is stage packages that import only the stages before them in a scan's path (ALLOWED); no module of the
+package imports itself round a cycle at import time; and what the code cites of the original resolves inside the
+repository (docs/original.md)."""
 from __future__ import annotations
 
 import ast
@@ -36,20 +38,182 @@ def test_core_sources_import_no_ros():
     assert not offenders, offenders
 
 
-MAX_CORE_MODULE_LINES = 450
+# The stage packages of the core, and which parts of the core each may import. ``shared`` is the modules left directly
+# in core/ (frames, geometry, voxel, pointcloud, ...): every stage may use them, they use no stage. A stage imports
+# the stages before it in a scan's path, never one after: imageProjection's code knows nothing of the odometry, the
+# odometry nothing of the mapping, the mapping nothing of localization; the pipeline joins them all.
+STAGES = ('params', 'parity', 'projection', 'imu', 'odometry', 'loop', 'mapping', 'localization')
+ALLOWED = {
+    'shared': {'shared'},
+    'params': {'shared', 'params'},
+    'parity': {'shared', 'parity'},
+    'projection': {'shared', 'params', 'parity', 'projection'},
+    'imu': {'shared', 'params', 'imu'},
+    'odometry': {'shared', 'params', 'parity', 'projection', 'imu', 'odometry'},
+    'loop': {'shared', 'params', 'loop'},
+    'mapping': {'shared', 'params', 'imu', 'loop', 'mapping'},
+    'localization': {'shared', 'params', 'imu', 'loop', 'mapping', 'localization'},
+    'pipeline': {'shared', *STAGES, 'pipeline'},
+}
+# What of the package outside core/ the core may import: its errors and its file formats (no simulator, no inputs,
+# no ROS, no command line).
+OUTSIDE_ALLOWED = {'lego_loam_py.errors', 'lego_loam_py.formats', 'lego_loam_py.__version__'}
+MAX_SHARED_MODULES = 12
 
 
-def test_every_core_module_holds_one_concept_in_at_most_450_lines():
-    """An algorithm module that grows past 450 lines holds more than one concept (laser_odometry.py once held two
-    odometry models, the correspondence search and the geometry in 788): split it by concept."""
-    sizes = {path.name: len(path.read_text().splitlines()) for path in CORE.glob('*.py')}
-    assert len(sizes) > 20 and max(sizes.values()) > 300   # (the rule reads the real modules)
-    too_long = {name: lines for name, lines in sizes.items() if lines > MAX_CORE_MODULE_LINES}
-    assert not too_long, too_long
+def part_of(module: str) -> str | None:
+    """Which part of the core a dotted module name belongs to (None: outside core)."""
+    parts = module.split('.')
+    if parts[:2] != ['lego_loam_py', 'core']:
+        return None
+    if len(parts) == 2 or parts[2] in ('_libm_compat', '_feature_kernels'):
+        return 'shared'
+    return parts[2] if parts[2] in STAGES or parts[2] == 'pipeline' else 'shared'
+
+
+def rule_violations(sources: dict[str, str]) -> list[str]:
+    """``module -> its source`` of core modules: the imports their part may not make (every import, those inside
+    functions too)."""
+    found = []
+    for module, text in sources.items():
+        part = part_of(module)
+        for node in ast.walk(ast.parse(text)):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module] if isinstance(node, ast.ImportFrom) and node.module and node.level == 0 else []
+            for name in names:
+                if not name.startswith('lego_loam_py'):
+                    continue
+                target = part_of(name)
+                if name == 'lego_loam_py' and isinstance(node, ast.ImportFrom):
+                    name = 'lego_loam_py.' + ','.join(a.name for a in node.names)   # (its version)
+                if target is None:
+                    if not any(name == ok or name.startswith(ok + '.') for ok in OUTSIDE_ALLOWED):
+                        found.append(f'{module} imports {name} (outside the core)')
+                elif target not in ALLOWED[part]:
+                    found.append(f'{module} ({part}) imports {name} ({target})')
+    return found
+
+
+def _core_sources() -> dict[str, str]:
+    return {'.'.join(p.relative_to(CORE.parents[1]).with_suffix('').parts).removesuffix('.__init__'): p.read_text()
+            for p in sorted(CORE.rglob('*.py'))}
+
+
+def test_the_core_is_stage_packages_with_few_modules_between_them():
+    """At least five stage packages, each naming its public API in its __init__, and at most 12 modules directly in
+    core/ (what every stage shares)."""
+    stages = [d.name for d in CORE.iterdir() if (d / '__init__.py').is_file()]
+    assert set(STAGES) <= set(stages) and len(stages) >= 5
+    shared = [p.name for p in CORE.glob('*.py') if p.name != '__init__.py']
+    assert len(shared) <= MAX_SHARED_MODULES, sorted(shared)
+    for stage in STAGES:
+        init = (CORE / stage / '__init__.py').read_text()
+        assert '__all__' in init and ast.get_docstring(ast.parse(init)), stage
+
+
+def test_each_stage_imports_only_the_stages_before_it():
+    violations = rule_violations(_core_sources())
+    assert not violations, '\n'.join(violations)
+
+
+def test_the_rule_check_finds_a_stage_that_imports_a_later_one():
+    """The check itself can fail: imageProjection's code importing the mapping, the odometry importing the simulator,
+    and a shared module importing a stage are each reported; the stages before are not."""
+    sources = {'lego_loam_py.core.projection.ground': 'from lego_loam_py.core.mapping import MapOptimization\n',
+               'lego_loam_py.core.odometry.features': 'def f():\n    from lego_loam_py.sim import scenarios\n',
+               'lego_loam_py.core.frames': 'import lego_loam_py.core.params.types\n',
+               'lego_loam_py.core.mapping.pose_graph': 'from lego_loam_py.core.loop import closure\n'
+                                                      'from lego_loam_py.formats import read_tum\n'}
+    assert rule_violations(sources) == [
+        'lego_loam_py.core.projection.ground (projection) imports lego_loam_py.core.mapping (mapping)',
+        'lego_loam_py.core.odometry.features imports lego_loam_py.sim (outside the core)',
+        'lego_loam_py.core.frames (shared) imports lego_loam_py.core.params.types (params)']
+
+
+def import_time_edges(root: Path) -> dict[str, set[str]]:
+    """``module -> the package modules it imports when it is imported``: the imports at module level (and in class
+    bodies), each ``a.b.c`` also importing the packages ``a`` and ``a.b``."""
+    modules = {'.'.join(p.relative_to(root.parent).with_suffix('').parts).removesuffix('.__init__'): p
+               for p in root.rglob('*.py')}
+    edges: dict[str, set[str]] = {m: set() for m in modules}
+
+    def resolve(name: str) -> str | None:
+        while name and name not in modules:
+            name = name.rpartition('.')[0]
+        return name or None
+
+    def packages_of(name: str) -> list[str]:
+        parts = name.split('.')
+        return ['.'.join(parts[:i]) for i in range(1, len(parts))]
+
+    for module, path in modules.items():
+        body = list(ast.parse(path.read_text()).body)
+        while body:
+            node = body.pop()
+            if isinstance(node, ast.ClassDef):
+                body.extend(node.body)
+            elif isinstance(node, (ast.If, ast.Try)):
+                if isinstance(node, ast.If) and 'TYPE_CHECKING' in ast.dump(node.test):
+                    continue
+                body.extend(node.body + getattr(node, 'orelse', []) + getattr(node, 'finalbody', []) +
+                            [h for handler in getattr(node, 'handlers', []) for h in handler.body])
+            elif isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                targets = [node.module] + [f'{node.module}.{a.name}' for a in node.names]
+            else:
+                continue
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                for target in targets:
+                    resolved = resolve(target) if target.startswith('lego_loam_py') else None
+                    if resolved and resolved != module:   # (a module's own packages are loaded before it)
+                        edges[module].update({resolved, *packages_of(resolved)} - {module, *packages_of(module)})
+    return edges
+
+
+def import_cycles(edges: dict[str, set[str]]) -> list[list[str]]:
+    """The cycles among modules (strongly connected parts of more than one module), Tarjan's way."""
+    index, low, stack, on_stack, cycles, counter = {}, {}, [], set(), [], [0]
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = counter[0]
+        counter[0] += 1
+        stack.append(node)
+        on_stack.add(node)
+        for nxt in edges.get(node, ()):
+            if nxt not in index:
+                visit(nxt)
+                low[node] = min(low[node], low[nxt])
+            elif nxt in on_stack:
+                low[node] = min(low[node], index[nxt])
+        if low[node] == index[node]:
+            part = []
+            while True:
+                member = stack.pop()
+                on_stack.discard(member)
+                part.append(member)
+                if member == node:
+                    break
+            if len(part) > 1:
+                cycles.append(sorted(part))
+
+    for node in sorted(edges):
+        if node not in index:
+            visit(node)
+    return cycles
+
+
+def test_no_module_of_the_package_imports_itself_round_a_cycle_at_import_time():
+    sys.setrecursionlimit(max(sys.getrecursionlimit(), 10000))
+    edges = import_time_edges(CORE.parent)
+    assert len(edges) > 100 and edges['lego_loam_py.core.pipeline']   # (the check reads the real modules)
+    assert not import_cycles(edges), import_cycles(edges)
+    # ... and it finds one: two modules importing each other at module level.
+    assert import_cycles({'a': {'b'}, 'b': {'a'}, 'c': {'a'}}) == [['a', 'b']]
 
 
 def test_importing_the_core_loads_no_ros_module():
-    modules = [f'lego_loam_py.core.{p.stem}' for p in sorted(CORE.glob('*.py')) if p.stem != '__init__']
+    modules = sorted(_core_sources())
     code = ('import sys\n' + ''.join(f'import {m}\n' for m in modules) +
             'bad = [m for m in sys.modules if m.split(".")[0] in %r]\nprint(bad)\nsys.exit(1 if bad else 0)\n'
             % (ROS_MODULES,))

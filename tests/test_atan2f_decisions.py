@@ -6,10 +6,10 @@ import math
 import numpy as np
 import pytest
 
-from lego_loam_py.core.atan2f_decisions import Atan2fSteps, atan2f_exceeds, first_float32_where
-from lego_loam_py.core.libm import atan2f
+from lego_loam_py.core.parity.atan2f_decisions import Atan2fSteps, atan2f_exceeds, first_float32_where
+from lego_loam_py.core.parity.libm import atan2f
 from lego_loam_py.core.params import Params
-from lego_loam_py.core.range_image import RangeImageProjection
+from lego_loam_py.core.projection.range_image import RangeImageProjection
 
 F32 = np.float32
 

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import yaml
 
-from lego_loam_py.core.beam_table import HDL64E_NOMINAL_ELEVATIONS, BeamRows, read_velodyne_calibration
+from lego_loam_py.core.params.beams import HDL64E_NOMINAL_ELEVATIONS, BeamRows, read_velodyne_calibration
 from lego_loam_py.core.params import ParameterError, Params, load_params
-from lego_loam_py.core.range_image import RangeImageProjection, prepare_input
-from lego_loam_py.core.segmentation import Segmentation
+from lego_loam_py.core.projection.range_image import RangeImageProjection, prepare_input
+from lego_loam_py.core.projection.segmentation import Segmentation
 
 
 def test_the_hdl64e_table_is_two_blocks_of_32_lasers_from_plus_2_to_minus_24_33_degrees():

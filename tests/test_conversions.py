@@ -49,7 +49,7 @@ def test_serialized_imu_equals_the_message(frame_id, sec, nanosec, values):
     """Whatever rclpy serializes, the bytes give exactly what the message object gives."""
     from rclpy.serialization import serialize_message
 
-    from lego_loam_py.core.imu import imu_sample
+    from lego_loam_py.core.imu.buffer import imu_sample
     from lego_loam_py.ros.conversions import imu_sample_from_serialized
 
     msg = imu_message(frame_id, sec, nanosec, values)
@@ -167,7 +167,7 @@ def test_serialized_clouds_are_the_messages_rclpy_would_send(frame_id, sec, nano
     from rclpy.serialization import deserialize_message, serialize_message
     from sensor_msgs.msg import PointCloud2
 
-    from lego_loam_py.core.image_projection import CloudInfo as CloudInfoData
+    from lego_loam_py.core.projection.image_projection import CloudInfo as CloudInfoData
     from lego_loam_py.ros.conversions import (cloud_from_serialized, cloud_info_from_serialized, cloud_info_to_msg,
                                               cloud_msg_to_xyzi, make_header, serialized_cloud_info,
                                               serialized_xyzi_cloud, xyzi_to_cloud_msg)

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
-from lego_loam_py.core.driver_layouts import read_cloud, rings_count_down, seconds_since_sweep_start
-from lego_loam_py.core.image_projection import ImageProjection, prepare_input
+from lego_loam_py.core.projection.driver_layouts import read_cloud, rings_count_down, seconds_since_sweep_start
+from lego_loam_py.core.projection.image_projection import ImageProjection, prepare_input
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.pipeline import Pipeline
 from lego_loam_py.core.pointcloud import (POINT_XYZI_DTYPE, VELODYNE_POINT_DTYPE, CloudLayoutError, array_to_cloud,

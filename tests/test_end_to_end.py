@@ -220,7 +220,7 @@ def _trim_bag(source: Path, target: Path, seconds: float) -> None:
 
 def test_demo_writes_a_summary_trajectory_map_and_png(tmp_path, ros_domain):
     from lego_loam_py.bag.io import BagReader
-    from lego_loam_py.core.io import read_pcd, read_tum
+    from lego_loam_py.formats import read_pcd, read_tum
 
     bag = tmp_path / 'campus_4s'
     _trim_bag(BAG, bag, 4.0)

@@ -6,19 +6,19 @@ import math
 import numpy as np
 import pytest
 
-from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
-from lego_loam_py.core.features import FeatureExtractor, occluded_mask, smoothness
+from lego_loam_py.core.odometry.feature_association import FeatureAssociation, ScanInput
+from lego_loam_py.core.odometry.features import FeatureExtractor, occluded_mask, smoothness
 from lego_loam_py.core.frames import camera_pose_to_lidar, euler_to_quaternion, lidar_to_camera
-from lego_loam_py.core.image_projection import ImageProjection, ProjectionInput, prepare_input
-from lego_loam_py.core.imu import ImuBuffer
+from lego_loam_py.core.projection.image_projection import ImageProjection, ProjectionInput, prepare_input
+from lego_loam_py.core.imu.buffer import ImuBuffer
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
 from lego_loam_py.core.geometry import line_coefficients, plane_coefficients
-from lego_loam_py.core.laser_odometry import OriginalOdometry, SweepStartOdometry, make_laser_odometry
+from lego_loam_py.core.odometry.laser_odometry import OriginalOdometry, SweepStartOdometry, make_laser_odometry
 from lego_loam_py.core.params import Params, default_params_file, load_params
-from lego_loam_py.core.sweep import (accumulate, plane_jacobian_rows, relative_time, relative_time_from_azimuth,
+from lego_loam_py.core.odometry.sweep import (accumulate, plane_jacobian_rows, relative_time, relative_time_from_azimuth,
                                      start_jacobian, sweep_angles, sweep_rotation, transform_to_end,
                                      transform_to_start)
-from lego_loam_py.core.sync import StampSynchronizer
+from lego_loam_py.ros.sync import StampSynchronizer
 from tests.support.sweeps import motion_pose, room_world, sweep
 
 PARAMS = Params()

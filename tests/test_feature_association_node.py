@@ -114,7 +114,7 @@ def test_bad_cloud_info_is_dropped_and_a_time_jump_resets(rclpy_context, process
     from nav_msgs.msg import Odometry
     from sensor_msgs.msg import PointCloud2
 
-    from lego_loam_py.core.image_projection import ImageProjection, prepare_input
+    from lego_loam_py.core.projection.image_projection import ImageProjection, prepare_input
     from lego_loam_py.core.params import Params
     from lego_loam_py.ros import qos
     from lego_loam_py.ros.conversions import cloud_info_to_msg, make_header, xyzi_to_cloud_msg

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from lego_loam_py.core import features
-from lego_loam_py.core.features import greedy_selection
+from lego_loam_py.core.odometry import features
+from lego_loam_py.core.odometry.features import greedy_selection
 
 
 def _select(native, edges, edge_bounds, edge_slices, flats, flat_bounds, flat_slices, taken, regions, *limits):
@@ -70,7 +70,7 @@ def _cloud(rng, n, nan=False):
 @settings(max_examples=200, deadline=None)
 @given(st.data())
 def test_native_window_search_equals_numpy(data):
-    from lego_loam_py.core.correspondences import LastCloud, _nearest_in_segments
+    from lego_loam_py.core.odometry.correspondences import LastCloud, _nearest_in_segments
     rng = np.random.default_rng(data.draw(st.integers(0, 2 ** 32 - 1)))
     last = LastCloud(_cloud(rng, int(rng.integers(1, 60))), 16)
     queries = _cloud(rng, int(rng.integers(0, 12)), nan=True)[:, :3]
@@ -84,7 +84,7 @@ def test_native_window_search_equals_numpy(data):
 
 
 def test_the_window_search_keeps_the_first_tie_forward_and_the_last_backward():
-    from lego_loam_py.core.correspondences import LastCloud, _nearest_in_segments
+    from lego_loam_py.core.odometry.correspondences import LastCloud, _nearest_in_segments
     # Points 0 and 2 are 1 m from the query, point 1 is 2 m: a backward segment (kind 0) over [0, 1, 2] keeps 2,
     # a forward one (kind 2) keeps 0; a segment whose nearest point is beyond the limit keeps none.
     points = np.array([[1, 0, 0, 0], [2, 0, 0, 0], [-1, 0, 0, 0]], np.float32)

@@ -6,11 +6,11 @@ import math
 import numpy as np
 import pytest
 
-from lego_loam_py.core.image_projection import (NO_LABEL, OUTLIER_LABEL, ImageProjection, InputError,
+from lego_loam_py.core.projection.image_projection import (NO_LABEL, OUTLIER_LABEL, ImageProjection, InputError,
                                                 ProjectionInput, prepare_input)
 from lego_loam_py.core.params import Params, default_params_file, load_params
 from lego_loam_py.core.pointcloud import VELODYNE_POINT_DTYPE, CloudLayoutError, velodyne_points
-from lego_loam_py.core.segmentation import Segmentation
+from lego_loam_py.core.projection.segmentation import Segmentation
 from tests.support.reference_bfs import reference_labels
 from tests.support.scenes import floor_ranges, pixel_points, scene_points, wall_ranges
 
@@ -349,7 +349,7 @@ def test_cloud_without_ring_takes_its_rows_from_the_laser_order_or_the_elevation
     assert np.array_equal(with_ring.segmented_cloud, run(no_ring).segmented_cloud)   # from the laser order
     # Column by column, as a driver fires: the order says nothing of the lasers, the elevation angle does.
     firing = no_ring[np.argsort(np.arctan2(no_ring['y'], no_ring['x']), kind='stable')]
-    from lego_loam_py.core.laser_order import rows_from_laser_order
+    from lego_loam_py.core.projection.laser_order import rows_from_laser_order
     assert rows_from_laser_order(firing['x'], firing['y'], firing['z'], 16) is None
     assert np.array_equal(with_ring.label_image, run(firing).label_image)
     assert np.array_equal(run(scan, PARAMS.replace(sensor__use_cloud_ring=False)).label_image, with_ring.label_image)

@@ -10,10 +10,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from lego_loam_py.core.frames import ImuMounting, rpy_to_matrix
-from lego_loam_py.core.imu import ImuBuffer
-from lego_loam_py.core.imu_alignment import (GyroTrack, best_rotation, fit_alignment, nearest_right_angle_rotation,
+from lego_loam_py.core.imu.buffer import ImuBuffer
+from lego_loam_py.core.imu.alignment import (GyroTrack, best_rotation, fit_alignment, nearest_right_angle_rotation,
                                             shifted_increments)
-from lego_loam_py.core.imu_monitor import (MAPPING_PROBATION_MAX, MIN_EXPLAINED_DEG, PROBATION_SWEEPS,
+from lego_loam_py.core.imu.monitor import (MAPPING_PROBATION_MAX, MIN_EXPLAINED_DEG, PROBATION_SWEEPS,
                                            PROBATION_TURN_DEG, SIGNIFICANCE, ImuAlignmentMonitor, MappingImuCheck,
                                            SweepImuCheck)
 from lego_loam_py.core.params import Params

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lego_loam_py.core.imu import MAX_GAP, MAX_REACH, ImuBuffer, uncovered_counter, warn_uncovered
+from lego_loam_py.core.imu.buffer import MAX_GAP, MAX_REACH, ImuBuffer, uncovered_counter, warn_uncovered
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.pipeline import Pipeline
 from lego_loam_py.inputs import ImuSample, Scan, open_source

@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
 from lego_loam_py.core.frames import ImuMounting, matrix_to_rpy, rpy_to_matrix
-from lego_loam_py.core.imu import ImuBuffer, imu_mounting, imu_sample
+from lego_loam_py.core.imu.buffer import ImuBuffer, imu_mounting, imu_sample
 from lego_loam_py.core.params import ParameterError, Params
 from lego_loam_py.core.pipeline import Pipeline, RunResult
 from lego_loam_py.evaluation import evaluate

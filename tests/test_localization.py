@@ -59,7 +59,7 @@ def errors_against_truth(result, bag: Path) -> np.ndarray:
 def test_levelling_keeps_the_heading_and_removes_roll_and_pitch():
     from scipy.spatial.transform import Rotation
 
-    from lego_loam_py.core.prior_map import heading, levelling
+    from lego_loam_py.core.localization.prior_map import heading, levelling
 
     pose = np.eye(4)
     pose[:3, :3] = Rotation.from_euler('ZYX', [30.0, 4.0, -3.0], degrees=True).as_matrix()
@@ -70,7 +70,7 @@ def test_levelling_keeps_the_heading_and_removes_roll_and_pitch():
 
 
 def test_a_hint_moves_on_with_the_odometry():
-    from lego_loam_py.core.relocalization import Hint
+    from lego_loam_py.core.localization.relocalization import Hint
 
     pose, odometry = np.eye(4), np.eye(4)
     pose[:3, 3] = (10.0, 5.0, 0.0)          # in the map
@@ -81,7 +81,7 @@ def test_a_hint_moves_on_with_the_odometry():
 
 
 def test_fusion_in_localization_publishes_only_with_a_recent_map_correction():
-    from lego_loam_py.core.transform_fusion import TransformFusion
+    from lego_loam_py.core.mapping.transform_fusion import TransformFusion
 
     mapping = TransformFusion()
     assert mapping.publishable(5_000_000_000)   # mapping: always, as the original
@@ -114,7 +114,7 @@ def test_without_an_initial_pose_the_place_is_found_verified_and_tracked(campus_
 @pytest.mark.parametrize('offset_m, offset_deg', [(0.0, 0.0), (3.0, 20.0)])
 def test_an_initial_pose_is_used_and_verified_even_when_3_m_and_20_deg_off(campus_map, reverse_drive, offset_m,
                                                                            offset_deg):
-    from lego_loam_py.core.map_bundle import read_bundle
+    from lego_loam_py.core.mapping.map_bundle import read_bundle
     from lego_loam_py.evaluation import rigid_fit
     from lego_loam_py.sim.output import load_scenario, true_poses
     from scipy.spatial.transform import Rotation
@@ -377,7 +377,7 @@ def test_launch_in_localization_mode_publishes_integrated_to_init_in_the_saved_m
     map's frame (camera_init of the map), only once a place was verified, and the map is left as it was."""
     from lego_loam_py.bag.io import BagReader
     from lego_loam_py.core.frames import quaternion_to_matrix
-    from lego_loam_py.core.map_bundle import read_bundle
+    from lego_loam_py.core.mapping.map_bundle import read_bundle
     from lego_loam_py.evaluation import errors_in_map
     from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix
 

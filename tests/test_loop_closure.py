@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from lego_loam_py.core.frames import make_pose, rot_z
-from lego_loam_py.core.loop_closure import LoopCloser, LoopResult, rotation_angle_deg
-from lego_loam_py.core.loop_registration import Registration, register
+from lego_loam_py.core.loop.closure import LoopCloser, LoopResult, rotation_angle_deg
+from lego_loam_py.core.loop.registration import Registration, register
 from lego_loam_py.core.params import Params, default_params_file, load_params
-from lego_loam_py.core.place_recognition import (PlaceDatabase, ScanContextConfig, descriptor_distance,
+from lego_loam_py.core.loop.place_recognition import (PlaceDatabase, ScanContextConfig, descriptor_distance,
                                                  scan_context)
-from lego_loam_py.core.pose_graph import PoseGraph
+from lego_loam_py.core.mapping.pose_graph import PoseGraph
 from tests.support.sweeps import room_world, sweep
 
 LC = Params().loop_closure
@@ -94,7 +94,7 @@ def test_a_source_stacked_from_keyframes_that_disagree_is_turned_down(misplaced_
     newest one was mapped 0.4 m off (to the side), the fit is a compromise about halfway between, and the
     newest keyframe's points alone would move it about 0.2 m: the gate turns the loop down. The same stack
     without the error passes with next to no shift."""
-    from lego_loam_py.core.loop_closure import LoopCandidate
+    from lego_loam_py.core.loop.closure import LoopCandidate
 
     scene = room_world(seed=3)
     target = xyz(sweep(scene, lidar_pose(0.0, 0.0, 0.0), noise=0.01, seed=1))
@@ -267,7 +267,7 @@ def test_a_drifted_lap_of_the_yard_is_closed_with_right_loops_only():
     accepted loop's constraint is within 0.1 m / 0.5 deg of the true relative pose, while the places that look
     alike across the small yard (descriptor distances 0.19-0.29) are left out by the drift bound."""
     from lego_loam_py.core.frames import camera_pose_to_lidar, lidar_pose_to_camera, matrix_to_pose6, pose6_to_matrix
-    from lego_loam_py.core.map_optimization import MapOptimization
+    from lego_loam_py.core.mapping.map_optimization import MapOptimization
 
     stamps, truth, drifted, clouds = drive_around_the_yard(0.05)
     mapper = MapOptimization(ON)
@@ -323,7 +323,7 @@ def test_the_original_method_is_kept_radius_candidate_icp_and_fitness_variances(
     """method: original (what config/original.yaml selects when loop closure is switched on): the nearest old
     keyframe within 7 m, point-to-point ICP, accepted on its fitness, variances = fitness on all six axes."""
     from lego_loam_py.core.frames import lidar_pose_to_camera, matrix_to_pose6
-    from lego_loam_py.core.map_optimization import MapOptimization
+    from lego_loam_py.core.mapping.map_optimization import MapOptimization
 
     stamps, truth, _, clouds = drive_around_the_yard(0.0, laps=1.1)
     mapper = MapOptimization(ON.replace(loop_closure__method='original'))

@@ -14,7 +14,7 @@ from lego_loam_py.core.params import Params
 
 
 def test_the_saved_bundle_loads_back_as_it_was_mapped(campus_map):
-    from lego_loam_py.core.map_bundle import FORMAT_VERSION, MANIFEST, read_bundle
+    from lego_loam_py.core.mapping.map_bundle import FORMAT_VERSION, MANIFEST, read_bundle
 
     bundle = read_bundle(campus_map)
     manifest = json.loads((campus_map / MANIFEST).read_text())
@@ -44,7 +44,7 @@ def test_the_saved_bundle_loads_back_as_it_was_mapped(campus_map):
 
 
 def test_loading_names_what_is_wrong_with_a_bundle(campus_map, tmp_path):
-    from lego_loam_py.core.map_bundle import MANIFEST, MapBundleError, check_compatible, read_bundle
+    from lego_loam_py.core.mapping.map_bundle import MANIFEST, MapBundleError, check_compatible, read_bundle
 
     def broken(change) -> Path:
         copy = tmp_path / f'copy{len(list(tmp_path.iterdir()))}'
@@ -90,8 +90,8 @@ def test_loading_names_what_is_wrong_with_a_bundle(campus_map, tmp_path):
 
 
 def test_a_save_interrupted_before_its_manifest_leaves_the_previous_bundle_whole(campus_map, tmp_path, monkeypatch):
-    from lego_loam_py.core import map_bundle
-    from lego_loam_py.core.map_bundle import MANIFEST, read_bundle, write_bundle
+    from lego_loam_py.core.mapping import map_bundle
+    from lego_loam_py.core.mapping.map_bundle import MANIFEST, read_bundle, write_bundle
 
     directory = tmp_path / 'map'
     shutil.copytree(campus_map, directory)

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
+from lego_loam_py.core.odometry.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import matrix_to_quaternion, pose6_to_matrix, transform_cloud, transform_points
-from lego_loam_py.core.image_projection import ImageProjection, prepare_input
-from lego_loam_py.core.map_optimization import MapOptimization
+from lego_loam_py.core.projection.image_projection import ImageProjection, prepare_input
+from lego_loam_py.core.mapping.map_optimization import MapOptimization
 from lego_loam_py.core.params import Params, default_params_file, load_params
 from lego_loam_py.core.pipeline import Pipeline
-from lego_loam_py.core.scan_to_map import edge_correspondences, map_jacobian_rows, plane_correspondences
+from lego_loam_py.core.mapping.scan_to_map import edge_correspondences, map_jacobian_rows, plane_correspondences
 from lego_loam_py.core.voxel import voxel_downsample
 from tests.support.sweeps import room_world, sweep
 
@@ -145,7 +145,7 @@ def register_in_corridor(end_walls: bool, start: np.ndarray, **overrides):
     """The corridor's surfaces seen from the origin (3 mm noise) registered to themselves from ``start``:
     (pose, RegistrationCounts)."""
     from lego_loam_py.core.gauss_newton import DegeneracyProjection
-    from lego_loam_py.core.scan_to_map import register_scan_to_map
+    from lego_loam_py.core.mapping.scan_to_map import register_scan_to_map
 
     surfaces = corridor_surfaces(end_walls)
     scan = surfaces.copy()
@@ -299,7 +299,7 @@ def test_map_equals_the_originals_on_golden_data(shared_data):
 
 
 def test_save_writes_complete_files_atomically(tmp_path):
-    from lego_loam_py.core.io import read_pcd, read_tum
+    from lego_loam_py.formats import read_pcd, read_tum
     scene = room_world(seed=9)
     mo = MapOptimization(PARAMS)
     for k in range(4):
@@ -330,7 +330,7 @@ def test_transform_cloud_is_the_world_convention():
 def test_an_empty_map_is_saved_as_a_valid_empty_pcd(tmp_path):
     """A save before the first keyframe (or of a map without outliers) writes valid empty files, not none and
     not an error: open3d refuses to write an empty cloud, so the writer makes the header itself."""
-    from lego_loam_py.core.io import pcd_is_complete, read_pcd, write_pcd_atomic
+    from lego_loam_py.formats import pcd_is_complete, read_pcd, write_pcd_atomic
 
     for columns in (3, 4):
         path = write_pcd_atomic(tmp_path / f'empty{columns}.pcd', np.zeros((0, columns), np.float32))
@@ -348,7 +348,7 @@ def _translation(z: float) -> np.ndarray:
 
 
 def test_odometry_continuity_tells_a_restart_from_motion():
-    from lego_loam_py.core.odometry_continuity import OdometryContinuity
+    from lego_loam_py.core.mapping.odometry_continuity import OdometryContinuity
 
     continuity = OdometryContinuity()
     ns = 100_000_000   # 0.1 s
@@ -373,7 +373,7 @@ def test_reanchoring_continues_from_the_last_mapped_pose_at_the_last_speed():
     """Odometry and map frames agree (T_aft = T_bef); the odometry drove to z = 10 m at 10 m/s, went away for
     0.5 s and came back at its origin: the next prediction is where the vehicle is now, z = 15 m."""
     from lego_loam_py.core.frames import invert_pose, matrix_to_pose6, pose6_to_matrix
-    from lego_loam_py.core.odometry_continuity import (OdometryContinuity, anchored_transform_bef,
+    from lego_loam_py.core.mapping.odometry_continuity import (OdometryContinuity, anchored_transform_bef,
                                                       MAX_EXTRAPOLATION_S)
 
     ns = 100_000_000

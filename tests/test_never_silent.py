@@ -275,7 +275,7 @@ def test_a_huge_cloud_is_rejected_on_its_header_before_it_is_decoded(context, tm
 
 
 def test_validation_names_the_field_the_value_and_the_bound():
-    from lego_loam_py.core.image_projection import CloudInfo
+    from lego_loam_py.core.projection.image_projection import CloudInfo
     from lego_loam_py.core.params import Params
     from lego_loam_py.core.validation import InputRejected, check_cloud_info
 
@@ -305,7 +305,7 @@ def test_feature_association_recovers_from_a_poisoned_state_and_keeps_its_pose(c
     next scan, reset with one error, and odometry goes on from the pose reached so far."""
     import copy
 
-    from lego_loam_py.core.feature_association import ScanInput
+    from lego_loam_py.core.odometry.feature_association import ScanInput
     from lego_loam_py.ros.conversions import cloud_info_from_msg, cloud_msg_to_xyzi
     from lego_loam_py.ros.feature_association_node import FeatureAssociationNode
 

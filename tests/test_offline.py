@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lego_loam_py.core.io import read_pcd, read_tum
+from lego_loam_py.formats import read_pcd, read_tum
 from lego_loam_py.core.params import Params
 from lego_loam_py.offline import run_bag
 
@@ -121,7 +121,7 @@ def test_files_are_written_with_the_users_umask(tmp_path):
     import os
     import stat
 
-    from lego_loam_py.core.io import write_text_atomic, write_tum_atomic
+    from lego_loam_py.formats import write_text_atomic, write_tum_atomic
 
     previous = os.umask(0o027)
     try:

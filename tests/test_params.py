@@ -124,7 +124,7 @@ def test_every_mode_switch_is_typed_with_its_choices():
     checks it, and the defaults are among the names."""
     import typing
 
-    from lego_loam_py.core import param_types
+    from lego_loam_py.core.params import types as param_types
 
     modes = {}
     for section in dataclasses.fields(Params):

@@ -53,7 +53,7 @@ def test_mapping_and_fusion_over_dds_equal_the_original(shared_data, tmp_path, r
     from std_srvs.srv import Trigger
     from tf2_msgs.msg import TFMessage
 
-    from lego_loam_py.core.io import read_pcd, read_tum
+    from lego_loam_py.formats import read_pcd, read_tum
     from lego_loam_py.ros import qos
     from lego_loam_py.ros.conversions import stamp_to_ns
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from lego_loam_py.core.io import read_tum
+from lego_loam_py.formats import read_tum
 from lego_loam_py.inputs.point_files import read_pcd_points
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'benchmarks'))

@@ -8,11 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from lego_loam_py.core.elevation_bias import MIN_SCANS, ElevationBias, apply_elevation_offset, ground_cone_deg
+from lego_loam_py.core.projection.elevation_bias import MIN_SCANS, ElevationBias, apply_elevation_offset, ground_cone_deg
 from lego_loam_py.core.frames import invert_pose, make_pose
-from lego_loam_py.core.laser_order import rows_from_laser_order
+from lego_loam_py.core.projection.laser_order import rows_from_laser_order
 from lego_loam_py.core.params import Params, load_params
-from lego_loam_py.core.sweep import StampInstant, pose_delay
+from lego_loam_py.core.odometry.sweep import StampInstant
+from lego_loam_py.core.params.timing import pose_delay
 from lego_loam_py.evaluation import evaluate
 from lego_loam_py.inputs import open_source
 from lego_loam_py.offline import run_source
@@ -126,7 +127,7 @@ def test_a_cloud_in_firing_order_or_with_too_many_turns_is_not_taken_for_one_sto
 def test_without_a_ring_field_the_range_image_takes_the_rows_from_the_laser_order(hdl64e_sweep):
     """Through imageProjection: the KITTI-ordered cloud without a ring field lands on the same pixels as the cloud
     with its ring field; from the elevation and the nominal table it would not."""
-    from lego_loam_py.core.image_projection import ImageProjection, prepare_input
+    from lego_loam_py.core.projection.image_projection import ImageProjection, prepare_input
     from lego_loam_py.core.pointcloud import xyzi_points, velodyne_points
     xyz, ring = _laser_by_laser(hdl64e_sweep)
     params = load_params(overrides={'sensor.preset': 'HDL-64E'})

@@ -28,7 +28,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from lego_loam_py.core.io import pcd_is_complete, tum_is_complete
+from lego_loam_py.formats import pcd_is_complete, tum_is_complete
 from lego_loam_py.core.params import write_params_file
 from tests.support.inprocess import (CAMPUS, campus_messages, make_node, mapping_inputs, mapping_publishers,
                                      pipeline_outputs, restamped, stamp_of)
@@ -569,7 +569,7 @@ def test_warnings_are_throttled_and_their_state_is_bounded(context):
 def test_stamp_order_policy():
     """process / drop / hold; a jump forward believed at the next input, a restart after three inputs on the new
     timeline; held inputs refuted by the old timeline are discarded; wrong stamps ahead are found out (resync)."""
-    from lego_loam_py.core.sync import StampOrder
+    from lego_loam_py.ros.sync import StampOrder
 
     order = StampOrder(jump_ns=1000)
 
@@ -620,7 +620,7 @@ def test_stamp_order_policy():
 
 
 def test_synchronizer_forgets_sets_of_another_timeline():
-    from lego_loam_py.core.sync import StampSynchronizer
+    from lego_loam_py.ros.sync import StampSynchronizer
 
     sync = StampSynchronizer(['a', 'b'], tolerance_ns=5, horizon_ns=1000)
     assert sync.add('a', 100_000, 1) is None and sync.add('a', 100_200, 2) is None
@@ -633,7 +633,7 @@ def test_synchronizer_forgets_sets_of_another_timeline():
 def test_imu_buffer_rejects_garbage_and_restarts_after_a_jump_back():
     from scipy.spatial.transform import Rotation
 
-    from lego_loam_py.core.imu import ImuBuffer
+    from lego_loam_py.core.imu.buffer import ImuBuffer
 
     buffer = ImuBuffer()
     level = (0.0, 0.0, 0.0, 1.0)
@@ -755,7 +755,7 @@ def test_imu_missing_late_and_looping(context, tmp_path):
 def test_mapping_resets_after_a_loop_and_keeps_the_map_on_disk(context, tmp_path):
     """mapOptimization: a jump back saves the map built so far, then starts a new one; a glitch does not; an
     odometry that restarts at the origin is re-anchored at the last mapped pose."""
-    from lego_loam_py.core.io import read_tum
+    from lego_loam_py.formats import read_tum
     from lego_loam_py.ros.map_optimization_node import MapOptimizationNode
 
     outputs = pipeline_outputs(context, tmp_path)
@@ -890,7 +890,7 @@ def test_a_stuck_dds_teardown_ends_the_process_instead_of_hanging_it(tmp_path):
 def test_stale_temporary_files_of_a_killed_save_are_removed(tmp_path, processes):
     """atomic_path names its temporaries after the writer's pid; those of dead writers are removed, those of
     live writers never are."""
-    from lego_loam_py.core.io import atomic_path, remove_stale_temporaries
+    from lego_loam_py.formats import atomic_path, remove_stale_temporaries
 
     child = processes.python('-c', 'import time; time.sleep(60)')
     dead = processes.python('-c', 'pass')
@@ -1270,7 +1270,7 @@ def test_save_map_answers_twenty_concurrent_callers_with_at_most_two_saves(rclpy
 def test_coalescing_runner_serves_every_caller_with_at_most_two_runs():
     import threading
 
-    from lego_loam_py.core.io import CoalescingRunner
+    from lego_loam_py.ros.coalescing import CoalescingRunner
 
     release_job, started = threading.Event(), threading.Event()
 

@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from lego_loam_py.core.beam_table import OS1_128_UNIT_ELEVATIONS, table_problem
+from lego_loam_py.core.params.beams import OS1_128_UNIT_ELEVATIONS, table_problem
 from lego_loam_py.core.params import SENSOR_PRESETS, Params
-from lego_loam_py.core.range_image import RangeImageProjection, prepare_input
-from lego_loam_py.core.sensor_presets import MORE_SENSOR_PRESETS
+from lego_loam_py.core.projection.range_image import RangeImageProjection, prepare_input
+from lego_loam_py.core.params.presets import MORE_SENSOR_PRESETS
 from lego_loam_py.sim.lidar import LidarModel
 
 NEW = sorted(MORE_SENSOR_PRESETS)

@@ -433,7 +433,7 @@ def _convert(source: Path, destination: Path, kind: str, options: ConvertOptions
 def _run_scan_folder(source: Path, kind: str, destination: Path, options: ConvertOptions,
                      summary: ConvertSummary) -> None:
     """A folder of scans (or a KITTI sequence) -> clouds as its files hold them, and its ground truth beside."""
-    from lego_loam_py.core.io import write_tum_atomic
+    from lego_loam_py.formats import write_tum_atomic
     from lego_loam_py.inputs import Scan, SourceError, open_source
     from lego_loam_py.sim.output import GROUND_TRUTH, sidecar_path
 

@@ -22,7 +22,7 @@ from typing import Sequence
 from lego_loam_py.batch.execute import read_status, record_failure, remove_partials, run_one
 from lego_loam_py.batch.plan import ParameterSet, RunSpec, code_version, expand_recordings, plan_runs
 from lego_loam_py.batch.report import collect_records, write_report
-from lego_loam_py.core.io import write_text_atomic
+from lego_loam_py.formats import write_text_atomic
 from lego_loam_py.errors import LegoLoamError, UsageError
 
 __all__ = ['BatchResult', 'run_batch', 'local_cluster']

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from lego_loam_py.batch.plan import RunSpec
-from lego_loam_py.core.io import write_text_atomic
+from lego_loam_py.formats import write_text_atomic
 from lego_loam_py.core.params import write_params_file
 
 __all__ = ['run_one', 'run_command', 'read_status', 'publish', 'remove_partials', 'PARTIAL_PREFIX', 'metrics_of']

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from lego_loam_py.batch.execute import PARTIAL_PREFIX, read_status
-from lego_loam_py.core.io import write_text_atomic
+from lego_loam_py.formats import write_text_atomic
 
 __all__ = ['collect_records', 'write_report', 'swept_keys', 'as_dataframe', 'COLUMNS']
 

@@ -271,7 +271,7 @@ def matrix_to_rpy(rotation: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True, eq=False)
 class ImuMounting:
     """How the IMU sits on the lidar and how its clock relates to the lidar's (see the module docstring, which
-    spells the conventions out; :func:`lego_loam_py.core.imu.imu_mounting` builds it from the ``imu.*``
+    spells the conventions out; :func:`lego_loam_py.core.imu.buffer.imu_mounting` builds it from the ``imu.*``
     parameters)."""
 
     rotation: np.ndarray = field(default_factory=lambda: np.eye(3))              # R_lidar_imu

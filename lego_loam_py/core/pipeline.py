@@ -8,7 +8,7 @@ transformFusion, and mapOptimization on the mapping inputs, in the order a repla
 
 The offline mode (``lego_loam_py run``) is this call in a loop over a bag; the ROS nodes run the same cores,
 one per process. With ``map_optimization.mode: localization`` mapOptimization's core is
-:class:`~lego_loam_py.core.localization.Localization` in the saved map of ``map_optimization.map_path``, and
+:class:`~lego_loam_py.core.localization.localizer.Localization` in the saved map of ``map_optimization.map_path``, and
 transformFusion publishes only while its map correction is recent (see :class:`TransformFusion`).
 mapOptimization may run on a worker thread (``mapping_thread``): it then overlaps the next scans'
 imageProjection and featureAssociation (numpy and scipy release the GIL), with the same result as without it,
@@ -26,20 +26,20 @@ from typing import Callable
 
 import numpy as np
 
-from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
+from lego_loam_py.core.odometry.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix, transform_cloud
-from lego_loam_py.core.elevation_bias import elevation_note
-from lego_loam_py.core.image_projection import ImageProjection, InputError, prepare_input
-from lego_loam_py.core.imu import uncovered_counter, uncovered_warning, warn_uncovered
-from lego_loam_py.core.localization import Localization
-from lego_loam_py.core.map_optimization import MapOptimization
-from lego_loam_py.core.odometry_continuity import OdometryContinuity
-from lego_loam_py.core.param_types import Params
+from lego_loam_py.core.projection.elevation_bias import elevation_note
+from lego_loam_py.core.projection.image_projection import ImageProjection, InputError, prepare_input
+from lego_loam_py.core.imu.buffer import uncovered_counter, uncovered_warning, warn_uncovered
+from lego_loam_py.core.localization.localizer import Localization
+from lego_loam_py.core.mapping.map_optimization import MapOptimization
+from lego_loam_py.core.mapping.odometry_continuity import OdometryContinuity
+from lego_loam_py.core.params.types import Params
 from lego_loam_py.core.pipeline_events import (LoopChecked, MapStepped, PipelineListener, ScanFused,
                                                ScanProcessed)
 from lego_loam_py.core.pointcloud import CloudLayoutError
-from lego_loam_py.core.sweep import pose_delay
-from lego_loam_py.core.transform_fusion import TransformFusion
+from lego_loam_py.core.params.timing import pose_delay
+from lego_loam_py.core.mapping.transform_fusion import TransformFusion
 
 __all__ = ['Pipeline', 'ScanOutput', 'RunResult', 'pose_time_offset_ns']
 
@@ -50,7 +50,7 @@ MAPPED_POSE_LAG_NS = 300_000_000
 
 def pose_time_offset_ns(params: Params) -> int:
     """[ns] to add to a scan's stamp to get the time of the sensor pose the pipeline publishes for it (see
-    :func:`~lego_loam_py.core.sweep.pose_delay`). Applies to /laser_odom_to_init and /integrated_to_init alike."""
+    :func:`~lego_loam_py.core.params.timing.pose_delay`). Applies to /laser_odom_to_init and /integrated_to_init alike."""
     return int(round(pose_delay(params) * 1e9))
 
 

@@ -7,7 +7,7 @@ layout works: the velodyne driver's, Ouster's, xyz-only clouds, padded or big-en
 clouds (height > 1). :func:`array_to_cloud` goes the other way. The ROS message adapters live in
 ``lego_loam_py.ros.conversions`` (rclpy messages) and ``lego_loam_py.bag.io`` (rosbags messages); both
 only move attributes in and out of :class:`CloudBuffer`. What the fields of each driver's layout mean (points at
-the origin, rings counted from the top, time fields in any unit) is :mod:`lego_loam_py.core.driver_layouts`.
+the origin, rings counted from the top, time fields in any unit) is :mod:`lego_loam_py.core.projection.driver_layouts`.
 """
 from __future__ import annotations
 

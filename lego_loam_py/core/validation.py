@@ -88,7 +88,7 @@ def check_cloud(field: str, cloud: np.ndarray, n_scan: int | None = None) -> Non
 
 
 def check_cloud_info(field: str, info, params, n_points: int | None = None) -> None:
-    """imageProjection's CloudInfo (a core :class:`~lego_loam_py.core.image_projection.CloudInfo` with array
+    """imageProjection's CloudInfo (a core :class:`~lego_loam_py.core.projection.image_projection.CloudInfo` with array
     fields) on its own and, with ``n_points``, for a segmented cloud of that many points."""
     n_scan, columns = params.sensor.n_scan, params.sensor.horizon_scan
     limit = derived_points_limit(params)

@@ -19,7 +19,7 @@ from typing import Iterator
 
 import numpy as np
 
-from lego_loam_py.core.io import read_kitti_poses, write_kitti_poses_atomic
+from lego_loam_py.formats import read_kitti_poses, write_kitti_poses_atomic
 from lego_loam_py.inputs.point_files import read_bin_points
 from lego_loam_py.inputs.source import GroundTruth, Scan, Source, SourceError, SourceItem
 

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Iterator
 
 from lego_loam_py.bag.io import BagError, BagReader, cloud_msg_to_array, resolve_bag_path
-from lego_loam_py.core.imu import imu_sample
+from lego_loam_py.core.imu.buffer import imu_sample
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.inputs.source import GroundTruth, ImuSample, Scan, Source, SourceItem, UnreadableScan
 

@@ -14,7 +14,7 @@ from typing import Iterator
 
 import numpy as np
 
-from lego_loam_py.core.io import read_tum
+from lego_loam_py.formats import read_tum
 from lego_loam_py.inputs.kitti import lidar_ground_truth, read_times
 from lego_loam_py.inputs.point_files import POINT_FILE_SUFFIXES, read_points
 from lego_loam_py.inputs.source import GroundTruth, Scan, Source, SourceError, SourceItem

@@ -24,7 +24,7 @@ from sensor_msgs.msg import PointField as PointFieldMsg
 from std_msgs.msg import Header
 
 from lego_loam_py.core.frames import matrix_to_quaternion, quaternion_to_matrix
-from lego_loam_py.core.image_projection import CloudInfo as CloudInfoData
+from lego_loam_py.core.projection.image_projection import CloudInfo as CloudInfoData
 from lego_loam_py.core.validation import MAX_POSITION
 from lego_loam_py.core.pointcloud import (CloudBuffer, PointField, array_to_cloud, cloud_to_array, xyzi_array,
                                           xyzi_points)
@@ -74,7 +74,7 @@ def serialized_stamp_ns(data: bytes) -> int | None:
 
 
 def imu_sample_from_serialized(data: bytes) -> tuple[float, tuple, tuple, tuple]:
-    """``ImuBuffer.add``'s arguments (see :func:`lego_loam_py.core.imu.imu_sample`) straight from the bytes of a
+    """``ImuBuffer.add``'s arguments (see :func:`lego_loam_py.core.imu.buffer.imu_sample`) straight from the bytes of a
     sensor_msgs/Imu as a ``raw=True`` subscription takes them: about ten times cheaper than rclpy's message
     objects (an IMU at 200 Hz costs a node more in messages than in their use). Other encodings are read
     through rclpy's deserializer; a message too short for its layout raises ValueError."""
@@ -85,7 +85,7 @@ def imu_sample_from_serialized(data: bytes) -> tuple[float, tuple, tuple, tuple]
         from rclpy.serialization import deserialize_message
         from sensor_msgs.msg import Imu
 
-        from lego_loam_py.core.imu import imu_sample
+        from lego_loam_py.core.imu.buffer import imu_sample
         try:
             return imu_sample(deserialize_message(bytes(data), Imu))
         except Exception as exc:   # rclpy raises its RMWError for bytes that are no Imu

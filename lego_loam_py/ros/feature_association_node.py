@@ -5,7 +5,7 @@ and synchronises them by stamp (within ``feature_association.sync_tolerance``); 
 depth 200, polled: the samples are taken with each scan, no wake-up per sample) when ``sensor.imu_topic`` is
 set, and then /aft_mapped_to_init (reliable, depth 5), mapOptimization's poses, against which the IMU check
 compares the IMU's turn (``imu.alignment_check``; an IMU that disagrees is warned about and not used, see
-:mod:`lego_loam_py.core.imu_monitor`). Publishes, stamped with the scan:
+:mod:`lego_loam_py.core.imu.monitor`). Publishes, stamped with the scan:
 
 * every scan: /laser_odom_to_init (nav_msgs/Odometry, camera_init -> laser_odom) and its TF;
 * every ``skip_frame_num + 1`` scans: /laser_cloud_corner_last, /laser_cloud_surf_last, /outlier_cloud_last
@@ -16,7 +16,7 @@ Scans with an older stamp than the previous one are dropped (out of order or dup
 second is believed once later scans continue the new timeline (a wrong stamp costs that scan only): forward,
 the next scan; back in time, three scans in a row, and then, when the new timeline starts before the current
 one did (a bag restarted or looped), the odometry resets with a warning; otherwise the scans ahead had wrong
-stamps and the node carries on (see :class:`lego_loam_py.core.sync.StampOrder`).
+stamps and the node carries on (see :class:`lego_loam_py.ros.sync.StampOrder`).
 Inputs are checked against what imageProjection can produce, each part on arrival (see
 :mod:`lego_loam_py.core.validation`), and dropped with a throttled warning; should the odometry's state ever be
 poisoned anyway, it restarts from the next scan at the pose reached so far. A reset keeps the IMU samples.
@@ -33,10 +33,10 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu, PointCloud2
 
 from lego_loam_py.core import validation
-from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
+from lego_loam_py.core.odometry.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, LASER_ODOM_FRAME
-from lego_loam_py.core.imu import uncovered_counter, uncovered_warning, warn_uncovered
-from lego_loam_py.core.sync import StampOrder, StampSynchronizer
+from lego_loam_py.core.imu.buffer import uncovered_counter, uncovered_warning, warn_uncovered
+from lego_loam_py.ros.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import (cloud_info_from_msg, cloud_info_from_serialized, cloud_msg_to_array,
                                           cloud_msg_to_xyzi, make_header, odometry_to_pose, serialized_odometry,

@@ -21,10 +21,10 @@ import numpy as np
 from cloud_msgs.msg import CloudInfo
 from sensor_msgs.msg import PointCloud2
 
-from lego_loam_py.core.elevation_bias import elevation_note
+from lego_loam_py.core.projection.elevation_bias import elevation_note
 from lego_loam_py.core.frames import BASE_LINK_FRAME
 from lego_loam_py.core import validation
-from lego_loam_py.core.image_projection import ImageProjection, InputError, prepare_input
+from lego_loam_py.core.projection.image_projection import ImageProjection, InputError, prepare_input
 from lego_loam_py.core.validation import MAX_COORDINATE
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.ros import qos

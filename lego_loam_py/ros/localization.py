@@ -21,8 +21,8 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.clock import Clock, ClockType
 
 from lego_loam_py.core.frames import CAMERA_INIT_FRAME, MAP_FRAME, camera_pose_to_lidar, quaternion_to_matrix
-from lego_loam_py.core.localization import Localization, LocalizationStatus
-from lego_loam_py.core.map_bundle import MapBundleError
+from lego_loam_py.core.localization.localizer import Localization, LocalizationStatus
+from lego_loam_py.core.mapping.map_bundle import MapBundleError
 from lego_loam_py.core.validation import MAX_POSITION
 from lego_loam_py.ros import qos
 
@@ -77,7 +77,7 @@ def status_message(node_name: str, status: LocalizationStatus | None, error: str
 
 
 class LocalizationFrontEnd:
-    """The ROS side of :class:`~lego_loam_py.core.localization.Localization` for a mapOptimization node (see the
+    """The ROS side of :class:`~lego_loam_py.core.localization.localizer.Localization` for a mapOptimization node (see the
     module docstring). ``core`` is the localization once the map is loaded, else None."""
 
     def __init__(self, node):

@@ -3,7 +3,7 @@
 Subscribes /laser_cloud_corner_last, /laser_cloud_surf_last, /outlier_cloud_last (reliable, depth 2),
 /laser_odom_to_init (depth 5), synchronised by stamp within ``map_optimization.sync_tolerance``, and
 /imu/data for the roll/pitch blend (not used while the IMU check finds it disagrees with the mapped poses, see
-:mod:`lego_loam_py.core.imu_monitor`). Processes at most every ``mapping_process_interval`` and publishes:
+:mod:`lego_loam_py.core.imu.monitor`). Processes at most every ``mapping_process_interval`` and publishes:
 
 * /aft_mapped_to_init (nav_msgs/Odometry, camera_init -> aft_mapped) and its TF; as in the original its
   twist fields carry the odometry pose the step started from (angular = rx, ry, rz; linear = tx, ty, tz),
@@ -20,7 +20,7 @@ thread of its own, so the ICP does not hold up the mapping steps. The service ``
 ``map_optimization.file_directory``, also on a worker thread (see :mod:`lego_loam_py.ros.services`). The IMU
 samples are taken with each mapping input (a polled subscription: no wake-up per sample).
 
-With ``map_optimization.mode: localization`` the core is :class:`~lego_loam_py.core.localization.Localization` in the
+With ``map_optimization.mode: localization`` the core is :class:`~lego_loam_py.core.localization.localizer.Localization` in the
 saved map of ``map_optimization.map_path`` (never modified; no loop closure, no map saved): the same topics come
 out, in that map's frame, once a place is verified; /initialpose and /localization_status are
 :mod:`lego_loam_py.ros.localization`'s.
@@ -48,10 +48,10 @@ from visualization_msgs.msg import Marker, MarkerArray
 from lego_loam_py.core.frames import (AFT_MAPPED_FRAME, CAMERA_INIT_FRAME, matrix_to_pose6, pose6_to_matrix,
                                       transform_cloud)
 from lego_loam_py.core import validation
-from lego_loam_py.core.io import CoalescingRunner
-from lego_loam_py.core.map_optimization import MapOptimization
-from lego_loam_py.core.odometry_continuity import OdometryContinuity
-from lego_loam_py.core.sync import StampOrder, StampSynchronizer
+from lego_loam_py.ros.coalescing import CoalescingRunner
+from lego_loam_py.core.mapping.map_optimization import MapOptimization
+from lego_loam_py.core.mapping.odometry_continuity import OdometryContinuity
+from lego_loam_py.ros.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.localization import LocalizationFrontEnd
 from lego_loam_py.ros.conversions import (cloud_msg_to_xyzi, make_header, odometry_to_pose,
@@ -126,7 +126,7 @@ class MapOptimizationNode(LegoLoamNode):
 
     def _remove_stale_temporaries(self) -> None:
         """A predecessor killed while saving left temporary files (its saved files are complete): remove them."""
-        from lego_loam_py.core.io import remove_stale_temporaries
+        from lego_loam_py.formats import remove_stale_temporaries
         removed = remove_stale_temporaries(self.params.map_optimization.file_directory, stems=MAP_FILE_STEMS)
         if removed:
             self.get_logger().info(f'removed {len(removed)} temporary file(s) of an interrupted save in '
@@ -285,7 +285,7 @@ class MapOptimizationNode(LegoLoamNode):
 
     def _check_odometry_continuity(self, stamp: int, pose: np.ndarray, transform_sum: np.ndarray,
                                    publisher=None) -> None:
-        """Re-anchor when the odometry restarted (see :mod:`lego_loam_py.core.odometry_continuity`)."""
+        """Re-anchor when the odometry restarted (see :mod:`lego_loam_py.core.mapping.odometry_continuity`)."""
         jump = self.continuity.check(stamp, pose, publisher)
         if jump is not None:
             self.count('odometry_restarts')

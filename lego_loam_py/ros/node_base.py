@@ -17,7 +17,7 @@ from rclpy.node import Node
 from lego_loam_py.allocator import release_memory
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.pointcloud import CloudLayoutError
-from lego_loam_py.core.imu import imu_sample
+from lego_loam_py.core.imu.buffer import imu_sample
 from lego_loam_py.ros.conversions import (cloud_from_serialized, imu_sample_from_serialized, ns_to_stamp,
                                           serialized_stamp_ns, stamp_to_ns)
 from lego_loam_py.ros import qos
@@ -277,7 +277,7 @@ class LegoLoamNode(Node):
             self._warned.popitem(last=False)
 
     def report_imu_alignment(self, event) -> None:
-        """What the core's IMU check decided (a :class:`lego_loam_py.core.imu_monitor.AlignmentEvent`, or None):
+        """What the core's IMU check decided (a :class:`lego_loam_py.core.imu.monitor.AlignmentEvent`, or None):
         counted, warned about (throttled; the check itself repeats its advice only every 30 s of data), and while
         the IMU is not used the node's /diagnostics status is WARN with the reason."""
         if event is None:
@@ -486,7 +486,7 @@ class LegoLoamNode(Node):
         directory = os.environ.get('LEGO_LOAM_PY_STATS_DIR')
         if directory:
             try:
-                from lego_loam_py.core.io import atomic_path
+                from lego_loam_py.formats import atomic_path
                 with atomic_path(os.path.join(directory, f'{self.get_name()}.json'), suffix='.json') as path:
                     path.write_text(json.dumps(self.statistics(), indent=2))
             except OSError as exc:

@@ -3,7 +3,7 @@
 rclpy runs a service callback on the executor and sends what it returns. A callback that waits for a long job
 (saving a map takes seconds) would hold an executor thread all that time, and twenty callers would hold twenty
 threads or queue behind each other, while the node must go on mapping. Here the callback only starts the job
-(or joins one, see :class:`~lego_loam_py.core.io.CoalescingRunner`) and returns at once; the response is sent
+(or joins one, see :class:`~lego_loam_py.formats.CoalescingRunner`) and returns at once; the response is sent
 when the job's future completes, from the thread that completes it.
 """
 from __future__ import annotations

@@ -25,8 +25,8 @@ import numpy as np
 from nav_msgs.msg import Odometry
 
 from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, pose6_to_matrix
-from lego_loam_py.core.sync import StampOrder
-from lego_loam_py.core.transform_fusion import TransformFusion
+from lego_loam_py.ros.sync import StampOrder
+from lego_loam_py.core.mapping.transform_fusion import TransformFusion
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import MAX_POSITION, make_header, odometry_to_pose, serialized_odometry, stamp_to_ns
 from lego_loam_py.ros.node_base import LegoLoamNode

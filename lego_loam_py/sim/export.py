@@ -27,7 +27,7 @@ def export_recording(bag: str | Path, folder: str | Path, kind: str) -> int:
     """Write the clouds and ground truth of the simulated ``bag`` into ``folder`` (must not exist) as ``kind``;
     returns the number of scans written."""
     from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
-    from lego_loam_py.core.io import write_kitti_poses_atomic
+    from lego_loam_py.formats import write_kitti_poses_atomic
     from lego_loam_py.inputs.kitti import write_kitti_sequence_files, write_times
     from lego_loam_py.inputs.point_files import write_bin_points, write_pcd_points
     from lego_loam_py.sim.output import load_ground_truth

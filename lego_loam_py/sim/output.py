@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from lego_loam_py.core.io import read_tum, tum_lines
+from lego_loam_py.formats import read_tum, tum_lines
 
 __all__ = ['map_distance_to_scene', 'GROUND_TRUTH', 'GROUND_TRUTH_DENSE', 'LABELS', 'SCENARIO', 'NOTE', 'sidecar_path', 'write_tum',
            'read_tum', 'load_ground_truth', 'relative_poses', 'LabelWriter', 'Labels', 'load_labels',

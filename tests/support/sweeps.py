@@ -10,7 +10,7 @@ import numpy as np
 import open3d as o3d
 
 from lego_loam_py.core.frames import camera_pose_to_lidar, invert_pose, make_pose
-from lego_loam_py.core.sweep import sweep_rotation
+from lego_loam_py.core.odometry.sweep import sweep_rotation
 from lego_loam_py.core.pointcloud import velodyne_points
 
 ELEVATIONS = np.radians(-15.0 + 2.0 * np.arange(16))
