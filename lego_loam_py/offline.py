@@ -103,18 +103,18 @@ def run_source(source: Source, params: Params, *, max_scans: int | None = None, 
 def loop_closures_of(result: RunResult, params: Params) -> LoopClosures | None:
     """The loops of a run for its summary (None when loop closure was off or nothing was mapped)."""
     mapper = result.mapper
-    if mapper is None or not params.loop_closure.loop_closure_enable_flag or not mapper.keyframes:
+    if mapper is None or not mapper.builds_map or not params.loop_closure.loop_closure_enable_flag or \
+            not mapper.keyframes:
         return None
     return LoopClosures.of(mapper.loops, mapper.keyframes[0].stamp_ns)
 
 
 def localization_of(bag: str | Path, result: RunResult) -> LocalizationSummary | None:
     """How a run localized in its saved map, for its summary (None when it mapped)."""
-    from lego_loam_py.core.localization.localizer import Localization
     from lego_loam_py.evaluation import errors_in_map
 
     localization = result.mapper
-    if not isinstance(localization, Localization):
+    if localization is None or localization.builds_map:
         return None
     for warning in localization.warnings:
         print(f'warning: {warning}', file=sys.stderr)

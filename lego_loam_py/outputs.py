@@ -56,7 +56,7 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
             write_kitti_poses_atomic(out / 'trajectory_kitti.txt', poses_map)
     result.trajectory_length_m = path_length(poses_map)
     map_points = None
-    if mapper is not None and mapper.keyframes:
+    if mapper is not None and mapper.builds_map and mapper.keyframes:
         saved = mapper.save(out / 'map')
         result.map_files = {k: str(v) for k, v in saved.items()}
         from lego_loam_py.formats import read_pcd

@@ -292,7 +292,7 @@ def test_a_drifted_lap_of_the_yard_is_closed_with_right_loops_only():
     assert error_before > 0.8
     assert len(accepted) >= 2 and error_after < 0.25 * error_before
     # Places alike 15-28 m from the graph's estimate were never registered: beyond the drift the path allows.
-    assert mapper.loop_closer.too_far > 0
+    assert mapper.loop_method.closer.too_far > 0
     for loop in accepted:
         true_relative = np.linalg.inv(truth[loop.latest]) @ truth[loop.candidate]
         error = np.linalg.inv(true_relative) @ camera_pose_to_lidar(loop.relative)
@@ -355,7 +355,7 @@ def test_the_optimized_trajectory_moves_each_pose_with_its_last_keyframe():
     record = RunResult(stamps=[0, 1 * s, 2 * s, 3 * s, 4 * s], integrated=camera,
                        mapped_stamps=[1 * s, 3 * s], mapped=[np.eye(4), camera[3]])
     moved = lidar_pose_to_camera(lidar_pose(3.0, 0.5, 0.0))
-    record.mapper = SimpleNamespace(keyframes=[SimpleNamespace(stamp_ns=1 * s, pose6=matrix_to_pose6(camera[1])),
+    record.mapper = SimpleNamespace(builds_map=True, keyframes=[SimpleNamespace(stamp_ns=1 * s, pose6=matrix_to_pose6(camera[1])),
                                                SimpleNamespace(stamp_ns=3 * s, pose6=matrix_to_pose6(moved))])
     stamps, poses = record.optimized_trajectory()
     assert list(stamps) == [0, s, 2 * s, 3 * s, 4 * s]
@@ -376,8 +376,11 @@ def test_the_loop_clouds_for_rviz_are_put_into_the_world():
     candidate = SimpleNamespace(candidate_pose=lidar_pose_to_camera(lidar_pose(10.0, 0.0, 0.0)),
                                 target=np.array([[1.0, 0.0, 0.0]]), source=np.array([[1.0, 0.0, 0.0]]))
     result = SimpleNamespace(relative=lidar_pose_to_camera(np.linalg.inv(lidar_pose(2.0, 0.0, 0.0))))
-    target = loop_cloud_in_world(candidate, params, 'target')
-    corrected = loop_cloud_in_world(candidate, params, 'corrected', result)
+    from lego_loam_py.core.loop.methods import make_loop_method
+
+    method = make_loop_method(params.loop_closure)
+    target = loop_cloud_in_world(candidate, method, 'target')
+    corrected = loop_cloud_in_world(candidate, method, 'corrected', result)
     np.testing.assert_allclose(target[:, :3], lidar_to_camera(np.array([[11.0, 0.0, 0.0]])), atol=1e-6)
     np.testing.assert_allclose(corrected[:, :3], lidar_to_camera(np.array([[13.0, 0.0, 0.0]])), atol=1e-6)
 

@@ -97,7 +97,7 @@ class RunResult:
         keyframe (at or before it) received since it was mapped (the loops closed later), so that the whole path
         is in the corrected frame. Without a mapper, or without corrections, it is :meth:`trajectory`."""
         stamps, poses = self.trajectory(axes='camera_init')
-        if self.mapper is not None and self.mapper.keyframes and len(poses):
+        if self.mapper is not None and self.mapper.builds_map and self.mapper.keyframes and len(poses):
             mapped = dict(zip(self.mapped_stamps, self.mapped))
             keyframes = [kf for kf in self.mapper.keyframes if kf.stamp_ns in mapped]
             key_stamps = np.array([kf.stamp_ns for kf in keyframes], dtype=np.int64) + self.pose_time_offset_ns
@@ -192,10 +192,10 @@ class Pipeline:
             self._back_end.drain(wait=True)
         finally:
             self.close()
-        self.record.counts['keyframes'] = len(self.mo.keyframes) if self.mapping else 0
+        self.record.counts['keyframes'] = len(self.mo.keyframes) if self.mapping and self.mo.builds_map else 0
         if self.localizing:
             self.record.counts.update({f'localization_{k}': v for k, v in self.mo.counters.items()})
-        if self.mapping and self.params.loop_closure.loop_closure_enable_flag:
+        if self.mapping and self.mo.builds_map and self.params.loop_closure.loop_closure_enable_flag:
             # (a loop verified and left waiting for a second one that never came counts as rejected)
             accepted = sum(loop.accepted for loop in self.mo.loops)
             self.record.counts.update(loops_closed=accepted, loops_rejected=len(self.mo.loops) - accepted)
@@ -420,7 +420,7 @@ class _BackEnd:
         None; (K, 3) positions of every keyframe in camera_init), for a listener."""
         poses = self.mo.keyframe_poses()
         cloud = None
-        if new_keyframe and self.mo.keyframes:
+        if new_keyframe and self.mo.builds_map and self.mo.keyframes:
             keyframe = self.mo.keyframes[-1]
             cloud = transform_cloud(np.concatenate([keyframe.corner, keyframe.surf, keyframe.outlier]),
                                     keyframe.pose6)

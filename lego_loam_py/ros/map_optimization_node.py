@@ -305,7 +305,7 @@ class MapOptimizationNode(LegoLoamNode):
             self.count('resets')
             return
         saved = ''
-        if self.core.keyframes and mo.save_map_on_shutdown:
+        if self.core.builds_map and self.core.keyframes and mo.save_map_on_shutdown:
             try:
                 self.core.save(mo.file_directory)
                 saved = f'; the previous map was saved to {mo.file_directory}'
@@ -357,6 +357,8 @@ class MapOptimizationNode(LegoLoamNode):
                 self.loop_closure()
 
     def loop_closure(self) -> None:
+        if not self.core.builds_map:   # (localization: the saved map is not changed)
+            return
         try:
             candidate = self.core.detect_loop()
             if candidate is None:
@@ -367,7 +369,7 @@ class MapOptimizationNode(LegoLoamNode):
             return
         stamp = self.last_step_stamp
         if stamp is not None and self.pub_history.get_subscription_count():
-            self.pub_history.publish(serialized_xyzi_cloud(loop_cloud_in_world(candidate, self.params, 'target'),
+            self.pub_history.publish(serialized_xyzi_cloud(loop_cloud_in_world(candidate, self.core.loop_method, 'target'),
                                                            make_header(stamp, CAMERA_INIT_FRAME)))
         accepted = sum(loop.accepted for loop in self.core.loops)
         if accepted > self._loops_counted:
@@ -379,7 +381,7 @@ class MapOptimizationNode(LegoLoamNode):
             self.publish_loop_markers()
             if stamp is not None and self.pub_corrected.get_subscription_count():
                 self.pub_corrected.publish(serialized_xyzi_cloud(
-                    loop_cloud_in_world(candidate, self.params, 'corrected', result),
+                    loop_cloud_in_world(candidate, self.core.loop_method, 'corrected', result),
                     make_header(stamp, CAMERA_INIT_FRAME)))
         if not result.accepted:
             self.count('loops_pending' if result.reason == 'pending' else 'loops_rejected')
@@ -448,7 +450,7 @@ class MapOptimizationNode(LegoLoamNode):
     def on_shutdown(self) -> None:
         self._stopping.set()
         mo = self.params.map_optimization
-        if mo.save_map_on_shutdown and self.localization is None and self.core.keyframes:
+        if mo.save_map_on_shutdown and self.core.builds_map and self.core.keyframes:
             # Through the runner: a save_map call in progress finishes first, then the final map is written.
             success, message = self.saves.request().result()
             if success:
@@ -480,12 +482,12 @@ def loop_markers(header, positions: np.ndarray, pairs) -> MarkerArray:
     return MarkerArray(markers=[clear, lines, ends])
 
 
-def loop_cloud_in_world(candidate, params, which: str, result=None) -> np.ndarray:
+def loop_cloud_in_world(candidate, method, which: str, result=None) -> np.ndarray:
     """(n, 4) world points (camera_init) of a loop candidate's target map ('target') or of its source aligned by the
     registration ('corrected'), for /history_cloud and /corrected_cloud."""
     from lego_loam_py.core.frames import camera_pose_to_lidar, lidar_to_camera
 
-    if params.loop_closure.method == 'original':   # (its clouds are in the world already)
+    if method.clouds_in_world:   # (the original method's; the verified one's are in the keyframes' frames)
         points = candidate.target if which == 'target' else candidate.source.copy()
         if which == 'corrected':
             points[:, :3] = points[:, :3] @ result.correction[:3, :3].T + result.correction[:3, 3]

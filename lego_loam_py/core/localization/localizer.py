@@ -21,7 +21,7 @@ States (:attr:`Localization.state`):
   a sensor that stopped), and it is lost.
 * ``lost``: as relocalizing, after a fix.
 
-The saved map is never modified; localization adds no keyframe (:attr:`keyframes` stays empty, :meth:`save`
+The saved map is never modified; localization adds no keyframe (it builds no map: nothing to save,
 writes nothing). Poses and clouds are in LOAM camera axes as in the mapping; the relocalization works in REP-103
 axes, as the map bundle's descriptors and the place recognition do.
 """
@@ -78,7 +78,10 @@ class LocalizationStatus:
 
 
 class Localization:
-    """Localization in a saved map (see the module docstring); built by :meth:`load` from the parameters."""
+    """Localization in a saved map (see the module docstring); built by :meth:`load` from the parameters. A
+    :class:`~lego_loam_py.core.mapping.mapper.Mapper` that builds no map: the saved one is never changed."""
+
+    builds_map = False
 
     def __init__(self, params: Params, prior: PriorMap, warnings: list[str] | None = None):
         self.params = params
@@ -88,8 +91,6 @@ class Localization:
         self.imu = ImuBuffer(params.feature_association.imu_que_length, params.feature_association.gravity,
                              params.sensor.scan_period, imu_mounting(params))
         self.lock = threading.RLock()
-        self.keyframes: list = []      # (the saved map is not added to)
-        self.loops: list = []
         self.map_source: dict = {}
         self.last_maps = (np.zeros((0, 4), _F32), np.zeros((0, 4), _F32))
         self.last_scan = (np.zeros((0, 4), _F32), np.zeros((0, 4), _F32))
@@ -374,12 +375,6 @@ class Localization:
     def registered_scan(self) -> np.ndarray:
         """The last scan's features where the last step put them (map frame, camera axes)."""
         return transform_cloud(np.concatenate(self.last_scan), self.transform_aft)
-
-    def detect_loop(self):
-        return None   # (no loop closure: the saved map is not changed)
-
-    def save(self, directory) -> dict:
-        return {}     # (nothing new to save: the saved map is never modified)
 
 
 def _angle_deg(pose: np.ndarray) -> float:

@@ -225,7 +225,7 @@ class LoopCloser:
         self.places = PlaceDatabase(ScanContextConfig(rings=lc.scan_context_rings, sectors=lc.scan_context_sectors,
                                                       max_radius=lc.scan_context_max_radius))
         self._described: set[int] = set()
-        if lc.loop_closure_enable_flag and lc.method == 'verified':
+        if lc.loop_closure_enable_flag:   # (made for loop_closure.method verified only: core.loop.methods)
             import open3d  # noqa: F401  (the first import costs about 0.5 s of CPU: at start-up, not in a loop)
 
     def describe(self, keyframes: Sequence) -> None:

@@ -35,7 +35,8 @@ from lego_loam_py.core.frames import invert_pose, matrix_to_pose6, pose6_to_matr
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
 from lego_loam_py.core.imu.buffer import ImuBuffer, imu_mounting
 from lego_loam_py.core.imu.monitor import MappingImuCheck
-from lego_loam_py.core.loop.closure import LoopCandidate, LoopCloser, LoopResult, align_loop, find_loop_candidate
+from lego_loam_py.core.loop.closure import LoopCandidate, LoopResult
+from lego_loam_py.core.loop.methods import make_loop_method
 from lego_loam_py.core.mapping.odometry_continuity import OdometryJump, anchored_transform_bef
 from lego_loam_py.core.params.types import Params
 from lego_loam_py.core.mapping.pose_graph import PoseGraph
@@ -81,6 +82,8 @@ class MappingStep:
 class MapOptimization:
     """The mapOptimization algorithm; :meth:`process` is called with each synchronised input set."""
 
+    builds_map = True   # (a core.mapping.mapper.Mapper with keyframes, loops and a map to save)
+
     def __init__(self, params: Params):
         self.params = params
         mo = params.map_optimization
@@ -104,7 +107,7 @@ class MapOptimization:
         self.latest_odometry_ns = 0
         self.loop_closed = False
         self.loops: list[LoopResult] = []            # every loop verified, accepted or not
-        self.loop_closer = LoopCloser(params.loop_closure)
+        self.loop_method = make_loop_method(params.loop_closure)   # (chosen once: loop_closure.method)
         self.lock = threading.RLock()
         self.last_maps: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 4), _F32), np.zeros((0, 4), _F32))
         self.last_scan: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 4), _F32), np.zeros((0, 4), _F32))
@@ -218,7 +221,7 @@ class MapOptimization:
         n = len(self.keyframes)
         if n == 0:
             return []
-        if lc.loop_closure_enable_flag and lc.method == 'original':
+        if lc.loop_closure_enable_flag and self.loop_method.recent_keyframes_as_map:
             return list(range(max(0, n - mo.surrounding_keyframe_search_num), n))
         near = np.flatnonzero(np.linalg.norm(self._positions - self.current_position, axis=1)
                               <= mo.surrounding_keyframe_search_radius)
@@ -327,31 +330,22 @@ class MapOptimization:
     def detect_loop(self) -> LoopCandidate | None:
         """A loop candidate for the newest keyframe (:mod:`lego_loam_py.core.loop.closure`), or None."""
         with self.lock:
-            if self.params.loop_closure.method == 'verified':
-                return self.loop_closer.detect(self.keyframes, self._positions)
-            return find_loop_candidate(self.keyframes, self._positions, self.current_position,
-                                       self.latest_odometry_ns, self.params.loop_closure)
+            return self.loop_method.detect(self)
 
     def close_loop(self, candidate: LoopCandidate) -> LoopResult:
         """Verify the candidate (without the lock: it takes a while); its constraint goes into the graph if it passes."""
-        if self.params.loop_closure.method == 'original':
-            loop = align_loop(candidate, self.params.loop_closure)
-            if loop.accepted:
-                with self.lock:
-                    loop.constrain(pose6_to_matrix(self.keyframes[candidate.latest].pose6),
-                                   pose6_to_matrix(self.keyframes[candidate.candidate].pose6))
-                    self.add_loop_factor(candidate.latest, candidate.candidate, loop.relative, loop.variances)
-            self.loops.append(loop)
-            return loop
-        loop, fit = self.loop_closer.verify(candidate)
-        with self.lock:
-            ready = self.loop_closer.admit(loop, fit, self.keyframes, self.latest_odometry_ns)
-            if ready:
-                self._add_verified_loops(ready)
-            self.loops.append(loop)
-        return loop
+        return self.loop_method.close(self, candidate)
 
-    def _add_verified_loops(self, loops) -> None:
+    @property
+    def keyframe_positions(self) -> np.ndarray:
+        """(n, 3) positions of the keyframes (world, camera axes)."""
+        return self._positions
+
+    def keyframe_pose(self, index: int) -> np.ndarray:
+        """4x4 pose of keyframe ``index`` (world, camera axes)."""
+        return pose6_to_matrix(self.keyframes[index].pose6)
+
+    def add_verified_loops(self, loops) -> None:
         """Constraints of verified loops into the graph; every keyframe and the pose being mapped follow."""
         lc = self.params.loop_closure
         newest = pose6_to_matrix(self.keyframes[-1].pose6)
