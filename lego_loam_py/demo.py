@@ -29,6 +29,7 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
+from lego_loam_py.core.guard import KEYFRAMES, MAPPING_STEPS, SCANS_DROPPED, SCANS_PROCESSED, SCANS_WITH_IMU
 from lego_loam_py.errors import UsageError
 from lego_loam_py.orchestration import DEFAULT_RECORD_TOPICS, NODES, PipelineConfig, run_pipeline
 from lego_loam_py.results import DemoSummary, LoopClosures, TimingStats
@@ -137,8 +138,8 @@ def _node_summary(stats: dict[str, dict]) -> NodeFigures:
     counters = _node_counters(stats)
     processed = {
         'imageProjection': counters['imageProjection'].get('clouds_out', 0),
-        'featureAssociation': counters['featureAssociation'].get('scans', 0),
-        'mapOptimization': counters['mapOptimization'].get('steps', 0),
+        'featureAssociation': counters['featureAssociation'].get(SCANS_PROCESSED, 0),
+        'mapOptimization': counters['mapOptimization'].get(MAPPING_STEPS, 0),
         'transformFusion': counters['transformFusion'].get('integrated', 0),
     }
     drops = {}
@@ -199,7 +200,7 @@ def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_
     # Scans imageProjection published that featureAssociation neither processed nor rejected: overwritten in
     # its depth-1 input queues while it was busy (the original's queue semantics), when it is not real time.
     # (A scan with one part overwritten leaves its other parts in featureAssociation's unmatched_inputs.)
-    fa_handled = fa.get('scans', 0) + fa.get('scans_dropped', 0)
+    fa_handled = fa.get(SCANS_PROCESSED, 0) + fa.get(SCANS_DROPPED, 0)
     overwritten = max(0, figures.processed['imageProjection'] - fa_handled) if 'featureAssociation' in stats else 0
     summary = DemoSummary(
         bag=_display(bag), rate=rate, bag_duration_s=bag_duration, wall_time_s=outcome.wall_time_s,
@@ -207,7 +208,7 @@ def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_
         not_received=(max(0, scans_in - counters['imageProjection'].get('clouds_in', 0))
                       if 'imageProjection' in stats else scans_in),
         drop_counters=figures.drops, queue_overwritten=overwritten,
-        keyframes=counters['mapOptimization'].get('keyframes', 0), scans_with_imu=fa.get('scans_with_imu', 0),
+        keyframes=counters['mapOptimization'].get(KEYFRAMES, 0), scans_with_imu=fa.get(SCANS_WITH_IMU, 0),
         timings_ms=figures.timings, processes=list(outcome.processes), failures=list(outcome.failures),
         interrupted=outcome.interrupted, ready_after_s=outcome.ready_after_s,
         loop_closures=_loop_closures(stats))

@@ -276,9 +276,9 @@ def test_demo_summary_accounts_for_every_scan():
     stats = {
         'imageProjection': {'counters': {'clouds_in': 79, 'clouds_out': 78, 'clouds_dropped': 1},
                             'timings_ms': {'scan': timing}},
-        'featureAssociation': {'counters': {'scans': 70, 'scans_dropped': 2, 'unmatched_inputs': 4, 'imu_dropped': 0,
+        'featureAssociation': {'counters': {'scans_processed': 70, 'scans_dropped': 2, 'unmatched_inputs': 4, 'imu_dropped': 0,
                                             'scans_with_imu': 65}, 'timings_ms': {'scan': timing}},
-        'mapOptimization': {'counters': {'steps': 22, 'keyframes': 20, 'unmatched_inputs': 35,
+        'mapOptimization': {'counters': {'mapping_steps': 22, 'keyframes': 20, 'unmatched_inputs': 35,
                                          'inputs_skipped_by_interval': 14}, 'timings_ms': {'step': timing}},
         'transformFusion': {'counters': {'integrated': 69, 'mapped': 22}, 'timings_ms': {}},
     }

@@ -181,7 +181,7 @@ def test_each_scan_reports_how_well_the_odometry_was_held(context, tmp_path):
 
     outputs = pipeline_outputs(context, tmp_path)
     measures = outputs['fa_statistics']['measures']
-    scans = outputs['fa_statistics']['counters']['scans']
+    scans = outputs['fa_statistics']['counters']['scans_processed']
     for stage in ('surf', 'corner'):
         # Every scan after the first registers both stages on the campus (enough floor and edges).
         assert measures[f'{stage}_condition']['count'] == scans - 1

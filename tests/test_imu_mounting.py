@@ -285,7 +285,7 @@ def test_the_nodes_warn_about_an_upside_down_imu_and_report_it_on_diagnostics(co
     warnings = [text for key, text in fa_rec.warnings if key == 'imu_alignment']
     assert len(warnings) == 1 and re.search(r'its up direction is 1[78]\d deg from the ground', warnings[0])
     assert fa.counters['imu_misaligned'] == 1 and 'scans_with_imu' not in fa.counters
-    assert len(fa_rec.out('/laser_odom_to_init')) == fa.counters['scans'] - 1 >= 25
+    assert len(fa_rec.out('/laser_odom_to_init')) == fa.counters['scans_processed'] - 1 >= 25
     status = fa.diagnostic_status()
     assert status.level == DiagnosticStatus.WARN and 'upside down' in status.message
 

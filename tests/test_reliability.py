@@ -302,12 +302,12 @@ def test_fuzz_feature_association_inputs(context, tmp_path):
     def check(parts):
         TRIED['featureAssociation /segmented_cloud + info + outlier'] += 1
         before = rec.mark()
-        scans = fa.counters.get('scans', 0)
+        scans = fa.counters.get('scans_processed', 0)
         send(*parts)
-        TRIED['featureAssociation /segmented_cloud + info + outlier: processed'] += fa.counters.get('scans', 0) - scans
+        TRIED['featureAssociation /segmented_cloud + info + outlier: processed'] += fa.counters.get('scans_processed', 0) - scans
         assert_handled(rec, before, 'scan', None)
         # processed, dropped with a warning, or held (it came more than 1 s after the last processed scan)
-        assert fa.counters.get('scans', 0) > scans or len(rec.warnings) > before[0] or fa.order.holding
+        assert fa.counters.get('scans_processed', 0) > scans or len(rec.warnings) > before[0] or fa.order.holding
         assert fa.core.health_problem() is None
         for msg in rec.out('/laser_odom_to_init')[before[2].get('/laser_odom_to_init', 0):]:
             p = msg.pose.pose.position
@@ -495,10 +495,10 @@ def test_fuzz_mapping_inputs(context, tmp_path):
     def check(parts):
         TRIED['mapOptimization /laser_cloud_*_last + odometry'] += 1
         before = rec.mark()
-        steps = mo.counters.get('steps', 0) + mo.counters.get('inputs_skipped_by_interval', 0)
+        steps = mo.counters.get('mapping_steps', 0) + mo.counters.get('inputs_skipped_by_interval', 0)
         send(*parts)
         TRIED['mapOptimization /laser_cloud_*_last + odometry: processed'] += \
-            mo.counters.get('steps', 0) + mo.counters.get('inputs_skipped_by_interval', 0) - steps
+            mo.counters.get('mapping_steps', 0) + mo.counters.get('inputs_skipped_by_interval', 0) - steps
         assert_handled(rec, before, 'mapping input')
         assert np.isfinite(mo.core.transform_aft).all() and np.isfinite(mo.core.transform_tobe).all()
         assert len(mo.core.keyframes) >= keyframes   # never loses the map
@@ -507,10 +507,10 @@ def test_fuzz_mapping_inputs(context, tmp_path):
             assert np.isfinite([p.x, p.y, p.z]).all()
 
     check()
-    before = mo.counters.get('steps', 0)
+    before = mo.counters.get('mapping_steps', 0)
     for parts in inputs:
         send(*parts)
-    assert mo.counters.get('steps', 0) > before
+    assert mo.counters.get('mapping_steps', 0) > before
     written = mo.core.save(tmp_path / 'after_fuzz')
     assert all(Path(p).stat().st_size > 0 for p in written.values())
     mo.destroy_node()
@@ -727,14 +727,14 @@ def test_imu_missing_late_and_looping(context, tmp_path):
 
     for k in range(4):                          # the IMU starts late: scans 0-3 without it
         feed(k, with_imu=False)
-    assert fa.counters['scans'] == 4 and fa.counters.get('scans_with_imu', 0) == 0
+    assert fa.counters['scans_processed'] == 4 and fa.counters.get('scans_with_imu', 0) == 0
     for k in range(4, 10):
         feed(k)
     with_imu = fa.counters['scans_with_imu']
     assert with_imu >= 4            # deskewing with the IMU needs it over this sweep and the previous one
     for k in range(10, 14):                     # the IMU stops for a while
         feed(k, with_imu=False)
-    assert fa.counters['scans_with_imu'] == with_imu and fa.counters['scans'] == 14
+    assert fa.counters['scans_with_imu'] == with_imu and fa.counters['scans_processed'] == 14
     for k in range(14, 20):                     # ... and comes back
         feed(k)
     assert fa.counters['scans_with_imu'] >= with_imu + 4
@@ -781,7 +781,7 @@ def test_mapping_resets_after_a_loop_and_keeps_the_map_on_disk(context, tmp_path
     assert mo.counters['resets'] == 1
     stamps, _ = read_tum(tmp_path / 'maps' / 'trajectory.tum')
     assert len(stamps) >= keyframes                # the previous map was saved before the reset
-    assert len(mo.core.keyframes) >= 1 and mo.counters['steps'] >= 2
+    assert len(mo.core.keyframes) >= 1 and mo.counters['mapping_steps'] >= 2
     assert any('mapping reset; the previous map was saved' in text for _, text in rec.warnings)
     assert not rec.errors
     mo.destroy_node()

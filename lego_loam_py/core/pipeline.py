@@ -27,12 +27,15 @@ from typing import Callable
 import numpy as np
 
 from lego_loam_py.core.odometry.feature_association import FeatureAssociation, ScanInput
+from lego_loam_py.core.guard import (MAPPING_DEGENERATE, MAPPING_STEPS, MAPPING_STEPS_FAILED, SCANS_DROPPED, SCANS_IN,
+                                     SCANS_PROCESSED, SCANS_WITH_IMU, STATE_RESETS, StepGuard)
 from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix, transform_cloud
 from lego_loam_py.core.projection.elevation_bias import elevation_note
 from lego_loam_py.core.projection.image_projection import ImageProjection, InputError, prepare_input
 from lego_loam_py.core.imu.buffer import uncovered_counter, uncovered_warning, warn_uncovered
 from lego_loam_py.core.localization.localizer import Localization
 from lego_loam_py.core.mapping.map_optimization import MapOptimization
+from lego_loam_py.core.mapping.mapper import Mapper
 from lego_loam_py.core.mapping.odometry_continuity import OdometryContinuity
 from lego_loam_py.core.params.types import Params
 from lego_loam_py.core.pipeline_events import (LoopChecked, MapStepped, PipelineListener, ScanFused,
@@ -69,7 +72,7 @@ class RunResult:
     wall_time: float = 0.0
     bag_duration: float = 0.0
     first_scan_ns: int | None = None   # stamp of the first cloud
-    mapper: MapOptimization | Localization | None = None
+    mapper: Mapper | None = None
     pose_time_offset_ns: int = 0   # the original odometry model's pose of scan k is the sensor's at k + one sweep
     # What the IMU checks decided, in order: (node, core.imu_monitor.AlignmentEvent).
     imu_alignment: list[tuple[str, object]] = field(default_factory=list)
@@ -148,6 +151,7 @@ class Pipeline:
         self.record.pose_time_offset_ns = pose_time_offset_ns(params)
         self._warn = warn or _to_stderr
         self._listener = listener
+        self._fa_guard = StepGuard(params.reliability.reset_after_failures)
         self._back_end = _BackEnd(self.mo if mapping else None, self.fusion, self.record, self._warn,
                                   threaded=mapping and mapping_thread, listener=listener)
         self._next_loop_check: int | None = None
@@ -160,7 +164,7 @@ class Pipeline:
 
     def skip_scan(self, stamp_ns: int, reason: str) -> ScanOutput:
         """A scan the caller could not even decode: counted and warned about like any dropped scan."""
-        self.record.count('scans_in')
+        self.record.count(SCANS_IN)
         output = self._dropped(stamp_ns, reason)
         self._after_scan(stamp_ns)
         return output
@@ -169,7 +173,7 @@ class Pipeline:
         """One cloud (structured array with x, y, z, intensity and optionally ring / time) stamped
         ``stamp_ns`` [ns]: its odometry now, its fused pose and mapping as their results come (see
         :meth:`finish`)."""
-        self.record.count('scans_in')
+        self.record.count(SCANS_IN)
         output = self._one_scan(points, stamp_ns)
         self._after_scan(stamp_ns)
         return output
@@ -206,7 +210,7 @@ class Pipeline:
         self._back_end.close()
 
     def _dropped(self, stamp_ns: int, reason: str) -> ScanOutput:
-        self.record.count('scans_dropped')
+        self.record.count(SCANS_DROPPED)
         self._warn(f'scan at {stamp_ns * 1e-9:.3f} s dropped: {reason}')
         return ScanOutput(stamp_ns, dropped=reason)
 
@@ -228,16 +232,16 @@ class Pipeline:
         features = self.fa.process(ScanInput.from_segmentation(stamp, segmentation))
         t2 = time.perf_counter()
         record.time('featureAssociation', (t2 - t1) * 1e3)
-        problem = self.fa.health_problem()
-        if problem is not None:   # the same self-check as the node's: start the odometry again, keep the pose
+        heal = self._fa_guard.after_step(self.fa.health_problem())
+        if heal is not None:   # the guard of the node's (core.guard): start the odometry again, keep the pose
             self.fa.restart()
-            record.count('state_resets')
-            record.count('scans_dropped')
-            self._warn(f'scan at {stamp * 1e-9:.3f} s: {problem}: odometry restarted')
-            return ScanOutput(stamp, dropped=f'{problem}: odometry restarted')
-        record.count('scans_processed')
+            record.count(STATE_RESETS)
+            record.count(SCANS_DROPPED)
+            self._warn(f'scan at {stamp * 1e-9:.3f} s: {heal}: odometry restarted')
+            return ScanOutput(stamp, dropped=f'{heal}: odometry restarted')
+        record.count(SCANS_PROCESSED)
         if features.imu_used:
-            record.count('scans_with_imu')
+            record.count(SCANS_WITH_IMU)
         if features.imu_uncovered is not None:
             counter = uncovered_counter(features.imu_uncovered)
             record.count(counter)
@@ -294,11 +298,12 @@ class _BackEnd:
     with exactly the mapping results of the scans before it, whether the worker is a thread or not.
     """
 
-    def __init__(self, mo: MapOptimization | Localization | None, fusion: TransformFusion, result: RunResult,
+    def __init__(self, mo: Mapper | None, fusion: TransformFusion, result: RunResult,
                  warn: Callable[[str], None], threaded: bool, listener: PipelineListener | None = None):
         self.mo, self.fusion, self.result, self.warn = mo, fusion, result, warn
         self.listener = listener
         self.continuity = OdometryContinuity()   # (used on the mapping worker only)
+        self.guard = StepGuard(1 if mo is None else mo.params.reliability.reset_after_failures)   # (likewise)
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix='mapping') if threaded else None
         # CPU time of mapping and loop closure: the worker thread's own (wall time would count its waits for the
         # GIL while the main thread runs the next scans), or the whole process's when nothing else runs beside
@@ -343,14 +348,14 @@ class _BackEnd:
                 self.warn(f'mapping input at {stamp * 1e-9:.3f} s: {jump.describe()}')
                 self.mo.reanchor(jump, pose, transform_sum)
             mapped = self.mo.process(stamp, *inputs)
-            problem = self.mo.health_problem() if mapped is not None else None
-            if problem is not None:   # the same self-check as the node's: reset what is poisoned, keep the map
-                self.warn(f'mapping step at {stamp * 1e-9:.3f} s: {problem}: {self.mo.heal()}')
+            heal = self.guard.after_step(self.mo.health_problem()) if mapped is not None else None
+            if heal is not None:   # the guard of the node's (core.guard): reset what is poisoned, keep the map
+                self.warn(f'mapping step at {stamp * 1e-9:.3f} s: {heal}: {self.mo.heal()}')
                 mapped = None
             cpu_ms = (self._cpu_time() - t) * 1e3
             # (Read here, on the worker, where the keyframes cannot change meanwhile.)
             seen = self._keyframes_seen(mapped is not None and mapped.keyframe_added) if self.listener else None
-            return mapped, cpu_ms, seen
+            return mapped, cpu_ms, seen, heal is not None
 
         mapped = _Mapped(stamp, self._submit(step))
         self._events.append(mapped)
@@ -392,14 +397,17 @@ class _BackEnd:
                 if self.listener is not None:
                     self.listener(ScanFused(event.stamp_ns, result.integrated[-1]))
             elif isinstance(event, _Mapped):
-                step, ms, seen = event.future.result()
+                step, ms, seen, healed = event.future.result()
+                if healed:
+                    result.count(STATE_RESETS)
+                    result.count(MAPPING_STEPS_FAILED)
                 if step is not None and step.imu_alignment is not None:
                     self.imu_alignment('mapOptimization', step.imu_alignment)
                 if step is not None:
                     result.time('mapOptimization', ms)
-                    result.count('mapping_steps')
+                    result.count(MAPPING_STEPS)
                     if step.degenerate:   # (a direction held at the prediction, see core.scan_to_map)
-                        result.count('mapping_degenerate')
+                        result.count(MAPPING_DEGENERATE)
                     aft, bef = pose6_to_matrix(step.transform_aft), pose6_to_matrix(step.transform_bef)
                     self.fusion.on_mapped(aft, bef, event.stamp_ns)
                     result.mapped_stamps.append(event.stamp_ns)

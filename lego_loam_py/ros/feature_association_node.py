@@ -35,6 +35,7 @@ from sensor_msgs.msg import Imu, PointCloud2
 from lego_loam_py.core import validation
 from lego_loam_py.core.odometry.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, LASER_ODOM_FRAME
+from lego_loam_py.core.guard import SCANS_DROPPED, SCANS_PROCESSED, SCANS_WITH_IMU
 from lego_loam_py.core.imu.buffer import uncovered_counter, uncovered_warning, warn_uncovered
 from lego_loam_py.ros.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros import qos
@@ -195,22 +196,21 @@ class FeatureAssociationNode(LegoLoamNode):
         except Exception:
             self.count('scans_dropped')
             self.error('process_exception', 'unexpected error in featureAssociation; scan dropped')
-            problem = self.core.health_problem()
-            if problem is not None or self.step_failed():
-                self._heal(problem or f'{self.params.reliability.reset_after_failures} scans in a row failed')
+            heal = self.guard.after_failure(self.core.health_problem())
+            if heal is not None:
+                self._heal(heal)
             return
-        problem = self.core.health_problem() or _cloud_problem(result)
-        if problem is not None:
-            self.count('scans_dropped')
-            self._heal(problem)
+        heal = self.guard.after_step(self.core.health_problem() or _cloud_problem(result))
+        if heal is not None:
+            self.count(SCANS_DROPPED)
+            self._heal(heal)
             return
-        self.step_succeeded()
         self.order.processed(stamp)
         self._publish(result, cloud_msg.header.stamp)
         self.output_published()
-        self.count('scans')
+        self.count(SCANS_PROCESSED)
         if result.imu_used:
-            self.count('scans_with_imu')
+            self.count(SCANS_WITH_IMU)
         if result.imu_uncovered is not None:
             counter = uncovered_counter(result.imu_uncovered)
             self.count(counter)

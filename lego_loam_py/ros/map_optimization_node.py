@@ -49,6 +49,8 @@ from lego_loam_py.core.frames import (AFT_MAPPED_FRAME, CAMERA_INIT_FRAME, matri
                                       transform_cloud)
 from lego_loam_py.core import validation
 from lego_loam_py.ros.coalescing import CoalescingRunner
+from lego_loam_py.core.guard import (KEYFRAMES, MAPPING_DEGENERATE, MAPPING_STEPS, MAPPING_STEPS_FAILED,
+                                     ODOMETRY_RESTARTS)
 from lego_loam_py.core.mapping.map_optimization import MapOptimization
 from lego_loam_py.core.mapping.odometry_continuity import OdometryContinuity
 from lego_loam_py.ros.sync import StampOrder, StampSynchronizer
@@ -234,11 +236,11 @@ class MapOptimizationNode(LegoLoamNode):
             step = self.core.process(stamp, transform_sum, clouds['corner'], clouds['surf'], clouds['outlier'])
         except Exception:
             self.input_valid()
-            self.count('steps_failed')
+            self.count(MAPPING_STEPS_FAILED)
             self.error('process_exception', 'unexpected error in mapOptimization; step skipped, map kept')
-            problem = self.core.health_problem()
-            if problem is not None or self.step_failed():
-                self._heal(problem or f'{self.params.reliability.reset_after_failures} mapping steps in a row failed')
+            heal = self.guard.after_failure(self.core.health_problem())
+            if heal is not None:
+                self._heal(heal)
             return
         if step is None and self.localization is not None and self.core.withheld:
             self.count('steps_not_localized')   # (no fix in the saved map: nothing to publish, and it says so)
@@ -248,15 +250,14 @@ class MapOptimizationNode(LegoLoamNode):
             self.count('inputs_skipped_by_interval')
             return
         self.input_valid()
-        problem = self.core.health_problem()
-        if problem is not None:
-            self.count('steps_failed')
-            self._heal(problem)
+        heal = self.guard.after_step(self.core.health_problem())
+        if heal is not None:
+            self.count(MAPPING_STEPS_FAILED)
+            self._heal(heal)
             return
-        self.step_succeeded()
-        self.count('steps')
+        self.count(MAPPING_STEPS)
         if step.keyframe_added:
-            self.count('keyframes')
+            self.count(KEYFRAMES)
         self._report_conditioning(step)
         self.report_imu_alignment(step.imu_alignment)
         self._publish(step, odometry.header.stamp)
@@ -272,7 +273,7 @@ class MapOptimizationNode(LegoLoamNode):
         if step.condition == step.condition:   # NaN: no registration (no map yet, too few correspondences)
             self.record_value('condition', step.condition)
         if step.degenerate:
-            self.count('degenerate')
+            self.count(MAPPING_DEGENERATE)
             self.warn('degenerate', 'scan-to-map: a direction is held by fewer than '
                       f'{self.params.map_optimization.degeneracy_threshold:g} correspondences (degenerate '
                       'surroundings, e.g. a featureless tunnel); the odometry is kept along it')
@@ -288,7 +289,7 @@ class MapOptimizationNode(LegoLoamNode):
         """Re-anchor when the odometry restarted (see :mod:`lego_loam_py.core.mapping.odometry_continuity`)."""
         jump = self.continuity.check(stamp, pose, publisher)
         if jump is not None:
-            self.count('odometry_restarts')
+            self.count(ODOMETRY_RESTARTS)
             self.warn('odometry_jump', jump.describe(), period=0.0)
             self.core.reanchor(jump, pose, transform_sum)
 

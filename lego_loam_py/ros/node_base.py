@@ -14,6 +14,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
+from lego_loam_py.core.guard import STATE_RESETS, StepGuard
 from lego_loam_py.allocator import release_memory
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.pointcloud import CloudLayoutError
@@ -74,7 +75,7 @@ class LegoLoamNode(Node):
         self._release_pending = False      # a huge message was rejected: give its memory back
         self._last_problem = ''            # the latest warning or error: the watchdog's reason
         self._inputs_without_output = 0
-        self._failures_in_a_row = 0
+        self.guard = StepGuard(self.params.reliability.reset_after_failures)   # (core.guard: the policy)
         self._imu_disagreement: str | None = None   # why the IMU is not used (its check found it misaligned)
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', qos.reliable(10))
         # Wall time: with use_sim_time and no /clock the ROS clock stands still, and so would the diagnostics.
@@ -294,20 +295,10 @@ class LegoLoamNode(Node):
         self.warn(key, f'{text}: {traceback.format_exc(limit=6)}', level='error')
 
     # ------------------------------------------------------------------------------- self-healing state
-    def step_failed(self) -> bool:
-        """Count a failed step (an unexpected error); True once ``reliability.reset_after_failures`` failed in
-        a row: the state is then to be treated as poisoned even if no check names the problem."""
-        self._failures_in_a_row += 1
-        return self._failures_in_a_row >= self.params.reliability.reset_after_failures
-
-    def step_succeeded(self) -> None:
-        self._failures_in_a_row = 0
-
     def state_reset(self, problem: str, what: str) -> None:
         """Log (one error per kind and second) and count a reset of poisoned state: ``problem`` is what the
-        check found, ``what`` says what was reset and what was kept."""
-        self._failures_in_a_row = 0
-        self.count('state_resets')
+        check found (core.guard.StepGuard), ``what`` says what was reset and what was kept."""
+        self.count(STATE_RESETS)
         self.warn('state_reset', f'{problem}: {what}', period=1.0, level='error')
 
     def take(self, check, dropped_counter: str, what: str, key: str = 'bad_input', msg=None):
