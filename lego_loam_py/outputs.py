@@ -47,7 +47,7 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     poses_camera_init = np.asarray(poses_camera_init).reshape(-1, 4, 4)
-    poses_map = np.array([camera_pose_to_lidar(p) for p in poses_camera_init]).reshape(-1, 4, 4)
+    poses_map = camera_pose_to_lidar(np.asarray(poses_camera_init).reshape(-1, 4, 4))
     result = summary.outputs = RunOutputs(poses=int(len(poses_map)))
     if len(poses_map):   # (no pose, no file: an empty trajectory file would look like a broken one)
         write_tum_atomic(out / 'trajectory.tum', stamps, poses_map)

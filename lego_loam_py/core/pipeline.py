@@ -29,7 +29,7 @@ import numpy as np
 from lego_loam_py.core.odometry.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.guard import (MAPPING_DEGENERATE, MAPPING_STEPS, MAPPING_STEPS_FAILED, SCANS_DROPPED, SCANS_IN,
                                      SCANS_PROCESSED, SCANS_WITH_IMU, STATE_RESETS, StepGuard)
-from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix, transform_cloud
+from lego_loam_py.core.frames import pose6_to_matrix, transform_cloud
 from lego_loam_py.core.projection.elevation_bias import elevation_note
 from lego_loam_py.core.projection.image_projection import ImageProjection, InputError, prepare_input
 from lego_loam_py.core.imu.buffer import uncovered_counter, uncovered_warning, warn_uncovered
@@ -41,6 +41,7 @@ from lego_loam_py.core.params.types import Params
 from lego_loam_py.core.pipeline_events import (LoopChecked, MapStepped, PipelineListener, ScanFused,
                                                ScanProcessed)
 from lego_loam_py.core.pointcloud import CloudLayoutError
+from lego_loam_py.core.trajectory import Trajectory
 from lego_loam_py.core.params.timing import pose_delay
 from lego_loam_py.core.mapping.transform_fusion import TransformFusion
 
@@ -83,19 +84,19 @@ class RunResult:
     def time(self, name: str, ms: float) -> None:
         self.timings_ms.setdefault(name, []).append(ms)
 
-    def trajectory(self, axes: str = 'map', which: str = 'integrated') -> tuple[np.ndarray, np.ndarray]:
-        """(stamps [ns] of the sensor poses, poses) of the fused ('integrated') or odometry ('odometry')
-        trajectory; ``axes`` 'map' (REP-103) or 'camera_init'. Stamps include the model's pose time offset. The
-        fused trajectory holds the poses transformFusion published (in localization: those in the saved map)."""
+    def trajectory(self, axes: str = 'map', which: str = 'integrated') -> Trajectory:
+        """The sensor's trajectory (core.trajectory: unpacks as ``stamps, poses``) of the fused ('integrated') or
+        odometry ('odometry') poses; ``axes`` 'map' (REP-103) or 'camera_init'. Stamps include the model's pose time
+        offset. The fused trajectory holds the poses transformFusion published (in localization: those in the saved
+        map)."""
         stamps = np.array(self.stamps, dtype=np.int64) + self.pose_time_offset_ns
         poses = np.array(self.integrated if which == 'integrated' else self.odometry).reshape(-1, 4, 4)
+        trajectory = Trajectory(stamps, poses, 'camera_init')
         if which == 'integrated' and not all(self.published):
-            stamps, poses = stamps[np.array(self.published, dtype=bool)], poses[np.array(self.published, dtype=bool)]
-        if axes == 'map':
-            poses = np.array([camera_pose_to_lidar(p) for p in poses]).reshape(-1, 4, 4)
-        return stamps, poses
+            trajectory = trajectory.select(np.array(self.published, dtype=bool))
+        return trajectory.to(axes)
 
-    def optimized_trajectory(self, axes: str = 'map') -> tuple[np.ndarray, np.ndarray]:
+    def optimized_trajectory(self, axes: str = 'map') -> Trajectory:
         """The fused trajectory as the pose graph has it at the end: each pose moved by the correction its last
         keyframe (at or before it) received since it was mapped (the loops closed later), so that the whole path
         is in the corrected frame. Without a mapper, or without corrections, it is :meth:`trajectory`."""
@@ -113,9 +114,7 @@ class RunResult:
             if len(keyframes):
                 moved = np.einsum('nij,njk->nik', corrections[np.maximum(which, 0)], poses)
                 poses = np.where((which >= 0)[:, None, None], moved, poses)
-        if axes == 'map':
-            poses = np.array([camera_pose_to_lidar(p) for p in poses]).reshape(-1, 4, 4)
-        return stamps, poses
+        return Trajectory(stamps, poses, 'camera_init').to(axes)
 
 
 @dataclass(frozen=True)

@@ -85,7 +85,7 @@ class PriorMap:
         self.bundle = bundle
         self.params = params
         self.poses = np.array([pose6_to_matrix(p) for p in bundle.poses6]).reshape(-1, 4, 4)   # camera axes
-        self.poses_lidar = np.array([camera_pose_to_lidar(p) for p in self.poses]).reshape(-1, 4, 4)
+        self.poses_lidar = camera_pose_to_lidar(np.asarray(self.poses).reshape(-1, 4, 4))
         self.positions = self.poses[:, :3, 3].copy()
         self.corner_map = np.ascontiguousarray(bundle.corner_map, dtype=np.float32)
         self.surface_map = np.ascontiguousarray(bundle.surface_map, dtype=np.float32)

@@ -29,7 +29,7 @@ def write_map_files(directory: str | Path, maps: dict[str, np.ndarray], bundle: 
     directory.mkdir(parents=True, exist_ok=True)
     poses, stamps = bundle.poses6, bundle.stamps_ns
     camera_matrices = np.array([pose6_to_matrix(p) for p in poses]).reshape(-1, 4, 4)
-    lidar_matrices = np.array([camera_pose_to_lidar(m) for m in camera_matrices]).reshape(-1, 4, 4)
+    lidar_matrices = camera_pose_to_lidar(np.asarray(camera_matrices).reshape(-1, 4, 4))   # (the whole stack)
     written = {}
     for name, cloud in (('global_map', maps['global_map']), ('corner_map', maps['corner']),
                         ('surface_map', maps['surface'])):
