@@ -24,7 +24,7 @@ import numpy as np  # noqa: E402
 
 from lego_loam_py.evaluation import error_over_time, evaluate  # noqa: E402
 from lego_loam_py.offline import run_bag  # noqa: E402
-from lego_loam_py.sim.output import load_ground_truth  # noqa: E402
+from lego_loam_py.inputs.sidecars import load_ground_truth  # noqa: E402
 from benchmarks.common import run_shifted  # noqa: E402
 
 CONFIGS = {

@@ -42,9 +42,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from lego_loam_py.core.params import parse_overrides, write_params_file  # noqa: E402
-from tests.support.domains import DomainLease  # noqa: E402
-from tests.support.measure import rss_mb  # noqa: E402
-from tests.support.ros import spin_in_background  # noqa: E402
+from lego_loam_py.testing.domains import DomainLease  # noqa: E402
+from lego_loam_py.testing.measure import rss_mb  # noqa: E402
+from lego_loam_py.testing.nodes import spin_in_background  # noqa: E402
 
 BIN = Path(sys.executable).parent
 NODES = ('imageProjection', 'featureAssociation', 'mapOptimization', 'transformFusion')
@@ -265,7 +265,7 @@ def median_row(runs: list[dict]) -> dict:
 def _ate(bag: Path, fused: list) -> float | None:
     from lego_loam_py.core.frames import camera_pose_to_lidar
     from lego_loam_py.evaluation import evaluate
-    from lego_loam_py.sim.output import load_ground_truth
+    from lego_loam_py.inputs.sidecars import load_ground_truth
 
     truth = load_ground_truth(bag)
     if truth is None or len(fused) < 3:

@@ -89,7 +89,7 @@ def bench_image_projection(scans: int) -> None:
     # The node callback with conversions, in-process (no subscriber: publishing costs the message build).
     import rclpy
     from rclpy.context import Context
-    from tests.support.domains import DomainLease
+    from lego_loam_py.testing.domains import DomainLease
 
     from lego_loam_py.ros.conversions import array_to_cloud_msg, make_header
     from lego_loam_py.ros.image_projection_node import ImageProjectionNode

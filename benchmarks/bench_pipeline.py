@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 from lego_loam_py.core.params import Params  # noqa: E402
 from lego_loam_py.evaluation import evaluate  # noqa: E402
 from lego_loam_py.offline import run_bag  # noqa: E402
-from lego_loam_py.sim.output import load_ground_truth  # noqa: E402
+from lego_loam_py.inputs.sidecars import load_ground_truth  # noqa: E402
 
 RESULTS = ROOT / 'benchmarks' / 'results.md'
 BEGIN, END = '<!-- bench_pipeline:begin -->', '<!-- bench_pipeline:end -->'
@@ -65,7 +65,7 @@ def offline(bag: Path) -> dict:
 def dds(bag: Path, rate: float) -> dict:
     """One DDS replay through the supervisor (lego_loam_py demo) on a leased ROS domain."""
     from lego_loam_py.demo import run_demo
-    from tests.support.domains import DomainLease
+    from lego_loam_py.testing.domains import DomainLease
 
     with DomainLease() as domain, tempfile.TemporaryDirectory(prefix='bench_pipeline_') as out:
         os.environ['ROS_DOMAIN_ID'] = str(domain)

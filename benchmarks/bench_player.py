@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from lego_loam_py.bag.io import BagWriter, make_cloud_msg  # noqa: E402
 from lego_loam_py.core.pointcloud import velodyne_points  # noqa: E402
-from tests.support.domains import DomainLease  # noqa: E402
+from lego_loam_py.testing.domains import DomainLease  # noqa: E402
 
 SUBSCRIBER = textwrap.dedent('''
     import sys, time, rclpy

@@ -7,7 +7,7 @@
 The four nodes run as processes (``ros2 run`` executables) on a leased ROS_DOMAIN_ID with loopback discovery.
 This process feeds them the committed campus recording one scan at a time (lockstep: the next scan once the
 previous one's /integrated_to_init is out, or after 2 s) and, between those scans, bursts of malformed
-messages on each topic a node subscribes to, from ``tests/support/malformed.py`` (every field of every
+messages on each topic a node subscribes to, from ``lego_loam_py/testing/malformed.py`` (every field of every
 message type: boundary and absurd values, broken layouts, other lengths, stamps far away; a few clouds of
 2,000,000 points). After each burst the valid scans resume, and for every node it measures:
 
@@ -42,11 +42,11 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from lego_loam_py.formats import pcd_is_complete  # noqa: E402
-from tests.support.domains import DomainLease  # noqa: E402
-from tests.support.inprocess import restamped, stamp_of  # noqa: E402
-from tests.support.malformed import MUTATORS  # noqa: E402
-from tests.support.measure import rss_mb  # noqa: E402
-from tests.support.ros import spin_in_background  # noqa: E402
+from lego_loam_py.testing.domains import DomainLease  # noqa: E402
+from lego_loam_py.testing.messages import restamped, stamp_of  # noqa: E402
+from lego_loam_py.testing.malformed import MUTATORS  # noqa: E402
+from lego_loam_py.testing.measure import rss_mb  # noqa: E402
+from lego_loam_py.testing.nodes import spin_in_background  # noqa: E402
 
 BIN = Path(sys.executable).parent
 BAG = REPO / 'bags' / 'campus_8s'
@@ -98,7 +98,7 @@ class Campaign:
         from rclpy.executors import SingleThreadedExecutor
 
         from lego_loam_py.ros import qos
-        from tests.support.ros import Diagnostics
+        from lego_loam_py.testing.nodes import Diagnostics
 
         self.out = out
         (out / 'logs').mkdir(parents=True, exist_ok=True)

@@ -24,7 +24,7 @@ from lego_loam_py.core.params import Params  # noqa: E402
 from lego_loam_py.evaluation import evaluate  # noqa: E402
 from lego_loam_py.offline import run_bag  # noqa: E402
 from lego_loam_py.sim.driver_layouts import LAYOUTS, cached_layout  # noqa: E402
-from lego_loam_py.sim.output import load_ground_truth  # noqa: E402
+from lego_loam_py.inputs.sidecars import load_ground_truth  # noqa: E402
 from lego_loam_py.sim.simulator import cached_scenario  # noqa: E402
 
 

@@ -23,7 +23,7 @@ sys.path.insert(0, str(ROOT))
 from lego_loam_py.core.params import Params, parse_overrides  # noqa: E402
 from lego_loam_py.evaluation import error_over_time  # noqa: E402
 from lego_loam_py.offline import run_bag  # noqa: E402
-from lego_loam_py.sim.output import load_ground_truth  # noqa: E402
+from lego_loam_py.inputs.sidecars import load_ground_truth  # noqa: E402
 
 TURN_DEG_S = 20.0
 

@@ -30,7 +30,7 @@ from lego_loam_py.core.frames import rpy_to_matrix  # noqa: E402
 from lego_loam_py.core.params import Params  # noqa: E402
 from lego_loam_py.evaluation import evaluate  # noqa: E402
 from lego_loam_py.offline import run_bag  # noqa: E402
-from lego_loam_py.sim.output import load_ground_truth  # noqa: E402
+from lego_loam_py.inputs.sidecars import load_ground_truth  # noqa: E402
 from lego_loam_py.sim.simulator import cached_scenario  # noqa: E402
 
 MOUNTS = {'yaw90': (0.0, 0.0, 90.0), 'roll180': (180.0, 0.0, 0.0), 'arbitrary': (10.0, -20.0, 130.0)}

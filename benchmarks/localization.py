@@ -44,9 +44,10 @@ from lego_loam_py.core.mapping.map_bundle import MapBundle, read_bundle, write_b
 from lego_loam_py.core.params import Params  # noqa: E402
 from lego_loam_py.evaluation import errors_in_map, rigid_fit  # noqa: E402
 from lego_loam_py.offline import run_bag  # noqa: E402
-from lego_loam_py.sim.output import load_scenario, true_poses  # noqa: E402
+from lego_loam_py.inputs.sidecars import load_scenario  # noqa: E402
+from lego_loam_py.sim.output import true_poses  # noqa: E402
 from lego_loam_py.sim.simulator import cached_scenario  # noqa: E402
-from tests.support.bags import cut_bag  # noqa: E402
+from lego_loam_py.testing.bags import cut_bag  # noqa: E402
 
 WRONG_M, WRONG_DEG = 1.0, 10.0
 # Where the localization drives start on each scenario's path [m of arc length] (in the mapped lap, the other

@@ -37,7 +37,7 @@ from lego_loam_py.core.params import Params, default_params_file, load_params  #
 from lego_loam_py.evaluation import evaluate  # noqa: E402
 from lego_loam_py.offline import run_bag  # noqa: E402
 from lego_loam_py.results import LoopClosures  # noqa: E402
-from lego_loam_py.sim.output import load_ground_truth  # noqa: E402
+from lego_loam_py.inputs.sidecars import load_ground_truth  # noqa: E402
 from benchmarks.common import run_shifted  # noqa: E402
 
 FALSE_LOOP_M, FALSE_LOOP_DEG = 0.5, 2.0

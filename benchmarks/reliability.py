@@ -9,7 +9,7 @@
 Every run starts the four nodes as processes (their logs, statistics and maps go to ``--out``, default
 ``/tmp/lego_loam_reliability/<mode>``) on a leased ROS_DOMAIN_ID with loopback discovery, feeds them the
 simulated campus lap (``cached_scenario('campus')``, generated once, about 2 minutes) through
-``tests/support/feeder.py`` (continuous stamps over as many laps as needed), samples the resident memory of
+``lego_loam_py/testing/feeder.py`` (continuous stamps over as many laps as needed), samples the resident memory of
 every node from /proc, and prints a summary (and writes ``summary.json``). The short versions of these
 checks are ``tests/test_reliability.py``.
 """
@@ -33,9 +33,9 @@ sys.path.insert(0, str(REPO))
 
 from lego_loam_py.formats import pcd_is_complete, tum_is_complete  # noqa: E402
 from lego_loam_py.core.params import write_params_file  # noqa: E402
-from tests.support.domains import DomainLease  # noqa: E402
-from tests.support.measure import rss_mb  # noqa: E402
-from tests.support.ros import spin_in_background  # noqa: E402
+from lego_loam_py.testing.domains import DomainLease  # noqa: E402
+from lego_loam_py.testing.measure import rss_mb  # noqa: E402
+from lego_loam_py.testing.nodes import spin_in_background  # noqa: E402
 
 BIN = Path(sys.executable).parent
 NODES = ('imageProjection', 'featureAssociation', 'mapOptimization', 'transformFusion')
@@ -148,7 +148,7 @@ class Pipeline:
                        for k in range(1, self.starts.get(name, 0) + 1))
 
     def feeder(self, bag: Path, *args) -> subprocess.Popen:
-        proc = subprocess.Popen([sys.executable, '-m', 'tests.support.feeder', str(bag), *map(str, args)],
+        proc = subprocess.Popen([sys.executable, '-m', 'lego_loam_py.testing.feeder', str(bag), *map(str, args)],
                                 cwd=REPO, env=self.env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
                                 start_new_session=True)
         self.others.append(proc)
@@ -199,13 +199,13 @@ def _stamp(msg) -> int:
 def fed_scan_stamps(bag: Path, seconds: float) -> list[int]:
     """Header stamps of the scans the feeder publishes in ``seconds`` of data (continuous over laps)."""
     from lego_loam_py.bag.io import BagReader
-    from tests.support.feeder import header_stamp_ns
+    from lego_loam_py.ros.conversions import serialized_stamp_ns
 
     stamps, times = [], []
     with BagReader(bag) as reader:
         lap = reader.end_time - reader.start_time + 100_000_000
         for m in reader.messages(topics=['/velodyne_points']):
-            stamps.append(header_stamp_ns(m.data))
+            stamps.append(serialized_stamp_ns(m.data))
             times.append(m.timestamp - reader.start_time)
     out = []
     laps = int(seconds * 1e9 // lap) + 1

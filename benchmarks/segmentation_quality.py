@@ -23,7 +23,7 @@ sys.path.insert(0, str(ROOT))
 from lego_loam_py.bag.io import BagReader, cloud_msg_to_array  # noqa: E402
 from lego_loam_py.core.projection.image_projection import OUTLIER_LABEL, ImageProjection, prepare_input  # noqa: E402
 from lego_loam_py.core.params import Params  # noqa: E402
-from lego_loam_py.sim.output import load_labels  # noqa: E402
+from lego_loam_py.inputs.sidecars import load_labels  # noqa: E402
 
 __all__ = ['adjusted_rand_index', 'scan_quality', 'evaluate_bag']
 

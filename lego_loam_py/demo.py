@@ -30,6 +30,7 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from lego_loam_py.core.guard import KEYFRAMES, MAPPING_STEPS, SCANS_DROPPED, SCANS_PROCESSED, SCANS_WITH_IMU
+from lego_loam_py.core.trajectory import Trajectory
 from lego_loam_py.errors import UsageError
 from lego_loam_py.orchestration import DEFAULT_RECORD_TOPICS, NODES, PipelineConfig, run_pipeline
 from lego_loam_py.results import DemoSummary, LoopClosures, TimingStats
@@ -81,16 +82,18 @@ def read_stats(stats_dir: Path) -> dict[str, dict]:
     return out
 
 
-def read_trajectory(recording: Path, topic: str = '/integrated_to_init') -> tuple[np.ndarray, np.ndarray]:
-    """(header stamps [ns], 4x4 poses in camera_init axes) of the Odometry messages of ``topic`` in a
-    recorded bag, in the order they were published."""
+def read_trajectory(recording: Path, topic: str = '/integrated_to_init', offset_ns: int = 0) -> Trajectory:
+    """The poses (camera_init frame) of the Odometry messages of ``topic`` in a recorded bag, in the order they
+    were published, at their header stamps + ``offset_ns`` [ns]; empty without the topic or the bag."""
     from lego_loam_py.bag.io import BagReader
     from lego_loam_py.ros.conversions import odometry_to_pose
 
     stamps, poses = [], []
+    if not (recording / 'metadata.yaml').is_file():
+        return Trajectory(np.zeros(0, np.int64), np.zeros((0, 4, 4)), 'camera_init')
     with BagReader(recording) as reader:
         if topic not in reader.topics():
-            return np.zeros(0, np.int64), np.zeros((0, 4, 4))
+            return Trajectory(np.zeros(0, np.int64), np.zeros((0, 4, 4)), 'camera_init')
         for message in reader.messages(topics=[topic]):
             msg = reader.deserialize(message)
             try:
@@ -99,7 +102,7 @@ def read_trajectory(recording: Path, topic: str = '/integrated_to_init') -> tupl
                 continue
             stamps.append(int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec))
             poses.append(pose)
-    return np.array(stamps, dtype=np.int64), np.array(poses).reshape(-1, 4, 4)
+    return Trajectory(np.array(stamps, dtype=np.int64) + offset_ns, np.array(poses).reshape(-1, 4, 4), 'camera_init')
 
 
 def _clear_previous_outputs(out: Path) -> None:
@@ -193,9 +196,8 @@ def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_
     figures = _node_summary(stats)
     counters = _node_counters(stats)
     recording = out / 'recording'
-    stamps, poses = (read_trajectory(recording) if (recording / 'metadata.yaml').is_file()
-                     else (np.zeros(0, np.int64), np.zeros((0, 4, 4))))
-    stamps = stamps + pose_time_offset_ns(params)
+    trajectory = read_trajectory(recording, offset_ns=pose_time_offset_ns(params))
+    stamps = trajectory.stamps_ns
     fa = counters['featureAssociation']
     # Scans imageProjection published that featureAssociation neither processed nor rejected: overwritten in
     # its depth-1 input queues while it was busy (the original's queue semantics), when it is not real time.
@@ -213,7 +215,7 @@ def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_
         interrupted=outcome.interrupted, ready_after_s=outcome.ready_after_s,
         loop_closures=_loop_closures(stats))
     if len(stamps):
-        write_outputs(out, bag, stamps, poses, None, summary, params, map_dir=map_dir)
+        write_outputs(out, bag, trajectory, None, summary, params, map_dir=map_dir)
     else:   # no pose, no trajectory file, picture or accuracy: the summary says 0 m
         write_summary(out, summary)
     exit_code = outcome.exit_code

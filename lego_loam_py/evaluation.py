@@ -22,10 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
+from lego_loam_py.core.trajectory import Trajectory
 from lego_loam_py.errors import LegoLoamError, UsageError
 
 __all__ = ['TrajectoryMetrics', 'ErrorOverTime', 'evaluate', 'error_over_time', 'path_length', 'plot_trajectories',
-           'relative_to_first', 'rigid_fit', 'errors_in_map']
+           'relative_to_first', 'rigid_fit', 'in_map', 'view_limits', 'ErrorInMap', 'errors_in_map']
 
 
 @dataclass
@@ -65,6 +66,13 @@ def relative_to_first(poses: np.ndarray) -> np.ndarray:
     return np.linalg.inv(poses[0])[None] @ poses if len(poses) else poses
 
 
+def in_map(trajectory: Trajectory | tuple[np.ndarray, np.ndarray]) -> Trajectory:
+    """``trajectory`` in the map frame (REP-103 axes); a (stamps [ns], poses) pair is taken to be in it already."""
+    if isinstance(trajectory, Trajectory):
+        return trajectory.to('map')
+    return Trajectory(*trajectory, 'map')
+
+
 def _trajectory(stamps_ns: np.ndarray, poses: np.ndarray):
     from evo.core.trajectory import PoseTrajectory3D
     return PoseTrajectory3D(poses_se3=list(np.asarray(poses, dtype=float)),
@@ -77,13 +85,14 @@ def _associate(ref_stamps, ref_poses, est_stamps, est_poses, max_diff: float):
                                        max_diff=max_diff)
 
 
-def evaluate(ground_truth: tuple[np.ndarray, np.ndarray], estimate: tuple[np.ndarray, np.ndarray],
+def evaluate(ground_truth: Trajectory | tuple[np.ndarray, np.ndarray], estimate: Trajectory | tuple[np.ndarray, np.ndarray],
              rpe_delta_m: float = 10.0, max_time_diff: float = 0.01) -> TrajectoryMetrics:
-    """Metrics of ``estimate`` = (stamps [ns], (N, 4, 4) poses) against ``ground_truth`` (same form)."""
+    """Metrics of ``estimate`` against ``ground_truth``: trajectories (compared in the map frame), or (stamps [ns],
+    (N, 4, 4) poses in REP-103 axes) pairs."""
     from evo.core import metrics
     from evo.core.units import Unit
 
-    ref, est = _associate(*ground_truth, *estimate, max_diff=max_time_diff)
+    ref, est = _associate(*in_map(ground_truth), *in_map(estimate), max_diff=max_time_diff)
     if ref.num_poses < 2:
         raise ValueError(f'only {ref.num_poses} poses of the estimate match the ground truth in time')
     ref_poses = np.array(ref.poses_se3)
@@ -157,16 +166,16 @@ class ErrorOverTime:
         return self.rotation_deg[:, 2]
 
 
-def error_over_time(ground_truth: tuple[np.ndarray, np.ndarray], estimate: tuple[np.ndarray, np.ndarray],
-                    max_time_diff: float = 0.01) -> ErrorOverTime:
+def error_over_time(ground_truth: Trajectory | tuple[np.ndarray, np.ndarray],
+                    estimate: Trajectory | tuple[np.ndarray, np.ndarray], max_time_diff: float = 0.01) -> ErrorOverTime:
     """Error of every pose of ``estimate`` = (stamps [ns], (N, 4, 4) poses, REP-103 axes) that has a
     ground-truth pose within ``max_time_diff`` [s], both relative to their first matched pose (no alignment:
     the error as it builds up), in the world (z up): positions, and the attitude error ``R_est R_true^T`` as a
     rotation vector."""
     from scipy.spatial.transform import Rotation
 
-    truth_stamps, truth_poses = (np.asarray(a) for a in ground_truth)
-    stamps, poses = (np.asarray(a) for a in estimate)
+    truth_stamps, truth_poses = in_map(ground_truth)
+    stamps, poses = in_map(estimate)
     index = np.clip(np.searchsorted(truth_stamps, stamps), 1, max(len(truth_stamps) - 1, 1))
     nearest = np.where(np.abs(truth_stamps[index - 1] - stamps) <= np.abs(truth_stamps[index] - stamps),
                        index - 1, index)
@@ -193,15 +202,31 @@ def rigid_fit(points: np.ndarray, targets: np.ndarray) -> np.ndarray:
     return fit
 
 
+@dataclass(frozen=True)
+class ErrorInMap:
+    """Position error [m] of the published poses against the ground truth expressed in the saved map's frame,
+    without aligning the trajectory. ``anchor`` says how the map frame is placed in the simulated world:
+    'first_keyframe' (where the map's first keyframe says it is: the map's own drift counts) or 'map_fit' (the
+    rigid fit of all the map's keyframes to their true poses: the map's own error mostly does not)."""
+
+    anchor: str
+    median_m: float
+    p95_m: float
+    max_m: float
+    poses: int
+    map_median_m: float      # the map's keyframes against their ground truth in the same placement
+    map_p95_m: float
+
+
 def errors_in_map(bag: str | Path, map_source: dict, keyframe_stamps: np.ndarray, keyframe_poses: np.ndarray,
-                  stamps: np.ndarray, poses: np.ndarray) -> list:
+                  stamps: np.ndarray, poses: np.ndarray) -> list[ErrorInMap]:
     """Position errors of ``poses`` ((N, 4, 4) REP-103, in a saved map's frame, at ``stamps`` [ns]) against the
     ground truth of a simulated ``bag`` expressed in that map's frame, without aligning the poses
-    (:class:`lego_loam_py.results.ErrorInMap`, one per placement of the map in the world; see there). [] when
+    (:class:`ErrorInMap`, one per placement of the map in the world; see there). [] when
     either recording is not simulated, or they were made in different worlds. ``map_source``: the bundle's
     ``source``; ``keyframe_stamps`` / ``keyframe_poses`` (K, 4, 4) REP-103: the map's keyframes."""
-    from lego_loam_py.results import ErrorInMap
-    from lego_loam_py.sim.output import load_scenario, same_scene, true_poses
+    from lego_loam_py.inputs.sidecars import load_scenario
+    from lego_loam_py.sim.output import same_scene, true_poses
 
     scenario, mapped = load_scenario(bag), map_source.get('simulated')
     if scenario is None or mapped is None or not len(poses) or not same_scene(scenario, mapped):
@@ -220,10 +245,24 @@ def errors_in_map(bag: str | Path, map_source: dict, keyframe_stamps: np.ndarray
     return out
 
 
+def view_limits(trajectories: dict[str, np.ndarray], margin_fraction: float = 0.25,
+                min_margin_m: float = 10.0) -> tuple[float, float, float, float] | None:
+    """(x min, x max, y min, y max) [m] of a top view that frames the trajectories ((N, 4, 4) poses, by name): their
+    extent and a margin of ``margin_fraction`` of it, at least ``min_margin_m``, so that a short drive is seen
+    with the map around it rather than lost in the whole map. None without a pose."""
+    xy = [np.asarray(poses).reshape(-1, 4, 4)[:, :2, 3] for poses in trajectories.values()]
+    xy = np.concatenate([a for a in xy if len(a)]) if any(len(a) for a in xy) else np.zeros((0, 2))
+    if not len(xy):
+        return None
+    low, high = xy.min(axis=0), xy.max(axis=0)
+    margin = max(min_margin_m, margin_fraction * float((high - low).max()))
+    return float(low[0] - margin), float(high[0] + margin), float(low[1] - margin), float(high[1] + margin)
+
+
 def plot_trajectories(path: str | Path, trajectories: dict[str, np.ndarray], map_points: np.ndarray | None = None,
                       title: str = '') -> Path:
     """PNG of trajectories ((N, 4, 4) poses in REP-103 axes, by name) seen from above, over a map's points
-    (N, 3+) coloured by height."""
+    (N, 3+) coloured by height; the view frames the trajectories (:func:`view_limits`), or the map without one."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -231,13 +270,18 @@ def plot_trajectories(path: str | Path, trajectories: dict[str, np.ndarray], map
     from lego_loam_py.formats import atomic_path
 
     figure, axes = plt.subplots(figsize=(9, 9), dpi=110)
+    limits = view_limits(trajectories)
     if map_points is not None and len(map_points):
         pts = np.asarray(map_points)
+        if limits is not None:   # (the points out of view would only cost time and thin out those in it)
+            pts = pts[(pts[:, 0] >= limits[0]) & (pts[:, 0] <= limits[1]) & (pts[:, 1] >= limits[2]) &
+                      (pts[:, 1] <= limits[3])]
         if len(pts) > 400_000:
             pts = pts[np.random.default_rng(0).choice(len(pts), 400_000, replace=False)]
-        z = pts[:, 2]
-        lo, hi = np.percentile(z, [2, 98])
-        axes.scatter(pts[:, 0], pts[:, 1], c=np.clip(z, lo, hi), s=0.2, cmap='gray_r', alpha=0.6, linewidths=0)
+        if len(pts):
+            z = pts[:, 2]
+            lo, hi = np.percentile(z, [2, 98])
+            axes.scatter(pts[:, 0], pts[:, 1], c=np.clip(z, lo, hi), s=0.2, cmap='gray_r', alpha=0.6, linewidths=0)
     colours = ['tab:green', 'tab:red', 'tab:blue', 'tab:orange', 'tab:purple']
     for (name, poses), colour in zip(trajectories.items(), colours):
         xy = np.asarray(poses).reshape(-1, 4, 4)[:, :2, 3]
@@ -245,7 +289,10 @@ def plot_trajectories(path: str | Path, trajectories: dict[str, np.ndarray], map
             continue
         axes.plot(xy[:, 0], xy[:, 1], '-', color=colour, linewidth=1.6, label=name)
         axes.plot(xy[0, 0], xy[0, 1], 'o', color=colour, markersize=5)
-    axes.set_aspect('equal')
+    if limits is not None:
+        axes.set_xlim(limits[0], limits[1])
+        axes.set_ylim(limits[2], limits[3])
+    axes.set_aspect('equal', adjustable='datalim')
     axes.set_xlabel('x [m] (map, REP-103)')
     axes.set_ylabel('y [m]')
     axes.grid(True, linewidth=0.3)
@@ -275,15 +322,16 @@ def main(args) -> int:
     import json
 
     from lego_loam_py.formats import read_tum
-    from lego_loam_py.sim.output import load_ground_truth
+    from lego_loam_py.inputs.sidecars import load_ground_truth
 
     source = args.bag or args.ground_truth
     if source is None:
         raise UsageError('give a ground-truth TUM file or --bag')
     try:
-        estimate = read_tum(args.estimate)
+        estimate = Trajectory(*read_tum(args.estimate), 'map')
         path = Path(source)
-        ground_truth = read_tum(path) if path.is_file() and path.suffix != '.bag' else load_ground_truth(path)
+        ground_truth = (Trajectory(*read_tum(path), 'map') if path.is_file() and path.suffix != '.bag'
+                        else load_ground_truth(path))
         if ground_truth is None:
             raise LegoLoamError(f'no ground truth beside {source}')
         metrics = evaluate(ground_truth, estimate, rpe_delta_m=args.delta, max_time_diff=args.max_time_diff)
@@ -294,7 +342,8 @@ def main(args) -> int:
         from lego_loam_py.formats import write_text_atomic
         write_text_atomic(args.json, json.dumps(metrics.as_dict(), indent=2))
     if args.plot:
-        first = int(np.argmin(np.abs(ground_truth[0] - estimate[0][0])))
-        aligned_truth = relative_to_first(ground_truth[1][first:])
-        print(f'plot: {plot_trajectories(args.plot, {"ground truth": aligned_truth, "estimate": relative_to_first(estimate[1])})}')
+        first = int(np.argmin(np.abs(ground_truth.stamps_ns - estimate.stamps_ns[0])))
+        aligned_truth = relative_to_first(ground_truth.poses[first:])
+        drawn = {'ground truth': aligned_truth, 'estimate': relative_to_first(estimate.poses)}
+        print(f'plot: {plot_trajectories(args.plot, drawn)}')
     return 0

@@ -31,7 +31,7 @@ from lego_loam_py.core.pipeline_events import PipelineListener
 from lego_loam_py.inputs import SOURCE_KINDS, ImuSample, Scan, Source, open_source
 from lego_loam_py.outputs import TRAJECTORY_FORMATS, result_lines, write_outputs
 from lego_loam_py.results import LocalizationSummary, LoopClosures, OfflineSummary, TimingStats
-from lego_loam_py.sim.output import recording_source
+from lego_loam_py.inputs.sidecars import recording_source
 
 __all__ = ['RunResult', 'run_bag', 'run_source', 'format_summary', 'loop_closures_of', 'localization_of',
            'add_arguments', 'main']
@@ -127,16 +127,16 @@ def localization_of(bag: str | Path, result: RunResult) -> LocalizationSummary |
 
 def write_optimized_trajectory(out: Path, ground_truth, result: RunResult, summary: OfflineSummary) -> None:
     """``trajectory_optimized.tum`` (REP-103 map axes): the fused trajectory in the pose graph's final frame, and
-    its accuracy in the summary against ``ground_truth`` ((stamps [ns], lidar poses) of the recording, or None)."""
+    its accuracy in the summary against ``ground_truth`` (the recording's trajectory, or None)."""
     from lego_loam_py.formats import write_tum_atomic
     from lego_loam_py.evaluation import evaluate
     from lego_loam_py.outputs import write_summary
 
-    stamps, poses = result.optimized_trajectory()
-    write_tum_atomic(out / 'trajectory_optimized.tum', stamps, poses)
+    trajectory = result.optimized_trajectory()
+    write_tum_atomic(out / 'trajectory_optimized.tum', *trajectory)
     if ground_truth is not None:
         try:
-            summary.outputs.accuracy_optimized = evaluate(ground_truth, (stamps, poses))
+            summary.outputs.accuracy_optimized = evaluate(ground_truth, trajectory)
         except ValueError:
             pass   # (the published trajectory's accuracy_error says why)
     write_summary(out, summary)
@@ -250,14 +250,15 @@ def main(args: argparse.Namespace) -> int:
             if view is not None:
                 view.finish()
         ground_truth = source.ground_truth()
-    stamps, poses = result.trajectory(axes='camera_init')
+    trajectory = result.trajectory(axes='camera_init')
+    stamps = trajectory.stamps_ns
     summary = OfflineSummary(bag=str(args.bag), counts=result.counts,
                              timings_ms={name: TimingStats.of(v) for name, v in result.timings_ms.items() if v},
                              wall_time_s=result.wall_time, bag_duration_s=result.bag_duration,
                              loop_closures=loop_closures_of(result, params),
                              localization=localization_of(args.bag, result))
     localized = summary.localization is not None
-    write_outputs(out, args.bag, stamps, poses, result.mapper, summary, params,
+    write_outputs(out, args.bag, trajectory, result.mapper, summary, params,
                   map_dir=result.mapper.prior.bundle.path if localized else None, in_saved_map=localized,
                   ground_truth=ground_truth, trajectory_format=args.trajectory_format)
     if summary.loop_closures is not None and summary.loop_closures.accepted and len(stamps) >= 3:

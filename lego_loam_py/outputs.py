@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lego_loam_py.core.frames import camera_pose_to_lidar
+from lego_loam_py.core.trajectory import Trajectory
 from lego_loam_py.formats import write_kitti_poses_atomic, write_text_atomic, write_tum_atomic
 from lego_loam_py.core.mapping.map_optimization import MapOptimization
 from lego_loam_py.core.params import Params
@@ -26,15 +26,15 @@ def write_summary(out_dir: str | Path, summary: OfflineSummary | DemoSummary) ->
     write_text_atomic(Path(out_dir) / 'summary.json', summary.to_json())
 
 
-def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, poses_camera_init: np.ndarray,
+def write_outputs(out_dir: str | Path, bag: str | Path, trajectory: Trajectory,
                   mapper: MapOptimization | None, summary: OfflineSummary | DemoSummary, params: Params,
                   map_dir: str | Path | None = None, in_saved_map: bool = False, *, ground_truth=_BESIDE_THE_BAG,
                   trajectory_format: str = 'tum') -> RunOutputs:
     """Trajectories, maps, PNG and summary.json into ``out_dir``; measures what they show (with the accuracy
     when there is a ground truth) into ``summary.outputs``, which it returns.
 
-    ``ground_truth``: (stamps [ns], lidar poses) of the recording, None for none (default: the one beside the
-    bag). ``trajectory_format`` 'kitti' adds ``trajectory_kitti.txt``: the TUM file's poses (lidar in ``map``,
+    ``trajectory``: the published poses (in either frame). ``ground_truth``: the recording's (a trajectory), None
+    for none (default: the one beside the bag). ``trajectory_format`` 'kitti' adds ``trajectory_kitti.txt``: the TUM file's poses (lidar in ``map``,
     REP-103) in KITTI's layout, 12 numbers a line, one line per pose.
 
     The maps come from ``mapper`` (saved into ``out_dir/map``) or, without one, from ``map_dir`` where they
@@ -42,16 +42,15 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
     and drawn under the PNG. ``in_saved_map``: the poses are in a saved map's frame (localization), so the drawn
     ground truth starts at the first pose instead of the origin."""
     from lego_loam_py.evaluation import evaluate, path_length, plot_trajectories
-    from lego_loam_py.sim.output import load_ground_truth
+    from lego_loam_py.inputs.sidecars import load_ground_truth
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    poses_camera_init = np.asarray(poses_camera_init).reshape(-1, 4, 4)
-    poses_map = camera_pose_to_lidar(np.asarray(poses_camera_init).reshape(-1, 4, 4))
+    stamps, poses_map = trajectory.to('map')
     result = summary.outputs = RunOutputs(poses=int(len(poses_map)))
     if len(poses_map):   # (no pose, no file: an empty trajectory file would look like a broken one)
         write_tum_atomic(out / 'trajectory.tum', stamps, poses_map)
-        write_tum_atomic(out / 'trajectory_camera_init.tum', stamps, poses_camera_init)
+        write_tum_atomic(out / 'trajectory_camera_init.tum', stamps, trajectory.to('camera_init').poses)
         if trajectory_format == 'kitti':
             write_kitti_poses_atomic(out / 'trajectory_kitti.txt', poses_map)
     result.trajectory_length_m = path_length(poses_map)
@@ -73,9 +72,8 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
         result.accuracy_error = (f'not evaluated: {len(stamps)} pose(s); the evaluation needs at least 3 (the '
                                      'first scan only initialises the odometry)')
     elif ground_truth is not None:
-        gt_stamps, gt_poses = ground_truth
         try:
-            result.accuracy = evaluate((gt_stamps, gt_poses), (stamps, poses_map))
+            result.accuracy = evaluate(ground_truth, trajectory)
         except ValueError as exc:
             result.accuracy_error = str(exc)
     if ground_truth is not None and len(stamps):

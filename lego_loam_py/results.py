@@ -14,10 +14,10 @@ from typing import TYPE_CHECKING, ClassVar, Sequence
 import numpy as np
 
 if TYPE_CHECKING:
-    from lego_loam_py.evaluation import TrajectoryMetrics
+    from lego_loam_py.evaluation import ErrorInMap, TrajectoryMetrics
     from lego_loam_py.supervisor import ProcessResult
 
-__all__ = ['TimingStats', 'MapToScene', 'RunOutputs', 'LoopClosures', 'LocalizationSummary', 'ErrorInMap',
+__all__ = ['TimingStats', 'MapToScene', 'RunOutputs', 'LoopClosures', 'LocalizationSummary',
            'OfflineSummary', 'DemoSummary']
 
 
@@ -92,22 +92,6 @@ class LoopClosures:
                        f"({loop['detector']}{score}), rmse {loop['rmse_m']:.3f} m, overlap {loop['overlap']:.2f}, "
                        f"correction {loop['correction_m']:.3f} m / {loop['correction_deg']:.2f} deg")
         return out
-
-
-@dataclass(frozen=True)
-class ErrorInMap:
-    """Position error [m] of the published poses against the ground truth expressed in the saved map's frame,
-    without aligning the trajectory. ``anchor`` says how the map frame is placed in the simulated world:
-    'first_keyframe' (where the map's first keyframe says it is: the map's own drift counts) or 'map_fit' (the
-    rigid fit of all the map's keyframes to their true poses: the map's own error mostly does not)."""
-
-    anchor: str
-    median_m: float
-    p95_m: float
-    max_m: float
-    poses: int
-    map_median_m: float      # the map's keyframes against their ground truth in the same placement
-    map_p95_m: float
 
 
 @dataclass(frozen=True)

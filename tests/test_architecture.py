@@ -408,3 +408,39 @@ def test_the_inputs_and_the_viewer_know_no_ros_and_the_core_knows_neither():
         if bad:
             offenders[str(path.relative_to(CORE))] = sorted(bad)
     assert not offenders, offenders
+
+
+
+PACKAGE = CORE.parent
+# What reads and writes a user's recordings and results never goes through the simulator: a real drive's ground
+# truth is read by inputs/ (inputs/sidecars.py), which the simulator writes to, not the other way round.
+NO_SIMULATOR = ('inputs', 'bag', 'sensors', 'ros', 'formats.py', 'offline.py', 'results.py', 'testing')
+
+
+def imports_of(paths: list[Path], prefix: str) -> list[str]:
+    """'<file name> imports <module>' for each import of the module ``prefix`` or one under it in ``paths``."""
+    return [f'{path.name} imports {name}' for path in paths for name in sorted(imported_modules(path))
+            if name == prefix or name.startswith(prefix + '.')]
+
+
+def test_recordings_and_results_are_read_without_the_simulator():
+    paths = [p for entry in NO_SIMULATOR for p in
+             ([PACKAGE / entry] if entry.endswith('.py') else sorted((PACKAGE / entry).rglob('*.py')))]
+    assert len(paths) > 20
+    assert imports_of(paths, 'lego_loam_py.sim') == []
+
+
+def test_benchmarks_import_nothing_of_the_tests():
+    """What the tests and the benchmarks share lives in the package (lego_loam_py/testing), not in tests/."""
+    benchmarks = sorted((PACKAGE.parent / 'benchmarks').glob('*.py'))
+    assert len(benchmarks) > 10
+    assert imports_of(benchmarks, 'tests') == []
+
+
+def test_the_layering_checks_find_an_offender(tmp_path):
+    reader = tmp_path / 'reader.py'
+    reader.write_text('import testsuite\n\ndef truth(bag):\n    from lego_loam_py.sim.output import world_of\n'
+                      '    from tests.support import scenes\n')
+    assert imports_of([reader], 'lego_loam_py.sim') == ['reader.py imports lego_loam_py.sim.output',
+                                                        'reader.py imports lego_loam_py.sim.output.world_of']
+    assert imports_of([reader], 'tests') == ['reader.py imports tests.support', 'reader.py imports tests.support.scenes']

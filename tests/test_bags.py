@@ -10,7 +10,7 @@ import pytest
 
 from lego_loam_py.bag.io import BagReader, BagWriter, cloud_msg_to_array, make_cloud_msg
 from lego_loam_py.core.pointcloud import velodyne_points
-from tests.support.ros import release, spin_until, wait_for_line
+from lego_loam_py.testing.nodes import release, spin_until, wait_for_line
 from tests.support.samples import cloud_info_arrays
 
 REPO = Path(__file__).resolve().parents[1]

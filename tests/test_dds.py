@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.support.ros import release, spin_until, wait_for_line
+from lego_loam_py.testing.nodes import release, spin_until, wait_for_line
 from tests.support.samples import cloud_info_arrays
 
 REPO = Path(__file__).resolve().parents[1]
@@ -129,7 +129,7 @@ def test_a_node_serves_with_either_executor(rclpy_context, processes, executor):
     from lego_loam_py.ros import qos
     from lego_loam_py.ros.conversions import make_header, pose_to_odometry
     from lego_loam_py.ros.conversions import stamp_to_ns
-    from tests.support.ros import Diagnostics, links_matched, publish_in_lockstep
+    from lego_loam_py.testing.nodes import Diagnostics, links_matched, publish_in_lockstep
 
     env = dict(os.environ, LEGO_LOAM_PY_EXECUTOR=executor)
     node = rclpy.create_node(f'executor_probe_{executor}', context=rclpy_context)

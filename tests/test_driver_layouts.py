@@ -26,7 +26,7 @@ from lego_loam_py.core.pointcloud import (POINT_XYZI_DTYPE, VELODYNE_POINT_DTYPE
 from lego_loam_py.evaluation import evaluate
 from lego_loam_py.offline import run_bag
 from lego_loam_py.sim.driver_layouts import LAYOUTS, OUSTER_DTYPE, cached_layout, in_layout, pixels_of
-from lego_loam_py.sim.output import load_ground_truth
+from lego_loam_py.inputs.sidecars import load_ground_truth
 
 PARAMS = Params()
 POINT_TIME = PARAMS.replace(feature_association__relative_time_source='point_time')

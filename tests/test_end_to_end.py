@@ -18,7 +18,6 @@ import os
 import re
 import shutil
 import signal
-import struct
 import subprocess
 import sys
 import time
@@ -26,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from tests.support.ros import Diagnostics, read_until, release
+from lego_loam_py.ros.conversions import serialized_stamp_ns
+from lego_loam_py.testing.nodes import Diagnostics, read_until, release
 from tests.support.topics import ALWAYS, GATED, TF_DYNAMIC, TF_STATIC, message_class
 
 REPO = Path(__file__).resolve().parents[1]
@@ -58,13 +58,6 @@ def _logs(directory: Path) -> str:
     return '\n'.join(f'--- {p.name}\n{p.read_text()[-3000:]}' for p in sorted(directory.glob('*.log')))
 
 
-def _header_stamp_ns(cdr: bytes) -> int:
-    """Header stamp of a serialized message whose first field is a std_msgs/Header (CDR: 4-byte
-    encapsulation, then int32 sec, uint32 nanosec)."""
-    sec, nanosec = struct.unpack_from('<iI' if cdr[1] in (0x01, 0x03) else '>iI', cdr, 4)
-    return sec * 1_000_000_000 + nanosec
-
-
 def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp_path, rclpy_context, processes):
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -78,7 +71,7 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
     from lego_loam_py.ros import qos
     from lego_loam_py.ros.conversions import ns_to_stamp, odometry_to_pose, stamp_to_ns
     from lego_loam_py.ros.tf import TF_QOS, TF_STATIC_QOS
-    from lego_loam_py.sim.output import load_ground_truth
+    from lego_loam_py.inputs.sidecars import load_ground_truth
 
     logs = tmp_path / 'logs'
     launcher = processes.start(
@@ -136,7 +129,7 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
                 publishers['/imu/data'].publish(data)
             pending_imu.clear()
             publishers['/velodyne_points'].publish(message.data)
-            stamp = _header_stamp_ns(message.data)
+            stamp = serialized_stamp_ns(message.data)
             if '/segmented_cloud' not in first:
                 # The first scan only initialises the odometry: nothing comes out of the pipeline for it. It is
                 # sent again until imageProjection has it: its best-effort input drops what arrives before it

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tests.support.ros import Diagnostics, bag_clouds, links_matched, release, spin_until
+from lego_loam_py.testing.nodes import Diagnostics, bag_clouds, links_matched, release, spin_until
 
 BIN = Path(sys.executable).parent
 GOLDEN_BAG = 'vlp16_static_indoor_20hz'
@@ -27,7 +27,7 @@ def wait_ready(context, node, topics, procs, timeout=30.0):
 
 
 def wait_linked(context, node, links, timeout=60.0):
-    """Every link matched at both ends (see tests.support.ros.links_matched; a message sent before is lost, as
+    """Every link matched at both ends (see lego_loam_py.testing.nodes.links_matched; a message sent before is lost, as
     with any DDS publisher)."""
     diagnostics = Diagnostics(node)
     linked = spin_until(context, node, lambda: links_matched(diagnostics, links), timeout)
@@ -47,7 +47,7 @@ def test_odometry_for_every_scan_over_dds_equals_the_original(shared_data, tmp_p
 
     from lego_loam_py.ros import qos
     from lego_loam_py.ros.conversions import cloud_msg_to_xyzi, stamp_to_ns
-    from tests.support.ros import publish_in_lockstep
+    from lego_loam_py.testing.nodes import publish_in_lockstep
 
     golden = np.load(shared_data / 'golden' / f'{GOLDEN_BAG}.npz')
     stamps = golden['stamps'].tolist()

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.support.ros import Diagnostics, bag_clouds, publish_in_lockstep, release, spin_until
+from lego_loam_py.testing.nodes import Diagnostics, bag_clouds, publish_in_lockstep, release, spin_until
 
 BIN = Path(sys.executable).parent
 GOLDEN_BAG = 'vlp16_static_indoor_20hz'

@@ -17,7 +17,7 @@ from lego_loam_py.core.imu.buffer import ImuBuffer, imu_mounting, imu_sample
 from lego_loam_py.core.params import ParameterError, Params
 from lego_loam_py.core.pipeline import Pipeline, RunResult
 from lego_loam_py.evaluation import evaluate
-from lego_loam_py.sim.output import load_ground_truth
+from lego_loam_py.inputs.sidecars import load_ground_truth
 
 G = 9.81
 
@@ -268,7 +268,8 @@ def test_the_nodes_warn_about_an_upside_down_imu_and_report_it_on_diagnostics(co
     from lego_loam_py.ros.feature_association_node import FeatureAssociationNode
     from lego_loam_py.ros.image_projection_node import ImageProjectionNode
     from lego_loam_py.ros.map_optimization_node import MapOptimizationNode
-    from tests.support.inprocess import campus_messages, make_node, mapping_inputs, pipeline_outputs, stamp_of
+    from tests.support.inprocess import campus_messages, make_node, mapping_inputs, pipeline_outputs
+    from lego_loam_py.testing.messages import stamp_of
 
     ip, ip_rec = make_node(context, ImageProjectionNode)
     fa, fa_rec = make_node(context, FeatureAssociationNode)

@@ -14,7 +14,7 @@ from lego_loam_py.inputs import ImuSample, Scan, SourceError, guess_kind, open_s
 from lego_loam_py.inputs.point_files import read_pcd_points, read_ply_points, read_points, write_pcd_points
 from lego_loam_py.offline import run_bag, run_source
 from lego_loam_py.sim.export import export_recording
-from lego_loam_py.sim.output import load_ground_truth
+from lego_loam_py.inputs.sidecars import load_ground_truth
 
 REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / 'bags' / 'campus_8s'

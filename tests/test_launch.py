@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.support.ros import read_until, wait_for_line
+from lego_loam_py.testing.nodes import read_until, wait_for_line
 from tests.support.topics import ALL, GATED
 
 REPO = Path(__file__).resolve().parents[1]

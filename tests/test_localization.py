@@ -118,7 +118,8 @@ def test_an_initial_pose_is_used_and_verified_even_when_3_m_and_20_deg_off(campu
                                                                            offset_deg):
     from lego_loam_py.core.mapping.map_bundle import read_bundle
     from lego_loam_py.evaluation import rigid_fit
-    from lego_loam_py.sim.output import load_scenario, true_poses
+    from lego_loam_py.inputs.sidecars import load_scenario
+    from lego_loam_py.sim.output import true_poses
     from scipy.spatial.transform import Rotation
 
     from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix
@@ -144,7 +145,7 @@ def test_an_initial_pose_is_used_and_verified_even_when_3_m_and_20_deg_off(campu
 
 
 def test_a_gap_in_the_data_loses_track_and_the_place_is_found_again(campus_map, reverse_drive, tmp_path):
-    from tests.support.bags import cut_bag
+    from lego_loam_py.testing.bags import cut_bag
 
     cut = cut_bag(reverse_drive, tmp_path / 'cut', 2.0, 2.5)   # (the benchmark cuts 10 s of a longer drive)
     result = localize(cut, campus_map)

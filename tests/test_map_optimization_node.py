@@ -2,7 +2,9 @@
 what it reports about each mapping step."""
 from __future__ import annotations
 
-from tests.support.inprocess import make_node, mapping_inputs, pipeline_outputs, restamped, stamp_of
+from tests.support.inprocess import make_node, mapping_inputs, pipeline_outputs
+
+from lego_loam_py.testing.messages import restamped, stamp_of
 
 
 def map_campus(context, tmp_path, **overrides):

@@ -1,7 +1,7 @@
 """One bad message never silences a node (issue 14): property tests of every node's message handling.
 
 Each node runs in this process and gets, from hypothesis, a sequence of malformed messages on the topics it
-subscribes to (every field of every message type, from ``tests.support.malformed``: boundary and absurd
+subscribes to (every field of every message type, from ``lego_loam_py.testing.malformed``: boundary and absurd
 values, other lengths, broken layouts, stamps far away), then valid input that continues the valid timeline.
 The invariant: no unexpected error, and the first valid input produces finite output again. Then the memory
 cases (a 2,000,000-point cloud is rejected on its header, before it is decoded) and the last line of defence
@@ -16,8 +16,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tests.support.inprocess import campus_messages, make_node, mapping_inputs, pipeline_outputs, restamped, stamp_of
-from tests.support.malformed import (malformed_cloud, malformed_cloud_info, malformed_imu, malformed_odometry)
+from tests.support.inprocess import campus_messages, make_node, mapping_inputs, pipeline_outputs
+
+from lego_loam_py.testing.messages import restamped, stamp_of
+from lego_loam_py.testing.malformed import (malformed_cloud, malformed_cloud_info, malformed_imu, malformed_odometry)
 
 SETTINGS = dict(deadline=None, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture,

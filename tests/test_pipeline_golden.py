@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tests.support.ros import Diagnostics, bag_clouds, links_matched, publish_in_lockstep, release, spin_until
+from lego_loam_py.testing.nodes import Diagnostics, bag_clouds, links_matched, publish_in_lockstep, release, spin_until
 
 BIN = Path(sys.executable).parent
 GOLDEN_BAG = 'vlp16_static_indoor_20hz'
@@ -16,7 +16,7 @@ INTERNAL_TOPICS = ('/segmented_cloud', '/segmented_cloud_info', '/outlier_cloud'
 
 
 def pipeline_links(clouds, features_in, mapped_in, integrated_in):
-    """The links the parity test needs (see tests.support.ros.links_matched): the test's clouds in, the four
+    """The links the parity test needs (see lego_loam_py.testing.nodes.links_matched): the test's clouds in, the four
     nodes between them, and the test's listeners on the outputs it waits for."""
     ip, fa, mo, tf = NODES
     return [(clouds, '/velodyne_points', [ip]),

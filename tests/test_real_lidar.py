@@ -79,7 +79,7 @@ def test_the_hdl64e_preset_stamps_at_the_sweep_end_and_a_recording_of_it_is_foll
         truth = source.ground_truth()
         result = run_source(source, params, progress=False)
     stamps, poses = result.trajectory()
-    assert np.isin(stamps, truth[0]).all()
+    assert np.isin(stamps, truth.stamps_ns).all()
     metrics = evaluate(truth, (stamps, poses))
     assert metrics.ate_rmse_m < 0.03, metrics.summary()
     late = evaluate(truth, (stamps, poses), max_time_diff=0.2)   # (sanity: the same figures when matched loosely)
@@ -195,9 +195,9 @@ def test_a_simulated_lidar_reading_low_is_found_out_and_sinks_less():
             truth = source.ground_truth()
             result = run_source(source, params, progress=False)
         stamps, poses = result.trajectory()
-        index = np.searchsorted(truth[0], stamps)
+        index = np.searchsorted(truth.stamps_ns, stamps)
         ours = np.linalg.inv(poses[0]) @ poses[-1]
-        true = np.linalg.inv(truth[1][index[0]]) @ truth[1][index[-1]]
+        true = np.linalg.inv(truth.poses[index[0]]) @ truth.poses[index[-1]]
         return abs(ours[2, 3] - true[2, 3]), result.counts
 
     left_alone, _ = height_error(wrong, False)

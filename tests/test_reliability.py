@@ -32,9 +32,9 @@ from lego_loam_py.formats import pcd_is_complete, tum_is_complete
 from lego_loam_py.core.params import write_params_file
 from tests.support.inprocess import (CAMPUS, campus_messages, make_node, mapping_inputs, mapping_publishers,
                                      pipeline_outputs, restamped, stamp_of)
-from tests.support.malformed import set_sequence
-from tests.support.measure import rss_mb
-from tests.support.ros import Diagnostics, publish_in_lockstep, release, spin_until, wait_for_line
+from lego_loam_py.testing.malformed import set_sequence
+from lego_loam_py.testing.measure import rss_mb
+from lego_loam_py.testing.nodes import Diagnostics, publish_in_lockstep, release, spin_until, wait_for_line
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -1062,7 +1062,7 @@ def test_a_node_keeps_serving_through_a_stream_of_bad_messages(rclpy_context, pr
 
 def start_feeder(processes, tmp_path, *args, **popen):
     log = open(tmp_path / 'feeder.err', 'w')
-    proc = processes.python('-m', 'tests.support.feeder', CAMPUS, *map(str, args), cwd=REPO, stderr=log, **popen)
+    proc = processes.python('-m', 'lego_loam_py.testing.feeder', CAMPUS, *map(str, args), cwd=REPO, stderr=log, **popen)
     log.close()
     wait_for_line(proc, 'ready', timeout=40)
     return proc

@@ -89,7 +89,7 @@ def test_each_preset_simulates_and_runs_offline(preset):
     """1 s of the simulated campus with the sensor: every scan processed, the trajectory within a few cm."""
     from lego_loam_py.evaluation import evaluate
     from lego_loam_py.offline import run_bag
-    from lego_loam_py.sim.output import load_ground_truth
+    from lego_loam_py.inputs.sidecars import load_ground_truth
     from lego_loam_py.sim.simulator import cached_scenario
 
     bag = cached_scenario('campus', duration=1.0, preset=preset)

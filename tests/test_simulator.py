@@ -15,7 +15,9 @@ from scipy.spatial.transform import Rotation
 from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
 from lego_loam_py.core.params import SENSOR_PRESETS
 from lego_loam_py.core.pointcloud import VELODYNE_PACKED_DTYPE, VELODYNE_POINT_DTYPE
-from lego_loam_py.sim import output as sidecars
+from lego_loam_py.formats import read_tum
+from lego_loam_py.inputs import sidecars
+from lego_loam_py.sim import output as sim_output
 from lego_loam_py.sim.imu import GRAVITY, ImuModel, ImuNoise
 from lego_loam_py.sim.lidar import VLP16_FIRING_ELEVATIONS, LidarModel, column_of_azimuth, simulate_sweep
 from lego_loam_py.sim.scenarios import SCENARIOS, build_world
@@ -577,7 +579,7 @@ def test_ros1_bag_and_packed_layout(tmp_path):
     assert all(c[1].dtype == VELODYNE_PACKED_DTYPE for c in data['clouds'])
     with BagReader(result.bag_path) as reader:
         assert reader.is_ros1
-    assert len(sidecars.load_ground_truth(result.bag_path)[0]) == 3
+    assert len(sidecars.load_ground_truth(result.bag_path)) == 3
     assert len(sidecars.load_labels(result.bag_path)[2]) == len(data['clouds'][2][1])
 
 
@@ -600,8 +602,8 @@ def test_sidecar_paths_and_missing_ground_truth(tmp_path):
     poses = np.tile(np.eye(4), (2, 1, 1))
     poses[1, :3, :3] = Rotation.from_euler('xyz', [0.1, -0.2, 3.0]).as_matrix()
     poses[1, :3, 3] = [1.5, -2.25, 0.125]
-    sidecars.write_tum(tmp_path / 'x.tum', stamps, poses)
-    read_stamps, read_poses = sidecars.read_tum(tmp_path / 'x.tum')
+    sim_output.write_tum(tmp_path / 'x.tum', stamps, poses)
+    read_stamps, read_poses = read_tum(tmp_path / 'x.tum')
     assert np.array_equal(read_stamps, stamps) and np.allclose(read_poses, poses, atol=1e-9)
 
 
@@ -632,7 +634,7 @@ def test_cli_lists_simulates_and_refuses_to_overwrite(tmp_path):
     args = [CLI, 'simulate', 'corridor', '-o', str(out), '--duration', '0.2', '--seed', '5', '--no-progress']
     run = subprocess.run(args, capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
-    assert 'wrote' in run.stderr and len(sidecars.load_ground_truth(out)[0]) == 2
+    assert 'wrote' in run.stderr and len(sidecars.load_ground_truth(out)) == 2
     assert sidecars.load_scenario(out)['command'] == 'lego_loam_py simulate corridor -o corridor --duration 0.2 --seed 5'
     again = subprocess.run(args, capture_output=True, text=True, timeout=120)
     assert again.returncode == 1 and 'exists' in again.stderr
@@ -816,7 +818,7 @@ def test_committed_bag_plays_over_dds(rclpy_context, processes):
     from lego_loam_py.ros import qos
     from lego_loam_py.ros.conversions import cloud_msg_to_array as ros_cloud_to_array
     from lego_loam_py.ros.conversions import stamp_to_ns
-    from tests.support.ros import release, spin_until
+    from lego_loam_py.testing.nodes import release, spin_until
 
     bag = next(p for p in COMMITTED if p.name.startswith('aggressive'))
     stamps, _ = sidecars.load_ground_truth(bag)
@@ -857,8 +859,8 @@ def test_map_distance_to_scene_places_the_map_with_the_estimated_first_pose():
     map_from_world = lidar_in_map @ np.linalg.inv(world_from_lidar)
     in_map = hits @ map_from_world[:3, :3].T + map_from_world[:3, 3]
     stamp = START_STAMP_NS + 2_000_000_000
-    assert np.median(sidecars.map_distance_to_scene(BAGS / 'campus_8s', in_map, stamp, lidar_in_map)) < 1e-3
+    assert np.median(sim_output.map_distance_to_scene(BAGS / 'campus_8s', in_map, stamp, lidar_in_map)) < 1e-3
     shifted = lidar_in_map.copy()
     shifted[:3, 3] += [0.0, 0.0, 1.0]
-    assert np.median(sidecars.map_distance_to_scene(BAGS / 'campus_8s', in_map, stamp, shifted)) > 0.3
-    assert sidecars.map_distance_to_scene(REPO / 'tests', in_map, stamp, lidar_in_map) is None
+    assert np.median(sim_output.map_distance_to_scene(BAGS / 'campus_8s', in_map, stamp, shifted)) > 0.3
+    assert sim_output.map_distance_to_scene(REPO / 'tests', in_map, stamp, lidar_in_map) is None

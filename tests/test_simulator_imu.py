@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from lego_loam_py.bag.io import BagReader
 from lego_loam_py.core.pointcloud import VELODYNE_POINT_DTYPE
-from lego_loam_py.sim import output as sidecars
+from lego_loam_py.inputs import sidecars
 from lego_loam_py.sim.imu import GRAVITY, ImuModel, ImuNoise
 from lego_loam_py.sim.lidar import LidarModel, simulate_sweep
 from lego_loam_py.sim.scenarios import build_world, scenario_rng

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.support.ros import read_until, release
+from lego_loam_py.testing.nodes import read_until, release
 
 pytest.importorskip('rerun')
 CLI = Path(sys.executable).parent / 'lego_loam_py'

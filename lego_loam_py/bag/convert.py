@@ -435,7 +435,7 @@ def _run_scan_folder(source: Path, kind: str, destination: Path, options: Conver
     """A folder of scans (or a KITTI sequence) -> clouds as its files hold them, and its ground truth beside."""
     from lego_loam_py.formats import write_tum_atomic
     from lego_loam_py.inputs import Scan, SourceError, open_source
-    from lego_loam_py.sim.output import GROUND_TRUTH, sidecar_path
+    from lego_loam_py.inputs.sidecars import GROUND_TRUTH, sidecar_path
 
     try:
         recording = open_source(source, kind)
@@ -455,7 +455,7 @@ def _run_scan_folder(source: Path, kind: str, destination: Path, options: Conver
         output.close()
     if truth is not None:
         write_tum_atomic(sidecar_path(destination, GROUND_TRUTH), *truth)
-        summary.notes.append(f'ground truth ({len(truth[0])} poses) beside the bag')
+        summary.notes.append(f'ground truth ({len(truth)} poses) beside the bag')
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -14,8 +14,6 @@ from typing import Iterator
 
 import numpy as np
 
-from lego_loam_py.core.frames import camera_pose_to_lidar, lidar_pose_to_camera
-
 __all__ = ['Trajectory', 'FRAMES']
 
 FRAMES = ('map', 'camera_init')
@@ -50,6 +48,8 @@ class Trajectory:
         """The same poses in ``frame``."""
         if frame == self.frame:
             return self
+        from lego_loam_py.core.frames import camera_pose_to_lidar, lidar_pose_to_camera
+
         change = camera_pose_to_lidar if frame == 'map' else lidar_pose_to_camera
         return Trajectory(self.stamps_ns, change(self.poses), frame)
 

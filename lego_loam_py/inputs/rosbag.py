@@ -13,7 +13,8 @@ from typing import Iterator
 from lego_loam_py.bag.io import BagError, BagReader, cloud_msg_to_array, resolve_bag_path
 from lego_loam_py.core.imu.buffer import imu_sample
 from lego_loam_py.core.pointcloud import CloudLayoutError
-from lego_loam_py.inputs.source import GroundTruth, ImuSample, Scan, Source, SourceItem, UnreadableScan
+from lego_loam_py.core.trajectory import Trajectory
+from lego_loam_py.inputs.source import ImuSample, Scan, Source, SourceItem, UnreadableScan
 
 __all__ = ['BagSource', 'CLOUD_TYPE', 'IMU_TYPE']
 
@@ -67,8 +68,8 @@ class BagSource(Source):
     def scan_count(self) -> int | None:
         return self._reader.topic_counts().get(self.cloud_topic, 0)
 
-    def ground_truth(self) -> GroundTruth | None:
-        from lego_loam_py.sim.output import load_ground_truth
+    def ground_truth(self) -> Trajectory | None:
+        from lego_loam_py.inputs.sidecars import load_ground_truth
         return load_ground_truth(self.path)
 
     def describe(self) -> str:

@@ -17,7 +17,9 @@ import numpy as np
 from lego_loam_py.formats import read_tum
 from lego_loam_py.inputs.kitti import lidar_ground_truth, read_times
 from lego_loam_py.inputs.point_files import POINT_FILE_SUFFIXES, read_points
-from lego_loam_py.inputs.source import GroundTruth, Scan, Source, SourceError, SourceItem
+from lego_loam_py.core.trajectory import Trajectory
+from lego_loam_py.inputs.sidecars import GROUND_TRUTH
+from lego_loam_py.inputs.source import Scan, Source, SourceError, SourceItem
 
 __all__ = ['ScanFolderSource', 'scan_files', 'natural_key']
 
@@ -58,12 +60,12 @@ class ScanFolderSource(Source):
             self.timed_by = f'{rate_hz:g} Hz'
         self._ground_truth = self._find_ground_truth()
 
-    def _find_ground_truth(self) -> GroundTruth | None:
+    def _find_ground_truth(self) -> Trajectory | None:
         truth = lidar_ground_truth(self.path, self.stamps)
-        tum = self.path / 'ground_truth.tum'
+        tum = self.path / GROUND_TRUTH
         if truth is None and tum.is_file():
             try:
-                truth = read_tum(tum)
+                truth = Trajectory(*read_tum(tum), 'map')
             except ValueError as exc:
                 raise SourceError(str(exc)) from None
         return truth
@@ -75,7 +77,7 @@ class ScanFolderSource(Source):
     def scan_count(self) -> int:
         return len(self.files)
 
-    def ground_truth(self) -> GroundTruth | None:
+    def ground_truth(self) -> Trajectory | None:
         return self._ground_truth
 
     def describe(self) -> str:

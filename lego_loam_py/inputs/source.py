@@ -21,13 +21,10 @@ from typing import Iterator, Union
 
 import numpy as np
 
+from lego_loam_py.core.trajectory import Trajectory
 from lego_loam_py.errors import LegoLoamError
 
-__all__ = ['Scan', 'ImuSample', 'UnreadableScan', 'SourceItem', 'Source', 'SourceError', 'GroundTruth']
-
-# (stamps [ns] int64 (N,), lidar poses (N, 4, 4) in REP-103 axes relative to the first)
-GroundTruth = tuple[np.ndarray, np.ndarray]
-
+__all__ = ['Scan', 'ImuSample', 'UnreadableScan', 'SourceItem', 'Source', 'SourceError']
 
 class SourceError(LegoLoamError, RuntimeError):
     """A recording cannot be read: a missing or inconsistent file, named in the message."""
@@ -81,8 +78,9 @@ class Source:
         """Scans in the recording, when known without reading them (for a progress bar)."""
         return None
 
-    def ground_truth(self) -> GroundTruth | None:
-        """The sensor's true trajectory when the recording has one."""
+    def ground_truth(self) -> Trajectory | None:
+        """The sensor's true trajectory when the recording has one: lidar poses in REP-103 axes relative to the
+        first (frame 'map')."""
         return None
 
     def describe(self) -> str:

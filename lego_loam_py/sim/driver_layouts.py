@@ -142,7 +142,7 @@ def rewrite_bag(source: str | Path, output: str | Path, layout: str, max_scans: 
     """Copy the simulated bag ``source`` to ``output`` (a new ROS 2 bag) with its clouds in ``layout``; the IMU
     messages and the ground truth are copied as they are. Returns ``output``."""
     from lego_loam_py.bag.io import BagReader, BagWriter, cloud_msg_to_array, make_cloud_msg
-    from lego_loam_py.sim.output import load_scenario, sidecar_path
+    from lego_loam_py.inputs.sidecars import load_scenario, sidecar_path
     from lego_loam_py.sim.simulator import CLOUD_TOPIC
 
     if layout not in LAYOUTS:

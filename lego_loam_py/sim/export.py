@@ -30,7 +30,7 @@ def export_recording(bag: str | Path, folder: str | Path, kind: str) -> int:
     from lego_loam_py.formats import write_kitti_poses_atomic
     from lego_loam_py.inputs.kitti import write_kitti_sequence_files, write_times
     from lego_loam_py.inputs.point_files import write_bin_points, write_pcd_points
-    from lego_loam_py.sim.output import load_ground_truth
+    from lego_loam_py.inputs.sidecars import load_ground_truth
     from lego_loam_py.sim.simulator import CLOUD_TOPIC
 
     if kind not in EXPORT_KINDS:

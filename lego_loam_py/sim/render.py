@@ -148,7 +148,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from lego_loam_py.sim.output import load_labels
+    from lego_loam_py.inputs.sidecars import load_labels
 
     bag = Path(args.bag)
     points, stamp, frame_id, count = read_scan(bag, args.scan, args.topic)

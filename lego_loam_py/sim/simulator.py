@@ -374,7 +374,8 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
     from tqdm import tqdm
 
     from lego_loam_py.bag.io import BagWriter, make_cloud_msg
-    from lego_loam_py.sim import output as sidecars
+    from lego_loam_py.inputs import sidecars
+    from lego_loam_py.sim import output as sim_output
     from lego_loam_py.sim.lidar import LidarModel, simulate_sweep
     from lego_loam_py.sim.scenarios import build_world, scenario_rng
 
@@ -414,7 +415,7 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
         types = bag.types
         bag.add_topic(CLOUD_TOPIC, 'sensor_msgs/msg/PointCloud2')
         bag.add_topic(IMU_TOPIC, 'sensor_msgs/msg/Imu')
-        label_writer = sidecars.LabelWriter(labels_path)
+        label_writer = sim_output.LabelWriter(labels_path)
         n_imu = len(imu_offsets_ns)
         measured = (np.zeros((n_imu, 4)), np.zeros((n_imu, 3)), np.zeros((n_imu, 3)))   # orientation, gyro, accel
         state = {'measured': 0, 'written': 0, 'chunk': 0, 'wander': None}
@@ -472,11 +473,11 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
     poses = world.trajectory.matrices((sweep_offsets_ns + stamp_offset_ns) / 1e9)
     dense = world.trajectory.matrices(imu_offsets_ns / 1e9)
     first = poses[0].copy()
-    sidecars.write_tum(sidecars.sidecar_path(bag_path, sidecars.GROUND_TRUTH),
+    sim_output.write_tum(sidecars.sidecar_path(bag_path, sidecars.GROUND_TRUTH),
                        START_STAMP_NS + sweep_offsets_ns + stamp_offset_ns,
-                       sidecars.relative_poses(poses))
+                       sim_output.relative_poses(poses))
     dense_relative = np.einsum('ij,njk->nik', np.linalg.inv(first), dense)
-    sidecars.write_tum(sidecars.sidecar_path(bag_path, sidecars.GROUND_TRUTH_DENSE), START_STAMP_NS + imu_offsets_ns,
+    sim_output.write_tum(sidecars.sidecar_path(bag_path, sidecars.GROUND_TRUTH_DENSE), START_STAMP_NS + imu_offsets_ns,
                        dense_relative)
     result = SimResult(bag_path, n_scans, len(imu_offsets_ns), total_points, n_scans * lidar.scan_period,
                        dict(world.facts))
@@ -485,7 +486,7 @@ def simulate(config: SimConfig, output: str | Path, progress: bool = False) -> S
     if first_quaternion[3] < 0:
         first_quaternion = -first_quaternion
     travelled = np.linalg.norm(np.diff(dense[:, :3, 3], axis=0), axis=1).sum()
-    sidecars.write_yaml(sidecars.sidecar_path(bag_path, sidecars.SCENARIO), {
+    sim_output.write_yaml(sidecars.sidecar_path(bag_path, sidecars.SCENARIO), {
         'generator': f'lego_loam_py {__version__} simulator version {SIM_VERSION}',
         'command': config.command(bag_path.name),
         'config': config.to_dict(),

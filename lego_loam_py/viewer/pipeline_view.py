@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from lego_loam_py.core.frames import CAMERA_TO_LIDAR, camera_pose_to_lidar
+from lego_loam_py.core.trajectory import Trajectory
 from lego_loam_py.core.pipeline_events import LoopChecked, MapStepped, PipelineEvent, ScanFused, ScanProcessed
 from lego_loam_py.viewer.scene import SceneLog
 
@@ -22,12 +23,12 @@ def _to_map(points_camera: np.ndarray) -> np.ndarray:
 
 
 class PipelineView:
-    """A pipeline listener logging to ``scene``; ``ground_truth`` (stamps [ns], lidar poses) is drawn aligned
-    with the estimate at its first fused pose."""
+    """A pipeline listener logging to ``scene``; ``ground_truth`` (the recording's true trajectory) is drawn
+    aligned with the estimate at its first fused pose."""
 
-    def __init__(self, scene: SceneLog, ground_truth: tuple[np.ndarray, np.ndarray] | None = None):
+    def __init__(self, scene: SceneLog, ground_truth: Trajectory | None = None):
         self.scene = scene
-        self._ground_truth = ground_truth
+        self._ground_truth = None if ground_truth is None else ground_truth.to('map')
         self._scan_index: dict[int, int] = {}    # stamp [ns] -> scan index on the timeline
         self._waiting: dict[int, tuple] = {}     # stamp -> clouds of a scan whose fused pose is not known yet
         self._last_index = 0

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from lego_loam_py.testing.messages import stamp_of
+
 REPO = Path(__file__).resolve().parents[2]
 CAMPUS = REPO / 'bags' / 'campus_8s'
 
@@ -120,22 +122,6 @@ def pipeline_outputs(context, tmp_path) -> dict:
     fa.destroy_node()
     _CACHE['outputs'] = outputs
     return outputs
-
-
-def stamp_of(msg) -> int:
-    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-
-
-def restamped(msg, stamp_ns: int):
-    """A copy of ``msg`` with another header stamp (messages are shared between tests: never mutate them)."""
-    import copy
-
-    from lego_loam_py.ros.conversions import ns_to_stamp
-
-    out = copy.copy(msg)
-    out.header = copy.copy(msg.header)
-    out.header.stamp = ns_to_stamp(stamp_ns)
-    return out
 
 
 def mapping_inputs(outputs: dict) -> list[tuple]:

@@ -10,7 +10,7 @@ def cut_bag(source: str | Path, destination: str | Path, start_s: float, duratio
     bag's first message] for ``duration_s`` [s]; the simulator's sidecar files (ground truth, scenario) are
     copied beside it, so the stamps that remain keep their ground truth."""
     from lego_loam_py.bag.io import BagReader, BagWriter
-    from lego_loam_py.sim.output import GROUND_TRUTH, GROUND_TRUTH_DENSE, SCENARIO, sidecar_path
+    from lego_loam_py.inputs.sidecars import GROUND_TRUTH, GROUND_TRUTH_DENSE, SCENARIO, sidecar_path
 
     destination = Path(destination)
     with BagReader(source) as reader:

@@ -1,6 +1,6 @@
 """Feeds a bag's lidar and IMU messages over DDS for as long as wanted: the reliability tests and benchmarks.
 
-    python -m tests.support.feeder BAG [--rate R] [--duration S | --laps N] [--jump-back] [--burst N]
+    python -m lego_loam_py.testing.feeder BAG [--rate R] [--duration S | --laps N] [--jump-back] [--burst N]
 
 Unlike ``lego_loam_py play``, it can play a bag for any length of time with *continuous* stamps: every lap is
 restamped (the header stamps in the serialized messages are shifted by whole laps), so the nodes see one long
@@ -35,12 +35,6 @@ def restamp(data, offset_ns: int) -> bytes:
     sec, nanosec = divmod(sec * 1_000_000_000 + nanosec + offset_ns, 1_000_000_000)
     struct.pack_into('<iI' if little else '>iI', data, 4, sec, nanosec)
     return bytes(data)
-
-
-def header_stamp_ns(data) -> int:
-    little = data[1] in (0x01, 0x03)
-    sec, nanosec = struct.unpack_from('<iI' if little else '>iI', bytes(data[:12]), 4)
-    return sec * 1_000_000_000 + nanosec
 
 
 def main(argv=None) -> int:
