@@ -5,6 +5,7 @@ Every writer writes to a temporary file in the target directory and renames it o
 (``os.replace`` is atomic on POSIX), so a reader, or a crash mid-write, only ever sees the previous complete
 file or the new complete one.
 """
+
 from __future__ import annotations
 
 import os
@@ -15,9 +16,19 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-__all__ = ['write_tum_atomic', 'read_tum', 'tum_lines', 'write_pcd_atomic', 'read_pcd', 'atomic_path',
-           'remove_stale_temporaries', 'current_umask', 'write_text_atomic', 'pcd_is_complete',
-           'tum_is_complete']
+__all__ = [
+    'write_tum_atomic',
+    'read_tum',
+    'tum_lines',
+    'write_pcd_atomic',
+    'read_pcd',
+    'atomic_path',
+    'remove_stale_temporaries',
+    'current_umask',
+    'write_text_atomic',
+    'pcd_is_complete',
+    'tum_is_complete',
+]
 
 
 class atomic_path:
@@ -33,8 +44,9 @@ class atomic_path:
 
     def __enter__(self) -> Path:
         self.target.parent.mkdir(parents=True, exist_ok=True)
-        handle, name = tempfile.mkstemp(prefix=f'.{self.target.stem}.{os.getpid()}.', suffix=f'.tmp{self.suffix}',
-                                        dir=self.target.parent)
+        handle, name = tempfile.mkstemp(
+            prefix=f'.{self.target.stem}.{os.getpid()}.', suffix=f'.tmp{self.suffix}', dir=self.target.parent
+        )
         os.close(handle)
         self.temporary = Path(name)
         return self.temporary
@@ -156,9 +168,11 @@ def tum_lines(stamps_ns: np.ndarray, poses: np.ndarray, position_digits: int = 6
     quats = Rotation.from_matrix(poses[:, :3, :3]).as_quat() if len(poses) else np.zeros((0, 4))
     quats[quats[:, 3] < 0] *= -1.0
     p, r = position_digits, rotation_digits
-    lines = [f'{_format_stamp(stamp)} {t[0]:.{p}f} {t[1]:.{p}f} {t[2]:.{p}f} '
-             f'{q[0]:.{r}f} {q[1]:.{r}f} {q[2]:.{r}f} {q[3]:.{r}f}'
-             for stamp, t, q in zip(stamps_ns, poses[:, :3, 3], quats)]
+    lines = [
+        f'{_format_stamp(stamp)} {t[0]:.{p}f} {t[1]:.{p}f} {t[2]:.{p}f} '
+        f'{q[0]:.{r}f} {q[1]:.{r}f} {q[2]:.{r}f} {q[3]:.{r}f}'
+        for stamp, t, q in zip(stamps_ns, poses[:, :3, 3], quats)
+    ]
     return '\n'.join(lines) + ('\n' if lines else '')
 
 
@@ -206,11 +220,21 @@ def write_pcd_atomic(path: str | Path, points: np.ndarray) -> Path:
 
     points = np.asarray(points, dtype=np.float32)
     points = points.reshape(len(points), points.shape[-1] if points.ndim == 2 else 3)
-    if len(points) == 0:   # open3d refuses to write an empty cloud; an empty map is still a valid file
-        fields = ['x', 'y', 'z', 'intensity'][:4 if points.shape[1] > 3 else 3]
-        header = ['# .PCD v0.7 - Point Cloud Data file format', 'VERSION 0.7', 'FIELDS ' + ' '.join(fields),
-                  'SIZE' + ' 4' * len(fields), 'TYPE' + ' F' * len(fields), 'COUNT' + ' 1' * len(fields),
-                  'WIDTH 0', 'HEIGHT 1', 'VIEWPOINT 0 0 0 1 0 0 0', 'POINTS 0', 'DATA binary']
+    if len(points) == 0:  # open3d refuses to write an empty cloud; an empty map is still a valid file
+        fields = ['x', 'y', 'z', 'intensity'][: 4 if points.shape[1] > 3 else 3]
+        header = [
+            '# .PCD v0.7 - Point Cloud Data file format',
+            'VERSION 0.7',
+            'FIELDS ' + ' '.join(fields),
+            'SIZE' + ' 4' * len(fields),
+            'TYPE' + ' F' * len(fields),
+            'COUNT' + ' 1' * len(fields),
+            'WIDTH 0',
+            'HEIGHT 1',
+            'VIEWPOINT 0 0 0 1 0 0 0',
+            'POINTS 0',
+            'DATA binary',
+        ]
         with atomic_path(path, suffix='.pcd') as temporary:
             temporary.write_bytes(('\n'.join(header) + '\n').encode())
         return Path(path)
@@ -228,7 +252,7 @@ def read_pcd(path: str | Path) -> np.ndarray:
     import open3d as o3d
 
     cloud = o3d.t.io.read_point_cloud(str(path))
-    if 'positions' not in cloud.point:   # an empty cloud (as write_pcd_atomic writes one)
+    if 'positions' not in cloud.point:  # an empty cloud (as write_pcd_atomic writes one)
         fields = Path(path).read_bytes()[:512].split(b'\nFIELDS ', 1)[-1].split(b'\n', 1)[0].split()
         return np.zeros((0, 4 if b'intensity' in fields else 3), np.float32)
     xyz = cloud.point['positions'].numpy().astype(np.float32)

@@ -1,4 +1,5 @@
 """Shared fixtures: isolated DDS domains, child processes that are always reaped, the shared data."""
+
 from __future__ import annotations
 
 import os

@@ -2,6 +2,7 @@
 package); it is stage packages that import only the stages before them in a scan's path (ALLOWED); no module of the
 package imports itself round a cycle at import time; and what the code cites of the original resolves inside the
 repository (docs/original.md)."""
+
 from __future__ import annotations
 
 import ast
@@ -10,8 +11,18 @@ import sys
 from pathlib import Path
 
 CORE = Path(__file__).resolve().parents[1] / 'lego_loam_py' / 'core'
-ROS_MODULES = ('rclpy', 'sensor_msgs', 'std_msgs', 'geometry_msgs', 'nav_msgs', 'tf2_msgs', 'cloud_msgs',
-               'builtin_interfaces', 'rosgraph_msgs', 'lego_loam_py.ros')
+ROS_MODULES = (
+    'rclpy',
+    'sensor_msgs',
+    'std_msgs',
+    'geometry_msgs',
+    'nav_msgs',
+    'tf2_msgs',
+    'cloud_msgs',
+    'builtin_interfaces',
+    'rosgraph_msgs',
+    'lego_loam_py.ros',
+)
 
 
 def imported_modules(path: Path) -> set[str]:
@@ -78,14 +89,19 @@ def rule_violations(sources: dict[str, str]) -> list[str]:
     for module, text in sources.items():
         part = part_of(module)
         for node in ast.walk(ast.parse(text)):
-            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
-                [node.module] if isinstance(node, ast.ImportFrom) and node.module and node.level == 0 else []
+            names = (
+                [a.name for a in node.names]
+                if isinstance(node, ast.Import)
+                else [node.module]
+                if isinstance(node, ast.ImportFrom) and node.module and node.level == 0
+                else []
+            )
             for name in names:
                 if not name.startswith('lego_loam_py'):
                     continue
                 target = part_of(name)
                 if name == 'lego_loam_py' and isinstance(node, ast.ImportFrom):
-                    name = 'lego_loam_py.' + ','.join(a.name for a in node.names)   # (its version)
+                    name = 'lego_loam_py.' + ','.join(a.name for a in node.names)  # (its version)
                 if target is None:
                     if not any(name == ok or name.startswith(ok + '.') for ok in OUTSIDE_ALLOWED):
                         found.append(f'{module} imports {name} (outside the core)')
@@ -95,8 +111,10 @@ def rule_violations(sources: dict[str, str]) -> list[str]:
 
 
 def _core_sources() -> dict[str, str]:
-    return {'.'.join(p.relative_to(CORE.parents[1]).with_suffix('').parts).removesuffix('.__init__'): p.read_text()
-            for p in sorted(CORE.rglob('*.py'))}
+    return {
+        '.'.join(p.relative_to(CORE.parents[1]).with_suffix('').parts).removesuffix('.__init__'): p.read_text()
+        for p in sorted(CORE.rglob('*.py'))
+    }
 
 
 def test_the_core_is_stage_packages_with_few_modules_between_them():
@@ -119,22 +137,27 @@ def test_each_stage_imports_only_the_stages_before_it():
 def test_the_rule_check_finds_a_stage_that_imports_a_later_one():
     """The check itself can fail: imageProjection's code importing the mapping, the odometry importing the simulator,
     and a shared module importing a stage are each reported; the stages before are not."""
-    sources = {'lego_loam_py.core.projection.ground': 'from lego_loam_py.core.mapping import MapOptimization\n',
-               'lego_loam_py.core.odometry.features': 'def f():\n    from lego_loam_py.sim import scenarios\n',
-               'lego_loam_py.core.frames': 'import lego_loam_py.core.params.types\n',
-               'lego_loam_py.core.mapping.pose_graph': 'from lego_loam_py.core.loop import closure\n'
-                                                      'from lego_loam_py.formats import read_tum\n'}
+    sources = {
+        'lego_loam_py.core.projection.ground': 'from lego_loam_py.core.mapping import MapOptimization\n',
+        'lego_loam_py.core.odometry.features': 'def f():\n    from lego_loam_py.sim import scenarios\n',
+        'lego_loam_py.core.frames': 'import lego_loam_py.core.params.types\n',
+        'lego_loam_py.core.mapping.pose_graph': 'from lego_loam_py.core.loop import closure\n'
+        'from lego_loam_py.formats import read_tum\n',
+    }
     assert rule_violations(sources) == [
         'lego_loam_py.core.projection.ground (projection) imports lego_loam_py.core.mapping (mapping)',
         'lego_loam_py.core.odometry.features imports lego_loam_py.sim (outside the core)',
-        'lego_loam_py.core.frames (shared) imports lego_loam_py.core.params.types (params)']
+        'lego_loam_py.core.frames (shared) imports lego_loam_py.core.params.types (params)',
+    ]
 
 
 def import_time_edges(root: Path) -> dict[str, set[str]]:
     """``module -> the package modules it imports when it is imported``: the imports at module level (and in class
     bodies), each ``a.b.c`` also importing the packages ``a`` and ``a.b``."""
-    modules = {'.'.join(p.relative_to(root.parent).with_suffix('').parts).removesuffix('.__init__'): p
-               for p in root.rglob('*.py')}
+    modules = {
+        '.'.join(p.relative_to(root.parent).with_suffix('').parts).removesuffix('.__init__'): p
+        for p in root.rglob('*.py')
+    }
     edges: dict[str, set[str]] = {m: set() for m in modules}
 
     def resolve(name: str) -> str | None:
@@ -155,8 +178,12 @@ def import_time_edges(root: Path) -> dict[str, set[str]]:
             elif isinstance(node, (ast.If, ast.Try)):
                 if isinstance(node, ast.If) and 'TYPE_CHECKING' in ast.dump(node.test):
                     continue
-                body.extend(node.body + getattr(node, 'orelse', []) + getattr(node, 'finalbody', []) +
-                            [h for handler in getattr(node, 'handlers', []) for h in handler.body])
+                body.extend(
+                    node.body
+                    + getattr(node, 'orelse', [])
+                    + getattr(node, 'finalbody', [])
+                    + [h for handler in getattr(node, 'handlers', []) for h in handler.body]
+                )
             elif isinstance(node, ast.Import):
                 targets = [a.name for a in node.names]
             elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
@@ -166,7 +193,7 @@ def import_time_edges(root: Path) -> dict[str, set[str]]:
             if isinstance(node, (ast.Import, ast.ImportFrom)):
                 for target in targets:
                     resolved = resolve(target) if target.startswith('lego_loam_py') else None
-                    if resolved and resolved != module:   # (a module's own packages are loaded before it)
+                    if resolved and resolved != module:  # (a module's own packages are loaded before it)
                         edges[module].update({resolved, *packages_of(resolved)} - {module, *packages_of(module)})
     return edges
 
@@ -206,7 +233,7 @@ def import_cycles(edges: dict[str, set[str]]) -> list[list[str]]:
 def test_no_module_of_the_package_imports_itself_round_a_cycle_at_import_time():
     sys.setrecursionlimit(max(sys.getrecursionlimit(), 10000))
     edges = import_time_edges(CORE.parent)
-    assert len(edges) > 100 and edges['lego_loam_py.core.pipeline']   # (the check reads the real modules)
+    assert len(edges) > 100 and edges['lego_loam_py.core.pipeline']  # (the check reads the real modules)
     assert not import_cycles(edges), import_cycles(edges)
     # ... and it finds one: two modules importing each other at module level.
     assert import_cycles({'a': {'b'}, 'b': {'a'}, 'c': {'a'}}) == [['a', 'b']]
@@ -214,9 +241,12 @@ def test_no_module_of_the_package_imports_itself_round_a_cycle_at_import_time():
 
 def test_importing_the_core_loads_no_ros_module():
     modules = sorted(_core_sources())
-    code = ('import sys\n' + ''.join(f'import {m}\n' for m in modules) +
-            'bad = [m for m in sys.modules if m.split(".")[0] in %r]\nprint(bad)\nsys.exit(1 if bad else 0)\n'
-            % (ROS_MODULES,))
+    code = (
+        'import sys\n'
+        + ''.join(f'import {m}\n' for m in modules)
+        + f'bad = [m for m in sys.modules if m.split(".")[0] in {ROS_MODULES!r}]\n'
+        + 'print(bad)\nsys.exit(1 if bad else 0)\n'
+    )
     result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stdout + result.stderr
 
@@ -245,16 +275,16 @@ def test_every_citation_of_the_original_resolves_inside_the_repository():
 
     doc = (REPO / 'docs' / 'original.md').read_text()
     present = set(re.findall(r'^## (\d+)\.', doc, re.M)) | set(re.findall(r'^\* \*\*(\d+\.\d+)', doc, re.M))
-    quirks = doc[doc.index('## 8. Quirks'):doc.index('## 14.')]
+    quirks = doc[doc.index('## 8. Quirks') : doc.index('## 14.')]
     present |= {f'8.{n}' for n in re.findall(r'^(\d+)\. ', quirks, re.M)}
     for section, body in re.findall(r'^\* \*\*(\d+\.\d+)(.*?)(?=^\* \*\*|^## )', doc, re.M | re.S):
-        present |= {f'{section}/{n}' for n in re.findall(r'^  (\d+)\. ', body, re.M)}   # its numbered steps
-    assert {'8.1', '8.14', '6.2', '5.3', '14', '6.2/1', '6.2/10'} <= present   # (the parsing of the page itself)
+        present |= {f'{section}/{n}' for n in re.findall(r'^  (\d+)\. ', body, re.M)}  # its numbered steps
+    assert {'8.1', '8.14', '6.2', '5.3', '14', '6.2/1', '6.2/10'} <= present  # (the parsing of the page itself)
     assert '6.3/1' not in present and '6.2/11' not in present
     missing, outside = {}, []
     sources = [p for d in ('lego_loam_py', 'tests', 'benchmarks') for p in (REPO / d).rglob('*.py')]
     for path in sources:
-        if path.name == 'test_architecture.py':   # (its patterns would cite themselves)
+        if path.name == 'test_architecture.py':  # (its patterns would cite themselves)
             continue
         text = path.read_text()
         if re.search(r'reference/LEGO_LOAM|reference §', text):
@@ -265,8 +295,16 @@ def test_every_citation_of_the_original_resolves_inside_the_repository():
     assert not outside, f'cite docs/original.md instead: {outside}'
     assert not missing, missing
     assert cited_sections('see §6.2 and quirks 8.1, 8.10 and 8.11, quirk 8.5') == {'6.2', '8.1', '8.10', '8.11', '8.5'}
-    assert cited_sections('(§5.3, §6.2 steps 1, 8 and 10-11; §6.3 step 2)') == \
-        {'5.3', '6.2', '6.3', '6.2/1', '6.2/8', '6.2/10', '6.2/11', '6.3/2'}
+    assert cited_sections('(§5.3, §6.2 steps 1, 8 and 10-11; §6.3 step 2)') == {
+        '5.3',
+        '6.2',
+        '6.3',
+        '6.2/1',
+        '6.2/8',
+        '6.2/10',
+        '6.2/11',
+        '6.3/2',
+    }
 
 
 BUILTIN_ERRORS = {'Exception', 'ValueError', 'RuntimeError', 'OSError', 'TypeError', 'KeyError', 'LookupError'}
@@ -297,15 +335,19 @@ def test_the_command_line_turns_errors_into_one_line_and_an_exit_code(capsys):
     def raising(error):
         def handler(args):
             raise error
+
         return handler
 
     assert run_command(lambda args: 0, None) == 0 and run_command(lambda args: None, None) == 0
-    for error, code in ((UsageError('--loop N needs N >= 1'), 2), (ParameterError("unknown parameter 'x'"), 2),
-                        (BagError('bag not found: /nowhere'), 1)):
+    for error, code in (
+        (UsageError('--loop N needs N >= 1'), 2),
+        (ParameterError("unknown parameter 'x'"), 2),
+        (BagError('bag not found: /nowhere'), 1),
+    ):
         assert run_command(raising(error), None) == code
         assert capsys.readouterr().err == f'error: {error}\n'
     assert run_command(raising(KeyboardInterrupt()), None) == 130
-    try:   # anything else is a bug: its traceback is not hidden
+    try:  # anything else is a bug: its traceback is not hidden
         run_command(raising(ZeroDivisionError('bug')), None)
     except ZeroDivisionError:
         pass
@@ -314,14 +356,18 @@ def test_the_command_line_turns_errors_into_one_line_and_an_exit_code(capsys):
 
 
 PACKAGE_DIR = REPO / 'lego_loam_py'
-RUNNERS = ('offline', 'demo', 'launch')   # the modules of `lego_loam_py run`, `demo` and `launch`
+RUNNERS = ('offline', 'demo', 'launch')  # the modules of `lego_loam_py run`, `demo` and `launch`
 
 
 def imports_between(modules: dict[str, Path]) -> set[tuple[str, str]]:
     """(importer, imported) pairs among ``modules`` (name -> source file), lazy imports inside functions
     included."""
-    return {(name, other) for name, path in modules.items() for other in modules
-            if other != name and f'lego_loam_py.{other}' in imported_modules(path)}
+    return {
+        (name, other)
+        for name, path in modules.items()
+        for other in modules
+        if other != name and f'lego_loam_py.{other}' in imported_modules(path)
+    }
 
 
 def test_the_runners_do_not_import_each_other(tmp_path):
@@ -335,7 +381,10 @@ def test_the_runners_do_not_import_each_other(tmp_path):
     (tmp_path / 'launch.py').write_text('import lego_loam_py.offline\n')
     (tmp_path / 'offline.py').write_text('from lego_loam_py import demo, outputs\n')
     assert imports_between({name: tmp_path / f'{name}.py' for name in RUNNERS}) == {
-        ('demo', 'launch'), ('launch', 'offline'), ('offline', 'demo')}
+        ('demo', 'launch'),
+        ('launch', 'offline'),
+        ('offline', 'demo'),
+    }
 
 
 def ros_imports(path: Path) -> set[str]:
@@ -364,8 +413,11 @@ def test_the_graph_monitor_is_part_of_the_ros_layer():
     """The supervisor's ROS node (GraphMonitor) lives under lego_loam_py/ros; the runners, the orchestration and
     the supervisor define no class of that name and import no rclpy themselves (the orchestration reaches the ROS
     graph only through lego_loam_py.ros)."""
-    homes = [path.relative_to(PACKAGE_DIR).as_posix() for path in sorted(PACKAGE_DIR.rglob('*.py'))
-             if 'GraphMonitor' in defined_classes(path)]
+    homes = [
+        path.relative_to(PACKAGE_DIR).as_posix()
+        for path in sorted(PACKAGE_DIR.rglob('*.py'))
+        if 'GraphMonitor' in defined_classes(path)
+    ]
     assert homes == ['ros/graph_monitor.py'], homes
     direct = {}
     for name in RUNNERS + ('orchestration', 'supervisor'):
@@ -373,7 +425,7 @@ def test_the_graph_monitor_is_part_of_the_ros_layer():
         if found:
             direct[name] = sorted(found)
     assert not direct, direct
-    assert 'lego_loam_py.ros.graph_monitor' in imported_modules(PACKAGE_DIR / 'orchestration.py')   # (parsed)
+    assert 'lego_loam_py.ros.graph_monitor' in imported_modules(PACKAGE_DIR / 'orchestration.py')  # (parsed)
 
 
 def test_the_sensor_decoders_are_an_input_layer_outside_the_core():
@@ -403,12 +455,14 @@ def test_the_inputs_and_the_viewer_know_no_ros_and_the_core_knows_neither():
                 offenders[f'{package}/{path.name}'] = sorted(ros_imports(path))
     assert len(list((PACKAGE_DIR / 'inputs').glob('*.py'))) >= 5
     for path in sorted(CORE.rglob('*.py')):
-        bad = {m for m in imported_modules(path)
-               if m.startswith(('lego_loam_py.inputs', 'lego_loam_py.viewer')) or m.split('.')[0] == 'rerun'}
+        bad = {
+            m
+            for m in imported_modules(path)
+            if m.startswith(('lego_loam_py.inputs', 'lego_loam_py.viewer')) or m.split('.')[0] == 'rerun'
+        }
         if bad:
             offenders[str(path.relative_to(CORE))] = sorted(bad)
     assert not offenders, offenders
-
 
 
 PACKAGE = CORE.parent
@@ -419,13 +473,20 @@ NO_SIMULATOR = ('inputs', 'bag', 'sensors', 'ros', 'formats.py', 'offline.py', '
 
 def imports_of(paths: list[Path], prefix: str) -> list[str]:
     """'<file name> imports <module>' for each import of the module ``prefix`` or one under it in ``paths``."""
-    return [f'{path.name} imports {name}' for path in paths for name in sorted(imported_modules(path))
-            if name == prefix or name.startswith(prefix + '.')]
+    return [
+        f'{path.name} imports {name}'
+        for path in paths
+        for name in sorted(imported_modules(path))
+        if name == prefix or name.startswith(prefix + '.')
+    ]
 
 
 def test_recordings_and_results_are_read_without_the_simulator():
-    paths = [p for entry in NO_SIMULATOR for p in
-             ([PACKAGE / entry] if entry.endswith('.py') else sorted((PACKAGE / entry).rglob('*.py')))]
+    paths = [
+        p
+        for entry in NO_SIMULATOR
+        for p in ([PACKAGE / entry] if entry.endswith('.py') else sorted((PACKAGE / entry).rglob('*.py')))
+    ]
     assert len(paths) > 20
     assert imports_of(paths, 'lego_loam_py.sim') == []
 
@@ -439,8 +500,15 @@ def test_benchmarks_import_nothing_of_the_tests():
 
 def test_the_layering_checks_find_an_offender(tmp_path):
     reader = tmp_path / 'reader.py'
-    reader.write_text('import testsuite\n\ndef truth(bag):\n    from lego_loam_py.sim.output import world_of\n'
-                      '    from tests.support import scenes\n')
-    assert imports_of([reader], 'lego_loam_py.sim') == ['reader.py imports lego_loam_py.sim.output',
-                                                        'reader.py imports lego_loam_py.sim.output.world_of']
-    assert imports_of([reader], 'tests') == ['reader.py imports tests.support', 'reader.py imports tests.support.scenes']
+    reader.write_text(
+        'import testsuite\n\ndef truth(bag):\n    from lego_loam_py.sim.output import world_of\n'
+        '    from tests.support import scenes\n'
+    )
+    assert imports_of([reader], 'lego_loam_py.sim') == [
+        'reader.py imports lego_loam_py.sim.output',
+        'reader.py imports lego_loam_py.sim.output.world_of',
+    ]
+    assert imports_of([reader], 'tests') == [
+        'reader.py imports tests.support',
+        'reader.py imports tests.support.scenes',
+    ]

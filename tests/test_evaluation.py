@@ -1,4 +1,5 @@
 """Error against time (lego_loam_py.evaluation.error_over_time) on trajectories checked by hand."""
+
 from __future__ import annotations
 
 import math
@@ -64,7 +65,7 @@ def test_the_plot_frames_a_short_drive_not_the_whole_map(tmp_path):
     from lego_loam_py.evaluation import plot_trajectories, view_limits
 
     drive = np.tile(np.eye(4), (9, 1, 1))
-    drive[:, 0, 3] = np.arange(9.0) + 50.0                       # x 50..58 m, y 0
+    drive[:, 0, 3] = np.arange(9.0) + 50.0  # x 50..58 m, y 0
     assert view_limits({'estimate': drive}) == (40.0, 68.0, -10.0, 10.0)
     long = np.tile(np.eye(4), (2, 1, 1))
     long[1, :3, 3] = (100.0, 40.0, 0.0)
@@ -74,5 +75,5 @@ def test_the_plot_frames_a_short_drive_not_the_whole_map(tmp_path):
     map_points = np.column_stack([grid, np.zeros(len(grid))])
     png = plot_trajectories(tmp_path / 'drive.png', {'estimate': drive}, map_points)
     assert png.stat().st_size > 1000
-    far = map_points + 500.0                                      # no map point in view: still a picture
+    far = map_points + 500.0  # no map point in view: still a picture
     assert plot_trajectories(tmp_path / 'far.png', {'estimate': drive}, far).stat().st_size > 1000

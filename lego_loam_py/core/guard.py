@@ -11,23 +11,46 @@ row (``reliability.reset_after_failures``) are taken for a poisoned state even w
 The counters (:data:`COUNTERS`) are the run's summary's, the nodes' statistics and /diagnostics', the demo's and
 the batch reports': a scan that went through featureAssociation is ``scans_processed`` everywhere.
 """
+
 from __future__ import annotations
 
-__all__ = ['StepGuard', 'COUNTERS', 'SCANS_IN', 'SCANS_PROCESSED', 'SCANS_DROPPED', 'SCANS_WITH_IMU', 'STATE_RESETS',
-           'MAPPING_STEPS', 'MAPPING_STEPS_FAILED', 'MAPPING_DEGENERATE', 'KEYFRAMES', 'ODOMETRY_RESTARTS']
+__all__ = [
+    'StepGuard',
+    'COUNTERS',
+    'SCANS_IN',
+    'SCANS_PROCESSED',
+    'SCANS_DROPPED',
+    'SCANS_WITH_IMU',
+    'STATE_RESETS',
+    'MAPPING_STEPS',
+    'MAPPING_STEPS_FAILED',
+    'MAPPING_DEGENERATE',
+    'KEYFRAMES',
+    'ODOMETRY_RESTARTS',
+]
 
-SCANS_IN = 'scans_in'                      # clouds that came in
-SCANS_PROCESSED = 'scans_processed'        # scans featureAssociation processed
-SCANS_DROPPED = 'scans_dropped'            # scans dropped (a bad cloud, a failed or poisoned step)
-SCANS_WITH_IMU = 'scans_with_imu'          # scans the IMU was used on
-STATE_RESETS = 'state_resets'              # poisoned states healed
-MAPPING_STEPS = 'mapping_steps'            # steps mapOptimization made
-MAPPING_STEPS_FAILED = 'mapping_steps_failed'   # steps that raised or left a poisoned state
+SCANS_IN = 'scans_in'  # clouds that came in
+SCANS_PROCESSED = 'scans_processed'  # scans featureAssociation processed
+SCANS_DROPPED = 'scans_dropped'  # scans dropped (a bad cloud, a failed or poisoned step)
+SCANS_WITH_IMU = 'scans_with_imu'  # scans the IMU was used on
+STATE_RESETS = 'state_resets'  # poisoned states healed
+MAPPING_STEPS = 'mapping_steps'  # steps mapOptimization made
+MAPPING_STEPS_FAILED = 'mapping_steps_failed'  # steps that raised or left a poisoned state
 MAPPING_DEGENERATE = 'mapping_degenerate'  # steps with a direction held by too few correspondences
-KEYFRAMES = 'keyframes'                    # keyframes added
-ODOMETRY_RESTARTS = 'odometry_restarts'    # times the mapping followed an odometry that started again
-COUNTERS = (SCANS_IN, SCANS_PROCESSED, SCANS_DROPPED, SCANS_WITH_IMU, STATE_RESETS, MAPPING_STEPS,
-            MAPPING_STEPS_FAILED, MAPPING_DEGENERATE, KEYFRAMES, ODOMETRY_RESTARTS)
+KEYFRAMES = 'keyframes'  # keyframes added
+ODOMETRY_RESTARTS = 'odometry_restarts'  # times the mapping followed an odometry that started again
+COUNTERS = (
+    SCANS_IN,
+    SCANS_PROCESSED,
+    SCANS_DROPPED,
+    SCANS_WITH_IMU,
+    STATE_RESETS,
+    MAPPING_STEPS,
+    MAPPING_STEPS_FAILED,
+    MAPPING_DEGENERATE,
+    KEYFRAMES,
+    ODOMETRY_RESTARTS,
+)
 
 
 class StepGuard:

@@ -15,35 +15,44 @@ imageProjection and featureAssociation (numpy and scipy release the GIL), with t
 since the worker takes the mapping inputs and IMU samples in arrival order and transformFusion applies each
 mapping result before the scans that follow it.
 """
+
 from __future__ import annotations
 
 import sys
 import time
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
-from lego_loam_py.core.odometry.feature_association import FeatureAssociation, ScanInput
-from lego_loam_py.core.guard import (MAPPING_DEGENERATE, MAPPING_STEPS, MAPPING_STEPS_FAILED, SCANS_DROPPED, SCANS_IN,
-                                     SCANS_PROCESSED, SCANS_WITH_IMU, STATE_RESETS, StepGuard)
 from lego_loam_py.core.frames import pose6_to_matrix, transform_cloud
-from lego_loam_py.core.projection.elevation_bias import elevation_note
-from lego_loam_py.core.projection.image_projection import ImageProjection, InputError, prepare_input
+from lego_loam_py.core.guard import (
+    MAPPING_DEGENERATE,
+    MAPPING_STEPS,
+    MAPPING_STEPS_FAILED,
+    SCANS_DROPPED,
+    SCANS_IN,
+    SCANS_PROCESSED,
+    SCANS_WITH_IMU,
+    STATE_RESETS,
+    StepGuard,
+)
 from lego_loam_py.core.imu.buffer import uncovered_counter, uncovered_warning, warn_uncovered
 from lego_loam_py.core.localization.localizer import Localization
 from lego_loam_py.core.mapping.map_optimization import MapOptimization
 from lego_loam_py.core.mapping.mapper import Mapper
 from lego_loam_py.core.mapping.odometry_continuity import OdometryContinuity
-from lego_loam_py.core.params.types import Params
-from lego_loam_py.core.pipeline_events import (LoopChecked, MapStepped, PipelineListener, ScanFused,
-                                               ScanProcessed)
-from lego_loam_py.core.pointcloud import CloudLayoutError
-from lego_loam_py.core.trajectory import Trajectory
-from lego_loam_py.core.params.timing import pose_delay
 from lego_loam_py.core.mapping.transform_fusion import TransformFusion
+from lego_loam_py.core.odometry.feature_association import FeatureAssociation, ScanInput
+from lego_loam_py.core.params.timing import pose_delay
+from lego_loam_py.core.params.types import Params
+from lego_loam_py.core.pipeline_events import LoopChecked, MapStepped, PipelineListener, ScanFused, ScanProcessed
+from lego_loam_py.core.pointcloud import CloudLayoutError
+from lego_loam_py.core.projection.elevation_bias import elevation_note
+from lego_loam_py.core.projection.image_projection import ImageProjection, InputError, prepare_input
+from lego_loam_py.core.trajectory import Trajectory
 
 __all__ = ['Pipeline', 'ScanOutput', 'RunResult', 'pose_time_offset_ns']
 
@@ -54,7 +63,8 @@ MAPPED_POSE_LAG_NS = 300_000_000
 
 def pose_time_offset_ns(params: Params) -> int:
     """[ns] to add to a scan's stamp to get the time of the sensor pose the pipeline publishes for it (see
-    :func:`~lego_loam_py.core.params.timing.pose_delay`). Applies to /laser_odom_to_init and /integrated_to_init alike."""
+    :func:`~lego_loam_py.core.params.timing.pose_delay`). Applies to /laser_odom_to_init and /integrated_to_init
+    alike."""
     return int(round(pose_delay(params) * 1e9))
 
 
@@ -62,19 +72,19 @@ def pose_time_offset_ns(params: Params) -> int:
 class RunResult:
     """Everything a run produced; poses are 4x4 in camera_init (LOAM camera axes)."""
 
-    stamps: list[int] = field(default_factory=list)            # scans with an odometry pose
+    stamps: list[int] = field(default_factory=list)  # scans with an odometry pose
     integrated: list[np.ndarray] = field(default_factory=list)  # /integrated_to_init (those not published too)
-    published: list[bool] = field(default_factory=list)        # of each: published (localization: in the map)
-    odometry: list[np.ndarray] = field(default_factory=list)    # /laser_odom_to_init
+    published: list[bool] = field(default_factory=list)  # of each: published (localization: in the map)
+    odometry: list[np.ndarray] = field(default_factory=list)  # /laser_odom_to_init
     mapped_stamps: list[int] = field(default_factory=list)
-    mapped: list[np.ndarray] = field(default_factory=list)      # /aft_mapped_to_init
+    mapped: list[np.ndarray] = field(default_factory=list)  # /aft_mapped_to_init
     timings_ms: dict[str, list[float]] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
     wall_time: float = 0.0
     bag_duration: float = 0.0
-    first_scan_ns: int | None = None   # stamp of the first cloud
+    first_scan_ns: int | None = None  # stamp of the first cloud
     mapper: Mapper | None = None
-    pose_time_offset_ns: int = 0   # the original odometry model's pose of scan k is the sensor's at k + one sweep
+    pose_time_offset_ns: int = 0  # the original odometry model's pose of scan k is the sensor's at k + one sweep
     # What the IMU checks decided, in order: (node, core.imu_monitor.AlignmentEvent).
     imu_alignment: list[tuple[str, object]] = field(default_factory=list)
 
@@ -107,9 +117,14 @@ class RunResult:
             key_stamps = np.array([kf.stamp_ns for kf in keyframes], dtype=np.int64) + self.pose_time_offset_ns
             # (the first keyframe is the graph's anchor: it never moves, though the step that made it published
             # no mapped pose of its own yet)
-            corrections = np.array([np.eye(4) if kf is self.mapper.keyframes[0] else
-                                    pose6_to_matrix(kf.pose6) @ np.linalg.inv(mapped[kf.stamp_ns])
-                                    for kf in keyframes]).reshape(-1, 4, 4)
+            corrections = np.array(
+                [
+                    np.eye(4)
+                    if kf is self.mapper.keyframes[0]
+                    else pose6_to_matrix(kf.pose6) @ np.linalg.inv(mapped[kf.stamp_ns])
+                    for kf in keyframes
+                ]
+            ).reshape(-1, 4, 4)
             which = np.searchsorted(key_stamps, stamps, side='right') - 1
             if len(keyframes):
                 moved = np.einsum('nij,njk->nik', corrections[np.maximum(which, 0)], poses)
@@ -137,8 +152,15 @@ class Pipeline:
     fusion only. ``warn`` receives a line for each scan or step dropped or repaired (default: stderr).
     ``listener`` receives the run's events (core.pipeline_events) as they happen; without one none is made."""
 
-    def __init__(self, params: Params, *, mapping: bool = True, mapping_thread: bool = False,
-                 warn: Callable[[str], None] | None = None, listener: PipelineListener | None = None):
+    def __init__(
+        self,
+        params: Params,
+        *,
+        mapping: bool = True,
+        mapping_thread: bool = False,
+        warn: Callable[[str], None] | None = None,
+        listener: PipelineListener | None = None,
+    ):
         self.params = params
         self.ip, self.fa = ImageProjection(params), FeatureAssociation(params)
         self.localizing = params.map_optimization.mode == 'localization' and mapping
@@ -151,8 +173,14 @@ class Pipeline:
         self._warn = warn or _to_stderr
         self._listener = listener
         self._fa_guard = StepGuard(params.reliability.reset_after_failures)
-        self._back_end = _BackEnd(self.mo if mapping else None, self.fusion, self.record, self._warn,
-                                  threaded=mapping and mapping_thread, listener=listener)
+        self._back_end = _BackEnd(
+            self.mo if mapping else None,
+            self.fusion,
+            self.record,
+            self._warn,
+            threaded=mapping and mapping_thread,
+            listener=listener,
+        )
         self._next_loop_check: int | None = None
 
     def add_imu(self, sample: tuple) -> None:
@@ -181,7 +209,7 @@ class Pipeline:
         if self.record.first_scan_ns is None:
             self.record.first_scan_ns = stamp_ns
         lc = self.params.loop_closure
-        if self.mapping and lc.loop_closure_enable_flag and not self.localizing:   # every loop_closure.period s
+        if self.mapping and lc.loop_closure_enable_flag and not self.localizing:  # every loop_closure.period s
             if self._next_loop_check is None:
                 self._next_loop_check = stamp_ns + int(lc.period * 1e9)
             elif stamp_ns >= self._next_loop_check:
@@ -225,14 +253,14 @@ class Pipeline:
         if 'elevation_offset_found' in segmentation.stats:
             self._warn(elevation_note(segmentation.stats['elevation_offset_found'], stamp))
         for mapped_stamp, pose6 in self._back_end.mapped_before(stamp - MAPPED_POSE_LAG_NS):
-            event = self.fa.add_mapped_pose(mapped_stamp, pose6_to_matrix(pose6))   # (featureAssociation's IMU check)
+            event = self.fa.add_mapped_pose(mapped_stamp, pose6_to_matrix(pose6))  # (featureAssociation's IMU check)
             if event is not None:
                 self._back_end.imu_alignment('featureAssociation', event)
         features = self.fa.process(ScanInput.from_segmentation(stamp, segmentation))
         t2 = time.perf_counter()
         record.time('featureAssociation', (t2 - t1) * 1e3)
         heal = self._fa_guard.after_step(self.fa.health_problem())
-        if heal is not None:   # the guard of the node's (core.guard): start the odometry again, keep the pose
+        if heal is not None:  # the guard of the node's (core.guard): start the odometry again, keep the pose
             self.fa.restart()
             record.count(STATE_RESETS)
             record.count(SCANS_DROPPED)
@@ -245,21 +273,31 @@ class Pipeline:
             counter = uncovered_counter(features.imu_uncovered)
             record.count(counter)
             if warn_uncovered(record.counts[counter]):
-                self._warn(uncovered_warning(features.imu_uncovered, record.counts[counter], stamp,
-                                             self.params.imu.time_offset))
+                self._warn(
+                    uncovered_warning(
+                        features.imu_uncovered, record.counts[counter], stamp, self.params.imu.time_offset
+                    )
+                )
         if features.imu_alignment is not None:
             self._back_end.imu_alignment('featureAssociation', features.imu_alignment)
-        if self._listener is not None:   # (before the fusion, whose event follows)
-            self._listener(ScanProcessed(stamp, segmentation, features, None if features.initialized else
-                                         features.pose, {'imageProjection': (t1 - t0) * 1e3,
-                                                         'featureAssociation': (t2 - t1) * 1e3}))
+        if self._listener is not None:  # (before the fusion, whose event follows)
+            self._listener(
+                ScanProcessed(
+                    stamp,
+                    segmentation,
+                    features,
+                    None if features.initialized else features.pose,
+                    {'imageProjection': (t1 - t0) * 1e3, 'featureAssociation': (t2 - t1) * 1e3},
+                )
+            )
         if not features.initialized:
             record.stamps.append(stamp)
             record.odometry.append(features.pose)
             self._back_end.fuse(stamp, features.pose)
         if features.corner_last is not None and features.outlier_last is not None:
-            self._back_end.map(stamp, features.transform_sum, features.corner_last, features.surf_last,
-                               features.outlier_last)
+            self._back_end.map(
+                stamp, features.transform_sum, features.corner_last, features.surf_last, features.outlier_last
+            )
         return ScanOutput(stamp, None if features.initialized else features.pose, imu_used=features.imu_used)
 
 
@@ -297,12 +335,19 @@ class _BackEnd:
     with exactly the mapping results of the scans before it, whether the worker is a thread or not.
     """
 
-    def __init__(self, mo: Mapper | None, fusion: TransformFusion, result: RunResult,
-                 warn: Callable[[str], None], threaded: bool, listener: PipelineListener | None = None):
+    def __init__(
+        self,
+        mo: Mapper | None,
+        fusion: TransformFusion,
+        result: RunResult,
+        warn: Callable[[str], None],
+        threaded: bool,
+        listener: PipelineListener | None = None,
+    ):
         self.mo, self.fusion, self.result, self.warn = mo, fusion, result, warn
         self.listener = listener
-        self.continuity = OdometryContinuity()   # (used on the mapping worker only)
-        self.guard = StepGuard(1 if mo is None else mo.params.reliability.reset_after_failures)   # (likewise)
+        self.continuity = OdometryContinuity()  # (used on the mapping worker only)
+        self.guard = StepGuard(1 if mo is None else mo.params.reliability.reset_after_failures)  # (likewise)
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix='mapping') if threaded else None
         # CPU time of mapping and loop closure: the worker thread's own (wall time would count its waits for the
         # GIL while the main thread runs the next scans), or the whole process's when nothing else runs beside
@@ -310,13 +355,13 @@ class _BackEnd:
         self._cpu_time = time.thread_time if threaded else time.process_time
         self._imu: list[tuple] = []
         self._events: deque[_Fuse | _Mapped | _LoopChecked] = deque()
-        self._unheard: deque[_Mapped] = deque()   # mapping steps featureAssociation has not heard of yet
+        self._unheard: deque[_Mapped] = deque()  # mapping steps featureAssociation has not heard of yet
 
     def _submit(self, job) -> Future:
         imu, self._imu = self._imu, []
 
         def with_imu():
-            for sample in imu:   # the IMU samples that arrived before this job, as in the sequential run
+            for sample in imu:  # the IMU samples that arrived before this job, as in the sequential run
                 self.mo.imu.add(*sample)
             return job()
 
@@ -343,12 +388,12 @@ class _BackEnd:
             transform_sum = inputs[0]
             pose = pose6_to_matrix(transform_sum)
             jump = self.continuity.check(stamp, pose)
-            if jump is not None:   # the same protection as the node's: continue the map, do not drag it
+            if jump is not None:  # the same protection as the node's: continue the map, do not drag it
                 self.warn(f'mapping input at {stamp * 1e-9:.3f} s: {jump.describe()}')
                 self.mo.reanchor(jump, pose, transform_sum)
             mapped = self.mo.process(stamp, *inputs)
             heal = self.guard.after_step(self.mo.health_problem()) if mapped is not None else None
-            if heal is not None:   # the guard of the node's (core.guard): reset what is poisoned, keep the map
+            if heal is not None:  # the guard of the node's (core.guard): reset what is poisoned, keep the map
                 self.warn(f'mapping step at {stamp * 1e-9:.3f} s: {heal}: {self.mo.heal()}')
                 mapped = None
             cpu_ms = (self._cpu_time() - t) * 1e3
@@ -405,7 +450,7 @@ class _BackEnd:
                 if step is not None:
                     result.time('mapOptimization', ms)
                     result.count(MAPPING_STEPS)
-                    if step.degenerate:   # (a direction held at the prediction, see core.scan_to_map)
+                    if step.degenerate:  # (a direction held at the prediction, see core.scan_to_map)
                         result.count(MAPPING_DEGENERATE)
                     aft, bef = pose6_to_matrix(step.transform_aft), pose6_to_matrix(step.transform_bef)
                     self.fusion.on_mapped(aft, bef, event.stamp_ns)
@@ -429,8 +474,7 @@ class _BackEnd:
         cloud = None
         if new_keyframe and self.mo.builds_map and self.mo.keyframes:
             keyframe = self.mo.keyframes[-1]
-            cloud = transform_cloud(np.concatenate([keyframe.corner, keyframe.surf, keyframe.outlier]),
-                                    keyframe.pose6)
+            cloud = transform_cloud(np.concatenate([keyframe.corner, keyframe.surf, keyframe.outlier]), keyframe.pose6)
         return cloud, poses[:, 3:6].copy()
 
     def imu_alignment(self, node: str, event) -> None:

@@ -7,10 +7,11 @@ works in (x left, y up, z forward). :meth:`Trajectory.to` changes between them f
 axis change is a permutation: exact). A trajectory unpacks as ``stamps, poses = trajectory``, the pair the
 evaluation functions take.
 """
+
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator
 
 import numpy as np
 
@@ -33,7 +34,7 @@ class Trajectory:
         if len(stamps) != len(poses):
             raise ValueError(f'{len(stamps)} stamps for {len(poses)} poses')
         if self.frame not in FRAMES:
-            raise ValueError(f"frame must be one of {FRAMES}, got {self.frame!r}")
+            raise ValueError(f'frame must be one of {FRAMES}, got {self.frame!r}')
         object.__setattr__(self, 'stamps_ns', stamps)
         object.__setattr__(self, 'poses', poses)
 
@@ -44,7 +45,7 @@ class Trajectory:
         """``stamps, poses = trajectory``."""
         return iter((self.stamps_ns, self.poses))
 
-    def to(self, frame: str) -> 'Trajectory':
+    def to(self, frame: str) -> Trajectory:
         """The same poses in ``frame``."""
         if frame == self.frame:
             return self
@@ -53,7 +54,7 @@ class Trajectory:
         change = camera_pose_to_lidar if frame == 'map' else lidar_pose_to_camera
         return Trajectory(self.stamps_ns, change(self.poses), frame)
 
-    def select(self, keep: np.ndarray) -> 'Trajectory':
+    def select(self, keep: np.ndarray) -> Trajectory:
         """The poses where ``keep`` (boolean or index array) says."""
         return Trajectory(self.stamps_ns[keep], self.poses[keep], self.frame)
 

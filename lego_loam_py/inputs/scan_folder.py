@@ -6,18 +6,19 @@ stamped from ``times.txt`` in the folder when there is one (one time [s] a line)
 scan; camera poses when a KITTI ``calib.txt`` is beside it, else the lidar's) or ``ground_truth.tum``.
 Fields are kept as the files have them, so a PCD with ``ring`` and ``time`` feeds the pipeline as a bag does.
 """
+
 from __future__ import annotations
 
 import re
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
+from lego_loam_py.core.trajectory import Trajectory
 from lego_loam_py.formats import read_tum
 from lego_loam_py.inputs.kitti import lidar_ground_truth, read_times
 from lego_loam_py.inputs.point_files import POINT_FILE_SUFFIXES, read_points
-from lego_loam_py.core.trajectory import Trajectory
 from lego_loam_py.inputs.sidecars import GROUND_TRUTH
 from lego_loam_py.inputs.source import Scan, Source, SourceError, SourceItem
 
@@ -31,8 +32,9 @@ def natural_key(path: Path) -> list:
 
 def scan_files(folder: Path) -> list[Path]:
     """The point files of a folder in name order."""
-    return sorted((p for p in folder.iterdir() if p.suffix.lower() in POINT_FILE_SUFFIXES and p.is_file()),
-                  key=natural_key)
+    return sorted(
+        (p for p in folder.iterdir() if p.suffix.lower() in POINT_FILE_SUFFIXES and p.is_file()), key=natural_key
+    )
 
 
 class ScanFolderSource(Source):
@@ -82,8 +84,9 @@ class ScanFolderSource(Source):
 
     def describe(self) -> str:
         truth = 'with ground truth' if self._ground_truth is not None else 'no ground truth'
-        return (f'{len(self.files)} {self.files[0].suffix.lower()} scans in {self.path} timed by {self.timed_by}, '
-                f'{truth}')
+        return (
+            f'{len(self.files)} {self.files[0].suffix.lower()} scans in {self.path} timed by {self.timed_by}, {truth}'
+        )
 
     def items(self) -> Iterator[SourceItem]:
         for stamp, path in zip(self.stamps, self.files):

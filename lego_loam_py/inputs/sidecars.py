@@ -19,6 +19,7 @@ file ``P.bag`` they sit next to it with the bag's stem as prefix (``P.ground_tru
 :func:`sidecar_path` and the loaders find these beside any bag (the demo, the evaluation, the map bundle's
 ``source`` and the benchmarks read them); the simulator (:mod:`lego_loam_py.sim.output`) writes them.
 """
+
 from __future__ import annotations
 
 import json
@@ -31,8 +32,19 @@ import yaml
 from lego_loam_py.core.trajectory import Trajectory
 from lego_loam_py.formats import read_tum
 
-__all__ = ['GROUND_TRUTH', 'GROUND_TRUTH_DENSE', 'LABELS', 'SCENARIO', 'NOTE', 'sidecar_path', 'load_ground_truth',
-           'load_scenario', 'recording_source', 'Labels', 'load_labels']
+__all__ = [
+    'GROUND_TRUTH',
+    'GROUND_TRUTH_DENSE',
+    'LABELS',
+    'SCENARIO',
+    'NOTE',
+    'sidecar_path',
+    'load_ground_truth',
+    'load_scenario',
+    'recording_source',
+    'Labels',
+    'load_labels',
+]
 
 GROUND_TRUTH = 'ground_truth.tum'
 GROUND_TRUTH_DENSE = 'ground_truth_dense.tum'
@@ -76,8 +88,10 @@ def recording_source(bag_path: str | Path) -> dict[str, Any]:
     source: dict[str, Any] = {'bag': str(Path(bag_path).expanduser().resolve())}
     scenario = load_scenario(bag_path)
     if scenario is not None:
-        source['simulated'] = {'config': scenario['config'],
-                               'start_stamp_ns': int(scenario['recording']['start_stamp_ns'])}
+        source['simulated'] = {
+            'config': scenario['config'],
+            'start_stamp_ns': int(scenario['recording']['start_stamp_ns']),
+        }
     return source
 
 

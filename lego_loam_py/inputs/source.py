@@ -13,11 +13,12 @@ other command that feeds the pipeline) uses only this interface.
 Points are structured arrays (:mod:`lego_loam_py.core.pointcloud`: x, y, z [m] in the sensor frame, REP-103 axes;
 intensity, ring and time when the recording has them); stamps are integer nanoseconds of the sweep start.
 """
+
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Union
 
 import numpy as np
 
@@ -25,6 +26,7 @@ from lego_loam_py.core.trajectory import Trajectory
 from lego_loam_py.errors import LegoLoamError
 
 __all__ = ['Scan', 'ImuSample', 'UnreadableScan', 'SourceItem', 'Source', 'SourceError']
+
 
 class SourceError(LegoLoamError, RuntimeError):
     """A recording cannot be read: a missing or inconsistent file, named in the message."""
@@ -58,16 +60,16 @@ class UnreadableScan:
     received_ns: int
 
 
-SourceItem = Union[Scan, ImuSample, UnreadableScan]
+SourceItem = Scan | ImuSample | UnreadableScan
 
 
 class Source:
     """A recording to run the pipeline on. Subclasses set :attr:`kind`, :attr:`path`, :attr:`name` and implement
     :meth:`items`; the rest has defaults. Use as a context manager (:meth:`close` releases files)."""
 
-    kind: str = ''                  # 'rosbag', 'kitti', 'scans', 'pcap'
+    kind: str = ''  # 'rosbag', 'kitti', 'scans', 'pcap'
     path: Path
-    name: str                       # default name of the output folder
+    name: str  # default name of the output folder
 
     @property
     def duration_s(self) -> float:
@@ -94,7 +96,7 @@ class Source:
     def close(self) -> None:
         pass
 
-    def __enter__(self) -> 'Source':
+    def __enter__(self) -> Source:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -1,5 +1,6 @@
 """Requests for one slow job (a map save), served by runs on a worker thread that coalesce what comes meanwhile: the
 save_map service and the shutdown save of mapOptimization."""
+
 from __future__ import annotations
 
 __all__ = ['CoalescingRunner']
@@ -21,8 +22,8 @@ class CoalescingRunner:
         self._job = job
         self._name = name
         self._lock = threading.Lock()
-        self._running = None     # the Future of the run going on
-        self._next = None        # the Future shared by the requests made meanwhile
+        self._running = None  # the Future of the run going on
+        self._next = None  # the Future shared by the requests made meanwhile
         self.runs = 0
 
     def request(self):
@@ -47,7 +48,7 @@ class CoalescingRunner:
         result, error = None, None
         try:
             result = self._job()
-        except BaseException as exc:   # handed to every caller
+        except BaseException as exc:  # handed to every caller
             error = exc
         # The runner is idle (or on its next run) before anyone hears of the result: a caller that asks again
         # at once gets a new run, and busy() is False once every caller has its answer.

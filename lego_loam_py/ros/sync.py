@@ -18,25 +18,26 @@ sparse stream (inputs more than ``jump_ns`` apart, e.g. from an overloaded node)
 stamp less than ``jump_ns`` ahead is caught the other way round: once ``resync_after`` inputs in a row come
 stamped before it (and after each other), it was the wrong one, and the node carries on from them.
 """
+
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 __all__ = ['StampSynchronizer', 'StampOrder', 'Decision']
 
 
 class StampSynchronizer:
-    def __init__(self, names: Sequence[str], tolerance_ns: int, keep: int = 4,
-                 horizon_ns: int | None = 1_000_000_000):
+    def __init__(self, names: Sequence[str], tolerance_ns: int, keep: int = 4, horizon_ns: int | None = 1_000_000_000):
         self.names = tuple(names)
         self.tolerance_ns = int(tolerance_ns)
         self.keep = int(keep)
         self.horizon_ns = None if horizon_ns is None else max(int(horizon_ns), self.tolerance_ns)
-        self._pending: list[tuple[int, dict[str, Any]]] = []   # (reference stamp, parts), oldest first
-        self._arrival: dict[int, int] = {}   # reference stamp -> when its set was opened (a counter)
+        self._pending: list[tuple[int, dict[str, Any]]] = []  # (reference stamp, parts), oldest first
+        self._arrival: dict[int, int] = {}  # reference stamp -> when its set was opened (a counter)
         self._opened = 0
-        self.dropped = 0   # messages discarded since the caller last reset this counter
+        self.dropped = 0  # messages discarded since the caller last reset this counter
 
     def add(self, name: str, stamp_ns: int, item: Any) -> dict[str, Any] | None:
         """File a message; returns {name: item} for a complete set, else None."""
@@ -46,15 +47,17 @@ class StampSynchronizer:
         if self.horizon_ns is not None and self._pending:
             kept = [entry for entry in self._pending if abs(entry[0] - stamp_ns) <= self.horizon_ns]
             if len(kept) < len(self._pending):
-                self.dropped += sum(len(parts) for reference, parts in self._pending
-                                    if abs(reference - stamp_ns) > self.horizon_ns)
+                self.dropped += sum(
+                    len(parts) for reference, parts in self._pending if abs(reference - stamp_ns) > self.horizon_ns
+                )
                 self._pending = kept
-                self._arrival = {reference: self._arrival[reference] for reference, _ in kept
-                                 if reference in self._arrival}
+                self._arrival = {
+                    reference: self._arrival[reference] for reference, _ in kept if reference in self._arrival
+                }
         target = None
         for index, (reference, parts) in enumerate(self._pending):
-            if abs(stamp_ns - reference) < self.tolerance_ns:   # strictly, as the original's |Δstamp| < 0.05 s
-                if name in parts:             # a newer message of the same topic replaces the old one
+            if abs(stamp_ns - reference) < self.tolerance_ns:  # strictly, as the original's |Δstamp| < 0.05 s
+                if name in parts:  # a newer message of the same topic replaces the old one
                     self.dropped += 1
                 target = index
                 parts[name] = item
@@ -75,9 +78,9 @@ class StampSynchronizer:
             return None
         for _, older in self._pending[:target]:
             self.dropped += len(older)
-        for released, _ in self._pending[:target + 1]:
+        for released, _ in self._pending[: target + 1]:
             self._arrival.pop(released, None)
-        del self._pending[:target + 1]
+        del self._pending[: target + 1]
         return parts
 
     def clear(self) -> None:
@@ -130,9 +133,9 @@ class StampOrder:
         self.resync_after = int(resync_after)
         self.restart_after = int(restart_after)
         self.last_ns: int | None = None
-        self.first_ns: int | None = None   # the first input processed since the last reset: the timeline's start
+        self.first_ns: int | None = None  # the first input processed since the last reset: the timeline's start
         self._held: list[tuple[int, Any]] = []
-        self._behind: list[int] = []   # stamps of the inputs dropped in a row as out of order
+        self._behind: list[int] = []  # stamps of the inputs dropped in a row as out of order
 
     @property
     def holding(self) -> bool:
@@ -151,13 +154,13 @@ class StampOrder:
         if self._held:
             first_held_ns, newest_held_ns = self._held[0][0], self._held[-1][0]
             last = self.last_ns if self.last_ns is not None else first_held_ns
-            if stamp_ns == newest_held_ns:                          # a duplicate of a held input
+            if stamp_ns == newest_held_ns:  # a duplicate of a held input
                 return Decision('drop', 'duplicate stamp')
             items = [held_item for _, held_item in self._held]
-            if first_held_ns > last and stamp_ns > newest_held_ns:   # forward, and time goes on from there
+            if first_held_ns > last and stamp_ns > newest_held_ns:  # forward, and time goes on from there
                 self._held = []
                 return Decision('jump', held=items, jump_ns=first_held_ns - last)
-            if first_held_ns < last and newest_held_ns < stamp_ns < last - self.jump_ns:   # back, and goes on
+            if first_held_ns < last and newest_held_ns < stamp_ns < last - self.jump_ns:  # back, and goes on
                 if len(self._held) + 1 < self.restart_after:
                     self._held.append((stamp_ns, item))
                     return Decision('hold')
@@ -167,7 +170,7 @@ class StampOrder:
                     return Decision('resync', held=items, jump_ns=first_held_ns - last)
                 return Decision('reset', held=items, jump_ns=first_held_ns - last)
             self._held = []
-            decision = self._check_without_held(stamp_ns, item)   # refuted (or yet another jump: held)
+            decision = self._check_without_held(stamp_ns, item)  # refuted (or yet another jump: held)
             decision.discarded = items
             return decision
         return self._check_without_held(stamp_ns, item)

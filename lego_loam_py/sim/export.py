@@ -11,6 +11,7 @@ seconds since the first, nanosecond digits) and ``poses.txt`` (the ground truth,
 ``lego_loam_py run`` reads either (:mod:`lego_loam_py.inputs`); no IMU is exported, so compare with the bag run
 ``--no-imu``.
 """
+
 from __future__ import annotations
 
 import shutil
@@ -56,8 +57,9 @@ def export_recording(bag: str | Path, folder: str | Path, kind: str) -> int:
                     write_pcd_points(scans / f'{k:06d}.pcd', points)
         truth_stamps, poses = truth
         index = np.searchsorted(truth_stamps, stamps)
-        if np.any(index >= len(truth_stamps)) or np.any(truth_stamps[np.minimum(index, len(truth_stamps) - 1)]
-                                                         != stamps):
+        if np.any(index >= len(truth_stamps)) or np.any(
+            truth_stamps[np.minimum(index, len(truth_stamps) - 1)] != stamps
+        ):
             raise ValueError(f'{bag}: the ground truth does not list every cloud stamp')
         poses = poses[index]
         if kind == 'kitti':

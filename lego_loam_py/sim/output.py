@@ -2,6 +2,7 @@
 which reads them), and the simulated world a recording's scenario.yaml describes: where the true sensor was
 (:func:`true_poses`) and how far a map lies from the scene's surfaces (:func:`map_distance_to_scene`).
 """
+
 from __future__ import annotations
 
 import io
@@ -16,8 +17,16 @@ import yaml
 from lego_loam_py.formats import tum_lines
 from lego_loam_py.inputs.sidecars import load_scenario
 
-__all__ = ['relative_poses', 'write_tum', 'write_yaml', 'LabelWriter', 'map_distance_to_scene', 'world_of',
-           'true_poses', 'same_scene']
+__all__ = [
+    'relative_poses',
+    'write_tum',
+    'write_yaml',
+    'LabelWriter',
+    'map_distance_to_scene',
+    'world_of',
+    'true_poses',
+    'same_scene',
+]
 
 
 def relative_poses(poses: np.ndarray) -> np.ndarray:
@@ -31,8 +40,9 @@ def write_tum(path: str | Path, stamps_ns: np.ndarray, poses: np.ndarray) -> Non
     Path(path).write_text('# timestamp tx ty tz qx qy qz qw\n' + tum_lines(stamps_ns, poses, 9, 12))
 
 
-def map_distance_to_scene(bag_path: str | Path, map_points: np.ndarray, stamp_ns: int,
-                          lidar_pose_in_map: np.ndarray) -> np.ndarray | None:
+def map_distance_to_scene(
+    bag_path: str | Path, map_points: np.ndarray, stamp_ns: int, lidar_pose_in_map: np.ndarray
+) -> np.ndarray | None:
     """Distance [m] of each map point (REP-103 axes of the ``map`` frame) to the simulated scene's surfaces,
     or None when no scenario.yaml sits beside the bag.
 
@@ -57,8 +67,13 @@ def world_of(scenario: dict[str, Any]):
 
     config = scenario['config']
     route_start = config.get('route_start')
-    return build_world(config['scenario'], int(config['seed']), float(config.get('turn_rate', 0.0)),
-                       None if route_start is None else float(route_start), bool(config.get('reverse', False)))
+    return build_world(
+        config['scenario'],
+        int(config['seed']),
+        float(config.get('turn_rate', 0.0)),
+        None if route_start is None else float(route_start),
+        bool(config.get('reverse', False)),
+    )
 
 
 def true_poses(simulated: dict[str, Any], stamps_ns: np.ndarray) -> np.ndarray:
@@ -79,7 +94,7 @@ def write_yaml(path: str | Path, data: dict[str, Any]) -> None:
 
 # ------------------------------------------------------------------------------------------------ labels
 
-_ZIP_DATE = (1980, 1, 1, 0, 0, 0)   # fixed member dates: identical inputs give identical files
+_ZIP_DATE = (1980, 1, 1, 0, 0, 0)  # fixed member dates: identical inputs give identical files
 
 
 class LabelWriter:
@@ -94,8 +109,7 @@ class LabelWriter:
     def _write_array(self, name: str, array: np.ndarray) -> None:
         buffer = io.BytesIO()
         array = np.asarray(array)
-        np.lib.format.write_array(buffer, array if array.ndim == 0 else np.ascontiguousarray(array),
-                                  allow_pickle=False)
+        np.lib.format.write_array(buffer, array if array.ndim == 0 else np.ascontiguousarray(array), allow_pickle=False)
         info = zipfile.ZipInfo(f'{name}.npy', date_time=_ZIP_DATE)
         info.compress_type = zipfile.ZIP_DEFLATED
         self._zip.writestr(info, buffer.getvalue(), compresslevel=6)

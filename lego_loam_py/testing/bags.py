@@ -1,4 +1,5 @@
 """Recordings made from recordings: a bag with a stretch of time cut out (a kidnapped robot, a sensor that stopped)."""
+
 from __future__ import annotations
 
 import shutil

@@ -1,4 +1,5 @@
 """Machine-wide unique ROS_DOMAIN_IDs for concurrent test runs, leased with file locks."""
+
 from __future__ import annotations
 
 import fcntl

@@ -12,6 +12,7 @@ for a line on stdin (the test stops a subscriber meanwhile, so that the burst ar
 work, on any machine). Prints ``ready`` once every topic has a subscriber, ``lap K`` at
 the start of each lap and ``done N`` at the end (N = clouds published).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -45,12 +46,16 @@ def main(argv=None) -> int:
     parser.add_argument('--laps', type=int, default=None, help='laps to publish')
     parser.add_argument('--jump-back', action='store_true', help='keep the original stamps at every lap')
     parser.add_argument('--burst', type=int, default=0, help='clouds to publish at once after one second')
-    parser.add_argument('--burst-handshake', action='store_true',
-                        help="print 'burst ready' and wait for a line on stdin before the burst")
+    parser.add_argument(
+        '--burst-handshake',
+        action='store_true',
+        help="print 'burst ready' and wait for a line on stdin before the burst",
+    )
     parser.add_argument('--no-imu', action='store_true')
     parser.add_argument('--imu-start', type=float, default=0.0, help='publish IMU only after this many seconds')
-    parser.add_argument('--imu-gap', type=float, nargs=2, default=None, metavar=('FROM', 'TO'),
-                        help='no IMU between these data seconds')
+    parser.add_argument(
+        '--imu-gap', type=float, nargs=2, default=None, metavar=('FROM', 'TO'), help='no IMU between these data seconds'
+    )
     parser.add_argument('--wait-for-subscribers', type=float, default=30.0)
     parser.add_argument('--depth', type=int, default=10, help='publisher queue depth')
     args = parser.parse_args(argv)
@@ -75,12 +80,12 @@ def main(argv=None) -> int:
         if all(p.get_subscription_count() > 0 for p in publishers.values()):
             break
         time.sleep(0.05)
-    time.sleep(0.5)   # let the subscribers finish matching
+    time.sleep(0.5)  # let the subscribers finish matching
     print('ready', flush=True)
 
     reader = BagReader(args.bag)
     reader.open()
-    lap_ns = reader.end_time - reader.start_time + 100_000_000   # one sweep after the last message
+    lap_ns = reader.end_time - reader.start_time + 100_000_000  # one sweep after the last message
     total_ns = None if args.duration is None else int(args.duration * 1e9)
     laps = args.laps if args.laps is not None else (1 if total_ns is None else 1 + total_ns // lap_ns)
     clouds = 0
@@ -116,7 +121,7 @@ def main(argv=None) -> int:
                         if args.burst_handshake:
                             print('burst ready', flush=True)
                             sys.stdin.readline()
-                        for k in range(1, args.burst + 1):   # stamps 0.9 ms apart, before the next sweep
+                        for k in range(1, args.burst + 1):  # stamps 0.9 ms apart, before the next sweep
                             publishers[LIDAR].publish(restamp(data, k * 900_000))
                         clouds += args.burst
                         print(f'burst {args.burst}', flush=True)
@@ -127,6 +132,7 @@ def main(argv=None) -> int:
         for publisher in publishers.values():
             try:
                 from rclpy.duration import Duration
+
                 publisher.wait_for_all_acked(Duration(seconds=2.0))
             except Exception:
                 pass

@@ -1,4 +1,5 @@
 """What a process costs, read from /proc (psutil is not a dependency): the tests and the benchmarks use it."""
+
 from __future__ import annotations
 
 from pathlib import Path

@@ -1,4 +1,5 @@
 """Messages seen by a test or a benchmark: their header stamp, and a copy stamped at another time."""
+
 from __future__ import annotations
 
 import copy

@@ -1,9 +1,10 @@
 """Helpers for tests that talk DDS from the pytest process."""
+
 from __future__ import annotations
 
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
@@ -48,10 +49,9 @@ def wait_for_line(proc, text: str, timeout: float = 20.0) -> str:
     return read_until(proc, text, timeout).splitlines(keepends=True)[-1]
 
 
-
-
-def publish_in_lockstep(context, node, publish, items, processed, timeout: float = 60.0,
-                        resend_after: float = 5.0, resend=None) -> list:
+def publish_in_lockstep(
+    context, node, publish, items, processed, timeout: float = 60.0, resend_after: float = 5.0, resend=None
+) -> list:
     """Hand ``items`` [(key, message)] to ``publish`` one at a time, each once ``processed(key)`` holds for the
     one before: a pipeline fed this way never sees two inputs at once, so the nodes' depth-1 queues ('latest
     wins', as the original's) lose nothing however slow a loaded machine makes them.
@@ -124,14 +124,17 @@ def links_matched(diagnostics: Diagnostics, links) -> bool:
     Seeing a topic's endpoints in the test's view of the graph is not enough: each participant discovers the
     others on its own time, and a message sent on a link not yet matched at both ends is lost.
     """
+
     def matched(end, topic: str, side: str) -> int:
         if isinstance(end, str):
             return diagnostics.counter(end, f'matched {side} {topic}')
         return end.get_subscription_count() if side == 'subscribers' else end.get_publisher_count()
 
-    return all(matched(writer, topic, 'subscribers') >= len(readers) and
-               all(matched(reader, topic, 'publishers') >= 1 for reader in readers)
-               for writer, topic, readers in links)
+    return all(
+        matched(writer, topic, 'subscribers') >= len(readers)
+        and all(matched(reader, topic, 'publishers') >= 1 for reader in readers)
+        for writer, topic, readers in links
+    )
 
 
 def release(node, timeout: float = 10.0) -> bool:
@@ -162,5 +165,14 @@ def spin_in_background(executor, stop: threading.Event) -> threading.Thread:
     return thread
 
 
-__all__ = ['spin_until', 'spin_in_background', 'read_until', 'wait_for_line', 'publish_in_lockstep', 'bag_clouds', 'Diagnostics', 'release',
-           'rclpy']
+__all__ = [
+    'spin_until',
+    'spin_in_background',
+    'read_until',
+    'wait_for_line',
+    'publish_in_lockstep',
+    'bag_clouds',
+    'Diagnostics',
+    'release',
+    'rclpy',
+]

@@ -14,6 +14,7 @@ bias taken off then). Their difference ``rotvec(L^T G)`` is the bias over the in
   random walk), sets the prior's weight: ``POINT_SIGMA^2 / sigma^2`` in the registration's units (its cost is the
   sum of squared point distances [m^2]: a point's noise over the IMU's per sweep), at most the parameter.
 """
+
 from __future__ import annotations
 
 import math
@@ -24,11 +25,11 @@ from scipy.spatial.transform import Rotation
 
 __all__ = ['ImuAgreement', 'WINDOW', 'MIN_SPAN', 'POINT_SIGMA']
 
-WINDOW = 30.0          # [s] of intervals the estimates come from
-MIN_SPAN = 5.0         # [s] of intervals before they are taken
+WINDOW = 30.0  # [s] of intervals the estimates come from
+MIN_SPAN = 5.0  # [s] of intervals before they are taken
 OUTLIER_SIGMAS = 4.0
-POINT_SIGMA = 0.03     # [m] a registered point's noise, against which the IMU's per sweep is weighed
-MIN_SIGMA = math.radians(0.001)   # [rad] the IMU is never taken as finer than this per sweep
+POINT_SIGMA = 0.03  # [m] a registered point's noise, against which the IMU's per sweep is weighed
+MIN_SIGMA = math.radians(0.001)  # [rad] the IMU is never taken as finer than this per sweep
 
 
 class ImuAgreement:
@@ -36,11 +37,11 @@ class ImuAgreement:
 
     def __init__(self, scan_period: float = 0.1):
         self.scan_period = float(scan_period)
-        self.bias = np.zeros(3)            # [rad/s] lidar axes: the gyro's, as found (0 until then)
-        self.sigma: float | None = None    # [rad] the IMU's turn error per sweep left after the bias
-        self._states: dict[int, tuple[float, np.ndarray, np.ndarray]] = {}   # stamp -> (time, attitude, bias)
+        self.bias = np.zeros(3)  # [rad/s] lidar axes: the gyro's, as found (0 until then)
+        self.sigma: float | None = None  # [rad] the IMU's turn error per sweep left after the bias
+        self._states: dict[int, tuple[float, np.ndarray, np.ndarray]] = {}  # stamp -> (time, attitude, bias)
         self._previous: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None
-        self._intervals: deque[tuple[float, float, np.ndarray]] = deque()   # (end time, length, bias x length + e)
+        self._intervals: deque[tuple[float, float, np.ndarray]] = deque()  # (end time, length, bias x length + e)
 
     def keep(self, stamp_ns: int, time: float, attitude: np.ndarray) -> None:
         """The IMU's attitude of the lidar (3x3, lidar axes) at the pose time ``time`` [s] of the scan stamped
@@ -74,18 +75,18 @@ class ImuAgreement:
             return
         turns = np.array([i[2] for i in self._intervals])
         keep = np.ones(len(lengths), dtype=bool)
-        for _ in range(2):   # least squares of turn = bias x length, then without the outliers
+        for _ in range(2):  # least squares of turn = bias x length, then without the outliers
             bias = (turns[keep] * lengths[keep, None]).sum(axis=0) / (lengths[keep] ** 2).sum()
             residual = np.linalg.norm(turns - bias[None, :] * lengths[:, None], axis=1)
             scale = 1.4826 * float(np.median(residual[keep])) + 1e-9
             keep = residual <= OUTLIER_SIGMAS * scale
         self.bias = bias
         residual = turns[keep] - bias[None, :] * lengths[keep, None]
-        per_second = float((residual ** 2).sum() / lengths[keep].sum())   # a random walk's variance per second
+        per_second = float((residual**2).sum() / lengths[keep].sum())  # a random walk's variance per second
         self.sigma = max(math.sqrt(per_second * self.scan_period), MIN_SIGMA)
 
     def prior_weight(self, largest: float) -> float:
         """The weight of the IMU's rotation prior: ``largest`` (the parameter) until the agreement is known."""
         if self.sigma is None:
             return largest
-        return min(largest, POINT_SIGMA ** 2 / self.sigma ** 2)
+        return min(largest, POINT_SIGMA**2 / self.sigma**2)

@@ -19,19 +19,28 @@ vertical stays unknown, which :attr:`AlignmentFit.rotation_sigma_deg` shows.
 
 Units: rotation vectors [rad], times and offsets [s], reported angles [deg]. Axes: the lidar's (REP-103).
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from lego_loam_py.core.frames import matrix_to_rpy
 
-__all__ = ['AlignmentFit', 'GyroTrack', 'OrientationTrack', 'best_rotation', 'fit_alignment', 'shifted_increments',
-           'axis_name', 'nearest_right_angle_rotation']
+__all__ = [
+    'AlignmentFit',
+    'GyroTrack',
+    'OrientationTrack',
+    'best_rotation',
+    'fit_alignment',
+    'shifted_increments',
+    'axis_name',
+    'nearest_right_angle_rotation',
+]
 
 # The offsets tried first [s] (then refined between grid points).
 DEFAULT_OFFSETS = np.round(np.arange(-0.1, 0.1 + 1e-9, 0.004), 6)
@@ -48,8 +57,9 @@ def best_rotation(lidar: np.ndarray, imu: np.ndarray) -> np.ndarray:
     return v @ np.swapaxes(u, -1, -2)
 
 
-def shifted_increments(increments: Rotation, rate_start: np.ndarray, rate_end: np.ndarray,
-                       offsets: np.ndarray) -> np.ndarray:
+def shifted_increments(
+    increments: Rotation, rate_start: np.ndarray, rate_end: np.ndarray, offsets: np.ndarray
+) -> np.ndarray:
     """(m, n, 3) rotation vectors of n IMU increments moved each of m ``offsets`` [s] later at both ends, to first
     order in the offset: ``exp(-w_a offset) dR exp(w_b offset)`` with the body rates (n, 3) [rad/s] at the
     interval's ends (enough for the online check; the calibration shifts exactly)."""
@@ -67,7 +77,7 @@ class OrientationTrack:
 
     def __init__(self, times: np.ndarray, quaternions: np.ndarray):
         times = np.asarray(times, dtype=float)
-        keep = np.concatenate(([True], np.diff(times) > 0))   # (a repeated stamp says nothing new)
+        keep = np.concatenate(([True], np.diff(times) > 0))  # (a repeated stamp says nothing new)
         self.times = times[keep]
         self._slerp = Slerp(self.times, Rotation.from_quat(np.asarray(quaternions, dtype=float)[keep]))
 
@@ -92,7 +102,7 @@ class GyroTrack(OrientationTrack):
         steps = Rotation.from_rotvec(0.5 * (rates[1:] + rates[:-1]) * np.diff(times)[:, None])
         attitude = Rotation.concatenate([Rotation.identity(), steps])
         span = 1
-        while span < len(attitude):   # each entry becomes the product of the 2 * span steps ending there
+        while span < len(attitude):  # each entry becomes the product of the 2 * span steps ending there
             attitude = Rotation.concatenate([attitude[:span], attitude[:-span] * attitude[span:]])
             span *= 2
         super().__init__(times, attitude.as_quat())
@@ -115,17 +125,17 @@ class AlignmentFit:
     R_lidar_imu(configured)``. ``offset`` [s] is the clock offset they miss, in the sense of ``imu.time_offset``.
     """
 
-    rotation: np.ndarray                # (3, 3)
-    offset: float                       # [s]
+    rotation: np.ndarray  # (3, 3)
+    offset: float  # [s]
     intervals: int
-    rms_before_deg: float               # residual per interval with the configured mounting [deg]
-    rms_after_deg: float                # ... with the fitted rotation and offset [deg]
-    noise_deg: np.ndarray               # (3,) residual spread per lidar axis after the fit [deg]
-    rotation_sigma_deg: np.ndarray      # (3,) 1-sigma of the rotation about its principal axes, weakest last [deg]
-    rotation_axes: np.ndarray           # (3, 3) those principal axes (rows, lidar axes)
-    rotation_covariance: np.ndarray     # (3, 3) of the rotation vector of ``rotation`` [rad^2]
-    offset_sigma: float                 # 1-sigma of the offset [s]
-    offset_at_edge: bool                # the best offset lies at the end of the range searched
+    rms_before_deg: float  # residual per interval with the configured mounting [deg]
+    rms_after_deg: float  # ... with the fitted rotation and offset [deg]
+    noise_deg: np.ndarray  # (3,) residual spread per lidar axis after the fit [deg]
+    rotation_sigma_deg: np.ndarray  # (3,) 1-sigma of the rotation about its principal axes, weakest last [deg]
+    rotation_axes: np.ndarray  # (3, 3) those principal axes (rows, lidar axes)
+    rotation_covariance: np.ndarray  # (3, 3) of the rotation vector of ``rotation`` [rad^2]
+    offset_sigma: float  # 1-sigma of the offset [s]
+    offset_at_edge: bool  # the best offset lies at the end of the range searched
 
     @property
     def angle_deg(self) -> float:
@@ -148,17 +158,18 @@ class AlignmentFit:
     @property
     def explained_deg(self) -> float:
         """How much of the disagreement per interval the fitted rotation and offset explain [deg, RMS]."""
-        return math.sqrt(max(0.0, self.rms_before_deg ** 2 - self.rms_after_deg ** 2))
+        return math.sqrt(max(0.0, self.rms_before_deg**2 - self.rms_after_deg**2))
 
     @property
     def explained(self) -> float:
         """Share of the squared disagreement the fitted rotation and offset explain (0..1)."""
-        before = self.rms_before_deg ** 2
-        return 0.0 if before == 0 else max(0.0, 1.0 - self.rms_after_deg ** 2 / before)
+        before = self.rms_before_deg**2
+        return 0.0 if before == 0 else max(0.0, 1.0 - self.rms_after_deg**2 / before)
 
 
-def fit_alignment(lidar: np.ndarray, imu_at: Callable[[np.ndarray], np.ndarray],
-                  offsets: np.ndarray = DEFAULT_OFFSETS) -> AlignmentFit:
+def fit_alignment(
+    lidar: np.ndarray, imu_at: Callable[[np.ndarray], np.ndarray], offsets: np.ndarray = DEFAULT_OFFSETS
+) -> AlignmentFit:
     """The rotation and clock offset best mapping the IMU's rotation increments onto the lidar's.
 
     ``lidar``: (n, 3) rotation vectors of the lidar's turn over n intervals [rad, lidar axes]; ``imu_at(offsets)``:
@@ -181,18 +192,18 @@ def fit_alignment(lidar: np.ndarray, imu_at: Callable[[np.ndarray], np.ndarray],
     best = int(np.argmin(costs))
     offset = float(offsets[best])
     at_edge = fitted_offset and best in (0, len(offsets) - 1)
-    if len(offsets) >= 3 and not at_edge:   # parabola through the best grid point and its neighbours
-        c0, c1, c2 = costs[best - 1:best + 2]
+    if len(offsets) >= 3 and not at_edge:  # parabola through the best grid point and its neighbours
+        c0, c1, c2 = costs[best - 1 : best + 2]
         curvature = c0 - 2 * c1 + c2
         if curvature > 0:
             step = offsets[best + 1] - offsets[best]
             offset += float(np.clip(0.5 * (c0 - c2) / curvature, -1.0, 1.0)) * step
-    h = 1e-3   # for the offset's derivative
+    h = 1e-3  # for the offset's derivative
     trial = np.array([offset, 0.0] + ([offset - h, offset + h] if fitted_offset else []))
     cost, rotations, imu = solve(trial)
     rotation, residual = rotations[0], lidar - imu[0] @ rotations[0].T
-    before = float(np.square(lidar - imu[1]).sum())   # the configured mounting: no rotation, no offset
-    noise = np.sqrt(np.square(residual).sum(0) / max(1, n - 2))   # per lidar axis
+    before = float(np.square(lidar - imu[1]).sum())  # the configured mounting: no rotation, no offset
+    noise = np.sqrt(np.square(residual).sum(0) / max(1, n - 2))  # per lidar axis
     # Jacobian of the residuals: [R phi]x for a rotation exp(eps) R (eps about the lidar axes) and the offset's.
     columns = 4 if fitted_offset else 3
     jacobian = np.zeros((n, 3, columns))
@@ -206,18 +217,23 @@ def fit_alignment(lidar: np.ndarray, imu_at: Callable[[np.ndarray], np.ndarray],
     except np.linalg.LinAlgError:
         covariance = np.full((columns, columns), np.inf)
     if np.isfinite(covariance).all():
-        eigenvalues, eigenvectors = np.linalg.eigh(covariance[:3, :3])   # ascending: the weakest axis last
-    else:   # (no turn at all)
+        eigenvalues, eigenvectors = np.linalg.eigh(covariance[:3, :3])  # ascending: the weakest axis last
+    else:  # (no turn at all)
         covariance = np.diag(np.full(columns, np.inf))
         eigenvalues, eigenvectors = np.full(3, np.inf), np.eye(3)
-    return AlignmentFit(rotation=rotation, offset=offset, intervals=n,
-                        rms_before_deg=math.degrees(math.sqrt(before / max(1, n))),
-                        rms_after_deg=math.degrees(math.sqrt(float(cost[0]) / max(1, n))),
-                        noise_deg=np.degrees(noise),
-                        rotation_sigma_deg=np.degrees(np.sqrt(np.maximum(eigenvalues, 0.0))),
-                        rotation_axes=eigenvectors.T, rotation_covariance=covariance[:3, :3],
-                        offset_sigma=float(math.sqrt(max(covariance[3, 3], 0.0))) if fitted_offset else 0.0,
-                        offset_at_edge=at_edge)
+    return AlignmentFit(
+        rotation=rotation,
+        offset=offset,
+        intervals=n,
+        rms_before_deg=math.degrees(math.sqrt(before / max(1, n))),
+        rms_after_deg=math.degrees(math.sqrt(float(cost[0]) / max(1, n))),
+        noise_deg=np.degrees(noise),
+        rotation_sigma_deg=np.degrees(np.sqrt(np.maximum(eigenvalues, 0.0))),
+        rotation_axes=eigenvectors.T,
+        rotation_covariance=covariance[:3, :3],
+        offset_sigma=float(math.sqrt(max(covariance[3, 3], 0.0))) if fitted_offset else 0.0,
+        offset_at_edge=at_edge,
+    )
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -233,8 +249,11 @@ def nearest_right_angle_rotation(rotation: np.ndarray, tolerance_deg: float = 10
     """The rotation among the 24 that map axes onto axes (IMUs are mostly mounted so) within ``tolerance_deg``
     of ``rotation``, or None."""
     rounded = np.round(np.asarray(rotation))
-    if not (np.abs(rounded).sum(axis=0) == 1).all() or not (np.abs(rounded).sum(axis=1) == 1).all() \
-            or np.linalg.det(rounded) < 0.5:
+    if (
+        not (np.abs(rounded).sum(axis=0) == 1).all()
+        or not (np.abs(rounded).sum(axis=1) == 1).all()
+        or np.linalg.det(rounded) < 0.5
+    ):
         return None
     angle = np.degrees(np.linalg.norm(Rotation.from_matrix(rounded.T @ rotation).as_rotvec()))
     return rounded if angle <= tolerance_deg else None

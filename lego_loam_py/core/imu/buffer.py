@@ -25,6 +25,7 @@ using stale slots.
 All arrays are in chronological order. Units: s, rad, m, m/s, m/s^2. Axes: camera axes (x left, y up,
 z forward) for world vectors; ``angle`` integrates the raw gyro in lidar axes (x, y, z).
 """
+
 from __future__ import annotations
 
 import math
@@ -37,12 +38,27 @@ from lego_loam_py.core.frames import ImuMounting, euler_to_matrices, rotate_by_e
 from lego_loam_py.core.imu.gyro import GyroAttitude
 from lego_loam_py.core.validation import MAX_ACCELERATION, MAX_ANGULAR_VELOCITY, MAX_SPEED
 
-__all__ = ['ImuBuffer', 'ImuState', 'SweepAttitude', 'ImuSweep', 'imu_sample', 'imu_mounting', 'imu_world_rotation',
-           'imu_rotate', 'MAX_ANGULAR_VELOCITY', 'MAX_ACCELERATION', 'UNCOVERED', 'MAX_REACH', 'MAX_GAP',
-           'uncovered_counter', 'uncovered_warning', 'warn_uncovered']
+__all__ = [
+    'ImuBuffer',
+    'ImuState',
+    'SweepAttitude',
+    'ImuSweep',
+    'imu_sample',
+    'imu_mounting',
+    'imu_world_rotation',
+    'imu_rotate',
+    'MAX_ANGULAR_VELOCITY',
+    'MAX_ACCELERATION',
+    'UNCOVERED',
+    'MAX_REACH',
+    'MAX_GAP',
+    'uncovered_counter',
+    'uncovered_warning',
+    'warn_uncovered',
+]
 
 QUATERNION_NORM_TOLERANCE = 0.1
-RESYNC_AFTER = 3   # samples in a row stamped before the newest one that show the newest one's stamp was wrong
+RESYNC_AFTER = 3  # samples in a row stamped before the newest one that show the newest one's stamp was wrong
 # [s] Stamps are float seconds (2.4e-7 s apart near 1.7e9 s): a stamp moved back by imu.time_offset may land one
 # step after a scan stamped at the same instant, which must still count as covered.
 STAMP_ROUNDING = 1e-6
@@ -51,13 +67,13 @@ STAMP_ROUNDING = 1e-6
 # this long between samples within a sweep, the IMU does not cover it.
 MAX_REACH = 0.05
 MAX_GAP = 0.05
-RATE_BASELINE = 0.03   # [s] the last rate is measured over at least this much of the newest samples
+RATE_BASELINE = 0.03  # [s] the last rate is measured over at least this much of the newest samples
 # Why the IMU cannot cover a sweep (ImuBuffer.coverage), and what the user can do about it.
 UNCOVERED = {
     'no_samples': 'no IMU sample has come yet',
     'starts_after_sweep': 'the IMU samples begin after the sweep began',
-    'ends_before_sweep': 'the newest IMU sample is older than the sweep\'s end by more than {reach:g} s: its messages '
-                         'arrive late, or imu.time_offset moves their stamps back too far',
+    'ends_before_sweep': "the newest IMU sample is older than the sweep's end by more than {reach:g} s: its messages "
+    'arrive late, or imu.time_offset moves their stamps back too far',
     'gap': 'the IMU samples have a gap of more than {gap:g} s within the sweep (lost messages?)',
 }
 
@@ -76,11 +92,13 @@ def warn_uncovered(count: int) -> bool:
 def uncovered_warning(reason: str, count: int, stamp_ns: int, time_offset: float) -> str:
     """The warning for scans without the IMU: why, how many so far, and what to change."""
     text = UNCOVERED[reason].format(reach=MAX_REACH, gap=MAX_GAP)
-    advice = {'ends_before_sweep': f'; set imu.time_offset (now {time_offset:g} s) to the IMU stamp minus the lidar '
-                                   'stamp of the same instant (lego_loam_py calibrate measures it)',
-              'starts_after_sweep': f'; imu.time_offset (now {time_offset:g} s) may be too small',
-              'no_samples': '; is sensor.imu_topic right, and is the IMU publishing?'}.get(reason, '')
-    return (f'IMU not used on the scan at {stamp_ns * 1e-9:.3f} s ({count} scans so far): {text}{advice}')
+    advice = {
+        'ends_before_sweep': f'; set imu.time_offset (now {time_offset:g} s) to the IMU stamp minus the lidar '
+        'stamp of the same instant (lego_loam_py calibrate measures it)',
+        'starts_after_sweep': f'; imu.time_offset (now {time_offset:g} s) may be too small',
+        'no_samples': '; is sensor.imu_topic right, and is the IMU publishing?',
+    }.get(reason, '')
+    return f'IMU not used on the scan at {stamp_ns * 1e-9:.3f} s ({count} scans so far): {text}{advice}'
 
 
 def imu_mounting(params) -> ImuMounting:
@@ -94,8 +112,7 @@ def imu_world_rotation(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> 
     return euler_to_matrices(pitch, yaw, roll)
 
 
-def imu_rotate(left: np.ndarray, roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray,
-               xyz: np.ndarray) -> np.ndarray:
+def imu_rotate(left: np.ndarray, roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray, xyz: np.ndarray) -> np.ndarray:
     """(n, 3) float64 ``left @ imu_world_rotation(roll, pitch, yaw)[n] @ xyz[n]``, without the (n, 3, 3)
     attitudes (:func:`~lego_loam_py.core.frames.rotate_by_euler`)."""
     return rotate_by_euler(left, pitch, yaw, roll, xyz)
@@ -103,9 +120,13 @@ def imu_rotate(left: np.ndarray, roll: np.ndarray, pitch: np.ndarray, yaw: np.nd
 
 def _quaternion_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
     """3x3 rotation of a unit quaternion (x, y, z, w)."""
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 @dataclass
@@ -115,30 +136,30 @@ class ImuState:
     roll: np.ndarray
     pitch: np.ndarray
     yaw: np.ndarray
-    velocity: np.ndarray   # (n, 3) world, camera axes
-    shift: np.ndarray      # (n, 3) world, camera axes
-    angle: np.ndarray      # (n, 3) integrated gyro, lidar axes
+    velocity: np.ndarray  # (n, 3) world, camera axes
+    shift: np.ndarray  # (n, 3) world, camera axes
+    angle: np.ndarray  # (n, 3) integrated gyro, lidar axes
 
 
 @dataclass
 class SweepAttitude:
     """The IMU over one sweep, as featureAssociation's sweep-start model takes it (camera axes)."""
 
-    t_start: float            # sweep start [s]
-    r_start: np.ndarray       # (3, 3) IMU attitude at the sweep start
-    rel: np.ndarray           # (n,) relative times of the prepared points, for their own attitudes
-    roll_start: float         # [rad]
-    pitch_start: float        # [rad]
+    t_start: float  # sweep start [s]
+    r_start: np.ndarray  # (3, 3) IMU attitude at the sweep start
+    rel: np.ndarray  # (n,) relative times of the prepared points, for their own attitudes
+    roll_start: float  # [rad]
+    pitch_start: float  # [rad]
 
 
 @dataclass
 class ImuSweep:
     """What featureAssociation's original model takes from the IMU over one sweep (camera axes, sweep-start frame)."""
 
-    roll_start: float           # [rad]
-    pitch_start: float          # [rad]
-    delta_end: np.ndarray       # (3, 3) rotation from the sweep end's attitude to the start's
-    shift_end: np.ndarray       # (3,) non-linear shift at the sweep end [m]
+    roll_start: float  # [rad]
+    pitch_start: float  # [rad]
+    delta_end: np.ndarray  # (3, 3) rotation from the sweep end's attitude to the start's
+    shift_end: np.ndarray  # (3,) non-linear shift at the sweep end [m]
     velocity_change: np.ndarray  # (3,) velocity change over the sweep [m/s]
 
 
@@ -150,8 +171,15 @@ class ImuBuffer:
     change, when a scan asks for them.
     """
 
-    def __init__(self, capacity: int = 200, gravity: float = 9.81, scan_period: float = 0.1,
-                 mounting: ImuMounting | None = None, reset_after: float = 1.0, gyro_attitude: bool = False):
+    def __init__(
+        self,
+        capacity: int = 200,
+        gravity: float = 9.81,
+        scan_period: float = 0.1,
+        mounting: ImuMounting | None = None,
+        reset_after: float = 1.0,
+        gyro_attitude: bool = False,
+    ):
         self.capacity = int(capacity)
         self.gravity = float(gravity)
         self.scan_period = float(scan_period)
@@ -163,15 +191,15 @@ class ImuBuffer:
         self._orientation_to_lidar = m.rotation_lidar_orientation.T if m is not None and m.rotates else None
         self._lever_arm = tuple(float(v) for v in m.lever_arm) if m is not None and np.any(m.lever_arm) else None
         self._time_offset = m.time_offset if m is not None else 0.0
-        self._last_rate: tuple[float, float, float] | None = None   # lidar-axes rate of the newest sample
+        self._last_rate: tuple[float, float, float] | None = None  # lidar-axes rate of the newest sample
         self.reset_after = float(reset_after)
         self.resets = 0
         # One row per sample: time, roll, pitch, yaw, velocity (3), shift (3), angle (3).
         self._rows: deque[tuple[float, ...]] = deque(maxlen=self.capacity)
         self._arrays: np.ndarray | None = None
-        self._behind: list[float] = []   # stamps of the samples rejected in a row as older than the newest
+        self._behind: list[float] = []  # stamps of the samples rejected in a row as older than the newest
         self.rejected: dict[str, int] = {}
-        self.accepted = 0   # samples taken since the buffer was made (a clear keeps the count)
+        self.accepted = 0  # samples taken since the buffer was made (a clear keeps the count)
         # The attitude of the rows: the orientation field's, or integrated from the gyro (core.gyro_attitude).
         self.gyro = GyroAttitude() if gyro_attitude else None
 
@@ -245,8 +273,11 @@ class ImuBuffer:
         if not all(math.isfinite(v) for v in values):
             return self._reject('non-finite value')
         scale = max(abs(qx), abs(qy), abs(qz), abs(qw))
-        norm = scale * math.sqrt((qx / scale) ** 2 + (qy / scale) ** 2 + (qz / scale) ** 2 + (qw / scale) ** 2) \
-            if scale > 0 else 0.0   # no overflow for huge values
+        norm = (
+            scale * math.sqrt((qx / scale) ** 2 + (qy / scale) ** 2 + (qz / scale) ** 2 + (qw / scale) ** 2)
+            if scale > 0
+            else 0.0
+        )  # no overflow for huge values
         if norm < 1e-6:
             return self._reject('zero-norm orientation quaternion (the IMU must provide orientation)')
         if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
@@ -256,10 +287,10 @@ class ImuBuffer:
         if max(abs(ax), abs(ay), abs(az)) > MAX_ACCELERATION:
             return self._reject(f'acceleration beyond {MAX_ACCELERATION:g} m/s^2')
         if self._time_offset:
-            stamp -= self._time_offset   # the lidar's time of the measurement
+            stamp -= self._time_offset  # the lidar's time of the measurement
         last = self._rows[-1] if self._rows else None
         if last is not None and stamp < last[0] - self.reset_after:
-            self.clear()   # the source restarted (a bag looped): start again from this sample
+            self.clear()  # the source restarted (a bag looped): start again from this sample
             self.resets += 1
             last = None
         if last is not None and stamp <= last[0]:
@@ -281,24 +312,30 @@ class ImuBuffer:
             roll = math.atan2(2.0 * (qw * qx + qy * qz), 1.0 - 2.0 * (qx * qx + qy * qy))
             pitch = math.asin(max(-1.0, min(1.0, 2.0 * (qw * qy - qz * qx))))
             yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
-        else:   # the attitude of the lidar: R_world_lidar = R_world_orientation R_orientation_lidar
+        else:  # the attitude of the lidar: R_world_lidar = R_world_orientation R_orientation_lidar
             r = _quaternion_matrix(qx, qy, qz, qw) @ self._orientation_to_lidar
             roll = math.atan2(r[2, 1], r[2, 2])
             pitch = math.asin(max(-1.0, min(1.0, -r[2, 0])))
             yaw = math.atan2(r[1, 0], r[0, 0])
-        if self._to_lidar is not None:   # rates and accelerations in lidar axes
+        if self._to_lidar is not None:  # rates and accelerations in lidar axes
             gx, gy, gz = (self._to_lidar @ np.array([gx, gy, gz])).tolist()
             ax, ay, az = (self._to_lidar @ np.array([ax, ay, az])).tolist()
         if self._lever_arm is not None:
             ax, ay, az = self._at_lidar_origin((ax, ay, az), (gx, gy, gz), stamp, last)
         attitude = (roll, pitch, yaw)
-        if self.gyro is not None:   # (the orientation field's roll and pitch still take gravity off below)
+        if self.gyro is not None:  # (the orientation field's roll and pitch still take gravity off below)
             following = last is not None and stamp - last[0] < self.scan_period
             attitude = self.gyro.update(stamp - last[0] if following else None, (gx, gy, gz), attitude)
         # Gravity-free acceleration in the body frame, re-ordered into camera axes (x=y_l, y=z_l, z=x_l).
         g = self.gravity
-        cr, sr, cp, sp, cy, sy = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), \
-            math.cos(yaw), math.sin(yaw)
+        cr, sr, cp, sp, cy, sy = (
+            math.cos(roll),
+            math.sin(roll),
+            math.cos(pitch),
+            math.sin(pitch),
+            math.cos(yaw),
+            math.sin(yaw),
+        )
         bx, by, bz = ay - sr * cp * g, az - cr * cp * g, ax + sp * g
         # World acceleration: Ry(yaw) Rx(pitch) Rz(roll) (camera axes, as imu_world_rotation) times the body one.
         wx = (cy * cr + sy * sp * sr) * bx + (-cy * sr + sy * sp * cr) * by + sy * cp * bz
@@ -357,7 +394,7 @@ class ImuBuffer:
             return 'ends_before_sweep'
         first = max(int(np.searchsorted(times, start + STAMP_ROUNDING, side='right')) - 1, 0)
         last = int(np.searchsorted(times, end, side='left'))
-        within = times[first:last + 1]
+        within = times[first : last + 1]
         if len(within) > 1 and float(np.max(np.diff(within))) > MAX_GAP:
             return 'gap'
         return None
@@ -372,8 +409,14 @@ class ImuBuffer:
             return a + (b - a) * r
 
         rpy = self._lerp_attitude(back, front, ratio, np.atleast_1d(np.asarray(times, dtype=float)))
-        return ImuState(roll=rpy[:, 0], pitch=rpy[:, 1], yaw=rpy[:, 2], velocity=lerp(self._velocity),
-                        shift=lerp(self._shift), angle=lerp(self._angle))
+        return ImuState(
+            roll=rpy[:, 0],
+            pitch=rpy[:, 1],
+            yaw=rpy[:, 2],
+            velocity=lerp(self._velocity),
+            shift=lerp(self._shift),
+            angle=lerp(self._angle),
+        )
 
     def attitude(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(roll, pitch, yaw) of :meth:`interpolate`, without the other quantities (deskewing needs only these)."""
@@ -395,8 +438,9 @@ class ImuBuffer:
         ratio[beyond] = 1.0
         return back, front, ratio
 
-    def _lerp_attitude(self, back: np.ndarray, front: np.ndarray, ratio: np.ndarray,
-                       times: np.ndarray | None = None) -> np.ndarray:
+    def _lerp_attitude(
+        self, back: np.ndarray, front: np.ndarray, ratio: np.ndarray, times: np.ndarray | None = None
+    ) -> np.ndarray:
         """(n, 3) roll, pitch, yaw, the yaw unwrapped across +-pi; beyond the newest sample (``times`` given)
         carried on at the last rate (at most :data:`MAX_REACH`)."""
         rpy_back, rpy_front = self._rpy[back], self._rpy[front]
@@ -405,7 +449,7 @@ class ImuBuffer:
         jump = yaw_front - yaw_back
         unwrapped_back = yaw_back + np.where(jump > np.pi, 2 * np.pi, np.where(jump < -np.pi, -2 * np.pi, 0.0))
         rpy[:, 2] = unwrapped_back + (yaw_front - unwrapped_back) * ratio
-        if times is not None:   # (float stamps near 1.7e9 s land up to a microsecond past an equal sample's)
+        if times is not None:  # (float stamps near 1.7e9 s land up to a microsecond past an equal sample's)
             ahead = np.minimum(times - self._time[-1], MAX_REACH)
             if np.any(ahead > STAMP_ROUNDING):
                 rpy += np.where(ahead > STAMP_ROUNDING, ahead, 0.0)[:, None] * self._newest_rate()[None, :]

@@ -8,6 +8,7 @@ is far finer (0.014 deg/s/sqrt(Hz): 0.004 deg over a sweep): :class:`GyroAttitud
 and starts again from the orientation after a gap. Roll, pitch and yaw are the fixed-axis x, y, z angles of the
 lidar's attitude in the world, as the orientation field's (REP-103, lidar axes).
 """
+
 from __future__ import annotations
 
 import math
@@ -19,17 +20,30 @@ __all__ = ['GyroAttitude', 'rpy_of', 'matrix_of_rpy']
 
 def matrix_of_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
     """``Rz(yaw) Ry(pitch) Rx(roll)``: the attitude of fixed-axis x, y, z angles [rad]."""
-    cr, sr, cp, sp, cy, sy = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw), \
-        math.sin(yaw)
-    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                     [-sp, cp * sr, cp * cr]])
+    cr, sr, cp, sp, cy, sy = (
+        math.cos(roll),
+        math.sin(roll),
+        math.cos(pitch),
+        math.sin(pitch),
+        math.cos(yaw),
+        math.sin(yaw),
+    )
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
 
 
 def rpy_of(matrix: np.ndarray) -> tuple[float, float, float]:
     """(roll, pitch, yaw) [rad] of an attitude (inverse of :func:`matrix_of_rpy`)."""
-    return (math.atan2(matrix[2, 1], matrix[2, 2]), math.asin(max(-1.0, min(1.0, -matrix[2, 0]))),
-            math.atan2(matrix[1, 0], matrix[0, 0]))
+    return (
+        math.atan2(matrix[2, 1], matrix[2, 2]),
+        math.asin(max(-1.0, min(1.0, -matrix[2, 0]))),
+        math.atan2(matrix[1, 0], matrix[0, 0]),
+    )
 
 
 def _exp(rotation_vector: np.ndarray) -> np.ndarray:
@@ -46,7 +60,7 @@ class GyroAttitude:
     """The integrated attitude of one IMU stream (see the module docstring)."""
 
     def __init__(self) -> None:
-        self.bias = np.zeros(3)          # [rad/s] lidar axes, taken off every rate from the next sample on
+        self.bias = np.zeros(3)  # [rad/s] lidar axes, taken off every rate from the next sample on
         self._attitude: np.ndarray | None = None
         self._rate: np.ndarray | None = None
 
@@ -54,8 +68,9 @@ class GyroAttitude:
         """Start again from the next sample's orientation (a gap, a cleared buffer)."""
         self._attitude, self._rate = None, None
 
-    def update(self, dt: float | None, rate: tuple[float, float, float],
-               orientation: tuple[float, float, float]) -> tuple[float, float, float]:
+    def update(
+        self, dt: float | None, rate: tuple[float, float, float], orientation: tuple[float, float, float]
+    ) -> tuple[float, float, float]:
         """The attitude (roll, pitch, yaw) after a sample with angular ``rate`` [rad/s] (lidar axes) and the
         orientation field's (roll, pitch, yaw), ``dt`` [s] after the previous one (None: start from it)."""
         rate = np.asarray(rate, dtype=float) - self.bias

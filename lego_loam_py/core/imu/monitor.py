@@ -35,42 +35,55 @@ Quicker looks catch what would spoil the map before a window is full:
 
 mapOptimization blends the IMU's roll and pitch in only once a window check has passed it (:class:`MappingImuCheck`).
 """
+
 from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from lego_loam_py.core.frames import CAMERA_TO_LIDAR, LIDAR_TO_CAMERA, ImuMounting, euler_to_matrix, matrix_to_rpy
+from lego_loam_py.core.imu.alignment import (
+    AlignmentFit,
+    fit_alignment,
+    nearest_right_angle_rotation,
+    shifted_increments,
+)
 from lego_loam_py.core.imu.buffer import ImuBuffer, imu_mounting, imu_world_rotation
 from lego_loam_py.core.params.timing import pose_delay
-from lego_loam_py.core.imu.alignment import (AlignmentFit, fit_alignment, nearest_right_angle_rotation,
-                                            shifted_increments)
 
-__all__ = ['ImuAlignmentMonitor', 'AlignmentEvent', 'SweepImuCheck', 'MappingImuCheck', 'SIGNIFICANCE', 'EXPLAINED',
-           'MAX_GROUND_TILT', 'REPEAT_AFTER']
+__all__ = [
+    'ImuAlignmentMonitor',
+    'AlignmentEvent',
+    'SweepImuCheck',
+    'MappingImuCheck',
+    'SIGNIFICANCE',
+    'EXPLAINED',
+    'MAX_GROUND_TILT',
+    'REPEAT_AFTER',
+]
 
-SIGNIFICANCE = 6.0        # standard deviations a correction must lie from none
-EXPLAINED = 0.5           # share of the squared disagreement it must explain ...
+SIGNIFICANCE = 6.0  # standard deviations a correction must lie from none
+EXPLAINED = 0.5  # share of the squared disagreement it must explain ...
 MIN_EXPLAINED_DEG = 0.45  # ... and at least this much of it [deg RMS per interval] (see _disagrees)
-MIN_INTERVALS = 6         # intervals in a window before it is judged (and it must span 90 % of the window)
-STRIKES = 3               # evaluations in a row that must find the IMU disagreeing
-MIN_TURN_DEG = 10.0       # the window must turn by this much in all (a standing sensor tells nothing)
-MAX_GROUND_TILT = 30.0    # [deg] IMU up vs the ground's normal at start-up
-MIN_GROUND_POINTS = 30    # ground points the start-up check needs
-REPEAT_AFTER = 30.0       # [s of data] between two warnings while the IMU stays distrusted
-QUICK_WINDOW = 2.0        # [s] featureAssociation's quick look at a gross misalignment ...
-QUICK_INTERVALS = 5       # ... judged from this many sweeps on ...
+MIN_INTERVALS = 6  # intervals in a window before it is judged (and it must span 90 % of the window)
+STRIKES = 3  # evaluations in a row that must find the IMU disagreeing
+MIN_TURN_DEG = 10.0  # the window must turn by this much in all (a standing sensor tells nothing)
+MAX_GROUND_TILT = 30.0  # [deg] IMU up vs the ground's normal at start-up
+MIN_GROUND_POINTS = 30  # ground points the start-up check needs
+REPEAT_AFTER = 30.0  # [s of data] between two warnings while the IMU stays distrusted
+QUICK_WINDOW = 2.0  # [s] featureAssociation's quick look at a gross misalignment ...
+QUICK_INTERVALS = 5  # ... judged from this many sweeps on ...
 QUICK_DISAGREEMENT = 0.25  # ... when they disagree by this much per sweep [deg RMS] or more
-QUICK_TURN_DEG = 5.0      # ... once they turned this much in all
-MAPPING_PROBATION_MAX = 20.0   # [s] of IMU data after which mapOptimization blends an IMU no window could judge
-PROBATION_SWEEPS = 15     # fast-turning sweeps the IMU's probation in featureAssociation lasts at most ...
+QUICK_TURN_DEG = 5.0  # ... once they turned this much in all
+MAPPING_PROBATION_MAX = 20.0  # [s] of IMU data after which mapOptimization blends an IMU no window could judge
+PROBATION_SWEEPS = 15  # fast-turning sweeps the IMU's probation in featureAssociation lasts at most ...
 PROBATION_TURN_DEG = 0.5  # ... a sweep turning less than this [deg] uses the IMU on probation as well
-OFFSETS = np.round(np.arange(-0.2, 0.2 + 1e-9, 0.01), 6)   # clock offsets searched [s]
+OFFSETS = np.round(np.arange(-0.2, 0.2 + 1e-9, 0.01), 6)  # clock offsets searched [s]
 
 
 def _angles(rpy) -> str:
@@ -82,7 +95,7 @@ class AlignmentEvent:
     """What the monitor decided: ``trusted`` says whether the IMU may be used from now on; ``message`` is the
     warning (or the note that it agrees again)."""
 
-    stamp: float                 # [s] data time
+    stamp: float  # [s] data time
     trusted: bool
     message: str
     fit: AlignmentFit | None = None
@@ -102,25 +115,32 @@ class ImuAlignmentMonitor:
         self.mounting = mounting
         self.who = who
         self.trusted = True
-        self.first_stamp: float | None = None   # the first interval's start [s], for the time to a decision
+        self.first_stamp: float | None = None  # the first interval's start [s], for the time to a decision
         self._intervals: deque[tuple] = deque()  # (start, end, lidar rotvec, IMU turn, rate start, rate end)
-        self._quick: deque[tuple] = deque()      # the same, for add_quick
+        self._quick: deque[tuple] = deque()  # the same, for add_quick
         self._last_warning: float | None = None
         self._reason = ''
-        self.distrusted_at: float | None = None   # [s] when the IMU was last found to disagree
-        self._refined = False                      # advice given from a window without the IMU's influence
-        self._strikes = 0          # windows in a row that found the IMU to disagree (STRIKES distrust it) ...
-        self._clean = 0            # ... or found nothing against it (STRIKES of them: vetted)
-        self.vetted = False        # a window check has passed the IMU (mapOptimization's probation, MappingImuCheck)
-        self._quick_strikes = 0    # ... and the same for the quick look ...
+        self.distrusted_at: float | None = None  # [s] when the IMU was last found to disagree
+        self._refined = False  # advice given from a window without the IMU's influence
+        self._strikes = 0  # windows in a row that found the IMU to disagree (STRIKES distrust it) ...
+        self._clean = 0  # ... or found nothing against it (STRIKES of them: vetted)
+        self.vetted = False  # a window check has passed the IMU (mapOptimization's probation, MappingImuCheck)
+        self._quick_strikes = 0  # ... and the same for the quick look ...
         self._quick_agreements = 0  # ... which also counts windows in a row that show the IMU agreeing
-        self.probation_passed = False   # STRIKES of those: the IMU's probation is over (SweepImuCheck)
+        self.probation_passed = False  # STRIKES of those: the IMU's probation is over (SweepImuCheck)
         self.evaluations = 0
-        self.last_fit: AlignmentFit | None = None   # the latest window's fit (for diagnostics)
+        self.last_fit: AlignmentFit | None = None  # the latest window's fit (for diagnostics)
 
     # --------------------------------------------------------------------------------------- inputs
-    def add(self, start: float, end: float, lidar_turn: np.ndarray, imu_turn: np.ndarray, rate_start: np.ndarray,
-            rate_end: np.ndarray) -> AlignmentEvent | None:
+    def add(
+        self,
+        start: float,
+        end: float,
+        lidar_turn: np.ndarray,
+        imu_turn: np.ndarray,
+        rate_start: np.ndarray,
+        rate_end: np.ndarray,
+    ) -> AlignmentEvent | None:
         """One interval ``[start, end]`` [s]: the lidar's and the IMU's turn over it (3x3 rotations, the pose at
         ``end`` in the frame at ``start``, lidar axes) and the IMU's body rates at its ends [rad/s, lidar axes].
         Returns an event when the verdict changes (or a distrusted IMU's advice is due again)."""
@@ -133,8 +153,15 @@ class ImuAlignmentMonitor:
             return None
         return self._judge(end, self._fit(window))
 
-    def add_quick(self, start: float, end: float, lidar_turn: np.ndarray, imu_turn: np.ndarray,
-                  rate_start: np.ndarray, rate_end: np.ndarray) -> AlignmentEvent | None:
+    def add_quick(
+        self,
+        start: float,
+        end: float,
+        lidar_turn: np.ndarray,
+        imu_turn: np.ndarray,
+        rate_start: np.ndarray,
+        rate_end: np.ndarray,
+    ) -> AlignmentEvent | None:
         """An interval (as :meth:`add`) of a quick look at a gross misalignment: over the last
         :data:`QUICK_WINDOW` seconds, a disagreement of :data:`QUICK_DISAGREEMENT` degrees per interval or more
         that a rotation or offset explains makes the IMU distrusted at once (featureAssociation's probation, before
@@ -152,8 +179,11 @@ class ImuAlignmentMonitor:
         # Agreement ends the probation: the turns match to within what a mounting error of alignment_max_rotation
         # leaves of them (a turn of a deg about a misaligned axis differs by about a * angle).
         turn_deg = float(np.degrees(np.mean([np.linalg.norm(i[2]) for i in window])))
-        agrees = fit is not None and not gross and \
-            fit.rms_before_deg <= min(QUICK_DISAGREEMENT, math.radians(self.max_rotation) * turn_deg)
+        agrees = (
+            fit is not None
+            and not gross
+            and fit.rms_before_deg <= min(QUICK_DISAGREEMENT, math.radians(self.max_rotation) * turn_deg)
+        )
         self._quick_agreements = self._quick_agreements + 1 if agrees else 0
         self.probation_passed = self.probation_passed or self._quick_agreements >= STRIKES
         if self._quick_strikes < STRIKES:
@@ -168,14 +198,23 @@ class ImuAlignmentMonitor:
         start, end, lidar_turn, imu_turn, rate_start, rate_end = interval
         if intervals and start < intervals[-1][0]:
             intervals.clear()
-        intervals.append((start, end, Rotation.from_matrix(lidar_turn).as_rotvec(), Rotation.from_matrix(imu_turn),
-                          np.asarray(rate_start, float), np.asarray(rate_end, float)))
+        intervals.append(
+            (
+                start,
+                end,
+                Rotation.from_matrix(lidar_turn).as_rotvec(),
+                Rotation.from_matrix(imu_turn),
+                np.asarray(rate_start, float),
+                np.asarray(rate_end, float),
+            )
+        )
         while intervals and intervals[0][0] < end - seconds:
             intervals.popleft()
         return intervals
 
-    def check_gravity(self, stamp: float, up: np.ndarray, imu_up: np.ndarray,
-                      reference: str = "the ground's normal under the lidar") -> AlignmentEvent | None:
+    def check_gravity(
+        self, stamp: float, up: np.ndarray, imu_up: np.ndarray, reference: str = "the ground's normal under the lidar"
+    ) -> AlignmentEvent | None:
         """The up direction the lidar sees (``reference``: the ground's normal, pointing to the lidar's side) and the
         IMU's, both unit vectors in lidar axes. An IMU whose up lies more than :data:`MAX_GROUND_TILT` from it is
         not trusted."""
@@ -190,9 +229,11 @@ class ImuAlignmentMonitor:
         axis = axis / norm if norm > 1e-9 else np.array([1.0, 0.0, 0.0])
         correction = Rotation.from_rotvec(axis * math.radians(tilt)).as_matrix()
         suggestion = correction @ self.mounting.rotation
-        self._reason = (f'its up direction is {tilt:.0f} deg from {reference} (mounted upside down or on its side?); '
-                        f'imu.rotation_rpy about {_angles(matrix_to_rpy(suggestion))} would level it (its yaw is not '
-                        'known until the sensor turns)')
+        self._reason = (
+            f'its up direction is {tilt:.0f} deg from {reference} (mounted upside down or on its side?); '
+            f'imu.rotation_rpy about {_angles(matrix_to_rpy(suggestion))} would level it (its yaw is not '
+            'known until the sensor turns)'
+        )
         return self._distrust(stamp, None)
 
     # --------------------------------------------------------------------------------------- verdicts
@@ -231,36 +272,51 @@ class ImuAlignmentMonitor:
                 return self._distrust(stamp, fit) if self._strikes >= STRIKES else None
             # Advice again once a whole window passed without the IMU (the lidar's turn then owes it nothing: a
             # better estimate), then every REPEAT_AFTER seconds.
-            if (not self._refined and self._intervals[0][0] >= self.distrusted_at) or \
-                    stamp - self._last_warning >= REPEAT_AFTER:
+            if (
+                not self._refined and self._intervals[0][0] >= self.distrusted_at
+            ) or stamp - self._last_warning >= REPEAT_AFTER:
                 self._refined = self._intervals[0][0] >= self.distrusted_at
                 return self._warning(stamp, fit)
             return None
-        agrees = (fit.angle_deg < 0.5 * self.max_rotation and abs(fit.offset) < 0.5 * self.max_offset
-                  and float(fit.rotation_sigma_deg.max()) < 0.5 * self.max_rotation)
+        agrees = (
+            fit.angle_deg < 0.5 * self.max_rotation
+            and abs(fit.offset) < 0.5 * self.max_offset
+            and float(fit.rotation_sigma_deg.max()) < 0.5 * self.max_rotation
+        )
         if not self.trusted and agrees:
             self.trusted = True
             self.distrusted_at = None
-            return AlignmentEvent(stamp, True, f'{self.who}: the IMU agrees with the lidar again (within '
-                                  f'{fit.angle_deg:.1f} deg and {1e3 * fit.offset:.0f} ms over the last '
-                                  f'{self.window:g} s): used again', fit)
+            return AlignmentEvent(
+                stamp,
+                True,
+                f'{self.who}: the IMU agrees with the lidar again (within '
+                f'{fit.angle_deg:.1f} deg and {1e3 * fit.offset:.0f} ms over the last '
+                f'{self.window:g} s): used again',
+                fit,
+            )
         return None
 
     def _advice(self, fit: AlignmentFit, seconds: float | None = None, interval: str = 'interval') -> str:
         """Why the IMU disagrees and what to set (``seconds``: the window fitted, the check's by default)."""
-        mounted = fit.rotation @ self.mounting.rotation   # R_lidar_imu that would explain what was seen
+        mounted = fit.rotation @ self.mounting.rotation  # R_lidar_imu that would explain what was seen
         parts = []
         if fit.angle_deg > self.max_rotation:
             nearest = nearest_right_angle_rotation(mounted)
             likely = f' (likely {_angles(matrix_to_rpy(nearest))})' if nearest is not None else ''
-            parts.append(f'it turns as if mounted with imu.rotation_rpy {_angles(matrix_to_rpy(mounted))}{likely}, '
-                         f'not {_angles(matrix_to_rpy(self.mounting.rotation))}')
+            parts.append(
+                f'it turns as if mounted with imu.rotation_rpy {_angles(matrix_to_rpy(mounted))}{likely}, '
+                f'not {_angles(matrix_to_rpy(self.mounting.rotation))}'
+            )
         if abs(fit.offset) > self.max_offset:
             late = 'late' if fit.offset > 0 else 'early'
-            parts.append(f'its stamps are {1e3 * abs(fit.offset):.0f} ms {late} (imu.time_offset '
-                         f'{self.mounting.time_offset + fit.offset:.3f} s, not {self.mounting.time_offset:g})')
-        return (f'{" and ".join(parts)}: over the last {seconds or self.window:g} s its turn differs from the lidar\'s '
-                f'by {fit.rms_before_deg:.2f} deg per {interval}, {fit.rms_after_deg:.2f} deg with that correction')
+            parts.append(
+                f'its stamps are {1e3 * abs(fit.offset):.0f} ms {late} (imu.time_offset '
+                f'{self.mounting.time_offset + fit.offset:.3f} s, not {self.mounting.time_offset:g})'
+            )
+        return (
+            f"{' and '.join(parts)}: over the last {seconds or self.window:g} s its turn differs from the lidar's "
+            f'by {fit.rms_before_deg:.2f} deg per {interval}, {fit.rms_after_deg:.2f} deg with that correction'
+        )
 
     def _distrust(self, stamp: float, fit: AlignmentFit | None) -> AlignmentEvent:
         self.trusted = False
@@ -270,15 +326,20 @@ class ImuAlignmentMonitor:
 
     def _warning(self, stamp: float, fit: AlignmentFit | None) -> AlignmentEvent:
         self._last_warning = stamp
-        return AlignmentEvent(stamp, False, f'{self.who}: the IMU disagrees with the lidar: {self._reason}. The IMU is '
-                              'not used until they agree; set the imu.* parameters (lego_loam_py calibrate BAG '
-                              'estimates them) or imu.alignment_check: false to use it anyway', fit)
+        return AlignmentEvent(
+            stamp,
+            False,
+            f'{self.who}: the IMU disagrees with the lidar: {self._reason}. The IMU is '
+            'not used until they agree; set the imu.* parameters (lego_loam_py calibrate BAG '
+            'estimates them) or imu.alignment_check: false to use it anyway',
+            fit,
+        )
 
 
 # ------------------------------------------------------------------------------------------- the two nodes
 
-RATE_STEP = 0.005   # [s] either side of a time for the IMU's body rate from its attitude
-KEPT_SCANS = 100    # featureAssociation keeps the IMU's state at this many scans, for their mapped poses
+RATE_STEP = 0.005  # [s] either side of a time for the IMU's body rate from its attitude
+KEPT_SCANS = 100  # featureAssociation keeps the IMU's state at this many scans, for their mapped poses
 
 
 def _to_lidar(rotation_camera: np.ndarray) -> np.ndarray:
@@ -295,8 +356,8 @@ class _Check:
     def __init__(self, params, buffer: Callable[[], ImuBuffer], who: str):
         self.monitor = ImuAlignmentMonitor(params, imu_mounting(params), who)
         self._buffer = buffer
-        self._pose_delay = pose_delay(params)   # a scan's pose is the sensor's at its stamp plus this [s]
-        self._previous: tuple | None = None   # (pose time, mapped rotation, IMU state) of the last mapped pose
+        self._pose_delay = pose_delay(params)  # a scan's pose is the sensor's at its stamp plus this [s]
+        self._previous: tuple | None = None  # (pose time, mapped rotation, IMU state) of the last mapped pose
 
     @property
     def trusted(self) -> bool:
@@ -309,7 +370,7 @@ class _Check:
         if not self.monitor.enabled or not imu.covers(time - RATE_STEP, time + RATE_STEP, 0.0):
             return None
         before, at, after = imu_world_rotation(*imu.attitude(np.array([time - RATE_STEP, time, time + RATE_STEP])))
-        turn = before.T @ after   # a small turn (under 2 deg at 180 deg/s): its axis-angle from the skew part
+        turn = before.T @ after  # a small turn (under 2 deg at 180 deg/s): its axis-angle from the skew part
         rate = 0.5 * np.array([turn[2, 1] - turn[1, 2], turn[0, 2] - turn[2, 0], turn[1, 0] - turn[0, 1]])
         return at, CAMERA_TO_LIDAR @ rate / (2 * RATE_STEP)
 
@@ -319,8 +380,14 @@ class _Check:
         if previous is None or state is None or previous[2] is None or not time > previous[0]:
             return None
         (start, start_rotation, (start_attitude, start_rate)), (attitude, rate) = previous, state
-        return self.monitor.add(start, time, _to_lidar(start_rotation.T @ rotation),
-                                _to_lidar(start_attitude.T @ attitude), start_rate, rate)
+        return self.monitor.add(
+            start,
+            time,
+            _to_lidar(start_rotation.T @ rotation),
+            _to_lidar(start_attitude.T @ attitude),
+            start_rate,
+            rate,
+        )
 
 
 class SweepImuCheck(_Check):
@@ -331,13 +398,13 @@ class SweepImuCheck(_Check):
     def __init__(self, params, buffer: Callable[[], ImuBuffer]):
         super().__init__(params, buffer, 'featureAssociation')
         self._states: dict[int, tuple] = {}
-        self._probation_sweeps = 0   # sweeps registered without the IMU on probation so far
+        self._probation_sweeps = 0  # sweeps registered without the IMU on probation so far
         self._scan_period = float(params.sensor.scan_period)
         self._gravity_checked = False
 
     def on_probation(self, sweep, previous) -> bool:
-        """Whether a sweep (the IMU over it, a :class:`~lego_loam_py.core.imu.buffer.SweepAttitude`; ``previous`` the last
-        one's, None for the first sweep: judged by its own turn) is registered without the IMU and compared."""
+        """Whether a sweep (the IMU over it, a :class:`~lego_loam_py.core.imu.buffer.SweepAttitude`; ``previous`` the
+        last one's, None for the first sweep: judged by its own turn) is registered without the IMU and compared."""
         if not self.monitor.enabled or not self.trusted or self.monitor.probation_passed:
             return False
         turn, imu, end = None, self._buffer(), sweep.t_start + self._scan_period
@@ -346,8 +413,9 @@ class SweepImuCheck(_Check):
         elif imu.covers(sweep.t_start, end, 0.0):
             at_start, at_end = imu_world_rotation(*imu.attitude(np.array([sweep.t_start, end])))
             turn = at_start.T @ at_end
-        if self._probation_sweeps >= PROBATION_SWEEPS or \
-                (turn is not None and math.degrees(Rotation.from_matrix(turn).magnitude()) < PROBATION_TURN_DEG):
+        if self._probation_sweeps >= PROBATION_SWEEPS or (
+            turn is not None and math.degrees(Rotation.from_matrix(turn).magnitude()) < PROBATION_TURN_DEG
+        ):
             return False
         self._probation_sweeps += 1
         return True
@@ -357,11 +425,18 @@ class SweepImuCheck(_Check):
         states = self.imu_state(previous.t_start), self.imu_state(sweep.t_start)
         if states[0] is None or states[1] is None:
             return None
-        return self.monitor.add_quick(previous.t_start, sweep.t_start, _to_lidar(lidar_turn),
-                                      _to_lidar(previous.r_start.T @ sweep.r_start), states[0][1], states[1][1])
+        return self.monitor.add_quick(
+            previous.t_start,
+            sweep.t_start,
+            _to_lidar(lidar_turn),
+            _to_lidar(previous.r_start.T @ sweep.r_start),
+            states[0][1],
+            states[1][1],
+        )
 
-    def scan(self, stamp_ns: int, ground: Callable[[], np.ndarray],
-             attitude: np.ndarray | None = None) -> AlignmentEvent | None:
+    def scan(
+        self, stamp_ns: int, ground: Callable[[], np.ndarray], attitude: np.ndarray | None = None
+    ) -> AlignmentEvent | None:
         """A scan stamped ``stamp_ns``: keep the IMU's state at its pose time (for its mapped pose) and, on the first
         scan the IMU covers, check gravity (:meth:`check_gravity_once`) with its ground points (``ground()``, camera
         axes) and the IMU's ``attitude`` (camera axes) at the sweep start (None: read from the buffer)."""
@@ -383,8 +458,9 @@ class SweepImuCheck(_Check):
             return None
         return self._mapped(stamp_ns * 1e-9 + self._pose_delay, rotation, self._states.get(stamp_ns))
 
-    def check_gravity_once(self, stamp: float, ground: Callable[[], np.ndarray],
-                           attitude: np.ndarray) -> AlignmentEvent | None:
+    def check_gravity_once(
+        self, stamp: float, ground: Callable[[], np.ndarray], attitude: np.ndarray
+    ) -> AlignmentEvent | None:
         """Start-up, on the first scan the IMU covers: the plane of the ground points (``ground()``, camera axes)
         against the IMU's up direction in the lidar frame, from its attitude (camera axes) at the sweep start."""
         if not self.monitor.enabled or self._gravity_checked:
@@ -395,8 +471,8 @@ class SweepImuCheck(_Check):
         self._gravity_checked = True
         xyz = np.asarray(ground[:, :3], dtype=np.float64)
         normal = np.linalg.svd(xyz - xyz.mean(axis=0), full_matrices=False)[2][2]
-        normal = normal if normal[1] >= 0 else -normal           # towards the lidar's up (camera y)
-        imu_up = attitude.T @ np.array([0.0, 1.0, 0.0])           # the world's up in the lidar frame
+        normal = normal if normal[1] >= 0 else -normal  # towards the lidar's up (camera y)
+        imu_up = attitude.T @ np.array([0.0, 1.0, 0.0])  # the world's up in the lidar frame
         return self.monitor.check_gravity(stamp, CAMERA_TO_LIDAR @ normal, CAMERA_TO_LIDAR @ imu_up)
 
 
@@ -408,13 +484,13 @@ class MappingImuCheck(_Check):
     def __init__(self, params, buffer: Callable[[], ImuBuffer]):
         super().__init__(params, buffer, 'mapOptimization')
         self._params = params
-        self._first_stamp: float | None = None   # [s] the first step the IMU covered
+        self._first_stamp: float | None = None  # [s] the first step the IMU covered
 
     def blending(self, time: float) -> bool:
         """Whether the IMU's roll and pitch are blended in at a step at ``time`` [s] (trusted and past probation)."""
         if not self.trusted or not self.monitor.enabled:
             return self.trusted
-        if self._first_stamp is None or time < self._first_stamp:   # (time went back: a bag restarted)
+        if self._first_stamp is None or time < self._first_stamp:  # (time went back: a bag restarted)
             self._first_stamp = time
         return self.monitor.vetted or time - self._first_stamp >= MAPPING_PROBATION_MAX
 
@@ -444,6 +520,7 @@ class MappingImuCheck(_Check):
         event = None
         if state is not None:
             up = np.array([0.0, 1.0, 0.0])
-            event = self.monitor.check_gravity(time, CAMERA_TO_LIDAR @ (rotation.T @ up),
-                                               CAMERA_TO_LIDAR @ (state[0].T @ up), 'the mapped pose\'s')
+            event = self.monitor.check_gravity(
+                time, CAMERA_TO_LIDAR @ (rotation.T @ up), CAMERA_TO_LIDAR @ (state[0].T @ up), "the mapped pose's"
+            )
         return self._mapped(time, rotation, state) or event

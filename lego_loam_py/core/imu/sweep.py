@@ -7,6 +7,7 @@ sweep, the result is the reason instead (a key of :data:`~lego_loam_py.core.imu.
 samples begin after the sweep, end too long before it, or leave a gap), so that the scan that goes without the IMU
 is counted and warned about, never dropped in silence. Camera axes throughout.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -26,20 +27,23 @@ def sweep_attitude(imu: ImuBuffer, rel: np.ndarray, t_start: float, period: floa
         return uncovered
     state = imu.interpolate([t_start])
     r_start = imu_world_rotation(state.roll, state.pitch, state.yaw)[0]
-    return SweepAttitude(t_start=t_start, r_start=r_start, rel=rel, roll_start=float(state.roll[0]),
-                         pitch_start=float(state.pitch[0]))
+    return SweepAttitude(
+        t_start=t_start, r_start=r_start, rel=rel, roll_start=float(state.roll[0]), pitch_start=float(state.pitch[0])
+    )
 
 
-def rotate_at_points(imu: ImuBuffer, left: np.ndarray, attitude: SweepAttitude, index: np.ndarray, cloud: np.ndarray,
-                     period: float) -> np.ndarray:
+def rotate_at_points(
+    imu: ImuBuffer, left: np.ndarray, attitude: SweepAttitude, index: np.ndarray, cloud: np.ndarray, period: float
+) -> np.ndarray:
     """(n, 3) float64 ``left @ R @ p`` of the ``cloud`` points, R the IMU attitude at the time of the prepared point
     ``index`` each comes from (only the features need them)."""
     times = attitude.t_start + attitude.rel[index] * period
     return imu_rotate(left, *imu.attitude(times), cloud)
 
 
-def deskew_with_imu(imu: ImuBuffer, points: np.ndarray, rel: np.ndarray, t_start: float,
-                    period: float) -> ImuSweep | str:
+def deskew_with_imu(
+    imu: ImuBuffer, points: np.ndarray, rel: np.ndarray, t_start: float, period: float
+) -> ImuSweep | str:
     """Rotate every point (in place) into the sweep-start frame with the IMU attitude and remove the IMU's
     non-linear shift; returns the sweep's IMU quantities, or the reason when the IMU does not cover the sweep."""
     t_end = t_start + period
@@ -53,10 +57,15 @@ def deskew_with_imu(imu: ImuBuffer, points: np.ndarray, rel: np.ndarray, t_start
     r_start, r_end = imu_world_rotation(state.roll[:2], state.pitch[:2], state.yaw[:2])
     v_start = state.velocity[0]
     dt = point_times - t_start
-    shift = (state.shift[2:] - state.shift[0] - v_start[None, :] * dt[:, None]) @ r_start   # R_S^T (.)
+    shift = (state.shift[2:] - state.shift[0] - v_start[None, :] * dt[:, None]) @ r_start  # R_S^T (.)
     rotated = imu_rotate(r_start.T, state.roll[2:], state.pitch[2:], state.yaw[2:], points)
     points[:, :3] = (rotated + shift).astype(_F32)
     shift_end = r_start.T @ (state.shift[1] - state.shift[0] - v_start * period)
     velocity_change = r_start.T @ (state.velocity[1] - v_start)
-    return ImuSweep(roll_start=float(state.roll[0]), pitch_start=float(state.pitch[0]),
-                    delta_end=r_start.T @ r_end, shift_end=shift_end, velocity_change=velocity_change)
+    return ImuSweep(
+        roll_start=float(state.roll[0]),
+        pitch_start=float(state.pitch[0]),
+        delta_end=r_start.T @ r_end,
+        shift_end=shift_end,
+        velocity_change=velocity_change,
+    )

@@ -12,6 +12,7 @@ Built once from a :class:`~lego_loam_py.core.mapping.map_bundle.MapBundle`:
 * :meth:`PriorMap.region` the map around a place in REP-103 lidar axes, thinned, as the target of the verifying
   registration (:mod:`lego_loam_py.core.loop.registration`).
 """
+
 from __future__ import annotations
 
 import math
@@ -21,10 +22,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lego_loam_py.core.frames import camera_pose_to_lidar, camera_to_lidar, pose6_to_matrix
-from lego_loam_py.core.mapping.map_bundle import MapBundle
-from lego_loam_py.core.params.types import Params
 from lego_loam_py.core.loop.place_recognition import PlaceDatabase, ScanContextConfig, scan_context
+from lego_loam_py.core.mapping.map_bundle import MapBundle
 from lego_loam_py.core.mapping.scan_to_map import map_trees
+from lego_loam_py.core.params.types import Params
 from lego_loam_py.core.voxel import voxel_downsample
 
 __all__ = ['PriorMap', 'LocalMap', 'levelling', 'heading']
@@ -72,10 +73,10 @@ def thinned(points: np.ndarray, leaf: float, max_points: int) -> np.ndarray:
 class LocalMap:
     """The map around a position for tracking (map frame, camera axes) and its KD-trees."""
 
-    centre: np.ndarray        # (3,) where it was cut
-    corner: np.ndarray        # (n, 4) float32
+    centre: np.ndarray  # (3,) where it was cut
+    corner: np.ndarray  # (n, 4) float32
     surf: np.ndarray
-    trees: tuple              # (corner, surface) cKDTree, as scan_to_map.map_trees
+    trees: tuple  # (corner, surface) cKDTree, as scan_to_map.map_trees
 
 
 class PriorMap:
@@ -84,7 +85,7 @@ class PriorMap:
     def __init__(self, bundle: MapBundle, params: Params):
         self.bundle = bundle
         self.params = params
-        self.poses = np.array([pose6_to_matrix(p) for p in bundle.poses6]).reshape(-1, 4, 4)   # camera axes
+        self.poses = np.array([pose6_to_matrix(p) for p in bundle.poses6]).reshape(-1, 4, 4)  # camera axes
         self.poses_lidar = camera_pose_to_lidar(np.asarray(self.poses).reshape(-1, 4, 4))
         self.positions = self.poses[:, :3, 3].copy()
         self.corner_map = np.ascontiguousarray(bundle.corner_map, dtype=np.float32)
@@ -95,9 +96,12 @@ class PriorMap:
         self._local: LocalMap | None = None
         self._edges_lidar: cKDTree | None = None
         lc = params.loop_closure
-        self.places = PlaceDatabase(ScanContextConfig(rings=lc.scan_context_rings, sectors=lc.scan_context_sectors,
-                                                      max_radius=lc.scan_context_max_radius),
-                                    ring_key_candidates=RING_KEY_CANDIDATES)
+        self.places = PlaceDatabase(
+            ScanContextConfig(
+                rings=lc.scan_context_rings, sectors=lc.scan_context_sectors, max_radius=lc.scan_context_max_radius
+            ),
+            ring_key_candidates=RING_KEY_CANDIDATES,
+        )
         for k in range(len(bundle)):
             self.places.add(k, self.descriptor(self.keyframe_points(k), self.poses_lidar[k]))
 
@@ -127,10 +131,12 @@ class PriorMap:
         if local is not None and np.linalg.norm(local.centre - position) < RECUT_DISTANCE:
             return local
         centre = np.asarray(position, dtype=np.float64)[[0, 2]]
-        corner = self.corner_map[np.einsum('ij,ij->i', self._corner_xz - centre, self._corner_xz - centre)
-                                 <= LOCAL_RADIUS ** 2]
-        surf = self.surface_map[np.einsum('ij,ij->i', self._surface_xz - centre, self._surface_xz - centre)
-                                <= LOCAL_RADIUS ** 2]
+        corner = self.corner_map[
+            np.einsum('ij,ij->i', self._corner_xz - centre, self._corner_xz - centre) <= LOCAL_RADIUS**2
+        ]
+        surf = self.surface_map[
+            np.einsum('ij,ij->i', self._surface_xz - centre, self._surface_xz - centre) <= LOCAL_RADIUS**2
+        ]
         self._local = LocalMap(np.asarray(position, dtype=np.float64).copy(), corner, surf, map_trees(corner, surf))
         return self._local
 
@@ -138,11 +144,17 @@ class PriorMap:
         """(m, 3) map points within REGION_RADIUS (horizontally) of ``position_lidar`` (map frame, REP-103), thinned:
         the target of a verifying registration."""
         lidar_xy = np.asarray(position_lidar, dtype=np.float64)[:2]
-        centre = np.array([lidar_xy[1], lidar_xy[0]])           # (x, z) in camera axes = (y, x) in lidar axes
-        points = np.concatenate([self.corner_map[np.einsum('ij,ij->i', self._corner_xz - centre,
-                                                           self._corner_xz - centre) <= REGION_RADIUS ** 2],
-                                 self.surface_map[np.einsum('ij,ij->i', self._surface_xz - centre,
-                                                            self._surface_xz - centre) <= REGION_RADIUS ** 2]])
+        centre = np.array([lidar_xy[1], lidar_xy[0]])  # (x, z) in camera axes = (y, x) in lidar axes
+        points = np.concatenate(
+            [
+                self.corner_map[
+                    np.einsum('ij,ij->i', self._corner_xz - centre, self._corner_xz - centre) <= REGION_RADIUS**2
+                ],
+                self.surface_map[
+                    np.einsum('ij,ij->i', self._surface_xz - centre, self._surface_xz - centre) <= REGION_RADIUS**2
+                ],
+            ]
+        )
         return camera_to_lidar(thinned(points, leaf, REGION_MAX_POINTS))
 
     def edge_tree(self) -> cKDTree:

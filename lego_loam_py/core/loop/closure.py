@@ -17,22 +17,30 @@ Two methods (``loop_closure.method``):
 Keyframe clouds and poses of the mapper are in the world, camera axes (:mod:`lego_loam_py.core.frames`); the
 verified method works in lidar axes, as the pose graph does.
 """
+
 from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from lego_loam_py.core.frames import (camera_pose_to_lidar, camera_to_lidar, invert_pose, lidar_pose_to_camera,
-                                      pose6_to_matrix, transform_cloud, transform_points)
+from lego_loam_py.core.frames import (
+    camera_pose_to_lidar,
+    camera_to_lidar,
+    invert_pose,
+    lidar_pose_to_camera,
+    pose6_to_matrix,
+    transform_cloud,
+    transform_points,
+)
+from lego_loam_py.core.loop.place_recognition import PlaceDatabase, ScanContextConfig, scan_context
 from lego_loam_py.core.loop.registration import Registration, register
 from lego_loam_py.core.params.types import LoopClosureParams
-from lego_loam_py.core.loop.place_recognition import PlaceDatabase, ScanContextConfig, scan_context
 from lego_loam_py.core.voxel import voxel_downsample
 
 __all__ = ['LoopCandidate', 'LoopResult', 'LoopCloser', 'find_loop_candidate', 'align_loop', 'rotation_angle_deg']
@@ -47,46 +55,46 @@ def rotation_angle_deg(pose: np.ndarray) -> float:
 class LoopCandidate:
     latest: int
     candidate: int
-    source: np.ndarray     # ('original': world points, camera axes) 'verified': the latest keyframes' points in
+    source: np.ndarray  # ('original': world points, camera axes) 'verified': the latest keyframes' points in
     #                        the latest keyframe's frame, lidar axes
-    target: np.ndarray     # ('original': world points, camera axes) 'verified': the candidate's neighbourhood in
+    target: np.ndarray  # ('original': world points, camera axes) 'verified': the candidate's neighbourhood in
     #                        the candidate's frame, lidar axes, downsampled
-    detector: str = 'radius'               # 'radius' or 'scan_context'
-    score: float = float('nan')            # Scan Context distance (0 same .. 1 unrelated)
-    initial: np.ndarray | None = None      # 4x4 guess of the latest keyframe in the candidate's frame (lidar axes)
-    graph_relative: np.ndarray | None = None   # the graph's pose of the latest in the candidate's frame (lidar)
-    path_m: float = 0.0                    # path travelled between the two keyframes (graph) [m]
+    detector: str = 'radius'  # 'radius' or 'scan_context'
+    score: float = float('nan')  # Scan Context distance (0 same .. 1 unrelated)
+    initial: np.ndarray | None = None  # 4x4 guess of the latest keyframe in the candidate's frame (lidar axes)
+    graph_relative: np.ndarray | None = None  # the graph's pose of the latest in the candidate's frame (lidar)
+    path_m: float = 0.0  # path travelled between the two keyframes (graph) [m]
     latest_stamp_ns: int = 0
     candidate_stamp_ns: int = 0
-    candidate_pose: np.ndarray | None = None   # 4x4 world pose of the candidate (camera axes), for display
-    source_latest: np.ndarray | None = None    # 'verified': which source points are mostly the latest keyframe's
+    candidate_pose: np.ndarray | None = None  # 4x4 world pose of the candidate (camera axes), for display
+    source_latest: np.ndarray | None = None  # 'verified': which source points are mostly the latest keyframe's
 
 
 @dataclass(eq=False)
 class LoopResult:
     latest: int
     candidate: int
-    fitness: float         # 'original': mean squared NN distance [m^2]; 'verified': RMS residual [m]
+    fitness: float  # 'original': mean squared NN distance [m^2]; 'verified': RMS residual [m]
     converged: bool
     accepted: bool
     correction: np.ndarray  # 4x4 world-frame correction (camera axes) the fit implies for the latest keyframe
-    relative: np.ndarray | None = None          # 4x4 constraint: candidate seen from latest (camera axes)
-    relative_before: np.ndarray | None = None   # the same as the graph had it before the constraint
-    variances: np.ndarray | None = None         # 'original': of the loop factor (rot x3, trans x3; lidar axes)
-    information: np.ndarray | None = None       # 'verified': 6x6 information of the constraint (lidar axes)
+    relative: np.ndarray | None = None  # 4x4 constraint: candidate seen from latest (camera axes)
+    relative_before: np.ndarray | None = None  # the same as the graph had it before the constraint
+    variances: np.ndarray | None = None  # 'original': of the loop factor (rot x3, trans x3; lidar axes)
+    information: np.ndarray | None = None  # 'verified': 6x6 information of the constraint (lidar axes)
     detector: str = 'radius'
     score: float = float('nan')
     overlap: float = float('nan')
     constraint: float = float('nan')
-    reason: str = ''                 # why it was rejected, or 'accepted' / 'pending' (waiting for a second loop)
+    reason: str = ''  # why it was rejected, or 'accepted' / 'pending' (waiting for a second loop)
     latest_stamp_ns: int = 0
     candidate_stamp_ns: int = 0
-    correction_m: float = 0.0        # how far the constraint moves the latest keyframe against the graph [m]
-    correction_deg: float = 0.0      # ... and turns it [deg]
+    correction_m: float = 0.0  # how far the constraint moves the latest keyframe against the graph [m]
+    correction_deg: float = 0.0  # ... and turns it [deg]
     applied_m: float = float('nan')  # how far the latest keyframe actually moved when the loop went in [m]
-    cpu_ms: float = 0.0              # CPU of the verifying registration and its gates (the process's) [ms]
-    source_shift_m: float = 0.0      # how far the latest keyframe alone would move the fit [m] (see verify)
-    source_shift_deg: float = 0.0    # ... and turn it [deg]
+    cpu_ms: float = 0.0  # CPU of the verifying registration and its gates (the process's) [ms]
+    source_shift_m: float = 0.0  # how far the latest keyframe alone would move the fit [m] (see verify)
+    source_shift_deg: float = 0.0  # ... and turn it [deg]
 
     def constrain(self, latest_pose: np.ndarray, candidate_pose: np.ndarray) -> None:
         """The original's constraint from its ICP correction, given both keyframes' world poses (4x4, camera
@@ -97,19 +105,29 @@ class LoopResult:
 
     def summary(self) -> dict:
         """The loop as the run's summary lists it."""
-        return dict(latest=self.latest, candidate=self.candidate, latest_stamp_ns=self.latest_stamp_ns,
-                    candidate_stamp_ns=self.candidate_stamp_ns, detector=self.detector,
-                    score=None if math.isnan(self.score) else round(self.score, 4),
-                    rmse_m=round(self.fitness, 4), overlap=None if math.isnan(self.overlap) else round(self.overlap, 3),
-                    correction_m=round(self.correction_m, 3), correction_deg=round(self.correction_deg, 3),
-                    applied_m=None if math.isnan(self.applied_m) else round(self.applied_m, 3),
-                    accepted=self.accepted, reason=self.reason)
+        return dict(
+            latest=self.latest,
+            candidate=self.candidate,
+            latest_stamp_ns=self.latest_stamp_ns,
+            candidate_stamp_ns=self.candidate_stamp_ns,
+            detector=self.detector,
+            score=None if math.isnan(self.score) else round(self.score, 4),
+            rmse_m=round(self.fitness, 4),
+            overlap=None if math.isnan(self.overlap) else round(self.overlap, 3),
+            correction_m=round(self.correction_m, 3),
+            correction_deg=round(self.correction_deg, 3),
+            applied_m=None if math.isnan(self.applied_m) else round(self.applied_m, 3),
+            accepted=self.accepted,
+            reason=self.reason,
+        )
 
 
 # ------------------------------------------------------------------------------------------ the original
 
-def find_loop_candidate(keyframes: Sequence, positions: np.ndarray, current_position: np.ndarray, latest_ns: int,
-                        lc: LoopClosureParams) -> LoopCandidate | None:
+
+def find_loop_candidate(
+    keyframes: Sequence, positions: np.ndarray, current_position: np.ndarray, latest_ns: int, lc: LoopClosureParams
+) -> LoopCandidate | None:
     """The original's candidate search: the nearest keyframe within the search radius of ``current_position``
     [m] that is older than ``time_gap`` from ``latest_ns``, with the clouds the ICP aligns (the latest keyframe's
     corners and surfaces; the candidate's neighbours' downsampled). ``keyframes`` have ``stamp_ns``,
@@ -128,14 +146,23 @@ def find_loop_candidate(keyframes: Sequence, positions: np.ndarray, current_posi
     kf = keyframes[latest]
     source = transform_cloud(np.concatenate([kf.corner, kf.surf]), kf.pose6)
     source = source[np.trunc(source[:, 3]) >= 0]
-    near = range(max(0, candidate - lc.history_keyframe_search_num),
-                 min(latest, candidate + lc.history_keyframe_search_num) + 1)
-    target = np.concatenate([transform_cloud(np.concatenate([keyframes[j].corner, keyframes[j].surf]),
-                                             keyframes[j].pose6) for j in near])
+    near = range(
+        max(0, candidate - lc.history_keyframe_search_num), min(latest, candidate + lc.history_keyframe_search_num) + 1
+    )
+    target = np.concatenate(
+        [transform_cloud(np.concatenate([keyframes[j].corner, keyframes[j].surf]), keyframes[j].pose6) for j in near]
+    )
     target = voxel_downsample(target, lc.history_keyframe_leaf_size)
-    return LoopCandidate(latest, candidate, source, target, detector='radius',
-                         latest_stamp_ns=kf.stamp_ns, candidate_stamp_ns=keyframes[candidate].stamp_ns,
-                         candidate_pose=np.eye(4))
+    return LoopCandidate(
+        latest,
+        candidate,
+        source,
+        target,
+        detector='radius',
+        latest_stamp_ns=kf.stamp_ns,
+        candidate_stamp_ns=keyframes[candidate].stamp_ns,
+        candidate_pose=np.eye(4),
+    )
 
 
 def align_loop(candidate: LoopCandidate, lc: LoopClosureParams) -> LoopResult:
@@ -146,11 +173,18 @@ def align_loop(candidate: LoopCandidate, lc: LoopClosureParams) -> LoopResult:
     source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(candidate.source[:, :3].astype(np.float64)))
     target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(candidate.target[:, :3].astype(np.float64)))
     criteria = o3d.pipelines.registration.ICPConvergenceCriteria(
-        relative_fitness=lc.icp_euclidean_fitness_epsilon, relative_rmse=lc.icp_transformation_epsilon,
-        max_iteration=lc.icp_max_iterations)
+        relative_fitness=lc.icp_euclidean_fitness_epsilon,
+        relative_rmse=lc.icp_transformation_epsilon,
+        max_iteration=lc.icp_max_iterations,
+    )
     result = o3d.pipelines.registration.registration_icp(
-        source, target, lc.icp_max_correspondence_distance, np.eye(4),
-        o3d.pipelines.registration.TransformationEstimationPointToPoint(), criteria)
+        source,
+        target,
+        lc.icp_max_correspondence_distance,
+        np.eye(4),
+        o3d.pipelines.registration.TransformationEstimationPointToPoint(),
+        criteria,
+    )
     correction = np.asarray(result.transformation)
     aligned = transform_points(correction, candidate.source[:, :3].astype(np.float64))
     distance, _ = cKDTree(candidate.target[:, :3].astype(np.float64)).query(aligned)
@@ -158,12 +192,21 @@ def align_loop(candidate: LoopCandidate, lc: LoopClosureParams) -> LoopResult:
     fitness = float(np.mean(distance[inside] ** 2)) if inside.any() else float('inf')
     converged = bool(np.isfinite(correction).all() and len(result.correspondence_set) > 0)
     accepted = converged and fitness <= lc.history_keyframe_fitness_score
-    return LoopResult(candidate.latest, candidate.candidate, fitness, converged, accepted, correction,
-                      reason='accepted' if accepted else 'fitness', latest_stamp_ns=candidate.latest_stamp_ns,
-                      candidate_stamp_ns=candidate.candidate_stamp_ns)
+    return LoopResult(
+        candidate.latest,
+        candidate.candidate,
+        fitness,
+        converged,
+        accepted,
+        correction,
+        reason='accepted' if accepted else 'fitness',
+        latest_stamp_ns=candidate.latest_stamp_ns,
+        candidate_stamp_ns=candidate.candidate_stamp_ns,
+    )
 
 
 # ------------------------------------------------------------------------------------------ verified
+
 
 def _levelling(pose_lidar: np.ndarray) -> np.ndarray:
     """The 3x3 rotation that levels a keyframe's points (its roll and pitch in the world), keeping its yaw."""
@@ -201,7 +244,7 @@ class _Pending:
     """A verified loop waiting for a second one that agrees with it."""
 
     result: LoopResult
-    relative_lidar: np.ndarray     # latest in candidate's frame (lidar axes), as registered
+    relative_lidar: np.ndarray  # latest in candidate's frame (lidar axes), as registered
     latest_stamp_ns: int
     candidate_stamp_ns: int
 
@@ -213,19 +256,22 @@ class LoopCloser:
 
     params: LoopClosureParams
     places: PlaceDatabase = field(init=False)
-    pending: list[_Pending] = field(default_factory=list)      # verified, waiting for a loop that agrees
-    confirmed: list[_Pending] = field(default_factory=list)    # in the graph, within the consistency window
-    _tried: dict[int, int] = field(default_factory=dict)   # candidate stamp -> latest stamp when last tried
-    _last_verified_ns: int | None = None                   # latest keyframe of the last verification
-    _last_detected_ns: int | None = None                   # latest keyframe of the last detection
-    too_far: int = 0   # descriptor matches beyond the drift bound of the graph's estimate, never registered
+    pending: list[_Pending] = field(default_factory=list)  # verified, waiting for a loop that agrees
+    confirmed: list[_Pending] = field(default_factory=list)  # in the graph, within the consistency window
+    _tried: dict[int, int] = field(default_factory=dict)  # candidate stamp -> latest stamp when last tried
+    _last_verified_ns: int | None = None  # latest keyframe of the last verification
+    _last_detected_ns: int | None = None  # latest keyframe of the last detection
+    too_far: int = 0  # descriptor matches beyond the drift bound of the graph's estimate, never registered
 
     def __post_init__(self):
         lc = self.params
-        self.places = PlaceDatabase(ScanContextConfig(rings=lc.scan_context_rings, sectors=lc.scan_context_sectors,
-                                                      max_radius=lc.scan_context_max_radius))
+        self.places = PlaceDatabase(
+            ScanContextConfig(
+                rings=lc.scan_context_rings, sectors=lc.scan_context_sectors, max_radius=lc.scan_context_max_radius
+            )
+        )
         self._described: set[int] = set()
-        if lc.loop_closure_enable_flag:   # (made for loop_closure.method verified only: core.loop.methods)
+        if lc.loop_closure_enable_flag:  # (made for loop_closure.method verified only: core.loop.methods)
             import open3d  # noqa: F401  (the first import costs about 0.5 s of CPU: at start-up, not in a loop)
 
     def describe(self, keyframes: Sequence) -> None:
@@ -249,14 +295,14 @@ class LoopCloser:
         latest = len(keyframes) - 1
         latest_kf = keyframes[latest]
         if latest_kf.stamp_ns == self._last_detected_ns and not self.pending:
-            return None   # no new keyframe since the last look: nothing new to find
+            return None  # no new keyframe since the last look: nothing new to find
         self._last_detected_ns = latest_kf.stamp_ns
         stamps = np.array([kf.stamp_ns for kf in keyframes], dtype=np.int64)
         old = np.abs(stamps - latest_kf.stamp_ns) > lc.time_gap * 1e9
         # Not the first keyframes: the mapping's attitude settles over them (on the simulated campus the 5th
         # keyframe is pitched 1 deg against the 1st as seen from those after it), which a constraint to them would
         # carry into the graph.
-        old[:lc.skip_first_keyframes] = False
+        old[: lc.skip_first_keyframes] = False
         if not old.any():
             return None
         index_of = {int(s): i for i, s in enumerate(stamps)}
@@ -271,8 +317,9 @@ class LoopCloser:
             candidate = index_of[match.key]
             # A place that looks the same but lies farther from the graph's estimate than the drift over the path
             # between them (and the registration's reach) allows is another place alike: not worth a registration.
-            reach = lc.max_drift_base + lc.max_drift_ratio * (path[latest] - path[candidate]) + \
-                lc.registration_distances[0]
+            reach = (
+                lc.max_drift_base + lc.max_drift_ratio * (path[latest] - path[candidate]) + lc.registration_distances[0]
+            )
             if distance[candidate] > reach:
                 self.too_far += 1
                 continue
@@ -281,86 +328,144 @@ class LoopCloser:
         near = np.flatnonzero(old & (distance <= lc.history_keyframe_search_radius))
         if len(near):
             choices.append(('radius', int(near[np.argmin(distance[near])]), float('nan'), None))
-        recently_closed = any(latest_kf.stamp_ns - p.latest_stamp_ns <= lc.consistency_window * 1e9
-                              for p in self.confirmed)
+        recently_closed = any(
+            latest_kf.stamp_ns - p.latest_stamp_ns <= lc.consistency_window * 1e9 for p in self.confirmed
+        )
         if choices and (recently_closed or not self.pending) and self._last_verified_ns in index_of:
             # Verifications are spaced along the path (they cost a registration each), unless a first loop waits
             # for its confirmation; wider once loops went in here (a loop still pending then disagreed with them).
             spacing = lc.closed_verification_spacing if recently_closed else lc.verification_spacing
-            steps = np.linalg.norm(np.diff(positions[index_of[self._last_verified_ns]:], axis=0), axis=1)
+            steps = np.linalg.norm(np.diff(positions[index_of[self._last_verified_ns] :], axis=0), axis=1)
             if steps.sum() < spacing:
                 return None
         for detector, candidate, score, yaw in choices:
             previous = self._tried.get(int(stamps[candidate]))
-            if previous is not None and previous in index_of and \
-                    np.linalg.norm(positions[index_of[previous]] - positions[latest]) < 1.0:
-                continue   # the same pair, hardly moved since: its verdict would be the same
+            if (
+                previous is not None
+                and previous in index_of
+                and np.linalg.norm(positions[index_of[previous]] - positions[latest]) < 1.0
+            ):
+                continue  # the same pair, hardly moved since: its verdict would be the same
             self._tried[int(stamps[candidate])] = int(latest_kf.stamp_ns)
             self._last_verified_ns = int(latest_kf.stamp_ns)
             return self._candidate(keyframes, positions, latest, candidate, detector, score, yaw)
         return None
 
-    def _candidate(self, keyframes, positions, latest: int, candidate: int, detector: str, score: float,
-                   yaw: float | None) -> LoopCandidate:
+    def _candidate(
+        self, keyframes, positions, latest: int, candidate: int, detector: str, score: float, yaw: float | None
+    ) -> LoopCandidate:
         lc = self.params
-        poses = {i: camera_pose_to_lidar(pose6_to_matrix(keyframes[i].pose6)) for i in
-                 set(range(max(0, latest - lc.source_keyframes), latest + 1)) |
-                 set(range(max(0, candidate - lc.target_keyframes), min(latest, candidate + lc.target_keyframes + 1)))}
+        poses = {
+            i: camera_pose_to_lidar(pose6_to_matrix(keyframes[i].pose6))
+            for i in set(range(max(0, latest - lc.source_keyframes), latest + 1))
+            | set(range(max(0, candidate - lc.target_keyframes), min(latest, candidate + lc.target_keyframes + 1)))
+        }
 
         def cloud_in(frame: int, ids) -> np.ndarray:
             to_frame = invert_pose(poses[frame])
-            parts = [transform_points(to_frame @ poses[j], camera_to_lidar(np.concatenate(
-                [keyframes[j].corner, keyframes[j].surf, keyframes[j].outlier])[:, :3].astype(np.float64)))
-                for j in ids]
+            parts = [
+                transform_points(
+                    to_frame @ poses[j],
+                    camera_to_lidar(
+                        np.concatenate([keyframes[j].corner, keyframes[j].surf, keyframes[j].outlier])[:, :3].astype(
+                            np.float64
+                        )
+                    ),
+                )
+                for j in ids
+            ]
             return np.concatenate(parts) if parts else np.zeros((0, 3))
 
         before = cloud_in(latest, range(max(0, latest - lc.source_keyframes), latest))
         newest = cloud_in(latest, [latest])
-        source, source_latest = _thinned(np.concatenate([before, newest]), lc.history_keyframe_leaf_size,
-                                         _MAX_SOURCE_POINTS, marked=np.arange(len(before) + len(newest)) >= len(before))
-        target = _thinned(cloud_in(candidate, range(max(0, candidate - lc.target_keyframes),
-                                                    min(latest, candidate + lc.target_keyframes + 1))),
-                          lc.history_keyframe_leaf_size, _MAX_TARGET_POINTS)
+        source, source_latest = _thinned(
+            np.concatenate([before, newest]),
+            lc.history_keyframe_leaf_size,
+            _MAX_SOURCE_POINTS,
+            marked=np.arange(len(before) + len(newest)) >= len(before),
+        )
+        target = _thinned(
+            cloud_in(
+                candidate,
+                range(max(0, candidate - lc.target_keyframes), min(latest, candidate + lc.target_keyframes + 1)),
+            ),
+            lc.history_keyframe_leaf_size,
+            _MAX_TARGET_POINTS,
+        )
         graph_relative = invert_pose(poses[candidate]) @ poses[latest]
         if yaw is None:
             initial = graph_relative
-        else:   # same place, turned by the descriptor's yaw: levelled frames differ by a rotation about z
+        else:  # same place, turned by the descriptor's yaw: levelled frames differ by a rotation about z
             level_l, level_c = np.eye(4), np.eye(4)
             level_l[:3, :3], level_c[:3, :3] = _levelling(poses[latest]), _levelling(poses[candidate])
             initial = level_c.T @ _rot_z(yaw) @ level_l
-        steps = np.linalg.norm(np.diff(positions[min(candidate, latest):max(candidate, latest) + 1], axis=0), axis=1)
-        return LoopCandidate(latest, candidate, source, target, detector=detector, score=score, initial=initial,
-                             graph_relative=graph_relative, path_m=float(steps.sum()),
-                             latest_stamp_ns=keyframes[latest].stamp_ns,
-                             candidate_stamp_ns=keyframes[candidate].stamp_ns,
-                             candidate_pose=pose6_to_matrix(keyframes[candidate].pose6), source_latest=source_latest)
+        steps = np.linalg.norm(np.diff(positions[min(candidate, latest) : max(candidate, latest) + 1], axis=0), axis=1)
+        return LoopCandidate(
+            latest,
+            candidate,
+            source,
+            target,
+            detector=detector,
+            score=score,
+            initial=initial,
+            graph_relative=graph_relative,
+            path_m=float(steps.sum()),
+            latest_stamp_ns=keyframes[latest].stamp_ns,
+            candidate_stamp_ns=keyframes[candidate].stamp_ns,
+            candidate_pose=pose6_to_matrix(keyframes[candidate].pose6),
+            source_latest=source_latest,
+        )
 
     def verify(self, candidate: LoopCandidate) -> tuple[LoopResult, Registration]:
         """Register the candidate and judge it by the registration and drift gates (no lock needed)."""
         lc = self.params
         start = time.process_time()
-        fit = register(candidate.source, candidate.target, candidate.initial, lc.registration_distances,
-                       lc.registration_iterations, lc.inlier_distance, lc.registration_points,
-                       lc.min_registration_sigma, subset=candidate.source_latest if lc.source_keyframes else None)
-        change = invert_pose(candidate.graph_relative) @ fit.pose   # the graph's view -> the registration's
+        fit = register(
+            candidate.source,
+            candidate.target,
+            candidate.initial,
+            lc.registration_distances,
+            lc.registration_iterations,
+            lc.inlier_distance,
+            lc.registration_points,
+            lc.min_registration_sigma,
+            subset=candidate.source_latest if lc.source_keyframes else None,
+        )
+        change = invert_pose(candidate.graph_relative) @ fit.pose  # the graph's view -> the registration's
         correction_m, correction_deg = float(np.linalg.norm(change[:3, 3])), rotation_angle_deg(change)
         reason = fit.gate_failure(lc.min_overlap, lc.max_rmse, lc.min_constraint)
         if not reason and (fit.subset_shift_m > lc.max_source_shift or fit.subset_shift_deg > lc.max_source_shift_deg):
-            reason = (f'source inconsistent: the newest keyframe alone moves the fit {fit.subset_shift_m:.2f} m '
-                      f'{fit.subset_shift_deg:.2f} deg (its mapped pose disagrees with the keyframes before it)')
+            reason = (
+                f'source inconsistent: the newest keyframe alone moves the fit {fit.subset_shift_m:.2f} m '
+                f'{fit.subset_shift_deg:.2f} deg (its mapped pose disagrees with the keyframes before it)'
+            )
         if not reason and correction_m > lc.max_drift_base + lc.max_drift_ratio * candidate.path_m:
             reason = f'correction {correction_m:.2f} m beyond the drift possible over {candidate.path_m:.0f} m'
         if not reason and correction_deg > lc.max_drift_rotation_base + lc.max_drift_rotation_ratio * candidate.path_m:
             reason = f'correction {correction_deg:.2f} deg beyond the drift possible over {candidate.path_m:.0f} m'
-        result = LoopResult(candidate.latest, candidate.candidate, fit.rmse, True, False, np.eye(4),
-                            detector=candidate.detector, score=candidate.score, overlap=fit.overlap,
-                            constraint=fit.constraint, reason=reason or 'verified',
-                            latest_stamp_ns=candidate.latest_stamp_ns, candidate_stamp_ns=candidate.candidate_stamp_ns,
-                            correction_m=correction_m, correction_deg=correction_deg, information=fit.information,
-                            relative=lidar_pose_to_camera(invert_pose(fit.pose)),
-                            relative_before=lidar_pose_to_camera(invert_pose(candidate.graph_relative)),
-                            cpu_ms=(time.process_time() - start) * 1e3, source_shift_m=fit.subset_shift_m,
-                            source_shift_deg=fit.subset_shift_deg)
+        result = LoopResult(
+            candidate.latest,
+            candidate.candidate,
+            fit.rmse,
+            True,
+            False,
+            np.eye(4),
+            detector=candidate.detector,
+            score=candidate.score,
+            overlap=fit.overlap,
+            constraint=fit.constraint,
+            reason=reason or 'verified',
+            latest_stamp_ns=candidate.latest_stamp_ns,
+            candidate_stamp_ns=candidate.candidate_stamp_ns,
+            correction_m=correction_m,
+            correction_deg=correction_deg,
+            information=fit.information,
+            relative=lidar_pose_to_camera(invert_pose(fit.pose)),
+            relative_before=lidar_pose_to_camera(invert_pose(candidate.graph_relative)),
+            cpu_ms=(time.process_time() - start) * 1e3,
+            source_shift_m=fit.subset_shift_m,
+            source_shift_deg=fit.subset_shift_deg,
+        )
         return result, fit
 
     def admit(self, result: LoopResult, fit: Registration, keyframes: Sequence, now_ns: int) -> list[_Pending]:
@@ -379,8 +484,9 @@ class LoopCloser:
             loop.result.reason = 'accepted'
         return ready
 
-    def consistent(self, result: LoopResult, fit: Registration, poses_by_stamp: dict[int, np.ndarray],
-                   now_ns: int) -> list[_Pending]:
+    def consistent(
+        self, result: LoopResult, fit: Registration, poses_by_stamp: dict[int, np.ndarray], now_ns: int
+    ) -> list[_Pending]:
         """The verified loops that may go into the graph now, given the new one: [] while it waits for a second
         loop to agree with it (or with an accepted one), else it and the pending loops that agree with it.
         ``poses_by_stamp``: the graph's current keyframe poses (4x4, lidar axes)."""
@@ -389,8 +495,13 @@ class LoopCloser:
         window = lc.consistency_window * 1e9
 
         def recent(loops: list[_Pending]) -> list[_Pending]:
-            return [p for p in loops if now_ns - p.latest_stamp_ns <= window
-                    and p.latest_stamp_ns in poses_by_stamp and p.candidate_stamp_ns in poses_by_stamp]
+            return [
+                p
+                for p in loops
+                if now_ns - p.latest_stamp_ns <= window
+                and p.latest_stamp_ns in poses_by_stamp
+                and p.candidate_stamp_ns in poses_by_stamp
+            ]
 
         self.pending, self.confirmed = recent(self.pending), recent(self.confirmed)
         if lc.min_consistent_loops <= 1 or any(self._agree(new, p, poses_by_stamp) for p in self.confirmed):
@@ -413,5 +524,7 @@ class LoopCloser:
         # a.relative: latest_a in candidate_a's frame; cycle: candidate_a -> latest_a should equal
         # candidate_a -> candidate_b -> latest_b -> latest_a.
         cycle = invert_pose(a.relative_lidar) @ odometry_candidates @ b.relative_lidar @ odometry_latest
-        return bool(np.linalg.norm(cycle[:3, 3]) <= lc.consistency_translation and
-                    rotation_angle_deg(cycle) <= lc.consistency_rotation)
+        return bool(
+            np.linalg.norm(cycle[:3, 3]) <= lc.consistency_translation
+            and rotation_angle_deg(cycle) <= lc.consistency_rotation
+        )

@@ -9,6 +9,7 @@ it runs. The mapper calls it; it calls back only the mapper's graph and keyframe
   accepted by fitness; with it switched on the map around the robot is the last keyframes, as the original's; its
   clouds are in the world (camera axes).
 """
+
 from __future__ import annotations
 
 from lego_loam_py.core.loop.closure import LoopCandidate, LoopCloser, LoopResult, align_loop, find_loop_candidate
@@ -21,8 +22,8 @@ class VerifiedLoops:
     """``loop_closure.method: verified`` (see the module docstring)."""
 
     name = 'verified'
-    recent_keyframes_as_map = False   # the map around the robot: the keyframes within the search radius
-    clouds_in_world = False            # candidate clouds: the keyframes' frames, lidar axes
+    recent_keyframes_as_map = False  # the map around the robot: the keyframes within the search radius
+    clouds_in_world = False  # candidate clouds: the keyframes' frames, lidar axes
 
     def __init__(self, params: LoopClosureParams):
         self.closer = LoopCloser(params)
@@ -54,8 +55,9 @@ class OriginalLoops:
         self.params = params
 
     def detect(self, mapper) -> LoopCandidate | None:
-        return find_loop_candidate(mapper.keyframes, mapper.keyframe_positions, mapper.current_position,
-                                   mapper.latest_odometry_ns, self.params)
+        return find_loop_candidate(
+            mapper.keyframes, mapper.keyframe_positions, mapper.current_position, mapper.latest_odometry_ns, self.params
+        )
 
     def close(self, mapper, candidate: LoopCandidate) -> LoopResult:
         loop = align_loop(candidate, self.params)

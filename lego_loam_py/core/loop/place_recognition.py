@@ -18,6 +18,7 @@ Everything is numpy over whole grids; no Python loop runs over points. Axes: REP
 levelled keyframe (x forward, y left, z up), metres and radians. The database is independent of the mapper
 (it stores descriptors under caller-chosen keys), so localization in a saved map can reuse it.
 """
+
 from __future__ import annotations
 
 import math
@@ -32,11 +33,11 @@ __all__ = ['ScanContextConfig', 'scan_context', 'ring_key', 'descriptor_distance
 class ScanContextConfig:
     """Geometry of the descriptor."""
 
-    rings: int = 20               # annuli from the sensor out to max_radius
-    sectors: int = 60             # angular slices (6 deg each)
-    max_radius: float = 50.0      # [m]
-    height_offset: float = 2.0    # heights measured from this far below the sensor [m]
-    min_range: float = 1.0        # nearer points (the vehicle itself) are ignored [m]
+    rings: int = 20  # annuli from the sensor out to max_radius
+    sectors: int = 60  # angular slices (6 deg each)
+    max_radius: float = 50.0  # [m]
+    height_offset: float = 2.0  # heights measured from this far below the sensor [m]
+    min_range: float = 1.0  # nearer points (the vehicle itself) are ignored [m]
 
 
 def scan_context(points: np.ndarray, config: ScanContextConfig = ScanContextConfig()) -> np.ndarray:
@@ -79,7 +80,7 @@ def descriptor_distance(query: np.ndarray, others: np.ndarray) -> tuple[np.ndarr
     def correlate(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """sum_s a[..., s] b[m, ..., (s - k) % sectors] for every shift k, by FFT along the sectors."""
         spectrum = np.fft.rfft(a, axis=-1)[None] * np.conj(np.fft.rfft(b, axis=-1))
-        if spectrum.ndim == 3:            # (M, rings, bins): sum over the rings
+        if spectrum.ndim == 3:  # (M, rings, bins): sum over the rings
             spectrum = spectrum.sum(axis=1)
         return np.fft.irfft(spectrum, n=sectors, axis=-1)
 
@@ -98,9 +99,9 @@ def descriptor_distance(query: np.ndarray, others: np.ndarray) -> tuple[np.ndarr
 class PlaceMatch:
     """A stored place that looks like the query."""
 
-    key: int              # the key the place was stored under (e.g. a keyframe index)
-    distance: float       # Scan Context distance (0 same, 1 unrelated)
-    yaw: float            # the query's heading minus the place's [rad], from the best sector shift
+    key: int  # the key the place was stored under (e.g. a keyframe index)
+    distance: float  # Scan Context distance (0 same, 1 unrelated)
+    yaw: float  # the query's heading minus the place's [rad], from the best sector shift
 
 
 class PlaceDatabase:
@@ -135,13 +136,17 @@ class PlaceDatabase:
         boolean mask over the stored places in insertion order; None: all), best first."""
         if not self._keys:
             return []
-        candidates = np.arange(len(self._keys)) if allowed is None else np.flatnonzero(allowed[:len(self._keys)])
+        candidates = np.arange(len(self._keys)) if allowed is None else np.flatnonzero(allowed[: len(self._keys)])
         if not len(candidates):
             return []
         gap = np.abs(self._ring_keys[candidates] - ring_key(descriptor)[None]).sum(axis=1)
-        nearest = candidates[np.argsort(gap, kind='stable')[:self.ring_key_candidates]]
+        nearest = candidates[np.argsort(gap, kind='stable')[: self.ring_key_candidates]]
         distance, shift = descriptor_distance(descriptor, np.stack([self._descriptors[i] for i in nearest]))
         order = np.argsort(distance, kind='stable')[:count]
         step = 2 * math.pi / self.config.sectors
-        return [PlaceMatch(self._keys[int(nearest[i])], float(distance[i]),
-                           float(math.remainder(-shift[i] * step, 2 * math.pi))) for i in order]
+        return [
+            PlaceMatch(
+                self._keys[int(nearest[i])], float(distance[i]), float(math.remainder(-shift[i] * step, 2 * math.pi))
+            )
+            for i in order
+        ]

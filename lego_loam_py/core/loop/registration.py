@@ -11,10 +11,11 @@ The fit is open3d's point-to-plane ICP, coarse to fine over a few correspondence
 or two off (a place recognised by its descriptor, whose translation is unknown) still converges; the
 statistics that judge it are computed here from the final pose with one nearest-neighbour query.
 """
+
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -28,13 +29,13 @@ __all__ = ['Registration', 'register']
 class Registration:
     """The result of :func:`register`."""
 
-    pose: np.ndarray          # 4x4 source (latest keyframe) in the target's (candidate's) frame
-    overlap: float            # share of source points with a target point within the inlier distance
-    rmse: float               # point-to-plane RMS residual of those inliers [m]
+    pose: np.ndarray  # 4x4 source (latest keyframe) in the target's (candidate's) frame
+    overlap: float  # share of source points with a target point within the inlier distance
+    rmse: float  # point-to-plane RMS residual of those inliers [m]
     inliers: int
-    constraint: float         # smallest eigenvalue of the per-inlier translational information (0..1/3; 0: a
+    constraint: float  # smallest eigenvalue of the per-inlier translational information (0..1/3; 0: a
     #                           direction the fit does not constrain, e.g. along a featureless corridor)
-    information: np.ndarray   # 6x6 (rot, trans) information of the constraint (see the module docstring)
+    information: np.ndarray  # 6x6 (rot, trans) information of the constraint (see the module docstring)
     # How far the points of ``subset`` (see :func:`register`) would move the pose on their own: one Gauss-Newton
     # step from the fit with their inliers alone, translation [m] and rotation [deg] (0: no subset given).
     subset_shift_m: float = 0.0
@@ -60,9 +61,18 @@ def _normals(target: np.ndarray, radius: float, neighbours: int) -> np.ndarray:
     return np.asarray(cloud.normals)
 
 
-def register(source: np.ndarray, target: np.ndarray, initial: np.ndarray, distances: Sequence[float],
-             iterations: int, inlier_distance: float, independent_points: float, min_sigma: float,
-             normal_radius: float = 1.0, subset: np.ndarray | None = None) -> Registration:
+def register(
+    source: np.ndarray,
+    target: np.ndarray,
+    initial: np.ndarray,
+    distances: Sequence[float],
+    iterations: int,
+    inlier_distance: float,
+    independent_points: float,
+    min_sigma: float,
+    normal_radius: float = 1.0,
+    subset: np.ndarray | None = None,
+) -> Registration:
     """Register ``source`` (N, 3) points of the latest keyframe(s), in the latest keyframe's frame, to ``target``
     (M, 3), in the candidate's frame, from ``initial`` (4x4, source in target frame) by point-to-plane ICP with
     the correspondence ``distances`` [m] in turn (``iterations`` each).
@@ -87,9 +97,13 @@ def register(source: np.ndarray, target: np.ndarray, initial: np.ndarray, distan
     pose = np.asarray(initial, dtype=np.float64).copy()
     for distance in distances:
         result = o3d.pipelines.registration.registration_icp(
-            source_cloud, target_cloud, float(distance), pose,
+            source_cloud,
+            target_cloud,
+            float(distance),
+            pose,
             o3d.pipelines.registration.TransformationEstimationPointToPlane(),
-            o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=int(iterations)))
+            o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=int(iterations)),
+        )
         pose = np.asarray(result.transformation).copy()
     moved = transform_points(pose, source)
     gap, nearest = cKDTree(target).query(moved, distance_upper_bound=inlier_distance)
@@ -99,7 +113,7 @@ def register(source: np.ndarray, target: np.ndarray, initial: np.ndarray, distan
         return Registration(pose, count / max(len(source), 1), float('inf'), count, 0.0, np.zeros((6, 6)))
     normal = normals[nearest[inside]]
     residual = np.einsum('ij,ij->i', moved[inside] - target[nearest[inside]], normal)
-    rmse = float(np.sqrt(np.mean(residual ** 2)))
+    rmse = float(np.sqrt(np.mean(residual**2)))
     # d residual / d delta for source points p moved by pose * Expmap(delta): [p x m, m], m = R^T n (the normal in
     # the source frame).
     m = normal @ pose[:3, :3]
@@ -108,7 +122,7 @@ def register(source: np.ndarray, target: np.ndarray, initial: np.ndarray, distan
     hessian = jacobian.T @ jacobian
     constraint = float(np.linalg.eigvalsh(hessian[3:, 3:] / count)[0])
     sigma = max(rmse, min_sigma)
-    information = hessian * (independent_points / count) / sigma ** 2
+    information = hessian * (independent_points / count) / sigma**2
     shift_m, shift_deg = _subset_step(jacobian, residual, subset[inside]) if subset is not None else (0.0, 0.0)
     return Registration(pose, count / len(source), rmse, count, constraint, information, shift_m, shift_deg)
 

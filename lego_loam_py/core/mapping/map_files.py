@@ -7,6 +7,7 @@
 
 Each file is written under a temporary name and renamed, so a crash never leaves a half-written file.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -14,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from lego_loam_py.core.frames import camera_pose_to_lidar, camera_to_lidar, pose6_to_matrix
-from lego_loam_py.formats import write_pcd_atomic, write_tum_atomic
 from lego_loam_py.core.mapping.map_bundle import MapBundle, write_bundle
+from lego_loam_py.formats import write_pcd_atomic, write_tum_atomic
 
 __all__ = ['write_map_files']
 
@@ -29,16 +30,20 @@ def write_map_files(directory: str | Path, maps: dict[str, np.ndarray], bundle: 
     directory.mkdir(parents=True, exist_ok=True)
     poses, stamps = bundle.poses6, bundle.stamps_ns
     camera_matrices = np.array([pose6_to_matrix(p) for p in poses]).reshape(-1, 4, 4)
-    lidar_matrices = camera_pose_to_lidar(np.asarray(camera_matrices).reshape(-1, 4, 4))   # (the whole stack)
+    lidar_matrices = camera_pose_to_lidar(np.asarray(camera_matrices).reshape(-1, 4, 4))  # (the whole stack)
     written = {}
-    for name, cloud in (('global_map', maps['global_map']), ('corner_map', maps['corner']),
-                        ('surface_map', maps['surface'])):
+    for name, cloud in (
+        ('global_map', maps['global_map']),
+        ('corner_map', maps['corner']),
+        ('surface_map', maps['surface']),
+    ):
         in_map = np.concatenate([camera_to_lidar(cloud[:, :3]), cloud[:, 3:]], axis=1)
         written[name] = write_pcd_atomic(directory / f'{name}.pcd', in_map)
     trajectory = np.concatenate([lidar_matrices[:, :3, 3], np.arange(len(poses))[:, None]], axis=1)
     written['trajectory'] = write_pcd_atomic(directory / 'trajectory.pcd', trajectory.astype(np.float32))
     written['trajectory_tum'] = write_tum_atomic(directory / 'trajectory.tum', stamps, lidar_matrices)
-    written['trajectory_camera_init_tum'] = write_tum_atomic(directory / 'trajectory_camera_init.tum', stamps,
-                                                             camera_matrices)
+    written['trajectory_camera_init_tum'] = write_tum_atomic(
+        directory / 'trajectory_camera_init.tum', stamps, camera_matrices
+    )
     written.update(write_bundle(directory, bundle, f'lego_loam_py {__version__}'))
     return written

@@ -22,6 +22,7 @@ saved map bundle :mod:`lego_loam_py.core.mapping.map_bundle`.
 Thread safety: :meth:`process`, :meth:`detect_loop`, :meth:`close_loop`, :meth:`global_map` and
 :meth:`save` take one lock, so loop closure can run in another thread (as the original's 1 Hz thread).
 """
+
 from __future__ import annotations
 
 import threading
@@ -38,9 +39,9 @@ from lego_loam_py.core.imu.monitor import MappingImuCheck
 from lego_loam_py.core.loop.closure import LoopCandidate, LoopResult
 from lego_loam_py.core.loop.methods import make_loop_method
 from lego_loam_py.core.mapping.odometry_continuity import OdometryJump, anchored_transform_bef
-from lego_loam_py.core.params.types import Params
 from lego_loam_py.core.mapping.pose_graph import PoseGraph
 from lego_loam_py.core.mapping.scan_to_map import register_scan_to_map
+from lego_loam_py.core.params.types import Params
 from lego_loam_py.core.validation import pose6_problem
 from lego_loam_py.core.voxel import VoxelAccumulator, voxel_downsample, voxel_indices
 
@@ -53,8 +54,8 @@ _F32 = np.float32
 class Keyframe:
     index: int
     stamp_ns: int
-    pose6: np.ndarray        # optimised pose (world convention, camera axes)
-    corner: np.ndarray       # (n, 4) sensor frame, camera axes, downsampled
+    pose6: np.ndarray  # optimised pose (world convention, camera axes)
+    corner: np.ndarray  # (n, 4) sensor frame, camera axes, downsampled
     surf: np.ndarray
     outlier: np.ndarray
 
@@ -64,25 +65,25 @@ class MappingStep:
     """Result of one mapping step (what /aft_mapped_to_init publishes)."""
 
     stamp_ns: int
-    transform_aft: np.ndarray         # optimised pose of aft_mapped in camera_init
-    transform_bef: np.ndarray         # the odometry pose it was computed from
+    transform_aft: np.ndarray  # optimised pose of aft_mapped in camera_init
+    transform_bef: np.ndarray  # the odometry pose it was computed from
     keyframe_added: bool
     keyframes: int
     correspondences: int = 0
     iterations: int = 0
     degenerate: bool = False
-    condition: float = float('nan')   # the registration's, see core.scan_to_map (NaN: none)
+    condition: float = float('nan')  # the registration's, see core.scan_to_map (NaN: none)
     optimised: bool = False
     corner_map_points: int = 0
     surf_map_points: int = 0
     timings_ms: dict = field(default_factory=dict)
-    imu_alignment: object = None      # what the IMU check decided at this step (core.imu_monitor.AlignmentEvent)
+    imu_alignment: object = None  # what the IMU check decided at this step (core.imu_monitor.AlignmentEvent)
 
 
 class MapOptimization:
     """The mapOptimization algorithm; :meth:`process` is called with each synchronised input set."""
 
-    builds_map = True   # (a core.mapping.mapper.Mapper with keyframes, loops and a map to save)
+    builds_map = True  # (a core.mapping.mapper.Mapper with keyframes, loops and a map to save)
 
     def __init__(self, params: Params):
         self.params = params
@@ -99,33 +100,42 @@ class MapOptimization:
         self.current_position = np.zeros(3)
         self._previous_keyframe_position: np.ndarray | None = None
         self.graph = PoseGraph(mo)
-        self.imu = ImuBuffer(params.feature_association.imu_que_length, params.feature_association.gravity,
-                             params.sensor.scan_period, imu_mounting(params))
-        self.imu_check = MappingImuCheck(params, lambda: self.imu)   # is the IMU mounted as the parameters say?
+        self.imu = ImuBuffer(
+            params.feature_association.imu_que_length,
+            params.feature_association.gravity,
+            params.sensor.scan_period,
+            imu_mounting(params),
+        )
+        self.imu_check = MappingImuCheck(params, lambda: self.imu)  # is the IMU mounted as the parameters say?
         self._degeneracy = DegeneracyProjection(6)
         self._last_processing_ns: int | None = None
         self.latest_odometry_ns = 0
         self.loop_closed = False
-        self.loops: list[LoopResult] = []            # every loop verified, accepted or not
-        self.loop_method = make_loop_method(params.loop_closure)   # (chosen once: loop_closure.method)
+        self.loops: list[LoopResult] = []  # every loop verified, accepted or not
+        self.loop_method = make_loop_method(params.loop_closure)  # (chosen once: loop_closure.method)
         self.lock = threading.RLock()
         self.last_maps: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 4), _F32), np.zeros((0, 4), _F32))
         self.last_scan: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 4), _F32), np.zeros((0, 4), _F32))
-        self.map_source: dict = {}   # where the data came from (a bag), noted in the saved map bundle
+        self.map_source: dict = {}  # where the data came from (a bag), noted in the saved map bundle
 
     # --------------------------------------------------------------------------------- self-checks
     def health_problem(self) -> str | None:
         """Why the mapping state is poisoned (non-finite or absurd poses, optimizer solution or IMU), or None.
         Checked after every step; :meth:`heal` repairs it."""
         with self.lock:
-            return (pose6_problem('the mapped pose', self.transform_aft)
-                    or pose6_problem('the pose being optimised', self.transform_tobe)
-                    or pose6_problem('the odometry of the last step', self.transform_bef)
-                    or pose6_problem('the latest odometry', self.transform_sum)
-                    or pose6_problem('the last keyframe pose', self.transform_last)
-                    or (pose6_problem('the newest keyframe (optimizer solution)', self.keyframes[-1].pose6)
-                        if self.keyframes else None)
-                    or self.imu.health_problem())
+            return (
+                pose6_problem('the mapped pose', self.transform_aft)
+                or pose6_problem('the pose being optimised', self.transform_tobe)
+                or pose6_problem('the odometry of the last step', self.transform_bef)
+                or pose6_problem('the latest odometry', self.transform_sum)
+                or pose6_problem('the last keyframe pose', self.transform_last)
+                or (
+                    pose6_problem('the newest keyframe (optimizer solution)', self.keyframes[-1].pose6)
+                    if self.keyframes
+                    else None
+                )
+                or self.imu.health_problem()
+            )
 
     def reanchor(self, jump: OdometryJump, pose: np.ndarray, transform_sum: np.ndarray) -> None:
         """The odometry restarted (``jump``, see :mod:`lego_loam_py.core.mapping.odometry_continuity`) and is now at
@@ -145,8 +155,9 @@ class MapOptimization:
             good = [kf for kf in self.keyframes if pose6_problem('', kf.pose6) is None]
             if len(good) < len(self.keyframes):
                 done.append(f'{len(self.keyframes) - len(good)} keyframe(s) with a poisoned pose dropped')
-                self.keyframes = [Keyframe(i, kf.stamp_ns, kf.pose6, kf.corner, kf.surf, kf.outlier)
-                                  for i, kf in enumerate(good)]
+                self.keyframes = [
+                    Keyframe(i, kf.stamp_ns, kf.pose6, kf.corner, kf.surf, kf.outlier) for i, kf in enumerate(good)
+                ]
                 self.graph.rebuild([kf.pose6 for kf in self.keyframes])
             self._positions = np.array([kf.pose6[3:] for kf in self.keyframes]).reshape(-1, 3)
             anchor = self.keyframes[-1].pose6.copy() if self.keyframes else np.zeros(6)
@@ -162,13 +173,20 @@ class MapOptimization:
             if self.imu.health_problem() is not None:
                 self.imu.clear()
                 done.append('IMU samples dropped')
-            done.append(f'mapping resumes from keyframe {len(self.keyframes) - 1}' if self.keyframes
-                        else 'mapping starts again')
+            done.append(
+                f'mapping resumes from keyframe {len(self.keyframes) - 1}' if self.keyframes else 'mapping starts again'
+            )
             return ', '.join(done) + f'; {len(self.keyframes)} keyframes kept'
 
     # ------------------------------------------------------------------------------------------ steps
-    def process(self, stamp_ns: int, transform_sum: np.ndarray, corner_last: np.ndarray, surf_last: np.ndarray,
-                outlier_last: np.ndarray) -> MappingStep | None:
+    def process(
+        self,
+        stamp_ns: int,
+        transform_sum: np.ndarray,
+        corner_last: np.ndarray,
+        surf_last: np.ndarray,
+        outlier_last: np.ndarray,
+    ) -> MappingStep | None:
         """One mapping step, or None when less than ``mapping_process_interval`` passed since the last one."""
         mo = self.params.map_optimization
         interval_ns = int(round(mo.mapping_process_interval * 1e9))
@@ -189,8 +207,15 @@ class MapOptimization:
             surf_ds = voxel_downsample(surf_last, mo.surf_leaf_size)
             outlier_ds = voxel_downsample(outlier_last, mo.outlier_leaf_size)
             surf_total_ds = voxel_downsample(np.concatenate([surf_ds, outlier_ds]), mo.surf_leaf_size)
-            step = MappingStep(stamp_ns, self.transform_aft, self.transform_bef, False, len(self.keyframes),
-                               corner_map_points=len(corner_map), surf_map_points=len(surf_map))
+            step = MappingStep(
+                stamp_ns,
+                self.transform_aft,
+                self.transform_bef,
+                False,
+                len(self.keyframes),
+                corner_map_points=len(corner_map),
+                surf_map_points=len(surf_map),
+            )
             if len(corner_map) > mo.min_corner_map_points and len(surf_map) > mo.min_surf_map_points:
                 self._scan_to_map(corner_map, surf_map, corner_ds, surf_total_ds, step)
                 # As in the original, the poses only move on when a map was there to register against: the
@@ -200,8 +225,9 @@ class MapOptimization:
             step.keyframe_added = self._save_keyframe(stamp_ns, corner_ds, surf_ds, outlier_ds)
             self._correct_poses()
             t3 = _time.perf_counter()
-            timings.update(map=(t1 - t0) * 1e3, registration=(t2 - t1) * 1e3, graph=(t3 - t2) * 1e3,
-                           total=(t3 - t0) * 1e3)
+            timings.update(
+                map=(t1 - t0) * 1e3, registration=(t2 - t1) * 1e3, graph=(t3 - t2) * 1e3, total=(t3 - t0) * 1e3
+            )
             step.timings_ms = timings
             step.transform_aft = self.transform_aft.copy()
             step.transform_bef = self.transform_bef.copy()
@@ -212,8 +238,11 @@ class MapOptimization:
 
     def _associate_to_map(self) -> None:
         """Prediction of the map-frame pose from the odometry: ``T_aft · T_bef^-1 · T_sum``."""
-        predicted = pose6_to_matrix(self.transform_aft) @ invert_pose(pose6_to_matrix(self.transform_bef)) @ \
-            pose6_to_matrix(self.transform_sum)
+        predicted = (
+            pose6_to_matrix(self.transform_aft)
+            @ invert_pose(pose6_to_matrix(self.transform_bef))
+            @ pose6_to_matrix(self.transform_sum)
+        )
         self.transform_tobe = matrix_to_pose6(predicted)
 
     def _surrounding_ids(self) -> list[int]:
@@ -223,8 +252,9 @@ class MapOptimization:
             return []
         if lc.loop_closure_enable_flag and self.loop_method.recent_keyframes_as_map:
             return list(range(max(0, n - mo.surrounding_keyframe_search_num), n))
-        near = np.flatnonzero(np.linalg.norm(self._positions - self.current_position, axis=1)
-                              <= mo.surrounding_keyframe_search_radius)
+        near = np.flatnonzero(
+            np.linalg.norm(self._positions - self.current_position, axis=1) <= mo.surrounding_keyframe_search_radius
+        )
         return self._one_keyframe_per_voxel(near, mo.surrounding_keypose_leaf_size)
 
     def _one_keyframe_per_voxel(self, ids: np.ndarray, leaf_size: float) -> list[int]:
@@ -240,7 +270,7 @@ class MapOptimization:
             picked = np.unique(np.trunc(voxel_downsample(poses, leaf_size)[:, 3]).astype(np.int64))
             return [int(i) for i in picked if 0 <= i < len(self.keyframes)]
         voxel = voxel_indices(self._positions[ids].astype(np.float32), leaf_size)
-        order = np.lexsort((ids, voxel))                     # by voxel, then by keyframe index
+        order = np.lexsort((ids, voxel))  # by voxel, then by keyframe index
         last_of_voxel = np.append(voxel[order][1:] != voxel[order][:-1], True)
         return sorted(int(i) for i in ids[order][last_of_voxel])
 
@@ -269,19 +299,26 @@ class MapOptimization:
 
     def _world_clouds(self, index: int) -> tuple[np.ndarray, np.ndarray]:
         kf = self.keyframes[index]
-        return (transform_cloud(kf.corner, kf.pose6),
-                transform_cloud(np.concatenate([kf.surf, kf.outlier]), kf.pose6))
+        return (transform_cloud(kf.corner, kf.pose6), transform_cloud(np.concatenate([kf.surf, kf.outlier]), kf.pose6))
 
     def _scan_to_map(self, corner_map, surf_map, corner_ds, surf_ds, step: MappingStep) -> None:
         self.transform_tobe = self.register_to_map(corner_map, surf_map, corner_ds, surf_ds, self.transform_tobe, step)
 
-    def register_to_map(self, corner_map: np.ndarray, surf_map: np.ndarray, corner_ds: np.ndarray,
-                        surf_ds: np.ndarray, initial: np.ndarray, step: MappingStep | None = None) -> np.ndarray:
-        """Scan-to-map registration from ``initial`` (:func:`~lego_loam_py.core.mapping.scan_to_map.register_scan_to_map`)
-        with this mapper's degeneracy state; returns the optimised pose. ``step`` (optional) receives iteration
-        and correspondence counts."""
-        pose, counts = register_scan_to_map(corner_map, surf_map, corner_ds, surf_ds, initial, self.params,
-                                            self._degeneracy)
+    def register_to_map(
+        self,
+        corner_map: np.ndarray,
+        surf_map: np.ndarray,
+        corner_ds: np.ndarray,
+        surf_ds: np.ndarray,
+        initial: np.ndarray,
+        step: MappingStep | None = None,
+    ) -> np.ndarray:
+        """Scan-to-map registration from ``initial``
+        (:func:`~lego_loam_py.core.mapping.scan_to_map.register_scan_to_map`) with this mapper's degeneracy state;
+        returns the optimised pose. ``step`` (optional) receives iteration and correspondence counts."""
+        pose, counts = register_scan_to_map(
+            corner_map, surf_map, corner_ds, surf_ds, initial, self.params, self._degeneracy
+        )
         if step is not None:
             step.optimised = True
             step.iterations, step.correspondences = counts.iterations, counts.correspondences
@@ -298,8 +335,10 @@ class MapOptimization:
     def _save_keyframe(self, stamp_ns: int, corner_ds, surf_ds, outlier_ds) -> bool:
         mo = self.params.map_optimization
         self.current_position = self.transform_aft[3:].copy()
-        if self.keyframes and np.linalg.norm(self.current_position - self._previous_keyframe_position) < \
-                mo.keyframe_distance:
+        if (
+            self.keyframes
+            and np.linalg.norm(self.current_position - self._previous_keyframe_position) < mo.keyframe_distance
+        ):
             return False
         self._previous_keyframe_position = self.current_position.copy()
         k = len(self.keyframes)
@@ -322,7 +361,7 @@ class MapOptimization:
         for kf, pose6 in zip(self.keyframes, self.graph.poses([kf.index for kf in self.keyframes])):
             kf.pose6 = pose6
         self._positions = np.array([kf.pose6[3:] for kf in self.keyframes])
-        self._corner_accumulator.clear()   # every keyframe moved: the map is rebuilt at the next step
+        self._corner_accumulator.clear()  # every keyframe moved: the map is rebuilt at the next step
         self._surf_accumulator.clear()
         self.loop_closed = False
 
@@ -333,7 +372,8 @@ class MapOptimization:
             return self.loop_method.detect(self)
 
     def close_loop(self, candidate: LoopCandidate) -> LoopResult:
-        """Verify the candidate (without the lock: it takes a while); its constraint goes into the graph if it passes."""
+        """Verify the candidate (without the lock: it takes a while); its constraint goes into the graph if it
+        passes."""
         return self.loop_method.close(self, candidate)
 
     @property
@@ -352,8 +392,14 @@ class MapOptimization:
         index = {kf.stamp_ns: kf.index for kf in self.keyframes}
         for pending in loops:
             latest, candidate = index[pending.latest_stamp_ns], index[pending.candidate_stamp_ns]
-            self.graph.add_loop_constraint(candidate, latest, pending.relative_lidar, pending.result.information,
-                                           lc.robust_kernel, lc.robust_kernel_width)
+            self.graph.add_loop_constraint(
+                candidate,
+                latest,
+                pending.relative_lidar,
+                pending.result.information,
+                lc.robust_kernel,
+                lc.robust_kernel_width,
+            )
         self.loop_closed = True
         self._correct_poses()
         # The pose being mapped moves with the newest keyframe, so that the next step starts where the corrected
@@ -391,10 +437,14 @@ class MapOptimization:
                 return np.zeros((0, 4), _F32)
             near = np.flatnonzero(np.linalg.norm(self._positions - self.current_position, axis=1) <= radius)
             ids = self._one_keyframe_per_voxel(near, mo.global_map_keypose_leaf_size)
-            clouds = [transform_cloud(np.concatenate([self.keyframes[i].corner, self.keyframes[i].surf,
-                                                      self.keyframes[i].outlier]), self.keyframes[i].pose6)
-                      for i in ids]
-        if not clouds:   # (the robot is beyond ``radius`` of every keyframe)
+            clouds = [
+                transform_cloud(
+                    np.concatenate([self.keyframes[i].corner, self.keyframes[i].surf, self.keyframes[i].outlier]),
+                    self.keyframes[i].pose6,
+                )
+                for i in ids
+            ]
+        if not clouds:  # (the robot is beyond ``radius`` of every keyframe)
             return np.zeros((0, 4), _F32)
         return voxel_downsample(np.concatenate(clouds), mo.global_map_leaf_size)
 
@@ -410,8 +460,11 @@ class MapOptimization:
             return dict(corner=empty, surface=empty, global_map=empty)
         corner_map = voxel_downsample(np.concatenate(corner), mo.corner_leaf_size)
         surface_map = voxel_downsample(np.concatenate(surface), mo.surf_leaf_size)
-        return dict(corner=corner_map, surface=surface_map,
-                    global_map=voxel_downsample(np.concatenate([corner_map, surface_map]), mo.global_map_leaf_size))
+        return dict(
+            corner=corner_map,
+            surface=surface_map,
+            global_map=voxel_downsample(np.concatenate([corner_map, surface_map]), mo.global_map_leaf_size),
+        )
 
     def save(self, directory: str | Path) -> dict[str, Path]:
         """Write the maps (PCD, REP-103 ``map`` axes), the keyframe trajectory (PCD, TUM) and the map bundle that
@@ -420,7 +473,13 @@ class MapOptimization:
         from lego_loam_py.core.mapping.map_files import write_map_files
 
         maps = self.maps()
-        with self.lock:   # (one consistent set of keyframes and factors)
-            bundle = MapBundle.of(list(self.keyframes), list(self.graph.factors), self.params, maps['corner'],
-                                  maps['surface'], self.map_source)
+        with self.lock:  # (one consistent set of keyframes and factors)
+            bundle = MapBundle.of(
+                list(self.keyframes),
+                list(self.graph.factors),
+                self.params,
+                maps['corner'],
+                maps['surface'],
+                self.map_source,
+            )
         return write_map_files(directory, maps, bundle)

@@ -6,6 +6,7 @@ Both take each scan's odometry and clouds (:meth:`Mapper.process`), say whether 
 follow an odometry that restarted, and give the map around the robot for display. Only a mapper that
 ``builds_map`` has keyframes, loops and a map to save; the callers ask that, not the class.
 """
+
 from __future__ import annotations
 
 from typing import Protocol, runtime_checkable
@@ -20,12 +21,18 @@ class Mapper(Protocol):
     """See the module docstring. Poses are camera_init's (camera axes); ``lock`` guards the state between the
     node's threads."""
 
-    builds_map: bool          # keyframes, loops, ``detect_loop``/``close_loop`` and ``save`` exist
+    builds_map: bool  # keyframes, loops, ``detect_loop``/``close_loop`` and ``save`` exist
     lock: object
-    imu: object               # its IMU buffer (core.imu.ImuBuffer), for the roll and pitch blend and the IMU check
+    imu: object  # its IMU buffer (core.imu.ImuBuffer), for the roll and pitch blend and the IMU check
 
-    def process(self, stamp_ns: int, transform_sum: np.ndarray, corner_last: np.ndarray, surf_last: np.ndarray,
-                outlier_last: np.ndarray):
+    def process(
+        self,
+        stamp_ns: int,
+        transform_sum: np.ndarray,
+        corner_last: np.ndarray,
+        surf_last: np.ndarray,
+        outlier_last: np.ndarray,
+    ):
         """One mapping input; the step (core.mapping.map_optimization.MappingStep) or None when none was due."""
 
     def health_problem(self) -> str | None:

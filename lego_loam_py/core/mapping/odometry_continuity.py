@@ -8,6 +8,7 @@ restart from motion, and :func:`anchored_transform_bef` gives the ``T_bef`` that
 from the last mapped pose instead, moved on at the last speed over the gap. Used by the mapOptimization node
 and by the offline mode alike.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -16,14 +17,23 @@ import numpy as np
 
 from lego_loam_py.core.frames import invert_pose, matrix_to_pose6, pose6_to_matrix
 
-__all__ = ['OdometryJump', 'OdometryContinuity', 'anchored_transform_bef', 'scaled_motion',
-           'JUMP_M', 'JUMP_M_PER_S', 'JUMP_RAD', 'JUMP_RAD_PER_S', 'MAX_EXTRAPOLATION_S']
+__all__ = [
+    'OdometryJump',
+    'OdometryContinuity',
+    'anchored_transform_bef',
+    'scaled_motion',
+    'JUMP_M',
+    'JUMP_M_PER_S',
+    'JUMP_RAD',
+    'JUMP_RAD_PER_S',
+    'MAX_EXTRAPOLATION_S',
+]
 
 # Further than any vehicle moves between two odometry poses dt seconds apart: JUMP_M + JUMP_M_PER_S * dt [m],
 # or JUMP_RAD + JUMP_RAD_PER_S * dt [rad].
 JUMP_M, JUMP_M_PER_S = 5.0, 30.0
 JUMP_RAD, JUMP_RAD_PER_S = 1.0, 6.0
-MAX_EXTRAPOLATION_S = 10.0   # over a longer gap the vehicle is assumed to have stopped
+MAX_EXTRAPOLATION_S = 10.0  # over a longer gap the vehicle is assumed to have stopped
 
 
 def _angle(rotation: np.ndarray) -> float:
@@ -48,22 +58,24 @@ class OdometryJump:
     distance_m: float
     angle_rad: float
     dt_s: float
-    new_publisher: bool                        # another process publishes the odometry now
-    previous: tuple[int, np.ndarray]           # (stamp [ns], 4x4 pose) of the last pose before the jump
-    older: tuple[int, np.ndarray] | None       # the one before it (for the speed over the gap), if any
+    new_publisher: bool  # another process publishes the odometry now
+    previous: tuple[int, np.ndarray]  # (stamp [ns], 4x4 pose) of the last pose before the jump
+    older: tuple[int, np.ndarray] | None  # the one before it (for the speed over the gap), if any
 
     def describe(self) -> str:
         why = 'featureAssociation restarted' if self.new_publisher else 'featureAssociation restarted?'
-        return (f'the odometry jumped by {self.distance_m:.1f} m and {np.degrees(self.angle_rad):.0f} deg in '
-                f'{self.dt_s:.1f} s ({why}): re-anchored at the last mapped pose, moved on at the last speed '
-                'over the gap')
+        return (
+            f'the odometry jumped by {self.distance_m:.1f} m and {np.degrees(self.angle_rad):.0f} deg in '
+            f'{self.dt_s:.1f} s ({why}): re-anchored at the last mapped pose, moved on at the last speed '
+            'over the gap'
+        )
 
 
 class OdometryContinuity:
     """The last two odometry poses a mapper took; :meth:`check` says whether the next one continues them."""
 
     def __init__(self):
-        self._last: tuple[int, np.ndarray, object] | None = None    # (stamp [ns], 4x4, publisher)
+        self._last: tuple[int, np.ndarray, object] | None = None  # (stamp [ns], 4x4, publisher)
         self._older: tuple[int, np.ndarray, object] | None = None
 
     def forget(self) -> None:
@@ -84,18 +96,24 @@ class OdometryContinuity:
         angle = _angle(step[:3, :3])
         implausible = distance > JUMP_M + JUMP_M_PER_S * dt or angle > JUMP_RAD + JUMP_RAD_PER_S * dt
         # A restarted featureAssociation starts again at (about) the identity, usually after a gap in time.
-        back_at_origin = (distance > 2.0 or angle > 0.5) and np.linalg.norm(pose[:3, 3]) < 1.5 and \
-            _angle(pose[:3, :3]) < 0.35
-        new_publisher = publisher is not None and previous[2] is not None and publisher != previous[2] and \
-            (distance > 0.5 or angle > 0.1)
+        back_at_origin = (
+            (distance > 2.0 or angle > 0.5) and np.linalg.norm(pose[:3, 3]) < 1.5 and _angle(pose[:3, :3]) < 0.35
+        )
+        new_publisher = (
+            publisher is not None
+            and previous[2] is not None
+            and publisher != previous[2]
+            and (distance > 0.5 or angle > 0.1)
+        )
         if not (implausible or back_at_origin or new_publisher):
             return None
-        self._older = None   # the one before belongs to the old odometry frame
+        self._older = None  # the one before belongs to the old odometry frame
         return OdometryJump(distance, angle, dt, new_publisher, previous[:2], older[:2] if older else None)
 
 
-def anchored_transform_bef(jump: OdometryJump, pose: np.ndarray, transform_aft: np.ndarray,
-                           transform_bef: np.ndarray) -> np.ndarray:
+def anchored_transform_bef(
+    jump: OdometryJump, pose: np.ndarray, transform_aft: np.ndarray, transform_bef: np.ndarray
+) -> np.ndarray:
     """The mapper's new ``T_bef`` (six-vector) after ``jump``: with it, ``T_aft · T_bef^-1 · pose`` is the map
     pose of the last odometry before the jump (as the old ``transform_aft`` / ``transform_bef`` predicted it),
     moved on at the speed before it over the gap, up to MAX_EXTRAPOLATION_S."""

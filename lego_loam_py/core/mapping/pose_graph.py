@@ -6,9 +6,10 @@ Poses go in and come out as world-convention six-vectors in camera axes (:mod:`l
 inside the graph they are in lidar axes, as the original keeps them, so its variances mean the same.
 :attr:`PoseGraph.factors` lists what went in (for the saved map bundle, :mod:`lego_loam_py.core.mapping.map_bundle`).
 """
+
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -42,11 +43,26 @@ class PoseGraph:
     def _pose6(pose3) -> np.ndarray:
         return matrix_to_pose6(lidar_pose_to_camera(pose3.matrix()))
 
-    def _record(self, kind: str, keys: tuple[int, int], measured, information: np.ndarray, kernel: str = 'none',
-                width: float = 0.0) -> None:
+    def _record(
+        self,
+        kind: str,
+        keys: tuple[int, int],
+        measured,
+        information: np.ndarray,
+        kernel: str = 'none',
+        width: float = 0.0,
+    ) -> None:
         """Note a factor as it goes in (``measured``: a gtsam Pose3)."""
-        self.factors.append(GraphFactor(kind, keys, measured.matrix(), np.asarray(information, float), kernel,
-                                        float(width) if kernel != 'none' else 0.0))
+        self.factors.append(
+            GraphFactor(
+                kind,
+                keys,
+                measured.matrix(),
+                np.asarray(information, float),
+                kernel,
+                float(width) if kernel != 'none' else 0.0,
+            )
+        )
 
     def _update(self, graph, values) -> None:
         self._isam.update(graph, values)
@@ -99,23 +115,37 @@ class PoseGraph:
         axes), with diagonal variances (rot, rot, rot, x, y, z in lidar axes, as the original)."""
         gtsam = self._gtsam
         graph = gtsam.NonlinearFactorGraph()
-        graph.add(gtsam.BetweenFactorPose3(latest, candidate, self._pose3(relative),
-                                           gtsam.noiseModel.Diagonal.Variances(np.asarray(variances, float))))
+        graph.add(
+            gtsam.BetweenFactorPose3(
+                latest,
+                candidate,
+                self._pose3(relative),
+                gtsam.noiseModel.Diagonal.Variances(np.asarray(variances, float)),
+            )
+        )
         self._record('loop', (latest, candidate), self._pose3(relative), np.diag(1.0 / np.asarray(variances, float)))
         self._update(graph, gtsam.Values())
 
-    def add_loop_constraint(self, from_key: int, to_key: int, pose_lidar: np.ndarray, information: np.ndarray,
-                            kernel: str = 'huber', width: float = 1.345) -> None:
+    def add_loop_constraint(
+        self,
+        from_key: int,
+        to_key: int,
+        pose_lidar: np.ndarray,
+        information: np.ndarray,
+        kernel: str = 'huber',
+        width: float = 1.345,
+    ) -> None:
         """The constraint 'keyframe ``to_key`` sits at ``pose_lidar`` (4x4, lidar axes) in keyframe ``from_key``'s
         frame' with a 6x6 ``information`` (rot, trans; gtsam's tangent order on the ``to_key`` side) under a robust
         kernel ('huber': the pull of a constraint that disagrees with the odometry grows no faster than linearly,
         so a wrong one cannot bend a stiff chain; 'cauchy': it fades; 'none') of ``width`` standard deviations."""
         gtsam = self._gtsam
-        information = 0.5 * (information + information.T) + np.eye(6) * 1e-9   # symmetric, positive definite
+        information = 0.5 * (information + information.T) + np.eye(6) * 1e-9  # symmetric, positive definite
         noise = gtsam.noiseModel.Gaussian.Information(information)
         if kernel != 'none':
-            estimator = (gtsam.noiseModel.mEstimator.Huber if kernel == 'huber' else
-                         gtsam.noiseModel.mEstimator.Cauchy).Create(width)
+            estimator = (
+                gtsam.noiseModel.mEstimator.Huber if kernel == 'huber' else gtsam.noiseModel.mEstimator.Cauchy
+            ).Create(width)
             noise = gtsam.noiseModel.Robust.Create(estimator, noise)
         pose = self._gtsam.Pose3(self._gtsam.Rot3(pose_lidar[:3, :3]), pose_lidar[:3, 3].copy())
         graph = gtsam.NonlinearFactorGraph()

@@ -12,6 +12,7 @@ so an eigenvalue is the number of full-weight correspondences that hold that dir
 as the displacement it gives 1 m from the sensor: the smallest one (the step's *condition*) says how well the
 worst direction was held.
 """
+
 from __future__ import annotations
 
 import math
@@ -20,14 +21,28 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lego_loam_py.core.frames import (GENERATOR_X, GENERATOR_Y, GENERATOR_Z, pose6_to_matrix, rot_x, rot_y, rot_z,
-                                      transform_points)
+from lego_loam_py.core.frames import (
+    GENERATOR_X,
+    GENERATOR_Y,
+    GENERATOR_Z,
+    pose6_to_matrix,
+    rot_x,
+    rot_y,
+    rot_z,
+    transform_points,
+)
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
 from lego_loam_py.core.geometry import fit_planes, line_coefficients, nearest_within
 from lego_loam_py.core.params.types import Params
 
-__all__ = ['map_jacobian_rows', 'edge_correspondences', 'plane_correspondences', 'register_scan_to_map',
-           'RegistrationCounts', 'map_trees']
+__all__ = [
+    'map_jacobian_rows',
+    'edge_correspondences',
+    'plane_correspondences',
+    'register_scan_to_map',
+    'RegistrationCounts',
+    'map_trees',
+]
 
 _F32 = np.float32
 
@@ -39,8 +54,9 @@ def map_jacobian_rows(points: np.ndarray, coeff: np.ndarray, pose6: np.ndarray) 
     p = points[:, :3].astype(np.float64)
     c = coeff[:, :3].astype(np.float64)
     rows = np.empty((len(points), 6))
-    for k, derivative in enumerate((Ry @ Rx @ GENERATOR_X @ Rz, Ry @ GENERATOR_Y @ Rx @ Rz,
-                                     Ry @ Rx @ Rz @ GENERATOR_Z)):
+    for k, derivative in enumerate(
+        (Ry @ Rx @ GENERATOR_X @ Rz, Ry @ GENERATOR_Y @ Rx @ Rz, Ry @ Rx @ Rz @ GENERATOR_Z)
+    ):
         rows[:, k] = np.einsum('ni,ni->n', c, p @ derivative.T)
     rows[:, 3:] = c
     return rows
@@ -62,7 +78,7 @@ def edge_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: np
     centroid = neighbours.mean(axis=1)
     centred = neighbours - centroid[:, None, :]
     covariance = np.einsum('mki,mkj->mij', centred, centred) / mo.knn
-    values, vectors = np.linalg.eigh(covariance)                         # ascending
+    values, vectors = np.linalg.eigh(covariance)  # ascending
     is_line = values[:, 2] > mo.edge_eigen_ratio * values[:, 1]
     used, centroid, direction = used[is_line], centroid[is_line], vectors[is_line, :, 2]
     a = centroid + mo.line_half_length * direction
@@ -90,14 +106,13 @@ def plane_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: n
     return used[keep], coeff
 
 
-
 @dataclass
 class RegistrationCounts:
     """What one scan-to-map registration did."""
 
     iterations: int = 0
-    correspondences: int = 0     # point-to-line and point-to-plane pairs of the last iteration
-    degenerate: bool = False     # a direction was projected out (found on the first iteration)
+    correspondences: int = 0  # point-to-line and point-to-plane pairs of the last iteration
+    degenerate: bool = False  # a direction was projected out (found on the first iteration)
     # Smallest eigenvalue of the first iteration's normal matrix [full-weight correspondences], NaN when too
     # few correspondences were found to register.
     condition: float = float('nan')
@@ -105,13 +120,22 @@ class RegistrationCounts:
 
 def map_trees(corner_map: np.ndarray, surf_map: np.ndarray) -> tuple[cKDTree, cKDTree]:
     """The KD-trees :func:`register_scan_to_map` searches in a corner and a surface map."""
-    return (cKDTree(corner_map[:, :3].astype(np.float64), balanced_tree=False),
-            cKDTree(surf_map[:, :3].astype(np.float64), balanced_tree=False))
+    return (
+        cKDTree(corner_map[:, :3].astype(np.float64), balanced_tree=False),
+        cKDTree(surf_map[:, :3].astype(np.float64), balanced_tree=False),
+    )
 
 
-def register_scan_to_map(corner_map: np.ndarray, surf_map: np.ndarray, corner_ds: np.ndarray, surf_ds: np.ndarray,
-                         initial: np.ndarray, params: Params, degeneracy: DegeneracyProjection,
-                         trees: tuple[cKDTree, cKDTree] | None = None) -> tuple[np.ndarray, RegistrationCounts]:
+def register_scan_to_map(
+    corner_map: np.ndarray,
+    surf_map: np.ndarray,
+    corner_ds: np.ndarray,
+    surf_ds: np.ndarray,
+    initial: np.ndarray,
+    params: Params,
+    degeneracy: DegeneracyProjection,
+    trees: tuple[cKDTree, cKDTree] | None = None,
+) -> tuple[np.ndarray, RegistrationCounts]:
     """Scan-to-map Gauss-Newton from ``initial`` (pose six-vector): (the optimised pose, what it did).
 
     ``corner_ds`` / ``surf_ds`` are the scan's downsampled features in its sensor frame, the maps are in the

@@ -8,6 +8,7 @@ In localization (``max_correction_age_ns`` given) a pose is published only while
 mapping step at most that long before it: before the first fix in the saved map the odometry is in a frame of
 its own, and once tracking is lost the old correction soon no longer holds.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -20,10 +21,10 @@ __all__ = ['TransformFusion']
 
 class TransformFusion:
     def __init__(self, max_correction_age_ns: int | None = None):
-        self.correction = np.eye(4)   # T_aft · T_bef^-1
+        self.correction = np.eye(4)  # T_aft · T_bef^-1
         self.mapped_steps = 0
         self.max_correction_age_ns = max_correction_age_ns
-        self.correction_stamp_ns: int | None = None   # of the mapping step the correction comes from
+        self.correction_stamp_ns: int | None = None  # of the mapping step the correction comes from
 
     def on_mapped(self, aft: np.ndarray, bef: np.ndarray, stamp_ns: int | None = None) -> None:
         """A mapping result of the scan stamped ``stamp_ns``: the optimised pose ``aft`` of the odometry pose
@@ -41,8 +42,10 @@ class TransformFusion:
         correction was given (localization) and the correction is older or there is none yet."""
         if self.max_correction_age_ns is None:
             return True
-        return self.correction_stamp_ns is not None and \
-            abs(stamp_ns - self.correction_stamp_ns) <= self.max_correction_age_ns
+        return (
+            self.correction_stamp_ns is not None
+            and abs(stamp_ns - self.correction_stamp_ns) <= self.max_correction_age_ns
+        )
 
     def reset(self) -> None:
         self.__init__(self.max_correction_age_ns)

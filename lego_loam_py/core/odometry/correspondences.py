@@ -5,6 +5,7 @@ and on another ring within ±2.5 rings, scanning the ring-ordered last cloud out
 neighbour; the forward scan is bounded by the *current* feature count (quirk 8.1, kept for parity;
 ``fix_scan_bound`` removes it). Every scan is done for all queries at once, as index windows.
 """
+
 from __future__ import annotations
 
 import math
@@ -14,25 +15,30 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lego_loam_py.core.indexing import ragged, ranges
-from lego_loam_py.core.params.types import Params
 from lego_loam_py.core.odometry.sweep import ring_of
+from lego_loam_py.core.params.types import Params
 
-try:   # the window search in C (native/feature_kernels.c); optional, the NumPy version gives the same
+try:  # the window search in C (native/feature_kernels.c); optional, the NumPy version gives the same
     from lego_loam_py.core import _feature_kernels
 except ImportError:
     _feature_kernels = None
 
-__all__ = ['SurfCorrespondences', 'CornerCorrespondences', 'LastCloud', 'find_surf_correspondences',
-           'find_corner_correspondences']
+__all__ = [
+    'SurfCorrespondences',
+    'CornerCorrespondences',
+    'LastCloud',
+    'find_surf_correspondences',
+    'find_corner_correspondences',
+]
 
 _F32 = np.float32
 
 
 @dataclass
 class SurfCorrespondences:
-    index1: np.ndarray   # nearest point in the last cloud (or -1), per current flat point
-    index2: np.ndarray   # nearest on the same ring (or -1)
-    index3: np.ndarray   # nearest on a neighbouring ring (or -1)
+    index1: np.ndarray  # nearest point in the last cloud (or -1), per current flat point
+    index2: np.ndarray  # nearest on the same ring (or -1)
+    index3: np.ndarray  # nearest on a neighbouring ring (or -1)
 
 
 @dataclass
@@ -90,7 +96,11 @@ class LastCloud:
         # as fast; leaves of 32 points without the compaction pass build faster still (each tree is queried only
         # a few hundred times): 2.4 % fewer instructions per scan. The nearest neighbour is the same; only
         # between exactly equidistant points (none in the recordings) may the tree's layout pick the other one.
-        self.tree = cKDTree(points[:, :3].astype(np.float64), leafsize=32, balanced_tree=False, compact_nodes=False) if len(points) else None
+        self.tree = (
+            cKDTree(points[:, :3].astype(np.float64), leafsize=32, balanced_tree=False, compact_nodes=False)
+            if len(points)
+            else None
+        )
         self._tables = None
 
     def _window_tables(self):
@@ -106,9 +116,9 @@ class LastCloud:
     def window(self, closest: np.ndarray, scan: np.ndarray, window: float, forward_bound: int):
         """Forward [closest+1, hi) and backward (lo, closest-1] index windows of the original's scans."""
         n = len(self.points)
-        limit = int(math.floor(window))       # int(ring) > scan + 2.5  <=>  ring > scan + floor(2.5)
+        limit = int(math.floor(window))  # int(ring) > scan + 2.5  <=>  ring > scan + floor(2.5)
         if self.ring_ordered:
-            hi = np.searchsorted(self.rings, scan + limit, side='right')     # first ring > scan + limit
+            hi = np.searchsorted(self.rings, scan + limit, side='right')  # first ring > scan + limit
             lo = np.minimum(np.searchsorted(self.rings, scan - limit, side='left'), closest) - 1
         else:
             offset, next_above, prev_below = self._window_tables()
@@ -150,8 +160,9 @@ class LastCloud:
         return position, np.bincount(key, minlength=4 * n_queries).reshape(n_queries, 4)
 
 
-def _nearest_in_segments(query: np.ndarray, last: LastCloud, position: np.ndarray, lengths: np.ndarray,
-                         limit: float, native: bool = True):
+def _nearest_in_segments(
+    query: np.ndarray, last: LastCloud, position: np.ndarray, lengths: np.ndarray, limit: float, native: bool = True
+):
     """Per query and segment, the candidate the original's scan keeps: the smallest squared distance below
     ``limit`` (its float32 expression), the first index met on ties (the highest in a backward segment).
 
@@ -162,9 +173,15 @@ def _nearest_in_segments(query: np.ndarray, last: LastCloud, position: np.ndarra
         # (Both float32, as the features are: the NumPy expression is then float32 too.)
         index = np.empty(lengths.size, dtype=np.int64)
         best = np.empty(lengths.size, dtype=_F32)
-        _feature_kernels.nearest_in_segments(last.xyz_rows, np.ascontiguousarray(query[:, :3]),
-                                             np.ascontiguousarray(position, dtype=np.int64),
-                                             np.ascontiguousarray(lengths, dtype=np.int64), limit, index, best)
+        _feature_kernels.nearest_in_segments(
+            last.xyz_rows,
+            np.ascontiguousarray(query[:, :3]),
+            np.ascontiguousarray(position, dtype=np.int64),
+            np.ascontiguousarray(lengths, dtype=np.int64),
+            limit,
+            index,
+            best,
+        )
         return index.reshape(-1, 4), best.reshape(-1, 4)
     flat_lengths = lengths.reshape(-1)
     index = np.full(len(flat_lengths), -1, dtype=np.int64)
@@ -178,12 +195,13 @@ def _nearest_in_segments(query: np.ndarray, last: LastCloud, position: np.ndarra
         dist += delta[2]
         ends = np.cumsum(flat_lengths)
         filled = np.flatnonzero(flat_lengths)
-        best[filled] = np.fmin.reduceat(dist, (ends - flat_lengths)[filled])   # fmin: NaN never wins
+        best[filled] = np.fmin.reduceat(dist, (ends - flat_lengths)[filled])  # fmin: NaN never wins
         at_minimum = np.flatnonzero(dist == np.repeat(best, flat_lengths))
         segment = np.searchsorted(ends, at_minimum, side='right')
         new_segment = segment[1:] != segment[:-1]
-        keep = np.where(_BACKWARD[segment % 4], np.concatenate((new_segment, [True])),
-                        np.concatenate(([True], new_segment)))
+        keep = np.where(
+            _BACKWARD[segment % 4], np.concatenate((new_segment, [True])), np.concatenate(([True], new_segment))
+        )
         index[segment[keep]] = position[at_minimum[keep]]
     outside = ~(best < _F32(limit))
     index[outside] = -1
@@ -208,8 +226,9 @@ def _nearest_and_windows(points_start: np.ndarray, last: LastCloud, params: Para
     return q, closest, scan, hi, lo
 
 
-def find_surf_correspondences(points_start: np.ndarray, last: LastCloud, params: Params,
-                              forward_bound: int) -> SurfCorrespondences:
+def find_surf_correspondences(
+    points_start: np.ndarray, last: LastCloud, params: Params, forward_bound: int
+) -> SurfCorrespondences:
     """The original's plane correspondences for flat points already mapped to the sweep start."""
     n = len(points_start)
     index1 = np.full(n, -1, dtype=np.int64)
@@ -218,16 +237,18 @@ def find_surf_correspondences(points_start: np.ndarray, last: LastCloud, params:
         return SurfCorrespondences(index1, index2, index3)
     q, closest, scan, hi, lo = _nearest_and_windows(points_start, last, params, forward_bound)
     position, lengths = last.segments(closest, scan, hi, lo, _SAME + _OTHER)
-    index, best = _nearest_in_segments(points_start[q], last, position, lengths,
-                                       params.feature_association.nearest_feature_search_sq_dist)
+    index, best = _nearest_in_segments(
+        points_start[q], last, position, lengths, params.feature_association.nearest_feature_search_sq_dist
+    )
     index1[q] = closest
     index2[q] = _pick(index, best, _BACK_SAME, _FORWARD_SAME)
     index3[q] = _pick(index, best, _BACK_OTHER, _FORWARD_OTHER)
     return SurfCorrespondences(index1, index2, index3)
 
 
-def find_corner_correspondences(points_start: np.ndarray, last: LastCloud, params: Params,
-                                forward_bound: int) -> CornerCorrespondences:
+def find_corner_correspondences(
+    points_start: np.ndarray, last: LastCloud, params: Params, forward_bound: int
+) -> CornerCorrespondences:
     """The original's line correspondences for sharp points already mapped to the sweep start."""
     n = len(points_start)
     index1 = np.full(n, -1, dtype=np.int64)
@@ -236,8 +257,9 @@ def find_corner_correspondences(points_start: np.ndarray, last: LastCloud, param
         return CornerCorrespondences(index1, index2)
     q, closest, scan, hi, lo = _nearest_and_windows(points_start, last, params, forward_bound)
     position, lengths = last.segments(closest, scan, hi, lo, _OTHER)
-    index, best = _nearest_in_segments(points_start[q], last, position, lengths,
-                                       params.feature_association.nearest_feature_search_sq_dist)
+    index, best = _nearest_in_segments(
+        points_start[q], last, position, lengths, params.feature_association.nearest_feature_search_sq_dist
+    )
     index1[q] = closest
     index2[q] = _pick(index, best, _BACK_OTHER, _FORWARD_OTHER)
     return CornerCorrespondences(index1, index2)

@@ -20,20 +20,21 @@ for point 0 with curvature 0 whose neighbour marks persist across scans.
 The per-region selection is a short loop over the candidates that pass the vectorised thresholds (it stops
 after 20 edges / 4 flats), never over all points.
 """
+
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
-from lego_loam_py.core.projection.image_projection import CloudInfo
 from lego_loam_py.core.indexing import ragged
 from lego_loam_py.core.params.types import Params
+from lego_loam_py.core.projection.image_projection import CloudInfo
 from lego_loam_py.core.voxel import voxel_downsample_groups
 
-try:   # the greedy selection in C (native/feature_kernels.c); optional, as the Python loop gives the same
+try:  # the greedy selection in C (native/feature_kernels.c); optional, as the Python loop gives the same
     from lego_loam_py.core import _feature_kernels
 except ImportError:
     _feature_kernels = None
@@ -51,7 +52,7 @@ class ScanFeatures:
     less_sharp: np.ndarray
     flat: np.ndarray
     less_flat: np.ndarray
-    sharp_index: np.ndarray        # indices into the scan's points
+    sharp_index: np.ndarray  # indices into the scan's points
     less_sharp_index: np.ndarray
     flat_index: np.ndarray
     # Selects the wall points (below) when first asked for: only a stage short of matches needs them.
@@ -85,11 +86,11 @@ def smoothness(ranges: np.ndarray, half_window: int = 5) -> np.ndarray:
     m = n - 2 * w
     acc = r[0:m].copy()
     for k in range(1, w):
-        acc += r[k:k + m]
-    acc -= r[w:w + m] * _F32(2 * w)
+        acc += r[k : k + m]
+    acc -= r[w : w + m] * _F32(2 * w)
     for k in range(w + 1, 2 * w + 1):
-        acc += r[k:k + m]
-    out[w:n - w] = acc * acc
+        acc += r[k : k + m]
+    out[w : n - w] = acc * acc
     return out
 
 
@@ -109,7 +110,7 @@ def occluded_mask(ranges: np.ndarray, columns: np.ndarray, params: Params) -> np
     near = np.abs(col[after] - col[here]) < fa.occlusion_column_gap
     d1, d2 = r[here], r[after]
     jump = _F32(fa.occlusion_depth_jump)
-    farther_behind = near & (d1.astype(np.float64) - d2 > jump)        # i is the far side: mark i-5..i
+    farther_behind = near & (d1.astype(np.float64) - d2 > jump)  # i is the far side: mark i-5..i
     farther_ahead = near & ~farther_behind & (d2.astype(np.float64) - d1 > jump)  # mark i+1..i+6
     behind, ahead = i[farther_behind], i[farther_ahead] + 1
     for offset in range(w + 1):
@@ -172,7 +173,7 @@ class FeatureExtractor:
         # element ep, then the largest curvature down; flats from the smallest up, ep last.
         length = ep - sp
         slot = np.cumsum(length + 1) - (length + 1)
-        rank = np.arange(len(ascending)) - np.repeat(slot - np.arange(regions), length)   # rank within region
+        rank = np.arange(len(ascending)) - np.repeat(slot - np.arange(regions), length)  # rank within region
         edge_order = np.empty(len(ascending) + regions, dtype=np.int64)
         edge_order[slot] = ep
         edge_order[np.repeat(slot + length, length) - rank] = ascending
@@ -189,8 +190,18 @@ class FeatureExtractor:
         flat_slices = _suppression_slices(flat_list, jumps, fa.suppress_half_window)
         taken = bytearray(picked.tobytes())
         sharp_index, less_sharp_index, flat_index, less_sharp_region = greedy_selection(
-            edge_list, edge_bounds, edge_slices, flat_list, flat_bounds, flat_slices, taken, regions,
-            fa.edge_feature_num, fa.less_edge_feature_num, fa.surf_feature_num)
+            edge_list,
+            edge_bounds,
+            edge_slices,
+            flat_list,
+            flat_bounds,
+            flat_slices,
+            taken,
+            regions,
+            fa.edge_feature_num,
+            fa.less_edge_feature_num,
+            fa.surf_feature_num,
+        )
         self._stale_picked[:head] = np.frombuffer(taken, dtype=bool)[:head]
 
         # Less flat: the points of each region [sp, ep] not picked as edges by the end of that region (only the
@@ -201,19 +212,29 @@ class FeatureExtractor:
         region_of, position = ragged(sp, ep + 1)
         kept = edge_region[position] > region_of
         if kept.any():
-            less_flat = voxel_downsample_groups(points[position[kept]], region_ring[region_of[kept]],
-                                                fa.less_flat_leaf_size)
+            less_flat = voxel_downsample_groups(
+                points[position[kept]], region_ring[region_of[kept]], fa.less_flat_leaf_size
+            )
         else:
             less_flat = np.zeros((0, 4), _F32)
         # Wall points cost a pass over every region: selected only if a stage asks for them (corridors).
         select_walls = functools.partial(_wall_points, ascending, region_of_sorted, curvature, ground, taken, fa)
-        return ScanFeatures(sharp=points[sharp_index], less_sharp=points[less_sharp_index], flat=points[flat_index],
-                            less_flat=less_flat, sharp_index=sharp_index, less_sharp_index=less_sharp_index,
-                            flat_index=flat_index, select_walls=select_walls, scan_points=points)
+        return ScanFeatures(
+            sharp=points[sharp_index],
+            less_sharp=points[less_sharp_index],
+            flat=points[flat_index],
+            less_flat=less_flat,
+            sharp_index=sharp_index,
+            less_sharp_index=less_sharp_index,
+            flat_index=flat_index,
+            select_walls=select_walls,
+            scan_points=points,
+        )
 
 
-def _wall_points(ascending: np.ndarray, region: np.ndarray, curvature: np.ndarray, ground: np.ndarray,
-                 taken: bytearray, fa) -> np.ndarray:
+def _wall_points(
+    ascending: np.ndarray, region: np.ndarray, curvature: np.ndarray, ground: np.ndarray, taken: bytearray, fa
+) -> np.ndarray:
     """Up to ``wall_feature_num`` flattest non-ground points of each sub-region that no edge or flat pick
     took or suppressed (``ascending``: positions sorted by region, then curvature; ``region``: their regions).
 
@@ -228,7 +249,7 @@ def _wall_points(ascending: np.ndarray, region: np.ndarray, curvature: np.ndarra
     # Rank within the region: position in the candidate list minus the region's first candidate.
     first = np.flatnonzero(np.r_[True, chosen_region[1:] != chosen_region[:-1]])
     rank = np.arange(len(chosen)) - np.repeat(first, np.diff(np.r_[first, len(chosen)]))
-    return np.unique(chosen[rank < fa.wall_feature_num])   # (the phantom point 0 may appear twice)
+    return np.unique(chosen[rank < fa.wall_feature_num])  # (the phantom point 0 may appear twice)
 
 
 def _candidates(order: np.ndarray, usable: np.ndarray, slot: np.ndarray):
@@ -250,20 +271,31 @@ def _suppression_slices(index: np.ndarray, jumps: np.ndarray, half_window: int):
     -1..-w) and stops at the first column jump; 0 <= start < stop <= n for indices in [0, n)."""
     n = int(jumps[-1])
     negative = len(index) > 0 and index.min() < 0
-    k = np.where(index < 0, index + n, index) if negative else index   # the point a negative index reads
+    k = np.where(index < 0, index + n, index) if negative else index  # the point a negative index reads
     forward = np.minimum(half_window, jumps[np.searchsorted(jumps, np.minimum(k + 1, n))] - k - 1)
     backward = np.minimum(half_window, k - jumps[np.searchsorted(jumps, k, side='right') - 1])
     start = index - backward
     stop = index + forward + 1
-    if negative:   # normalised as Python slices are, so that stop - start stays the slice's length
+    if negative:  # normalised as Python slices are, so that stop - start stays the slice's length
         start = np.clip(np.where(start < 0, start + n, start), 0, n)
         stop = np.maximum(np.clip(np.where(stop < 0, stop + n, stop), 0, n), start)
     return start.astype(np.int64, copy=False), stop.astype(np.int64, copy=False)
 
 
-def greedy_selection(edges: np.ndarray, edge_bounds: np.ndarray, edge_slices, flats: np.ndarray,
-                     flat_bounds: np.ndarray, flat_slices, taken: bytearray, regions: int, edge_num: int,
-                     less_edge_num: int, surf_num: int, native: bool = True):
+def greedy_selection(
+    edges: np.ndarray,
+    edge_bounds: np.ndarray,
+    edge_slices,
+    flats: np.ndarray,
+    flat_bounds: np.ndarray,
+    flat_slices,
+    taken: bytearray,
+    regions: int,
+    edge_num: int,
+    less_edge_num: int,
+    surf_num: int,
+    native: bool = True,
+):
     """The original's sequential picks, region by region: up to ``edge_num`` sharp and ``less_edge_num`` less
     sharp points from ``edges`` (largest curvature first), then up to ``surf_num`` flat points from ``flats``
     (smallest first), skipping points already ``taken`` and marking each pick's suppression slice
@@ -282,8 +314,23 @@ def greedy_selection(edges: np.ndarray, edge_bounds: np.ndarray, edge_slices, fl
         flat = np.empty(regions * surf_num, np.int64)
         slices = [np.ascontiguousarray(a, np.int64) for a in (*edge_slices, *flat_slices)]
         n_sharp, n_less, n_flat = _feature_kernels.select(
-            edges, edge_bounds, slices[0], slices[1], flats, flat_bounds, slices[2], slices[3], taken,
-            edge_num, less_edge_num, surf_num, sharp, less_sharp, less_sharp_region, flat)
+            edges,
+            edge_bounds,
+            slices[0],
+            slices[1],
+            flats,
+            flat_bounds,
+            slices[2],
+            slices[3],
+            taken,
+            edge_num,
+            less_edge_num,
+            surf_num,
+            sharp,
+            less_sharp,
+            less_sharp_region,
+            flat,
+        )
         return sharp[:n_sharp], less_sharp[:n_less], flat[:n_flat], less_sharp_region[:n_less]
     edge_list, flat_list = edges.tolist(), flats.tolist()
     edge_bounds, flat_bounds = edge_bounds.tolist(), flat_bounds.tolist()
@@ -303,7 +350,7 @@ def greedy_selection(edges: np.ndarray, edge_bounds: np.ndarray, edge_slices, fl
                 break
             less_sharp.append(k)
             less_sharp_region.append(region)
-            taken[edge_low[i]:edge_high[i]] = b'\x01' * (edge_high[i] - edge_low[i])
+            taken[edge_low[i] : edge_high[i]] = b'\x01' * (edge_high[i] - edge_low[i])
         count = 0
         for i in range(flat_bounds[region], flat_bounds[region + 1]):
             k = flat_list[i]
@@ -313,5 +360,5 @@ def greedy_selection(edges: np.ndarray, edge_bounds: np.ndarray, edge_slices, fl
             count += 1
             if count >= surf_num:
                 break
-            taken[flat_low[i]:flat_high[i]] = b'\x01' * (flat_high[i] - flat_low[i])
+            taken[flat_low[i] : flat_high[i]] = b'\x01' * (flat_high[i] - flat_low[i])
     return tuple(np.asarray(a, dtype=np.int64) for a in (sharp, less_sharp, flat, less_sharp_region))

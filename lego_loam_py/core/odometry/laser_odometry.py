@@ -23,21 +23,35 @@ between sweeps, which is the constant-velocity prior. Two models, chosen once fr
   neighbouring rings instead (no bound) was measured worse, 46 % instead of 4.6 % drift in the simulated
   corridor with IMU, where the bound keeps matches near the scan's own stretch of wall.
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, NamedTuple, Union
+from typing import NamedTuple
 
 import numpy as np
 
-from lego_loam_py.core.odometry.correspondences import (CornerCorrespondences, LastCloud, SurfCorrespondences,
-                                               find_corner_correspondences, find_surf_correspondences)
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
-from lego_loam_py.core.geometry import (fit_planes, line_coefficients, line_offsets, nearest_within,
-                                        plane_coefficients, plane_distance, plane_through)
-from lego_loam_py.core.params.types import OdometryModel, Params
+from lego_loam_py.core.geometry import (
+    fit_planes,
+    line_coefficients,
+    line_offsets,
+    nearest_within,
+    plane_coefficients,
+    plane_distance,
+    plane_through,
+)
+from lego_loam_py.core.odometry.correspondences import (
+    CornerCorrespondences,
+    LastCloud,
+    SurfCorrespondences,
+    find_corner_correspondences,
+    find_surf_correspondences,
+)
 from lego_loam_py.core.odometry.sweep import SweepStartFrame, plane_jacobian_rows, relative_time_of, transform_to_start
+from lego_loam_py.core.params.types import OdometryModel, Params
 
 __all__ = ['LaserOdometry', 'OriginalOdometry', 'SweepStartOdometry', 'make_laser_odometry', 'OdometryStats']
 
@@ -56,25 +70,25 @@ class OdometryStats:
     # the per-scan condition of the three parameters the stage estimates.
     surf_condition: float = float('nan')
     corner_condition: float = float('nan')
-    surf_walls: bool = False       # the stage had too few correspondences of its own and used the walls
+    surf_walls: bool = False  # the stage had too few correspondences of its own and used the walls
     corner_walls: bool = False
     # Share of the sharp points matched in the corner stage's last association (sweep-start model; NaN: none).
     corner_match_ratio: float = float('nan')
-    lost: bool = False             # below feature_association.lost_match_ratio (extra['lost_match_ratio']) ...
-    recovered: bool = False        # ... and registering again from standing still matched more
+    lost: bool = False  # below feature_association.lost_match_ratio (extra['lost_match_ratio']) ...
+    recovered: bool = False  # ... and registering again from standing still matched more
     skipped: str = ''
     extra: dict = field(default_factory=dict)
 
 
 # Wall points, or a function preparing them on first use.
-WallPoints = Union[np.ndarray, Callable[[], np.ndarray], None]
+WallPoints = np.ndarray | Callable[[], np.ndarray] | None
 
 
 class _Stage(NamedTuple):
     """One registration stage: its points, what they match, the parameters it moves (rows of the step that are
     rotations and translations, for the convergence test) and its degeneracy state."""
 
-    kind: str                   # 'surf' (planes, flat points) or 'corner' (lines, sharp points)
+    kind: str  # 'surf' (planes, flat points) or 'corner' (lines, sharp points)
     points: np.ndarray
     last: LastCloud
     active: list[int]
@@ -108,16 +122,17 @@ class _Term(NamedTuple):
         """Weighted residuals at the frame's ``θ``: plane distances, or line offsets (three per point)."""
         if self.kind == 'surf':
             return self.weight * plane_distance(self.first, self.second, frame.xyz()).astype(np.float64)
-        return (self.weight[:, None] * line_offsets(frame.xyz().astype(np.float64), self.first,
-                                                    self.second)).reshape(-1)
+        return (self.weight[:, None] * line_offsets(frame.xyz().astype(np.float64), self.first, self.second)).reshape(
+            -1
+        )
 
 
 class LaserOdometry:
     """Two-stage scan-to-scan registration; call :meth:`register` once per sweep. The two models
     (:class:`OriginalOdometry`, :class:`SweepStartOdometry`) differ in how a stage iterates."""
 
-    SURF_PARAMS = [0, 2, 4]     # rx, rz, ty
-    CORNER_PARAMS = [1, 3, 5]   # ry, tx, tz
+    SURF_PARAMS = [0, 2, 4]  # rx, rz, ty
+    CORNER_PARAMS = [1, 3, 5]  # ry, tx, tz
 
     def __init__(self, params: Params, fix_scan_bound: bool = False):
         self.params = params
@@ -136,8 +151,9 @@ class LaserOdometry:
         fa = self.params.feature_association
         n_rings = self.params.sensor.n_scan
         self.last_corner_count, self.last_surf_count = len(corner), len(surf)
-        if self.last_corner is None or (len(corner) > fa.min_last_corner_points and
-                                        len(surf) > fa.min_last_surf_points):
+        if self.last_corner is None or (
+            len(corner) > fa.min_last_corner_points and len(surf) > fa.min_last_surf_points
+        ):
             self.last_corner = LastCloud(corner, n_rings)
             self.last_surf = LastCloud(surf, n_rings)
 
@@ -147,14 +163,16 @@ class LaserOdometry:
         matches in the sweep-start model; the original model has none."""
         fa = self.params.feature_association
         stats = OdometryStats()
-        if self.last_corner is None or self.last_corner_count < fa.min_last_corner_points or \
-                self.last_surf_count < fa.min_last_surf_points:
+        if (
+            self.last_corner is None
+            or self.last_corner_count < fa.min_last_corner_points
+            or self.last_surf_count < fa.min_last_surf_points
+        ):
             stats.skipped = 'too few points in the last clouds'
             return stats
         return self._register(sharp, flat, wall, stats)
 
-    def _register(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints,
-                  stats: OdometryStats) -> OdometryStats:
+    def _register(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints, stats: OdometryStats) -> OdometryStats:
         raise NotImplementedError
 
     def _stages(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints = None) -> tuple[_Stage, _Stage]:
@@ -162,9 +180,10 @@ class LaserOdometry:
         the roll, yaw and lateral position; ceilings the pitch and height where the floor is hardly seen)."""
         if wall is not None and not callable(wall):
             points, wall = wall, lambda: points
-        return (_Stage('surf', flat, self.last_surf, self.SURF_PARAMS, [0, 1], [2], self._surf_stage, wall),
-                _Stage('corner', sharp, self.last_corner, self.CORNER_PARAMS, [0], [1, 2], self._corner_stage,
-                       wall))
+        return (
+            _Stage('surf', flat, self.last_surf, self.SURF_PARAMS, [0, 1], [2], self._surf_stage, wall),
+            _Stage('corner', sharp, self.last_corner, self.CORNER_PARAMS, [0], [1, 2], self._corner_stage, wall),
+        )
 
     def _forward_bound(self, last: LastCloud, points: np.ndarray) -> int:
         """Where the forward correspondence scan stops: the current feature count (quirk 8.1) unless fixed."""
@@ -183,17 +202,23 @@ class LaserOdometry:
 class OriginalOdometry(LaserOdometry):
     """The original's model: 5 % Gauss-Newton steps with the Jacobian at the full ``θ``."""
 
-    def _register(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints,
-                  stats: OdometryStats) -> OdometryStats:
+    def _register(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints, stats: OdometryStats) -> OdometryStats:
         fa = self.params.feature_association
-        for stage in self._stages(sharp, flat):   # (no walls in the original)
-            find, rows = ((find_surf_correspondences, self._surf_rows) if stage.kind == 'surf' else
-                          (find_corner_correspondences, self._corner_rows))
+        for stage in self._stages(sharp, flat):  # (no walls in the original)
+            find, rows = (
+                (find_surf_correspondences, self._surf_rows)
+                if stage.kind == 'surf'
+                else (find_corner_correspondences, self._corner_rows)
+            )
             for iteration in range(fa.max_iterations):
                 setattr(stats, f'{stage.kind}_iterations', iteration + 1)
                 if iteration % fa.reassociate_every == 0:
-                    match = find(transform_to_start(stage.points, self.transform_cur), stage.last, self.params,
-                                 self._forward_bound(stage.last, stage.points))
+                    match = find(
+                        transform_to_start(stage.points, self.transform_cur),
+                        stage.last,
+                        self.params,
+                        self._forward_bound(stage.last, stage.points),
+                    )
                 a, b = rows(stage.points, match, iteration)
                 setattr(stats, f'{stage.kind}_correspondences', len(b))
                 if len(b) < fa.min_correspondences:
@@ -217,8 +242,9 @@ class OriginalOdometry(LaserOdometry):
         points = flat[usable]
         p_start = transform_to_start(points, self.transform_cur)
         last = self.last_surf.points
-        normal, distance = plane_coefficients(p_start, last[match.index1[usable]], last[match.index2[usable]],
-                                              last[match.index3[usable]])
+        normal, distance = plane_coefficients(
+            p_start, last[match.index1[usable]], last[match.index2[usable]], last[match.index3[usable]]
+        )
         norm = np.sqrt(np.sqrt((p_start[:, :3].astype(np.float64) ** 2).sum(axis=1)))
         weight = self._weights(distance, norm, iteration)
         ok = (weight > fa.min_weight) & (distance != 0) & np.isfinite(distance)
@@ -243,8 +269,7 @@ class OriginalOdometry(LaserOdometry):
 class SweepStartOdometry(LaserOdometry):
     """The sweep-start model: full Gauss-Newton steps with the exact Jacobian, in blocks with backtracking."""
 
-    def _register(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints,
-                  stats: OdometryStats) -> OdometryStats:
+    def _register(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints, stats: OdometryStats) -> OdometryStats:
         """Register from the constant-velocity guess (:meth:`_iterate`). Few sharp points matched at the end:
         lost (a turn too fast for the lidar alone left the guess, and then each next one, in a wrong minimum,
         scan after scan into kilometres); register again from standing still and keep the better match."""
@@ -259,8 +284,7 @@ class SweepStartOdometry(LaserOdometry):
         self.transform_cur = self.transform_cur if retry.recovered else estimate
         return retry if retry.recovered else kept
 
-    def _iterate(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints,
-                 stats: OdometryStats) -> OdometryStats:
+    def _iterate(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints, stats: OdometryStats) -> OdometryStats:
         """Both stages with full Gauss-Newton steps, in blocks of ``reassociate_every`` iterations.
 
         Each block associates the points anew and fixes their weights (1 in the first block, as the original;
@@ -298,9 +322,11 @@ class SweepStartOdometry(LaserOdometry):
                     if converged:
                         break
                 moved = self.transform_cur - before
-                if np.degrees(np.abs(moved[:3])).max() < fa.convergence_rotation and \
-                        np.abs(moved[3:]).max() * 100 < fa.convergence_translation:
-                    break   # a whole block changed nothing: converged
+                if (
+                    np.degrees(np.abs(moved[:3])).max() < fa.convergence_rotation
+                    and np.abs(moved[3:]).max() * 100 < fa.convergence_translation
+                ):
+                    break  # a whole block changed nothing: converged
             setattr(stats, f'{kind}_iterations', iterations)
         return stats
 
@@ -329,7 +355,7 @@ class SweepStartOdometry(LaserOdometry):
 
         # The last evaluation, keyed by the bytes of its theta: the trial point _shorten accepts is the next
         # iteration's estimate (the same additions), whose residuals and Jacobian then reuse its frames.
-        last_evaluation = [None, None, None]   # theta bytes, SweepStartFrames, values
+        last_evaluation = [None, None, None]  # theta bytes, SweepStartFrames, values
 
         def residual(theta: np.ndarray, jacobian: bool = False):
             key = np.asarray(theta, dtype=np.float64).tobytes()
@@ -354,7 +380,7 @@ class SweepStartOdometry(LaserOdometry):
         residual.walls = any(term.wall for term in terms)
         return residual
 
-    def _term(self, kind: str, points: np.ndarray, last: LastCloud, weighted: bool, bound: int) -> '_Term | None':
+    def _term(self, kind: str, points: np.ndarray, last: LastCloud, weighted: bool, bound: int) -> _Term | None:
         """The usable correspondences of ``points`` at the current estimate, their fixed weights and residual
         coefficients; None when there are none. 'surf': planes through three points of the last cloud found
         as the original does; 'wall': least-squares planes through the nearest points of the last cloud (as
@@ -379,8 +405,9 @@ class SweepStartOdometry(LaserOdometry):
         elif kind == 'surf':
             match = find_surf_correspondences(start, last, self.params, bound)
             usable = np.flatnonzero((match.index2 >= 0) & (match.index3 >= 0))
-            normal, offset = plane_through(last.points[match.index1[usable]], last.points[match.index2[usable]],
-                                           last.points[match.index3[usable]])
+            normal, offset = plane_through(
+                last.points[match.index1[usable]], last.points[match.index2[usable]], last.points[match.index3[usable]]
+            )
             p_start = start[usable]
             distance = plane_distance(normal, offset, p_start).astype(np.float64)
             scale = np.sqrt(np.sqrt((p_start[:, :3].astype(np.float64) ** 2).sum(axis=1)))
@@ -405,13 +432,20 @@ class SweepStartOdometry(LaserOdometry):
         first, second = (x[keep] for x in anchors)
         weight = weight[keep]
         if kind != 'corner':
-            coefficients = first.astype(np.float64) * weight[:, None]   # the weighted normal
+            coefficients = first.astype(np.float64) * weight[:, None]  # the weighted normal
         else:
             # Rows of the projector I - u u^T, weighted: the coefficients of the three residual components.
             coefficients = (np.eye(3)[None, :, :] - second[:, :, None] * second[:, None, :]) * weight[:, None, None]
-        return _Term('surf' if kind == 'wall' else kind, selected[:, :3].T.astype(np.float64, order='C'),
-                     relative_time_of(selected[:, 3]).astype(np.float64), weight, first, second, coefficients,
-                     kind == 'wall')
+        return _Term(
+            'surf' if kind == 'wall' else kind,
+            selected[:, :3].T.astype(np.float64, order='C'),
+            relative_time_of(selected[:, 3]).astype(np.float64),
+            weight,
+            first,
+            second,
+            coefficients,
+            kind == 'wall',
+        )
 
     def _wall_planes(self, start: np.ndarray, last: LastCloud):
         """(indices of the wall points whose nearest points in the last cloud form a plane, its unit normals,

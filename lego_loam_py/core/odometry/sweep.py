@@ -11,20 +11,44 @@ motion = deskewing without IMU). The accumulated pose ``transform_sum`` uses the
 A point's intensity carries its ring and relative time as ``ring + 0.1 s`` (:func:`ring_of`,
 :func:`relative_time_of`); :func:`relative_time_from_azimuth` and :func:`relative_time` give ``s``.
 """
+
 from __future__ import annotations
 
 import math
 
 import numpy as np
 
-from lego_loam_py.core.frames import (GENERATOR_X, GENERATOR_Y, GENERATOR_Z, euler_to_matrix, invert_pose,
-                                      matrix_to_euler, rot_x, rot_y, rot_z)
-from lego_loam_py.core.projection.image_projection import CloudInfo
+from lego_loam_py.core.frames import (
+    GENERATOR_X,
+    GENERATOR_Y,
+    GENERATOR_Z,
+    euler_to_matrix,
+    invert_pose,
+    matrix_to_euler,
+    rot_x,
+    rot_y,
+    rot_z,
+)
 from lego_loam_py.core.parity.libm import atan2f
+from lego_loam_py.core.projection.image_projection import CloudInfo
 
-__all__ = ['sweep_rotation', 'sweep_angles', 'ring_of', 'relative_time_of', 'relative_time_from_azimuth',
-           'relative_time', 'SweepStartFrame', 'transform_to_start', 'transform_to_end', 'start_jacobian',
-           'plane_jacobian_rows', 'accumulate', 'motion_to_theta', 'imu_free_motion', 'StampInstant']
+__all__ = [
+    'sweep_rotation',
+    'sweep_angles',
+    'ring_of',
+    'relative_time_of',
+    'relative_time_from_azimuth',
+    'relative_time',
+    'SweepStartFrame',
+    'transform_to_start',
+    'transform_to_end',
+    'start_jacobian',
+    'plane_jacobian_rows',
+    'accumulate',
+    'motion_to_theta',
+    'imu_free_motion',
+    'StampInstant',
+]
 
 _F32 = np.float32
 TWO_PI = 2 * math.pi
@@ -72,13 +96,16 @@ def relative_time(points_lidar: np.ndarray, info: CloudInfo) -> np.ndarray:
     ori = -atan2f(points_lidar[:, 1], points_lidar[:, 0]).astype(np.float64)
     start = float(info.start_orientation)
     end = float(info.end_orientation)
-    first = np.where(ori < start - math.pi / 2, ori + TWO_PI, np.where(ori > start + 3 * math.pi / 2, ori - TWO_PI, ori))
+    first = np.where(
+        ori < start - math.pi / 2, ori + TWO_PI, np.where(ori > start + 3 * math.pi / 2, ori - TWO_PI, ori)
+    )
     first = first.astype(_F32)
     passed = (first - _F32(start)).astype(np.float64) > math.pi
     switch = int(np.argmax(passed)) if passed.any() else len(ori)
     second = (ori + TWO_PI).astype(_F32).astype(np.float64)
-    second = np.where(second < end - 3 * math.pi / 2, second + TWO_PI,
-                      np.where(second > end + math.pi / 2, second - TWO_PI, second)).astype(_F32)
+    second = np.where(
+        second < end - 3 * math.pi / 2, second + TWO_PI, np.where(second > end + math.pi / 2, second - TWO_PI, second)
+    ).astype(_F32)
     final = np.where(np.arange(len(ori)) <= switch, first, second)
     return ((final - _F32(start)) / _F32(info.orientation_diff)).astype(_F32)
 
@@ -101,12 +128,12 @@ class SweepStartFrame:
         self.sx, self.sy, self.sz = np.sin(angles)
         self.qx, self.qy, self.qz = xyz - np.multiply.outer(transform[3:], s)
         cx, sx, cz, sz = self.cx, self.sx, self.cz, self.sz
-        self.ux, self.uy = cz * self.qx + sz * self.qy, -sz * self.qx + cz * self.qy   # uz = qz
-        self.vy, self.vz = cx * self.uy + sx * self.qz, -sx * self.uy + cx * self.qz   # vx = ux
+        self.ux, self.uy = cz * self.qx + sz * self.qy, -sz * self.qx + cz * self.qy  # uz = qz
+        self.vy, self.vz = cx * self.uy + sx * self.qz, -sx * self.uy + cx * self.qz  # vx = ux
         self._factors = {}
 
     @classmethod
-    def of(cls, points: np.ndarray, transform: np.ndarray) -> 'SweepStartFrame':
+    def of(cls, points: np.ndarray, transform: np.ndarray) -> SweepStartFrame:
         """For (n, 4) points with intensity ring + 0.1 s."""
         xyz = points[:, :3].T.astype(np.float64, order='C')
         return cls(xyz, relative_time_of(points[:, 3]).astype(np.float64), transform)
@@ -123,11 +150,11 @@ class SweepStartFrame:
         """The coefficient-free parts of a rotation column (see :meth:`rows`)."""
         if column not in self._factors:
             cx, sx, cy, sy, cz, sz = self.cx, self.sx, self.cy, self.sy, self.cz, self.sz
-            if column == 0:     # dRx(-rx) u = (0, -sx uy + cx uz, -cx uy - sx uz)
+            if column == 0:  # dRx(-rx) u = (0, -sx uy + cx uz, -cx uy - sx uz)
                 value = (-sx * self.uy + cx * self.qz, -cx * self.uy - sx * self.qz)
-            elif column == 1:   # dRy(-ry) v = (-sy vx - cy vz, 0, cy vx - sy vz)
+            elif column == 1:  # dRy(-ry) v = (-sy vx - cy vz, 0, cy vx - sy vz)
                 value = (-sy * self.ux - cy * self.vz, cy * self.ux - sy * self.vz)
-            else:               # dRz(-rz) q = (-sz qx + cz qy, -cz qx - sz qy, 0)
+            else:  # dRz(-rz) q = (-sz qx + cz qy, -cz qx - sz qy, 0)
                 value = (-sz * self.qx + cz * self.qy, -cz * self.qx - sz * self.qy)
             self._factors[column] = value
         return self._factors[column]
@@ -145,8 +172,9 @@ class SweepStartFrame:
         def per_point(value):
             return value[:, None] if batched else value
 
-        cx, sx, cy, sy, cz, sz, s = (per_point(v) for v in (self.cx, self.sx, self.cy, self.sy, self.cz, self.sz,
-                                                             self.s))
+        cx, sx, cy, sy, cz, sz, s = (
+            per_point(v) for v in (self.cx, self.sx, self.cy, self.sy, self.cz, self.sz, self.s)
+        )
         ax, ay, az = coeff[..., 0], coeff[..., 1], coeff[..., 2]
         # coeff^T Ry: the row vector that turns a vector w into coeff · (Ry w); then the same for Ry Rx w.
         bx, by, bz = ax * cy + az * sy, ay, -ax * sy + az * cy
@@ -181,8 +209,12 @@ def transform_to_start(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
     return out
 
 
-def transform_to_end(points: np.ndarray, transform: np.ndarray,
-                     imu_correction: np.ndarray | None = None, imu_shift: np.ndarray | None = None) -> np.ndarray:
+def transform_to_end(
+    points: np.ndarray,
+    transform: np.ndarray,
+    imu_correction: np.ndarray | None = None,
+    imu_shift: np.ndarray | None = None,
+) -> np.ndarray:
     """Re-project a sweep's points to its end: to the start with :func:`transform_to_start`, then
     ``p_end = R(θ) p_start + t``; with an IMU, then ``C (p_end - shift)`` (``C`` = IMU rotation from the end
     attitude back, see :class:`FeatureAssociation`). The intensity becomes the ring (``int``)."""
@@ -204,7 +236,7 @@ def start_jacobian(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
     t = np.asarray(transform[3:], dtype=np.float64)
     Ry_, Rx_, Rz_ = rot_y(-ry), rot_x(-rx), rot_z(-rz)
     q = points[:, :3].astype(np.float64) - t
-    d_rx = Ry_ @ (-Rx_ @ GENERATOR_X) @ Rz_   # d/drx of Ry(-ry) Rx(-rx) Rz(-rz)
+    d_rx = Ry_ @ (-Rx_ @ GENERATOR_X) @ Rz_  # d/drx of Ry(-ry) Rx(-rx) Rz(-rz)
     d_ry = (-Ry_ @ GENERATOR_Y) @ Rx_ @ Rz_
     d_rz = Ry_ @ Rx_ @ (-Rz_ @ GENERATOR_Z)
     rotation_t = Ry_ @ Rx_ @ Rz_
@@ -269,10 +301,10 @@ class StampInstant:
     def __init__(self, params):
         self.position = float(params.sensor.stamp_position)
         self.period_ns = params.sensor.scan_period * 1e9
-        self.offset_s = self.position * params.sensor.scan_period   # from the sweep start to the stamp [s]
+        self.offset_s = self.position * params.sensor.scan_period  # from the sweep start to the stamp [s]
         self.active = self.position > 0.0
-        self._origin = np.eye(4)      # sweep-start pose the odometry started from
-        self._correction = None       # C, fixed by the first sweep motion (kept across restarts)
+        self._origin = np.eye(4)  # sweep-start pose the odometry started from
+        self._correction = None  # C, fixed by the first sweep motion (kept across restarts)
         self._last_stamp_ns = None
 
     def sweep_start(self, stamp_ns: int) -> float:
@@ -292,6 +324,7 @@ class StampInstant:
         if fraction == 1.0:
             return np.array(motion, dtype=float)
         from scipy.spatial.transform import Rotation
+
         out = np.eye(4)
         out[:3, :3] = Rotation.from_rotvec(fraction * Rotation.from_matrix(motion[:3, :3]).as_rotvec()).as_matrix()
         out[:3, 3] = fraction * np.asarray(motion[:3, 3], dtype=float)

@@ -17,23 +17,48 @@ A sensor preset fills the geometry fields of ``sensor`` (rows, columns, resoluti
 those fields given explicitly overrides the preset. Unknown keys and values of the wrong type raise
 :class:`ParameterError` naming the key.
 """
+
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import yaml
 
-from lego_loam_py.core.params.types import (SENSOR_PRESETS, FeatureAssociationParams, ImageProjectionParams,
-                                           ImuParams, LocalizationParams, LoopClosureParams, MapOptimizationParams,
-                                           ParameterError, Params, ReliabilityParams, SensorParams)
+from lego_loam_py.core.params.types import (
+    SENSOR_PRESETS,
+    FeatureAssociationParams,
+    ImageProjectionParams,
+    ImuParams,
+    LocalizationParams,
+    LoopClosureParams,
+    MapOptimizationParams,
+    ParameterError,
+    Params,
+    ReliabilityParams,
+    SensorParams,
+)
 from lego_loam_py.core.params.validation import flatten, params_from_mapping
 
 __all__ = [
-    'ParameterError', 'SensorParams', 'ImageProjectionParams', 'FeatureAssociationParams',
-    'MapOptimizationParams', 'LoopClosureParams', 'LocalizationParams', 'ReliabilityParams', 'ImuParams', 'Params',
-    'SENSOR_PRESETS', 'load_params',
-    'params_from_mapping', 'flatten', 'read_params_file', 'write_params_file', 'default_params_file',
+    'ParameterError',
+    'SensorParams',
+    'ImageProjectionParams',
+    'FeatureAssociationParams',
+    'MapOptimizationParams',
+    'LoopClosureParams',
+    'LocalizationParams',
+    'ReliabilityParams',
+    'ImuParams',
+    'Params',
+    'SENSOR_PRESETS',
+    'load_params',
+    'params_from_mapping',
+    'flatten',
+    'read_params_file',
+    'write_params_file',
+    'default_params_file',
     'parse_overrides',
 ]
 
@@ -88,8 +113,9 @@ def default_params_file() -> Path:
     return Path(__file__).resolve().parents[3] / 'config' / 'params.yaml'
 
 
-def load_params(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None,
-                node_name: str | None = None) -> Params:
+def load_params(
+    path: str | Path | None = None, overrides: Mapping[str, Any] | None = None, node_name: str | None = None
+) -> Params:
     """Parameters from a ROS 2 YAML file (or the defaults when ``path`` is None) plus overrides."""
     values: dict[str, Any] = {}
     if path is not None:

@@ -1,30 +1,47 @@
 """Range-image geometry of every sensor ``sensor.preset`` names (:data:`SENSOR_PRESETS`): the original's
 ``utility.h`` blocks and the lidars users have beyond them (:data:`MORE_SENSOR_PRESETS`).
 
-Each of the latter gives ``n_scan``, ``horizon_scan`` and ``ang_res_x`` (the sensor's columns per sweep at 10 Hz; Ouster: the
-1024x10 mode), ``ang_res_y`` and ``ang_bottom`` (its beams' span evenly divided, ``ang_bottom`` with the original's
-0.1 deg margin below the lowest beam), ``ground_scan_ind`` (the highest beam at or below -1 deg, as the VLP-16's
-7) and, where the maker publishes one, ``beam_elevations`` (core.beam_table). Without a table the geometry is the
-even one: rows come from the ring field, which every one of these drivers sends, and the segmentation takes
-``ang_res_y`` for the angle between rows; give a unit's own table (``sensor.beam_elevations``) when its beams are
-not evenly spaced.
-"""
+Each of the latter gives ``n_scan``, ``horizon_scan`` and ``ang_res_x`` (the sensor's columns per sweep at 10 Hz;
+Ouster: the 1024x10 mode), ``ang_res_y`` and ``ang_bottom`` (its beams' span evenly divided, ``ang_bottom`` with the
+original's 0.1 deg margin below the lowest beam), ``ground_scan_ind`` (the highest beam at or below -1 deg, as the
+VLP-16's 7) and, where the maker publishes one, ``beam_elevations`` (core.beam_table). Without a table the geometry is
+the even one: rows come from the ring field, which every one of these drivers sends, and the segmentation takes
+``ang_res_y`` for the angle between rows; give a unit's own table (``sensor.beam_elevations``) when its beams are not
+evenly spaced."""
+
 from __future__ import annotations
 
 from typing import Any
 
-from lego_loam_py.core.params.beams import (HDL64E_NOMINAL_ELEVATIONS, OS0_128_UNIT_ELEVATIONS, OS1_128_UNIT_ELEVATIONS,
-                                          PANDAR40P_ELEVATIONS, PANDAR64_ELEVATIONS, VLP32C_ELEVATIONS)
+from lego_loam_py.core.params.beams import (
+    HDL64E_NOMINAL_ELEVATIONS,
+    OS0_128_UNIT_ELEVATIONS,
+    OS1_128_UNIT_ELEVATIONS,
+    PANDAR40P_ELEVATIONS,
+    PANDAR64_ELEVATIONS,
+    VLP32C_ELEVATIONS,
+)
 
 __all__ = ['SENSOR_PRESETS', 'MORE_SENSOR_PRESETS', 'PRESET_FIELDS']
 
 
-def _preset(n_scan: int, columns: int, lowest: float, highest: float, ground_scan_ind: int,
-            beam_elevations: tuple[float, ...] = ()) -> dict[str, Any]:
+def _preset(
+    n_scan: int,
+    columns: int,
+    lowest: float,
+    highest: float,
+    ground_scan_ind: int,
+    beam_elevations: tuple[float, ...] = (),
+) -> dict[str, Any]:
     """The geometry of ``n_scan`` beams from ``lowest`` to ``highest`` [deg] and ``columns`` per sweep."""
-    out = dict(n_scan=n_scan, horizon_scan=columns, ang_res_x=360.0 / columns,
-               ang_res_y=(highest - lowest) / (n_scan - 1), ang_bottom=round(-lowest + 0.1, 6),
-               ground_scan_ind=ground_scan_ind)
+    out = dict(
+        n_scan=n_scan,
+        horizon_scan=columns,
+        ang_res_x=360.0 / columns,
+        ang_res_y=(highest - lowest) / (n_scan - 1),
+        ang_bottom=round(-lowest + 0.1, 6),
+        ground_scan_ind=ground_scan_ind,
+    )
     if beam_elevations:
         out['beam_elevations'] = beam_elevations
     return out
@@ -69,19 +86,48 @@ MORE_SENSOR_PRESETS: dict[str, dict[str, Any]] = {
 # sources of HDL-64E clouds stamp there: the Velodyne driver, with its last packet, and KITTI). Keys are the
 # values accepted by ``sensor.preset``.
 SENSOR_PRESETS: dict[str, dict[str, Any]] = {
-    'VLP-16': dict(n_scan=16, horizon_scan=1800, ang_res_x=0.2, ang_res_y=2.0, ang_bottom=15.0 + 0.1,
-                   ground_scan_ind=7),
-    'HDL-32E': dict(n_scan=32, horizon_scan=1800, ang_res_x=360.0 / 1800, ang_res_y=41.33 / 31,
-                    ang_bottom=30.67, ground_scan_ind=20),
-    'VLS-128': dict(n_scan=128, horizon_scan=1800, ang_res_x=0.2, ang_res_y=0.3, ang_bottom=25.0,
-                    ground_scan_ind=10),
-    'HDL-64E': dict(n_scan=64, horizon_scan=2083, ang_res_x=360.0 / 2083, ang_res_y=26.9 / 63, ang_bottom=24.9,
-                    ground_scan_ind=50, beam_elevations=HDL64E_NOMINAL_ELEVATIONS, stamp_position=1.0),
-    'OS1-16': dict(n_scan=16, horizon_scan=1024, ang_res_x=360.0 / 1024, ang_res_y=33.2 / 15,
-                   ang_bottom=16.6 + 0.1, ground_scan_ind=7),
-    'OS1-64': dict(n_scan=64, horizon_scan=1024, ang_res_x=360.0 / 1024, ang_res_y=33.2 / 63,
-                   ang_bottom=16.6 + 0.1, ground_scan_ind=15),
-    **MORE_SENSOR_PRESETS,   # VLP-32C, Ouster OS0/OS1/OS2, Hesai Pandar, RoboSense (above)
+    'VLP-16': dict(
+        n_scan=16, horizon_scan=1800, ang_res_x=0.2, ang_res_y=2.0, ang_bottom=15.0 + 0.1, ground_scan_ind=7
+    ),
+    'HDL-32E': dict(
+        n_scan=32, horizon_scan=1800, ang_res_x=360.0 / 1800, ang_res_y=41.33 / 31, ang_bottom=30.67, ground_scan_ind=20
+    ),
+    'VLS-128': dict(n_scan=128, horizon_scan=1800, ang_res_x=0.2, ang_res_y=0.3, ang_bottom=25.0, ground_scan_ind=10),
+    'HDL-64E': dict(
+        n_scan=64,
+        horizon_scan=2083,
+        ang_res_x=360.0 / 2083,
+        ang_res_y=26.9 / 63,
+        ang_bottom=24.9,
+        ground_scan_ind=50,
+        beam_elevations=HDL64E_NOMINAL_ELEVATIONS,
+        stamp_position=1.0,
+    ),
+    'OS1-16': dict(
+        n_scan=16,
+        horizon_scan=1024,
+        ang_res_x=360.0 / 1024,
+        ang_res_y=33.2 / 15,
+        ang_bottom=16.6 + 0.1,
+        ground_scan_ind=7,
+    ),
+    'OS1-64': dict(
+        n_scan=64,
+        horizon_scan=1024,
+        ang_res_x=360.0 / 1024,
+        ang_res_y=33.2 / 63,
+        ang_bottom=16.6 + 0.1,
+        ground_scan_ind=15,
+    ),
+    **MORE_SENSOR_PRESETS,  # VLP-32C, Ouster OS0/OS1/OS2, Hesai Pandar, RoboSense (above)
 }
-PRESET_FIELDS = ('n_scan', 'horizon_scan', 'ang_res_x', 'ang_res_y', 'ang_bottom', 'ground_scan_ind',
-                  'beam_elevations', 'stamp_position')
+PRESET_FIELDS = (
+    'n_scan',
+    'horizon_scan',
+    'ang_res_x',
+    'ang_res_y',
+    'ang_bottom',
+    'ground_scan_ind',
+    'beam_elevations',
+    'stamp_position',
+)

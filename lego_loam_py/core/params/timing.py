@@ -1,5 +1,6 @@
 """When a published pose is, from the parameters: the header stamp's instant in the sweep (``sensor.stamp_position``)
 and the odometry model."""
+
 from __future__ import annotations
 
 __all__ = ['pose_delay']

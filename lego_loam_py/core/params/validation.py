@@ -4,13 +4,15 @@ Names are dotted (``'image_projection.segment_theta'``) or nested mappings. A se
 fields of ``sensor``; any of those fields given explicitly overrides the preset. Unknown keys and values of the
 wrong type or out of range raise :class:`~lego_loam_py.core.params.types.ParameterError` naming the key.
 """
+
 from __future__ import annotations
 
 import difflib
 import math
 import typing
+from collections.abc import Mapping, Sequence
 from dataclasses import fields
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 from lego_loam_py.core.params.types import SENSOR_PRESETS, ParameterError, Params, SensorParams
 
@@ -45,6 +47,7 @@ def flatten(tree: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
 
 def _coerce(key: str, value: Any, annotation: Any) -> Any:
     """Check ``value`` against the field type; ints are accepted for floats, nothing else is converted."""
+
     def wrong(expected: str) -> ParameterError:
         return ParameterError(f"parameter '{key}' must be {expected}, got {value!r} ({type(value).__name__})")
 
@@ -67,11 +70,11 @@ def _coerce(key: str, value: Any, annotation: Any) -> Any:
         if not isinstance(value, str):
             raise wrong('a string')
         return value
-    if typing.get_origin(annotation) is typing.Literal:   # a mode switch: one of its names
+    if typing.get_origin(annotation) is typing.Literal:  # a mode switch: one of its names
         choices = typing.get_args(annotation)
         if value not in choices:
             quoted = [repr(c) for c in choices]
-            raise wrong(f"{', '.join(quoted[:-1])} or {quoted[-1]}")
+            raise wrong(f'{", ".join(quoted[:-1])} or {quoted[-1]}')
         return value
     if typing.get_origin(annotation) is tuple:
         if not isinstance(value, Sequence) or isinstance(value, str):
@@ -102,13 +105,12 @@ def params_from_mapping(values: Mapping[str, Any], apply_preset: bool = True) ->
         grouped[section][name] = _coerce(key, value, _field_types(sections[section])[name])
 
     sensor_values = grouped['sensor']
-    if sensor_values.get('beam_calibration'):   # (before the preset: the file's beams override the preset's)
+    if sensor_values.get('beam_calibration'):  # (before the preset: the file's beams override the preset's)
         sensor_values = _with_calibrated_beams(sensor_values)
     if apply_preset:
         preset = sensor_values.get('preset', SensorParams.preset)
         if preset not in SENSOR_PRESETS:
-            raise ParameterError(f"parameter 'sensor.preset' must be one of {sorted(SENSOR_PRESETS)}, "
-                                 f'got {preset!r}')
+            raise ParameterError(f"parameter 'sensor.preset' must be one of {sorted(SENSOR_PRESETS)}, got {preset!r}")
         sensor_values = {**SENSOR_PRESETS[preset], **sensor_values}
     built = {name: cls(**grouped[name]) for name, cls in sections.items() if name != 'sensor'}
     params = Params(sensor=SensorParams(**sensor_values), **built)
@@ -144,8 +146,11 @@ def _validate(p: Params) -> None:
         from lego_loam_py.core.params.beams import table_problem
 
         problem = table_problem(s.beam_elevations, s.n_scan)
-        need(problem is None, 'sensor.beam_calibration' if s.beam_calibration else 'sensor.beam_elevations',
-             f'{problem}' + (f' ({s.beam_calibration})' if s.beam_calibration else ''))
+        need(
+            problem is None,
+            'sensor.beam_calibration' if s.beam_calibration else 'sensor.beam_elevations',
+            f'{problem}' + (f' ({s.beam_calibration})' if s.beam_calibration else ''),
+        )
     need(s.scan_period > 0, 'sensor.scan_period', 'must be positive')
     need(0.0 <= s.stamp_position <= 1.0, 'sensor.stamp_position', 'must be within 0..1 (a fraction of the sweep)')
     need(s.sensor_minimum_range >= 0, 'sensor.sensor_minimum_range', 'must not be negative')
@@ -166,13 +171,23 @@ def _validate(p: Params) -> None:
     need(fa.reassociate_every > 0, 'feature_association.reassociate_every', 'must be positive')
     need(0.0 <= fa.lost_match_ratio <= 1.0, 'feature_association.lost_match_ratio', 'must be within 0..1')
     mo = p.map_optimization
-    for name in ('corner_leaf_size', 'surf_leaf_size', 'outlier_leaf_size', 'surrounding_keypose_leaf_size',
-                 'global_map_keypose_leaf_size', 'global_map_leaf_size', 'global_map_publish_period'):
+    for name in (
+        'corner_leaf_size',
+        'surf_leaf_size',
+        'outlier_leaf_size',
+        'surrounding_keypose_leaf_size',
+        'global_map_keypose_leaf_size',
+        'global_map_leaf_size',
+        'global_map_publish_period',
+    ):
         need(getattr(mo, name) > 0, f'map_optimization.{name}', 'must be positive')
     for name in ('prior_noise_variances', 'odometry_noise_variances'):
         value = getattr(mo, name)
-        need(len(value) == 6 and all(v > 0 for v in value), f'map_optimization.{name}',
-             'must be 6 positive variances (roll, pitch, yaw, x, y, z)')
+        need(
+            len(value) == 6 and all(v > 0 for v in value),
+            f'map_optimization.{name}',
+            'must be 6 positive variances (roll, pitch, yaw, x, y, z)',
+        )
     need(mo.knn >= 3, 'map_optimization.knn', 'must be at least 3')
     need(0 <= mo.plane_min_aspect <= 1, 'map_optimization.plane_min_aspect', 'must be within 0..1 (0: any)')
     r = p.reliability
@@ -181,8 +196,11 @@ def _validate(p: Params) -> None:
     need(r.watchdog_inputs >= 0, 'reliability.watchdog_inputs', 'must not be negative (0: off)')
     imu = p.imu
     for name in ('rotation_rpy', 'translation', 'orientation_rpy'):
-        need(len(getattr(imu, name)) == 3, f'imu.{name}', 'must have 3 values' + (' (x, y, z)' if name == 'translation'
-                                                                                 else ' (roll, pitch, yaw)'))
+        need(
+            len(getattr(imu, name)) == 3,
+            f'imu.{name}',
+            'must have 3 values' + (' (x, y, z)' if name == 'translation' else ' (roll, pitch, yaw)'),
+        )
     need(all(abs(v) <= 10.0 for v in imu.translation), 'imu.translation', 'must be within 10 m of the lidar')
     need(abs(imu.time_offset) <= 1.0, 'imu.time_offset', 'must be within 1 s')
     need(imu.alignment_window >= 1.0, 'imu.alignment_window', 'must be at least 1 s')
@@ -193,22 +211,47 @@ def _validate(p: Params) -> None:
     need(lc.history_keyframe_leaf_size > 0, 'loop_closure.history_keyframe_leaf_size', 'must be positive')
     for name in ('scan_context_rings', 'scan_context_sectors', 'registration_iterations', 'min_consistent_loops'):
         need(getattr(lc, name) >= 1, f'loop_closure.{name}', 'must be at least 1')
-    for name in ('scan_context_max_radius', 'inlier_distance', 'max_rmse', 'registration_points',
-                 'min_registration_sigma', 'robust_kernel_width', 'max_source_shift', 'max_source_shift_deg'):
+    for name in (
+        'scan_context_max_radius',
+        'inlier_distance',
+        'max_rmse',
+        'registration_points',
+        'min_registration_sigma',
+        'robust_kernel_width',
+        'max_source_shift',
+        'max_source_shift_deg',
+    ):
         need(getattr(lc, name) > 0, f'loop_closure.{name}', 'must be positive')
-    need(len(lc.registration_distances) >= 1 and all(d > 0 for d in lc.registration_distances),
-         'loop_closure.registration_distances', 'must be one or more positive distances [m]')
+    need(
+        len(lc.registration_distances) >= 1 and all(d > 0 for d in lc.registration_distances),
+        'loop_closure.registration_distances',
+        'must be one or more positive distances [m]',
+    )
     need(0.0 <= lc.min_overlap <= 1.0, 'loop_closure.min_overlap', 'must be within 0..1')
     need(lc.source_keyframes >= 0, 'loop_closure.source_keyframes', 'must not be negative')
     need(lc.target_keyframes >= 0, 'loop_closure.target_keyframes', 'must not be negative')
     need(lc.skip_first_keyframes >= 0, 'loop_closure.skip_first_keyframes', 'must not be negative')
-    need(mo.mode != 'localization' or mo.map_path.strip() != '', 'map_optimization.map_path',
-         'must name the directory of a map bundle in mode localization')
+    need(
+        mo.mode != 'localization' or mo.map_path.strip() != '',
+        'map_optimization.map_path',
+        'must name the directory of a map bundle in mode localization',
+    )
     lo = p.localization
-    need(len(lo.initial_pose) in (0, 3, 6), 'localization.initial_pose',
-         'must be [] (none), [x, y, yaw] or [x, y, z, roll, pitch, yaw] (metres, degrees)')
-    for name in ('initial_pose_radius', 'max_rmse', 'ambiguity_distance', 'tracking_inlier_distance',
-                 'max_correction', 'max_correction_rotation', 'max_gap', 'max_correction_age'):
+    need(
+        len(lo.initial_pose) in (0, 3, 6),
+        'localization.initial_pose',
+        'must be [] (none), [x, y, yaw] or [x, y, z, roll, pitch, yaw] (metres, degrees)',
+    )
+    for name in (
+        'initial_pose_radius',
+        'max_rmse',
+        'ambiguity_distance',
+        'tracking_inlier_distance',
+        'max_correction',
+        'max_correction_rotation',
+        'max_gap',
+        'max_correction_age',
+    ):
         need(getattr(lo, name) > 0, f'localization.{name}', 'must be positive')
     for name in ('relocalization_threshold', 'min_overlap', 'min_edge_overlap', 'min_tracking_overlap'):
         need(0.0 <= getattr(lo, name) <= 1.0, f'localization.{name}', 'must be within 0..1')

@@ -16,6 +16,7 @@ is positive where A exceeds phi (when |A - phi| < pi). A threshold t is tested a
 in float32 turn phi by < 2**-24 rad, inside that margin, and the float32 cross product is trusted only where
 it exceeds its rounding bound, 2**-21 (|y| + |x|) + 2**-120. Elements nearer a threshold call libm.
 """
+
 from __future__ import annotations
 
 import math
@@ -27,7 +28,7 @@ from lego_loam_py.core.parity.libm import atan2f
 __all__ = ['decide_on_atan2f', 'atan2f_exceeds', 'Atan2fSteps', 'first_float32_where']
 
 _F32 = np.float32
-_HALF_TURN_SLACK = 2.0 ** -10   # [rad] tested angles stay this far inside a half turn
+_HALF_TURN_SLACK = 2.0**-10  # [rad] tested angles stay this far inside a half turn
 
 
 def decide_on_atan2f(y: np.ndarray, x: np.ndarray, decide) -> np.ndarray:
@@ -42,8 +43,8 @@ def decide_on_atan2f(y: np.ndarray, x: np.ndarray, decide) -> np.ndarray:
     with np.errstate(invalid='ignore'):
         angle = np.arctan2(y, x, dtype=np.float64).astype(_F32)
         margin = np.abs(angle)
-        margin *= _F32(2.0 ** -19)
-        margin += _F32(2.0 ** -140)
+        margin *= _F32(2.0**-19)
+        margin += _F32(2.0**-140)
         result = decide(angle - margin)
         unsure = result != decide(angle + margin)
     if unsure.any():
@@ -53,15 +54,15 @@ def decide_on_atan2f(y: np.ndarray, x: np.ndarray, decide) -> np.ndarray:
 
 def _margin(threshold):
     """[rad] beyond which the exact angle puts libm's float32 value on its side of ``threshold`` (float64)."""
-    return np.abs(threshold) * 2.0 ** -19 + 2.0 ** -22
+    return np.abs(threshold) * 2.0**-19 + 2.0**-22
 
 
 def _rounding_bound(y: np.ndarray, x: np.ndarray) -> np.ndarray:
     """Bound on the float32 rounding of y cos(phi) - x sin(phi): 2**-21 (|y| + |x|) + 2**-120."""
     bound = np.abs(y)
     bound += np.abs(x)
-    bound *= _F32(2.0 ** -21)
-    bound += _F32(2.0 ** -120)
+    bound *= _F32(2.0**-21)
+    bound += _F32(2.0**-120)
     return bound
 
 
@@ -124,25 +125,30 @@ class Atan2fSteps:
     def __init__(self, thresholds: np.ndarray, bins: int = 32768):
         t = np.asarray(thresholds, dtype=_F32)
         below_t = np.nextafter(t, _F32(-np.inf)).astype(np.float64)
-        lower = np.concatenate([[-np.inf], below_t])   # step j: lower[j] < a <= upper[j]
+        lower = np.concatenate([[-np.inf], below_t])  # step j: lower[j] < a <= upper[j]
         upper = np.concatenate([below_t, [np.inf]])
         with np.errstate(invalid='ignore'):
             phi_low = lower + _margin(lower)
             phi_high = upper - _margin(upper)
             # Two half planes meet in the wedge between their edges only if it is narrower than a half turn.
             width = phi_high - phi_low
-            usable = ((phi_low > -math.pi + _HALF_TURN_SLACK) & (phi_high < math.pi - _HALF_TURN_SLACK) &
-                      (width > 2.0 ** -21) & (width < math.pi - _HALF_TURN_SLACK))
+            usable = (
+                (phi_low > -math.pi + _HALF_TURN_SLACK)
+                & (phi_high < math.pi - _HALF_TURN_SLACK)
+                & (width > 2.0**-21)
+                & (width < math.pi - _HALF_TURN_SLACK)
+            )
             # Unusable steps get NaN directions: their cross products are NaN and never confirm.
             phi_low[~usable] = np.nan
             phi_high[~usable] = np.nan
             self._low_cos, self._low_sin, self._high_cos, self._high_sin = (
-                f(phi).astype(_F32) for phi in (phi_low, phi_high) for f in (np.cos, np.sin))
+                f(phi).astype(_F32) for phi in (phi_low, phi_high) for f in (np.cos, np.sin)
+            )
         # The guess: the step of each bin's centre. An element's position is (y / (|x| + |y|) + 1) with the sign
         # of x, in [-2, 0] for x < 0 and [0, 2] for x >= 0, and its bin index (position + 2) * bins / 4.
         self._scale = bins / 4.0
         position = (np.arange(bins) + 0.5) / self._scale - 2.0
-        pseudo = np.abs(position) - 1.0   # y / (|x| + |y|) at the centres
+        pseudo = np.abs(position) - 1.0  # y / (|x| + |y|) at the centres
         across = np.where(position < 0, -1.0, 1.0) * (1.0 - np.abs(pseudo))
         self._guess = np.searchsorted(t.astype(np.float64), np.arctan2(pseudo, across), side='right').astype(np.intp)
 
@@ -151,8 +157,8 @@ class Atan2fSteps:
         float32 arrays; unconfirmed elements hold a guess."""
         with np.errstate(invalid='ignore', divide='ignore', over='ignore'):
             length = np.abs(x)
-            length += np.abs(y)   # |x| + |y|
-            position = np.divide(y, length)   # in [-1, 1]; NaN at the origin
+            length += np.abs(y)  # |x| + |y|
+            position = np.divide(y, length)  # in [-1, 1]; NaN at the origin
             position += _F32(1.0)
             np.copysign(position, x, out=position)
             position += _F32(2.0)
@@ -161,8 +167,8 @@ class Atan2fSteps:
             np.fmin(position, _F32(len(self._guess) - 1), out=position)
             step = np.take(self._guess, position.astype(np.intp))
             bound = length
-            bound *= _F32(2.0 ** -21)
-            bound += _F32(2.0 ** -120)
+            bound *= _F32(2.0**-21)
+            bound += _F32(2.0**-120)
             side = y * np.take(self._low_cos, step)
             side -= x * np.take(self._low_sin, step)
             confirmed = side > bound
@@ -180,7 +186,7 @@ def _order_key(value: np.ndarray) -> np.ndarray:
 
 
 def _from_order_key(key: np.ndarray) -> np.ndarray:
-    return np.where(key >= 0, key, -key - 2 ** 31).astype(np.int32).view(_F32)
+    return np.where(key >= 0, key, -key - 2**31).astype(np.int32).view(_F32)
 
 
 def first_float32_where(predicate, low: float, high: float, count: int = 1) -> np.ndarray:

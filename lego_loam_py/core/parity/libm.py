@@ -10,6 +10,7 @@ libm on a few tenths of a percent of such boundary points (:data:`EXACT` tells w
 libm's atan2f is slow: :mod:`lego_loam_py.core.parity.atan2f_decisions` decides on its values mostly without it.
 :func:`float_degrees` and :func:`round_half_away` are the original's float degree conversion and C ``round``.
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -23,6 +24,7 @@ __all__ = ['atan2f', 'sinf', 'cosf', 'EXACT', 'float_degrees', 'round_half_away'
 
 try:
     from lego_loam_py.core import _libm_compat
+
     EXACT = True
 except ImportError:  # the extension is optional: a build without a C compiler still works
     _libm_compat = None
@@ -76,4 +78,3 @@ def round_half_away(value: np.ndarray) -> np.ndarray:
     """C ``round``: halves away from zero (NumPy rounds halves to even)."""
     # Rounding to nearest is symmetric, so this equals sign(v) * floor(|v| + 0.5) bit for bit, in 3 passes.
     return np.trunc(value + np.copysign(0.5, value))
-

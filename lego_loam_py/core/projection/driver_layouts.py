@@ -27,6 +27,7 @@ drivers users have (README, "Driver layouts"):
 A layout that cannot be read raises :class:`~lego_loam_py.core.pointcloud.CloudLayoutError` with one line
 naming the field and what was expected.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -36,9 +37,19 @@ import numpy as np
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.core.validation import MAX_COORDINATE
 
-__all__ = ['CloudPoints', 'TimeReading', 'read_cloud', 'time_field_of', 'seconds_since_sweep_start',
-           'rings_count_down', 'KNOWN_TIME_FIELDS', 'ABSOLUTE_TIME_FIELDS', 'SWEEP_SPAN', 'ABSOLUTE_AFTER',
-           'TIME_ORDER_TOLERANCE']
+__all__ = [
+    'CloudPoints',
+    'TimeReading',
+    'read_cloud',
+    'time_field_of',
+    'seconds_since_sweep_start',
+    'rings_count_down',
+    'KNOWN_TIME_FIELDS',
+    'ABSOLUTE_TIME_FIELDS',
+    'SWEEP_SPAN',
+    'ABSOLUTE_AFTER',
+    'TIME_ORDER_TOLERANCE',
+]
 
 _F32 = np.float32
 
@@ -51,12 +62,12 @@ ABSOLUTE_TIME_FIELDS = frozenset({'timestamp'})
 # A sweep's times span between these multiples of sensor.scan_period (a partial sweep: an azimuth window, a
 # sensor spinning faster or slower than configured); 200x apart, so s, ms, us and ns never both fit.
 SWEEP_SPAN = (0.05, 10.0)
-ABSOLUTE_AFTER = 1e4   # [s] a time this far from the stamp is a clock's, not an offset within the sweep
+ABSOLUTE_AFTER = 1e4  # [s] a time this far from the stamp is a clock's, not an offset within the sweep
 TIME_UNITS = (('s', 1.0), ('ms', 1e-3), ('us', 1e-6), ('ns', 1e-9))
 # The first and last valid points stand for the sweep's start and end when they are within this fraction of
 # the scan period of its earliest and latest times (firing offsets within a Velodyne or Hesai block are < 0.06 ms).
 TIME_ORDER_TOLERANCE = 0.005
-_RING_SAMPLE = 8192    # points looked at to tell which way the rings count
+_RING_SAMPLE = 8192  # points looked at to tell which way the rings count
 
 
 @dataclass(frozen=True)
@@ -72,15 +83,15 @@ class TimeReading:
 class CloudPoints:
     """The valid points of one cloud in measurement order, with their ring and time."""
 
-    xyz: np.ndarray                    # float32 (n, 3) [m], finite, none at the origin
-    ring: np.ndarray | None            # int64 (n,), 0 = lowest beam; None without a (used) ring field
-    time: np.ndarray | None            # float32 (n,) [s since the sweep start]; None without a time field
-    source_index: np.ndarray | None    # index in the message of each point (None: all, in message order)
-    dropped_non_finite: int = 0        # NaN/inf/beyond MAX_COORDINATE coordinates, ring or time
-    dropped_origin: int = 0            # x = y = z = 0 (no return)
+    xyz: np.ndarray  # float32 (n, 3) [m], finite, none at the origin
+    ring: np.ndarray | None  # int64 (n,), 0 = lowest beam; None without a (used) ring field
+    time: np.ndarray | None  # float32 (n,) [s since the sweep start]; None without a time field
+    source_index: np.ndarray | None  # index in the message of each point (None: all, in message order)
+    dropped_non_finite: int = 0  # NaN/inf/beyond MAX_COORDINATE coordinates, ring or time
+    dropped_origin: int = 0  # x = y = z = 0 (no return)
     time_reading: TimeReading | None = None
-    time_ordered: bool = False         # the points were put in time order
-    rings_from_top: bool = False       # the ring field counted from the top beam and was turned round
+    time_ordered: bool = False  # the points were put in time order
+    rings_from_top: bool = False  # the ring field counted from the top beam and was turned round
 
 
 def time_field_of(names: tuple[str, ...], configured: str) -> str | None:
@@ -119,10 +130,12 @@ def _unit(span: float, field: str, dtype: np.dtype, scan_period: float) -> tuple
         if low <= span * scale <= high:
             return unit, scale
     unit, scale = TIME_UNITS[-1] if dtype.kind in 'iu' else TIME_UNITS[0]
-    if span * scale < low:   # too short a span to tell (a few points): the type's usual unit
+    if span * scale < low:  # too short a span to tell (a few points): the type's usual unit
         return unit, scale
-    raise CloudLayoutError(f"time field '{field}' ({dtype.name}) spans {span:.6g} within one cloud: expected about "
-                           f'one scan period (sensor.scan_period {scan_period:g} s) in s, ms, us or ns')
+    raise CloudLayoutError(
+        f"time field '{field}' ({dtype.name}) spans {span:.6g} within one cloud: expected about "
+        f'one scan period (sensor.scan_period {scan_period:g} s) in s, ms, us or ns'
+    )
 
 
 def rings_count_down(ring: np.ndarray, xyz: np.ndarray, n_scan: int) -> bool:
@@ -133,7 +146,7 @@ def rings_count_down(ring: np.ndarray, xyz: np.ndarray, n_scan: int) -> bool:
     inside = (rings >= 0) & (rings < n_scan)
     rings, points = rings[inside], points[inside].astype(np.float64)
     horizontal = np.hypot(points[:, 0], points[:, 1])
-    slope = points[:, 2] / np.maximum(horizontal, 1e-6)    # tan(elevation), monotone in it
+    slope = points[:, 2] / np.maximum(horizontal, 1e-6)  # tan(elevation), monotone in it
     count = np.bincount(rings, minlength=n_scan)
     populated = np.flatnonzero(count)
     if len(populated) < 2:
@@ -143,8 +156,9 @@ def rings_count_down(ring: np.ndarray, xyz: np.ndarray, n_scan: int) -> bool:
     return bool(np.count_nonzero(steps < 0) * 4 >= 3 * len(steps))
 
 
-def read_cloud(points: np.ndarray, n_scan: int, ring_field: str | None, time_field: str, scan_period: float
-               ) -> CloudPoints:
+def read_cloud(
+    points: np.ndarray, n_scan: int, ring_field: str | None, time_field: str, scan_period: float
+) -> CloudPoints:
     """The valid points of a structured cloud (any shape; organized clouds row-major) as the module says.
 
     ``ring_field``: the beam index field to use (None: rows from the elevation); ``time_field``:
@@ -153,14 +167,15 @@ def read_cloud(points: np.ndarray, n_scan: int, ring_field: str | None, time_fie
     names = points.dtype.names or ()
     missing = [name for name in 'xyz' if name not in names]
     if missing:
-        raise CloudLayoutError(f'the cloud has no {"/".join(missing)} field (fields: {", ".join(names) or "none"}): '
-                               'expected x, y and z coordinates')
+        raise CloudLayoutError(
+            f'the cloud has no {"/".join(missing)} field (fields: {", ".join(names) or "none"}): '
+            'expected x, y and z coordinates'
+        )
     ring_field = ring_field if ring_field in names else None
     time_name = time_field_of(names, time_field)
     several = [name for name in ('x', 'y', 'z', ring_field, time_name) if name and points.dtype[name].shape != ()]
     if several:
-        raise CloudLayoutError(f'field(s) {", ".join(several)} hold several values per point (count > 1): '
-                               'expected one')
+        raise CloudLayoutError(f'field(s) {", ".join(several)} hold several values per point (count > 1): expected one')
     flat = points.reshape(-1)
     xyz = np.empty((flat.size, 3), dtype=_F32)
     with np.errstate(invalid='ignore', over='ignore'):
@@ -190,13 +205,14 @@ def read_cloud(points: np.ndarray, n_scan: int, ring_field: str | None, time_fie
         xyz = xyz[index]
         ring = ring[index] if ring is not None else None
         raw_time = raw_time[index] if raw_time is not None else None
-    out = CloudPoints(xyz=xyz, ring=ring, time=None, source_index=index, dropped_non_finite=non_finite,
-                      dropped_origin=origin)
+    out = CloudPoints(
+        xyz=xyz, ring=ring, time=None, source_index=index, dropped_non_finite=non_finite, dropped_origin=origin
+    )
     if raw_time is not None:
         out.time, out.time_reading = seconds_since_sweep_start(raw_time, time_name, scan_period)
         _put_in_time_order(out, scan_period)
     if out.ring is not None and rings_count_down(out.ring, out.xyz, n_scan):
-        inside = (out.ring >= 0) & (out.ring < n_scan)   # (rings beyond the image stay there: dropped, warned about)
+        inside = (out.ring >= 0) & (out.ring < n_scan)  # (rings beyond the image stay there: dropped, warned about)
         out.ring = np.where(inside, (n_scan - 1) - out.ring, out.ring)
         out.rings_from_top = True
     return out

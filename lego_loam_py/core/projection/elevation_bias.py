@@ -15,6 +15,7 @@ within :data:`MAX_SPREAD_DEG`) on an error of at least :data:`MIN_OFFSET_DEG` an
 ``z += rho tan(delta)``, the first-order change of the elevation (x and y move by ``delta^2 / 2`` of the range).
 The simulated scenarios' rolling ground never agrees (spread 1.1 deg), so they are not touched.
 """
+
 from __future__ import annotations
 
 import math
@@ -23,14 +24,14 @@ import numpy as np
 
 __all__ = ['ElevationBias', 'apply_elevation_offset', 'ground_cone_deg', 'elevation_note']
 
-SECTOR_DEG = 30.0       # ground within this azimuth of straight ahead or behind
-MIN_RANGE, MAX_RANGE = 5.0, 35.0   # [m] horizontal range of the fitted ground
+SECTOR_DEG = 30.0  # ground within this azimuth of straight ahead or behind
+MIN_RANGE, MAX_RANGE = 5.0, 35.0  # [m] horizontal range of the fitted ground
 MIN_GROUND_POINTS = 100
-MIN_SCANS = 20          # scans that must agree before a correction is taken
-MAX_SPREAD_DEG = 0.1    # ... their estimates' median absolute deviation at most this
-MIN_OFFSET_DEG = 0.05   # an error smaller than this is left alone
-MAX_OFFSET_DEG = 0.5    # ... and one larger than this is not a calibration error but the ground's shape
-GIVE_UP_SCANS = 600     # no agreement after this many scans: stop looking (the ground is not flat enough)
+MIN_SCANS = 20  # scans that must agree before a correction is taken
+MAX_SPREAD_DEG = 0.1  # ... their estimates' median absolute deviation at most this
+MIN_OFFSET_DEG = 0.05  # an error smaller than this is left alone
+MAX_OFFSET_DEG = 0.5  # ... and one larger than this is not a calibration error but the ground's shape
+GIVE_UP_SCANS = 600  # no agreement after this many scans: stop looking (the ground is not flat enough)
 
 
 def apply_elevation_offset(xyz: np.ndarray, offset_deg: float) -> None:
@@ -42,9 +43,11 @@ def apply_elevation_offset(xyz: np.ndarray, offset_deg: float) -> None:
 
 def elevation_note(offset_deg: float, stamp_ns: int) -> str:
     """What a run tells its user when it found the correction (once)."""
-    return (f'scan at {stamp_ns * 1e-9:.3f} s: the ground ahead and behind says every point reads {abs(offset_deg):.2f} '
-            f'deg {"low" if offset_deg > 0 else "high"}; scans are corrected from here on (set '
-            f'sensor.elevation_offset: {offset_deg:g} to correct them from the first one)')
+    return (
+        f'scan at {stamp_ns * 1e-9:.3f} s: the ground ahead and behind says every point reads {abs(offset_deg):.2f} '
+        f'deg {"low" if offset_deg > 0 else "high"}; scans are corrected from here on (set '
+        f'sensor.elevation_offset: {offset_deg:g} to correct them from the first one)'
+    )
 
 
 def ground_cone_deg(ground_xyz: np.ndarray) -> float | None:
@@ -55,12 +58,15 @@ def ground_cone_deg(ground_xyz: np.ndarray) -> float | None:
     cos_sector = math.cos(math.radians(SECTOR_DEG))
     keep = (rho > MIN_RANGE) & (rho < MAX_RANGE) & (np.abs(x) > cos_sector * rho)
     ahead = np.count_nonzero(keep & (x > 0))
-    if min(ahead, np.count_nonzero(keep) - ahead) < MIN_GROUND_POINTS // 4 or np.count_nonzero(keep) < MIN_GROUND_POINTS:
-        return None   # (a slope and a cone are told apart only by ground on both sides)
+    if (
+        min(ahead, np.count_nonzero(keep) - ahead) < MIN_GROUND_POINTS // 4
+        or np.count_nonzero(keep) < MIN_GROUND_POINTS
+    ):
+        return None  # (a slope and a cone are told apart only by ground on both sides)
     design = np.stack([np.ones(np.count_nonzero(keep)), x[keep], rho[keep]], axis=1)
     target = z[keep]
     weight = np.ones(len(target))
-    for _ in range(4):   # trimmed: points beyond three robust deviations of the fit are left out
+    for _ in range(4):  # trimmed: points beyond three robust deviations of the fit are left out
         solution = np.linalg.lstsq(design * weight[:, None], target * weight, rcond=None)[0]
         residual = np.abs(target - design @ solution)
         scale = 1.5 * float(np.median(residual)) + 1e-3
@@ -74,7 +80,7 @@ class ElevationBias:
 
     def __init__(self, fixed: float = 0.0, estimate: bool = True):
         self.offset_deg = float(fixed)
-        self.found = False                 # the estimate was taken (the offset came from the ground)
+        self.found = False  # the estimate was taken (the offset came from the ground)
         self._looking = bool(estimate) and fixed == 0.0
         self._estimates: list[float] = []
         self._scans = 0
@@ -95,7 +101,7 @@ class ElevationBias:
         estimate = ground_cone_deg(ground_xyz)
         if estimate is not None:
             self._estimates.append(estimate)
-            recent = np.array(self._estimates[-2 * MIN_SCANS:])
+            recent = np.array(self._estimates[-2 * MIN_SCANS :])
             if len(recent) >= MIN_SCANS:
                 median = float(np.median(recent))
                 spread = float(np.median(np.abs(recent - median)))

@@ -6,15 +6,16 @@ vertical-surface test, a plane fit and a walk up each column.
 
 Frames: points are in the sensor frame (REP-103 lidar axes, ``base_link``).
 """
+
 from __future__ import annotations
 
 import math
 
 import numpy as np
 
+from lego_loam_py.core.params.types import Params
 from lego_loam_py.core.parity.atan2f_decisions import atan2f_exceeds, first_float32_where
 from lego_loam_py.core.parity.libm import float_degrees
-from lego_loam_py.core.params.types import Params
 
 __all__ = ['GroundRemoval']
 
@@ -48,21 +49,22 @@ class GroundRemoval:
         g = self.params.sensor.ground_scan_ind
         p = full.reshape(n, h, 4)
         f = filled.reshape(n, h)
-        lower, upper = p[:g], p[1:g + 1]
-        empty_pair = ~(f[:g] & f[1:g + 1])
+        lower, upper = p[:g], p[1 : g + 1]
+        empty_pair = ~(f[:g] & f[1 : g + 1])
         with np.errstate(invalid='ignore'):
             dx = upper[..., 0] - lower[..., 0]
             dy = upper[..., 1] - lower[..., 1]
             dz = upper[..., 2] - lower[..., 2]
             # The angle of (horizontal, dz) with horizontal >= 0 lies in [-pi/2, pi/2].
-            above, beyond = atan2f_exceeds(dz, np.sqrt(dx * dx + dy * dy), [self._slope_above, self._slope_at_most],
-                                           (-math.pi / 2, math.pi / 2))
+            above, beyond = atan2f_exceeds(
+                dz, np.sqrt(dx * dx + dy * dy), [self._slope_above, self._slope_at_most], (-math.pi / 2, math.pi / 2)
+            )
             slope_ok = above & ~beyond
         ground_pair = ~empty_pair & slope_ok
         # Iteration i writes row i (-1 if the pair has an empty pixel, 1 if ground) and row i+1 (1 if
         # ground); iteration i+1 runs later and may overwrite row i+1 with -1.
         mat = np.zeros((n, h), dtype=np.int8)
-        mat[1:g + 1][ground_pair] = 1
+        mat[1 : g + 1][ground_pair] = 1
         rows_i = mat[:g]
         rows_i[ground_pair] = 1
         rows_i[empty_pair] = -1
@@ -98,14 +100,14 @@ class GroundRemoval:
         top = min(g + 2, self.n_scan)
         # Contiguous coordinate planes of the rows that can hold ground (strided (n, h, 4) views are slow).
         x, y, z = (np.ascontiguousarray(p[:top, :, axis]) for axis in range(3))
-        both = f[:top - 1] & f[1:top]
+        both = f[: top - 1] & f[1:top]
         with np.errstate(invalid='ignore'):
             gap = np.hypot(x[1:] - x[:-1], y[1:] - y[:-1])
             rise = np.abs(z[1:] - z[:-1])
             reach = np.hypot(x[:-1], y[:-1])
             vertical = both & (rise > ip.ground_vertical_ratio * gap) & (gap < ip.ground_vertical_gap * reach)
         ground = ground.copy()
-        ground[:top - 1] &= ~vertical
+        ground[: top - 1] &= ~vertical
         ground[1:top] &= ~vertical
         pixels = np.flatnonzero(ground)
         if len(pixels) < 10:
@@ -127,7 +129,7 @@ class GroundRemoval:
             coef, *_ = np.linalg.lstsq(np.compress(keep, design, axis=0), ground_z[keep], rcond=None)
             refit = (np.abs(ground_z - design @ coef) <= tolerance) & (near if fit_near else True)
             if np.array_equal(refit, keep):
-                break   # the same points give the same plane again: the remaining rounds change nothing
+                break  # the same points give the same plane again: the remaining rounds change nothing
             keep = refit
         on_plane = np.zeros(top * self.horizon_scan, dtype=bool)
         on_plane[pixels] = np.abs(ground_z - design @ coef) <= tolerance

@@ -16,6 +16,7 @@ driver's cloud in firing order falls back once). Rows run from the lowest laser 
 the ring field's), counted from the first laser in the order (KITTI's last scan of a drive is cut short at its
 lower lasers).
 """
+
 from __future__ import annotations
 
 import math
@@ -25,10 +26,10 @@ import numpy as np
 __all__ = ['rows_from_laser_order', 'MIN_STEP_DEG']
 
 TWO_PI = 2.0 * math.pi
-MIN_STEP_DEG = 0.15       # an elevation step at least this large [deg] may be a change of laser
-_CUT_BIN_DEG = 1.0        # histogram bin of the steps' azimuths, and the window refining the most common one
-_RESTART_DEG = 10.0       # the angle from the cut falling back by more than this begins a laser
-_CUT_CANDIDATES = 4       # most common azimuths of the elevation steps tried as the cut
+MIN_STEP_DEG = 0.15  # an elevation step at least this large [deg] may be a change of laser
+_CUT_BIN_DEG = 1.0  # histogram bin of the steps' azimuths, and the window refining the most common one
+_RESTART_DEG = 10.0  # the angle from the cut falling back by more than this begins a laser
+_CUT_CANDIDATES = 4  # most common azimuths of the elevation steps tried as the cut
 
 
 def rows_from_laser_order(x: np.ndarray, y: np.ndarray, z: np.ndarray, n_scan: int) -> np.ndarray | None:
@@ -39,11 +40,11 @@ def rows_from_laser_order(x: np.ndarray, y: np.ndarray, z: np.ndarray, n_scan: i
     azimuth = np.arctan2(y, x, dtype=np.float64)
     step = np.diff(azimuth)
     step = np.mod(step + math.pi, TWO_PI) - math.pi
-    direction = 1.0 if float(np.median(step)) >= 0.0 else -1.0   # the way the order turns
+    direction = 1.0 if float(np.median(step)) >= 0.0 else -1.0  # the way the order turns
     elevation = np.arctan2(z, np.hypot(x, y), dtype=np.float64)
     head = max(1, len(x) // 20)
     top_first = float(np.median(elevation[:head])) > float(np.median(elevation[-head:]))
-    rise = np.diff(elevation) * (-1.0 if top_first else 1.0)     # positive where the next laser begins
+    rise = np.diff(elevation) * (-1.0 if top_first else 1.0)  # positive where the next laser begins
     starts = np.flatnonzero(rise > math.radians(MIN_STEP_DEG)) + 1
     if len(starts) < n_scan // 4:
         return None

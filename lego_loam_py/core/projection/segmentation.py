@@ -7,6 +7,7 @@ equal the BFS's clusters; labels are numbered as the BFS numbers them (by the ro
 cluster's first pixel, invalid clusters consuming no number). The components are found on a smaller graph
 with the same connectivity: the vertically joined runs of each column are its nodes.
 """
+
 from __future__ import annotations
 
 import math
@@ -15,14 +16,14 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
+from lego_loam_py.core.params.types import Params
 from lego_loam_py.core.parity.atan2f_decisions import atan2f_exceeds
 from lego_loam_py.core.parity.libm import cosf, sinf
-from lego_loam_py.core.params.types import Params
 
 __all__ = ['Segmentation', 'OUTLIER_LABEL', 'NO_LABEL']
 
-OUTLIER_LABEL = 999999   # the original's label of points in clusters that are too small
-NO_LABEL = -1            # ground or empty pixel (labelMat == -1)
+OUTLIER_LABEL = 999999  # the original's label of points in clusters that are too small
+NO_LABEL = -1  # ground or empty pixel (labelMat == -1)
 _F32 = np.float32
 
 
@@ -37,8 +38,8 @@ class Segmentation:
         alpha_y = _F32(s.ang_res_y / 180.0 * math.pi)
         self._sin_alpha = (sinf(alpha_x), sinf(alpha_y))
         self._cos_alpha = (cosf(alpha_x), cosf(alpha_y))
-        if s.beam_elevations:   # unevenly spaced beams: each row and the row above it have their own angle
-            rows_apart = np.diff(np.radians(np.asarray(s.beam_elevations, dtype=np.float64)))   # (n_scan - 1,)
+        if s.beam_elevations:  # unevenly spaced beams: each row and the row above it have their own angle
+            rows_apart = np.diff(np.radians(np.asarray(s.beam_elevations, dtype=np.float64)))  # (n_scan - 1,)
             self._sin_alpha = (self._sin_alpha[0], np.sin(rows_apart).astype(_F32))
             self._cos_alpha = (self._cos_alpha[0], np.cos(rows_apart).astype(_F32))
         self._theta = _F32(self._settings.segment_theta)
@@ -61,16 +62,16 @@ class Segmentation:
         # much less.
         node = np.ascontiguousarray(candidate.reshape(n, h).T)
         depth = np.ascontiguousarray(range_image.reshape(n, h).T)
-        joined_up = np.zeros((h, n), dtype=bool)   # joined to the pixel above (row n-1 has none)
+        joined_up = np.zeros((h, n), dtype=bool)  # joined to the pixel above (row n-1 has none)
         joined_up[:, :-1] = node[:, :-1] & node[:, 1:] & self._joins(depth[:, :-1], depth[:, 1:], 1)
-        depth_right = np.roll(depth, -1, axis=0)   # columns wrap around
+        depth_right = np.roll(depth, -1, axis=0)  # columns wrap around
         joined_right = node & np.roll(node, -1, axis=0) & self._joins(depth, depth_right, 0)
         node, joined_up = node.reshape(-1), joined_up.reshape(-1)
 
         joined_below = np.zeros(n * h, dtype=bool)
         joined_below[1:] = joined_up[:-1]
         starts_run = node & ~joined_below
-        first = np.flatnonzero(starts_run)   # runs are ranges of the column-major order
+        first = np.flatnonzero(starts_run)  # runs are ranges of the column-major order
         last = np.flatnonzero(node & ~joined_up)
         runs = len(first)
         run_length = last - first + 1
