@@ -33,6 +33,7 @@ from lego_loam_py.core.params import write_params_file
 from lego_loam_py.formats import pcd_is_complete, tum_is_complete
 from lego_loam_py.testing.malformed import set_sequence
 from lego_loam_py.testing.measure import rss_mb
+from lego_loam_py.testing.messages import restamped
 from lego_loam_py.testing.nodes import Diagnostics, publish_in_lockstep, release, spin_until, wait_for_line
 from tests.support.inprocess import (
     CAMPUS,
@@ -41,7 +42,6 @@ from tests.support.inprocess import (
     mapping_inputs,
     mapping_publishers,
     pipeline_outputs,
-    restamped,
     stamp_of,
 )
 
