@@ -10,7 +10,7 @@ from lego_loam_py.core._exports import lazy_exports
 _EXPORTS = {
     'ImuAgreement': 'agreement',
     'MIN_SPAN': 'agreement',
-    'POINT_SIGMA': 'agreement',
+    'FULL_TRUST': 'agreement',
     'WINDOW': 'agreement',
     'AlignmentFit': 'alignment',
     'GyroTrack': 'alignment',
