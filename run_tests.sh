@@ -5,4 +5,8 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 bash "$ROOT/install.sh" --quiet
 cd "$ROOT"
-exec "${LEGO_LOAM_VENV:-$ROOT/.venv}/bin/python" -m pytest "$@"
+VENV="${LEGO_LOAM_VENV:-$ROOT/.venv}"
+# The linter and the formatter first (a second or two; pyproject.toml holds their rules): CI keeps the tree clean.
+"$VENV/bin/ruff" check --quiet .
+"$VENV/bin/ruff" format --check --quiet .
+exec "$VENV/bin/python" -m pytest "$@"

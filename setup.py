@@ -1,4 +1,5 @@
 """lego_loam_py: LeGO-LOAM lidar odometry and mapping for ROS 2, in Python (ament_python package)."""
+
 import os
 from glob import glob
 
@@ -21,14 +22,24 @@ DATA_FILES = [
     (f'share/{PACKAGE}/launch', _files('launch/*.launch.py')),
 ]
 
-# Optional C helpers: libm's atan2f on arrays, for bit-exact range-image columns (lego_loam_py/core/libm.py
+# Optional C helpers: libm's atan2f on arrays, for bit-exact range-image columns (lego_loam_py/core/parity/libm.py
 # falls back to NumPy when it cannot be built).
 EXT_MODULES = [
-    Extension(f'{PACKAGE}.core._libm_compat', [f'{PACKAGE}/core/native/libm_compat.c'], libraries=['m'],
-              extra_compile_args=['-O2', '-fno-fast-math'], optional=True),
+    Extension(
+        f'{PACKAGE}.core._libm_compat',
+        [f'{PACKAGE}/core/native/libm_compat.c'],
+        libraries=['m'],
+        extra_compile_args=['-O2', '-fno-fast-math'],
+        optional=True,
+    ),
     # featureAssociation's inner loops in C (features.py and correspondences.py run NumPy/Python without it).
-    Extension(f'{PACKAGE}.core._feature_kernels', [f'{PACKAGE}/core/native/feature_kernels.c'],
-              extra_compile_args=['-O2', '-fno-fast-math', '-ffp-contract=off'], libraries=['m'], optional=True),
+    Extension(
+        f'{PACKAGE}.core._feature_kernels',
+        [f'{PACKAGE}/core/native/feature_kernels.c'],
+        extra_compile_args=['-O2', '-fno-fast-math', '-ffp-contract=off'],
+        libraries=['m'],
+        optional=True,
+    ),
 ]
 
 CONSOLE_SCRIPTS = [
@@ -44,7 +55,7 @@ if __name__ == '__main__':
         name=PACKAGE,
         version='0.1.0',
         description='LeGO-LOAM lidar odometry and mapping for ROS 2, in Python: a drop-in replacement for '
-                    'the C++ original',
+        'the C++ original',
         license='BSD-3-Clause',
         python_requires='>=3.10',
         packages=find_packages(include=[PACKAGE, f'{PACKAGE}.*']),

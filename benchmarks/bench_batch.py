@@ -8,6 +8,7 @@ The recordings are the simulator's scenarios (``--seconds`` of each, generated i
 each run with the IMU and without it: 8 runs by default. Prints both wall times, their ratio and whether every
 trajectory and map file of the batch equals the sequential run's.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -23,8 +24,14 @@ sys.path.insert(0, str(ROOT))
 from lego_loam_py.batch import run_batch  # noqa: E402
 from lego_loam_py.sim.simulator import cached_scenario  # noqa: E402
 
-COMPARED = ('trajectory.tum', 'trajectory_camera_init.tum', 'map/global_map.pcd', 'map/corner_map.pcd',
-            'map/surface_map.pcd', 'map/trajectory.pcd')
+COMPARED = (
+    'trajectory.tum',
+    'trajectory_camera_init.tum',
+    'map/global_map.pcd',
+    'map/corner_map.pcd',
+    'map/surface_map.pcd',
+    'map/trajectory.pcd',
+)
 
 
 def main() -> None:
@@ -41,8 +48,21 @@ def main() -> None:
     for bag in bags:
         for imu in (True, False):
             out = sequential / f'{bag.name}-{"imu" if imu else "no_imu"}'
-            subprocess.run([sys.executable, '-m', 'lego_loam_py.cli', 'run', str(bag), '-o', str(out), '--no-progress',
-                            *([] if imu else ['--no-imu'])], check=True, stdout=subprocess.DEVNULL)
+            subprocess.run(
+                [
+                    sys.executable,
+                    '-m',
+                    'lego_loam_py.cli',
+                    'run',
+                    str(bag),
+                    '-o',
+                    str(out),
+                    '--no-progress',
+                    *([] if imu else ['--no-imu']),
+                ],
+                check=True,
+                stdout=subprocess.DEVNULL,
+            )
     sequential_s = time.perf_counter() - start
     start = time.perf_counter()
     result = run_batch(bags, None, args.out / 'batch', imu='both', workers=args.workers, progress=True)
@@ -55,8 +75,10 @@ def main() -> None:
             if (theirs / name).is_file():
                 compared += 1
                 same += (mine / name).read_bytes() == (theirs / name).read_bytes()
-    print(f'{len(result.records)} runs ({len(result.failed)} failed): sequential {sequential_s:.1f} s, '
-          f'batch {batch_s:.1f} s = {batch_s / sequential_s:.2f}x; {same} of {compared} files identical')
+    print(
+        f'{len(result.records)} runs ({len(result.failed)} failed): sequential {sequential_s:.1f} s, '
+        f'batch {batch_s:.1f} s = {batch_s / sequential_s:.2f}x; {same} of {compared} files identical'
+    )
 
 
 if __name__ == '__main__':

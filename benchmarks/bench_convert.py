@@ -4,6 +4,7 @@
 Input: the 20 Hz VLP-16 pcap of ../shared/data repeated 20 times (38 040 packets, 50 s of sensor time, the
 device clock continued across the copies). A VLP-16 sends 754 packets/s; target: well above real time.
 """
+
 from __future__ import annotations
 
 import struct
@@ -20,7 +21,7 @@ from lego_loam_py.sensors.velodyne import PACKET_SIZE, decode_vlp16
 
 SHARED = Path(__file__).resolve().parents[2] / 'shared' / 'data'
 PCAP = SHARED / 'real' / 'vlp16_static_indoor_20hz_pcap' / 'vlp-16-test-90deg-1-50-frames.pcap'
-PACKETS_PER_SECOND = 754   # VLP-16, single return
+PACKETS_PER_SECOND = 754  # VLP-16, single return
 
 
 def repeated_stream(copies: int) -> tuple[np.ndarray, np.ndarray]:
@@ -40,8 +41,12 @@ def write_pcap(path: Path, data: np.ndarray, stamps: np.ndarray) -> None:
     records = [struct.pack('<IHHiIII', 0xA1B2C3D4, 2, 4, 0, 0, 65535, 1)]
     for stamp, payload in zip(stamps.tolist(), data):
         udp = struct.pack('>HHHH', 2368, 2368, PACKET_SIZE + 8, 0) + payload.tobytes()
-        ip = struct.pack('>BBHHHBBH4s4s', 0x45, 0, 20 + len(udp), 0, 0, 64, 17, 0, b'\xc0\xa8\x01\xc9',
-                         b'\xff\xff\xff\xff') + udp
+        ip = (
+            struct.pack(
+                '>BBHHHBBH4s4s', 0x45, 0, 20 + len(udp), 0, 0, 64, 17, 0, b'\xc0\xa8\x01\xc9', b'\xff\xff\xff\xff'
+            )
+            + udp
+        )
         frame = ethernet + ip
         records.append(struct.pack('<IIII', stamp // 10**9, stamp % 10**9 // 1000, len(frame), len(frame)) + frame)
     path.write_bytes(b''.join(records))
@@ -55,17 +60,21 @@ def main() -> None:
     start = time.perf_counter()
     rotations = decode_vlp16(data, stamps, force_model=True)
     decode = time.perf_counter() - start
-    print(f'decode only: {len(data)} packets, {len(rotations)} rotations in {decode:.2f} s = '
-          f'{len(data) / decode:.0f} packets/s, {len(rotations) / decode:.0f} rotations/s, '
-          f'x{seconds / decode:.0f} real time')
+    print(
+        f'decode only: {len(data)} packets, {len(rotations)} rotations in {decode:.2f} s = '
+        f'{len(data) / decode:.0f} packets/s, {len(rotations) / decode:.0f} rotations/s, '
+        f'x{seconds / decode:.0f} real time'
+    )
     with tempfile.TemporaryDirectory() as folder:
         pcap = Path(folder) / 'stream.pcap'
         write_pcap(pcap, data, stamps)
         start = time.perf_counter()
         summary = convert(pcap, Path(folder) / 'out', ConvertOptions(model='VLP-16'))
         total = time.perf_counter() - start
-    print(f'pcap -> mcap: {summary.rotations} rotations in {total:.2f} s = {len(data) / total:.0f} packets/s, '
-          f'x{seconds / total:.0f} real time')
+    print(
+        f'pcap -> mcap: {summary.rotations} rotations in {total:.2f} s = {len(data) / total:.0f} packets/s, '
+        f'x{seconds / total:.0f} real time'
+    )
 
 
 if __name__ == '__main__':

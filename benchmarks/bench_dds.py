@@ -3,10 +3,10 @@
     .venv/bin/python benchmarks/bench_dds.py [--rates 1 2] [--pinned 1 2] [--repeat 3] [--seconds 20] [--idle 10]
                                              [--clock 40] [--profile] [--out DIR]
 
-The recording is a simulated 20 s campus drive with IMU (VLP-16, 200 scans; ``--bag`` for another one, with
-``-p key:=value`` for the nodes' parameters, e.g. a real HDL-64E drive: ``lego_loam_py convert`` a KITTI folder,
-then ``--bag BAG -p sensor.preset:=HDL-64E``), generated into the cache on first use. For each configuration the four nodes are started with
-``ros2 run``-style executables on sim time (as with a bag), this process waits until they are up and
+The recording is a simulated 20 s campus drive with IMU (VLP-16, 200 scans; ``--bag`` for another one, with ``-p
+key:=value`` for the nodes' parameters, e.g. a real HDL-64E drive: ``lego_loam_py convert`` a KITTI folder, then ``--bag
+BAG -p sensor.preset:=HDL-64E``), generated into the cache on first use. For each configuration the four nodes are
+started with ``ros2 run``-style executables on sim time (as with a bag), this process waits until they are up and
 measures, per node, from /proc:
 
 * **idle CPU**: % of a core over ``--idle`` seconds with no data flowing (the player not started yet);
@@ -23,6 +23,7 @@ machine varies by 10-20 % from run to run). The JSON also splits each node's CPU
 thread, Fast DDS's dds.* threads) and gives its system time; ``--profile`` samples every node with py-spy.
 Results are printed as a table and written to ``DIR/bench_dds.json``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -42,15 +43,14 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from lego_loam_py.core.params import parse_overrides, write_params_file  # noqa: E402
-from tests.support.domains import DomainLease  # noqa: E402
-from tests.support.measure import rss_mb  # noqa: E402
-from tests.support.ros import spin_in_background  # noqa: E402
+from lego_loam_py.testing.domains import DomainLease  # noqa: E402
+from lego_loam_py.testing.measure import rss_mb  # noqa: E402
+from lego_loam_py.testing.nodes import spin_in_background  # noqa: E402
 
 BIN = Path(sys.executable).parent
 NODES = ('imageProjection', 'featureAssociation', 'mapOptimization', 'transformFusion')
 # The C++ original on the same kind of recording (the issue's measurement: 200-scan VLP-16 + IMU campus, 1x).
-CPP_MS_PER_SCAN = {'imageProjection': 4.3, 'featureAssociation': 7.5, 'mapOptimization': 16.2,
-                   'transformFusion': 1.2}
+CPP_MS_PER_SCAN = {'imageProjection': 4.3, 'featureAssociation': 7.5, 'mapOptimization': 16.2, 'transformFusion': 1.2}
 
 
 def cpu_seconds(pid: int, system_only: bool = False) -> float:
@@ -79,11 +79,21 @@ def thread_cpu_seconds(pid: int) -> dict[str, float]:
 
 def default_bag(seconds: float) -> Path:
     from lego_loam_py.sim.simulator import cached_scenario
+
     return cached_scenario('campus', duration=seconds, progress=True)
 
 
-def run_configuration(bag: Path, out: Path, rate: float, pinned: bool, idle: float, profile: bool = False,
-                      clock_hz: float = 40.0, run: int = 0, overrides: dict | None = None) -> dict:
+def run_configuration(
+    bag: Path,
+    out: Path,
+    rate: float,
+    pinned: bool,
+    idle: float,
+    profile: bool = False,
+    clock_hz: float = 40.0,
+    run: int = 0,
+    overrides: dict | None = None,
+) -> dict:
     """Start the nodes, measure idle, play the bag at ``rate``, measure; returns the row."""
     import rclpy
     from nav_msgs.msg import Odometry
@@ -100,19 +110,29 @@ def run_configuration(bag: Path, out: Path, rate: float, pinned: bool, idle: flo
     folder = out / (label.replace(' ', '_').replace(',', '') + (f'_run{run}' if run else ''))
     (folder / 'logs').mkdir(parents=True, exist_ok=True)
     params = folder / 'params.yaml'
-    write_params_file(params, {'use_sim_time': True, 'map_optimization.file_directory': folder / 'maps',
-                               **(overrides or {})})
+    write_params_file(
+        params, {'use_sim_time': True, 'map_optimization.file_directory': folder / 'maps', **(overrides or {})}
+    )
     taskset = ['taskset', '-c', '0'] if pinned else []
     if pinned:
-        os.sched_setaffinity(0, {1})   # this process (the listener) and the player on the other core
+        os.sched_setaffinity(0, {1})  # this process (the listener) and the player on the other core
     with DomainLease() as domain:
-        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-                   LEGO_LOAM_PY_STATS_DIR=str(folder / 'stats'))
+        env = dict(
+            os.environ,
+            ROS_DOMAIN_ID=str(domain),
+            ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+            LEGO_LOAM_PY_STATS_DIR=str(folder / 'stats'),
+        )
         procs = {}
         for name in NODES:
             with open(folder / 'logs' / f'{name}.log', 'w') as log:
-                procs[name] = subprocess.Popen([*taskset, str(BIN / name), '--ros-args', '--params-file', str(params)],
-                                               stdout=log, stderr=log, env=env, start_new_session=True)
+                procs[name] = subprocess.Popen(
+                    [*taskset, str(BIN / name), '--ros-args', '--params-file', str(params)],
+                    stdout=log,
+                    stderr=log,
+                    env=env,
+                    start_new_session=True,
+                )
         context = Context()
         rclpy.init(context=context, domain_id=domain)
         node = rclpy.create_node('bench_dds', context=context)
@@ -140,12 +160,14 @@ def run_configuration(bag: Path, out: Path, rate: float, pinned: bool, idle: flo
         sampler.start()
         try:
             deadline = time.monotonic() + 120
-            while not all(node.count_publishers(t) for t in ('/segmented_cloud', '/laser_odom_to_init',
-                                                              '/aft_mapped_to_init', '/integrated_to_init')):
+            while not all(
+                node.count_publishers(t)
+                for t in ('/segmented_cloud', '/laser_odom_to_init', '/aft_mapped_to_init', '/integrated_to_init')
+            ):
                 if time.monotonic() > deadline or any(p.poll() is not None for p in procs.values()):
                     raise RuntimeError('the nodes did not come up')
                 time.sleep(0.1)
-            time.sleep(2.0)   # discovery settles, start-up work (imports, first allocations) is over
+            time.sleep(2.0)  # discovery settles, start-up work (imports, first allocations) is over
             before_idle = {name: cpu_seconds(p.pid) for name, p in procs.items()}
             time.sleep(idle)
             after_idle = {name: cpu_seconds(p.pid) for name, p in procs.items()}
@@ -155,9 +177,24 @@ def run_configuration(bag: Path, out: Path, rate: float, pinned: bool, idle: flo
             start_threads = {name: thread_cpu_seconds(p.pid) for name, p in procs.items()}
             start_system = {name: cpu_seconds(p.pid, system_only=True) for name, p in procs.items()}
             played = time.monotonic()
-            player = subprocess.run([str(BIN / 'lego_loam_py'), 'play', str(bag), '--rate', f'{rate:g}',
-                                     '--wait-for-subscribers', '30', '--no-progress', '--clock', f'{clock_hz:g}'], env=env,
-                                    capture_output=True, text=True, timeout=600)
+            player = subprocess.run(
+                [
+                    str(BIN / 'lego_loam_py'),
+                    'play',
+                    str(bag),
+                    '--rate',
+                    f'{rate:g}',
+                    '--wait-for-subscribers',
+                    '30',
+                    '--no-progress',
+                    '--clock',
+                    f'{clock_hz:g}',
+                ],
+                env=env,
+                capture_output=True,
+                text=True,
+                timeout=600,
+            )
             # The last scans through the pipeline: until no fused pose came for a second.
             while True:
                 with lock:
@@ -187,26 +224,44 @@ def run_configuration(bag: Path, out: Path, rate: float, pinned: bool, idle: flo
             stop.set()
             spinner.join(timeout=2)
             from lego_loam_py.ros.runtime import finish_within
-            finish_within(lambda: (executor.shutdown(timeout_sec=1), node.destroy_node(),
-                                   rclpy.try_shutdown(context=context)), 'the benchmark node shutdown', 10.0)
+
+            finish_within(
+                lambda: (executor.shutdown(timeout_sec=1), node.destroy_node(), rclpy.try_shutdown(context=context)),
+                'the benchmark node shutdown',
+                10.0,
+            )
             if pinned:
                 os.sched_setaffinity(0, set(range(os.cpu_count() or 1)))
     ate = _ate(bag, fused)
     nodes = {}
     for name in NODES:
         ms = 1000.0 * (end[name] - start[name]) / scans
-        nodes[name] = dict(cpu_ms_per_scan=round(ms, 1), vs_cpp=round(ms / CPP_MS_PER_SCAN[name], 2),
-                           idle_cpu_percent=round(100.0 * (after_idle[name] - before_idle[name]) / idle, 2),
-                           peak_rss_mb=round(peak[name], 1), exit_code=codes[name],
-                           system_ms_per_scan=round(1000.0 * (end_system[name] - start_system[name]) / scans, 1),
-                           threads_ms_per_scan={thread: round(1000.0 * (seconds - start_threads[name].get(thread, 0.0))
-                                                               / scans, 2)
-                                                for thread, seconds in sorted(end_threads[name].items())
-                                                if seconds - start_threads[name].get(thread, 0.0) > 0})
-    return dict(configuration=label, rate=rate, pinned=pinned, scans=scans, fused=len(fused),
-                fused_percent=round(100.0 * len(fused) / scans, 1), ate_rmse_m=ate, wall_s=round(wall, 1),
-                player=player.stderr.strip().splitlines()[-1:] if player.stderr else [],
-                total_cpu_ms_per_scan=round(sum(n['cpu_ms_per_scan'] for n in nodes.values()), 1), nodes=nodes)
+        nodes[name] = dict(
+            cpu_ms_per_scan=round(ms, 1),
+            vs_cpp=round(ms / CPP_MS_PER_SCAN[name], 2),
+            idle_cpu_percent=round(100.0 * (after_idle[name] - before_idle[name]) / idle, 2),
+            peak_rss_mb=round(peak[name], 1),
+            exit_code=codes[name],
+            system_ms_per_scan=round(1000.0 * (end_system[name] - start_system[name]) / scans, 1),
+            threads_ms_per_scan={
+                thread: round(1000.0 * (seconds - start_threads[name].get(thread, 0.0)) / scans, 2)
+                for thread, seconds in sorted(end_threads[name].items())
+                if seconds - start_threads[name].get(thread, 0.0) > 0
+            },
+        )
+    return dict(
+        configuration=label,
+        rate=rate,
+        pinned=pinned,
+        scans=scans,
+        fused=len(fused),
+        fused_percent=round(100.0 * len(fused) / scans, 1),
+        ate_rmse_m=ate,
+        wall_s=round(wall, 1),
+        player=player.stderr.strip().splitlines()[-1:] if player.stderr else [],
+        total_cpu_ms_per_scan=round(sum(n['cpu_ms_per_scan'] for n in nodes.values()), 1),
+        nodes=nodes,
+    )
 
 
 def _start_profilers(procs: dict, folder: Path) -> list:
@@ -218,9 +273,26 @@ def _start_profilers(procs: dict, folder: Path) -> list:
     if not Path(spy).exists():
         raise SystemExit('--profile needs py-spy (pip install py-spy)')
     (folder / 'profile').mkdir(exist_ok=True)
-    return [subprocess.Popen([spy, 'record', '--pid', str(p.pid), '--rate', '250', '--format', 'raw', '--nonblocking',
-                              '-o', str(folder / 'profile' / f'{name}.txt')],
-                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for name, p in procs.items()]
+    return [
+        subprocess.Popen(
+            [
+                spy,
+                'record',
+                '--pid',
+                str(p.pid),
+                '--rate',
+                '250',
+                '--format',
+                'raw',
+                '--nonblocking',
+                '-o',
+                str(folder / 'profile' / f'{name}.txt'),
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        for name, p in procs.items()
+    ]
 
 
 def profile_summary(path: Path, top: int = 15) -> str:
@@ -236,10 +308,14 @@ def profile_summary(path: Path, top: int = 15) -> str:
         for frame in set(frames):
             total[frame] = total.get(frame, 0) + int(count)
     lines = [f'{path.stem}: {samples} samples']
-    lines += [f'  self {100 * n / samples:5.1f} %  {name[:150]}' for name, n in
-              sorted(own.items(), key=lambda kv: -kv[1])[:top]]
-    lines += [f'  total {100 * n / samples:5.1f} %  {name[:150]}' for name, n in
-              sorted(total.items(), key=lambda kv: -kv[1])[:top]]
+    lines += [
+        f'  self {100 * n / samples:5.1f} %  {name[:150]}'
+        for name, n in sorted(own.items(), key=lambda kv: -kv[1])[:top]
+    ]
+    lines += [
+        f'  total {100 * n / samples:5.1f} %  {name[:150]}'
+        for name, n in sorted(total.items(), key=lambda kv: -kv[1])[:top]
+    ]
     return '\n'.join(lines)
 
 
@@ -265,7 +341,7 @@ def median_row(runs: list[dict]) -> dict:
 def _ate(bag: Path, fused: list) -> float | None:
     from lego_loam_py.core.frames import camera_pose_to_lidar
     from lego_loam_py.evaluation import evaluate
-    from lego_loam_py.sim.output import load_ground_truth
+    from lego_loam_py.inputs.sidecars import load_ground_truth
 
     truth = load_ground_truth(bag)
     if truth is None or len(fused) < 3:
@@ -283,16 +359,23 @@ def print_table(rows: list[dict]) -> None:
     print('\n| configuration | node | CPU ms per scan (x C++) | idle CPU | peak RSS | scans fused | ATE |')
     print('|---|---|---|---|---|---|---|')
     for row in rows:
+        fused = f'{row["fused"]} / {row["scans"]} ({row["fused_percent"]} %)'
         for k, (name, n) in enumerate(row['nodes'].items()):
             first = k == 0
-            print(f"| {row['configuration'] if first else ''} | {name} | {n['cpu_ms_per_scan']} ({n['vs_cpp']}x) | "
-                  f"{n['idle_cpu_percent']} % | {n['peak_rss_mb']} MB | "
-                  f"{(str(row['fused']) + ' / ' + str(row['scans']) + ' (' + str(row['fused_percent']) + ' %)') if first else ''} | "
-                  f"{(str(row['ate_rmse_m']) + ' m') if first else ''} |")
+            print(
+                f'| {row["configuration"] if first else ""} | {name} | {n["cpu_ms_per_scan"]} ({n["vs_cpp"]}x) | '
+                f'{n["idle_cpu_percent"]} % | {n["peak_rss_mb"]} MB | '
+                f'{fused if first else ""} | '
+                f'{(str(row["ate_rmse_m"]) + " m") if first else ""} |'
+            )
         cpp = sum(CPP_MS_PER_SCAN.values())
-        runs = f" (median of {row['runs']} runs: {', '.join(str(t) for t in row['run_totals'])})" if 'runs' in row else ''
-        print(f"| | **total** | **{row['total_cpu_ms_per_scan']}** ({row['total_cpu_ms_per_scan'] / cpp:.2f}x the "
-              f"C++'s {cpp:.1f}){runs} | | | | |")
+        runs = (
+            f' (median of {row["runs"]} runs: {", ".join(str(t) for t in row["run_totals"])})' if 'runs' in row else ''
+        )
+        print(
+            f'| | **total** | **{row["total_cpu_ms_per_scan"]}** ({row["total_cpu_ms_per_scan"] / cpp:.2f}x the '
+            f"C++'s {cpp:.1f}){runs} | | | | |"
+        )
 
 
 def main(argv=None) -> int:
@@ -300,18 +383,33 @@ def main(argv=None) -> int:
     parser.add_argument('--bag', default=None, help='recording (default: simulated campus drive with IMU)')
     parser.add_argument('--seconds', type=float, default=20.0, help='length of the default recording [s]')
     parser.add_argument('--rates', type=float, nargs='*', default=[1.0], help='rates with the nodes on both cores')
-    parser.add_argument('--pinned', type=float, nargs='*', default=[1.0, 2.0],
-                        help='rates with the four nodes pinned to one core')
+    parser.add_argument(
+        '--pinned', type=float, nargs='*', default=[1.0, 2.0], help='rates with the four nodes pinned to one core'
+    )
     parser.add_argument('--idle', type=float, default=10.0, help='seconds of idle measurement')
     parser.add_argument('--out', default='/tmp/lego_loam_bench_dds')
-    parser.add_argument('--repeat', type=int, default=1,
-                        help='runs of each configuration; the table shows the median of each figure')
-    parser.add_argument('--clock', type=float, default=40.0, help='/clock rate of the player [Hz] (default 40, '
-                        'as ros2 bag play --clock)')
-    parser.add_argument('-p', '--param', action='append', default=[], metavar='KEY:=VALUE',
-                        help='a parameter of the nodes, e.g. -p sensor.preset:=HDL-64E (repeatable)')
-    parser.add_argument('--profile', action='store_true',
-                        help='sample every node with py-spy while playing (adds CPU on the other core)')
+    parser.add_argument(
+        '--repeat', type=int, default=1, help='runs of each configuration; the table shows the median of each figure'
+    )
+    parser.add_argument(
+        '--clock',
+        type=float,
+        default=40.0,
+        help='/clock rate of the player [Hz] (default 40, as ros2 bag play --clock)',
+    )
+    parser.add_argument(
+        '-p',
+        '--param',
+        action='append',
+        default=[],
+        metavar='KEY:=VALUE',
+        help='a parameter of the nodes, e.g. -p sensor.preset:=HDL-64E (repeatable)',
+    )
+    parser.add_argument(
+        '--profile',
+        action='store_true',
+        help='sample every node with py-spy while playing (adds CPU on the other core)',
+    )
     args = parser.parse_args(argv)
     bag = Path(args.bag) if args.bag else default_bag(args.seconds)
     out = Path(args.out)
@@ -321,12 +419,27 @@ def main(argv=None) -> int:
         for rate in rates:
             runs = []
             for run in range(args.repeat):
-                runs.append(run_configuration(bag, out, rate, pinned, args.idle, args.profile, args.clock,
-                                              run + 1 if args.repeat > 1 else 0, parse_overrides(args.param)))
+                runs.append(
+                    run_configuration(
+                        bag,
+                        out,
+                        rate,
+                        pinned,
+                        args.idle,
+                        args.profile,
+                        args.clock,
+                        run + 1 if args.repeat > 1 else 0,
+                        parse_overrides(args.param),
+                    )
+                )
                 print(json.dumps(runs[-1]), flush=True)
             rows.append(median_row(runs))
-    summary = dict(bag=str(bag), machine=f'{platform.processor() or platform.machine()}, {os.cpu_count()} cores',
-                   load_average_at_start=[round(x, 2) for x in load], rows=rows)
+    summary = dict(
+        bag=str(bag),
+        machine=f'{platform.processor() or platform.machine()}, {os.cpu_count()} cores',
+        load_average_at_start=[round(x, 2) for x in load],
+        rows=rows,
+    )
     out.mkdir(parents=True, exist_ok=True)
     (out / 'bench_dds.json').write_text(json.dumps(summary, indent=2))
     print_table(rows)

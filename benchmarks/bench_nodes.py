@@ -11,6 +11,7 @@ Prints median and p95 ms per scan for:
 Targets (issues): imageProjection core <= 10 ms, callback <= 20 ms; featureAssociation <= 25 ms; mapping
 <= 100 ms per step on the campus scenario.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,10 +28,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import summary  # noqa: E402
 
 from lego_loam_py.bag.io import BagReader, cloud_msg_to_array  # noqa: E402
-from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput  # noqa: E402
-from lego_loam_py.core.image_projection import ImageProjection, ProjectionInput, prepare_input  # noqa: E402
-from lego_loam_py.core.map_optimization import MapOptimization  # noqa: E402
+from lego_loam_py.core.mapping.map_optimization import MapOptimization  # noqa: E402
+from lego_loam_py.core.odometry.feature_association import FeatureAssociation, ScanInput  # noqa: E402
 from lego_loam_py.core.params import Params  # noqa: E402
+from lego_loam_py.core.projection.image_projection import ImageProjection, ProjectionInput, prepare_input  # noqa: E402
 from lego_loam_py.sim.simulator import cached_scenario  # noqa: E402
 
 CAMPUS_LAP_S = 238.7
@@ -84,15 +85,20 @@ def bench_image_projection(scans: int) -> None:
         clouds = [c for kind, _, c in bag_scans(bag, scans) if kind == 'cloud']
         inputs = [prepare_input(c, p) for c in clouds]
         core.process(inputs[0])
-        print(summary(f'core, simulated {preset} campus ({np.mean([len(c) for c in clouds]):.0f} points)',
-                      time_each(core.process, inputs)))
+        print(
+            summary(
+                f'core, simulated {preset} campus ({np.mean([len(c) for c in clouds]):.0f} points)',
+                time_each(core.process, inputs),
+            )
+        )
     # The node callback with conversions, in-process (no subscriber: publishing costs the message build).
     import rclpy
     from rclpy.context import Context
-    from tests.support.domains import DomainLease
 
     from lego_loam_py.ros.conversions import array_to_cloud_msg, make_header
     from lego_loam_py.ros.image_projection_node import ImageProjectionNode
+    from lego_loam_py.testing.domains import DomainLease
+
     bag = cached_scenario('campus', duration=max(2.0, scans / 10 + 1))
     clouds = [c for kind, _, c in bag_scans(bag, scans) if kind == 'cloud']
     messages = [array_to_cloud_msg(c, make_header(k * 100_000_000, 'velodyne')) for k, c in enumerate(clouds)]
@@ -143,6 +149,7 @@ def bench_feature_association(scans: int) -> None:
 def bench_mapping(quick: bool) -> None:
     print('== mapOptimization')
     from lego_loam_py.offline import run_bag
+
     # Two laps of the campus loop (about 1200 keyframes; on the second lap the map around the car holds both
     # laps' keyframes): the cost and memory at 100, 500 and 1000 keyframes. Sequential, so that the step
     # times are the mapping's own, not shared with the other cores on the offline run's threads.
@@ -161,11 +168,15 @@ def bench_mapping(quick: bool) -> None:
     for target in (100, 500, 1000):
         near = np.flatnonzero((keyframes >= target * 0.9) & (keyframes <= target * 1.1))
         if len(near):
-            print(f'  at ~{target:4d} keyframes: step median {np.median(times[near]):6.1f} ms, '
-                  f'process RSS {np.median(memory[near]):7.1f} MiB ({np.median(memory[near]) - memory[0]:+6.1f} '
-                  f'MiB since the first step)')
-    print(f'  {result.counts.get("keyframes", 0)} keyframes, {len(steps)} steps, offline '
-          f'{result.bag_duration / result.wall_time:.2f}x real time')
+            print(
+                f'  at ~{target:4d} keyframes: step median {np.median(times[near]):6.1f} ms, '
+                f'process RSS {np.median(memory[near]):7.1f} MiB ({np.median(memory[near]) - memory[0]:+6.1f} '
+                f'MiB since the first step)'
+            )
+    print(
+        f'  {result.counts.get("keyframes", 0)} keyframes, {len(steps)} steps, offline '
+        f'{result.bag_duration / result.wall_time:.2f}x real time'
+    )
 
 
 def rss_bytes() -> int:

@@ -7,6 +7,7 @@ temporary .rrd, ``--rounds`` times each, and prints the process CPU time per sca
 the mapping worker's and Rerun's own encoder and writer threads) and wall time, medians over the rounds, and the
 viewer's share. Outputs are checked to be the same with and without the viewer.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -32,12 +33,13 @@ def one_run(bag: Path, viewer: bool, workdir: Path) -> tuple[float, float, int, 
         if viewer:
             from lego_loam_py.viewer.pipeline_view import PipelineView
             from lego_loam_py.viewer.scene import SceneLog
+
             view = PipelineView(SceneLog(source.name, save=rrd), source.ground_truth())
         cpu, wall = time.process_time(), time.perf_counter()
         result = run_source(source, Params(), progress=False, listener=view)
         if view is not None:
             view.finish()
-            view.scene.rec.disconnect()   # (the file is complete once the sink is closed)
+            view.scene.rec.disconnect()  # (the file is complete once the sink is closed)
         cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
     size = rrd.stat().st_size if rrd.exists() else 0
     return cpu, wall, result.counts['scans_in'], np.array(result.integrated), size
@@ -51,7 +53,7 @@ def main() -> None:
     figures = {False: [], True: []}
     reference = None
     with tempfile.TemporaryDirectory() as tmp:
-        one_run(args.bag, True, Path(tmp))   # warm-up: imports, caches, Rerun's threads
+        one_run(args.bag, True, Path(tmp))  # warm-up: imports, caches, Rerun's threads
         for _ in range(args.rounds):
             for viewer in (False, True):
                 cpu, wall, scans, poses, size = one_run(args.bag, viewer, Path(tmp))
@@ -69,7 +71,10 @@ def main() -> None:
     with_viewer = statistics.median(f[0] for f in figures[True])
     base_wall = statistics.median(f[1] for f in figures[False])
     viewer_wall = statistics.median(f[1] for f in figures[True])
-    print(f'viewer cost: CPU +{100 * (with_viewer - base) / base:.1f} %, wall +{100 * (viewer_wall - base_wall) / base_wall:.1f} %')
+    print(
+        f'viewer cost: CPU +{100 * (with_viewer - base) / base:.1f} %, '
+        f'wall +{100 * (viewer_wall - base_wall) / base_wall:.1f} %'
+    )
 
 
 if __name__ == '__main__':

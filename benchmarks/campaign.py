@@ -7,7 +7,7 @@
 The four nodes run as processes (``ros2 run`` executables) on a leased ROS_DOMAIN_ID with loopback discovery.
 This process feeds them the committed campus recording one scan at a time (lockstep: the next scan once the
 previous one's /integrated_to_init is out, or after 2 s) and, between those scans, bursts of malformed
-messages on each topic a node subscribes to, from ``tests/support/malformed.py`` (every field of every
+messages on each topic a node subscribes to, from ``lego_loam_py/testing/malformed.py`` (every field of every
 message type: boundary and absurd values, broken layouts, other lengths, stamps far away; a few clouds of
 2,000,000 points). After each burst the valid scans resume, and for every node it measures:
 
@@ -22,6 +22,7 @@ message type: boundary and absurd values, broken layouts, other lengths, stamps 
 
 It prints a table and writes ``summary.json`` into ``--out``. Nothing leaves 127.0.0.1.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -41,37 +42,53 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from lego_loam_py.core.io import pcd_is_complete  # noqa: E402
-from tests.support.domains import DomainLease  # noqa: E402
-from tests.support.inprocess import restamped, stamp_of  # noqa: E402
-from tests.support.malformed import MUTATORS  # noqa: E402
-from tests.support.measure import rss_mb  # noqa: E402
-from tests.support.ros import spin_in_background  # noqa: E402
+from lego_loam_py.formats import pcd_is_complete  # noqa: E402
+from lego_loam_py.testing.domains import DomainLease  # noqa: E402
+from lego_loam_py.testing.malformed import MUTATORS  # noqa: E402
+from lego_loam_py.testing.measure import rss_mb  # noqa: E402
+from lego_loam_py.testing.messages import restamped, stamp_of  # noqa: E402
+from lego_loam_py.testing.nodes import spin_in_background  # noqa: E402
 
 BIN = Path(sys.executable).parent
 BAG = REPO / 'bags' / 'campus_8s'
 NODES = ('imageProjection', 'featureAssociation', 'mapOptimization', 'transformFusion')
-OUTPUT = {'imageProjection': '/segmented_cloud', 'featureAssociation': '/laser_odom_to_init',
-          'mapOptimization': '/aft_mapped_to_init', 'transformFusion': '/integrated_to_init'}
-SUBSCRIBERS = {   # topic -> the nodes that subscribe to it
+OUTPUT = {
+    'imageProjection': '/segmented_cloud',
+    'featureAssociation': '/laser_odom_to_init',
+    'mapOptimization': '/aft_mapped_to_init',
+    'transformFusion': '/integrated_to_init',
+}
+SUBSCRIBERS = {  # topic -> the nodes that subscribe to it
     '/velodyne_points': ('imageProjection',),
-    '/segmented_cloud': ('featureAssociation',), '/segmented_cloud_info': ('featureAssociation',),
-    '/outlier_cloud': ('featureAssociation',), '/imu/data': ('featureAssociation', 'mapOptimization'),
-    '/laser_cloud_corner_last': ('mapOptimization',), '/laser_cloud_surf_last': ('mapOptimization',),
-    '/outlier_cloud_last': ('mapOptimization',), '/laser_odom_to_init': ('mapOptimization', 'transformFusion'),
+    '/segmented_cloud': ('featureAssociation',),
+    '/segmented_cloud_info': ('featureAssociation',),
+    '/outlier_cloud': ('featureAssociation',),
+    '/imu/data': ('featureAssociation', 'mapOptimization'),
+    '/laser_cloud_corner_last': ('mapOptimization',),
+    '/laser_cloud_surf_last': ('mapOptimization',),
+    '/outlier_cloud_last': ('mapOptimization',),
+    '/laser_odom_to_init': ('mapOptimization', 'transformFusion'),
     '/aft_mapped_to_init': ('transformFusion',),
 }
-CLOUD_TOPICS = ('/velodyne_points', '/segmented_cloud', '/outlier_cloud', '/laser_cloud_corner_last',
-                '/laser_cloud_surf_last', '/outlier_cloud_last')
-RESUME_SCANS = 8          # valid scans after each burst (0.8 s of data) ...
-SILENT_SCANS = 20         # ... and up to this many while a node is still without output (the nodes' watchdog)
-SCAN_TIMEOUT_S = 2.0      # lockstep: the next scan after this long without the previous one's fused pose
+CLOUD_TOPICS = (
+    '/velodyne_points',
+    '/segmented_cloud',
+    '/outlier_cloud',
+    '/laser_cloud_corner_last',
+    '/laser_cloud_surf_last',
+    '/outlier_cloud_last',
+)
+RESUME_SCANS = 8  # valid scans after each burst (0.8 s of data) ...
+SILENT_SCANS = 20  # ... and up to this many while a node is still without output (the nodes' watchdog)
+SCAN_TIMEOUT_S = 2.0  # lockstep: the next scan after this long without the previous one's fused pose
 
 
 def message_type(topic: str):
-    from cloud_msgs.msg import CloudInfo
     from nav_msgs.msg import Odometry
     from sensor_msgs.msg import Imu, PointCloud2
+
+    from cloud_msgs.msg import CloudInfo
+
     if topic == '/segmented_cloud_info':
         return CloudInfo
     if topic == '/imu/data':
@@ -86,6 +103,7 @@ def finite(msg) -> bool:
         p, q = msg.pose.pose.position, msg.pose.pose.orientation
         return bool(np.isfinite([p.x, p.y, p.z, q.x, q.y, q.z, q.w]).all())
     from lego_loam_py.ros.conversions import cloud_msg_to_xyzi
+
     return bool(np.isfinite(cloud_msg_to_xyzi(msg)).all())
 
 
@@ -98,38 +116,50 @@ class Campaign:
         from rclpy.executors import SingleThreadedExecutor
 
         from lego_loam_py.ros import qos
-        from tests.support.ros import Diagnostics
+        from lego_loam_py.testing.nodes import Diagnostics
 
         self.out = out
         (out / 'logs').mkdir(parents=True, exist_ok=True)
         params = out / 'params.yaml'
         params.write_text(f'/**:\n  ros__parameters:\n    map_optimization:\n      file_directory: {out / "maps"}\n')
-        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-                   LEGO_LOAM_PY_STATS_DIR=str(out / 'stats'))
+        env = dict(
+            os.environ,
+            ROS_DOMAIN_ID=str(domain),
+            ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+            LEGO_LOAM_PY_STATS_DIR=str(out / 'stats'),
+        )
         self.procs = {}
         for name in NODES:
             with open(out / 'logs' / f'{name}.log', 'w') as log:
-                self.procs[name] = subprocess.Popen([str(BIN / name), '--ros-args', '--params-file', str(params)],
-                                                    stdout=log, stderr=log, env=env, start_new_session=True)
+                self.procs[name] = subprocess.Popen(
+                    [str(BIN / name), '--ros-args', '--params-file', str(params)],
+                    stdout=log,
+                    stderr=log,
+                    env=env,
+                    start_new_session=True,
+                )
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain)
         self.node = rclpy.create_node('campaign', context=self.context)
         self.lock = threading.Lock()
-        self.outputs: dict[str, list] = {n: [] for n in NODES}       # (arrival, stamp) of every output
+        self.outputs: dict[str, list] = {n: [] for n in NODES}  # (arrival, stamp) of every output
         self.non_finite: dict[str, int] = defaultdict(int)
-        self.templates: dict[str, list] = defaultdict(list)          # valid messages of every topic
+        self.templates: dict[str, list] = defaultdict(list)  # valid messages of every topic
         self.fused = threading.Condition(self.lock)
-        self._own: dict[str, set] = {}   # topic -> DDS ids of this process's publishers (its own messages)
+        self._own: dict[str, set] = {}  # topic -> DDS ids of this process's publishers (its own messages)
         for name, topic in OUTPUT.items():
-            self.node.create_subscription(message_type(topic), topic,
-                                          lambda m, info, _n=name: self._on_output(_n, m, info), qos.reliable(100))
+            self.node.create_subscription(
+                message_type(topic), topic, lambda m, info, _n=name: self._on_output(_n, m, info), qos.reliable(100)
+            )
         for topic in SUBSCRIBERS:
             if topic not in OUTPUT.values() and topic not in ('/velodyne_points', '/imu/data'):
-                self.node.create_subscription(message_type(topic), topic,
-                                              lambda m, info, _t=topic: self._keep(_t, m, info), qos.reliable(10))
+                self.node.create_subscription(
+                    message_type(topic), topic, lambda m, info, _t=topic: self._keep(_t, m, info), qos.reliable(10)
+                )
         self.diagnostics = Diagnostics(self.node)
-        self.publishers = {topic: self.node.create_publisher(message_type(topic), topic, qos.reliable(100))
-                           for topic in SUBSCRIBERS}
+        self.publishers = {
+            topic: self.node.create_publisher(message_type(topic), topic, qos.reliable(100)) for topic in SUBSCRIBERS
+        }
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._stop = threading.Event()
@@ -154,8 +184,11 @@ class Campaign:
         if data is None:
             return False
         if data not in self._own.get(topic, set()):
-            self._own[topic] = {bytes(i.endpoint_gid) for i in self.node.get_publishers_info_by_topic(topic)
-                                if i.node_name == 'campaign'}
+            self._own[topic] = {
+                bytes(i.endpoint_gid)
+                for i in self.node.get_publishers_info_by_topic(topic)
+                if i.node_name == 'campaign'
+            }
         return data in self._own[topic]
 
     def _on_output(self, node: str, msg, info) -> None:
@@ -182,7 +215,7 @@ class Campaign:
 
         from lego_loam_py.bag.io import BagReader
 
-        self.scans: list[tuple[object, list]] = []   # (cloud, IMU samples recorded before it)
+        self.scans: list[tuple[object, list]] = []  # (cloud, IMU samples recorded before it)
         imu = []
         with BagReader(BAG) as reader:
             self.lap_ns = reader.end_time - reader.start_time + 100_000_000
@@ -203,8 +236,9 @@ class Campaign:
             dead = self.crashed()
             if dead:
                 raise RuntimeError(f'{dead} exited: {self.log(dead[0])[-2000:]}')
-            if all(self.node.count_publishers(t) > 0 for t in OUTPUT.values()) and \
-                    all(self.node.count_subscribers(t) >= (2 if t in internal else 1) for t in SUBSCRIBERS):
+            if all(self.node.count_publishers(t) > 0 for t in OUTPUT.values()) and all(
+                self.node.count_subscribers(t) >= (2 if t in internal else 1) for t in SUBSCRIBERS
+            ):
                 return
             time.sleep(0.1)
         raise RuntimeError('the nodes did not come up')
@@ -246,8 +280,10 @@ class Campaign:
                     time.sleep(delay)
                 continue
             with self.lock:
-                self.fused.wait_for(lambda: any(s >= stamp for _, s in self.outputs['transformFusion'][count_before:]),
-                                    timeout=SCAN_TIMEOUT_S)
+                self.fused.wait_for(
+                    lambda: any(s >= stamp for _, s in self.outputs['transformFusion'][count_before:]),
+                    timeout=SCAN_TIMEOUT_S,
+                )
         return sent
 
     def burst(self, topic: str, count: int, rng, huge: int = 0, rate: float = 200.0) -> int:
@@ -262,8 +298,9 @@ class Campaign:
         clock = self.clock_ns()
         start = time.monotonic()
         for k in range(count):
-            template = restamped(templates[int(rng.integers(len(templates)))],
-                                 clock + int(rng.integers(-150_000_000, 150_000_000)))
+            template = restamped(
+                templates[int(rng.integers(len(templates)))], clock + int(rng.integers(-150_000_000, 150_000_000))
+            )
             if k < huge:
                 msg = mutate(rng, template, huge=True)
             else:
@@ -286,10 +323,19 @@ class Campaign:
                 codes[name] = proc.wait()
         self._stop.set()
         self._spinner.join(timeout=2)
-        from lego_loam_py.ros.runtime import finish_within
         import rclpy
-        finish_within(lambda: (self.executor.shutdown(timeout_sec=1), self.node.destroy_node(),
-                               rclpy.try_shutdown(context=self.context)), 'the campaign node shutdown', 10.0)
+
+        from lego_loam_py.ros.runtime import finish_within
+
+        finish_within(
+            lambda: (
+                self.executor.shutdown(timeout_sec=1),
+                self.node.destroy_node(),
+                rclpy.try_shutdown(context=self.context),
+            ),
+            'the campaign node shutdown',
+            10.0,
+        )
         return codes
 
 
@@ -302,11 +348,13 @@ def campaign(args) -> dict:
         run = Campaign(out, domain)
         try:
             run.wait_ready()
-            run.feed(12)   # warm-up: every node has state to lose, every internal topic a template
+            run.feed(12)  # warm-up: every node has state to lose, every internal topic a template
             time.sleep(0.5)
             before = run.rss()
-            report = {node: dict(sent={}, taken={}, crashes=0, silent_periods=0, non_finite_outputs=0,
-                                 recovery_s=[]) for node in NODES}
+            report = {
+                node: dict(sent={}, taken={}, crashes=0, silent_periods=0, non_finite_outputs=0, recovery_s=[])
+                for node in NODES
+            }
             taken_before = {node: dict(run.diagnostics.latest.get(node, {})) for node in NODES}
             for topic in SUBSCRIBERS:
                 sent = 0
@@ -322,8 +370,11 @@ def campaign(args) -> dict:
                     def quiet() -> list[str]:
                         valid = {s for _, s in resumed}
                         with run.lock:
-                            return [node for node in NODES
-                                    if not any(s in valid for _, s in run.outputs[node][marks[node]:])]
+                            return [
+                                node
+                                for node in NODES
+                                if not any(s in valid for _, s in run.outputs[node][marks[node] :])
+                            ]
 
                     # A node still without output gets more valid scans, up to the watchdog's 20: only then is it
                     # silent (a wrong stamp up to 1 s ahead legitimately costs a few scans, see StampOrder).
@@ -334,7 +385,7 @@ def campaign(args) -> dict:
                     valid = {s for _, s in resumed}
                     with run.lock:
                         for node in NODES:
-                            after = [(t, s) for t, s in run.outputs[node][marks[node]:] if s in valid]
+                            after = [(t, s) for t, s in run.outputs[node][marks[node] :] if s in valid]
                             if after:
                                 recovery = max(0.0, after[0][0] - first_valid)
                                 report[node]['recovery_s'].append(recovery)
@@ -352,7 +403,7 @@ def campaign(args) -> dict:
                 print(f'{topic}: {sent} malformed messages sent', flush=True)
                 if run.crashed():
                     break
-            time.sleep(1.5)   # the last /diagnostics
+            time.sleep(1.5)  # the last /diagnostics
             for node in NODES:
                 latest = run.diagnostics.latest.get(node, {})
                 for topic in report[node]['sent']:
@@ -372,13 +423,22 @@ def campaign(args) -> dict:
         r['crashes'] = int(node in crashed)
         r['non_finite_outputs'] = non_finite.get(node, 0)
         r['memory_mb'] = dict(before=before[node], peak=round(peak.get(node, float('nan')), 1), after=after[node])
-        r['recovery_s'] = dict(median=round(float(np.median(r['recovery_s'])), 3) if r['recovery_s'] else None,
-                               max=round(float(np.max(r['recovery_s'])), 3) if r['recovery_s'] else None,
-                               resumptions=len(r['recovery_s']))
+        r['recovery_s'] = dict(
+            median=round(float(np.median(r['recovery_s'])), 3) if r['recovery_s'] else None,
+            max=round(float(np.max(r['recovery_s'])), 3) if r['recovery_s'] else None,
+            resumptions=len(r['recovery_s']),
+        )
         r['exit_code'] = codes.get(node)
         r['tracebacks_logged'] = tracebacks[node]
-    summary = dict(per_topic=args.per_topic, burst=args.burst, huge_per_cloud_topic=args.huge, nodes=report,
-                   valid_scans_fed=run.next_scan, map_keyframes=keyframes, wall_time_s=round(time.monotonic() - started, 1))
+    summary = dict(
+        per_topic=args.per_topic,
+        burst=args.burst,
+        huge_per_cloud_topic=args.huge,
+        nodes=report,
+        valid_scans_fed=run.next_scan,
+        map_keyframes=keyframes,
+        wall_time_s=round(time.monotonic() - started, 1),
+    )
     (out / 'summary.json').write_text(json.dumps(summary, indent=2))
     return summary
 
@@ -396,16 +456,22 @@ def _after_input(run: Campaign, node: str, send, expect: str, scans: int = 32) -
     while run.log(node).count(expect) == logged and time.monotonic() < deadline:
         time.sleep(0.05)
     handled = run.log(node).count(expect) > logged
-    resumed = run.feed(scans, rate_hz=10.0)   # the sensor's rate: what a robot would send meanwhile
+    resumed = run.feed(scans, rate_hz=10.0)  # the sensor's rate: what a robot would send meanwhile
     time.sleep(1.0)
     valid = {s for _, s in resumed}
     with run.lock:
         outputs = [(t, s) for t, s in run.outputs[node][mark:] if s in valid]
     first = outputs[0][0] - resumed[0][0] if outputs else None
-    return dict(handled=handled, rss_before_mb=before, rss_peak_mb=round(run.peak[node], 1), rss_after_mb=run.rss()[node],
-                valid_scans=scans, outputs_for_valid_scans=len(outputs),
-                first_output_after_s=round(first, 3) if first is not None else None,
-                warning=next((line for line in run.log(node).splitlines()[::-1] if expect in line), '')[-200:])
+    return dict(
+        handled=handled,
+        rss_before_mb=before,
+        rss_peak_mb=round(run.peak[node], 1),
+        rss_after_mb=run.rss()[node],
+        valid_scans=scans,
+        outputs_for_valid_scans=len(outputs),
+        first_output_after_s=round(first, 3) if first is not None else None,
+        warning=next((line for line in run.log(node).splitlines()[::-1] if expect in line), '')[-200:],
+    )
 
 
 def cases(args) -> dict:
@@ -423,15 +489,18 @@ def cases(args) -> dict:
             time.sleep(0.5)
 
             def orientation_diff_1e30():
-                stamp = run.clock_ns() - 50_000_000   # between the last valid scan and the next
+                stamp = run.clock_ns() - 50_000_000  # between the last valid scan and the next
                 with run.lock:
                     cloud = run.templates['/segmented_cloud'][-1]
                     info = run.templates['/segmented_cloud_info'][-1]
                     outlier = run.templates['/outlier_cloud'][-1]
                 info = restamped(info, stamp)
                 info.orientation_diff = 1e-30
-                for topic, msg in (('/segmented_cloud', restamped(cloud, stamp)), ('/segmented_cloud_info', info),
-                                   ('/outlier_cloud', restamped(outlier, stamp))):
+                for topic, msg in (
+                    ('/segmented_cloud', restamped(cloud, stamp)),
+                    ('/segmented_cloud_info', info),
+                    ('/outlier_cloud', restamped(outlier, stamp)),
+                ):
                     run.publishers[topic].publish(msg)
 
             def huge(topic: str):
@@ -441,14 +510,17 @@ def cases(args) -> dict:
                 return lambda: run.publishers[topic].publish(msg)
 
             run.peak.clear()
-            results['1 featureAssociation: CloudInfo orientation_diff 1e-30'] = \
-                _after_input(run, 'featureAssociation', orientation_diff_1e30, 'orientation_diff = 1e-30')
+            results['1 featureAssociation: CloudInfo orientation_diff 1e-30'] = _after_input(
+                run, 'featureAssociation', orientation_diff_1e30, 'orientation_diff = 1e-30'
+            )
             run.peak.clear()
-            results['2 featureAssociation: 2,000,000-point /segmented_cloud'] = \
-                _after_input(run, 'featureAssociation', huge('/segmented_cloud'), 'points = 2000000')
+            results['2 featureAssociation: 2,000,000-point /segmented_cloud'] = _after_input(
+                run, 'featureAssociation', huge('/segmented_cloud'), 'points = 2000000'
+            )
             run.peak.clear()
-            results['3 mapOptimization: 2,000,000-point /laser_cloud_surf_last'] = \
-                _after_input(run, 'mapOptimization', huge('/laser_cloud_surf_last'), 'points = 2000000')
+            results['3 mapOptimization: 2,000,000-point /laser_cloud_surf_last'] = _after_input(
+                run, 'mapOptimization', huge('/laser_cloud_surf_last'), 'points = 2000000'
+            )
 
             # 4: twenty callers of save_map at once while mapping goes on.
             feeding = threading.Thread(target=run.feed, args=(40,), daemon=True)
@@ -470,18 +542,22 @@ def cases(args) -> dict:
             while time.monotonic() < deadline and not all(f.done() for f in futures):
                 time.sleep(0.05)
             feeding.join(timeout=120)
-            time.sleep(1.5)   # the nodes' next /diagnostics
+            time.sleep(1.5)  # the nodes' next /diagnostics
             responses = [f.result() for f in futures if f.done()]
             maps = out / 'maps'
             files = sorted(p for p in maps.iterdir() if p.suffix in ('.pcd', '.tum')) if maps.is_dir() else []
             results['4 mapOptimization: 20 concurrent save_map calls while mapping'] = dict(
-                calls=len(futures), answered=len(responses), succeeded=sum(bool(r.success) for r in responses),
+                calls=len(futures),
+                answered=len(responses),
+                succeeded=sum(bool(r.success) for r in responses),
                 answer_time_s=dict(min=round(min(answered.values()), 2), max=round(max(answered.values()), 2))
-                if answered else None,
+                if answered
+                else None,
                 saves=run.diagnostics.counter('mapOptimization', 'saves'),
                 requests_taken=run.diagnostics.counter('mapOptimization', 'save_requests'),
                 files_complete=all(pcd_is_complete(p) for p in files if p.suffix == '.pcd') and bool(files),
-                files=[p.name for p in files])
+                files=[p.name for p in files],
+            )
             crashed = run.crashed()
         finally:
             codes = run.close()
@@ -491,19 +567,25 @@ def cases(args) -> dict:
 
 
 def print_table(summary: dict) -> None:
-    print(f"\nmalformed inputs per topic: {summary['per_topic']} (bursts of {summary['burst']}, "
-          f"{summary['huge_per_cloud_topic']} of 2,000,000 points per cloud topic); {summary['valid_scans_fed']} valid "
-          f"scans between the bursts, mapped into {summary['map_keyframes']} keyframes; {summary['wall_time_s']} s")
-    print('| node | topic: sent / received (valid included) | crashes | silent periods | non-finite outputs | '
-          'recovery median / max [s] | recovery max [valid scans] | RSS before / peak / after |')
+    print(
+        f'\nmalformed inputs per topic: {summary["per_topic"]} (bursts of {summary["burst"]}, '
+        f'{summary["huge_per_cloud_topic"]} of 2,000,000 points per cloud topic); {summary["valid_scans_fed"]} valid '
+        f'scans between the bursts, mapped into {summary["map_keyframes"]} keyframes; {summary["wall_time_s"]} s'
+    )
+    print(
+        '| node | topic: sent / received (valid included) | crashes | silent periods | non-finite outputs | '
+        'recovery median / max [s] | recovery max [valid scans] | RSS before / peak / after |'
+    )
     print('|---|---|---|---|---|---|---|---|')
     for node, r in summary['nodes'].items():
         topics = '<br>'.join(f'{t}: {r["sent"][t]} / {r["taken"].get(t, 0)}' for t in r['sent'])
         rec = r['recovery_s']
         m = r['memory_mb']
-        recovery = f"{rec['median']} / {rec['max']}" if rec['median'] is not None else 'n/a'
-        print(f"| {node} | {topics} | {r['crashes']} | {r['silent_periods']} | {r['non_finite_outputs']} | "
-              f"{recovery} | {r.get('recovery_scans', 'n/a')} | {m['before']} / {m['peak']} / {m['after']} MB |")
+        recovery = f'{rec["median"]} / {rec["max"]}' if rec['median'] is not None else 'n/a'
+        print(
+            f'| {node} | {topics} | {r["crashes"]} | {r["silent_periods"]} | {r["non_finite_outputs"]} | '
+            f'{recovery} | {r.get("recovery_scans", "n/a")} | {m["before"]} / {m["peak"]} / {m["after"]} MB |'
+        )
 
 
 def main(argv=None) -> int:
@@ -512,8 +594,8 @@ def main(argv=None) -> int:
     parser.add_argument('--burst', type=int, default=250, help='malformed messages between two valid resumptions')
     parser.add_argument('--huge', type=int, default=2, help='2,000,000-point clouds per cloud topic')
     parser.add_argument('--seed', type=int, default=14)
-    parser.add_argument('--short', action='store_true', help='the test suite\'s version: 60 per topic, about a minute')
-    parser.add_argument('--cases', action='store_true', help='replay the issue\'s four cases instead')
+    parser.add_argument('--short', action='store_true', help="the test suite's version: 60 per topic, about a minute")
+    parser.add_argument('--cases', action='store_true', help="replay the issue's four cases instead")
     parser.add_argument('--out', default='/tmp/lego_loam_campaign')
     args = parser.parse_args(argv)
     if args.cases:
@@ -524,8 +606,11 @@ def main(argv=None) -> int:
         args.per_topic, args.burst, args.huge = 60, 30, 1
     summary = campaign(args)
     print_table(summary)
-    bad = {node: r for node, r in summary['nodes'].items()
-           if r['crashes'] or r['silent_periods'] or r['non_finite_outputs'] or r['tracebacks_logged']}
+    bad = {
+        node: r
+        for node, r in summary['nodes'].items()
+        if r['crashes'] or r['silent_periods'] or r['non_finite_outputs'] or r['tracebacks_logged']
+    }
     return 1 if bad else 0
 
 

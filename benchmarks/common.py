@@ -1,8 +1,9 @@
 """Small helpers shared by the benchmark scripts."""
+
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -20,15 +21,17 @@ def time_ms(function: Callable[[], object], repeat: int = 200, warmup: int = 10)
 
 
 def summary(name: str, samples_ms: np.ndarray) -> str:
-    return (f'{name:<44s} median {np.median(samples_ms):8.3f} ms   p95 {np.percentile(samples_ms, 95):8.3f} ms   '
-            f'(n={len(samples_ms)})')
+    return (
+        f'{name:<44s} median {np.median(samples_ms):8.3f} ms   p95 {np.percentile(samples_ms, 95):8.3f} ms   '
+        f'(n={len(samples_ms)})'
+    )
 
 
 def run_shifted(bag, params, imu: bool, skip: int):
     """``run_bag`` without the first ``skip`` clouds (and the IMU samples before them): the mapping steps fall on
     other scans, as a run over DDS may have them. The spread this gives is the run-to-run noise."""
     from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
-    from lego_loam_py.core.imu import imu_sample
+    from lego_loam_py.core.imu.buffer import imu_sample
     from lego_loam_py.core.pipeline import Pipeline
 
     pipeline = Pipeline(params, mapping_thread=False, warn=lambda text: None)

@@ -9,6 +9,7 @@ through the offline pipeline (``lego_loam_py run``'s cores, IMU on). For each re
 the default, and ``point_time``: the sweeps deskewed with each layout's own per-point times) it prints the fused
 trajectory's ATE RMSE, its difference to the plain layout's and whether the trajectory is the plain one exactly.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,9 +23,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from lego_loam_py.core.params import Params  # noqa: E402
 from lego_loam_py.evaluation import evaluate  # noqa: E402
+from lego_loam_py.inputs.sidecars import load_ground_truth  # noqa: E402
 from lego_loam_py.offline import run_bag  # noqa: E402
 from lego_loam_py.sim.driver_layouts import LAYOUTS, cached_layout  # noqa: E402
-from lego_loam_py.sim.output import load_ground_truth  # noqa: E402
 from lego_loam_py.sim.simulator import cached_scenario  # noqa: E402
 
 
@@ -34,8 +35,13 @@ def main() -> None:
     parser.add_argument('--duration', type=float, default=20.0, help='simulated seconds')
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--layouts', nargs='*', default=list(LAYOUTS), choices=LAYOUTS)
-    parser.add_argument('--times', nargs='*', default=['azimuth', 'point_time'], choices=['azimuth', 'point_time'],
-                        help='feature_association.relative_time_source values to run')
+    parser.add_argument(
+        '--times',
+        nargs='*',
+        default=['azimuth', 'point_time'],
+        choices=['azimuth', 'point_time'],
+        help='feature_association.relative_time_source values to run',
+    )
     args = parser.parse_args()
     layouts = ['plain'] + [layout for layout in args.layouts if layout != 'plain']
     bag = cached_scenario(args.scenario, duration=args.duration, seed=args.seed)
@@ -54,11 +60,18 @@ def main() -> None:
             ate = evaluate(truth, (stamps, poses)).ate_rmse_m
             if plain_ate is None:
                 plain_ate, plain_poses = ate, poses
-            same = 'identical' if np.array_equal(poses, plain_poses) else \
-                f'{np.abs(poses[:, :3, 3] - plain_poses[:, :3, 3]).max() * 1e3:.2f} mm off' \
-                if poses.shape == plain_poses.shape else 'other poses'
-            print(f'{layout:<20s} {source:<11s} {ate:8.4f} {100 * (ate - plain_ate) / plain_ate:+8.1f}% {same:>13s} '
-                  f'{realtime:6.2f}', flush=True)
+            same = (
+                'identical'
+                if np.array_equal(poses, plain_poses)
+                else f'{np.abs(poses[:, :3, 3] - plain_poses[:, :3, 3]).max() * 1e3:.2f} mm off'
+                if poses.shape == plain_poses.shape
+                else 'other poses'
+            )
+            print(
+                f'{layout:<20s} {source:<11s} {ate:8.4f} {100 * (ate - plain_ate) / plain_ate:+8.1f}% {same:>13s} '
+                f'{realtime:6.2f}',
+                flush=True,
+            )
 
 
 if __name__ == '__main__':

@@ -12,6 +12,7 @@ Rows: ATE RMSE, RPE over 10 m and drift (evo, see lego_loam_py eval) for the ali
 with its parameters and without them (then also the data time from the first scan to the first warning and
 the scans that used the IMU), and the calibration's rotation and offset errors with their 1-sigma.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -29,8 +30,8 @@ from lego_loam_py.calibration import CalibrationRefused, calibrate, read_imu, re
 from lego_loam_py.core.frames import rpy_to_matrix  # noqa: E402
 from lego_loam_py.core.params import Params  # noqa: E402
 from lego_loam_py.evaluation import evaluate  # noqa: E402
+from lego_loam_py.inputs.sidecars import load_ground_truth  # noqa: E402
 from lego_loam_py.offline import run_bag  # noqa: E402
-from lego_loam_py.sim.output import load_ground_truth  # noqa: E402
 from lego_loam_py.sim.simulator import cached_scenario  # noqa: E402
 
 MOUNTS = {'yaw90': (0.0, 0.0, 90.0), 'roll180': (180.0, 0.0, 0.0), 'arbitrary': (10.0, -20.0, 130.0)}
@@ -45,9 +46,12 @@ def run(bag: Path, params: Params, imu: bool = True) -> tuple[dict, object]:
     start = time.perf_counter()
     result = run_bag(bag, params, imu_topic=None if imu else '', progress=False)
     row = accuracy(bag, result)
-    row.update(seconds=time.perf_counter() - start, scans_with_imu=result.counts.get('scans_with_imu', 0),
-               scans=result.counts.get('scans_processed', 0))
-    first_scan = result.stamps[0] * 1e-9 - 0.1 if result.stamps else 0.0   # (the first scan only initialises)
+    row.update(
+        seconds=time.perf_counter() - start,
+        scans_with_imu=result.counts.get('scans_with_imu', 0),
+        scans=result.counts.get('scans_processed', 0),
+    )
+    first_scan = result.stamps[0] * 1e-9 - 0.1 if result.stamps else 0.0  # (the first scan only initialises)
     warnings = [(node, event) for node, event in result.imu_alignment if not event.trusted]
     if warnings:
         row['first_warning_s'] = warnings[0][1].stamp - first_scan
@@ -57,8 +61,10 @@ def run(bag: Path, params: Params, imu: bool = True) -> tuple[dict, object]:
 
 
 def line(label: str, row: dict) -> str:
-    text = (f'  {label:<34s} ATE {row["ate_m"]:6.3f} m  RPE {row["rpe_percent"]:5.2f} %  '
-            f'drift {row["drift_percent"]:5.2f} %')
+    text = (
+        f'  {label:<34s} ATE {row["ate_m"]:6.3f} m  RPE {row["rpe_percent"]:5.2f} %  '
+        f'drift {row["drift_percent"]:5.2f} %'
+    )
     if 'first_warning_s' in row:
         text += f'  warning after {row["first_warning_s"]:4.1f} s, IMU on {row["scans_with_imu"]}/{row["scans"]} scans'
     elif 'scans_with_imu' in row:
@@ -74,15 +80,21 @@ def main() -> None:
     parser.add_argument('--time-offset', type=float, default=0.02, help='[s]')
     parser.add_argument('--duration', type=float, default=None, help='simulated seconds (default: a whole lap)')
     parser.add_argument('--calibration-only', action='store_true', help='only the calibrations (and the no-IMU run)')
-    parser.add_argument('--spread', action='store_true',
-                        help='also the run-to-run spread: the aligned IMU with imu.time_offset +-1 us and no IMU with '
-                             'map_optimization.plane_min_aspect +-1e-4 (changes that should change nothing)')
+    parser.add_argument(
+        '--spread',
+        action='store_true',
+        help='also the run-to-run spread: the aligned IMU with imu.time_offset +-1 us and no IMU with '
+        'map_optimization.plane_min_aspect +-1e-4 (changes that should change nothing)',
+    )
     parser.add_argument('--json', type=Path, default=None)
     args = parser.parse_args()
     report = {}
     for scenario in args.scenarios:
-        print(f'{scenario}: IMU mounted with a {np.linalg.norm(args.lever_arm):.2f} m lever arm and '
-              f'{1e3 * args.time_offset:g} ms late', flush=True)
+        print(
+            f'{scenario}: IMU mounted with a {np.linalg.norm(args.lever_arm):.2f} m lever arm and '
+            f'{1e3 * args.time_offset:g} ms late',
+            flush=True,
+        )
         aligned_bag = cached_scenario(scenario, duration=args.duration)
         rows = {}
         if not args.calibration_only:
@@ -102,10 +114,16 @@ def main() -> None:
         stamps_ns, poses = lidar_only.trajectory()
         for mount in args.mounts:
             rpy = MOUNTS[mount]
-            bag = cached_scenario(scenario, duration=args.duration, imu_extrinsic_rpy=rpy,
-                                  imu_lever_arm=tuple(args.lever_arm), imu_time_offset=args.time_offset)
-            params = Params().replace(imu__rotation_rpy=list(rpy), imu__translation=list(args.lever_arm),
-                                      imu__time_offset=args.time_offset)
+            bag = cached_scenario(
+                scenario,
+                duration=args.duration,
+                imu_extrinsic_rpy=rpy,
+                imu_lever_arm=tuple(args.lever_arm),
+                imu_time_offset=args.time_offset,
+            )
+            params = Params().replace(
+                imu__rotation_rpy=list(rpy), imu__translation=list(args.lever_arm), imu__time_offset=args.time_offset
+            )
             if not args.calibration_only:
                 rows[f'{mount}, parameters set'], _ = run(bag, params)
                 print(line(f'{mount} {list(rpy)}, parameters set', rows[f'{mount}, parameters set']), flush=True)
@@ -114,23 +132,32 @@ def main() -> None:
                 print(f'    {rows[f"{mount}, as it is"].get("last_warning", "")[:400]}', flush=True)
             try:
                 imu = read_imu(bag, '/imu/data')
-                first = calibrate(stamps_ns * 1e-9, poses[:, :3, :3], imu)   # (what calibrate_bag does)
+                first = calibrate(stamps_ns * 1e-9, poses[:, :3, :3], imu)  # (what calibrate_bag does)
                 result = refine_calibration(bag, Params(), first, imu)
             except CalibrationRefused as exc:
                 rows[f'{mount}, calibration'] = dict(refused=str(exc))
                 print(f'  calibration refused: {exc}', flush=True)
                 continue
             first_error = np.degrees(Rotation.from_matrix(first.rotation.T @ rpy_to_matrix(rpy)).magnitude())
-            print(f'  calibration, first pass: error {first_error:.2f} deg, '
-                  f'{1e3 * (first.time_offset - args.time_offset):+.1f} ms', flush=True)
+            print(
+                f'  calibration, first pass: error {first_error:.2f} deg, '
+                f'{1e3 * (first.time_offset - args.time_offset):+.1f} ms',
+                flush=True,
+            )
             error = np.degrees(Rotation.from_matrix(result.rotation.T @ rpy_to_matrix(rpy)).magnitude())
-            rows[f'{mount}, calibration'] = dict(result.to_dict(), rotation_error_deg=float(error),
-                                                 time_offset_error_ms=1e3 * (result.time_offset - args.time_offset))
-            print(f'  calibration: rotation_rpy {np.round(result.rotation_rpy, 2).tolist()} (error {error:.2f} deg; 1 '
-                  f'sigma {np.round(result.rotation_sigma_deg, 2).tolist()} deg), time_offset '
-                  f'{1e3 * result.time_offset:.1f} ms (error {1e3 * (result.time_offset - args.time_offset):+.1f} ms, '
-                  f'1 sigma {1e3 * result.time_offset_sigma:.1f} ms)' +
-                  (f'; REFUSED: {result.refused}' if result.refused else ''), flush=True)
+            rows[f'{mount}, calibration'] = dict(
+                result.to_dict(),
+                rotation_error_deg=float(error),
+                time_offset_error_ms=1e3 * (result.time_offset - args.time_offset),
+            )
+            print(
+                f'  calibration: rotation_rpy {np.round(result.rotation_rpy, 2).tolist()} (error {error:.2f} deg; 1 '
+                f'sigma {np.round(result.rotation_sigma_deg, 2).tolist()} deg), time_offset '
+                f'{1e3 * result.time_offset:.1f} ms (error {1e3 * (result.time_offset - args.time_offset):+.1f} ms, '
+                f'1 sigma {1e3 * result.time_offset_sigma:.1f} ms)'
+                + (f'; REFUSED: {result.refused}' if result.refused else ''),
+                flush=True,
+            )
         report[scenario] = rows
     if args.json is not None:
         args.json.write_text(json.dumps(report, indent=2, default=float) + '\n')

@@ -14,6 +14,7 @@ deskewing did, time inside register_frame).
 Only numpy and kiss_icp are imported, never lego_loam_py: this file runs in KISS-ICP's own environment. The
 readers and the TUM writer are plain functions so that the project's tests can check them without KISS-ICP.
 """
+
 from __future__ import annotations
 
 import json
@@ -25,8 +26,18 @@ import numpy as np
 
 # Per-point time fields, in the order KISS-ICP's generic dataloader tries them.
 TIME_FIELDS = ('t', 'timestamp', 'timestamps', 'time', 'stamps')
-_PCD_TYPES = {('F', 4): 'f4', ('F', 8): 'f8', ('U', 1): 'u1', ('U', 2): 'u2', ('U', 4): 'u4', ('U', 8): 'u8',
-              ('I', 1): 'i1', ('I', 2): 'i2', ('I', 4): 'i4', ('I', 8): 'i8'}
+_PCD_TYPES = {
+    ('F', 4): 'f4',
+    ('F', 8): 'f8',
+    ('U', 1): 'u1',
+    ('U', 2): 'u2',
+    ('U', 4): 'u4',
+    ('U', 8): 'u8',
+    ('I', 1): 'i1',
+    ('I', 2): 'i2',
+    ('I', 4): 'i4',
+    ('I', 8): 'i8',
+}
 
 
 def read_pcd(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -50,12 +61,19 @@ def read_pcd(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     sizes = [int(v) for v in header['SIZE']]
     kinds = header['TYPE']
     counts = [int(v) for v in header.get('COUNT', ['1'] * len(names))]
-    count = int(header['POINTS'][0]) if 'POINTS' in header else \
-        int(header['WIDTH'][0]) * int(header.get('HEIGHT', ['1'])[0])
+    count = (
+        int(header['POINTS'][0])
+        if 'POINTS' in header
+        else int(header['WIDTH'][0]) * int(header.get('HEIGHT', ['1'])[0])
+    )
     # Fields with the same name (PCL's '_' padding) get unique names; only x y z and a time field are read.
     unique = [f'{name}#{i}' if names.index(name) != i else name for i, name in enumerate(names)]
-    dtype = np.dtype([(name, '<' + _PCD_TYPES[(kind, size)], (n,) if n > 1 else ())
-                      for name, kind, size, n in zip(unique, kinds, sizes, counts)])
+    dtype = np.dtype(
+        [
+            (name, '<' + _PCD_TYPES[(kind, size)], (n,) if n > 1 else ())
+            for name, kind, size, n in zip(unique, kinds, sizes, counts)
+        ]
+    )
     layout = header['DATA'][0].lower()
     if layout == 'binary':
         if len(data) - offset < count * dtype.itemsize:
@@ -99,9 +117,11 @@ def write_pcd(path: str | Path, xyz: np.ndarray, times: np.ndarray | None = None
     if times is not None:
         points['time'] = times
     names = ' '.join(name for name, _ in fields)
-    header = (f'VERSION 0.7\nFIELDS {names}\nSIZE {" ".join(kind[-1] for _, kind in fields)}\n'
-              f'TYPE {" ".join("F" for _ in fields)}\nCOUNT {" ".join("1" for _ in fields)}\n'
-              f'WIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\nDATA binary\n')
+    header = (
+        f'VERSION 0.7\nFIELDS {names}\nSIZE {" ".join(kind[-1] for _, kind in fields)}\n'
+        f'TYPE {" ".join("F" for _ in fields)}\nCOUNT {" ".join("1" for _ in fields)}\n'
+        f'WIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\nDATA binary\n'
+    )
     Path(path).write_bytes(header.encode('ascii') + points.tobytes())
 
 
@@ -123,13 +143,20 @@ def quaternions_xyzw(rotations: np.ndarray) -> np.ndarray:
     m00, m11, m22 = m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]
     squares = np.stack([1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22, 1 + m00 + m11 + m22], 1)
     largest = np.argmax(squares, axis=1)
-    big = np.sqrt(np.maximum(squares[np.arange(len(m)), largest], 1e-300)) / 2    # that component's value
+    big = np.sqrt(np.maximum(squares[np.arange(len(m)), largest], 1e-300)) / 2  # that component's value
     s12, d21 = m[:, 1, 2] + m[:, 2, 1], m[:, 2, 1] - m[:, 1, 2]
     s02, d02 = m[:, 0, 2] + m[:, 2, 0], m[:, 0, 2] - m[:, 2, 0]
     s01, d10 = m[:, 0, 1] + m[:, 1, 0], m[:, 1, 0] - m[:, 0, 1]
     # 4 * (product of that component with each of the others), by which component is the largest (rows x y z w)
-    products = np.stack([np.stack([4 * big ** 2, s01, s02, d21], 1), np.stack([s01, 4 * big ** 2, s12, d02], 1),
-                         np.stack([s02, s12, 4 * big ** 2, d10], 1), np.stack([d21, d02, d10, 4 * big ** 2], 1)], 1)
+    products = np.stack(
+        [
+            np.stack([4 * big**2, s01, s02, d21], 1),
+            np.stack([s01, 4 * big**2, s12, d02], 1),
+            np.stack([s02, s12, 4 * big**2, d10], 1),
+            np.stack([d21, d02, d10, 4 * big**2], 1),
+        ],
+        1,
+    )
     quats = products[np.arange(len(m)), largest] / (4 * big)[:, None]
     quats /= np.linalg.norm(quats, axis=1, keepdims=True)
     quats[quats[:, 3] < 0] *= -1.0
@@ -143,8 +170,9 @@ def tum_text(stamps_ns: np.ndarray, poses: np.ndarray) -> str:
     lines = []
     for stamp, t, q in zip(np.asarray(stamps_ns, dtype=np.int64), poses[:, :3, 3], quats):
         seconds, nanoseconds = divmod(int(stamp), 1_000_000_000)
-        lines.append(f'{seconds}.{nanoseconds:09d} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} '
-                     f'{q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}')
+        lines.append(
+            f'{seconds}.{nanoseconds:09d} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}'
+        )
     return ''.join(line + '\n' for line in lines)
 
 
@@ -155,7 +183,7 @@ def run(manifest: Path, out: Path) -> dict:
     from kiss_icp.kiss_icp import KissICP
 
     stamps, files = read_manifest(manifest)
-    config = load_config(None)       # what KISS-ICP's pipeline does without a config file
+    config = load_config(None)  # what KISS-ICP's pipeline does without a config file
     odometry = KissICP(config=config)
     poses = np.empty((len(files), 4, 4))
     register_s = np.empty(len(files))
@@ -170,8 +198,10 @@ def run(manifest: Path, out: Path) -> dict:
             motion[:3, :3] = [[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]]
             motion[0, 3] = 1.0
             sample = points[:1000]
-            kept = sample[(np.linalg.norm(sample, axis=1) < config.data.max_range)
-                          & (np.linalg.norm(sample, axis=1) > config.data.min_range)]
+            kept = sample[
+                (np.linalg.norm(sample, axis=1) < config.data.max_range)
+                & (np.linalg.norm(sample, axis=1) > config.data.min_range)
+            ]
             moved = odometry.preprocessor.preprocess(sample, np.zeros(0), motion)
             probe_shift_m = float(np.abs(moved - kept).max()) if moved.shape == kept.shape else float('nan')
         start = time.perf_counter()

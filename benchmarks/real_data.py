@@ -30,6 +30,7 @@ linearly, rotations by slerp). It tells which instant of a sweep a pose describe
 Writes OUT/results.json, OUT/table.md (a row to paste into the README's table) and the runs under OUT/runs/;
 ``--json`` prints the JSON document instead of the table.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -49,7 +50,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / 'benchmarks'))
 from kiss_icp_runner import write_pcd  # noqa: E402
 
-KISS_ICP_VERSION = '1.3.0'          # the newest release on the package index that installs here (Python 3.11)
+KISS_ICP_VERSION = '1.3.0'  # the newest release on the package index that installs here (Python 3.11)
 KISS_RUNNER = ROOT / 'benchmarks' / 'kiss_icp_runner.py'
 DEFAULT_KISS_VENV = ROOT / 'benchmarks' / '.venv-kiss-icp'
 TIME_SHIFTS_S = np.round(np.arange(-12, 13) * 0.01, 2)
@@ -70,6 +71,7 @@ DEFAULT_RECORDING = shared_folder() / 'data' / 'real' / 'kitti_raw_0001_hdl64e'
 
 # ---------------------------------------------------------------------------------------------- pure helpers
 
+
 def interpolate_poses(stamps_ns: np.ndarray, poses: np.ndarray, at_ns: np.ndarray) -> np.ndarray:
     """(M, 4, 4) poses of a trajectory ((N,) ns stamps, increasing; (N, 4, 4) poses) at ``at_ns`` (within its
     time span): positions interpolated linearly, rotations by slerp."""
@@ -83,8 +85,11 @@ def interpolate_poses(stamps_ns: np.ndarray, poses: np.ndarray, at_ns: np.ndarra
     return out
 
 
-def time_shift_scan(ground_truth: tuple[np.ndarray, np.ndarray], estimate: tuple[np.ndarray, np.ndarray],
-                    shifts_s: np.ndarray = TIME_SHIFTS_S) -> dict:
+def time_shift_scan(
+    ground_truth: tuple[np.ndarray, np.ndarray],
+    estimate: tuple[np.ndarray, np.ndarray],
+    shifts_s: np.ndarray = TIME_SHIFTS_S,
+) -> dict:
     """ATE RMSE [m] of ``estimate`` with ``shift`` [s] added to its stamps, for every shift, against the
     reference interpolated at the shifted stamps (:func:`interpolate_poses`), with the evaluation the benchmark
     uses (:func:`lego_loam_py.evaluation.evaluate`). The same poses at every shift: those whose stamps stay
@@ -103,9 +108,15 @@ def time_shift_scan(ground_truth: tuple[np.ndarray, np.ndarray], estimate: tuple
     ates = np.array(ates)
     best = int(np.argmin(ates))
     zero = int(np.argmin(np.abs(shifts_ns)))
-    return {'shifts_s': [float(s) for s in shifts_s], 'ate_m': [float(a) for a in ates], 'poses': int(inside.sum()),
-            'best_shift_s': float(shifts_s[best]), 'best_ate_m': float(ates[best]), 'ate_at_zero_m': float(ates[zero]),
-            'worst_ate_m': float(ates.max())}
+    return {
+        'shifts_s': [float(s) for s in shifts_s],
+        'ate_m': [float(a) for a in ates],
+        'poses': int(inside.sum()),
+        'best_shift_s': float(shifts_s[best]),
+        'best_ate_m': float(ates[best]),
+        'ate_at_zero_m': float(ates[zero]),
+        'worst_ate_m': float(ates.max()),
+    }
 
 
 def median_summary(runs: list[dict]) -> dict:
@@ -114,20 +125,27 @@ def median_summary(runs: list[dict]) -> dict:
     return {k: float(np.median([r[k] for r in runs])) for k in keys}
 
 
-MARKDOWN_HEADER = ('| drive | path | lego_loam_py ATE / RPE | KISS-ICP ATE / RPE '
-                   '| CPU per scan lego_loam_py / KISS-ICP | x real time lego_loam_py / KISS-ICP |\n'
-                   '|---|---|---|---|---|---|')
+MARKDOWN_HEADER = (
+    '| drive | path | lego_loam_py ATE / RPE | KISS-ICP ATE / RPE '
+    '| CPU per scan lego_loam_py / KISS-ICP | x real time lego_loam_py / KISS-ICP |\n'
+    '|---|---|---|---|---|---|'
+)
 
 
 def markdown_row(name: str, path_m: float, lego: dict, kiss: dict) -> str:
     """A row of the README's real-data table from the two systems' median figures."""
+
     def accuracy(m):
         return f'{m["ate_m"]:.3f} m / {m["rpe_percent"]:.2f} %' if 'ate_m' in m else '-'
-    return (f'| {name} | {path_m:.1f} m | {accuracy(lego)} | {accuracy(kiss)} | {lego["cpu_ms_per_scan"]:.0f} ms / '
-            f'{kiss["cpu_ms_per_scan"]:.0f} ms | {lego["x_realtime"]:.2f}x / {kiss["x_realtime"]:.2f}x |')
+
+    return (
+        f'| {name} | {path_m:.1f} m | {accuracy(lego)} | {accuracy(kiss)} | {lego["cpu_ms_per_scan"]:.0f} ms / '
+        f'{kiss["cpu_ms_per_scan"]:.0f} ms | {lego["x_realtime"]:.2f}x / {kiss["x_realtime"]:.2f}x |'
+    )
 
 
 # ---------------------------------------------------------------------------------------------- running
+
 
 def timed_child(command: list[str], log: Path, env: dict | None = None) -> tuple[float, float]:
     """Run ``command`` to its end (output to ``log``); (whole-process CPU [s], user + system of it and every child
@@ -136,8 +154,9 @@ def timed_child(command: list[str], log: Path, env: dict | None = None) -> tuple
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     with open(log, 'w') as output:
-        code = subprocess.run(command, stdout=output, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                              env=env).returncode
+        code = subprocess.run(
+            command, stdout=output, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env
+        ).returncode
     wall = time.perf_counter() - start
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if code != 0:
@@ -167,9 +186,19 @@ def ensure_kiss_venv(venv: Path, version: str, python: str) -> Path:
     subprocess.run([python, '-m', 'venv', str(venv)], check=True)
     log = venv / 'install.log'
     with open(log, 'w') as output:
-        code = subprocess.run([str(venv / 'bin' / 'python'), '-m', 'pip', 'install', '--disable-pip-version-check',
-                               f'kiss-icp=={version}'], stdout=output, stderr=subprocess.STDOUT,
-                              env=kiss_environment()).returncode
+        code = subprocess.run(
+            [
+                str(venv / 'bin' / 'python'),
+                '-m',
+                'pip',
+                'install',
+                '--disable-pip-version-check',
+                f'kiss-icp=={version}',
+            ],
+            stdout=output,
+            stderr=subprocess.STDOUT,
+            env=kiss_environment(),
+        ).returncode
     if code != 0:
         sys.exit(f'pip could not install kiss-icp=={version} into {venv}; see {log}')
     marker.write_text(version + '\n')
@@ -224,30 +253,47 @@ def lego_executable() -> str:
 
 
 def evaluate_run(ground_truth, trajectory: Path) -> dict:
-    from lego_loam_py.core.io import read_tum
     from lego_loam_py.evaluation import evaluate, path_length
+    from lego_loam_py.formats import read_tum
 
     estimate = read_tum(trajectory)
     figures = {'poses': int(len(estimate[0])), 'path_length_m': path_length(estimate[1])}
     if ground_truth is not None:
         metrics = evaluate(ground_truth, estimate)
         shift = time_shift_scan(ground_truth, estimate)
-        figures.update(ate_m=metrics.ate_rmse_m, rpe_percent=metrics.rpe_percent, matched_poses=metrics.matched_poses,
-                       reference_path_m=metrics.path_length_m, best_shift_s=shift['best_shift_s'],
-                       ate_best_shift_m=shift['best_ate_m'], ate_shift_zero_m=shift['ate_at_zero_m'],
-                       ate_worst_shift_m=shift['worst_ate_m'], shift_poses=shift['poses'])
+        figures.update(
+            ate_m=metrics.ate_rmse_m,
+            rpe_percent=metrics.rpe_percent,
+            matched_poses=metrics.matched_poses,
+            reference_path_m=metrics.path_length_m,
+            best_shift_s=shift['best_shift_s'],
+            ate_best_shift_m=shift['best_ate_m'],
+            ate_shift_zero_m=shift['ate_at_zero_m'],
+            ate_worst_shift_m=shift['worst_ate_m'],
+            shift_poses=shift['poses'],
+        )
         figures['time_shift'] = shift
     return figures
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('recording', nargs='?', default=str(DEFAULT_RECORDING),
-                        help='a recording lego_loam_py run reads, with ground truth (default: the KITTI city drive)')
+    parser.add_argument(
+        'recording',
+        nargs='?',
+        default=str(DEFAULT_RECORDING),
+        help='a recording lego_loam_py run reads, with ground truth (default: the KITTI city drive)',
+    )
     parser.add_argument('--repeat', type=int, default=1, help='runs of each system, alternately (median reported)')
     parser.add_argument('--out', default=None, help='output folder (default: output/real_data/<recording>)')
-    parser.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
-                        help='a parameter override passed to lego_loam_py run (repeatable)')
+    parser.add_argument(
+        '-p',
+        '--param',
+        action='append',
+        default=[],
+        metavar='NAME:=VALUE',
+        help='a parameter override passed to lego_loam_py run (repeatable)',
+    )
     parser.add_argument('--preset', default='HDL-64E', help="lego_loam_py's sensor.preset ('' for none)")
     parser.add_argument('--imu', action='store_true', help='let lego_loam_py use the IMU (default: lidar only)')
     parser.add_argument('--dataloader', default=None, help='the kind of recording, as for lego_loam_py run')
@@ -274,11 +320,12 @@ def main() -> None:
     scans = len([line for line in manifest.read_text().splitlines() if line.strip()])
     source.close()
 
-    lego_options = (['-p', f'sensor.preset:={args.preset}'] if args.preset else []) + \
-        ([] if args.imu else ['--no-imu'])
-    extra = [a for p in args.param for a in ('-p', p)] + \
-        (['--dataloader', args.dataloader] if args.dataloader else []) + \
-        (['--rate-hz', f'{args.rate_hz:g}'] if args.rate_hz != 10.0 else [])
+    lego_options = (['-p', f'sensor.preset:={args.preset}'] if args.preset else []) + ([] if args.imu else ['--no-imu'])
+    extra = (
+        [a for p in args.param for a in ('-p', p)]
+        + (['--dataloader', args.dataloader] if args.dataloader else [])
+        + (['--rate-hz', f'{args.rate_hz:g}'] if args.rate_hz != 10.0 else [])
+    )
     runs = {system: [] for system in SYSTEMS}
     commands = {}
     kiss_info = {}
@@ -287,34 +334,59 @@ def main() -> None:
             folder = out / 'runs' / f'{system}-{run}'
             shutil.rmtree(folder, ignore_errors=True)
             if system == 'lego_loam_py':
-                command = [lego_executable(), 'run', str(recording), *lego_options, '-o', str(folder),
-                           '--no-progress', *extra]
+                command = [
+                    lego_executable(),
+                    'run',
+                    str(recording),
+                    *lego_options,
+                    '-o',
+                    str(folder),
+                    '--no-progress',
+                    *extra,
+                ]
                 cpu_s, wall_s = timed_child(command, out / 'runs' / f'{system}-{run}.log')
             else:
                 command = [str(kiss_python), str(KISS_RUNNER), str(manifest), str(folder)]
                 cpu_s, wall_s = timed_child(command, out / 'runs' / f'{system}-{run}.log', env=kiss_environment())
                 kiss_info = json.loads((folder / 'info.json').read_text())
             commands[system] = command
-            record = {'run': run, 'cpu_s': cpu_s, 'wall_s': wall_s, 'cpu_ms_per_scan': cpu_s / scans * 1e3,
-                      'x_realtime': duration_s / wall_s}
+            record = {
+                'run': run,
+                'cpu_s': cpu_s,
+                'wall_s': wall_s,
+                'cpu_ms_per_scan': cpu_s / scans * 1e3,
+                'x_realtime': duration_s / wall_s,
+            }
             record.update(evaluate_run(ground_truth, folder / 'trajectory.tum'))
             runs[system].append(record)
             if not args.json:
                 accuracy = f', ATE {record["ate_m"]:.3f} m' if 'ate_m' in record else ''
-                print(f'run {run}/{args.repeat} {system}: CPU {cpu_s:.2f} s, wall {wall_s:.2f} s{accuracy}',
-                      file=sys.stderr, flush=True)
+                print(
+                    f'run {run}/{args.repeat} {system}: CPU {cpu_s:.2f} s, wall {wall_s:.2f} s{accuracy}',
+                    file=sys.stderr,
+                    flush=True,
+                )
 
     medians = {system: median_summary(runs[system]) for system in SYSTEMS}
     from lego_loam_py.evaluation import path_length
+
     # The drive's length: the whole reference (each system's matched part is in its figures).
     reference_path_m = path_length(ground_truth[1]) if ground_truth is not None else float('nan')
     row = markdown_row(name, reference_path_m, medians['lego_loam_py'], medians['kiss_icp'])
     results = {
-        'recording': str(recording), 'name': name, 'scans': scans, 'duration_s': duration_s,
-        'has_ground_truth': ground_truth is not None, 'reference_path_m': reference_path_m,
-        'kiss_icp': kiss_info, 'kiss_icp_scans': scans_how,
-        'commands': {k: ' '.join(v) for k, v in commands.items()}, 'repeat': args.repeat,
-        'median': medians, 'runs': runs, 'markdown_row': row,
+        'recording': str(recording),
+        'name': name,
+        'scans': scans,
+        'duration_s': duration_s,
+        'has_ground_truth': ground_truth is not None,
+        'reference_path_m': reference_path_m,
+        'kiss_icp': kiss_info,
+        'kiss_icp_scans': scans_how,
+        'commands': {k: ' '.join(v) for k, v in commands.items()},
+        'repeat': args.repeat,
+        'median': medians,
+        'runs': runs,
+        'markdown_row': row,
     }
     (out / 'results.json').write_text(json.dumps(results, indent=2) + '\n')
     (out / 'table.md').write_text(MARKDOWN_HEADER + '\n' + row + '\n')
@@ -330,15 +402,21 @@ def report(results: dict) -> str:
     lego, kiss = results['median']['lego_loam_py'], results['median']['kiss_icp']
     info = results['kiss_icp']
     version = info.get('kiss_icp_version', '?')
-    lines = [f'{results["name"]}: {results["scans"]} scans, {results["duration_s"]:.1f} s'
-             + (f', reference path {results["reference_path_m"]:.1f} m' if results['has_ground_truth'] else
-                ', no ground truth'),
-             f'{"(median of " + str(results["repeat"]) + " runs each)" if results["repeat"] > 1 else "":<36s}'
-             f'{"lego_loam_py":>14s}{"KISS-ICP " + version:>16s}']
+    lines = [
+        f'{results["name"]}: {results["scans"]} scans, {results["duration_s"]:.1f} s'
+        + (
+            f', reference path {results["reference_path_m"]:.1f} m'
+            if results['has_ground_truth']
+            else ', no ground truth'
+        ),
+        f'{"(median of " + str(results["repeat"]) + " runs each)" if results["repeat"] > 1 else "":<36s}'
+        f'{"lego_loam_py":>14s}{"KISS-ICP " + version:>16s}',
+    ]
 
     def line(label, key, fmt):
         if key in lego and key in kiss:
             lines.append(f'{label:<36s}{format(lego[key], fmt):>14s}{format(kiss[key], fmt):>16s}')
+
     line('ATE RMSE m (SE(3) aligned)', 'ate_m', '.3f')
     line('RPE % over 10 m', 'rpe_percent', '.2f')
     line('matched poses', 'matched_poses', '.0f')
@@ -359,24 +437,40 @@ def report(results: dict) -> str:
         lines.append('every run:')
         for system in SYSTEMS:
             for r in results['runs'][system]:
-                accuracy = (f'ATE {r["ate_m"]:.3f} m RPE {r["rpe_percent"]:.2f} % '
-                            f'best shift {r["best_shift_s"]:+.2f} s ' if 'ate_m' in r else '')
-                lines.append(f'  {system:<13s} {r["run"]}: {accuracy}CPU {r["cpu_s"]:.2f} s '
-                             f'({r["cpu_ms_per_scan"]:.1f} ms/scan) wall {r["wall_s"]:.2f} s ({r["x_realtime"]:.2f}x)')
+                accuracy = (
+                    f'ATE {r["ate_m"]:.3f} m RPE {r["rpe_percent"]:.2f} % best shift {r["best_shift_s"]:+.2f} s '
+                    if 'ate_m' in r
+                    else ''
+                )
+                lines.append(
+                    f'  {system:<13s} {r["run"]}: {accuracy}CPU {r["cpu_s"]:.2f} s '
+                    f'({r["cpu_ms_per_scan"]:.1f} ms/scan) wall {r["wall_s"]:.2f} s ({r["x_realtime"]:.2f}x)'
+                )
     config = info.get('config', {})
     if info:
         timed = info.get('scans_with_point_times', 0)
-        deskew = (f'deskew on in its config; {timed} of {info["scans"]} scans had per-point times, so '
-                  + ('those were deskewed' if timed else 'no scan was deskewed (its preprocessor moved a probe scan '
-                     f'by {info.get("deskew_probe_shift_m", float("nan")):.3g} m under a 1 m, 10 deg motion)')
-                  if info.get('deskew_enabled') else 'deskew off in its config')
+        deskew = (
+            f'deskew on in its config; {timed} of {info["scans"]} scans had per-point times, so '
+            + (
+                'those were deskewed'
+                if timed
+                else 'no scan was deskewed (its preprocessor moved a probe scan '
+                f'by {info.get("deskew_probe_shift_m", float("nan")):.3g} m under a 1 m, 10 deg motion)'
+            )
+            if info.get('deskew_enabled')
+            else 'deskew off in its config'
+        )
         threads = config['registration']['max_num_threads'] or 'all cores'
-        lines += [f'KISS-ICP {version}, default configuration (max range {config["data"]["max_range"]:g} m, voxel '
-                  f'{config["mapping"]["voxel_size"]:g} m, threads: {threads}): {deskew}; '
-                  f'{info["register_frame_ms_median"]:.1f} ms median inside register_frame',
-                  f'KISS-ICP scans: {results["kiss_icp_scans"]}']
-    lines += [f'lego_loam_py: {results["commands"].get("lego_loam_py", "")}',
-              'CPU and wall: each whole child process (start-up and imports included, every thread)']
+        lines += [
+            f'KISS-ICP {version}, default configuration (max range {config["data"]["max_range"]:g} m, voxel '
+            f'{config["mapping"]["voxel_size"]:g} m, threads: {threads}): {deskew}; '
+            f'{info["register_frame_ms_median"]:.1f} ms median inside register_frame',
+            f'KISS-ICP scans: {results["kiss_icp_scans"]}',
+        ]
+    lines += [
+        f'lego_loam_py: {results["commands"].get("lego_loam_py", "")}',
+        'CPU and wall: each whole child process (start-up and imports included, every thread)',
+    ]
     lines += ['', MARKDOWN_HEADER, results['markdown_row']]
     return '\n'.join(lines)
 

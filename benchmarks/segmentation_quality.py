@@ -10,6 +10,7 @@ SemanticKITTI's ground classes; ``--strict`` scores the terrain label alone.
 Segments: adjusted Rand index between imageProjection's segment labels and the object ids, over projected
 non-ground points that belong to an object (points the original rejects as outliers count as singletons).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -21,9 +22,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from lego_loam_py.bag.io import BagReader, cloud_msg_to_array  # noqa: E402
-from lego_loam_py.core.image_projection import OUTLIER_LABEL, ImageProjection, prepare_input  # noqa: E402
 from lego_loam_py.core.params import Params  # noqa: E402
-from lego_loam_py.sim.output import load_labels  # noqa: E402
+from lego_loam_py.core.projection.image_projection import OUTLIER_LABEL, ImageProjection, prepare_input  # noqa: E402
+from lego_loam_py.inputs.sidecars import load_labels  # noqa: E402
 
 __all__ = ['adjusted_rand_index', 'scan_quality', 'evaluate_bag']
 
@@ -61,11 +62,15 @@ def scan_quality(result, labels: np.ndarray, params: Params, ground_ids=(1,)) ->
     objects = filled & (truth >= 2) & ~np.isin(truth, ground_ids) & ~predicted_ground
     predicted = segment[objects].copy()
     lonely = (predicted == OUTLIER_LABEL) | (predicted <= 0)
-    predicted[lonely] = -1 - np.flatnonzero(lonely)          # every outlier pixel its own cluster
-    return dict(tp=int((predicted_ground & true_ground).sum()), fp=int((predicted_ground & ~true_ground).sum()),
-                fn=int((~predicted_ground & true_ground).sum()),
-                fn_rows=int((~predicted_ground & true_ground & in_test_rows).sum()),
-                objects_true=truth[objects], objects_predicted=predicted)
+    predicted[lonely] = -1 - np.flatnonzero(lonely)  # every outlier pixel its own cluster
+    return dict(
+        tp=int((predicted_ground & true_ground).sum()),
+        fp=int((predicted_ground & ~true_ground).sum()),
+        fn=int((~predicted_ground & true_ground).sum()),
+        fn_rows=int((~predicted_ground & true_ground & in_test_rows).sum()),
+        objects_true=truth[objects],
+        objects_predicted=predicted,
+    )
 
 
 def evaluate_bag(bag: str | Path, params: Params, max_scans: int | None = None, strict: bool = False) -> dict:
@@ -73,8 +78,7 @@ def evaluate_bag(bag: str | Path, params: Params, max_scans: int | None = None, 
     if labels is None:
         raise SystemExit(f'{bag}: no labels.npz beside the bag')
     names = list(labels.classes)
-    ground_ids = tuple(i for i, name in enumerate(names) if name == 'ground' or (name == 'curb' and not strict)) \
-        or (1,)
+    ground_ids = tuple(i for i, name in enumerate(names) if name == 'ground' or (name == 'curb' and not strict)) or (1,)
     ip = ImageProjection(params)
     totals = dict(tp=0, fp=0, fn=0, fn_rows=0, scans=0)
     ari = []
@@ -94,9 +98,14 @@ def evaluate_bag(bag: str | Path, params: Params, max_scans: int | None = None, 
             if len(q['objects_true']) > 1:
                 ari.append(adjusted_rand_index(q['objects_true'], q['objects_predicted']))
     tp, fp, fn = totals['tp'], totals['fp'], totals['fn']
-    return dict(scans=totals['scans'], ground_precision=tp / max(tp + fp, 1), ground_recall=tp / max(tp + fn, 1),
-                ground_recall_test_rows=tp / max(tp + totals['fn_rows'], 1), ari_mean=float(np.nanmean(ari)),
-                ari_median=float(np.nanmedian(ari)))
+    return dict(
+        scans=totals['scans'],
+        ground_precision=tp / max(tp + fp, 1),
+        ground_recall=tp / max(tp + fn, 1),
+        ground_recall_test_rows=tp / max(tp + totals['fn_rows'], 1),
+        ari_mean=float(np.nanmean(ari)),
+        ari_median=float(np.nanmedian(ari)),
+    )
 
 
 def main() -> None:
@@ -108,14 +117,21 @@ def main() -> None:
     parser.add_argument('--params-file', default=None, help='e.g. config/original.yaml for the C++ ground rule')
     args = parser.parse_args()
     from lego_loam_py.sim.simulator import cached_scenario
+
     bags = [Path(b) for b in args.bags] or [cached_scenario(s) for s in args.scenarios]
-    print(f'{"bag":<32s} {"scans":>5s} {"ground P":>9s} {"ground R":>9s} {"R rows 0-7":>10s} {"ARI mean":>9s} {"ARI med":>8s}')
+    print(
+        f'{"bag":<32s} {"scans":>5s} {"ground P":>9s} {"ground R":>9s} {"R rows 0-7":>10s} {"ARI mean":>9s} '
+        f'{"ARI med":>8s}'
+    )
     for bag in bags:
         from lego_loam_py.core.params import load_params
+
         q = evaluate_bag(bag, load_params(args.params_file) if args.params_file else Params(), args.scans, args.strict)
         name = bag.name
-        print(f'{name[:32]:<32s} {q["scans"]:5d} {q["ground_precision"]:9.3f} {q["ground_recall"]:9.3f} '
-              f'{q["ground_recall_test_rows"]:10.3f} {q["ari_mean"]:9.3f} {q["ari_median"]:8.3f}')
+        print(
+            f'{name[:32]:<32s} {q["scans"]:5d} {q["ground_precision"]:9.3f} {q["ground_recall"]:9.3f} '
+            f'{q["ground_recall_test_rows"]:10.3f} {q["ari_mean"]:9.3f} {q["ari_median"]:8.3f}'
+        )
 
 
 if __name__ == '__main__':

@@ -19,9 +19,8 @@ Arguments (``name:=value``):
 Without ros2 launch (ROS 2 from PyPI wheels) the same is ``lego_loam_py launch`` or
 ``python launch_scripts/lego_loam.py``.
 """
-from launch import LaunchDescription
-from launch.actions import (DeclareLaunchArgument, EmitEvent, GroupAction, LogInfo, RegisterEventHandler,
-                            TimerAction)
+
+from launch.actions import DeclareLaunchArgument, EmitEvent, GroupAction, LogInfo, RegisterEventHandler, TimerAction
 from launch.conditions import IfCondition
 from launch.event_handlers import OnProcessExit
 from launch.events import Shutdown
@@ -29,6 +28,8 @@ from launch.substitutions import LaunchConfiguration, PathJoinSubstitution, Pyth
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
 from launch_ros.substitutions import FindPackageShare
+
+from launch import LaunchDescription
 
 PACKAGE = 'lego_loam_py'
 # The four executables in pipeline order (the original spells the third one mapOptmization).
@@ -43,43 +44,81 @@ def generate_launch_description() -> LaunchDescription:
     sim_time = {'use_sim_time': ParameterValue(use_sim_time, value_type=bool)}
 
     arguments = [
-        DeclareLaunchArgument('params_file', default_value=PathJoinSubstitution([share, 'config', 'params.yaml']),
-                              description='ROS 2 parameter file for the four nodes'),
-        DeclareLaunchArgument('use_sim_time', default_value='true', choices=['true', 'false'],
-                              description='follow /clock (bag replay) instead of the wall clock'),
-        DeclareLaunchArgument('rviz', default_value='true', choices=['true', 'false'],
-                              description='start rviz2'),
-        DeclareLaunchArgument('rviz_config', default_value=PathJoinSubstitution([share, 'config', 'lego_loam.rviz']),
-                              description='rviz2 configuration'),
-        DeclareLaunchArgument('bag', default_value='',
-                              description='bag to replay with lego_loam_py play (empty: none; play it yourself)'),
+        DeclareLaunchArgument(
+            'params_file',
+            default_value=PathJoinSubstitution([share, 'config', 'params.yaml']),
+            description='ROS 2 parameter file for the four nodes',
+        ),
+        DeclareLaunchArgument(
+            'use_sim_time',
+            default_value='true',
+            choices=['true', 'false'],
+            description='follow /clock (bag replay) instead of the wall clock',
+        ),
+        DeclareLaunchArgument('rviz', default_value='true', choices=['true', 'false'], description='start rviz2'),
+        DeclareLaunchArgument(
+            'rviz_config',
+            default_value=PathJoinSubstitution([share, 'config', 'lego_loam.rviz']),
+            description='rviz2 configuration',
+        ),
+        DeclareLaunchArgument(
+            'bag', default_value='', description='bag to replay with lego_loam_py play (empty: none; play it yourself)'
+        ),
         DeclareLaunchArgument('rate', default_value='1.0', description='playback rate of the bag'),
-        DeclareLaunchArgument('shutdown_after_bag', default_value='true', choices=['true', 'false'],
-                              description='shut everything down once the bag is played'),
-        DeclareLaunchArgument('drain', default_value='3.0',
-                              description='seconds between the end of the bag and the shutdown'),
+        DeclareLaunchArgument(
+            'shutdown_after_bag',
+            default_value='true',
+            choices=['true', 'false'],
+            description='shut everything down once the bag is played',
+        ),
+        DeclareLaunchArgument(
+            'drain', default_value='3.0', description='seconds between the end of the bag and the shutdown'
+        ),
     ]
 
-    nodes = [Node(package=PACKAGE, executable=name, name=name, output='screen',
-                  parameters=[params_file, sim_time]) for name in NODES]
+    nodes = [
+        Node(package=PACKAGE, executable=name, name=name, output='screen', parameters=[params_file, sim_time])
+        for name in NODES
+    ]
 
-    rviz = Node(package='rviz2', executable='rviz2', name='rviz2', output='log',
-                arguments=['-d', LaunchConfiguration('rviz_config')], parameters=[sim_time],
-                condition=IfCondition(LaunchConfiguration('rviz')))
+    rviz = Node(
+        package='rviz2',
+        executable='rviz2',
+        name='rviz2',
+        output='log',
+        arguments=['-d', LaunchConfiguration('rviz_config')],
+        parameters=[sim_time],
+        condition=IfCondition(LaunchConfiguration('rviz')),
+    )
 
     has_bag = IfCondition(PythonExpression(["'", bag, "' != ''"]))
-    player = Node(package=PACKAGE, executable='lego_loam_py', name='player', output='screen',
-                  arguments=['play', bag, '--rate', LaunchConfiguration('rate'), '--wait-for-subscribers', '30',
-                             '--no-progress'],
-                  condition=has_bag)
+    player = Node(
+        package=PACKAGE,
+        executable='lego_loam_py',
+        name='player',
+        output='screen',
+        arguments=['play', bag, '--rate', LaunchConfiguration('rate'), '--wait-for-subscribers', '30', '--no-progress'],
+        condition=has_bag,
+    )
     # GroupAction carries the condition: RegisterEventHandler takes none in older launch releases.
     shutdown_after_bag = GroupAction(
-        condition=IfCondition(PythonExpression(["'", bag, "' != '' and '",
-                                                LaunchConfiguration('shutdown_after_bag'), "' == 'true'"])),
-        actions=[RegisterEventHandler(OnProcessExit(target_action=player, on_exit=[
-            LogInfo(msg=['the bag was played; shutting down in ', LaunchConfiguration('drain'), ' s']),
-            TimerAction(period=LaunchConfiguration('drain'),
-                        actions=[EmitEvent(event=Shutdown(reason='the bag was played'))]),
-        ]))])
+        condition=IfCondition(
+            PythonExpression(["'", bag, "' != '' and '", LaunchConfiguration('shutdown_after_bag'), "' == 'true'"])
+        ),
+        actions=[
+            RegisterEventHandler(
+                OnProcessExit(
+                    target_action=player,
+                    on_exit=[
+                        LogInfo(msg=['the bag was played; shutting down in ', LaunchConfiguration('drain'), ' s']),
+                        TimerAction(
+                            period=LaunchConfiguration('drain'),
+                            actions=[EmitEvent(event=Shutdown(reason='the bag was played'))],
+                        ),
+                    ],
+                )
+            )
+        ],
+    )
 
     return LaunchDescription(arguments + nodes + [rviz, player, shutdown_after_bag])

@@ -11,13 +11,16 @@ The launch file of installs without ``ros2 launch`` (ROS 2 from PyPI wheels); ru
 It is ``lego_loam_py launch`` (``--help`` lists every option; see lego_loam_py/launch.py). With a full ROS 2
 install use ``ros2 launch lego_loam_py lego_loam.launch.py`` instead.
 """
+
 import sys
 
 try:
     from lego_loam_py.launch import main_argv
 except ImportError as exc:  # not the venv's Python
-    sys.exit(f'lego_loam.py: cannot import lego_loam_py ({exc}); run it with the venv\'s Python, e.g. '
-             f'.venv/bin/python launch_scripts/lego_loam.py (after bash install.sh)')
+    sys.exit(
+        f"lego_loam.py: cannot import lego_loam_py ({exc}); run it with the venv's Python, e.g. "
+        f'.venv/bin/python launch_scripts/lego_loam.py (after bash install.sh)'
+    )
 
 if __name__ == '__main__':
     sys.exit(main_argv())

@@ -10,6 +10,7 @@ the next scan (no faults at all once warm); the extra user-space work this costs
 (callgrind: memory taken from the heap instead of fresh zeroed pages). :func:`release_memory` still hands the
 memory back after a huge rejected message.
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -18,9 +19,9 @@ import gc
 
 __all__ = ['keep_heap_pages', 'release_memory', 'MMAP_THRESHOLD', 'TRIM_THRESHOLD']
 
-MMAP_THRESHOLD = 32 << 20   # blocks below this come from the heap (glibc's own upper bound for its adaptive one)
-TRIM_THRESHOLD = 64 << 20   # free memory at the top of the heap kept for reuse before it is returned
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3   # mallopt parameters (malloc.h)
+MMAP_THRESHOLD = 32 << 20  # blocks below this come from the heap (glibc's own upper bound for its adaptive one)
+TRIM_THRESHOLD = 64 << 20  # free memory at the top of the heap kept for reuse before it is returned
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # mallopt parameters (malloc.h)
 
 
 def _libc():
@@ -34,9 +35,10 @@ def keep_heap_pages() -> bool:
     """Fix glibc's mmap and trim thresholds (see the module docstring) for this process; True when applied."""
     libc = _libc()
     try:
-        return bool(libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and \
-            bool(libc.mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
-    except AttributeError:   # no C library found, or one without mallopt
+        return bool(libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(
+            libc.mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD)
+        )
+    except AttributeError:  # no C library found, or one without mallopt
         return False
 
 

@@ -15,6 +15,7 @@ and writes, into ``OUTDIR`` (default ``output/demo-<bag name>/``):
   trajectory length, accuracy against the ground truth when one sits beside the bag);
 * ``recording/`` (mcap), ``stats/<node>.json``, ``logs/<process>.log``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -23,28 +24,49 @@ import re
 import shutil
 import sys
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
+from lego_loam_py.core.guard import KEYFRAMES, MAPPING_STEPS, SCANS_DROPPED, SCANS_PROCESSED, SCANS_WITH_IMU
+from lego_loam_py.core.trajectory import Trajectory
 from lego_loam_py.errors import UsageError
 from lego_loam_py.orchestration import DEFAULT_RECORD_TOPICS, NODES, PipelineConfig, run_pipeline
 from lego_loam_py.results import DemoSummary, LoopClosures, TimingStats
 from lego_loam_py.supervisor import Interrupts, package_file
 
-__all__ = ['DemoResult', 'run_demo', 'read_trajectory', 'read_stats', 'format_demo_summary', 'default_bag',
-           'add_arguments', 'main']
+__all__ = [
+    'DemoResult',
+    'run_demo',
+    'read_trajectory',
+    'read_stats',
+    'format_demo_summary',
+    'default_bag',
+    'add_arguments',
+    'main',
+]
 
-STATS_NODES = tuple(NODES)   # every node writes its statistics when it stops
+STATS_NODES = tuple(NODES)  # every node writes its statistics when it stops
 # Timing entry of each node's statistics that is its work per scan (mapOptimization: per mapping step).
-NODE_TIMINGS = {'imageProjection': 'scan', 'featureAssociation': 'scan', 'mapOptimization': 'step',
-                'transformFusion': 'odometry'}
+NODE_TIMINGS = {
+    'imageProjection': 'scan',
+    'featureAssociation': 'scan',
+    'mapOptimization': 'step',
+    'transformFusion': 'odometry',
+}
 # Counters that count messages a node received and threw away.
 _DROP_COUNTER = re.compile(r'(dropped|failed|rejected|errors)$')
-MAP_FILES = ('global_map.pcd', 'corner_map.pcd', 'surface_map.pcd', 'trajectory.pcd', 'trajectory.tum',
-             'trajectory_camera_init.tum')
+MAP_FILES = (
+    'global_map.pcd',
+    'corner_map.pcd',
+    'surface_map.pcd',
+    'trajectory.pcd',
+    'trajectory.tum',
+    'trajectory_camera_init.tum',
+)
 
 
 def _display(path: Path) -> str:
@@ -80,16 +102,18 @@ def read_stats(stats_dir: Path) -> dict[str, dict]:
     return out
 
 
-def read_trajectory(recording: Path, topic: str = '/integrated_to_init') -> tuple[np.ndarray, np.ndarray]:
-    """(header stamps [ns], 4x4 poses in camera_init axes) of the Odometry messages of ``topic`` in a
-    recorded bag, in the order they were published."""
+def read_trajectory(recording: Path, topic: str = '/integrated_to_init', offset_ns: int = 0) -> Trajectory:
+    """The poses (camera_init frame) of the Odometry messages of ``topic`` in a recorded bag, in the order they
+    were published, at their header stamps + ``offset_ns`` [ns]; empty without the topic or the bag."""
     from lego_loam_py.bag.io import BagReader
     from lego_loam_py.ros.conversions import odometry_to_pose
 
     stamps, poses = [], []
+    if not (recording / 'metadata.yaml').is_file():
+        return Trajectory(np.zeros(0, np.int64), np.zeros((0, 4, 4)), 'camera_init')
     with BagReader(recording) as reader:
         if topic not in reader.topics():
-            return np.zeros(0, np.int64), np.zeros((0, 4, 4))
+            return Trajectory(np.zeros(0, np.int64), np.zeros((0, 4, 4)), 'camera_init')
         for message in reader.messages(topics=[topic]):
             msg = reader.deserialize(message)
             try:
@@ -98,7 +122,7 @@ def read_trajectory(recording: Path, topic: str = '/integrated_to_init') -> tupl
                 continue
             stamps.append(int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec))
             poses.append(pose)
-    return np.array(stamps, dtype=np.int64), np.array(poses).reshape(-1, 4, 4)
+    return Trajectory(np.array(stamps, dtype=np.int64) + offset_ns, np.array(poses).reshape(-1, 4, 4), 'camera_init')
 
 
 def _clear_previous_outputs(out: Path) -> None:
@@ -121,9 +145,9 @@ def _clear_previous_outputs(out: Path) -> None:
 class NodeFigures(NamedTuple):
     """What the nodes' statistics say about a run."""
 
-    processed: dict[str, int]           # node -> scans it processed (mapOptimization: mapping steps)
-    drops: dict[str, dict[str, int]]    # node -> its non-zero counters of messages thrown away
-    timings: dict[str, TimingStats]     # node -> its time per scan (mapOptimization: per mapping step)
+    processed: dict[str, int]  # node -> scans it processed (mapOptimization: mapping steps)
+    drops: dict[str, dict[str, int]]  # node -> its non-zero counters of messages thrown away
+    timings: dict[str, TimingStats]  # node -> its time per scan (mapOptimization: per mapping step)
 
 
 def _node_counters(stats: dict[str, dict]) -> dict[str, dict[str, int]]:
@@ -137,8 +161,8 @@ def _node_summary(stats: dict[str, dict]) -> NodeFigures:
     counters = _node_counters(stats)
     processed = {
         'imageProjection': counters['imageProjection'].get('clouds_out', 0),
-        'featureAssociation': counters['featureAssociation'].get('scans', 0),
-        'mapOptimization': counters['mapOptimization'].get('steps', 0),
+        'featureAssociation': counters['featureAssociation'].get(SCANS_PROCESSED, 0),
+        'mapOptimization': counters['mapOptimization'].get(MAPPING_STEPS, 0),
         'transformFusion': counters['transformFusion'].get('integrated', 0),
     }
     drops = {}
@@ -159,10 +183,21 @@ def _node_summary(stats: dict[str, dict]) -> NodeFigures:
     return NodeFigures(processed, drops, timings)
 
 
-def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_file: Path | None = None,
-             overrides: list[str] | None = None, progress: bool = False, stop: threading.Event | None = None,
-             hurry: threading.Event | None = None, announce: Callable[[str], None] | None = None,
-             ready_timeout: float = 60.0, viewer: bool = False, viewer_save: Path | None = None) -> DemoResult:
+def run_demo(
+    bag: str | Path,
+    out_dir: str | Path,
+    *,
+    rate: float = 1.0,
+    params_file: Path | None = None,
+    overrides: list[str] | None = None,
+    progress: bool = False,
+    stop: threading.Event | None = None,
+    hurry: threading.Event | None = None,
+    announce: Callable[[str], None] | None = None,
+    ready_timeout: float = 60.0,
+    viewer: bool = False,
+    viewer_save: Path | None = None,
+) -> DemoResult:
     """Run the pipeline over DDS on ``bag`` and write the outputs into ``out_dir`` (see the module
     docstring). Raises ``BagError``, ``ParameterError`` or ``UsageError`` before starting anything when the
     bag, the parameters or the output directory cannot be used."""
@@ -182,38 +217,61 @@ def run_demo(bag: str | Path, out_dir: str | Path, *, rate: float = 1.0, params_
     _clear_previous_outputs(out)
 
     config = PipelineConfig(
-        params_file=params_file, overrides=node_overrides, bag=Path(bag), rate=rate, player_progress=progress,
-        record_topics=DEFAULT_RECORD_TOPICS, record_output=out / 'recording', stats_dir=out / 'stats',
-        output='log', log_dir=out / 'logs', ready_timeout=ready_timeout, viewer=viewer,
-        viewer_save=Path(viewer_save).resolve() if viewer_save is not None else None)
+        params_file=params_file,
+        overrides=node_overrides,
+        bag=Path(bag),
+        rate=rate,
+        player_progress=progress,
+        record_topics=DEFAULT_RECORD_TOPICS,
+        record_output=out / 'recording',
+        stats_dir=out / 'stats',
+        output='log',
+        log_dir=out / 'logs',
+        ready_timeout=ready_timeout,
+        viewer=viewer,
+        viewer_save=Path(viewer_save).resolve() if viewer_save is not None else None,
+    )
     outcome = run_pipeline(config, stop=stop, hurry=hurry, announce=announce)
 
     stats = read_stats(out / 'stats')
     figures = _node_summary(stats)
     counters = _node_counters(stats)
     recording = out / 'recording'
-    stamps, poses = (read_trajectory(recording) if (recording / 'metadata.yaml').is_file()
-                     else (np.zeros(0, np.int64), np.zeros((0, 4, 4))))
-    stamps = stamps + pose_time_offset_ns(params)
+    trajectory = read_trajectory(recording, offset_ns=pose_time_offset_ns(params))
+    stamps = trajectory.stamps_ns
     fa = counters['featureAssociation']
     # Scans imageProjection published that featureAssociation neither processed nor rejected: overwritten in
     # its depth-1 input queues while it was busy (the original's queue semantics), when it is not real time.
     # (A scan with one part overwritten leaves its other parts in featureAssociation's unmatched_inputs.)
-    fa_handled = fa.get('scans', 0) + fa.get('scans_dropped', 0)
+    fa_handled = fa.get(SCANS_PROCESSED, 0) + fa.get(SCANS_DROPPED, 0)
     overwritten = max(0, figures.processed['imageProjection'] - fa_handled) if 'featureAssociation' in stats else 0
     summary = DemoSummary(
-        bag=_display(bag), rate=rate, bag_duration_s=bag_duration, wall_time_s=outcome.wall_time_s,
-        scans_in=scans_in, processed=figures.processed, integrated=len(stamps),
-        not_received=(max(0, scans_in - counters['imageProjection'].get('clouds_in', 0))
-                      if 'imageProjection' in stats else scans_in),
-        drop_counters=figures.drops, queue_overwritten=overwritten,
-        keyframes=counters['mapOptimization'].get('keyframes', 0), scans_with_imu=fa.get('scans_with_imu', 0),
-        timings_ms=figures.timings, processes=list(outcome.processes), failures=list(outcome.failures),
-        interrupted=outcome.interrupted, ready_after_s=outcome.ready_after_s,
-        loop_closures=_loop_closures(stats))
+        bag=_display(bag),
+        rate=rate,
+        bag_duration_s=bag_duration,
+        wall_time_s=outcome.wall_time_s,
+        scans_in=scans_in,
+        processed=figures.processed,
+        integrated=len(stamps),
+        not_received=(
+            max(0, scans_in - counters['imageProjection'].get('clouds_in', 0))
+            if 'imageProjection' in stats
+            else scans_in
+        ),
+        drop_counters=figures.drops,
+        queue_overwritten=overwritten,
+        keyframes=counters['mapOptimization'].get(KEYFRAMES, 0),
+        scans_with_imu=fa.get(SCANS_WITH_IMU, 0),
+        timings_ms=figures.timings,
+        processes=list(outcome.processes),
+        failures=list(outcome.failures),
+        interrupted=outcome.interrupted,
+        ready_after_s=outcome.ready_after_s,
+        loop_closures=_loop_closures(stats),
+    )
     if len(stamps):
-        write_outputs(out, bag, stamps, poses, None, summary, params, map_dir=map_dir)
-    else:   # no pose, no trajectory file, picture or accuracy: the summary says 0 m
+        write_outputs(out, bag, trajectory, None, summary, params, map_dir=map_dir)
+    else:  # no pose, no trajectory file, picture or accuracy: the summary says 0 m
         write_summary(out, summary)
     exit_code = outcome.exit_code
     if exit_code == 0 and not len(stamps) and not outcome.interrupted:
@@ -233,34 +291,45 @@ def format_demo_summary(summary: DemoSummary, out_dir: Path | None = None) -> st
     """The demo's report, as printed at the end of a run."""
     scans_in = summary.scans_in
     p = summary.processed
-    lines = [f"LeGO-LOAM over DDS: {summary.bag} at {summary.rate:g}x, four nodes as separate processes"
-             + (' (INTERRUPTED)' if summary.interrupted else '')]
-    lines.append(f"scans in {scans_in} ({summary.bag_duration_s:.1f} s of data); processed: imageProjection "
-                 f"{p['imageProjection']}, featureAssociation {p['featureAssociation']} (IMU on "
-                 f"{summary.scans_with_imu}), mapOptimization {p['mapOptimization']} mapping steps "
-                 f"({summary.keyframes} keyframes), transformFusion {p['transformFusion']}")
+    lines = [
+        f'LeGO-LOAM over DDS: {summary.bag} at {summary.rate:g}x, four nodes as separate processes'
+        + (' (INTERRUPTED)' if summary.interrupted else '')
+    ]
+    lines.append(
+        f'scans in {scans_in} ({summary.bag_duration_s:.1f} s of data); processed: imageProjection '
+        f'{p["imageProjection"]}, featureAssociation {p["featureAssociation"]} (IMU on '
+        f'{summary.scans_with_imu}), mapOptimization {p["mapOptimization"]} mapping steps '
+        f'({summary.keyframes} keyframes), transformFusion {p["transformFusion"]}'
+    )
     fraction = summary.integrated_fraction
-    lines.append(f"/integrated_to_init for {summary.integrated} of {scans_in} scans ({fraction:.1%}; the first "
-                 f"scan only initialises the odometry)")
-    detail = [f"{summary.not_received} never reached imageProjection"]
+    lines.append(
+        f'/integrated_to_init for {summary.integrated} of {scans_in} scans ({fraction:.1%}; the first '
+        f'scan only initialises the odometry)'
+    )
+    detail = [f'{summary.not_received} never reached imageProjection']
     for node, counters in summary.drop_counters.items():
         detail.append(f'{node} ' + ', '.join(f'{k} {v}' for k, v in counters.items()))
-    lines.append(f"dropped messages {summary.dropped}: " + '; '.join(detail))
+    lines.append(f'dropped messages {summary.dropped}: ' + '; '.join(detail))
     if summary.queue_overwritten:
-        lines.append(f"  + {summary.queue_overwritten} scans featureAssociation never got: overwritten in its "
-                     "depth-1 input queues while it was busy (as in the original: the latest scan wins)")
+        lines.append(
+            f'  + {summary.queue_overwritten} scans featureAssociation never got: overwritten in its '
+            'depth-1 input queues while it was busy (as in the original: the latest scan wins)'
+        )
     if summary.timings_ms:
-        lines.append(f"{'ms per scan':<22s}{'median':>8s}{'p95':>9s}{'n':>7s}")
+        lines.append(f'{"ms per scan":<22s}{"median":>8s}{"p95":>9s}{"n":>7s}')
         for node, t in summary.timings_ms.items():
             unit = '  (per mapping step)' if node == 'mapOptimization' else ''
-            lines.append(f"  {node:<20s}{t.median:8.1f}{t.p95:9.1f}{t.count:7d}{unit}")
+            lines.append(f'  {node:<20s}{t.median:8.1f}{t.p95:9.1f}{t.count:7d}{unit}')
     from lego_loam_py.outputs import result_lines
+
     if summary.loop_closures is not None:
         lines.extend(summary.loop_closures.lines())
     lines.extend(result_lines(summary.outputs))
     if out_dir is not None:
-        lines.append(f'outputs in {_display(out_dir)}/: trajectory.tum (REP-103 map axes), trajectory_camera_init.tum, '
-                     f'map/*.pcd, trajectory.png, summary.json, recording/ (mcap), stats/, logs/')
+        lines.append(
+            f'outputs in {_display(out_dir)}/: trajectory.tum (REP-103 map axes), trajectory_camera_init.tum, '
+            f'map/*.pcd, trajectory.png, summary.json, recording/ (mcap), stats/, logs/'
+        )
     for failure in summary.failures:
         lines.append(f'FAILED: {failure}')
     return '\n'.join(lines)
@@ -269,16 +338,26 @@ def format_demo_summary(summary: DemoSummary, out_dir: Path | None = None) -> st
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from lego_loam_py.cli import add_parameter_arguments
 
-    parser.add_argument('bag', nargs='?', default=None,
-                        help='ROS 1 .bag or ROS 2 bag directory (default: bags/campus_8s of the repository)')
+    parser.add_argument(
+        'bag',
+        nargs='?',
+        default=None,
+        help='ROS 1 .bag or ROS 2 bag directory (default: bags/campus_8s of the repository)',
+    )
     parser.add_argument('-o', '--output', default=None, help='output directory (default: output/demo-<bag name>)')
     parser.add_argument('-r', '--rate', type=float, default=1.0, help='playback rate factor (default 1)')
-    add_parameter_arguments(parser, 'ROS 2 parameter file for the nodes (default: config/params.yaml)',
-                            'sensor.imu_topic:=""')
+    add_parameter_arguments(
+        parser, 'ROS 2 parameter file for the nodes (default: config/params.yaml)', 'sensor.imu_topic:=""'
+    )
     parser.add_argument('--no-progress', action='store_true', help='no progress bar while the bag plays')
     parser.add_argument('--viewer', action='store_true', help='show the run live in Rerun (lego_loam_py viewer)')
-    parser.add_argument('--viewer-save', type=Path, default=None, metavar='FILE.rrd',
-                        help='save what the viewer shows to a Rerun recording (no display needed)')
+    parser.add_argument(
+        '--viewer-save',
+        type=Path,
+        default=None,
+        metavar='FILE.rrd',
+        help='save what the viewer shows to a Rerun recording (no display needed)',
+    )
 
 
 def main(args: argparse.Namespace) -> int:
@@ -288,12 +367,25 @@ def main(args: argparse.Namespace) -> int:
     name = bag.resolve().name if bag.suffix != '.bag' else bag.stem
     out = Path(args.output) if args.output else Path('output') / f'demo-{name}'
     progress = not args.no_progress and sys.stderr.isatty()
-    print(f'demo: {_display(bag)} at {args.rate:g}x through imageProjection, featureAssociation, mapOptimization and '
-          f'transformFusion (separate processes, DDS); logs in {out}/logs/', file=sys.stderr, flush=True)
+    print(
+        f'demo: {_display(bag)} at {args.rate:g}x through imageProjection, featureAssociation, mapOptimization and '
+        f'transformFusion (separate processes, DDS); logs in {out}/logs/',
+        file=sys.stderr,
+        flush=True,
+    )
     with Interrupts() as interrupts:
-        result = run_demo(bag, out, rate=args.rate, params_file=args.params_file, overrides=args.param,
-                          progress=progress, stop=interrupts.stop, hurry=interrupts.hurry, viewer=args.viewer,
-                          viewer_save=args.viewer_save)
+        result = run_demo(
+            bag,
+            out,
+            rate=args.rate,
+            params_file=args.params_file,
+            overrides=args.param,
+            progress=progress,
+            stop=interrupts.stop,
+            hurry=interrupts.hurry,
+            viewer=args.viewer,
+            viewer_save=args.viewer_save,
+        )
     print(format_demo_summary(result.summary, result.out_dir))
     if result.summary.interrupted:
         return 130

@@ -11,6 +11,7 @@ Every module's own error class derives from :class:`LegoLoamError` (and from the
 
 No traceback is shown for these: the message is written for the user.
 """
+
 from __future__ import annotations
 
 __all__ = ['LegoLoamError', 'UsageError']

@@ -22,15 +22,17 @@ Life of a run:
 5. **stop**: SIGINT to each process group in reverse start order, waiting up to ``stop_timeout`` for each
    (the nodes save maps and statistics on the way out), SIGKILL to whatever is left of any group.
 """
+
 from __future__ import annotations
 
 import shutil
 import sys
 import threading
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import TYPE_CHECKING
 
 from lego_loam_py.errors import UsageError
 from lego_loam_py.supervisor import PACKAGE, ProcessResult, ProcessSpec, Supervisor, package_file, resolve_command
@@ -54,7 +56,7 @@ READY_TOPICS = {
     'mapOptimization': '/aft_mapped_to_init',
     'transformFusion': '/integrated_to_init',
 }
-RECORDER_NODE = 'lego_loam_py_recorder'   # the ROS node name of `lego_loam_py record`
+RECORDER_NODE = 'lego_loam_py_recorder'  # the ROS node name of `lego_loam_py record`
 OUTPUT_TOPIC = '/integrated_to_init'
 
 # The pipeline's odometry outputs: what a run records unless told otherwise.
@@ -70,7 +72,7 @@ class PipelineConfig:
     params_file: Path | None = None
     overrides: Sequence[str] = ()
     ros_args: Sequence[str] = ()
-    use_sim_time: bool | None = None          # None: on when a bag is played
+    use_sim_time: bool | None = None  # None: on when a bag is played
     bag: Path | None = None
     rate: float = 1.0
     start_offset: float = 0.0
@@ -82,11 +84,11 @@ class PipelineConfig:
     stats_dir: Path | None = None
     rviz: bool = False
     rviz_config: Path | None = None
-    viewer: bool = False                      # `lego_loam_py viewer` beside the nodes: a Rerun window ...
-    viewer_save: Path | None = None           # ... and/or a .rrd recording of it
-    keep_alive: bool = False                  # keep the nodes running after the bag ended
+    viewer: bool = False  # `lego_loam_py viewer` beside the nodes: a Rerun window ...
+    viewer_save: Path | None = None  # ... and/or a .rrd recording of it
+    keep_alive: bool = False  # keep the nodes running after the bag ended
     ready_timeout: float = 60.0
-    settle: float = 0.5                       # after ready, for the nodes to match each other's endpoints
+    settle: float = 0.5  # after ready, for the nodes to match each other's endpoints
     wait_for_subscribers: float = 20.0
     drain_quiet: float = 2.0
     drain_timeout: float = 30.0
@@ -105,12 +107,13 @@ class PipelineOutcome:
     interrupted: bool = False
     bag_finished: bool = False
     ready_after_s: float | None = None
-    integrated_count: int = 0       # /integrated_to_init messages the supervisor received
+    integrated_count: int = 0  # /integrated_to_init messages the supervisor received
     wall_time_s: float = 0.0
 
 
 def _load_run_params(config: PipelineConfig):
     from lego_loam_py.core.params import load_params, parse_overrides
+
     return load_params(config.params_file, parse_overrides(list(config.overrides)), node_name='imageProjection')
 
 
@@ -124,27 +127,42 @@ def _node_specs(config: PipelineConfig, use_sim_time: bool) -> list[ProcessSpec]
         ros_args += ['-p', 'use_sim_time:=true']
     ros_args += list(config.ros_args)
     env = {'LEGO_LOAM_PY_STATS_DIR': str(config.stats_dir)} if config.stats_dir is not None else {}
-    return [ProcessSpec(name, resolve_command(name, NODES[name]) + ros_args, role='node', env=dict(env),
-                        stop_timeout=config.stop_timeout) for name in config.nodes]
+    return [
+        ProcessSpec(
+            name,
+            resolve_command(name, NODES[name]) + ros_args,
+            role='node',
+            env=dict(env),
+            stop_timeout=config.stop_timeout,
+        )
+        for name in config.nodes
+    ]
 
 
 def _play_topics(bag: Path, requested: Sequence[str] | None, params) -> list[str]:
     """The topics to replay: ``requested``, or the parameters' lidar topic (which must be in the bag) and
     IMU topic (when it is)."""
     from lego_loam_py.bag.io import BagError, BagReader
+
     with BagReader(bag) as reader:
         available = reader.topics()
     if requested is not None:
         return list(requested)
     cloud, imu = params.sensor.point_cloud_topic, params.sensor.imu_topic
     if cloud not in available:
-        raise BagError(f'{bag}: no {cloud} topic (topics: {", ".join(sorted(available)) or "none"}); '
-                       f'set sensor.point_cloud_topic or remap')
+        raise BagError(
+            f'{bag}: no {cloud} topic (topics: {", ".join(sorted(available)) or "none"}); '
+            f'set sensor.point_cloud_topic or remap'
+        )
     return [cloud] + ([imu] if imu and imu in available else [])
 
 
-def run_pipeline(config: PipelineConfig, stop: threading.Event | None = None, hurry: threading.Event | None = None,
-                 announce: Callable[[str], None] | None = None) -> PipelineOutcome:
+def run_pipeline(
+    config: PipelineConfig,
+    stop: threading.Event | None = None,
+    hurry: threading.Event | None = None,
+    announce: Callable[[str], None] | None = None,
+) -> PipelineOutcome:
     """Start, watch, drain and stop the pipeline described by ``config`` (see the module docstring).
 
     ``stop`` ends the run from outside (the CLI sets it on SIGINT/SIGTERM); ``hurry`` (a second Ctrl-C)
@@ -163,10 +181,11 @@ def run_pipeline(config: PipelineConfig, stop: threading.Event | None = None, hu
         raise UsageError('the rate must be positive')
     if config.output == 'log' and config.log_dir is None:
         raise UsageError("output 'log' needs a log directory")
-    params = _load_run_params(config)          # invalid parameters stop here, before any process starts
+    params = _load_run_params(config)  # invalid parameters stop here, before any process starts
     if params.map_optimization.mode == 'localization' and 'mapOptimization' in config.nodes:
-        from lego_loam_py.core.map_bundle import read_manifest
-        read_manifest(params.map_optimization.map_path)   # (and so does a saved map that is not there)
+        from lego_loam_py.core.mapping.map_bundle import read_manifest
+
+        read_manifest(params.map_optimization.map_path)  # (and so does a saved map that is not there)
     bag, play_topics = None, []
     if config.bag is not None:
         bag = resolve_bag_path(config.bag)
@@ -180,7 +199,8 @@ def run_pipeline(config: PipelineConfig, stop: threading.Event | None = None, hu
             raise UsageError('rviz2 not found: it comes with a full ROS 2 install (source its setup.bash first)')
     if config.viewer or config.viewer_save is not None:
         from lego_loam_py.viewer import require_rerun
-        require_rerun()   # (says what to install before anything starts)
+
+        require_rerun()  # (says what to install before anything starts)
     if config.stats_dir is not None:
         Path(config.stats_dir).mkdir(parents=True, exist_ok=True)
 
@@ -190,7 +210,8 @@ def run_pipeline(config: PipelineConfig, stop: threading.Event | None = None, hu
     failures: list[str] = []
     outcome = PipelineOutcome(exit_code=0, failures=failures, processes=[])
     cli = resolve_command(PACKAGE, 'lego_loam_py.cli')
-    from lego_loam_py.ros.graph_monitor import GraphMonitor   # (rclpy loads only for a run, not for --help)
+    from lego_loam_py.ros.graph_monitor import GraphMonitor  # (rclpy loads only for a run, not for --help)
+
     monitor = GraphMonitor(OUTPUT_TOPIC, READY_TOPICS, RECORDER_NODE)
     try:
         if record:
@@ -204,11 +225,16 @@ def run_pipeline(config: PipelineConfig, stop: threading.Event | None = None, hu
         if rviz_command is not None:
             rviz_config = config.rviz_config or package_file('config', 'lego_loam.rviz')
             argv = [rviz_command, '-d', str(rviz_config)] + (
-                ['--ros-args', '-p', 'use_sim_time:=true'] if use_sim_time else [])
+                ['--ros-args', '-p', 'use_sim_time:=true'] if use_sim_time else []
+            )
             supervisor.start(ProcessSpec('rviz2', argv, role='tool', stop_timeout=config.stop_timeout))
         if config.viewer or config.viewer_save is not None:
-            argv = cli + ['viewer'] + (['--save', str(config.viewer_save)] if config.viewer_save else []) + \
-                ([] if config.viewer else ['--no-window'])
+            argv = (
+                cli
+                + ['viewer']
+                + (['--save', str(config.viewer_save)] if config.viewer_save else [])
+                + ([] if config.viewer else ['--no-window'])
+            )
             supervisor.start(ProcessSpec('viewer', argv, role='tool', stop_timeout=config.stop_timeout))
 
         # ready: every node up (and the recorder subscribed), nothing crashed
@@ -227,16 +253,32 @@ def run_pipeline(config: PipelineConfig, stop: threading.Event | None = None, hu
         if not failures and not stop.is_set():
             time.sleep(config.settle)
             outcome.ready_after_s = time.monotonic() - started_at
-            announce(f'ready after {outcome.ready_after_s:.1f} s: {", ".join(config.nodes)}'
-                     + (' (recording)' if record else ''))
+            announce(
+                f'ready after {outcome.ready_after_s:.1f} s: {", ".join(config.nodes)}'
+                + (' (recording)' if record else '')
+            )
             if bag is not None:
-                argv = cli + ['play', str(bag), '--rate', f'{config.rate:g}', '--wait-for-subscribers',
-                              f'{config.wait_for_subscribers:g}', '--topics', *play_topics]
+                argv = cli + [
+                    'play',
+                    str(bag),
+                    '--rate',
+                    f'{config.rate:g}',
+                    '--wait-for-subscribers',
+                    f'{config.wait_for_subscribers:g}',
+                    '--topics',
+                    *play_topics,
+                ]
                 argv += ['--start-offset', f'{config.start_offset:g}'] if config.start_offset else []
                 argv += [] if config.player_progress else ['--no-progress']
-                supervisor.start(ProcessSpec('player', argv, role='player',
-                                             output='inherit' if config.player_progress else None,
-                                             stop_timeout=config.stop_timeout))
+                supervisor.start(
+                    ProcessSpec(
+                        'player',
+                        argv,
+                        role='player',
+                        output='inherit' if config.player_progress else None,
+                        stop_timeout=config.stop_timeout,
+                    )
+                )
             _watch(config, supervisor, monitor, stop, failures, outcome, announce)
         outcome.interrupted = stop.is_set()
         if outcome.interrupted:
@@ -256,8 +298,15 @@ def run_pipeline(config: PipelineConfig, stop: threading.Event | None = None, hu
     return outcome
 
 
-def _watch(config: PipelineConfig, supervisor: Supervisor, monitor: GraphMonitor, stop: threading.Event,
-           failures: list[str], outcome: PipelineOutcome, announce: Callable[[str], None]) -> None:
+def _watch(
+    config: PipelineConfig,
+    supervisor: Supervisor,
+    monitor: GraphMonitor,
+    stop: threading.Event,
+    failures: list[str],
+    outcome: PipelineOutcome,
+    announce: Callable[[str], None],
+) -> None:
     """Run until stopped, a crash, or the end of the bag plus the drain."""
     drain_started = None
     while not stop.is_set():
@@ -269,15 +318,22 @@ def _watch(config: PipelineConfig, supervisor: Supervisor, monitor: GraphMonitor
                     announce('the bag ended; the nodes keep running (Ctrl-C stops them)')
                 else:
                     drain_started = time.monotonic()
-                    announce(f'the bag ended; draining (until no {OUTPUT_TOPIC} for {config.drain_quiet:g} s, '
-                             f'at most {config.drain_timeout:g} s)')
+                    announce(
+                        f'the bag ended; draining (until no {OUTPUT_TOPIC} for {config.drain_quiet:g} s, '
+                        f'at most {config.drain_timeout:g} s)'
+                    )
             elif child.spec.role == 'tool' and rc == 0:
                 announce(f'{child.spec.name} was closed; the nodes keep running')
             else:
-                failures.append(f'{child.spec.name} exited on its own with code {rc}' if rc >= 0 else
-                                f'{child.spec.name} died of signal {-rc}')
-                announce(f'{child.spec.name} (pid {child.pid}) ended unexpectedly '
-                         f'({"code " + str(rc) if rc >= 0 else "signal " + str(-rc)}): stopping everything')
+                failures.append(
+                    f'{child.spec.name} exited on its own with code {rc}'
+                    if rc >= 0
+                    else f'{child.spec.name} died of signal {-rc}'
+                )
+                announce(
+                    f'{child.spec.name} (pid {child.pid}) ended unexpectedly '
+                    f'({"code " + str(rc) if rc >= 0 else "signal " + str(-rc)}): stopping everything'
+                )
                 return
         if drain_started is not None:
             now = time.monotonic()
@@ -289,4 +345,3 @@ def _watch(config: PipelineConfig, supervisor: Supervisor, monitor: GraphMonitor
                 announce(f'drain timeout ({config.drain_timeout:g} s): {OUTPUT_TOPIC} still arriving; stopping')
                 return
         time.sleep(0.05)
-

@@ -2,23 +2,24 @@
 the trajectories (TUM, REP-103 ``map`` and the original's camera_init axes), the map (PCD), a PNG of both and
 ``summary.json``, with the accuracy against a ground truth found beside the bag.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
 
-from lego_loam_py.core.frames import camera_pose_to_lidar
-from lego_loam_py.core.io import write_kitti_poses_atomic, write_text_atomic, write_tum_atomic
-from lego_loam_py.core.map_optimization import MapOptimization
+from lego_loam_py.core.mapping.map_optimization import MapOptimization
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.pipeline import pose_time_offset_ns
+from lego_loam_py.core.trajectory import Trajectory
+from lego_loam_py.formats import write_kitti_poses_atomic, write_text_atomic, write_tum_atomic
 from lego_loam_py.results import DemoSummary, MapToScene, OfflineSummary, RunOutputs
 
 __all__ = ['write_outputs', 'write_summary', 'result_lines', 'pose_time_offset_ns', 'TRAJECTORY_FORMATS']
 
 TRAJECTORY_FORMATS = ('tum', 'kitti')
-_BESIDE_THE_BAG = object()   # write_outputs' default ground truth: the simulator's ground_truth.tum beside the bag
+_BESIDE_THE_BAG = object()  # write_outputs' default ground truth: the simulator's ground_truth.tum beside the bag
 
 
 def write_summary(out_dir: str | Path, summary: OfflineSummary | DemoSummary) -> None:
@@ -26,43 +27,53 @@ def write_summary(out_dir: str | Path, summary: OfflineSummary | DemoSummary) ->
     write_text_atomic(Path(out_dir) / 'summary.json', summary.to_json())
 
 
-def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, poses_camera_init: np.ndarray,
-                  mapper: MapOptimization | None, summary: OfflineSummary | DemoSummary, params: Params,
-                  map_dir: str | Path | None = None, in_saved_map: bool = False, *, ground_truth=_BESIDE_THE_BAG,
-                  trajectory_format: str = 'tum') -> RunOutputs:
+def write_outputs(
+    out_dir: str | Path,
+    bag: str | Path,
+    trajectory: Trajectory,
+    mapper: MapOptimization | None,
+    summary: OfflineSummary | DemoSummary,
+    params: Params,
+    map_dir: str | Path | None = None,
+    in_saved_map: bool = False,
+    *,
+    ground_truth=_BESIDE_THE_BAG,
+    trajectory_format: str = 'tum',
+) -> RunOutputs:
     """Trajectories, maps, PNG and summary.json into ``out_dir``; measures what they show (with the accuracy
     when there is a ground truth) into ``summary.outputs``, which it returns.
 
-    ``ground_truth``: (stamps [ns], lidar poses) of the recording, None for none (default: the one beside the
-    bag). ``trajectory_format`` 'kitti' adds ``trajectory_kitti.txt``: the TUM file's poses (lidar in ``map``,
-    REP-103) in KITTI's layout, 12 numbers a line, one line per pose.
+    ``trajectory``: the published poses (in either frame). ``ground_truth``: the recording's (a trajectory), None for
+    none (default: the one beside the bag). ``trajectory_format`` 'kitti' adds ``trajectory_kitti.txt``: the TUM file's
+    poses (lidar in ``map``, REP-103) in KITTI's layout, 12 numbers a line, one line per pose.
 
     The maps come from ``mapper`` (saved into ``out_dir/map``) or, without one, from ``map_dir`` where they
     were saved already (by the mapOptimization node, or the saved map a localization ran in): listed in the summary
     and drawn under the PNG. ``in_saved_map``: the poses are in a saved map's frame (localization), so the drawn
     ground truth starts at the first pose instead of the origin."""
     from lego_loam_py.evaluation import evaluate, path_length, plot_trajectories
-    from lego_loam_py.sim.output import load_ground_truth
+    from lego_loam_py.inputs.sidecars import load_ground_truth
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    poses_camera_init = np.asarray(poses_camera_init).reshape(-1, 4, 4)
-    poses_map = np.array([camera_pose_to_lidar(p) for p in poses_camera_init]).reshape(-1, 4, 4)
+    stamps, poses_map = trajectory.to('map')
     result = summary.outputs = RunOutputs(poses=int(len(poses_map)))
-    if len(poses_map):   # (no pose, no file: an empty trajectory file would look like a broken one)
+    if len(poses_map):  # (no pose, no file: an empty trajectory file would look like a broken one)
         write_tum_atomic(out / 'trajectory.tum', stamps, poses_map)
-        write_tum_atomic(out / 'trajectory_camera_init.tum', stamps, poses_camera_init)
+        write_tum_atomic(out / 'trajectory_camera_init.tum', stamps, trajectory.to('camera_init').poses)
         if trajectory_format == 'kitti':
             write_kitti_poses_atomic(out / 'trajectory_kitti.txt', poses_map)
     result.trajectory_length_m = path_length(poses_map)
     map_points = None
-    if mapper is not None and mapper.keyframes:
+    if mapper is not None and mapper.builds_map and mapper.keyframes:
         saved = mapper.save(out / 'map')
         result.map_files = {k: str(v) for k, v in saved.items()}
-        from lego_loam_py.core.io import read_pcd
+        from lego_loam_py.formats import read_pcd
+
         map_points = read_pcd(saved['global_map'])
     elif map_dir is not None and (Path(map_dir) / 'global_map.pcd').is_file():
-        from lego_loam_py.core.io import read_pcd
+        from lego_loam_py.formats import read_pcd
+
         saved_files = sorted(p for p in Path(map_dir).iterdir() if p.suffix in ('.pcd', '.tum'))
         result.map_files = {p.name: str(p) for p in saved_files}
         map_points = read_pcd(Path(map_dir) / 'global_map.pcd')
@@ -70,12 +81,13 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
         ground_truth = load_ground_truth(bag)
     trajectories = {'lego_loam_py': poses_map}
     if ground_truth is not None and len(stamps) < 3:
-        result.accuracy_error = (f'not evaluated: {len(stamps)} pose(s); the evaluation needs at least 3 (the '
-                                     'first scan only initialises the odometry)')
+        result.accuracy_error = (
+            f'not evaluated: {len(stamps)} pose(s); the evaluation needs at least 3 (the '
+            'first scan only initialises the odometry)'
+        )
     elif ground_truth is not None:
-        gt_stamps, gt_poses = ground_truth
         try:
-            result.accuracy = evaluate((gt_stamps, gt_poses), (stamps, poses_map))
+            result.accuracy = evaluate(ground_truth, trajectory)
         except ValueError as exc:
             result.accuracy_error = str(exc)
     if ground_truth is not None and len(stamps):
@@ -87,14 +99,22 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
         trajectories = {'ground truth': (start @ np.linalg.inv(gt_poses[first]))[None] @ gt_poses, **trajectories}
     if map_points is not None and len(map_points) and len(stamps):
         from lego_loam_py.sim.output import map_distance_to_scene
+
         distance = map_distance_to_scene(bag, map_points, int(stamps[0]), poses_map[0])
         if distance is not None and len(distance):
-            result.map_to_scene = MapToScene(median_m=float(np.median(distance)),
-                                             p90_m=float(np.percentile(distance, 90)), points=int(len(distance)))
+            result.map_to_scene = MapToScene(
+                median_m=float(np.median(distance)), p90_m=float(np.percentile(distance, 90)), points=int(len(distance))
+            )
     if any(len(poses) for poses in trajectories.values()) or (map_points is not None and len(map_points)):
         # (nothing to draw, no picture: an empty plot would look like a broken run)
-        result.png = str(plot_trajectories(out / 'trajectory.png', trajectories, map_points,
-                                               title=f'{Path(bag).name}: trajectory over the map (top view)'))
+        result.png = str(
+            plot_trajectories(
+                out / 'trajectory.png',
+                trajectories,
+                map_points,
+                title=f'{Path(bag).name}: trajectory over the map (top view)',
+            )
+        )
     write_summary(out, summary)
     return result
 
@@ -102,17 +122,19 @@ def write_outputs(out_dir: str | Path, bag: str | Path, stamps: np.ndarray, pose
 def result_lines(outputs: RunOutputs) -> list[str]:
     """The summary lines on the result, shared by ``run`` and the demo: trajectory length, accuracy against
     the ground truth, and the map's distance to a simulated scene when one was measured."""
-    lines = [f"trajectory length {outputs.trajectory_length_m:.1f} m"]
+    lines = [f'trajectory length {outputs.trajectory_length_m:.1f} m']
     if outputs.accuracy is not None:
         lines.append('accuracy vs ground truth: ' + outputs.accuracy.summary())
     elif outputs.accuracy_error is not None:
-        lines.append(f"accuracy: {outputs.accuracy_error}")
+        lines.append(f'accuracy: {outputs.accuracy_error}')
     else:
         lines.append('accuracy: no ground truth beside the bag')
     if outputs.accuracy_optimized is not None:
         lines.append('  after the loop closures (trajectory_optimized.tum): ' + outputs.accuracy_optimized.summary())
     m = outputs.map_to_scene
     if m is not None:
-        lines.append(f"map vs the simulated scene: median point-to-mesh distance {m.median_m:.3f} m, 90th "
-                     f"percentile {m.p90_m:.3f} m over {m.points} map points")
+        lines.append(
+            f'map vs the simulated scene: median point-to-mesh distance {m.median_m:.3f} m, 90th '
+            f'percentile {m.p90_m:.3f} m over {m.points} map points'
+        )
     return lines

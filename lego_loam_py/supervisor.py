@@ -10,6 +10,7 @@ supervisor leaves no orphan. :class:`Interrupts` turns SIGINT/SIGTERM into event
 This module knows processes, not ROS: it imports no rclpy (the ROS graph is watched by
 :mod:`lego_loam_py.ros.graph_monitor`, the pipeline put together by :mod:`lego_loam_py.orchestration`).
 """
+
 from __future__ import annotations
 
 import os
@@ -18,9 +19,10 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, TextIO
+from typing import TextIO
 
 __all__ = ['PACKAGE', 'ProcessSpec', 'ProcessResult', 'Supervisor', 'Interrupts', 'package_file', 'resolve_command']
 
@@ -34,10 +36,11 @@ _CLEAN_STOP_CODES = (0, -signal.SIGINT, 128 + signal.SIGINT)
 # so no Python code runs in a forked copy of the (multi-threaded) supervisor.
 _PDEATHSIG_EXEC = (
     'import ctypes, os, sys\n'
-    'ctypes.CDLL(None, use_errno=True).prctl(1, 15, 0, 0, 0)\n'   # PR_SET_PDEATHSIG, SIGTERM
-    'if os.getppid() != int(sys.argv[1]):\n'                      # the supervisor died before prctl
+    'ctypes.CDLL(None, use_errno=True).prctl(1, 15, 0, 0, 0)\n'  # PR_SET_PDEATHSIG, SIGTERM
+    'if os.getppid() != int(sys.argv[1]):\n'  # the supervisor died before prctl
     '    sys.exit(143)\n'
-    'os.execvp(sys.argv[2], sys.argv[2:])\n')
+    'os.execvp(sys.argv[2], sys.argv[2:])\n'
+)
 
 
 def package_file(*parts: str) -> Path:
@@ -45,6 +48,7 @@ def package_file(*parts: str) -> Path:
     the installed copy when the ament index knows the package, else the source tree's."""
     try:
         from ament_index_python.packages import get_package_share_directory
+
         installed = Path(get_package_share_directory(PACKAGE), *parts)
         if installed.exists():
             return installed
@@ -58,8 +62,11 @@ def resolve_command(executable: str, module: str) -> list[str]:
     script beside this Python (the venv), else the one ``ros2 run`` would use (``<prefix>/lib/<package>/``),
     else ``python -m module``."""
     candidates = [Path(sys.executable).parent / executable]
-    candidates += [Path(prefix, 'lib', PACKAGE, executable)
-                   for prefix in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if prefix]
+    candidates += [
+        Path(prefix, 'lib', PACKAGE, executable)
+        for prefix in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep)
+        if prefix
+    ]
     for path in candidates:
         if path.is_file() and os.access(path, os.X_OK):
             return [str(path)]
@@ -98,10 +105,14 @@ class ProcessResult:
     failure: str | None = None
 
     def describe(self) -> str:
-        code = 'no exit code' if self.returncode is None else (
-            f'signal {-self.returncode}' if self.returncode < 0 else f'exit code {self.returncode}')
-        text = {'stopped': 'stopped', 'exited': 'exited on its own', 'killed': 'killed',
-                'running': 'still running'}[self.how]
+        code = (
+            'no exit code'
+            if self.returncode is None
+            else (f'signal {-self.returncode}' if self.returncode < 0 else f'exit code {self.returncode}')
+        )
+        text = {'stopped': 'stopped', 'exited': 'exited on its own', 'killed': 'killed', 'running': 'still running'}[
+            self.how
+        ]
         return f'{self.name} (pid {self.pid}): {text}, {code}' + (f' - FAILED: {self.failure}' if self.failure else '')
 
 
@@ -113,7 +124,7 @@ class _Child:
         self.pumps = pumps
         self.stop_requested = False
         self.killed = False
-        self.reported = False   # an unexpected exit was already returned by Supervisor.poll()
+        self.reported = False  # an unexpected exit was already returned by Supervisor.poll()
 
     @property
     def pid(self) -> int:
@@ -128,8 +139,14 @@ class Supervisor:
     terminal ('inherit'). ``announce`` receives the supervisor's own messages.
     """
 
-    def __init__(self, output: str = 'screen', log_dir: str | Path | None = None, stream: TextIO | None = None,
-                 announce: Callable[[str], None] | None = None, pdeathsig: bool = True):
+    def __init__(
+        self,
+        output: str = 'screen',
+        log_dir: str | Path | None = None,
+        stream: TextIO | None = None,
+        announce: Callable[[str], None] | None = None,
+        pdeathsig: bool = True,
+    ):
         if output not in ('screen', 'log', 'inherit'):
             raise ValueError(f"output must be 'screen', 'log' or 'inherit', not {output!r}")
         if output == 'log' and log_dir is None:
@@ -140,7 +157,7 @@ class Supervisor:
         self.announce = announce or (lambda text: print(f'[launch] {text}', file=sys.stderr, flush=True))
         self.pdeathsig = pdeathsig and sys.platform.startswith('linux')
         self.children: list[_Child] = []
-        self.hurry = threading.Event()      # a second Ctrl-C: stop without waiting
+        self.hurry = threading.Event()  # a second Ctrl-C: stop without waiting
         self._write_lock = threading.Lock()
 
     # ----------------------------------------------------------------------------------------- start
@@ -149,7 +166,7 @@ class Supervisor:
             raise ValueError(f'a process named {spec.name!r} was started already')
         env = os.environ.copy()
         env.update(spec.env)
-        env.setdefault('PYTHONUNBUFFERED', '1')   # log lines as they happen, not when a buffer fills
+        env.setdefault('PYTHONUNBUFFERED', '1')  # log lines as they happen, not when a buffer fills
         mode = spec.output or self.output
         log_file, stdout = None, None
         if self.log_dir is not None and mode in ('screen', 'log'):
@@ -163,17 +180,23 @@ class Supervisor:
         if self.pdeathsig:
             argv = [sys.executable, '-I', '-S', '-c', _PDEATHSIG_EXEC, str(os.getpid()), *argv]
         try:
-            popen = subprocess.Popen(argv, env=env, stdin=subprocess.DEVNULL, stdout=stdout,
-                                     stderr=subprocess.STDOUT if stdout is not None else None,
-                                     start_new_session=True)
+            popen = subprocess.Popen(
+                argv,
+                env=env,
+                stdin=subprocess.DEVNULL,
+                stdout=stdout,
+                stderr=subprocess.STDOUT if stdout is not None else None,
+                start_new_session=True,
+            )
         except OSError:
             if log_file is not None:
                 log_file.close()
             raise
         pumps = []
         if mode == 'screen':
-            pump = threading.Thread(target=self._pump, args=(popen.stdout, spec.name, log_file),
-                                    name=f'output-{spec.name}', daemon=True)
+            pump = threading.Thread(
+                target=self._pump, args=(popen.stdout, spec.name, log_file), name=f'output-{spec.name}', daemon=True
+            )
             pump.start()
             pumps.append(pump)
         child = _Child(spec, popen, log_file, pumps)
@@ -218,7 +241,7 @@ class Supervisor:
     # ------------------------------------------------------------------------------------------ stop
     def _signal_group(self, child: _Child, sig: int) -> None:
         try:
-            os.killpg(child.pid, sig)   # the group of a child started with start_new_session: pgid == pid
+            os.killpg(child.pid, sig)  # the group of a child started with start_new_session: pgid == pid
         except (ProcessLookupError, PermissionError):
             pass
 
@@ -272,8 +295,11 @@ class Supervisor:
             elif c.reported or not c.stop_requested:
                 how = 'exited'
                 # A player at the end of its bag and a closed tool window (rviz2) are not failures.
-                failure = None if (c.spec.role in ('player', 'tool') and rc == 0) else (
-                    f'exited on its own with code {rc}' if rc >= 0 else f'died of signal {-rc}')
+                failure = (
+                    None
+                    if (c.spec.role in ('player', 'tool') and rc == 0)
+                    else (f'exited on its own with code {rc}' if rc >= 0 else f'died of signal {-rc}')
+                )
             else:
                 how = 'stopped'
                 failure = None if rc in _CLEAN_STOP_CODES else f'exit code {rc} when stopped'
@@ -296,7 +322,7 @@ class Interrupts:
             print('[launch] second interrupt: killing the remaining processes', file=sys.stderr, flush=True)
         self.stop.set()
 
-    def __enter__(self) -> 'Interrupts':
+    def __enter__(self) -> Interrupts:
         for sig in (signal.SIGINT, signal.SIGTERM):
             self._previous[sig] = signal.signal(sig, self._handle)
         return self
@@ -304,4 +330,3 @@ class Interrupts:
     def __exit__(self, *exc) -> None:
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
-

@@ -1,4 +1,5 @@
 """Shared fixtures: isolated DDS domains, child processes that are always reaped, the shared data."""
+
 from __future__ import annotations
 
 import os
@@ -9,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.support.domains import DomainLease
+from lego_loam_py.testing.domains import DomainLease
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get('LEGO_LOAM_SHARED', REPO.parent / 'shared'))
@@ -31,7 +32,7 @@ def context():
     import rclpy
     from rclpy.context import Context
 
-    from tests.support.domains import DomainLease
+    from lego_loam_py.testing.domains import DomainLease
 
     with DomainLease() as domain_id:
         ctx = Context()
@@ -51,7 +52,7 @@ def rclpy_context(ros_domain):
     context = Context()
     rclpy.init(context=context, domain_id=ros_domain)
     yield context
-    # (Bounded: a participant stuck in the DDS library must not hang the run; see tests.support.ros.release.)
+    # (Bounded: a participant stuck in the DDS library must not hang the run; see lego_loam_py.testing.nodes.release.)
     finish_within(lambda: rclpy.try_shutdown(context=context), 'shutting down the test context', 10.0)
 
 
@@ -130,7 +131,7 @@ def pytest_sessionfinish(session, exitstatus):
 
 
 def pytest_unconfigure(config):
-    """A DDS participant left stuck by a test (see tests.support.ros.release) would hang interpreter exit:
+    """A DDS participant left stuck by a test (see lego_loam_py.testing.nodes.release) would hang interpreter exit:
     end the process with the session's status instead, once pytest has reported everything."""
     runtime = sys.modules.get('lego_loam_py.ros.runtime')
     if runtime is not None and runtime.stuck_teardowns() and _EXIT_STATUS:

@@ -1,4 +1,5 @@
 """The process-wide allocator settings of the nodes and offline mode (lego_loam_py.allocator)."""
+
 from __future__ import annotations
 
 import subprocess
@@ -32,5 +33,5 @@ def test_freed_scan_sized_blocks_are_taken_again_without_page_faults():
     time and fault it in again the second time, at some 5 us per page on a virtual machine.)"""
     applied, faults = _faults('keep')
     assert applied == 'True'
-    assert faults[0] > 100                     # the first time, the pages come in
-    assert max(faults[1:]) < 50, faults        # then they are reused
+    assert faults[0] > 100  # the first time, the pages come in
+    assert max(faults[1:]) < 50, faults  # then they are reused

@@ -1,4 +1,5 @@
 """Decisions on libm's atan2f without computing it equal those on the computed angle, also next to thresholds."""
+
 from __future__ import annotations
 
 import math
@@ -6,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from lego_loam_py.core.atan2f_decisions import Atan2fSteps, atan2f_exceeds, first_float32_where
-from lego_loam_py.core.libm import atan2f
 from lego_loam_py.core.params import Params
-from lego_loam_py.core.range_image import RangeImageProjection
+from lego_loam_py.core.parity.atan2f_decisions import Atan2fSteps, atan2f_exceeds, first_float32_where
+from lego_loam_py.core.parity.libm import atan2f
+from lego_loam_py.core.projection.range_image import RangeImageProjection
 
 F32 = np.float32
 
@@ -19,10 +20,15 @@ def points_near(angles: np.ndarray, rng: np.random.Generator, n: int = 20000) ->
     the rest anywhere on the circle."""
     third = n // 3
     centre = rng.choice(angles, size=n).astype(np.float64)
-    offset = np.concatenate([rng.integers(-8, 9, third) * np.abs(centre[:third]) * 2.0 ** -24,
-                             rng.uniform(-1e-5, 1e-5, third), np.zeros(n - 2 * third)])
+    offset = np.concatenate(
+        [
+            rng.integers(-8, 9, third) * np.abs(centre[:third]) * 2.0**-24,
+            rng.uniform(-1e-5, 1e-5, third),
+            np.zeros(n - 2 * third),
+        ]
+    )
     angle = centre + offset
-    angle[2 * third:] = rng.uniform(-math.pi, math.pi, n - 2 * third)
+    angle[2 * third :] = rng.uniform(-math.pi, math.pi, n - 2 * third)
     length = 10.0 ** rng.uniform(-2, 3, n)
     return (length * np.sin(angle)).astype(F32), (length * np.cos(angle)).astype(F32)
 
@@ -31,11 +37,11 @@ def test_comparisons_with_fixed_angles_equal_libm():
     rng = np.random.default_rng(1)
     theta = F32(60.0 / 180.0 * math.pi)
     y, x = points_near(np.array([theta]), rng)
-    y = np.abs(y)   # the joins' case: y >= 0, angles in [0, pi]
+    y = np.abs(y)  # the joins' case: y >= 0, angles in [0, pi]
     y[:50] = np.nan
     (ours,) = atan2f_exceeds(y, x, [theta], (0.0, math.pi))
     assert np.array_equal(ours, atan2f(y, x) > theta)
-    band = [F32(-0.17453295), F32(0.17453294)]   # the ground's case: x >= 0, angles in [-pi/2, pi/2]
+    band = [F32(-0.17453295), F32(0.17453294)]  # the ground's case: x >= 0, angles in [-pi/2, pi/2]
     y, x = points_near(np.array(band), rng)
     x = np.abs(x)
     x[:50] = np.nan
@@ -50,7 +56,7 @@ def test_comparisons_with_fixed_angles_equal_libm():
 @pytest.mark.parametrize('preset', ['VLP-16', 'OS1-64'])
 def test_azimuth_steps_equal_the_columns_of_libm_angles(preset):
     projection = RangeImageProjection(Params().replace(sensor__preset=preset))
-    column_of_angle = projection._column_of_azimuth   # the original's column (before wrapping) of atan2f(x, y)
+    column_of_angle = projection._column_of_azimuth  # the original's column (before wrapping) of atan2f(x, y)
     ends = column_of_angle(np.array([-math.pi, math.pi], dtype=F32))
     levels = np.arange(int(ends[0]) - 1, int(ends[1]) - 1, -1)
     thresholds = first_float32_where(lambda a: column_of_angle(a) <= levels, -math.pi, math.pi, len(levels))
@@ -65,7 +71,7 @@ def test_azimuth_steps_equal_the_columns_of_libm_angles(preset):
     count, confirmed = steps.count(x_coord, y_coord)
     libm_column = column_of_angle(atan2f(x_coord, y_coord)).astype(np.int64)
     assert np.array_equal((int(ends[0]) - count)[confirmed], libm_column[confirmed])
-    assert confirmed[40000:60000].mean() > 0.97   # (the angles anywhere: few need libm)
+    assert confirmed[40000:60000].mean() > 0.97  # (the angles anywhere: few need libm)
     assert np.array_equal(projection._columns(x_coord, y_coord), libm_column)
 
 

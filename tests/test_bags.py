@@ -1,4 +1,5 @@
 """Bags: the player replays ROS 2 and ROS 1 bags over DDS with /clock; the recorder writes readable bags."""
+
 from __future__ import annotations
 
 import signal
@@ -10,7 +11,7 @@ import pytest
 
 from lego_loam_py.bag.io import BagReader, BagWriter, cloud_msg_to_array, make_cloud_msg
 from lego_loam_py.core.pointcloud import velodyne_points
-from tests.support.ros import release, spin_until, wait_for_line
+from lego_loam_py.testing.nodes import release, spin_until, wait_for_line
 from tests.support.samples import cloud_info_arrays
 
 REPO = Path(__file__).resolve().parents[1]
@@ -22,8 +23,9 @@ N_CLOUDS, N_IMU = 20, 100
 def cloud_points(k: int) -> np.ndarray:
     rng = np.random.default_rng(k)
     n = 5000 + 10 * k
-    return velodyne_points(rng.normal(size=(n, 3)), rng.uniform(0, 100, n), rng.integers(0, 16, n),
-                           np.linspace(0, 0.1, n))
+    return velodyne_points(
+        rng.normal(size=(n, 3)), rng.uniform(0, 100, n), rng.integers(0, 16, n), np.linspace(0, 0.1, n)
+    )
 
 
 def write_test_bag(path: Path, ros1: bool, storage: str = 'mcap') -> None:
@@ -41,10 +43,12 @@ def write_test_bag(path: Path, ros1: bool, storage: str = 'mcap') -> None:
                 imu = T['sensor_msgs/msg/Imu'](
                     header=header,
                     orientation=T['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=1.0),
-                    orientation_covariance=np.zeros(9), angular_velocity=T['geometry_msgs/msg/Vector3'](
-                        x=0.01 * k, y=0.0, z=0.0), angular_velocity_covariance=np.zeros(9),
+                    orientation_covariance=np.zeros(9),
+                    angular_velocity=T['geometry_msgs/msg/Vector3'](x=0.01 * k, y=0.0, z=0.0),
+                    angular_velocity_covariance=np.zeros(9),
                     linear_acceleration=T['geometry_msgs/msg/Vector3'](x=0.0, y=0.0, z=9.81),
-                    linear_acceleration_covariance=np.zeros(9))
+                    linear_acceleration_covariance=np.zeros(9),
+                )
                 bag.write_msg('/imu/data', t, imu)
 
 
@@ -54,7 +58,10 @@ def test_bag_io_round_trip(tmp_path, ros1):
     write_test_bag(path, ros1)
     with BagReader(path) as reader:
         assert reader.is_ros1 == ros1
-        assert reader.topics() == {'/velodyne_points': 'sensor_msgs/msg/PointCloud2', '/imu/data': 'sensor_msgs/msg/Imu'}
+        assert reader.topics() == {
+            '/velodyne_points': 'sensor_msgs/msg/PointCloud2',
+            '/imu/data': 'sensor_msgs/msg/Imu',
+        }
         clouds = [m for m in reader.messages(topics=['/velodyne_points'])]
         assert len(clouds) == N_CLOUDS
         for k, message in enumerate(clouds):
@@ -89,10 +96,13 @@ def test_player_replays_every_message_in_order_with_clock(tmp_path, ros1, rclpy_
     node.create_subscription(Imu, '/imu/data', imus.append, qos.reliable(500))
     node.create_subscription(Clock, '/clock', lambda m: clock.append(stamp_to_ns(m.clock)), qos.reliable(500))
 
-    player = processes.start([CLI, 'play', str(path), '--rate', '2', '--wait-for-subscribers', '20',
-                              '--no-progress'])
-    done = spin_until(rclpy_context, node, lambda: len(clouds) == N_CLOUDS and len(imus) == N_IMU
-                      and player.poll() is not None, timeout=60)
+    player = processes.start([CLI, 'play', str(path), '--rate', '2', '--wait-for-subscribers', '20', '--no-progress'])
+    done = spin_until(
+        rclpy_context,
+        node,
+        lambda: len(clouds) == N_CLOUDS and len(imus) == N_IMU and player.poll() is not None,
+        timeout=60,
+    )
     out, err = player.communicate(timeout=10)
     assert done, f'clouds {len(clouds)}/{N_CLOUDS}, imu {len(imus)}/{N_IMU}; player: {err}'
     assert player.returncode == 0, err
@@ -122,8 +132,22 @@ def test_player_topic_selection_and_start_offset(tmp_path, rclpy_context, proces
     clouds, imus = [], []
     node.create_subscription(PointCloud2, '/velodyne_points', clouds.append, qos.reliable(100))
     node.create_subscription(Imu, '/imu/data', imus.append, qos.reliable(500))
-    player = processes.start([CLI, 'play', str(tmp_path / 'in'), '--topics', '/velodyne_points', '--rate', '4',
-                              '--start-offset', '1.0', '--wait-for-subscribers', '20', '--no-progress'])
+    player = processes.start(
+        [
+            CLI,
+            'play',
+            str(tmp_path / 'in'),
+            '--topics',
+            '/velodyne_points',
+            '--rate',
+            '4',
+            '--start-offset',
+            '1.0',
+            '--wait-for-subscribers',
+            '20',
+            '--no-progress',
+        ]
+    )
     # The player waits for every message to be acknowledged before it exits: then they are all here or queued.
     assert spin_until(rclpy_context, node, lambda: player.poll() is not None and len(clouds) >= N_CLOUDS - 10, 60)
     assert player.returncode == 0
@@ -133,6 +157,7 @@ def test_player_topic_selection_and_start_offset(tmp_path, rclpy_context, proces
 
 def test_player_reports_a_missing_bag(tmp_path):
     import subprocess
+
     result = subprocess.run([CLI, 'play', str(tmp_path / 'nope')], capture_output=True, text=True, timeout=60)
     assert result.returncode == 1 and 'bag not found' in result.stderr
 
@@ -148,12 +173,17 @@ def test_recorder_writes_a_readable_bag_and_finishes_on_sigint(tmp_path, rclpy_c
     # Record until this process has seen 12 CloudInfo messages after the recorder subscribed to both topics (it
     # finds them by polling the graph): events, so that a loaded machine only makes this slower.
     import rclpy
-    from cloud_msgs.msg import CloudInfo
 
+    from cloud_msgs.msg import CloudInfo
     from lego_loam_py.ros import qos
+
     node = rclpy.create_node('recording_watcher', context=rclpy_context)
-    assert spin_until(rclpy_context, node, lambda: node.count_subscribers('/segmented_cloud_info') >= 1 and
-                      node.count_subscribers('/tf_static') >= 1, 30), 'the recorder never subscribed'
+    assert spin_until(
+        rclpy_context,
+        node,
+        lambda: node.count_subscribers('/segmented_cloud_info') >= 1 and node.count_subscribers('/tf_static') >= 1,
+        30,
+    ), 'the recorder never subscribed'
     seen = []
     node.create_subscription(CloudInfo, '/segmented_cloud_info', seen.append, qos.reliable(1))
     assert spin_until(rclpy_context, node, lambda: len(seen) >= 12, 60), f'{len(seen)} CloudInfo messages seen'
@@ -166,13 +196,14 @@ def test_recorder_writes_a_readable_bag_and_finishes_on_sigint(tmp_path, rclpy_c
     # Read back with plain rosbags and a fresh type store: the custom type comes from the bag itself.
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
+
     with AnyReader([out], default_typestore=get_typestore(Stores.EMPTY)) as reader:
         topics = {c.topic: c.msgtype for c in reader.connections}
         assert topics == {'/segmented_cloud_info': 'cloud_msgs/msg/CloudInfo', '/tf_static': 'tf2_msgs/msg/TFMessage'}
-        infos = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()
-                 if c.topic == '/segmented_cloud_info']
-        statics = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()
-                   if c.topic == '/tf_static']
+        infos = [
+            reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages() if c.topic == '/segmented_cloud_info'
+        ]
+        statics = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages() if c.topic == '/tf_static']
     # The publisher keeps one message (reliable, depth 1, as the original's internal topics): a recorder slowed
     # down by a busy machine may miss some of the 12, never most of them.
     assert len(infos) >= 4, f'only {len(infos)} CloudInfo messages recorded while 12 were published'

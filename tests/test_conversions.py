@@ -1,5 +1,6 @@
 """Message conversions the nodes take on their hot paths: serialized IMU samples, clouds and CloudInfo (read and
 written) and the TF of an odometry."""
+
 from __future__ import annotations
 
 import math
@@ -21,7 +22,7 @@ def imu_message(frame_id: str, sec: int, nanosec: int, values):
     msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
     o, w, a = msg.orientation, msg.angular_velocity, msg.linear_acceleration
     o.x, o.y, o.z, o.w, w.x, w.y, w.z, a.x, a.y, a.z = values
-    msg.orientation_covariance[0] = -1.0           # (covariances sit between the fields read: not taken)
+    msg.orientation_covariance[0] = -1.0  # (covariances sit between the fields read: not taken)
     msg.angular_velocity_covariance[8] = 99.0
     return msg
 
@@ -30,9 +31,11 @@ def test_serialized_imu_by_hand():
     """The XCDR1 layout of sensor_msgs/Imu, written by hand: header, then 37 doubles aligned to 8."""
     from lego_loam_py.ros.conversions import imu_sample_from_serialized
 
-    frame = b'imu\x00'                                  # length 4 with the NUL: doubles start at 4 + 16
+    frame = b'imu\x00'  # length 4 with the NUL: doubles start at 4 + 16
     doubles = list(range(37))
-    data = b'\x00\x01\x00\x00' + struct.pack('<iII', 12, 500_000_000, len(frame)) + frame + struct.pack('<37d', *doubles)
+    data = (
+        b'\x00\x01\x00\x00' + struct.pack('<iII', 12, 500_000_000, len(frame)) + frame + struct.pack('<37d', *doubles)
+    )
     stamp, orientation, gyro, accel = imu_sample_from_serialized(data)
     assert stamp == 12.5
     assert orientation == (0, 1, 2, 3) and gyro == (13, 14, 15) and accel == (25, 26, 27)
@@ -42,14 +45,17 @@ def test_serialized_imu_by_hand():
 
 
 @settings(max_examples=150, deadline=None)
-@given(frame_id=st.text(alphabet='abcdefghijklmnopqrstuvwxyz_/0123456789', max_size=40),
-       sec=st.integers(-2**31, 2**31 - 1), nanosec=st.integers(0, 999_999_999),
-       values=st.lists(finite, min_size=10, max_size=10))
+@given(
+    frame_id=st.text(alphabet='abcdefghijklmnopqrstuvwxyz_/0123456789', max_size=40),
+    sec=st.integers(-(2**31), 2**31 - 1),
+    nanosec=st.integers(0, 999_999_999),
+    values=st.lists(finite, min_size=10, max_size=10),
+)
 def test_serialized_imu_equals_the_message(frame_id, sec, nanosec, values):
     """Whatever rclpy serializes, the bytes give exactly what the message object gives."""
     from rclpy.serialization import serialize_message
 
-    from lego_loam_py.core.imu import imu_sample
+    from lego_loam_py.core.imu.buffer import imu_sample
     from lego_loam_py.ros.conversions import imu_sample_from_serialized
 
     msg = imu_message(frame_id, sec, nanosec, values)
@@ -122,24 +128,31 @@ def test_nodes_take_serialized_clouds_and_drop_unreadable_bytes(context):
 
 
 @settings(max_examples=100, deadline=None)
-@given(frame_id=st.text(alphabet='abcdefghijklmnopqrstuvwxyz_/0123456789', max_size=13),
-       sec=st.integers(-2**31, 2**31 - 1), nanosec=st.integers(0, 999_999_999),
-       rings=st.integers(0, 70), points=st.integers(0, 3000), seed=st.integers(0, 2**32 - 1))
+@given(
+    frame_id=st.text(alphabet='abcdefghijklmnopqrstuvwxyz_/0123456789', max_size=13),
+    sec=st.integers(-(2**31), 2**31 - 1),
+    nanosec=st.integers(0, 999_999_999),
+    rings=st.integers(0, 70),
+    points=st.integers(0, 3000),
+    seed=st.integers(0, 2**32 - 1),
+)
 def test_serialized_cloud_info_equals_the_message(frame_id, sec, nanosec, rings, points, seed):
     """featureAssociation reads CloudInfo from its bytes: whatever rclpy serializes (every frame id length, so
     every alignment; empty and long arrays), the stamp and arrays are exactly those of the message object, in
     the same dtypes; cut short anywhere, the bytes are a ValueError."""
-    from cloud_msgs.msg import CloudInfo
     from rclpy.serialization import serialize_message
 
+    from cloud_msgs.msg import CloudInfo
     from lego_loam_py.ros.conversions import cloud_info_from_msg, cloud_info_from_serialized
 
     rng = np.random.default_rng(seed)
     msg = CloudInfo()
     msg.header.frame_id, msg.header.stamp.sec, msg.header.stamp.nanosec = frame_id, sec, nanosec
-    msg.start_ring_index = rng.integers(-2**31, 2**31, rings, dtype=np.int64).astype(np.int32).tolist()
-    msg.end_ring_index = rng.integers(-2**31, 2**31, rings, dtype=np.int64).astype(np.int32).tolist()
-    msg.start_orientation, msg.end_orientation, msg.orientation_diff = (float(np.float32(v)) for v in rng.normal(size=3))
+    msg.start_ring_index = rng.integers(-(2**31), 2**31, rings, dtype=np.int64).astype(np.int32).tolist()
+    msg.end_ring_index = rng.integers(-(2**31), 2**31, rings, dtype=np.int64).astype(np.int32).tolist()
+    msg.start_orientation, msg.end_orientation, msg.orientation_diff = (
+        float(np.float32(v)) for v in rng.normal(size=3)
+    )
     msg.segmented_cloud_ground_flag = (rng.random(points) < 0.5).tolist()
     msg.segmented_cloud_col_ind = rng.integers(0, 2**32, points, dtype=np.uint64).astype(np.uint32).tolist()
     msg.segmented_cloud_range = rng.normal(size=points).astype(np.float32).tolist()
@@ -156,21 +169,34 @@ def test_serialized_cloud_info_equals_the_message(frame_id, sec, nanosec, rings,
 
 
 @settings(max_examples=60, deadline=None)
-@given(frame_id=st.text(alphabet='abcdefghijklmnopqrstuvwxyz_/0123456789', max_size=13),
-       sec=st.integers(-2**31, 2**31 - 1), nanosec=st.integers(0, 999_999_999),
-       points=st.integers(0, 3000), timed=st.booleans(), dense=st.booleans(), seed=st.integers(0, 2**32 - 1))
+@given(
+    frame_id=st.text(alphabet='abcdefghijklmnopqrstuvwxyz_/0123456789', max_size=13),
+    sec=st.integers(-(2**31), 2**31 - 1),
+    nanosec=st.integers(0, 999_999_999),
+    points=st.integers(0, 3000),
+    timed=st.booleans(),
+    dense=st.booleans(),
+    seed=st.integers(0, 2**32 - 1),
+)
 def test_serialized_clouds_are_the_messages_rclpy_would_send(frame_id, sec, nanosec, points, timed, dense, seed):
     """The nodes publish clouds and CloudInfo as bytes they write themselves: for every frame id length (so
     every alignment), empty and long arrays, with and without the time field, rclpy reads back exactly the
     message the nodes built before, from bytes as long as rclpy's own (only padding may differ)."""
-    from cloud_msgs.msg import CloudInfo
     from rclpy.serialization import deserialize_message, serialize_message
     from sensor_msgs.msg import PointCloud2
 
-    from lego_loam_py.core.image_projection import CloudInfo as CloudInfoData
-    from lego_loam_py.ros.conversions import (cloud_from_serialized, cloud_info_from_serialized, cloud_info_to_msg,
-                                              cloud_msg_to_xyzi, make_header, serialized_cloud_info,
-                                              serialized_xyzi_cloud, xyzi_to_cloud_msg)
+    from cloud_msgs.msg import CloudInfo
+    from lego_loam_py.core.projection.image_projection import CloudInfo as CloudInfoData
+    from lego_loam_py.ros.conversions import (
+        cloud_from_serialized,
+        cloud_info_from_serialized,
+        cloud_info_to_msg,
+        cloud_msg_to_xyzi,
+        make_header,
+        serialized_cloud_info,
+        serialized_xyzi_cloud,
+        xyzi_to_cloud_msg,
+    )
 
     rng = np.random.default_rng(seed)
     header = make_header(sec * 1_000_000_000 + nanosec, frame_id)
@@ -183,10 +209,15 @@ def test_serialized_clouds_are_the_messages_rclpy_would_send(frame_id, sec, nano
     # ... and read back from the bytes (as the nodes' raw subscriptions do) it is that message again.
     read = cloud_from_serialized(serialize_message(expected))
     assert read.header == expected.header and (read.height, read.width) == (expected.height, expected.width)
-    assert [(f.name, f.offset, f.datatype, f.count) for f in read.fields] == \
-        [(f.name, f.offset, f.datatype, f.count) for f in expected.fields]
-    assert (read.is_bigendian, read.point_step, read.row_step, read.is_dense) == \
-        (expected.is_bigendian, expected.point_step, expected.row_step, expected.is_dense)
+    assert [(f.name, f.offset, f.datatype, f.count) for f in read.fields] == [
+        (f.name, f.offset, f.datatype, f.count) for f in expected.fields
+    ]
+    assert (read.is_bigendian, read.point_step, read.row_step, read.is_dense) == (
+        expected.is_bigendian,
+        expected.point_step,
+        expected.row_step,
+        expected.is_dense,
+    )
     assert bytes(read.data) == bytes(expected.data)
     assert np.array_equal(cloud_msg_to_xyzi(read), values) and np.array_equal(cloud_msg_to_xyzi(expected), values)
     for cut in sorted({5, 12, len(data) // 2, len(data) - 2}):
@@ -194,12 +225,15 @@ def test_serialized_clouds_are_the_messages_rclpy_would_send(frame_id, sec, nano
             cloud_from_serialized(data[:cut])
 
     info = CloudInfoData(
-        start_ring_index=rng.integers(-2**31, 2**31, 16, dtype=np.int64).astype(np.int32),
-        end_ring_index=rng.integers(-2**31, 2**31, 16, dtype=np.int64).astype(np.int32),
-        start_orientation=np.float32(rng.normal()), end_orientation=np.float32(rng.normal()),
-        orientation_diff=np.float32(rng.normal()), segmented_cloud_ground_flag=rng.random(points) < 0.5,
+        start_ring_index=rng.integers(-(2**31), 2**31, 16, dtype=np.int64).astype(np.int32),
+        end_ring_index=rng.integers(-(2**31), 2**31, 16, dtype=np.int64).astype(np.int32),
+        start_orientation=np.float32(rng.normal()),
+        end_orientation=np.float32(rng.normal()),
+        orientation_diff=np.float32(rng.normal()),
+        segmented_cloud_ground_flag=rng.random(points) < 0.5,
         segmented_cloud_col_ind=rng.integers(0, 2**32, points, dtype=np.uint64).astype(np.uint32),
-        segmented_cloud_range=rng.normal(size=points).astype(np.float32))
+        segmented_cloud_range=rng.normal(size=points).astype(np.float32),
+    )
     expected = cloud_info_to_msg(info, header)
     data = serialized_cloud_info(info, header)
     assert len(data) == len(serialize_message(expected))
@@ -222,17 +256,22 @@ def test_transform_of_an_odometry_carries_its_pose_and_frames():
     assert transform.header == expected.header and transform.child_frame_id == 'laser_odom'
     assert transform.transform == expected.transform
     q = transform.transform.rotation
-    assert math.isclose(q.x ** 2 + q.y ** 2 + q.z ** 2 + q.w ** 2, 1.0, rel_tol=1e-12)
+    assert math.isclose(q.x**2 + q.y**2 + q.z**2 + q.w**2, 1.0, rel_tol=1e-12)
 
 
 @settings(max_examples=60, deadline=None)
-@given(frame_id=st.text(alphabet='abcdefghijklmnopqrstuvwxyz_/0123456789', max_size=13),
-       child=st.text(alphabet='abcdefghijklmnopqrstuvwxyz_', min_size=1, max_size=13),
-       sec=st.integers(-2**31, 2**31 - 1), nanosec=st.integers(0, 999_999_999),
-       angles=st.tuples(*[st.floats(-3.1, 3.1)] * 3), position=st.tuples(*[st.floats(-1e4, 1e4)] * 3),
-       twist=st.one_of(st.none(), st.tuples(*[st.floats(-1e3, 1e3)] * 6)))
-def test_serialized_odometry_and_its_transform_are_the_messages_rclpy_would_send(frame_id, child, sec, nanosec,
-                                                                                 angles, position, twist):
+@given(
+    frame_id=st.text(alphabet='abcdefghijklmnopqrstuvwxyz_/0123456789', max_size=13),
+    child=st.text(alphabet='abcdefghijklmnopqrstuvwxyz_', min_size=1, max_size=13),
+    sec=st.integers(-(2**31), 2**31 - 1),
+    nanosec=st.integers(0, 999_999_999),
+    angles=st.tuples(*[st.floats(-3.1, 3.1)] * 3),
+    position=st.tuples(*[st.floats(-1e4, 1e4)] * 3),
+    twist=st.one_of(st.none(), st.tuples(*[st.floats(-1e3, 1e3)] * 6)),
+)
+def test_serialized_odometry_and_its_transform_are_the_messages_rclpy_would_send(
+    frame_id, child, sec, nanosec, angles, position, twist
+):
     """Every node publishes its pose as an Odometry and the same transform on /tf, serialized by hand: rclpy
     reads them back as exactly the messages pose_to_odometry and odometry_to_transform give (twist fields,
     which mapOptimization fills with its pre-mapping pose, included)."""
@@ -241,8 +280,7 @@ def test_serialized_odometry_and_its_transform_are_the_messages_rclpy_would_send
     from tf2_msgs.msg import TFMessage
 
     from lego_loam_py.core.frames import euler_to_matrix
-    from lego_loam_py.ros.conversions import (make_header, odometry_to_transform, pose_to_odometry,
-                                              serialized_odometry)
+    from lego_loam_py.ros.conversions import make_header, odometry_to_transform, pose_to_odometry, serialized_odometry
 
     pose = np.eye(4)
     pose[:3, :3] = euler_to_matrix(*angles)
@@ -266,5 +304,5 @@ def test_the_header_stamp_is_read_from_a_serialized_message():
     msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id = 1_700_000_000, 123, 'camera_init'
     data = serialize_message(msg)
     assert serialized_stamp_ns(data) == 1_700_000_000_000_000_123
-    assert serialized_stamp_ns(data[:8]) is None                  # too short for a stamp
-    assert serialized_stamp_ns(b'\x00\x03' + data[2:]) is None     # another encoding (parameter list)
+    assert serialized_stamp_ns(data[:8]) is None  # too short for a stamp
+    assert serialized_stamp_ns(b'\x00\x03' + data[2:]) is None  # another encoding (parameter list)

@@ -4,6 +4,7 @@ and ``lego_loam_py convert`` writes bags that read back (ROS 2 and ROS 1).
 
 Recordings are read from ../shared/data (``shared_data`` fixture); outputs go to tmp_path.
 """
+
 from __future__ import annotations
 
 import struct
@@ -15,13 +16,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lego_loam_py.bag.convert import (ConvertError, ConvertOptions, convert, velodyne_bag_packets)
+from lego_loam_py.bag.convert import ConvertError, ConvertOptions, convert, velodyne_bag_packets
 from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
+from lego_loam_py.core.pointcloud import VELODYNE_PACKED_DTYPE, VELODYNE_POINT_DTYPE
 from lego_loam_py.sensors.ouster import OusterDecoder, OusterMetadata
 from lego_loam_py.sensors.pcap import read_udp
-from lego_loam_py.core.pointcloud import VELODYNE_PACKED_DTYPE, VELODYNE_POINT_DTYPE
-from lego_loam_py.sensors.velodyne import (PACKET_SIZE, VLP16_ELEVATION_DEG, VelodyneFormatError, Vlp16Decoder,
-                                        decode_vlp16)
+from lego_loam_py.sensors.velodyne import (
+    PACKET_SIZE,
+    VLP16_ELEVATION_DEG,
+    VelodyneFormatError,
+    Vlp16Decoder,
+    decode_vlp16,
+)
 
 CLI = str(Path(sys.executable).parent / 'lego_loam_py')
 SINGLE_PCAP = 'real/vlp16_single_rotation_pcap/velodyne_example.pcap'
@@ -129,8 +135,11 @@ def test_sixteen_rings_at_the_vlp16_elevations(packets, decoded, name):
     data = packets[name][0]
     # Laser 0 (-15 deg, ring 0) of the dual-return recording never returns (raw distance 0 in every packet:
     # the beam hits the sensor's mount); all other lasers do.
-    laser_has_returns = (data[:, :1200].reshape(-1, 12, 100)[:, :, 4:].reshape(-1, 12, 2, 16, 3)[..., :2] != 0
-                         ).any(axis=-1).any(axis=(0, 1, 2))
+    laser_has_returns = (
+        (data[:, :1200].reshape(-1, 12, 100)[:, :, 4:].reshape(-1, 12, 2, 16, 3)[..., :2] != 0)
+        .any(axis=-1)
+        .any(axis=(0, 1, 2))
+    )
     expected_rings = set(range(16)) if name != 'vlp16_dual_return_4scans' else set(range(1, 16))
     assert set(np.flatnonzero(laser_has_returns) // 2 + 8 * (np.flatnonzero(laser_has_returns) % 2)) == expected_rings
     for rotation in decoded[name]:
@@ -142,8 +151,10 @@ def test_sixteen_rings_at_the_vlp16_elevations(packets, decoded, name):
         assert np.array_equal(expected, -15.0 + 2.0 * p['ring'])
 
 
-@pytest.mark.parametrize('name, sweep', [('vlp16_single_rotation', 0.1), ('vlp16_static_indoor_20hz', 0.05),
-                                         ('vlp16_dual_return_4scans', 0.1)])
+@pytest.mark.parametrize(
+    'name, sweep',
+    [('vlp16_single_rotation', 0.1), ('vlp16_static_indoor_20hz', 0.05), ('vlp16_dual_return_4scans', 0.1)],
+)
 def test_point_times_increase_within_each_sweep(decoded, name, sweep):
     for rotation in decoded[name]:
         t = rotation.points['time']
@@ -178,8 +189,12 @@ def test_dual_return_matches_the_reference_pcd_after_its_filter(shared_data, dec
     first = rotation.return_block == 0
     key = np.stack([np.round(p['time'] / 1e-9).astype(np.int64), p['ring']], axis=1)
     first_range = {tuple(k): d for k, d in zip(key[first].tolist(), distance_raw[first].tolist())}
-    duplicate = np.array([b == 1 and first_range.get(tuple(k)) == d
-                          for b, k, d in zip(rotation.return_block.tolist(), key.tolist(), distance_raw.tolist())])
+    duplicate = np.array(
+        [
+            b == 1 and first_range.get(tuple(k)) == d
+            for b, k, d in zip(rotation.return_block.tolist(), key.tolist(), distance_raw.tolist())
+        ]
+    )
     kept = ~duplicate & (distance_raw * np.float32(0.002) >= np.float32(0.5))
     azimuth = np.round(np.degrees(np.arctan2(-p['y'].astype(float), p['x'].astype(float))) % 360 * 100).astype(int)
     pcd_azimuth = np.round(np.degrees(pcd['azimuth'].astype(float)) * 100).astype(int)
@@ -199,9 +214,10 @@ def ouster_bags(shared_data, tmp_path_factory):
     out = tmp_path_factory.mktemp('ouster')
     folder = shared_data / OUSTER
     summaries = {
-        'os1': convert(folder / OS1_PCAP, out / 'os1', ConvertOptions()),   # metadata found beside the pcap
-        'os0': convert(folder / OS0_PCAP, out / 'os0.bag',
-                       ConvertOptions(metadata=folder / OS0_JSON, ros1=True, layout='packed')),
+        'os1': convert(folder / OS1_PCAP, out / 'os1', ConvertOptions()),  # metadata found beside the pcap
+        'os0': convert(
+            folder / OS0_PCAP, out / 'os0.bag', ConvertOptions(metadata=folder / OS0_JSON, ros1=True, layout='packed')
+        ),
     }
     return out, summaries
 
@@ -209,7 +225,7 @@ def ouster_bags(shared_data, tmp_path_factory):
 def test_ouster_scans_have_128_rings_and_plausible_geometry(shared_data, ouster_bags):
     out, summaries = ouster_bags
     assert summaries['os1'].rotations == 3 and summaries['os0'].rotations == 1
-    for name, bag, json_name in [('os1', out / 'os1', OS1_JSON), ('os0', out / 'os0.bag', OS0_JSON)]:
+    for bag, json_name in [(out / 'os1', OS1_JSON), (out / 'os0.bag', OS0_JSON)]:
         meta = OusterMetadata.from_json(shared_data / OUSTER / json_name)
         with BagReader(bag) as reader:
             clouds = [reader.deserialize(m) for m in reader.messages(['/velodyne_points'])]
@@ -221,7 +237,7 @@ def test_ouster_scans_have_128_rings_and_plausible_geometry(shared_data, ouster_
             assert p.size > 0.7 * 128 * 1024
             assert np.array_equal(np.unique(p['ring']), np.arange(128))
             r = np.sqrt(p['x'].astype(float) ** 2 + p['y'] ** 2 + p['z'] ** 2)
-            assert r.min() > 0.0 and r.max() < 0x7FFF * 8e-3 + 0.1   # low-bandwidth profile: 15 bits of 8 mm
+            assert r.min() > 0.0 and r.max() < 0x7FFF * 8e-3 + 0.1  # low-bandwidth profile: 15 bits of 8 mm
             # Ring 0 is the lowest beam: seen from its beam origin (undo lidar_to_sensor, then step back the
             # lidar_origin_to_beam_origin offset), every point lies at its beam's altitude angle.
             transform = meta.lidar_to_sensor_transform
@@ -229,14 +245,15 @@ def test_ouster_scans_have_128_rings_and_plausible_geometry(shared_data, ouster_
             lidar = (xyz - transform[:3, 3] / 1000.0) @ transform[:3, :3]
             beam_azimuth = -np.radians(meta.beam_azimuth_angles[127 - p['ring']])
             beam = lidar
-            for _ in range(3):   # encoder angle = azimuth of the ray from the beam origin - the beam's azimuth
+            for _ in range(3):  # encoder angle = azimuth of the ray from the beam origin - the beam's azimuth
                 encoder = np.arctan2(beam[:, 1], beam[:, 0]) - beam_azimuth
                 beam = lidar - meta.lidar_origin_to_beam_origin_mm / 1000.0 * np.stack(
-                    [np.cos(encoder), np.sin(encoder), np.zeros_like(encoder)], axis=1)
+                    [np.cos(encoder), np.sin(encoder), np.zeros_like(encoder)], axis=1
+                )
             elevation = np.degrees(np.arcsin(beam[:, 2] / np.linalg.norm(beam, axis=1)))
             expected = meta.beam_altitude_angles[127 - p['ring']]
             usable = r > 0.5
-            assert np.abs(elevation - expected)[usable].max() < 0.001   # deg; float32 rounding only
+            assert np.abs(elevation - expected)[usable].max() < 0.001  # deg; float32 rounding only
             ring_median = np.array([np.median(elevation[usable & (p['ring'] == k)]) for k in range(128)])
             assert (np.diff(ring_median) > 0).all()
             t = p['time']
@@ -252,9 +269,10 @@ def test_ouster_imu_packets_become_imu_messages(ouster_bags):
     assert len(imus) == 30 and imus[0].header.frame_id == 'os_imu'
     assert tf[0].transforms[0].child_frame_id == 'os_imu' and tf[0].transforms[0].header.frame_id == 'os_sensor'
     stamps = np.array([m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in imus])
-    assert np.allclose(np.diff(stamps) / 1e9, 0.01, atol=0.0005)   # 100 Hz
-    gravity = [np.linalg.norm([m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z])
-               for m in imus]
+    assert np.allclose(np.diff(stamps) / 1e9, 0.01, atol=0.0005)  # 100 Hz
+    gravity = [
+        np.linalg.norm([m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z]) for m in imus
+    ]
     assert 8.0 < np.mean(gravity) < 12.0
     assert all(abs(m.angular_velocity.z) < 0.5 for m in imus) and imus[0].orientation_covariance[0] == -1.0
 
@@ -263,21 +281,32 @@ def test_ouster_geometry_conventions_on_a_synthetic_packet():
     """One beam at elevation 0, no beam offset, identity extrinsics: measurement id 0 looks along +x, id W/4
     along -y (the encoder turns clockwise seen from above); ring 0 is the lowest beam."""
     width, height = 1024, 2
-    meta = OusterMetadata.from_json({
-        'prod_line': 'OS-1-2', 'beam_altitude_angles': [10.0, 0.0], 'beam_azimuth_angles': [0.0, 0.0],
-        'lidar_origin_to_beam_origin_mm': 0.0, 'lidar_to_sensor_transform': np.eye(4).ravel().tolist(),
-        'data_format': {'pixels_per_column': height, 'columns_per_frame': width, 'columns_per_packet': 16,
-                        'column_window': [0, width - 1], 'udp_profile_lidar': 'RNG19_RFL8_SIG16_NIR16'}})
+    meta = OusterMetadata.from_json(
+        {
+            'prod_line': 'OS-1-2',
+            'beam_altitude_angles': [10.0, 0.0],
+            'beam_azimuth_angles': [0.0, 0.0],
+            'lidar_origin_to_beam_origin_mm': 0.0,
+            'lidar_to_sensor_transform': np.eye(4).ravel().tolist(),
+            'data_format': {
+                'pixels_per_column': height,
+                'columns_per_frame': width,
+                'columns_per_packet': 16,
+                'column_window': [0, width - 1],
+                'udp_profile_lidar': 'RNG19_RFL8_SIG16_NIR16',
+            },
+        }
+    )
     packets = np.zeros((width // 16, meta.lidar_packet_size), dtype=np.uint8)
     for p in range(width // 16):
-        packets[p, 0:2] = [1, 0]          # packet type: lidar
+        packets[p, 0:2] = [1, 0]  # packet type: lidar
         for c in range(16):
             m = p * 16 + c
             at = 32 + c * meta.column_bytes
-            packets[p, at:at + 12] = np.frombuffer(struct.pack('<QHH', 10**9 + m * 97_656, m, 1), np.uint8)
+            packets[p, at : at + 12] = np.frombuffer(struct.pack('<QHH', 10**9 + m * 97_656, m, 1), np.uint8)
             if m in (0, width // 4):
-                pixel = at + 12 + 1 * 12   # beam 1 (elevation 0)
-                packets[p, pixel:pixel + 8] = np.frombuffer(struct.pack('<IBBH', 2000, 7, 0, 55), np.uint8)
+                pixel = at + 12 + 1 * 12  # beam 1 (elevation 0)
+                packets[p, pixel : pixel + 8] = np.frombuffer(struct.pack('<IBBH', 2000, 7, 0, 55), np.uint8)
     scans = OusterDecoder(meta).decode(packets, np.full(len(packets), 5 * 10**18))
     assert len(scans) == 1
     p = scans[0].points
@@ -288,8 +317,9 @@ def test_ouster_geometry_conventions_on_a_synthetic_packet():
 
 
 # ------------------------------------------------------------------------------------------ pcap reader
-def pcap_bytes(frames: list[tuple[int, bytes]], big_endian: bool = False, nanoseconds: bool = False,
-               linktype: int = 1) -> bytes:
+def pcap_bytes(
+    frames: list[tuple[int, bytes]], big_endian: bool = False, nanoseconds: bool = False, linktype: int = 1
+) -> bytes:
     order = '>' if big_endian else '<'
     magic = 0xA1B23C4D if nanoseconds else 0xA1B2C3D4
     out = [struct.pack(order + 'IHHiIII', magic, 2, 4, 0, 0, 65535, linktype)]
@@ -303,12 +333,26 @@ def pcap_bytes(frames: list[tuple[int, bytes]], big_endian: bool = False, nanose
 def ipv4_udp(payload: bytes, src_port: int = 2368, dst_port: int = 2368, ident: int = 1) -> list[bytes]:
     """IPv4 packet(s) of one UDP datagram; split into fragments of 1000 bytes when longer."""
     udp = struct.pack('>HHHH', src_port, dst_port, len(payload) + 8, 0) + payload
-    pieces = [udp[i:i + 1000] for i in range(0, len(udp), 1000)] if len(udp) > 1400 else [udp]
+    pieces = [udp[i : i + 1000] for i in range(0, len(udp), 1000)] if len(udp) > 1400 else [udp]
     out = []
     for k, piece in enumerate(pieces):
         flags = (0x2000 if k < len(pieces) - 1 else 0) | (k * 1000 // 8)
-        out.append(struct.pack('>BBHHHBBH4s4s', 0x45, 0, 20 + len(piece), ident, flags, 64, 17, 0,
-                               bytes([192, 168, 1, 201]), bytes([255, 255, 255, 255])) + piece)
+        out.append(
+            struct.pack(
+                '>BBHHHBBH4s4s',
+                0x45,
+                0,
+                20 + len(piece),
+                ident,
+                flags,
+                64,
+                17,
+                0,
+                bytes([192, 168, 1, 201]),
+                bytes([255, 255, 255, 255]),
+            )
+            + piece
+        )
     return out
 
 
@@ -317,8 +361,10 @@ def test_pcap_variants_give_the_same_packets(tmp_path, packets):
     data, stamps = data[:30], stamps[:30]
     ethernet = b'\xff' * 6 + b'\x60\x76\x88\x00\x00\x00'
     variants = {
-        'big_endian_ns_vlan': (dict(big_endian=True, nanoseconds=True),
-                               lambda ip: ethernet + b'\x81\x00\x00\x05\x08\x00' + ip),
+        'big_endian_ns_vlan': (
+            dict(big_endian=True, nanoseconds=True),
+            lambda ip: ethernet + b'\x81\x00\x00\x05\x08\x00' + ip,
+        ),
         'linux_sll': (dict(linktype=113), lambda ip: b'\x00' * 14 + b'\x08\x00' + ip),
         'raw_ipv4': (dict(linktype=101), lambda ip: ip),
     }
@@ -349,7 +395,7 @@ def test_device_clock_hour_wrap_is_unwrapped(packets, decoded):
     data, stamps = packets['vlp16_single_rotation']
     shifted = data.copy()
     device = shifted[:, 1200:1204].copy().view('<u4').reshape(-1).astype(np.int64)
-    offset = 3_600_000_000 - int(device[40])          # the device clock passes the hour at packet 40
+    offset = 3_600_000_000 - int(device[40])  # the device clock passes the hour at packet 40
     shifted[:, 1200:1204] = ((device + offset) % 3_600_000_000).astype('<u4').view(np.uint8).reshape(-1, 4)
     rotations = decode_vlp16(shifted, stamps, split='start')
     assert len(rotations) == 1
@@ -360,7 +406,7 @@ def test_device_clock_hour_wrap_is_unwrapped(packets, decoded):
 def test_packets_with_a_bad_block_flag_are_dropped(packets):
     data, stamps = packets['vlp16_static_indoor_20hz']
     broken = data.copy()
-    broken[500, 300] = 0x00      # block 3's flag
+    broken[500, 300] = 0x00  # block 3's flag
     decoder = Vlp16Decoder(force_model=True)
     rotations = decoder.feed(broken, stamps) + decoder.finish()
     assert decoder.stats.bad_packets == 1 and decoder.stats.packets == len(data)
@@ -373,8 +419,8 @@ def test_lost_packets_make_a_rotation_incomplete_only_beyond_the_threshold(packe
     # 20 Hz: 905 sequences of 0.4 deg per rotation, 24 per packet. Rotation 0 starts near packet 16.
     first = {r.first_firing_ns: k for k, r in enumerate(reference)}
     keep = np.ones(len(data), dtype=bool)
-    keep[16 + 38 * 10 + 10] = False             # one packet (9.6 deg, 2.7 %) lost in rotation 10
-    keep[16 + 38 * 20 + 5:16 + 38 * 20 + 25] = False   # 20 packets (190 deg) lost in rotation 20
+    keep[16 + 38 * 10 + 10] = False  # one packet (9.6 deg, 2.7 %) lost in rotation 10
+    keep[16 + 38 * 20 + 5 : 16 + 38 * 20 + 25] = False  # 20 packets (190 deg) lost in rotation 20
     decoder = Vlp16Decoder(force_model=True)
     rotations = decoder.feed(data[keep], stamps[keep]) + decoder.finish()
     assert len(rotations) == 49
@@ -428,17 +474,24 @@ def test_ros1_raw_packet_bag_converts_like_the_ros2_one(packets, decoded, tmp_pa
 
     data, stamps = packets['vlp16_dual_return_4scans']
     with BagWriter(tmp_path / 'raw.bag', ros1=True) as bag:
-        bag.typestore.register({**get_types_from_msg('Header header\nVelodynePacket[] packets',
-                                                     'velodyne_msgs/msg/VelodyneScan'),
-                                **get_types_from_msg('time stamp\nuint8[1206] data',
-                                                     'velodyne_msgs/msg/VelodynePacket')})
+        bag.typestore.register(
+            {
+                **get_types_from_msg('Header header\nVelodynePacket[] packets', 'velodyne_msgs/msg/VelodyneScan'),
+                **get_types_from_msg('time stamp\nuint8[1206] data', 'velodyne_msgs/msg/VelodynePacket'),
+            }
+        )
         T = bag.types
         for k, start in enumerate(range(0, len(data), 151)):
             part = slice(start, start + 151)
-            scan = T['velodyne_msgs/msg/VelodyneScan'](header=bag.header(int(stamps[part][0]), 'velodyne', k), packets=[
-                T['velodyne_msgs/msg/VelodynePacket'](
-                    stamp=T['builtin_interfaces/msg/Time'](sec=int(s // 10**9), nanosec=int(s % 10**9)), data=d)
-                for d, s in zip(data[part], stamps[part])])
+            scan = T['velodyne_msgs/msg/VelodyneScan'](
+                header=bag.header(int(stamps[part][0]), 'velodyne', k),
+                packets=[
+                    T['velodyne_msgs/msg/VelodynePacket'](
+                        stamp=T['builtin_interfaces/msg/Time'](sec=int(s // 10**9), nanosec=int(s % 10**9)), data=d
+                    )
+                    for d, s in zip(data[part], stamps[part])
+                ],
+            )
             bag.write_msg('/velodyne_packets', int(stamps[part][-1]), scan)
     convert(tmp_path / 'raw.bag', tmp_path / 'out', ConvertOptions())
     clouds = read_clouds(tmp_path / 'out')
@@ -464,8 +517,19 @@ def test_cli_ros1_output_equals_the_golden_ros1_bag(shared_data, tmp_path):
 
 
 def test_cli_restamped_20hz_equals_the_golden_ros2_bag(shared_data, tmp_path):
-    result = run_cli(shared_data / INDOOR_PCAP, '-o', tmp_path / 'indoor', '--model', 'VLP-16', '--restamp-period',
-                     '0.1', '--max-rotations', '20', '--layout', 'packed')
+    result = run_cli(
+        shared_data / INDOOR_PCAP,
+        '-o',
+        tmp_path / 'indoor',
+        '--model',
+        'VLP-16',
+        '--restamp-period',
+        '0.1',
+        '--max-rotations',
+        '20',
+        '--layout',
+        'packed',
+    )
     assert result.returncode == 0, result.stderr
     ours = read_clouds(tmp_path / 'indoor')
     golden = read_clouds(shared_data / 'golden' / 'vlp16_static_indoor_20hz_ros2')

@@ -1,4 +1,5 @@
 """Over DDS, between processes: CloudInfo intact, latched /tf_static for late subscribers, `ros2 run`."""
+
 from __future__ import annotations
 
 import subprocess
@@ -9,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.support.ros import release, spin_until, wait_for_line
+from lego_loam_py.testing.nodes import release, spin_until, wait_for_line
 from tests.support.samples import cloud_info_arrays
 
 REPO = Path(__file__).resolve().parents[1]
@@ -18,8 +19,8 @@ VENV_BIN = Path(sys.executable).parent
 
 def test_cloud_info_between_processes(rclpy_context, processes):
     import rclpy
-    from cloud_msgs.msg import CloudInfo
 
+    from cloud_msgs.msg import CloudInfo
     from lego_loam_py.ros import qos
 
     publisher = processes.python('-m', 'tests.support.publisher', 'cloud_info', cwd=REPO)
@@ -59,8 +60,10 @@ def test_tf_static_reaches_a_late_subscriber(rclpy_context, processes):
     assert spin_until(rclpy_context, node, lambda: received, timeout=20), 'no /tf_static received'
     transforms = {(t.header.frame_id, t.child_frame_id): t for t in received[-1].transforms}
     assert set(transforms) == {('map', 'camera_init'), ('camera', 'base_link')}
-    for key, expected in [(('map', 'camera_init'), frames.MAP_T_CAMERA_INIT),
-                          (('camera', 'base_link'), frames.CAMERA_T_BASE_LINK)]:
+    for key, expected in [
+        (('map', 'camera_init'), frames.MAP_T_CAMERA_INIT),
+        (('camera', 'base_link'), frames.CAMERA_T_BASE_LINK),
+    ]:
         r = transforms[key].transform.rotation
         assert np.allclose(frames.quaternion_to_matrix([r.x, r.y, r.z, r.w]), expected[:3, :3])
         assert transforms[key].header.stamp.nanosec == 42
@@ -107,6 +110,7 @@ def test_every_console_script_is_in_the_ros_layout():
     assert scripts and scripts <= {p.name for p in libdir.iterdir()}
     assert Path(sys.prefix, 'share', 'ament_index', 'resource_index', 'packages', 'lego_loam_py').exists()
     from ament_index_python.packages import get_package_share_directory
+
     share = Path(get_package_share_directory('lego_loam_py'))
     assert (share / 'package.xml').is_file() and (share / 'config' / 'params.yaml').is_file()
 
@@ -127,23 +131,24 @@ def test_a_node_serves_with_either_executor(rclpy_context, processes, executor):
     from nav_msgs.msg import Odometry
 
     from lego_loam_py.ros import qos
-    from lego_loam_py.ros.conversions import make_header, pose_to_odometry
-    from lego_loam_py.ros.conversions import stamp_to_ns
-    from tests.support.ros import Diagnostics, links_matched, publish_in_lockstep
+    from lego_loam_py.ros.conversions import make_header, pose_to_odometry, stamp_to_ns
+    from lego_loam_py.testing.nodes import Diagnostics, links_matched, publish_in_lockstep
 
     env = dict(os.environ, LEGO_LOAM_PY_EXECUTOR=executor)
     node = rclpy.create_node(f'executor_probe_{executor}', context=rclpy_context)
     fused = {}
-    subscription = node.create_subscription(Odometry, '/integrated_to_init',
-                                            lambda m: fused.setdefault(stamp_to_ns(m.header.stamp), m),
-                                            qos.reliable(10))
+    subscription = node.create_subscription(
+        Odometry, '/integrated_to_init', lambda m: fused.setdefault(stamp_to_ns(m.header.stamp), m), qos.reliable(10)
+    )
     odometry = node.create_publisher(Odometry, '/laser_odom_to_init', qos.reliable(10))
     diagnostics = Diagnostics(node)
     fusion = processes.start([VENV_BIN / 'transformFusion'], env=env)
     # Both links matched at both ends before the first message: transformFusion drops a resent stamp as not
     # newer, so a first fused pose sent before its writer knew this reader would never come again.
-    links = [(odometry, '/laser_odom_to_init', ['transformFusion']),
-             ('transformFusion', '/integrated_to_init', [subscription])]
+    links = [
+        (odometry, '/laser_odom_to_init', ['transformFusion']),
+        ('transformFusion', '/integrated_to_init', [subscription]),
+    ]
     assert spin_until(rclpy_context, node, lambda: links_matched(diagnostics, links) or fusion.poll() is not None, 60)
     assert fusion.poll() is None, fusion.communicate()[1]
     items = []
@@ -173,9 +178,9 @@ def test_with_sim_time_a_node_reads_the_newest_clock_tick_without_waking_for_eac
     per tick) is gone, and the clock handed out (diagnostics stamps) is the newest tick's time. mapOptimization,
     whose timers run on ROS time, keeps rclpy's subscription."""
     import rclpy
+    from builtin_interfaces.msg import Time
     from rclpy.parameter import Parameter
     from rosgraph_msgs.msg import Clock
-    from builtin_interfaces.msg import Time
 
     from lego_loam_py.ros.map_optimization_node import MapOptimizationNode
     from lego_loam_py.ros.transform_fusion_node import TransformFusionNode

@@ -11,22 +11,29 @@ float64 ``timestamp``, Livox ``offset_time``, float64 coordinates, x/y/z/intensi
 * layouts that cannot be read are refused with one line naming the field and what was expected, and the
   pipeline drops such a scan, counted, and goes on.
 """
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
-from lego_loam_py.core.driver_layouts import read_cloud, rings_count_down, seconds_since_sweep_start
-from lego_loam_py.core.image_projection import ImageProjection, prepare_input
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.pipeline import Pipeline
-from lego_loam_py.core.pointcloud import (POINT_XYZI_DTYPE, VELODYNE_POINT_DTYPE, CloudLayoutError, array_to_cloud,
-                                          cloud_to_array, velodyne_points)
+from lego_loam_py.core.pointcloud import (
+    POINT_XYZI_DTYPE,
+    VELODYNE_POINT_DTYPE,
+    CloudLayoutError,
+    array_to_cloud,
+    cloud_to_array,
+    velodyne_points,
+)
+from lego_loam_py.core.projection.driver_layouts import read_cloud, rings_count_down, seconds_since_sweep_start
+from lego_loam_py.core.projection.image_projection import ImageProjection, prepare_input
 from lego_loam_py.evaluation import evaluate
+from lego_loam_py.inputs.sidecars import load_ground_truth
 from lego_loam_py.offline import run_bag
 from lego_loam_py.sim.driver_layouts import LAYOUTS, OUSTER_DTYPE, cached_layout, in_layout, pixels_of
-from lego_loam_py.sim.output import load_ground_truth
 
 PARAMS = Params()
 POINT_TIME = PARAMS.replace(feature_association__relative_time_source='point_time')
@@ -38,6 +45,7 @@ WITH_TIME = [layout for layout in OTHERS if layout != 'xyzi']
 @pytest.fixture(scope='module')
 def bag():
     from lego_loam_py.sim.simulator import cached_scenario
+
     return cached_scenario('campus', duration=3.0)
 
 
@@ -64,6 +72,7 @@ def by_coordinates(xyz: np.ndarray) -> np.ndarray:
 
 # ------------------------------------------------------------------------------------ each layout, one sweep
 
+
 @pytest.mark.parametrize('layout', OTHERS)
 def test_each_layout_reads_into_the_plain_points_rings_and_times(sweeps, layout):
     for points in sweeps:
@@ -76,7 +85,7 @@ def test_each_layout_reads_into_the_plain_points_rings_and_times(sweeps, layout)
         assert np.array_equal(driver.xyz[mine], plain.xyz[theirs])
         if layout != 'velodyne_organized':
             assert np.array_equal(driver.xyz, plain.xyz)
-        if layout in ('xyzi', 'livox'):   # no ring field (Livox's 'line' is no beam of a spinning head)
+        if layout in ('xyzi', 'livox'):  # no ring field (Livox's 'line' is no beam of a spinning head)
             assert driver.ring is None
         else:
             assert np.array_equal(driver.ring[mine], plain.ring[theirs])
@@ -97,8 +106,9 @@ def test_each_layout_gives_the_plain_image_projection_bit_for_bit(sweeps, layout
     ip = ImageProjection(PARAMS)
     for points in sweeps:
         plain = ip.process(prepare_input(points, PARAMS))
-        driver = ip.process(prepare_input(through_the_message(in_layout(points, layout, STAMP_NS, ROWS, COLUMNS)),
-                                          PARAMS))
+        driver = ip.process(
+            prepare_input(through_the_message(in_layout(points, layout, STAMP_NS, ROWS, COLUMNS)), PARAMS)
+        )
         assert driver.cloud_info.start_orientation == plain.cloud_info.start_orientation
         assert driver.cloud_info.end_orientation == plain.cloud_info.end_orientation
         for name in ('segmented_cloud', 'outlier_cloud', 'ground_cloud', 'full_cloud', 'label_image'):
@@ -106,8 +116,9 @@ def test_each_layout_gives_the_plain_image_projection_bit_for_bit(sweeps, layout
         missing = ROWS * COLUMNS - len(points)
         assert driver.stats['at_origin'] == (missing if layout == 'ouster' else 0)
         assert driver.stats['non_finite'] == (missing if layout == 'velodyne_organized' else 0)
-        assert driver.stats['input_points'] == (ROWS * COLUMNS if layout in ('ouster', 'velodyne_organized')
-                                                else len(points))
+        assert driver.stats['input_points'] == (
+            ROWS * COLUMNS if layout in ('ouster', 'velodyne_organized') else len(points)
+        )
 
 
 def test_the_ouster_layout_is_the_drivers(sweeps):
@@ -120,7 +131,7 @@ def test_the_ouster_layout_is_the_drivers(sweeps):
     empty = (grid['x'] == 0) & (grid['y'] == 0) & (grid['z'] == 0)
     assert np.count_nonzero(~empty) == len(points)
     top = points[points['ring'] == ROWS - 1]
-    assert np.count_nonzero(~empty[0]) == len(top)     # the top beam is row 0
+    assert np.count_nonzero(~empty[0]) == len(top)  # the top beam is row 0
     assert grid['t'].dtype == np.uint32 and grid['t'].max() < 100_000_000
     velodyne = in_layout(points, 'velodyne_organized', STAMP_NS, ROWS, COLUMNS)
     assert velodyne.shape == (COLUMNS, ROWS) and not array_to_cloud(velodyne).is_dense
@@ -131,7 +142,7 @@ def test_points_at_the_origin_never_set_the_sweeps_start_orientation(sweeps):
     measured point (the origin's atan2 would say 0, the top beam's first return somewhere later)."""
     points = sweeps[0]
     grid = in_layout(points, 'ouster', STAMP_NS, ROWS, COLUMNS)
-    grid[:, :40]['x'] = 0   # the first 40 columns (8 deg) lose every return: the sweep starts later
+    grid[:, :40]['x'] = 0  # the first 40 columns (8 deg) lose every return: the sweep starts later
     grid[:, :40]['y'] = 0
     grid[:, :40]['z'] = 0
     kept = points[pixels_of(points, COLUMNS)[1] >= 40]
@@ -144,10 +155,13 @@ def test_points_at_the_origin_never_set_the_sweeps_start_orientation(sweeps):
 
 # ------------------------------------------------------------------------------ each layout, whole pipeline
 
+
 @pytest.fixture(scope='module')
 def plain_runs(bag):
-    return {params_name: run_bag(bag, params, progress=False)
-            for params_name, params in (('default', PARAMS), ('point_time', POINT_TIME))}
+    return {
+        params_name: run_bag(bag, params, progress=False)
+        for params_name, params in (('default', PARAMS), ('point_time', POINT_TIME))
+    }
 
 
 @pytest.mark.parametrize('layout', OTHERS)
@@ -171,17 +185,27 @@ def test_each_layouts_times_give_the_plain_accuracy(bag, plain_runs, layout):
     ate = evaluate(truth, result.trajectory()).ate_rmse_m
     assert abs(ate - plain) <= 0.02 * plain, (ate, plain)
     if layout in ('velodyne_organized', 'float64'):
-        assert np.array_equal(result.trajectory()[1], plain_runs['point_time'].trajectory()[1])
+        assert np.array_equal(result.trajectory().poses, plain_runs['point_time'].trajectory().poses)
 
 
 # ----------------------------------------------------------------------------------------- the conversions
 
+
 def test_time_units_are_read_from_the_span_of_a_sweep():
     sweep = np.linspace(0.0, 0.0999, 1000)
-    for unit, scale, dtype in (('s', 1.0, np.float32), ('ms', 1e3, np.float32), ('us', 1e6, np.float64),
-                               ('ns', 1e9, np.uint32), ('ns', 1e9, np.int64), ('ms', 1e3, np.uint16)):
-        values = np.rint(sweep * scale).astype(dtype) if dtype not in (np.float32, np.float64) else \
-            (sweep * scale).astype(dtype)
+    for unit, scale, dtype in (
+        ('s', 1.0, np.float32),
+        ('ms', 1e3, np.float32),
+        ('us', 1e6, np.float64),
+        ('ns', 1e9, np.uint32),
+        ('ns', 1e9, np.int64),
+        ('ms', 1e3, np.uint16),
+    ):
+        values = (
+            np.rint(sweep * scale).astype(dtype)
+            if dtype not in (np.float32, np.float64)
+            else (sweep * scale).astype(dtype)
+        )
         seconds, reading = seconds_since_sweep_start(values, 'stamp', 0.1)
         assert reading.unit == unit and not reading.absolute, (unit, dtype)
         assert np.abs(seconds - sweep).max() < 1e-6 + 0.5 / scale
@@ -196,10 +220,10 @@ def test_time_units_are_read_from_the_span_of_a_sweep():
 def test_absolute_times_count_from_the_sweeps_earliest_valid_point():
     stamp = 1_700_000_000.25
     sweep = np.linspace(0.0, 0.0999, 1000)
-    seconds, reading = seconds_since_sweep_start(stamp + 0.002 + sweep, 'timestamp', 0.1)   # Hesai, RoboSense
+    seconds, reading = seconds_since_sweep_start(stamp + 0.002 + sweep, 'timestamp', 0.1)  # Hesai, RoboSense
     assert reading.absolute and reading.unit == 's' and np.abs(seconds - sweep).max() < 1e-6
     nanoseconds = (np.int64(1_700_000_000_250_000_000) + np.rint(sweep * 1e9).astype(np.int64)).astype(np.uint64)
-    seconds, reading = seconds_since_sweep_start(nanoseconds, 'stamp_ns', 0.1)   # any absolute field, by its value
+    seconds, reading = seconds_since_sweep_start(nanoseconds, 'stamp_ns', 0.1)  # any absolute field, by its value
     assert reading.absolute and reading.unit == 'ns' and np.abs(seconds - sweep).max() < 1e-8
     # A relative field keeps its offset from the header stamp (Livox offset_time, Velodyne time).
     seconds, reading = seconds_since_sweep_start((np.rint((sweep + 0.01) * 1e9)).astype(np.uint32), 'offset_time', 0.1)
@@ -238,7 +262,7 @@ def test_rings_counted_from_the_top_are_turned_round_and_others_are_not(sweeps):
     read = prepare_input(flipped, PARAMS)
     assert read.rings_from_top and np.array_equal(read.ring, points['ring'])
     # Rings beyond the image (a wrong preset) stay beyond it, to be dropped and warned about.
-    flipped['ring'] = 23 - points['ring']   # 8..23 from the top
+    flipped['ring'] = 23 - points['ring']  # 8..23 from the top
     read = prepare_input(flipped, PARAMS)
     assert read.rings_from_top and np.array_equal(np.sort(np.unique(read.ring)), np.r_[0:8, 16:24])
 
@@ -256,6 +280,7 @@ def test_float64_coordinates_and_an_xyz_only_cloud(sweeps):
 
 # ---------------------------------------------------------------------------------------------- refusals
 
+
 def refusal(points: np.ndarray, params: Params = PARAMS) -> str:
     with pytest.raises(CloudLayoutError) as caught:
         prepare_input(points, params)
@@ -270,11 +295,13 @@ def test_layouts_that_cannot_be_read_are_refused_with_one_line_naming_the_field(
     # A time field spanning 3 "s" (or 3 ms): neither is about a 0.1 s sweep.
     timed = velodyne_points(np.full((4, 3), 5.0), time=np.array([0.0, 1.0, 2.0, 3.0]))
     message = refusal(timed)
-    assert message.startswith("time field 'time' (float32) spans 3 within one cloud: expected about one scan "
-                              'period (sensor.scan_period 0.1 s) in s, ms, us or ns'), message
+    assert message.startswith(
+        "time field 'time' (float32) spans 3 within one cloud: expected about one scan "
+        'period (sensor.scan_period 0.1 s) in s, ms, us or ns'
+    ), message
     ouster = np.zeros(4, dtype=OUSTER_DTYPE)
     ouster['x'] = 5.0
-    ouster['t'] = [0, 1_000_000_000, 2_000_000_000, 3_000_000_000]   # 3 s in ns
+    ouster['t'] = [0, 1_000_000_000, 2_000_000_000, 3_000_000_000]  # 3 s in ns
     assert "time field 't' (uint32) spans 3e+09" in refusal(ouster)
     # The same cloud is fine for a sensor configured to sweep in 1 s.
     assert read_cloud(ouster, 16, 'ring', 'time', 1.0).time_reading.unit == 'ns'
@@ -287,7 +314,7 @@ def test_the_pipeline_drops_a_refused_scan_counted_and_goes_on(sweeps):
     try:
         pipeline.process_scan(sweeps[0], STAMP_NS)
         bad = sweeps[1].copy()
-        bad['time'] *= 40.0   # 4 s: no unit makes it a 0.1 s sweep
+        bad['time'] *= 40.0  # 4 s: no unit makes it a 0.1 s sweep
         dropped = pipeline.process_scan(bad, STAMP_NS + 100_000_000)
         assert dropped.dropped is not None and "time field 'time'" in dropped.dropped
         at_origin = np.zeros(10, dtype=VELODYNE_POINT_DTYPE)

@@ -11,6 +11,7 @@ scan's /integrated_to_init before the next cloud. "Every scan comes out" then ch
 synchronisation, QoS, the supervisor), not the speed of the machine, which may be shared with other jobs: how
 many scans the pipeline keeps at 1x and 2x is measured by benchmarks/bench_pipeline.py, never asserted here.
 """
+
 from __future__ import annotations
 
 import json
@@ -18,7 +19,6 @@ import os
 import re
 import shutil
 import signal
-import struct
 import subprocess
 import sys
 import time
@@ -26,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from tests.support.ros import Diagnostics, read_until, release
+from lego_loam_py.ros.conversions import serialized_stamp_ns
+from lego_loam_py.testing.nodes import Diagnostics, read_until, release
 from tests.support.topics import ALWAYS, GATED, TF_DYNAMIC, TF_STATIC, message_class
 
 REPO = Path(__file__).resolve().parents[1]
@@ -39,7 +40,7 @@ SCANS = 80
 # About twice the worst of the offline figures:
 ATE_BOUND_M = 0.065
 MIN_INTEGRATED_FRACTION = 0.95
-SCAN_TIMEOUT_S = 10.0   # per scan in lockstep: only a lost scan (or a hung node) waits this long
+SCAN_TIMEOUT_S = 10.0  # per scan in lockstep: only a lost scan (or a hung node) waits this long
 
 
 def _alive(pid: int) -> bool:
@@ -58,13 +59,6 @@ def _logs(directory: Path) -> str:
     return '\n'.join(f'--- {p.name}\n{p.read_text()[-3000:]}' for p in sorted(directory.glob('*.log')))
 
 
-def _header_stamp_ns(cdr: bytes) -> int:
-    """Header stamp of a serialized message whose first field is a std_msgs/Header (CDR: 4-byte
-    encapsulation, then int32 sec, uint32 nanosec)."""
-    sec, nanosec = struct.unpack_from('<iI' if cdr[1] in (0x01, 0x03) else '>iI', cdr, 4)
-    return sec * 1_000_000_000 + nanosec
-
-
 def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp_path, rclpy_context, processes):
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -75,16 +69,28 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
     from lego_loam_py.bag.io import BagReader
     from lego_loam_py.core.frames import camera_pose_to_lidar
     from lego_loam_py.evaluation import evaluate
+    from lego_loam_py.inputs.sidecars import load_ground_truth
     from lego_loam_py.ros import qos
     from lego_loam_py.ros.conversions import ns_to_stamp, odometry_to_pose, stamp_to_ns
     from lego_loam_py.ros.tf import TF_QOS, TF_STATIC_QOS
-    from lego_loam_py.sim.output import load_ground_truth
 
     logs = tmp_path / 'logs'
     launcher = processes.start(
-        [BIN / 'lego_loam_py', 'launch', '--use-sim-time', 'true', '--stats-dir', tmp_path / 'stats',
-         '--log-dir', logs, '--quiet-nodes', '-p', f'map_optimization.file_directory:={tmp_path / "maps"}'],
-        stderr=subprocess.STDOUT)
+        [
+            BIN / 'lego_loam_py',
+            'launch',
+            '--use-sim-time',
+            'true',
+            '--stats-dir',
+            tmp_path / 'stats',
+            '--log-dir',
+            logs,
+            '--quiet-nodes',
+            '-p',
+            f'map_optimization.file_directory:={tmp_path / "maps"}',
+        ],
+        stderr=subprocess.STDOUT,
+    )
 
     node = rclpy.create_node('end_to_end_listener', context=rclpy_context)
     first: dict[str, bytes] = {}
@@ -92,23 +98,35 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
     for topic, (_, type_name, _, _) in {**ALWAYS, **GATED}.items():
         if topic != '/integrated_to_init':
             subscriptions[topic] = node.create_subscription(
-                message_class(type_name), topic, lambda data, t=topic: first.setdefault(t, data),
-                qos.reliable(2), raw=True)
+                message_class(type_name),
+                topic,
+                lambda data, t=topic: first.setdefault(t, data),
+                qos.reliable(2),
+                raw=True,
+            )
     integrated = []
-    node.create_subscription(message_class('nav_msgs/msg/Odometry'), '/integrated_to_init', integrated.append,
-                             qos.reliable(100))
+    node.create_subscription(
+        message_class('nav_msgs/msg/Odometry'), '/integrated_to_init', integrated.append, qos.reliable(100)
+    )
     tf_pairs, static_pairs = set(), set()
-    node.create_subscription(TFMessage, '/tf', lambda m: tf_pairs.update(
-        (t.header.frame_id, t.child_frame_id) for t in m.transforms), TF_QOS)
-    node.create_subscription(TFMessage, '/tf_static', lambda m: static_pairs.update(
-        (t.header.frame_id, t.child_frame_id) for t in m.transforms), TF_STATIC_QOS)
+    node.create_subscription(
+        TFMessage, '/tf', lambda m: tf_pairs.update((t.header.frame_id, t.child_frame_id) for t in m.transforms), TF_QOS
+    )
+    node.create_subscription(
+        TFMessage,
+        '/tf_static',
+        lambda m: static_pairs.update((t.header.frame_id, t.child_frame_id) for t in m.transforms),
+        TF_STATIC_QOS,
+    )
     diagnostics = Diagnostics(node)
     clock = node.create_publisher(Clock, '/clock', qos.reliable(10))
     reader = BagReader(BAG)
     reader.open()
     topics = reader.topics()
-    publishers = {t: node.create_publisher(message_class(topics[t]), t, qos.reliable(100))
-                  for t in ('/velodyne_points', '/imu/data')}
+    publishers = {
+        t: node.create_publisher(message_class(topics[t]), t, qos.reliable(100))
+        for t in ('/velodyne_points', '/imu/data')
+    }
     executor = SingleThreadedExecutor(context=rclpy_context)
     executor.add_node(node)
 
@@ -136,7 +154,7 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
                 publishers['/imu/data'].publish(data)
             pending_imu.clear()
             publishers['/velodyne_points'].publish(message.data)
-            stamp = _header_stamp_ns(message.data)
+            stamp = serialized_stamp_ns(message.data)
             if '/segmented_cloud' not in first:
                 # The first scan only initialises the odometry: nothing comes out of the pipeline for it. It is
                 # sent again until imageProjection has it: its best-effort input drops what arrives before it
@@ -148,14 +166,20 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
                 continue
             if not spin(lambda: integrated and stamp_to_ns(integrated[-1].header.stamp) >= stamp, SCAN_TIMEOUT_S):
                 waited_out.append(stamp)
-        clock.publish(Clock(clock=ns_to_stamp(reader.end_time + 6_000_000_000)))   # past the 5 s map period
+        clock.publish(Clock(clock=ns_to_stamp(reader.end_time + 6_000_000_000)))  # past the 5 s map period
         spin(lambda: set(GATED) <= set(first), 10.0)
         # Every node reports on /diagnostics once a second (wall time, although the nodes run on sim time).
-        spin(lambda: diagnostics.counter('imageProjection', 'clouds_in') >= SCANS and set(NODES) <= set(diagnostics.latest)
-             and diagnostics.counter('transformFusion', 'integrated') >= len(integrated), 10.0)
+        spin(
+            lambda: (
+                diagnostics.counter('imageProjection', 'clouds_in') >= SCANS
+                and set(NODES) <= set(diagnostics.latest)
+                and diagnostics.counter('transformFusion', 'integrated') >= len(integrated)
+            ),
+            10.0,
+        )
     finally:
         reader.close()
-    os.kill(launcher.pid, signal.SIGINT)   # Ctrl-C
+    os.kill(launcher.pid, signal.SIGINT)  # Ctrl-C
     out, _ = launcher.communicate(timeout=60)
     out = head + out
     executor.shutdown(timeout_sec=0.1)
@@ -169,7 +193,7 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
     assert not [name for name, pid in pids.items() if _alive(pid)], 'processes of the run are still alive'
     assert 'Traceback' not in _logs(logs), _logs(logs)
     stats = {name: json.loads((tmp_path / 'stats' / f'{name}.json').read_text()) for name in NODES}
-    assert stats['imageProjection']['counters']['clouds_in'] >= SCANS   # every cloud (the first may come twice)
+    assert stats['imageProjection']['counters']['clouds_in'] >= SCANS  # every cloud (the first may come twice)
     assert not stats['imageProjection']['counters'].get('clouds_dropped')
 
     # Every topic, with its type (a subscription of another type would not have matched) and frames.
@@ -186,7 +210,7 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
     assert {(m.header.frame_id, m.child_frame_id) for m in integrated} == {('camera_init', 'camera')}
     assert set(diagnostics.latest) >= set(NODES), diagnostics.latest
     assert diagnostics.counter('imageProjection', 'clouds_in') >= SCANS
-    assert diagnostics.counter('transformFusion', 'integrated') >= len(integrated)   # (counted as published)
+    assert diagnostics.counter('transformFusion', 'integrated') >= len(integrated)  # (counted as published)
     assert all(level == 0 for level in diagnostics.levels.values()), diagnostics.messages
     assert tf_pairs >= TF_DYNAMIC, tf_pairs
     assert static_pairs >= TF_STATIC, static_pairs
@@ -202,7 +226,7 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
     metrics = evaluate(load_ground_truth(BAG), (stamps, poses))
     assert metrics.matched_poses >= MIN_INTEGRATED_FRACTION * SCANS
     assert metrics.ate_rmse_m < ATE_BOUND_M, metrics.summary()
-    assert metrics.path_length_m > 12.0   # the car drove ~13.4 m: the estimate is not standing still
+    assert metrics.path_length_m > 12.0  # the car drove ~13.4 m: the estimate is not standing still
     release(node)
 
 
@@ -220,7 +244,7 @@ def _trim_bag(source: Path, target: Path, seconds: float) -> None:
 
 def test_demo_writes_a_summary_trajectory_map_and_png(tmp_path, ros_domain):
     from lego_loam_py.bag.io import BagReader
-    from lego_loam_py.core.io import read_pcd, read_tum
+    from lego_loam_py.formats import read_pcd, read_tum
 
     bag = tmp_path / 'campus_4s'
     _trim_bag(BAG, bag, 4.0)
@@ -229,8 +253,12 @@ def test_demo_writes_a_summary_trajectory_map_and_png(tmp_path, ros_domain):
     assert 38 <= scans <= 41
     out = tmp_path / 'demo'
     # (The timeout only guards against a hang: start-up and the map's evaluation take longer on a busy machine.)
-    result = subprocess.run([BIN / 'lego_loam_py', 'demo', bag, '-o', out, '--rate', '0.5', '--no-progress'],
-                            capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        [BIN / 'lego_loam_py', 'demo', bag, '-o', out, '--rate', '0.5', '--no-progress'],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert result.returncode == 0, result.stdout + result.stderr + _logs(out / 'logs')
 
     # The printed summary.
@@ -239,7 +267,7 @@ def test_demo_writes_a_summary_trajectory_map_and_png(tmp_path, ros_domain):
     assert re.search(r'processed: imageProjection \d+, featureAssociation \d+ .*transformFusion \d+', text), text
     assert re.search(r'/integrated_to_init for \d+ of \d+ scans', text) and 'dropped messages' in text
     for name in ('imageProjection', 'featureAssociation', 'mapOptimization', 'transformFusion'):
-        assert re.search(rf'{name}\s+\d+\.\d\s+\d+\.\d\s+\d+', text), name   # ms per scan: median, p95, n
+        assert re.search(rf'{name}\s+\d+\.\d\s+\d+\.\d\s+\d+', text), name  # ms per scan: median, p95, n
     assert 'trajectory length' in text and 'accuracy vs ground truth: ATE RMSE' in text
 
     # The files, parsed.
@@ -257,10 +285,11 @@ def test_demo_writes_a_summary_trajectory_map_and_png(tmp_path, ros_domain):
     assert cloud.shape[1] >= 3 and len(cloud) > 1000
     # The saved map opens with open3d and lies on the simulated scene's surfaces.
     import open3d as o3d
+
     assert len(o3d.io.read_point_cloud(str(out / 'map' / 'global_map.pcd')).points) == len(cloud)
     assert summary['map_to_scene']['points'] == len(cloud) and summary['map_to_scene']['median_m'] < 0.15
     assert 'median point-to-mesh distance' in text
-    assert read_tum(out / 'map' / 'trajectory.tum')[0].size >= 5   # keyframes
+    assert read_tum(out / 'map' / 'trajectory.tum')[0].size >= 5  # keyframes
     png = (out / 'trajectory.png').read_bytes()
     assert png[:8] == b'\x89PNG\r\n\x1a\n' and len(png) > 20_000
     assert {p.stem for p in (out / 'stats').glob('*.json')} == set(NODES)
@@ -274,31 +303,67 @@ def test_demo_summary_accounts_for_every_scan():
 
     timing = dict(median=10.0, p95=20.0, mean=12.0, count=70)
     stats = {
-        'imageProjection': {'counters': {'clouds_in': 79, 'clouds_out': 78, 'clouds_dropped': 1},
-                            'timings_ms': {'scan': timing}},
-        'featureAssociation': {'counters': {'scans': 70, 'scans_dropped': 2, 'unmatched_inputs': 4, 'imu_dropped': 0,
-                                            'scans_with_imu': 65}, 'timings_ms': {'scan': timing}},
-        'mapOptimization': {'counters': {'steps': 22, 'keyframes': 20, 'unmatched_inputs': 35,
-                                         'inputs_skipped_by_interval': 14}, 'timings_ms': {'step': timing}},
+        'imageProjection': {
+            'counters': {'clouds_in': 79, 'clouds_out': 78, 'clouds_dropped': 1},
+            'timings_ms': {'scan': timing},
+        },
+        'featureAssociation': {
+            'counters': {
+                'scans_processed': 70,
+                'scans_dropped': 2,
+                'unmatched_inputs': 4,
+                'imu_dropped': 0,
+                'scans_with_imu': 65,
+            },
+            'timings_ms': {'scan': timing},
+        },
+        'mapOptimization': {
+            'counters': {
+                'mapping_steps': 22,
+                'keyframes': 20,
+                'unmatched_inputs': 35,
+                'inputs_skipped_by_interval': 14,
+            },
+            'timings_ms': {'step': timing},
+        },
         'transformFusion': {'counters': {'integrated': 69, 'mapped': 22}, 'timings_ms': {}},
     }
     processed, drops, timings = _node_summary(stats)
-    assert processed == {'imageProjection': 78, 'featureAssociation': 70, 'mapOptimization': 22,
-                         'transformFusion': 69}
+    assert processed == {'imageProjection': 78, 'featureAssociation': 70, 'mapOptimization': 22, 'transformFusion': 69}
     # mapOptimization's unmatched inputs are the odometry of scans not sent to mapping: not drops.
-    assert drops == {'imageProjection': {'clouds_dropped': 1},
-                     'featureAssociation': {'scans_dropped': 2, 'unmatched_inputs': 4}}
+    assert drops == {
+        'imageProjection': {'clouds_dropped': 1},
+        'featureAssociation': {'scans_dropped': 2, 'unmatched_inputs': 4},
+    }
     assert set(timings) == {'imageProjection', 'featureAssociation', 'mapOptimization'}
-    summary = DemoSummary(bag='bags/x', rate=1.0, bag_duration_s=8.0, wall_time_s=9.0, scans_in=80, processed=processed,
-                          integrated=69, not_received=1, drop_counters=drops, queue_overwritten=6, keyframes=20,
-                          scans_with_imu=65, timings_ms=timings, processes=[], failures=[], interrupted=False,
-                          ready_after_s=3.0, outputs=RunOutputs(trajectory_length_m=13.4))
+    summary = DemoSummary(
+        bag='bags/x',
+        rate=1.0,
+        bag_duration_s=8.0,
+        wall_time_s=9.0,
+        scans_in=80,
+        processed=processed,
+        integrated=69,
+        not_received=1,
+        drop_counters=drops,
+        queue_overwritten=6,
+        keyframes=20,
+        scans_with_imu=65,
+        timings_ms=timings,
+        processes=[],
+        failures=[],
+        interrupted=False,
+        ready_after_s=3.0,
+        outputs=RunOutputs(trajectory_length_m=13.4),
+    )
     assert summary.dropped == 1 + 1 + 2 + 4 and summary.integrated_fraction == 69 / 80
     text = format_demo_summary(summary)
     assert 'scans in 80 (8.0 s of data); processed: imageProjection 78, featureAssociation 70 (IMU on 65)' in text
     assert '/integrated_to_init for 69 of 80 scans (86.2%' in text
-    assert ('dropped messages 8: 1 never reached imageProjection; imageProjection clouds_dropped 1; '
-            'featureAssociation scans_dropped 2, unmatched_inputs 4') in text
+    assert (
+        'dropped messages 8: 1 never reached imageProjection; imageProjection clouds_dropped 1; '
+        'featureAssociation scans_dropped 2, unmatched_inputs 4'
+    ) in text
     assert '+ 6 scans featureAssociation never got' in text
     assert re.search(r'mapOptimization\s+10\.0\s+20\.0\s+70\s+\(per mapping step\)', text)
     assert 'accuracy: no ground truth beside the bag' in text

@@ -1,4 +1,5 @@
 """Error against time (lego_loam_py.evaluation.error_over_time) on trajectories checked by hand."""
+
 from __future__ import annotations
 
 import math
@@ -56,3 +57,23 @@ def test_an_estimate_that_misses_the_ground_truth_in_time_is_an_error():
     stamps, truth = turning_walk()
     with pytest.raises(ValueError, match='match the ground truth'):
         error_over_time((stamps, truth), (stamps + 50_000_000, truth))
+
+
+def test_the_plot_frames_a_short_drive_not_the_whole_map(tmp_path):
+    """An 8 m drive over a 200 m map: the view is the drive and 10 m around it (a quarter of a long drive's
+    extent), and the PNG is drawn with the map points in that view only."""
+    from lego_loam_py.evaluation import plot_trajectories, view_limits
+
+    drive = np.tile(np.eye(4), (9, 1, 1))
+    drive[:, 0, 3] = np.arange(9.0) + 50.0  # x 50..58 m, y 0
+    assert view_limits({'estimate': drive}) == (40.0, 68.0, -10.0, 10.0)
+    long = np.tile(np.eye(4), (2, 1, 1))
+    long[1, :3, 3] = (100.0, 40.0, 0.0)
+    assert view_limits({'a': long, 'b': drive}) == (-25.0, 125.0, -25.0, 65.0)
+    assert view_limits({'estimate': np.zeros((0, 4, 4))}) is None
+    grid = np.stack(np.meshgrid(np.arange(-100.0, 100.0, 2.0), np.arange(-100.0, 100.0, 2.0)), -1).reshape(-1, 2)
+    map_points = np.column_stack([grid, np.zeros(len(grid))])
+    png = plot_trajectories(tmp_path / 'drive.png', {'estimate': drive}, map_points)
+    assert png.stat().st_size > 1000
+    far = map_points + 500.0  # no map point in view: still a picture
+    assert plot_trajectories(tmp_path / 'far.png', {'estimate': drive}, far).stat().st_size > 1000

@@ -1,4 +1,5 @@
 """featureAssociation core: Jacobians, registration, deskewing, degeneracy, IMU buffer, golden parity."""
+
 from __future__ import annotations
 
 import math
@@ -6,19 +7,27 @@ import math
 import numpy as np
 import pytest
 
-from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
-from lego_loam_py.core.features import FeatureExtractor, occluded_mask, smoothness
 from lego_loam_py.core.frames import camera_pose_to_lidar, euler_to_quaternion, lidar_to_camera
-from lego_loam_py.core.image_projection import ImageProjection, ProjectionInput, prepare_input
-from lego_loam_py.core.imu import ImuBuffer
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
 from lego_loam_py.core.geometry import line_coefficients, plane_coefficients
-from lego_loam_py.core.laser_odometry import OriginalOdometry, SweepStartOdometry, make_laser_odometry
+from lego_loam_py.core.imu.buffer import ImuBuffer
+from lego_loam_py.core.odometry.feature_association import FeatureAssociation, ScanInput
+from lego_loam_py.core.odometry.features import FeatureExtractor, occluded_mask, smoothness
+from lego_loam_py.core.odometry.laser_odometry import OriginalOdometry, SweepStartOdometry, make_laser_odometry
+from lego_loam_py.core.odometry.sweep import (
+    accumulate,
+    plane_jacobian_rows,
+    relative_time,
+    relative_time_from_azimuth,
+    start_jacobian,
+    sweep_angles,
+    sweep_rotation,
+    transform_to_end,
+    transform_to_start,
+)
 from lego_loam_py.core.params import Params, default_params_file, load_params
-from lego_loam_py.core.sweep import (accumulate, plane_jacobian_rows, relative_time, relative_time_from_azimuth,
-                                     start_jacobian, sweep_angles, sweep_rotation, transform_to_end,
-                                     transform_to_start)
-from lego_loam_py.core.sync import StampSynchronizer
+from lego_loam_py.core.projection.image_projection import ImageProjection, ProjectionInput, prepare_input
+from lego_loam_py.ros.sync import StampSynchronizer
 from tests.support.sweeps import motion_pose, room_world, sweep
 
 PARAMS = Params()
@@ -27,6 +36,7 @@ GOLDEN = ['vlp16_single_rotation', 'vlp16_static_indoor_20hz', 'vlp16_dual_retur
 
 
 # --------------------------------------------------------------------------------------------- Jacobians
+
 
 @pytest.mark.parametrize('seed', range(5))
 def test_start_jacobian_matches_finite_differences(seed):
@@ -57,7 +67,9 @@ def test_residual_jacobian_rows_match_finite_differences(active):
     eps = 1e-6
 
     def residual(th):
-        return np.einsum('ni,ni->n', coeff[:, :3], (points[:, :3].astype(np.float64) - th[3:]) @ sweep_rotation(*th[:3]))
+        return np.einsum(
+            'ni,ni->n', coeff[:, :3], (points[:, :3].astype(np.float64) - th[3:]) @ sweep_rotation(*th[:3])
+        )
 
     for j, k in enumerate(active):
         step = np.zeros(6)
@@ -67,11 +79,12 @@ def test_residual_jacobian_rows_match_finite_differences(active):
 
 def test_plane_and_line_distances_by_hand():
     a, b, c = (np.array([[0.0, 0.0, 0.0]]), np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.0]]))
-    normal, distance = plane_coefficients(np.array([[3.0, 2.5, -4.0]]), a, b, c)   # the plane y = 0
+    normal, distance = plane_coefficients(np.array([[3.0, 2.5, -4.0]]), a, b, c)  # the plane y = 0
     assert np.allclose(np.abs(normal), [[0, 1, 0]]) and np.isclose(abs(distance[0]), 2.5)
     assert np.isclose(distance[0], normal[0] @ [3.0, 2.5, -4.0])
-    gradient, d = line_coefficients(np.array([[1.0, 2.0, 5.0]]), np.array([[0.0, 0.0, 0.0]]),
-                                    np.array([[0.0, 0.0, 1.0]]))                   # the z axis
+    gradient, d = line_coefficients(
+        np.array([[1.0, 2.0, 5.0]]), np.array([[0.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.0]])
+    )  # the z axis
     assert np.isclose(d[0], math.sqrt(5.0))
     assert np.allclose(gradient[0], np.array([1.0, 2.0, 0.0]) / math.sqrt(5.0), atol=1e-6)
 
@@ -80,8 +93,8 @@ def test_transform_to_start_and_end_are_inverse_at_the_sweep_end():
     rng = np.random.default_rng(3)
     theta = np.array([0.01, 0.05, -0.02, 0.1, 0.0, -0.5])
     points = np.concatenate([rng.normal(0, 10, (100, 3)), np.full((100, 1), 4.09999)], axis=1).astype(np.float32)
-    start = transform_to_start(points, theta)           # s = 0.9999: essentially the end
-    end = transform_to_end(start.copy(), np.zeros(6))   # zero motion: unchanged
+    start = transform_to_start(points, theta)  # s = 0.9999: essentially the end
+    end = transform_to_end(start.copy(), np.zeros(6))  # zero motion: unchanged
     assert np.allclose(end[:, :3], start[:, :3]) and (end[:, 3] == 4).all()
     back = transform_to_end(points, theta)
     assert np.allclose(back[:, :3], points[:, :3], atol=2e-3)  # start then end at s ~ 1 is the identity
@@ -99,11 +112,13 @@ def test_accumulate_composes_poses():
         step[:3, 3] = theta[3:]
         world = world @ np.linalg.inv(step)
     from lego_loam_py.core.frames import pose6_to_matrix
+
     assert np.allclose(pose6_to_matrix(total), world, atol=1e-9)
     assert np.allclose(sweep_rotation(*sweep_angles(sweep_rotation(0.1, -0.7, 0.3))), sweep_rotation(0.1, -0.7, 0.3))
 
 
 # ------------------------------------------------------------------------------------------ registration
+
 
 def moved_by_model(points: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """Camera-axes points (intensity ring + 0.1 s) as a sensor moving by θ over the sweep measures them:
@@ -132,8 +147,8 @@ def test_known_transform_is_recovered_with_full_gauss_newton_steps():
     odometry.set_last(features.less_sharp, features.less_flat)
     stats = odometry.register(moved_by_model(features.sharp, theta), moved_by_model(features.flat, theta))
     estimate = odometry.transform_cur
-    assert np.abs(estimate[3:] - theta[3:]).max() < 0.01                 # < 1 cm
-    assert np.degrees(np.abs(estimate[:3] - theta[:3])).max() < 0.05     # < 0.05 deg
+    assert np.abs(estimate[3:] - theta[3:]).max() < 0.01  # < 1 cm
+    assert np.degrees(np.abs(estimate[:3] - theta[:3])).max() < 0.05  # < 0.05 deg
     assert stats.corner_correspondences > 50 and stats.surf_correspondences > 20
 
 
@@ -186,8 +201,11 @@ def test_resampled_sweep_pair_registers_closely_original_model():
     weights cannot reject every edge seen in one sweep only."""
     theta = np.array([0.0, math.radians(2.0), 0.0, 0.03, 0.0, -0.4])
     scene = room_world(seed=3)
-    params = PARAMS.replace(feature_association__step_scale=1.0, feature_association__relative_time_source='point_time',
-                            feature_association__odometry_model='original')
+    params = PARAMS.replace(
+        feature_association__step_scale=1.0,
+        feature_association__relative_time_source='point_time',
+        feature_association__odometry_model='original',
+    )
     ip, fa = ImageProjection(params), FeatureAssociation(params)
     for k, th in enumerate((np.zeros(6), theta)):
         r = ip.process(prepare_input(sweep(scene, np.eye(4), th), params))
@@ -225,8 +243,11 @@ def test_sweep_start_model_with_full_steps_is_stable_where_the_original_model_os
         pose = pose @ motion_pose(theta, 1.0)
     errors = {}
     for model in ('original', 'sweep_start'):
-        params = PARAMS.replace(feature_association__step_scale=1.0, feature_association__odometry_model=model,
-                                feature_association__relative_time_source='point_time')
+        params = PARAMS.replace(
+            feature_association__step_scale=1.0,
+            feature_association__odometry_model=model,
+            feature_association__relative_time_source='point_time',
+        )
         ip, fa = ImageProjection(params), FeatureAssociation(params)
         per_scan = []
         for k, points in enumerate(sweeps):
@@ -253,14 +274,14 @@ def test_constant_velocity_sequence_converges_with_the_original_step():
         estimates.append(fa.odometry.transform_cur.copy())
         pose = pose @ step
     errors = np.abs(np.array(estimates[1:]) - theta)
-    assert errors[-1, 5] < 0.02 and math.degrees(errors[-1, 1]) < 0.3   # settled near the motion
+    assert errors[-1, 5] < 0.02 and math.degrees(errors[-1, 1]) < 0.3  # settled near the motion
     assert errors[-1, 5] < errors[0, 5]
 
 
 def test_deskewing_with_the_true_motion_removes_the_distortion():
     """Points of a sweep taken while moving, mapped to the sweep start with the true motion, land where a
     sensor standing still at the start sees them."""
-    theta = np.array([0.0, math.radians(6.0), 0.0, 0.0, 0.0, -1.0])   # fast: 60 deg/s, 10 m/s
+    theta = np.array([0.0, math.radians(6.0), 0.0, 0.0, 0.0, -1.0])  # fast: 60 deg/s, 10 m/s
     scene = room_world(seed=5)
     moving = sweep(scene, np.eye(4), theta)
     s = (moving['time'] / 0.1).astype(np.float32)
@@ -268,13 +289,14 @@ def test_deskewing_with_the_true_motion_removes_the_distortion():
     points = np.concatenate([cam, (moving['ring'] + 0.1 * s)[:, None]], axis=1).astype(np.float32)
     deskewed = transform_to_start(points, theta)
     import open3d as o3d
+
     world = camera_pose_to_lidar(np.eye(4))
     lidar = np.stack([deskewed[:, 2], deskewed[:, 0], deskewed[:, 1]], axis=1) @ world[:3, :3].T
     distance = scene.compute_distance(o3d.core.Tensor(lidar.astype(np.float32))).numpy()
     raw = np.stack([moving['x'], moving['y'], moving['z']], axis=1).astype(np.float32)
     raw_distance = scene.compute_distance(o3d.core.Tensor(raw)).numpy()
-    assert np.percentile(distance, 95) < 0.005            # on the surfaces, to ray-cast precision
-    assert np.percentile(raw_distance, 95) > 0.05         # the raw sweep is visibly distorted
+    assert np.percentile(distance, 95) < 0.005  # on the surfaces, to ray-cast precision
+    assert np.percentile(raw_distance, 95) > 0.05  # the raw sweep is visibly distorted
 
 
 def test_relative_time_sources():
@@ -309,7 +331,7 @@ def test_corridor_does_not_blow_up():
         result = fa.process(ScanInput.from_segmentation(k * 100_000_000, r))
         pose = pose @ motion_pose(theta, 1.0) if k else pose
         assert np.isfinite(result.transform_sum).all() and np.abs(result.transform_sum).max() < 10
-        assert np.abs(result.transform_sum[3:5]).max() < 0.05   # nothing sideways or vertical
+        assert np.abs(result.transform_sum[3:5]).max() < 0.05  # nothing sideways or vertical
 
 
 def corridor_features(params=PARAMS):
@@ -331,9 +353,9 @@ def test_wall_points_are_the_flattest_non_ground_points_left():
     features, info, points = corridor_features()
     fa = PARAMS.feature_association
     index = features.wall_index
-    ground = info.segmented_cloud_ground_flag[:len(points)].astype(bool)
-    curvature = smoothness(info.segmented_cloud_range[:len(points)], fa.smoothness_half_window)
-    assert len(index) > 100                                   # walls and ceiling all around
+    ground = info.segmented_cloud_ground_flag[: len(points)].astype(bool)
+    curvature = smoothness(info.segmented_cloud_range[: len(points)], fa.smoothness_half_window)
+    assert len(index) > 100  # walls and ceiling all around
     assert not ground[index].any() and (curvature[index] < fa.surf_threshold).all()
     assert not set(index) & set(features.less_sharp_index) and not set(index) & set(features.flat_index)
     assert len(index) <= fa.wall_feature_num * fa.sections_total * PARAMS.sensor.n_scan
@@ -364,7 +386,7 @@ def test_walls_and_ceiling_hold_the_plane_stage_where_the_floor_is_hardly_seen()
     with_walls, stats = results[True]
     assert stats.surf_walls and stats.surf_iterations > 0
     assert 0 < stats.surf_condition < PARAMS.feature_association.degeneracy_threshold and stats.surf_degenerate
-    assert np.degrees(np.abs(with_walls[[0, 2]])).max() < 0.2     # pitch and roll: < 0.2 deg left of 1.1
+    assert np.degrees(np.abs(with_walls[[0, 2]])).max() < 0.2  # pitch and roll: < 0.2 deg left of 1.1
 
 
 def test_degenerate_directions_are_frozen():
@@ -372,14 +394,14 @@ def test_degenerate_directions_are_frozen():
     threshold are detected and the steps are projected off them, however the residuals pull."""
     rng = np.random.default_rng(0)
     a = rng.normal(size=(200, 3))
-    a[:, 2] *= 1e-3                      # the third parameter is (almost) unobservable
+    a[:, 2] *= 1e-3  # the third parameter is (almost) unobservable
     b = rng.normal(size=200)
-    weak = np.linalg.eigh(a.T @ a)[1][:, 0]   # about the third axis
+    weak = np.linalg.eigh(a.T @ a)[1][:, 0]  # about the third axis
     assert abs(weak[2]) > 0.99
     stage = DegeneracyProjection(3)
     x = stage.step(a, b, True, 10.0)
     assert stage.degenerate and abs(x @ weak) < 1e-9 and np.abs(x).max() > 1e-3
-    x = stage.step(a, b + 5.0 * a[:, 2] * 1e3, False, 10.0)   # later iterations keep the projection
+    x = stage.step(a, b + 5.0 * a[:, 2] * 1e3, False, 10.0)  # later iterations keep the projection
     assert abs(x @ weak) < 1e-9
     well_posed = DegeneracyProjection(3)
     well_posed.step(rng.normal(size=(200, 3)), b, True, 10.0)
@@ -388,16 +410,18 @@ def test_degenerate_directions_are_frozen():
 
 def test_the_odometry_model_is_chosen_once_from_the_parameters():
     """``feature_association.odometry_model`` names the class; featureAssociation builds it once."""
-    assert type(make_laser_odometry(PARAMS.replace(feature_association__odometry_model='original'))) is \
-        OriginalOdometry
-    assert type(make_laser_odometry(PARAMS.replace(feature_association__odometry_model='sweep_start'))) is \
-        SweepStartOdometry
+    assert type(make_laser_odometry(PARAMS.replace(feature_association__odometry_model='original'))) is OriginalOdometry
+    assert (
+        type(make_laser_odometry(PARAMS.replace(feature_association__odometry_model='sweep_start')))
+        is SweepStartOdometry
+    )
     fa = FeatureAssociation(PARAMS.replace(feature_association__odometry_model='original'))
     assert type(fa.odometry) is OriginalOdometry and fa._process == fa._process_original
 
 
 def test_single_plane_does_not_blow_up():
     from tests.support.scenes import floor_ranges, scene_points
+
     params = PARAMS
     ip, fa = ImageProjection(params), FeatureAssociation(params)
     for k in range(3):
@@ -409,20 +433,21 @@ def test_single_plane_does_not_blow_up():
 
 # --------------------------------------------------------------------------------------- features
 
+
 def test_smoothness_by_hand():
     r = np.full(20, 10.0, dtype=np.float32)
     r[10] = 9.0
     c = smoothness(r)
-    assert c[10] == pytest.approx(100.0)          # (10 * 10 - 10 * 9)^2
+    assert c[10] == pytest.approx(100.0)  # (10 * 10 - 10 * 9)^2
     assert c[9] == pytest.approx(1.0) and c[4] == 0 and c[15] == 0
     assert (c[:5] == 0).all() and (c[-5:] == 0).all()
 
 
 def test_occlusion_marks_the_far_side():
-    r = np.array([10.0] * 10 + [5.0] * 10, dtype=np.float32)   # a step from far to near at index 10
+    r = np.array([10.0] * 10 + [5.0] * 10, dtype=np.float32)  # a step from far to near at index 10
     picked = occluded_mask(r, np.arange(20), PARAMS)
     assert picked[4:10].all() and not picked[10:].any()
-    picked = occluded_mask(r, np.arange(20) * 20, PARAMS)       # columns far apart: not an occlusion
+    picked = occluded_mask(r, np.arange(20) * 20, PARAMS)  # columns far apart: not an occlusion
     assert not picked.any()
 
 
@@ -448,8 +473,10 @@ def test_feature_counts_stay_within_the_originals_bounds(shared_data):
 
 # ------------------------------------------------------------------------------------------- IMU buffer
 
+
 def imu_level(stamp, yaw=0.0, gravity=9.81):
     from scipy.spatial.transform import Rotation
+
     return stamp, Rotation.from_euler('z', yaw).as_quat(), (0.0, 0.0, 0.0), (0.0, 0.0, gravity)
 
 
@@ -457,12 +484,12 @@ def test_imu_buffer_rejects_bad_samples_and_keeps_its_state():
     buffer = ImuBuffer(capacity=5)
     assert buffer.add(*imu_level(1.0)) is None
     assert 'out of order' in buffer.add(*imu_level(0.9))
-    assert 'out of order' in buffer.add(*imu_level(1.0))            # duplicate
+    assert 'out of order' in buffer.add(*imu_level(1.0))  # duplicate
     assert 'zero-norm' in buffer.add(1.1, (0, 0, 0, 0), (0, 0, 0), (0, 0, 9.81))
     assert 'non-finite' in buffer.add(1.1, (0, 0, 0, 1), (np.nan, 0, 0), (0, 0, 9.81))
     for k in range(10):
         assert buffer.add(*imu_level(1.01 + 0.01 * k)) is None
-    assert len(buffer) == 5                                           # bounded
+    assert len(buffer) == 5  # bounded
     state = buffer.interpolate([1.08])
     assert np.allclose(state.velocity, 0, atol=1e-9) and np.allclose(state.shift, 0, atol=1e-9)
 
@@ -488,13 +515,14 @@ def test_imu_yaw_interpolates_across_pi():
 
 # ------------------------------------------------------------------------------------- synchroniser
 
+
 def test_stamp_synchronizer_matches_and_bounds():
     sync = StampSynchronizer(['a', 'b', 'c'], tolerance_ns=10)
     assert sync.add('a', 100, 1) is None and sync.add('b', 105, 2) is None
     assert sync.add('c', 95, 3) == {'a': 1, 'b': 2, 'c': 3}
     assert sync.add('a', 200, 4) is None and sync.add('a', 300, 5) is None
     assert sync.add('b', 300, 6) is None and sync.add('c', 300, 7) == {'a': 5, 'b': 6, 'c': 7}
-    assert sync.dropped == 1                    # the lone 'a' at 200 lost its partners
+    assert sync.dropped == 1  # the lone 'a' at 200 lost its partners
     for k in range(100):
         sync.add('a', 1000 + 100 * k, k)
     assert len(sync._pending) <= sync.keep
@@ -520,6 +548,7 @@ def test_a_stray_scan_at_the_tolerance_never_takes_the_parts_of_the_next():
 
 # ------------------------------------------------------------------------------- parity with the original
 
+
 @pytest.mark.parametrize('name', GOLDEN)
 def test_features_and_odometry_equal_the_cpp_original(shared_data, name):
     """With the original's relative-time rule, every feature cloud, 'last' cloud and odometry pose equals what
@@ -532,13 +561,20 @@ def test_features_and_odometry_equal_the_cpp_original(shared_data, name):
         r = ip.process(ProjectionInput(xyz=inp[:, :3].copy(), ring=inp[:, 4].astype(np.int64)))
         result = fa.process(ScanInput.from_segmentation(int(g['stamps'][k]), r, point_time=False))
         f = result.features
-        for topic, ours, tolerance in [('sharp', f.sharp, 1e-6), ('less_sharp', f.less_sharp, 1e-6),
-                                       ('flat', f.flat, 1e-6), ('less_flat', f.less_flat, 1e-5)]:
+        for topic, ours, tolerance in [
+            ('sharp', f.sharp, 1e-6),
+            ('less_sharp', f.less_sharp, 1e-6),
+            ('flat', f.flat, 1e-6),
+            ('less_flat', f.less_flat, 1e-5),
+        ]:
             theirs = g[f's{k}_laser_cloud_{topic}']
             assert ours.shape == theirs.shape, (k, topic)
             assert np.abs(ours - theirs).max(initial=0) < tolerance, (k, topic)
-        for topic, ours in [('laser_cloud_corner_last', result.corner_last), ('laser_cloud_surf_last', result.surf_last),
-                            ('outlier_cloud_last', result.outlier_last)]:
+        for topic, ours in [
+            ('laser_cloud_corner_last', result.corner_last),
+            ('laser_cloud_surf_last', result.surf_last),
+            ('outlier_cloud_last', result.outlier_last),
+        ]:
             assert (ours is not None) == bool(g[f'published_{topic}'][k]), (k, topic)
             if ours is not None:
                 assert np.abs(ours - g[f's{k}_{topic}']).max(initial=0) < 1e-5, (k, topic)
@@ -548,7 +584,7 @@ def test_features_and_odometry_equal_the_cpp_original(shared_data, name):
     assert len(poses) == len(theirs)
     if poses:
         poses = np.array(poses)
-        assert np.abs(poses[:, :3] - theirs[:, :3]).max() < 1e-5            # metres
+        assert np.abs(poses[:, :3] - theirs[:, :3]).max() < 1e-5  # metres
         assert np.abs(np.abs(poses[:, 3:]) - np.abs(theirs[:, 3:])).max() < 1e-6
 
 
@@ -566,4 +602,3 @@ def test_static_recording_yields_near_zero_motion(shared_data):
         drift[name] = (np.linalg.norm(result.transform_sum[3:]), math.degrees(abs(result.transform_sum[1])))
     assert drift['original'][0] == pytest.approx(0.0999, abs=0.005)
     assert drift['azimuth'][0] < 0.2 and drift['azimuth'][1] < 5.0
-

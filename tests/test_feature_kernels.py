@@ -1,17 +1,29 @@
-"""featureAssociation's C kernels (native/feature_kernels.c): by hand, and against the NumPy/Python code they replace."""
+"""featureAssociation's C kernels (native/feature_kernels.c): by hand, and against the NumPy/Python code they
+replace."""
+
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from lego_loam_py.core import features
-from lego_loam_py.core.features import greedy_selection
+from lego_loam_py.core.odometry import features
+from lego_loam_py.core.odometry.features import greedy_selection
 
 
 def _select(native, edges, edge_bounds, edge_slices, flats, flat_bounds, flat_slices, taken, regions, *limits):
     taken = bytearray(taken)
-    out = greedy_selection(np.array(edges), np.array(edge_bounds), [np.array(a) for a in edge_slices],
-                           np.array(flats), np.array(flat_bounds), [np.array(a) for a in flat_slices], taken,
-                           regions, *limits, native=native)
+    out = greedy_selection(
+        np.array(edges),
+        np.array(edge_bounds),
+        [np.array(a) for a in edge_slices],
+        np.array(flats),
+        np.array(flat_bounds),
+        [np.array(a) for a in flat_slices],
+        taken,
+        regions,
+        *limits,
+        native=native,
+    )
     return [a.tolist() for a in out], bytes(taken)
 
 
@@ -25,8 +37,9 @@ def test_picks_suppress_their_neighbours_by_hand(native):
     edges, flats = [5, 6, 2, 8], [3, 0, 9]
     edge_slices = ([k - 1 for k in edges], [k + 2 for k in edges])
     flat_slices = ([max(k - 1, 0) for k in flats], [min(k + 2, 10) for k in flats])
-    (sharp, less_sharp, flat, region), taken = _select(native, edges, [0, 4], edge_slices, flats, [0, 3],
-                                                        flat_slices, bytes(10), 1, 1, 2, 1)
+    (sharp, less_sharp, flat, region), taken = _select(
+        native, edges, [0, 4], edge_slices, flats, [0, 3], flat_slices, bytes(10), 1, 1, 2, 1
+    )
     assert sharp == [5] and less_sharp == [5, 2] and region == [0, 0] and flat == [0]
     assert taken == bytes([0, 1, 1, 1, 1, 1, 1, 0, 0, 0])
 
@@ -35,7 +48,7 @@ def test_picks_suppress_their_neighbours_by_hand(native):
 @settings(max_examples=200, deadline=None)
 @given(st.data())
 def test_native_selection_equals_the_python_loop(data):
-    rng = np.random.default_rng(data.draw(st.integers(0, 2 ** 32 - 1)))
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
     n = int(rng.integers(1, 200))
     regions = int(rng.integers(0, 8))
     limits = (int(rng.integers(0, 4)), int(rng.integers(0, 10)), int(rng.integers(1, 6)))
@@ -43,7 +56,7 @@ def test_native_selection_equals_the_python_loop(data):
 
     def candidates():
         counts = rng.integers(0, 12, regions)
-        index = rng.integers(-1, n, int(counts.sum()))       # -1: the phantom entry, read as point n - 1
+        index = rng.integers(-1, n, int(counts.sum()))  # -1: the phantom entry, read as point n - 1
         start = np.clip(np.where(index < 0, index + n, index) - rng.integers(0, 6, len(index)), 0, n)
         stop = np.clip(np.where(index < 0, index + n, index) + rng.integers(1, 6, len(index)), 0, n)
         return index, np.concatenate(([0], np.cumsum(counts))), (start, np.maximum(stop, start))
@@ -70,8 +83,9 @@ def _cloud(rng, n, nan=False):
 @settings(max_examples=200, deadline=None)
 @given(st.data())
 def test_native_window_search_equals_numpy(data):
-    from lego_loam_py.core.correspondences import LastCloud, _nearest_in_segments
-    rng = np.random.default_rng(data.draw(st.integers(0, 2 ** 32 - 1)))
+    from lego_loam_py.core.odometry.correspondences import LastCloud, _nearest_in_segments
+
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
     last = LastCloud(_cloud(rng, int(rng.integers(1, 60))), 16)
     queries = _cloud(rng, int(rng.integers(0, 12)), nan=True)[:, :3]
     lengths = rng.integers(0, 6, (len(queries), 4))
@@ -84,14 +98,16 @@ def test_native_window_search_equals_numpy(data):
 
 
 def test_the_window_search_keeps_the_first_tie_forward_and_the_last_backward():
-    from lego_loam_py.core.correspondences import LastCloud, _nearest_in_segments
+    from lego_loam_py.core.odometry.correspondences import LastCloud, _nearest_in_segments
+
     # Points 0 and 2 are 1 m from the query, point 1 is 2 m: a backward segment (kind 0) over [0, 1, 2] keeps 2,
     # a forward one (kind 2) keeps 0; a segment whose nearest point is beyond the limit keeps none.
     points = np.array([[1, 0, 0, 0], [2, 0, 0, 0], [-1, 0, 0, 0]], np.float32)
     last = LastCloud(points, 16)
     query = np.zeros((1, 3), np.float32)
     for native in (True, False):
-        index, best = _nearest_in_segments(query, last, np.array([0, 1, 2, 0, 1, 2, 1]), np.array([[3, 0, 3, 1]]),
-                                           1.5, native=native)
+        index, best = _nearest_in_segments(
+            query, last, np.array([0, 1, 2, 0, 1, 2, 1]), np.array([[3, 0, 3, 1]]), 1.5, native=native
+        )
         assert index.tolist() == [[2, -1, 0, -1]]
         assert best.tolist() == [[1.0, np.inf, 1.0, np.inf]]

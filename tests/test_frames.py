@@ -1,4 +1,5 @@
 """Frames and angles: axis swaps, the LOAM Euler convention, quaternions, poses, the static transforms."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -24,7 +25,7 @@ def tf_get_rpy(q):
 
 
 def test_axis_swap_by_hand():
-    lidar = np.array([[1.0, 2.0, 3.0]])          # x fwd, y left, z up
+    lidar = np.array([[1.0, 2.0, 3.0]])  # x fwd, y left, z up
     camera = F.lidar_to_camera(lidar)
     assert camera.tolist() == [[2.0, 3.0, 1.0]]  # x_c = y_l (left), y_c = z_l (up), z_c = x_l (forward)
     assert F.camera_to_lidar(camera).tolist() == lidar.tolist()
@@ -94,6 +95,7 @@ def test_pose_composition_order():
 def test_static_transforms_match_the_launch_file():
     """run.launch: map->camera_init 0 0 0 1.570795 0 1.570795; camera->base_link 0 0 0 -1.570795 -1.570795 0
     (static_transform_publisher args x y z yaw pitch roll)."""
+
     def launch(yaw, pitch, roll):
         return Rotation.from_euler('ZYX', [yaw, pitch, roll]).as_matrix()
 
@@ -143,5 +145,6 @@ def test_rotate_by_euler_is_the_matrix_product_for_every_point():
     expected = np.array([left @ euler_to_matrix(rx[k], ry[k], rz[k]) @ xyz[k].astype(np.float64) for k in range(n)])
     assert got.shape == (n, 3) and got.dtype == np.float64
     assert np.abs(got - expected).max() <= 1e-12 * np.abs(xyz).max()
-    assert np.array_equal(rotate_by_euler(np.eye(3), np.zeros(2), np.zeros(2), np.zeros(2), xyz[:2]),
-                          xyz[:2].astype(np.float64))
+    assert np.array_equal(
+        rotate_by_euler(np.eye(3), np.zeros(2), np.zeros(2), np.zeros(2), xyz[:2]), xyz[:2].astype(np.float64)
+    )

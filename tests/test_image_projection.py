@@ -1,4 +1,5 @@
 """imageProjection core: hand-built scenes, BFS equivalence, golden parity with the C++ original, bad input."""
+
 from __future__ import annotations
 
 import math
@@ -6,16 +7,22 @@ import math
 import numpy as np
 import pytest
 
-from lego_loam_py.core.image_projection import (NO_LABEL, OUTLIER_LABEL, ImageProjection, InputError,
-                                                ProjectionInput, prepare_input)
 from lego_loam_py.core.params import Params, default_params_file, load_params
 from lego_loam_py.core.pointcloud import VELODYNE_POINT_DTYPE, CloudLayoutError, velodyne_points
-from lego_loam_py.core.segmentation import Segmentation
+from lego_loam_py.core.projection.image_projection import (
+    NO_LABEL,
+    OUTLIER_LABEL,
+    ImageProjection,
+    InputError,
+    ProjectionInput,
+    prepare_input,
+)
+from lego_loam_py.core.projection.segmentation import Segmentation
 from tests.support.reference_bfs import reference_labels
 from tests.support.scenes import floor_ranges, pixel_points, scene_points, wall_ranges
 
 PARAMS = Params()
-ORIGINAL = load_params(default_params_file().parent / 'original.yaml')   # the C++ behaviour, bit for bit
+ORIGINAL = load_params(default_params_file().parent / 'original.yaml')  # the C++ behaviour, bit for bit
 IP = ImageProjection(ORIGINAL)
 GOLDEN = ['vlp16_single_rotation', 'vlp16_static_indoor_20hz', 'vlp16_dual_return_4scans']
 
@@ -30,11 +37,12 @@ def pixels_of(result, label=None):
 
 # ------------------------------------------------------------------------------------------ hand-built scenes
 
+
 def test_flat_floor_is_all_ground():
     floor = floor_ranges(height=1.5)
     result = run(scene_points(floor))
     filled = result.range_image < 1e30
-    assert filled[:8].all() and not filled[8:].any()   # beams below horizontal hit the floor, up to 86 m
+    assert filled[:8].all() and not filled[8:].any()  # beams below horizontal hit the floor, up to 86 m
     assert np.array_equal(result.ground_mask, filled)  # every return of the floor is ground
     assert (result.label_image == NO_LABEL).all() and len(result.segmented_cloud_pure) == 0
     assert len(result.outlier_cloud) == 0
@@ -62,10 +70,11 @@ def test_oblique_wall_parts_split_into_columns_as_in_the_original():
     original's criterion cuts such parts into one-column clusters (outliers unless tall enough)."""
     result = run(scene_points(wall_ranges(x=6.0, half_width=4.0)))
     labels = result.label_image
-    assert len({int(v) for v in labels[:, 900]}) <= 2        # the facing part: one segment (+ empty rows)
+    assert len({int(v) for v in labels[:, 900]}) <= 2  # the facing part: one segment (+ empty rows)
     edge_columns = [c for c in range(1800) if (labels[:, c] > 0).any() and abs(c - 900) > 160]
-    assert edge_columns and all(len(set(labels[:, c][labels[:, c] > 0]) & set(labels[:, 900])) == 0
-                                for c in edge_columns)
+    assert edge_columns and all(
+        len(set(labels[:, c][labels[:, c] > 0]) & set(labels[:, 900])) == 0 for c in edge_columns
+    )
 
 
 def test_wall_on_floor_gives_ground_and_one_segment():
@@ -92,14 +101,17 @@ def test_four_isolated_points_are_outliers():
     assert np.allclose(np.floor(result.outlier_cloud[:, 3]), [9, 10, 14])
 
 
-@pytest.mark.parametrize('rows,cols,kept', [
-    ([8, 8, 9, 9, 10, 10], [300, 301, 300, 301, 300, 301], True),    # 6 points over 3 rows
-    ([8, 8, 8, 9, 9, 9], [300, 301, 302, 300, 301, 302], False),     # 6 points over 2 rows
-    ([8, 9, 9, 10, 10], [300, 300, 301, 300, 301], False),            # 5 points over 3 rows, but the seed is
-                                                                      # alone in its row (quirk 8.13): 2 rows count
-    ([8, 8, 9, 10, 10], [300, 301, 300, 300, 301], True),             # 5 points, seed row shared: 3 rows
-    ([8, 9, 10, 11], [300, 300, 300, 300], False),                    # 4 points over 4 rows: too few
-])
+@pytest.mark.parametrize(
+    'rows,cols,kept',
+    [
+        ([8, 8, 9, 9, 10, 10], [300, 301, 300, 301, 300, 301], True),  # 6 points over 3 rows
+        ([8, 8, 8, 9, 9, 9], [300, 301, 302, 300, 301, 302], False),  # 6 points over 2 rows
+        ([8, 9, 9, 10, 10], [300, 300, 301, 300, 301], False),  # 5 points over 3 rows, but the seed is
+        # alone in its row (quirk 8.13): 2 rows count
+        ([8, 8, 9, 10, 10], [300, 301, 300, 300, 301], True),  # 5 points, seed row shared: 3 rows
+        ([8, 9, 10, 11], [300, 300, 300, 300], False),  # 4 points over 4 rows: too few
+    ],
+)
 def test_small_cluster_rules(rows, cols, kept):
     result = run(pixel_points(rows, cols, np.full(len(rows), 8.0)))
     labels = {int(result.label_image[r, c]) for r, c in zip(rows, cols)}
@@ -122,8 +134,9 @@ def test_wrap_around_joins_one_object():
     assert {int(result.label_image[r, c]) for r, c in zip(rr.ravel(), cc.ravel())} == {1}
     assert result.stats['segments'] == 1
     # The same object cut at a column away from the seam is two segments.
-    shifted = run(pixel_points(rr.ravel(), (cc.ravel() + 3) % 1800 + np.where(cc.ravel() >= 1797, 10, 0),
-                               np.full(rr.size, 10.0)))
+    shifted = run(
+        pixel_points(rr.ravel(), (cc.ravel() + 3) % 1800 + np.where(cc.ravel() >= 1797, 10, 0), np.full(rr.size, 10.0))
+    )
     assert shifted.stats['segments'] == 2
 
 
@@ -147,13 +160,14 @@ def test_cloud_info_indices_and_ring_margins():
     assert np.array_equal(info.end_ring_index, before[1:] - 1 - 5)
     assert len(info.segmented_cloud_range) == len(result.segmented_cloud) == len(info.segmented_cloud_col_ind)
     assert np.allclose(info.segmented_cloud_range, np.linalg.norm(result.segmented_cloud[:, :3], axis=1), rtol=1e-6)
-    assert np.array_equal(info.segmented_cloud_col_ind,
-                          np.round((result.segmented_cloud[:, 3] % 1) * 10000).astype(np.uint32))
+    assert np.array_equal(
+        info.segmented_cloud_col_ind, np.round((result.segmented_cloud[:, 3] % 1) * 10000).astype(np.uint32)
+    )
 
 
 def test_orientation_of_a_full_clockwise_sweep():
     """A sweep from straight ahead clockwise back to ahead: start 0, end about 2 pi, diff about 2 pi."""
-    cols = (900 - np.arange(1800)) % 1800       # col 900 = ahead, 450 = right: clockwise = decreasing col
+    cols = (900 - np.arange(1800)) % 1800  # col 900 = ahead, 450 = right: clockwise = decreasing col
     points = pixel_points(np.full(1800, 10), cols, np.full(1800, 10.0))
     info = run(points).cloud_info
     assert info.start_orientation == pytest.approx(0.0, abs=1e-6)
@@ -162,6 +176,7 @@ def test_orientation_of_a_full_clockwise_sweep():
 
 
 # ---------------------------------------------------------------------- segmentation equals the plain BFS
+
 
 def random_range_image(rng: np.random.Generator, n: int, h: int):
     """Blocky surfaces at random depths, smooth slopes, noise and holes: many components of all sizes."""
@@ -184,12 +199,18 @@ def test_segmentation_equals_plain_bfs_on_random_images(seed):
     ranges = np.where(empty, np.finfo(np.float32).max, image).reshape(-1)
     ours = Segmentation(params).labels(ranges, ~empty.reshape(-1), ground.reshape(-1)).reshape(16, h)
     s = params.sensor
-    reference = reference_labels(image.astype(np.float64), empty | ground, math.radians(s.ang_res_x),
-                                 math.radians(s.ang_res_y), params.image_projection.segment_theta)
+    reference = reference_labels(
+        image.astype(np.float64),
+        empty | ground,
+        math.radians(s.ang_res_x),
+        math.radians(s.ang_res_y),
+        params.image_projection.segment_theta,
+    )
     assert np.array_equal(ours, reference)
 
 
 # ------------------------------------------------------------------------------ parity with the original
+
 
 def golden_scans(shared_data, name):
     data = np.load(shared_data / 'golden' / f'{name}.npz')
@@ -204,10 +225,13 @@ def test_equals_the_cpp_original_point_for_point(shared_data, name):
     for k, g in golden_scans(shared_data, name):
         inp = g[f's{k}_input']
         result = IP.process(ProjectionInput(xyz=inp[:, :3].copy(), ring=inp[:, 4].astype(np.int64)))
-        for topic, ours in [('segmented_cloud', result.segmented_cloud), ('outlier_cloud', result.outlier_cloud),
-                            ('ground_cloud', result.ground_cloud),
-                            ('segmented_cloud_pure', result.segmented_cloud_pure),
-                            ('full_cloud_projected', result.full_cloud)]:
+        for topic, ours in [
+            ('segmented_cloud', result.segmented_cloud),
+            ('outlier_cloud', result.outlier_cloud),
+            ('ground_cloud', result.ground_cloud),
+            ('segmented_cloud_pure', result.segmented_cloud_pure),
+            ('full_cloud_projected', result.full_cloud),
+        ]:
             theirs = g[f's{k}_{topic}']
             assert ours.shape == theirs.shape, (k, topic)
             assert np.array_equal(ours, theirs, equal_nan=True), (k, topic)
@@ -228,6 +252,7 @@ def test_refined_ground_rule_drops_wall_bases_and_raised_surfaces():
     floor = floor_ranges(1.5)
     wall = wall_ranges(x=12.0, half_width=3.0, z_min=-1.5, z_max=3.0)
     from tests.support.scenes import rays
+
     d = rays()
     # A 'car roof': a horizontal slab 1 m above the floor, 4-6 m to the left.
     with np.errstate(divide='ignore', invalid='ignore'):
@@ -251,6 +276,7 @@ def test_refined_ground_rule_keeps_the_ground_of_uneven_forest_terrain():
     odometry without IMU lost its way. The refined rule must keep most of it in every scan."""
     from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
     from lego_loam_py.sim.simulator import cached_scenario
+
     bag = cached_scenario('forest', duration=42.0)
     kept = []
     with BagReader(bag) as reader:
@@ -268,9 +294,12 @@ def test_ground_rules_on_the_simulated_campus():
     """Ground precision and recall against the simulator's labels (curbs, 15 cm strips on the road side,
     count as ground as in SemanticKITTI's ground classes) on 100 scans of the campus scenario."""
     import sys
+
     from lego_loam_py.sim.simulator import cached_scenario
+
     sys.path.insert(0, str(default_params_file().parents[1] / 'benchmarks'))
     from segmentation_quality import evaluate_bag
+
     bag = cached_scenario('campus', duration=12.0)
     refined = evaluate_bag(bag, PARAMS, max_scans=100)
     original = evaluate_bag(bag, ORIGINAL, max_scans=100)
@@ -305,6 +334,7 @@ def test_real_scans_have_plausible_counts(shared_data, name):
 
 # ----------------------------------------------------------------------------------------------- bad input
 
+
 def base_scan() -> np.ndarray:
     return scene_points(np.fmin(floor_ranges(1.5), wall_ranges(6.0, half_width=2.5, z_min=-1.5)))
 
@@ -323,9 +353,14 @@ def test_nan_and_inf_points_are_dropped_and_do_not_change_the_result():
 def test_zero_range_and_close_points_are_dropped():
     """Points at the origin (no return) never enter the image nor the sweep's orientation; close ones are dropped."""
     scan = base_scan()
-    points = np.concatenate([velodyne_points(np.zeros((50, 3)), ring=np.arange(50) % 16), scan,
-                             velodyne_points(np.full((20, 3), 0.3), ring=np.full(20, 9)),
-                             velodyne_points(np.zeros((5, 3)), ring=np.arange(5))])
+    points = np.concatenate(
+        [
+            velodyne_points(np.zeros((50, 3)), ring=np.arange(50) % 16),
+            scan,
+            velodyne_points(np.full((20, 3), 0.3), ring=np.full(20, 9)),
+            velodyne_points(np.zeros((5, 3)), ring=np.arange(5)),
+        ]
+    )
     result, reference = run(points), run(scan)
     assert np.array_equal(result.segmented_cloud, reference.segmented_cloud)
     assert result.cloud_info.start_orientation == reference.cloud_info.start_orientation
@@ -341,15 +376,16 @@ def test_organised_cloud():
 
 
 def test_cloud_without_ring_takes_its_rows_from_the_laser_order_or_the_elevation_angle():
-    scan = base_scan()   # (stored ring by ring, the upper rings only arcs across the wall)
+    scan = base_scan()  # (stored ring by ring, the upper rings only arcs across the wall)
     no_ring = np.zeros(len(scan), dtype=[('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', '<f4')])
     for name in ('x', 'y', 'z', 'intensity'):
         no_ring[name] = scan[name]
     with_ring = run(scan)
-    assert np.array_equal(with_ring.segmented_cloud, run(no_ring).segmented_cloud)   # from the laser order
+    assert np.array_equal(with_ring.segmented_cloud, run(no_ring).segmented_cloud)  # from the laser order
     # Column by column, as a driver fires: the order says nothing of the lasers, the elevation angle does.
     firing = no_ring[np.argsort(np.arctan2(no_ring['y'], no_ring['x']), kind='stable')]
-    from lego_loam_py.core.laser_order import rows_from_laser_order
+    from lego_loam_py.core.projection.laser_order import rows_from_laser_order
+
     assert rows_from_laser_order(firing['x'], firing['y'], firing['z'], 16) is None
     assert np.array_equal(with_ring.label_image, run(firing).label_image)
     assert np.array_equal(run(scan, PARAMS.replace(sensor__use_cloud_ring=False)).label_image, with_ring.label_image)

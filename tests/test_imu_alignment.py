@@ -1,5 +1,6 @@
 """The IMU against the lidar (issue 17): the hand-eye estimator (core.imu_alignment) and the online check that
 stops using a misaligned IMU (core.imu_monitor), on synthetic motion whose answer is known."""
+
 from __future__ import annotations
 
 import math
@@ -10,49 +11,70 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from lego_loam_py.core.frames import ImuMounting, rpy_to_matrix
-from lego_loam_py.core.imu import ImuBuffer
-from lego_loam_py.core.imu_alignment import (GyroTrack, best_rotation, fit_alignment, nearest_right_angle_rotation,
-                                            shifted_increments)
-from lego_loam_py.core.imu_monitor import (MAPPING_PROBATION_MAX, MIN_EXPLAINED_DEG, PROBATION_SWEEPS,
-                                           PROBATION_TURN_DEG, SIGNIFICANCE, ImuAlignmentMonitor, MappingImuCheck,
-                                           SweepImuCheck)
+from lego_loam_py.core.imu.alignment import (
+    GyroTrack,
+    best_rotation,
+    fit_alignment,
+    nearest_right_angle_rotation,
+    shifted_increments,
+)
+from lego_loam_py.core.imu.buffer import ImuBuffer
+from lego_loam_py.core.imu.monitor import (
+    MAPPING_PROBATION_MAX,
+    MIN_EXPLAINED_DEG,
+    PROBATION_SWEEPS,
+    PROBATION_TURN_DEG,
+    SIGNIFICANCE,
+    ImuAlignmentMonitor,
+    MappingImuCheck,
+    SweepImuCheck,
+)
 from lego_loam_py.core.params import Params
 
-RATE = 200.0   # IMU samples per second
+RATE = 200.0  # IMU samples per second
 
 
 def wobbly_rates(t: np.ndarray, tilt: float = 1.0) -> np.ndarray:
     """(n, 3) body rates [rad/s] of a sensor that turns left and right (up to 60 deg/s about z, the rate changing
     every couple of seconds) and rocks about x and y (``tilt`` scales that)."""
-    return np.column_stack([tilt * 0.15 * np.sin(2.1 * t), tilt * 0.12 * np.cos(1.3 * t + 0.4),
-                            1.0 * np.sin(0.7 * t) * np.cos(0.23 * t)])
+    return np.column_stack(
+        [tilt * 0.15 * np.sin(2.1 * t), tilt * 0.12 * np.cos(1.3 * t + 0.4), 1.0 * np.sin(0.7 * t) * np.cos(0.23 * t)]
+    )
 
 
-def imu_and_lidar(duration: float, mount_rpy=(0.0, 0.0, 0.0), offset: float = 0.0, tilt: float = 1.0,
-                  lidar_noise_deg: float = 0.0, seed: int = 0):
+def imu_and_lidar(
+    duration: float,
+    mount_rpy=(0.0, 0.0, 0.0),
+    offset: float = 0.0,
+    tilt: float = 1.0,
+    lidar_noise_deg: float = 0.0,
+    seed: int = 0,
+):
     """A synthetic recording: IMU samples (gyro in its own axes, stamped ``offset`` s late, an orientation of its
     own frame) and the lidar's attitude at 10 Hz sweep starts (with white noise of ``lidar_noise_deg`` per axis)."""
     times = np.arange(0.0, duration + 1e-9, 1.0 / RATE)
-    lidar_track = GyroTrack(times, wobbly_rates(times, tilt))   # the lidar's own attitude, integrated finely
+    lidar_track = GyroTrack(times, wobbly_rates(times, tilt))  # the lidar's own attitude, integrated finely
     mount = rpy_to_matrix(mount_rpy)
-    gyro = wobbly_rates(times, tilt) @ mount            # R^T omega for each row
+    gyro = wobbly_rates(times, tilt) @ mount  # R^T omega for each row
     attitude = lidar_track._slerp(times) * Rotation.from_matrix(mount)
     imu = dict(stamps=times + offset, rates=gyro, orientations=attitude.as_quat())
     stamps = np.arange(0.3, duration - 0.3, 0.1)
     rng = np.random.default_rng(seed)
-    lidar = lidar_track._slerp(stamps) * Rotation.from_rotvec(np.radians(lidar_noise_deg) *
-                                                             rng.standard_normal((len(stamps), 3)))
+    lidar = lidar_track._slerp(stamps) * Rotation.from_rotvec(
+        np.radians(lidar_noise_deg) * rng.standard_normal((len(stamps), 3))
+    )
     return stamps, lidar.as_matrix(), imu
 
 
 # ------------------------------------------------------------------------------------------- the estimator
+
 
 def test_best_rotation_recovers_a_rotation_and_never_reflects():
     rng = np.random.default_rng(1)
     vectors = rng.standard_normal((20, 3))
     rotation = Rotation.from_euler('xyz', [30, -50, 120], degrees=True).as_matrix()
     assert best_rotation(vectors @ rotation.T, vectors) == pytest.approx(rotation, abs=1e-12)
-    mirrored = vectors * [1.0, 1.0, -1.0]   # the best orthogonal map is a reflection: a rotation comes back
+    mirrored = vectors * [1.0, 1.0, -1.0]  # the best orthogonal map is a reflection: a rotation comes back
     assert np.linalg.det(best_rotation(mirrored, vectors)) == pytest.approx(1.0, abs=1e-12)
 
 
@@ -68,8 +90,9 @@ def test_first_order_shift_matches_the_exact_one_for_small_offsets():
     track = GyroTrack(times, wobbly_rates(times))
     start, end = np.arange(1.0, 8.0, 0.1), np.arange(1.1, 8.1, 0.1)
     exact = track.increments(start, end, [0.02])[0]
-    first_order = shifted_increments(Rotation.from_rotvec(track.increments(start, end, [0.0])[0]),
-                                     wobbly_rates(start), wobbly_rates(end), [0.02])[0]
+    first_order = shifted_increments(
+        Rotation.from_rotvec(track.increments(start, end, [0.0])[0]), wobbly_rates(start), wobbly_rates(end), [0.02]
+    )[0]
     # The neglected term is the angular acceleration times offset^2 / 2: below 1e-4 rad here.
     unshifted = track.increments(start, end, [0.0])[0]
     assert np.abs(first_order - exact).max() < 1e-4 and np.abs(exact - unshifted).max() > 5e-4
@@ -93,16 +116,25 @@ def test_the_rotation_about_an_axis_the_sensor_never_turns_about_stays_unknown()
     stamps, lidar, imu = imu_and_lidar(30.0, tilt=0.0, lidar_noise_deg=0.05)
     track = GyroTrack(imu['stamps'], imu['rates'])
     poses = Rotation.from_matrix(lidar)
-    fit = fit_alignment((poses[:-1].inv() * poses[1:]).as_rotvec(),
-                        lambda offsets: track.increments(stamps[:-1], stamps[1:], offsets))
-    assert abs(fit.rotation_axes[-1][2]) > 0.99                       # the weakest axis is z
+    fit = fit_alignment(
+        (poses[:-1].inv() * poses[1:]).as_rotvec(), lambda offsets: track.increments(stamps[:-1], stamps[1:], offsets)
+    )
+    assert abs(fit.rotation_axes[-1][2]) > 0.99  # the weakest axis is z
     assert fit.rotation_sigma_deg[-1] > 20 * fit.rotation_sigma_deg[0]
 
 
 # ------------------------------------------------------------------------------------------- the online check
 
-def feed(monitor: ImuAlignmentMonitor, duration: float, mount_rpy=(0.0, 0.0, 0.0), offset: float = 0.0,
-         start: float = 0.0, tilt: float = 1.0, interval: float = 0.4):
+
+def feed(
+    monitor: ImuAlignmentMonitor,
+    duration: float,
+    mount_rpy=(0.0, 0.0, 0.0),
+    offset: float = 0.0,
+    start: float = 0.0,
+    tilt: float = 1.0,
+    interval: float = 0.4,
+):
     """Intervals of a mapOptimization-like cadence to ``monitor``; returns the events."""
     times = np.arange(start, start + duration + 1.0, 1.0 / RATE)
     lidar_track = GyroTrack(times, wobbly_rates(times, tilt))
@@ -123,8 +155,9 @@ def feed(monitor: ImuAlignmentMonitor, duration: float, mount_rpy=(0.0, 0.0, 0.0
 def monitor(**overrides) -> ImuAlignmentMonitor:
     params = Params().replace(**overrides)
     imu = params.imu
-    return ImuAlignmentMonitor(params, ImuMounting.from_rpy(imu.rotation_rpy, imu.translation, imu.orientation_rpy,
-                                                            imu.time_offset), 'test')
+    return ImuAlignmentMonitor(
+        params, ImuMounting.from_rpy(imu.rotation_rpy, imu.translation, imu.orientation_rpy, imu.time_offset), 'test'
+    )
 
 
 def test_an_aligned_imu_is_never_doubted():
@@ -210,14 +243,14 @@ def test_only_fast_turning_sweeps_are_held_without_the_imu_on_probation():
     first PROBATION_SWEEPS such sweeps, and not once the probation has passed."""
     last = SimpleNamespace(t_start=0.0, r_start=np.eye(3))
 
-    def turned(deg: float) -> SimpleNamespace:   # (the IMU over a sweep, as featureAssociation has it)
+    def turned(deg: float) -> SimpleNamespace:  # (the IMU over a sweep, as featureAssociation has it)
         return SimpleNamespace(t_start=0.1, r_start=Rotation.from_rotvec([0.0, math.radians(deg), 0.0]).as_matrix())
 
-    check = SweepImuCheck(Params(), ImuBuffer)           # (an empty buffer: the first sweep's turn is not known)
+    check = SweepImuCheck(Params(), ImuBuffer)  # (an empty buffer: the first sweep's turn is not known)
     assert check.on_probation(turned(0.0), None)
     assert not check.on_probation(turned(0.9 * PROBATION_TURN_DEG), last)
     assert all(check.on_probation(turned(2 * PROBATION_TURN_DEG), last) for _ in range(PROBATION_SWEEPS - 1))
-    assert not check.on_probation(turned(2 * PROBATION_TURN_DEG), last)      # the probation is over
+    assert not check.on_probation(turned(2 * PROBATION_TURN_DEG), last)  # the probation is over
     check = SweepImuCheck(Params(), ImuBuffer)
     check.monitor.probation_passed = True
     assert not check.on_probation(turned(2 * PROBATION_TURN_DEG), last)
@@ -233,24 +266,25 @@ def test_the_mapping_blends_the_imu_only_once_a_window_check_passed_it():
     assert check.blending(100.0 + MAPPING_PROBATION_MAX)
     check = MappingImuCheck(Params(), lambda: None)
     assert not check.blending(0.0)
-    feed(check.monitor, 10.0)          # an aligned IMU: a full window (from 0.5 s to 5.5 s) and three evaluations
+    feed(check.monitor, 10.0)  # an aligned IMU: a full window (from 0.5 s to 5.5 s) and three evaluations
     assert check.monitor.vetted and check.blending(6.8)
     check = MappingImuCheck(Params(), lambda: None)
     feed(check.monitor, 30.0, mount_rpy=(0.0, 0.0, 90.0))
     assert not check.monitor.vetted and not check.blending(30.0 + MAPPING_PROBATION_MAX)
     check = MappingImuCheck(Params().replace(imu__alignment_check=False), lambda: None)
-    assert check.blending(0.0)   # the check off: blended from the start, as the original does
+    assert check.blending(0.0)  # the check off: blended from the start, as the original does
 
 
 def test_an_upside_down_imu_is_caught_by_gravity_before_any_motion():
     check = monitor()
     up = np.array([0.0, 0.0, 1.0])
-    assert check.check_gravity(0.0, up, rpy_to_matrix((5.0, -8.0, 0.0)) @ up) is None   # a slope
+    assert check.check_gravity(0.0, up, rpy_to_matrix((5.0, -8.0, 0.0)) @ up) is None  # a slope
     event = check.check_gravity(0.0, up, rpy_to_matrix((180.0, 0.0, 0.0)) @ up)
     assert event is not None and not check.trusted and '180 deg from the ground' in event.message
 
 
 def test_nearest_right_angle_rotation():
     assert nearest_right_angle_rotation(rpy_to_matrix((3.0, -2.0, 88.0))) == pytest.approx(
-        rpy_to_matrix((0.0, 0.0, 90.0)), abs=1e-12)
+        rpy_to_matrix((0.0, 0.0, 90.0)), abs=1e-12
+    )
     assert nearest_right_angle_rotation(rpy_to_matrix((10.0, -20.0, 130.0))) is None

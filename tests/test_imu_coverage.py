@@ -2,6 +2,7 @@
 up to MAX_REACH; beyond that, and for a gap, samples that begin after the sweep, or none at all, the scan goes without
 the IMU, counted by reason, with a throttled warning that names the cause and the parameter to change. The same
 offline (core.pipeline) and over DDS (the featureAssociation node)."""
+
 from __future__ import annotations
 
 import math
@@ -10,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lego_loam_py.core.imu import MAX_GAP, MAX_REACH, ImuBuffer, uncovered_counter, warn_uncovered
+from lego_loam_py.core.imu.buffer import MAX_GAP, MAX_REACH, ImuBuffer, uncovered_counter, warn_uncovered
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.pipeline import Pipeline
 from lego_loam_py.inputs import ImuSample, Scan, open_source
@@ -33,7 +34,7 @@ def test_the_coverage_of_a_sweep_says_why_it_fails():
     imu = _yawing_buffer(np.arange(0.0, 1.0, 0.005))
     assert imu.coverage(0.2, 0.3) is None
     assert imu.coverage(-0.1, 0.0) == 'starts_after_sweep'
-    assert imu.coverage(0.9, 1.0) is None                          # ends 5 ms early: within reach
+    assert imu.coverage(0.9, 1.0) is None  # ends 5 ms early: within reach
     assert imu.coverage(0.9 + MAX_REACH, 1.0 + MAX_REACH) == 'ends_before_sweep'
     gappy = _yawing_buffer(np.concatenate([np.arange(0.0, 0.5, 0.005), np.arange(0.5 + MAX_GAP + 0.01, 1.0, 0.005)]))
     assert gappy.coverage(0.45, 0.55) == 'gap'
@@ -45,7 +46,7 @@ def test_the_attitude_beyond_the_newest_sample_goes_on_at_its_last_rate():
     newest = 0.995
     roll, pitch, yaw = imu.attitude(np.array([newest, newest + 0.02, newest + 10.0]))
     np.testing.assert_allclose(yaw[:2], [0.5 * newest, 0.5 * (newest + 0.02)], atol=1e-9)
-    assert yaw[2] == pytest.approx(0.5 * (newest + MAX_REACH))      # carried on for MAX_REACH at most
+    assert yaw[2] == pytest.approx(0.5 * (newest + MAX_REACH))  # carried on for MAX_REACH at most
     np.testing.assert_allclose(np.r_[roll, pitch], 0.0, atol=1e-12)
 
 
@@ -104,8 +105,9 @@ def test_a_gap_in_the_imu_and_an_imu_that_starts_late_are_counted_and_warned_abo
     # scans go without the IMU, and the third is warned about, naming the parameter.
     counts, warnings = _run(Params().replace(imu__time_offset=-0.15, imu__alignment_check=False))
     assert counts[uncovered_counter('starts_after_sweep')] == 3
-    assert any('begin after the sweep began' in w and 'imu.time_offset (now -0.15 s) may be too small' in w
-               for w in warnings)
+    assert any(
+        'begin after the sweep began' in w and 'imu.time_offset (now -0.15 s) may be too small' in w for w in warnings
+    )
 
 
 def test_a_lidar_without_imu_is_not_warned_about_but_an_imu_that_stops_is():
@@ -124,8 +126,7 @@ def test_the_node_counts_and_warns_the_same(context):
     from tests.support.inprocess import campus_messages, make_node
 
     ip, ip_rec = make_node(context, ImageProjectionNode)
-    fa, fa_rec = make_node(context, FeatureAssociationNode, **{'imu.time_offset': 0.08,
-                                                               'imu.alignment_check': False})
+    fa, fa_rec = make_node(context, FeatureAssociationNode, **{'imu.time_offset': 0.08, 'imu.alignment_check': False})
     for topic, msg in campus_messages(2.0):
         if topic == '/imu/data':
             fa.on_imu(msg)
@@ -133,14 +134,19 @@ def test_the_node_counts_and_warns_the_same(context):
         before = len(ip_rec.out('/segmented_cloud'))
         ip.on_cloud(msg)
         if len(ip_rec.out('/segmented_cloud')) > before:
-            for part, out in (('cloud', '/segmented_cloud'), ('info', '/segmented_cloud_info'),
-                              ('outlier', '/outlier_cloud')):
+            for part, out in (
+                ('cloud', '/segmented_cloud'),
+                ('info', '/segmented_cloud_info'),
+                ('outlier', '/outlier_cloud'),
+            ):
                 fa.on_part(part, ip_rec.out(out)[-1])
     scans = len(ip_rec.out('/segmented_cloud'))
     assert scans >= 15 and fa.counters.get('scans_with_imu', 0) == 0
     assert fa.counters[uncovered_counter('ends_before_sweep')] == scans
-    assert any(key == uncovered_counter('ends_before_sweep') and 'imu.time_offset (now 0.08 s)' in text
-               for key, text in fa_rec.warnings)
+    assert any(
+        key == uncovered_counter('ends_before_sweep') and 'imu.time_offset (now 0.08 s)' in text
+        for key, text in fa_rec.warnings
+    )
     assert not fa_rec.errors
     ip.destroy_node()
     fa.destroy_node()

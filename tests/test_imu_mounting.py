@@ -1,5 +1,6 @@
 """The IMU mounted any way (issue 17): its conventions (core.frames.ImuMounting), and the IMU buffer applying
 rotation, orientation frame, lever arm and time offset as samples enter it (core.imu.ImuBuffer)."""
+
 from __future__ import annotations
 
 import functools
@@ -13,16 +14,17 @@ from scipy.spatial.transform import Rotation
 
 from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
 from lego_loam_py.core.frames import ImuMounting, matrix_to_rpy, rpy_to_matrix
-from lego_loam_py.core.imu import ImuBuffer, imu_mounting, imu_sample
+from lego_loam_py.core.imu.buffer import ImuBuffer, imu_mounting, imu_sample
 from lego_loam_py.core.params import ParameterError, Params
 from lego_loam_py.core.pipeline import Pipeline, RunResult
 from lego_loam_py.evaluation import evaluate
-from lego_loam_py.sim.output import load_ground_truth
+from lego_loam_py.inputs.sidecars import load_ground_truth
 
 G = 9.81
 
 
 # ------------------------------------------------------------------------------------------- conventions
+
 
 def test_rpy_is_rz_ry_rx_about_fixed_axes():
     # Yaw 90 deg to the left: the IMU's x axis lies along the lidar's y axis, its y along the lidar's -x.
@@ -33,19 +35,27 @@ def test_rpy_is_rz_ry_rx_about_fixed_axes():
     assert rpy_to_matrix((180.0, 0.0, 0.0)) == pytest.approx(np.diag([1.0, -1.0, -1.0]), abs=1e-15)
     # The composition order: roll about x first, then pitch about y, then yaw about z (all fixed axes).
     rpy = (10.0, -20.0, 30.0)
-    expected = (Rotation.from_euler('z', 30, degrees=True) * Rotation.from_euler('y', -20, degrees=True)
-                * Rotation.from_euler('x', 10, degrees=True)).as_matrix()
+    expected = (
+        Rotation.from_euler('z', 30, degrees=True)
+        * Rotation.from_euler('y', -20, degrees=True)
+        * Rotation.from_euler('x', 10, degrees=True)
+    ).as_matrix()
     assert rpy_to_matrix(rpy) == pytest.approx(expected, abs=1e-15)
     assert matrix_to_rpy(rpy_to_matrix(rpy)) == pytest.approx(rpy, abs=1e-12)
 
 
 def test_mounting_from_parameters():
-    params = Params().replace(imu__rotation_rpy=[0, 0, 90], imu__translation=[0.2, 0.1, -0.2],
-                              imu__orientation_rpy=[180, 0, 0], imu__time_offset=0.02)
+    params = Params().replace(
+        imu__rotation_rpy=[0, 0, 90],
+        imu__translation=[0.2, 0.1, -0.2],
+        imu__orientation_rpy=[180, 0, 0],
+        imu__time_offset=0.02,
+    )
     mounting = imu_mounting(params)
     assert mounting.rotation == pytest.approx(rpy_to_matrix((0, 0, 90)), abs=1e-15)
     assert mounting.rotation_lidar_orientation == pytest.approx(
-        rpy_to_matrix((0, 0, 90)) @ rpy_to_matrix((180, 0, 0)), abs=1e-15)
+        rpy_to_matrix((0, 0, 90)) @ rpy_to_matrix((180, 0, 0)), abs=1e-15
+    )
     assert list(mounting.lever_arm) == [0.2, 0.1, -0.2] and mounting.time_offset == 0.02
     assert not mounting.is_identity and imu_mounting(Params()).is_identity
     assert 'rotation_rpy [0, 0, 90] deg' in mounting.describe()
@@ -54,12 +64,15 @@ def test_mounting_from_parameters():
     assert ImuBuffer(mounting=imu_mounting(Params())).mounting is None
 
 
-@pytest.mark.parametrize('key, value, fragment', [
-    ('imu.rotation_rpy', [0, 90], 'must have 3 values'),
-    ('imu.translation', [0, 0, 20], 'within 10 m'),
-    ('imu.time_offset', 2.0, 'within 1 s'),
-    ('imu.orientation_rpy', 'up', 'list of numbers'),
-])
+@pytest.mark.parametrize(
+    'key, value, fragment',
+    [
+        ('imu.rotation_rpy', [0, 90], 'must have 3 values'),
+        ('imu.translation', [0, 0, 20], 'within 10 m'),
+        ('imu.time_offset', 2.0, 'within 1 s'),
+        ('imu.orientation_rpy', 'up', 'list of numbers'),
+    ],
+)
 def test_bad_mounting_parameters_name_the_key(key, value, fragment):
     with pytest.raises(ParameterError, match=fragment) as error:
         Params().replace(**{key.replace('.', '__'): value})
@@ -67,6 +80,7 @@ def test_bad_mounting_parameters_name_the_key(key, value, fragment):
 
 
 # ------------------------------------------------------------------------------------------- the buffer
+
 
 def lidar_attitude(buffer: ImuBuffer, t: float) -> np.ndarray:
     """The buffer's attitude of the lidar at ``t`` as a REP-103 rotation (roll, pitch, yaw about x, y, z)."""
@@ -93,9 +107,9 @@ def test_a_rotated_imu_reads_as_an_aligned_one(rpy):
     for t in (0.0, 0.0525, 0.1):
         assert lidar_attitude(mounted, t) == pytest.approx(lidar_attitude(aligned, t), abs=1e-12)
     a, b = aligned.interpolate([0.1]), mounted.interpolate([0.1])
-    assert b.angle == pytest.approx(a.angle, abs=1e-12)            # the gyro, integrated in lidar axes
+    assert b.angle == pytest.approx(a.angle, abs=1e-12)  # the gyro, integrated in lidar axes
     assert b.velocity == pytest.approx(a.velocity, abs=1e-12)
-    assert np.linalg.norm(a.velocity[0]) == pytest.approx(0.1, abs=1e-3)   # 1 m/s^2 forward for 0.1 s
+    assert np.linalg.norm(a.velocity[0]) == pytest.approx(0.1, abs=1e-3)  # 1 m/s^2 forward for 0.1 s
 
 
 def test_an_orientation_of_another_frame_is_turned_into_the_lidars():
@@ -116,7 +130,7 @@ def test_the_time_offset_moves_samples_to_the_lidars_clock():
     for k in range(5):
         buffer.add(10.02 + 0.005 * k, Rotation.from_euler('z', 0.1 * k).as_quat(), (0, 0, 0), (0, 0, G))
     assert buffer.times[0] == pytest.approx(10.0, abs=1e-12) and buffer.times[-1] == pytest.approx(10.02, abs=1e-12)
-    assert float(buffer.attitude([10.01])[2][0]) == pytest.approx(0.2, abs=1e-12)   # the yaw of the sample at 10.03
+    assert float(buffer.attitude([10.01])[2][0]) == pytest.approx(0.2, abs=1e-12)  # the yaw of the sample at 10.03
 
 
 @pytest.mark.parametrize('angular_acceleration', [0.0, 4.0])
@@ -139,12 +153,12 @@ def test_the_lever_arm_is_taken_off_the_accelerometer(angular_acceleration):
         compensated.add(*sample)
         uncompensated.add(*sample)
     assert np.abs(compensated.interpolate([0.1]).velocity).max() < 1e-9
-    assert np.abs(uncompensated.interpolate([0.1]).velocity).max() > 0.1   # 2 m/s^2 towards the axis
+    assert np.abs(uncompensated.interpolate([0.1]).velocity).max() > 0.1  # 2 m/s^2 towards the axis
 
 
 # ------------------------------------------------------------------------------ the pipeline on a real drive
 
-AGGRESSIVE = Path(__file__).resolve().parents[1] / 'bags' / 'aggressive_6s'   # 6 s, a 90 deg/s hairpin 2-4 s in
+AGGRESSIVE = Path(__file__).resolve().parents[1] / 'bags' / 'aggressive_6s'  # 6 s, a 90 deg/s hairpin 2-4 s in
 
 
 @functools.lru_cache(maxsize=1)
@@ -190,8 +204,8 @@ def ate(result: RunResult) -> float:
 def test_an_upside_down_imu_is_not_used_from_the_first_scan():
     result = run((180.0, 0.0, 0.0))
     node, event = result.imu_alignment[0]
-    assert node == "featureAssociation" and not event.trusted
-    assert event.stamp == pytest.approx(result.stamps[0] * 1e-9 - 0.1, abs=1e-3)   # the first scan, before any motion
+    assert node == 'featureAssociation' and not event.trusted
+    assert event.stamp == pytest.approx(result.stamps[0] * 1e-9 - 0.1, abs=1e-3)  # the first scan, before any motion
     assert re.search(r'its up direction is 1[78]\d deg from the ground', event.message)
     assert result.counts.get('scans_with_imu', 0) == 0
     # As good as without an IMU (the same scans, the same lidar-only odometry).
@@ -234,9 +248,12 @@ def test_the_check_on_mapped_poses_is_the_same_with_and_without_the_mapping_thre
     featureAssociation hears of them at a fixed lag, so the run does not depend on the mapping thread's pace."""
     threaded = run((0.0, 10.0, 90.0), mapping_thread=True, imu__alignment_window=3.0)
     sequential = run((0.0, 10.0, 90.0), mapping_thread=False, imu__alignment_window=3.0)
+
     def by_node(result: RunResult) -> dict:
-        return {node: [event.message for name, event in result.imu_alignment if name == node]
-                for node in ('featureAssociation', 'mapOptimization')}
+        return {
+            node: [event.message for name, event in result.imu_alignment if name == node]
+            for node in ('featureAssociation', 'mapOptimization')
+        }
 
     assert by_node(threaded) == by_node(sequential)
     assert ['over the last 3 s' in m for m in by_node(threaded)['featureAssociation']] == [False, True]
@@ -245,6 +262,7 @@ def test_the_check_on_mapped_poses_is_the_same_with_and_without_the_mapping_thre
 
 # ------------------------------------------------------------------------------------------------- the nodes
 
+
 def upside_down(msg):
     """A copy of an aligned IMU's sensor_msgs/Imu as the same IMU mounted upside down (roll 180 deg) reports it."""
     import copy
@@ -252,8 +270,9 @@ def upside_down(msg):
     out = copy.deepcopy(msg)
     o = msg.orientation
     out.orientation.x, out.orientation.y, out.orientation.z, out.orientation.w = (
-        Rotation.from_quat([o.x, o.y, o.z, o.w]) * Rotation.from_euler('x', 180, degrees=True)).as_quat()
-    for field in ('angular_velocity', 'linear_acceleration'):   # R^T v with R = Rx(180): y and z flip
+        Rotation.from_quat([o.x, o.y, o.z, o.w]) * Rotation.from_euler('x', 180, degrees=True)
+    ).as_quat()
+    for field in ('angular_velocity', 'linear_acceleration'):  # R^T v with R = Rx(180): y and z flip
         vector = getattr(out, field)
         vector.y, vector.z = -vector.y, -vector.z
     return out
@@ -268,7 +287,8 @@ def test_the_nodes_warn_about_an_upside_down_imu_and_report_it_on_diagnostics(co
     from lego_loam_py.ros.feature_association_node import FeatureAssociationNode
     from lego_loam_py.ros.image_projection_node import ImageProjectionNode
     from lego_loam_py.ros.map_optimization_node import MapOptimizationNode
-    from tests.support.inprocess import campus_messages, make_node, mapping_inputs, pipeline_outputs, stamp_of
+    from lego_loam_py.testing.messages import stamp_of
+    from tests.support.inprocess import campus_messages, make_node, mapping_inputs, pipeline_outputs
 
     ip, ip_rec = make_node(context, ImageProjectionNode)
     fa, fa_rec = make_node(context, FeatureAssociationNode)
@@ -279,21 +299,24 @@ def test_the_nodes_warn_about_an_upside_down_imu_and_report_it_on_diagnostics(co
         before = len(ip_rec.out('/segmented_cloud'))
         ip.on_cloud(msg)
         if len(ip_rec.out('/segmented_cloud')) > before:
-            for name, out in (('cloud', '/segmented_cloud'), ('info', '/segmented_cloud_info'),
-                              ('outlier', '/outlier_cloud')):
+            for name, out in (
+                ('cloud', '/segmented_cloud'),
+                ('info', '/segmented_cloud_info'),
+                ('outlier', '/outlier_cloud'),
+            ):
                 fa.on_part(name, ip_rec.out(out)[-1])
     warnings = [text for key, text in fa_rec.warnings if key == 'imu_alignment']
     assert len(warnings) == 1 and re.search(r'its up direction is 1[78]\d deg from the ground', warnings[0])
     assert fa.counters['imu_misaligned'] == 1 and 'scans_with_imu' not in fa.counters
-    assert len(fa_rec.out('/laser_odom_to_init')) == fa.counters['scans'] - 1 >= 25
+    assert len(fa_rec.out('/laser_odom_to_init')) == fa.counters['scans_processed'] - 1 >= 25
     status = fa.diagnostic_status()
     assert status.level == DiagnosticStatus.WARN and 'upside down' in status.message
 
-    outputs = pipeline_outputs(context, tmp_path)   # (an aligned IMU's run: the mapping inputs)
+    outputs = pipeline_outputs(context, tmp_path)  # (an aligned IMU's run: the mapping inputs)
     mo, mo_rec = make_node(context, MapOptimizationNode, tmp_path)
     imu = list(outputs['imu'])
     for corner, surf, outlier, odometry in mapping_inputs(outputs)[:6]:
-        while imu and stamp_of(imu[0]) <= stamp_of(odometry) + 100_000_000:   # the IMU as it came with the scans
+        while imu and stamp_of(imu[0]) <= stamp_of(odometry) + 100_000_000:  # the IMU as it came with the scans
             mo.on_imu(upside_down(imu.pop(0)))
         for name, msg in (('corner', corner), ('surf', surf), ('outlier', outlier)):
             mo.on_part(name, msg)

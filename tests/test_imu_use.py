@@ -1,6 +1,7 @@
 """A real IMU only helps: featureAssociation turns with the gyro (integrated from the orientation, its bias found from
 how well its turns agreed with the mapped poses), not with a 9-axis unit's noisy orientation field, and holds the
 gyro's rotation with the prior's full weight only while it agrees with the mapping."""
+
 from __future__ import annotations
 
 import math
@@ -11,9 +12,9 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from lego_loam_py.core.frames import CAMERA_TO_LIDAR
-from lego_loam_py.core.gyro_attitude import GyroAttitude, matrix_of_rpy, rpy_of
-from lego_loam_py.core.imu import ImuBuffer
-from lego_loam_py.core.imu_agreement import FULL_TRUST, MIN_SPAN, ImuAgreement
+from lego_loam_py.core.imu.agreement import FULL_TRUST, MIN_SPAN, ImuAgreement
+from lego_loam_py.core.imu.buffer import ImuBuffer
+from lego_loam_py.core.imu.gyro import GyroAttitude, matrix_of_rpy, rpy_of
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.pipeline import Pipeline
 from lego_loam_py.inputs import ImuSample, Scan, open_source
@@ -23,9 +24,9 @@ from lego_loam_py.sim.simulator import cached_scenario
 def test_the_gyro_attitude_integrates_the_rate_from_the_orientation_and_takes_its_bias_off():
     gyro = GyroAttitude()
     start = (0.02, -0.01, 0.3)
-    rate = np.array([0.1, 0.0, 0.5])   # [rad/s] body axes, constant
+    rate = np.array([0.1, 0.0, 0.5])  # [rad/s] body axes, constant
     assert gyro.update(None, tuple(rate), start) == pytest.approx(start)
-    for _ in range(100):                # 1 s at 100 Hz; the orientation field's values are ignored meanwhile
+    for _ in range(100):  # 1 s at 100 Hz; the orientation field's values are ignored meanwhile
         roll, pitch, yaw = gyro.update(0.01, tuple(rate), (9.0, 9.0, 9.0))
     expected = matrix_of_rpy(*start) @ Rotation.from_rotvec(rate).as_matrix()
     np.testing.assert_allclose(matrix_of_rpy(roll, pitch, yaw), expected, atol=1e-9)
@@ -52,7 +53,10 @@ def test_the_buffer_keeps_the_gyro_attitude_where_the_orientation_field_is_noisy
         for buffer in (orientation, gyro):
             assert buffer.add(t, tuple(noisy.as_quat()), (0.0, 0.0, 0.3), (0.0, 0.0, 9.81)) is None
     times = np.array([0.5, 0.6])
-    turn = lambda buffer: float(np.diff(buffer.attitude(times)[2])[0])
+
+    def turn(buffer):
+        return float(np.diff(buffer.attitude(times)[2])[0])
+
     assert turn(gyro) == pytest.approx(0.03, abs=1e-6)
     assert abs(turn(orientation) - 0.03) > 1e-5
 
@@ -66,11 +70,11 @@ def test_the_agreement_finds_the_bias_and_keeps_the_whole_prior_for_a_sound_gyro
     bias found so far, and a little noise: the bias comes back once MIN_SPAN s of intervals agree, and the prior keeps
     its weight."""
     rng = np.random.default_rng(5)
-    bias = np.array([0.0015, -0.002, 0.0025])   # [rad/s]
+    bias = np.array([0.0015, -0.002, 0.0025])  # [rad/s]
     agreement = ImuAgreement(0.1)
     lidar, imu = np.eye(3), np.eye(3)
     for k in range(100):
-        stamp, time = 10 ** 9 * (k + 1), 0.3 * (k + 1)
+        stamp, time = 10**9 * (k + 1), 0.3 * (k + 1)
         turn = _interval_rotation(rng.normal(0.0, 0.05, 3))
         lidar = lidar @ turn
         # (the gyro's attitude has the bias found so far taken off, as featureAssociation's buffer does)
@@ -90,7 +94,7 @@ def test_an_imu_that_disagrees_more_than_any_mapping_loses_its_prior():
     for k in range(100):
         turn = _interval_rotation(rng.normal(0.0, 0.05, 3))
         lidar = lidar @ turn
-        imu = imu @ turn @ _interval_rotation(rng.normal(0.0, math.radians(1.0), 3))   # ~1.7 deg a sweep
+        imu = imu @ turn @ _interval_rotation(rng.normal(0.0, math.radians(1.0), 3))  # ~1.7 deg a sweep
         agreement.keep(k, 0.3 * k, imu)
         agreement.mapped(k, lidar)
     assert agreement.sigma > 4 * FULL_TRUST
@@ -104,7 +108,7 @@ def test_a_consumer_modules_gyro_bias_is_found_on_a_drive():
     used on the scans past its probation. (What is left comes from the module's 1 % scale error on the drive's
     90 deg/s hairpins and its bias wander.)"""
     bag = cached_scenario('aggressive', duration=20.0, imu_profile='consumer')
-    drawn = yaml.safe_load((bag / 'scenario.yaml').read_text())['imu']['biases']['gyro']   # IMU = lidar axes here
+    drawn = yaml.safe_load((bag / 'scenario.yaml').read_text())['imu']['biases']['gyro']  # IMU = lidar axes here
     pipeline = Pipeline(Params(), mapping=True)
     with open_source(bag) as source:
         for item in source.items():

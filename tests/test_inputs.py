@@ -1,6 +1,7 @@
 """Recordings other than bags (lego_loam_py.inputs): the kind guessed from the path, KITTI sequences and scan
 folders exported by the simulator giving the bag's trajectory, point files, pcaps without a convert step, clear
 errors that name the file."""
+
 from __future__ import annotations
 
 import subprocess
@@ -12,9 +13,9 @@ import pytest
 from lego_loam_py.core.params import Params
 from lego_loam_py.inputs import ImuSample, Scan, SourceError, guess_kind, open_source
 from lego_loam_py.inputs.point_files import read_pcd_points, read_ply_points, read_points, write_pcd_points
+from lego_loam_py.inputs.sidecars import load_ground_truth
 from lego_loam_py.offline import run_bag, run_source
 from lego_loam_py.sim.export import export_recording
-from lego_loam_py.sim.output import load_ground_truth
 
 REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / 'bags' / 'campus_8s'
@@ -50,10 +51,10 @@ def test_a_kitti_sequence_holds_the_bags_scans_stamps_and_lidar_ground_truth(exp
         stamps, poses = kitti.ground_truth()
         # times.txt starts at 0; the differences are the bag's, to the nanosecond.
         assert np.array_equal(stamps - stamps[0], truth_stamps - truth_stamps[0])
-        assert np.allclose(poses, truth, atol=1e-8)   # Tr^-1 P Tr undoes the camera frame of poses.txt
+        assert np.allclose(poses, truth, atol=1e-8)  # Tr^-1 P Tr undoes the camera frame of poses.txt
         clouds = [item for item in bag.items() if isinstance(item, Scan)]
         for scan, cloud in zip(kitti.items(), clouds[:3]):
-            assert set(scan.points.dtype.names) == {'x', 'y', 'z', 'intensity'}   # no ring, no time
+            assert set(scan.points.dtype.names) == {'x', 'y', 'z', 'intensity'}  # no ring, no time
             for axis in 'xyz':
                 assert np.array_equal(scan.points[axis], cloud.points[axis])
 
@@ -72,8 +73,23 @@ def test_kitti_and_pcd_folders_give_the_trajectory_of_the_bag(exported):
 
 def test_run_on_a_kitti_folder_reports_the_accuracy_against_poses_txt_and_writes_kitti_poses(exported, tmp_path):
     out = tmp_path / 'out'
-    done = subprocess.run([str(CLI), 'run', str(exported / 'kitti'), '-o', str(out), '--no-progress',
-                           '--max-scans', '20', '--format', 'kitti'], capture_output=True, text=True, timeout=300)
+    done = subprocess.run(
+        [
+            str(CLI),
+            'run',
+            str(exported / 'kitti'),
+            '-o',
+            str(out),
+            '--no-progress',
+            '--max-scans',
+            '20',
+            '--format',
+            'kitti',
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 0, done.stderr
     assert 'reading KITTI sequence' in done.stderr and 'accuracy vs ground truth: ATE RMSE' in done.stdout
     tum = np.loadtxt(out / 'trajectory.tum')
@@ -84,7 +100,7 @@ def test_run_on_a_kitti_folder_reports_the_accuracy_against_poses_txt_and_writes
 def test_a_scan_folder_is_timed_by_its_rate_without_times_txt(tmp_path, exported):
     folder = tmp_path / 'scans'
     folder.mkdir()
-    for k in (1, 2, 10):   # name order counts numbers as numbers: 1, 2, 10
+    for k in (1, 2, 10):  # name order counts numbers as numbers: 1, 2, 10
         (folder / f'scan_{k}.pcd').write_bytes((exported / 'pcd' / f'{k:06d}.pcd').read_bytes())
     with open_source(folder, rate_hz=20) as source:
         scans = list(source.items())
@@ -125,21 +141,27 @@ def test_missing_or_inconsistent_files_are_named(exported, tmp_path):
 
 
 def test_point_files_keep_every_field(tmp_path):
-    points = np.zeros(5, dtype=[('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', '<f4'), ('ring', '<u2'),
-                                ('time', '<f4')])
+    points = np.zeros(
+        5, dtype=[('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', '<f4'), ('ring', '<u2'), ('time', '<f4')]
+    )
     points['x'], points['ring'], points['time'] = np.arange(5) + 0.5, [0, 3, 7, 15, 2], np.linspace(0, 0.1, 5)
     write_pcd_points(tmp_path / 'a.pcd', points)
     assert np.array_equal(read_pcd_points(tmp_path / 'a.pcd'), points)
-    ascii_pcd = ('VERSION .7\nFIELDS x y z ring\nSIZE 4 4 4 2\nTYPE F F F U\nCOUNT 1 1 1 1\nWIDTH 2\nHEIGHT 1\n'
-                 'POINTS 2\nDATA ascii\n1.5 2 3 4\n-1 0 0.25 9\n')
+    ascii_pcd = (
+        'VERSION .7\nFIELDS x y z ring\nSIZE 4 4 4 2\nTYPE F F F U\nCOUNT 1 1 1 1\nWIDTH 2\nHEIGHT 1\n'
+        'POINTS 2\nDATA ascii\n1.5 2 3 4\n-1 0 0.25 9\n'
+    )
     (tmp_path / 'b.pcd').write_text(ascii_pcd)
     cloud = read_pcd_points(tmp_path / 'b.pcd')
     assert cloud.dtype['ring'] == np.dtype('<u2') and cloud['ring'].tolist() == [4, 9] and cloud['x'][0] == 1.5
-    header = 'ply\nformat {}\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n' \
-             'property uchar intensity\nend_header\n'
+    header = (
+        'ply\nformat {}\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n'
+        'property uchar intensity\nend_header\n'
+    )
     (tmp_path / 'c.ply').write_text(header.format('ascii 1.0') + '1 2 3 200\n4 5 6 7\n')
-    body = np.array([(1, 2, 3, 200), (4, 5, 6, 7)], dtype=[('x', '>f4'), ('y', '>f4'), ('z', '>f4'),
-                                                            ('intensity', 'u1')])
+    body = np.array(
+        [(1, 2, 3, 200), (4, 5, 6, 7)], dtype=[('x', '>f4'), ('y', '>f4'), ('z', '>f4'), ('intensity', 'u1')]
+    )
     (tmp_path / 'd.ply').write_bytes(header.format('binary_big_endian 1.0').encode() + body.tobytes())
     for name in ('c.ply', 'd.ply'):
         cloud = read_ply_points(tmp_path / name)
@@ -164,8 +186,12 @@ def test_a_velodyne_pcap_runs_without_a_convert_step_and_decodes_as_convert_does
     assert len(ours) == len(theirs) == 50
     assert [s.stamp_ns for s in ours] == [s.stamp_ns for s in theirs]
     assert all(np.array_equal(a.points, b.points) for a, b in zip(ours, theirs))
-    done = subprocess.run([str(CLI), 'run', str(pcap), '--model', 'VLP-16', '-o', str(tmp_path / 'out'),
-                           '--no-progress'], capture_output=True, text=True, timeout=300)
+    done = subprocess.run(
+        [str(CLI), 'run', str(pcap), '--model', 'VLP-16', '-o', str(tmp_path / 'out'), '--no-progress'],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 0, done.stderr
     assert 'scans in 50, processed 50, dropped 0' in done.stdout
     assert len(np.loadtxt(tmp_path / 'out' / 'trajectory.tum')) == 49
@@ -174,7 +200,7 @@ def test_a_velodyne_pcap_runs_without_a_convert_step_and_decodes_as_convert_does
 def test_an_ouster_pcap_gives_scans_and_imu_samples_in_time_order(shared_data):
     pcap = shared_data / 'real' / 'ouster_os128_pcaps_with_imu' / 'OS-1-128_v2.3.0_1024x10_lb_n3.pcap'
     with open_source(pcap) as source:
-        assert source.metadata.name == 'OS-1-128_v2.3.0_1024x10.json'   # found beside the pcap
+        assert source.metadata.name == 'OS-1-128_v2.3.0_1024x10.json'  # found beside the pcap
         items = list(source.items())
     scans = [i for i in items if isinstance(i, Scan)]
     imu = [i for i in items if isinstance(i, ImuSample)]
@@ -200,5 +226,5 @@ def test_a_bag_whose_only_cloud_topic_is_not_the_default_is_read(tmp_path, capsy
         assert sum(isinstance(i, Scan) for i in source.items()) == 3
     from lego_loam_py.bag.io import BagError
 
-    with pytest.raises(BagError, match='no /velodyne_points topic'):   # (a topic asked for is never replaced)
+    with pytest.raises(BagError, match='no /velodyne_points topic'):  # (a topic asked for is never replaced)
         open_source(bag, cloud_topic='/velodyne_points')

@@ -5,6 +5,7 @@ to grandchildren, crash reporting, children dying with a killed supervisor. The 
 Ctrl-C and for a crashed node. launch/launch_ros are not installable here: the launch file is executed
 against stand-ins of their classes that accept only the real keyword arguments.
 """
+
 from __future__ import annotations
 
 import importlib.util
@@ -22,7 +23,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.support.ros import read_until, wait_for_line
+from lego_loam_py.testing.nodes import read_until, wait_for_line
 from tests.support.topics import ALL, GATED
 
 REPO = Path(__file__).resolve().parents[1]
@@ -31,7 +32,7 @@ NODES = ('imageProjection', 'featureAssociation', 'mapOptimization', 'transformF
 
 # A stand-in child: logs "<name> <monotonic>" when it gets SIGINT and exits 0; 'ignore' ignores SIGINT,
 # 'crash' exits 3 after a moment, 'grandchild' also starts a SIGINT-ignoring grandchild in its group.
-FAKE_CHILD = textwrap.dedent('''
+FAKE_CHILD = textwrap.dedent("""
     import os, signal, subprocess, sys, time
     name, mode, log = sys.argv[1], sys.argv[2], sys.argv[3]
     def on_sigint(*_):
@@ -49,11 +50,12 @@ FAKE_CHILD = textwrap.dedent('''
     print('up', os.getpid(), flush=True)
     while True:
         time.sleep(0.05)
-''')
+""")
 
 
 def fake(name: str, mode: str, log: Path, **kwargs):
     from lego_loam_py.supervisor import ProcessSpec
+
     return ProcessSpec(name, [sys.executable, '-S', '-c', FAKE_CHILD, name, mode, str(log)], **kwargs)
 
 
@@ -96,7 +98,7 @@ def test_children_stop_in_reverse_start_order_and_exit_cleanly(tmp_path):
     messages = []
     supervisor = Supervisor(output='log', log_dir=tmp_path / 'logs', announce=messages.append)
     children = [supervisor.start(fake(name, 'normal', log)) for name in ('first', 'second', 'third')]
-    for name in ('first', 'second', 'third'):   # each child is up (its SIGINT handler installed)
+    for name in ('first', 'second', 'third'):  # each child is up (its SIGINT handler installed)
         deadline = time.monotonic() + 10
         while 'up' not in (tmp_path / 'logs' / f'{name}.log').read_text() and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -106,8 +108,9 @@ def test_children_stop_in_reverse_start_order_and_exit_cleanly(tmp_path):
     order = [line.split()[0] for line in log.read_text().splitlines()]
     assert order == ['third', 'second', 'first']
     results = supervisor.results()
-    assert [(r.name, r.how, r.returncode, r.failure) for r in results] == \
-        [(n, 'stopped', 0, None) for n in ('first', 'second', 'third')]
+    assert [(r.name, r.how, r.returncode, r.failure) for r in results] == [
+        (n, 'stopped', 0, None) for n in ('first', 'second', 'third')
+    ]
     assert not wait_gone([c.pid for c in children], 1.0)
     assert any('started first (pid' in m for m in messages)
 
@@ -144,19 +147,19 @@ def test_a_child_that_exits_on_its_own_is_reported_once_as_a_failure(tmp_path):
         exited += supervisor.poll()
         time.sleep(0.05)
     assert sorted(c.spec.name for c in exited) == ['crasher', 'player', 'viewer']
-    assert supervisor.poll() == []   # reported once
+    assert supervisor.poll() == []  # reported once
     supervisor.stop_all()
     results = {r.name: r for r in supervisor.results()}
     assert results['crasher'].how == 'exited' and results['crasher'].failure == 'exited on its own with code 3'
-    assert results['player'].how == 'exited' and results['player'].failure is None   # a bag that ended
-    assert results['viewer'].how == 'exited' and results['viewer'].failure is None   # rviz2 closed
+    assert results['player'].how == 'exited' and results['player'].failure is None  # a bag that ended
+    assert results['viewer'].how == 'exited' and results['viewer'].failure is None  # rviz2 closed
     assert results['steady'].how == 'stopped' and results['steady'].failure is None
     assert crasher.popen.returncode == 3 and player.popen.returncode == 0
 
 
 def test_children_die_with_a_killed_supervisor(tmp_path, processes):
     """kill -9 of the supervisor: the kernel sends SIGTERM to its children (PR_SET_PDEATHSIG): no orphans."""
-    driver = textwrap.dedent(f'''
+    driver = textwrap.dedent(f"""
         import sys, time
         sys.path.insert(0, {str(REPO)!r})
         from lego_loam_py.supervisor import ProcessSpec, Supervisor
@@ -166,22 +169,32 @@ def test_children_die_with_a_killed_supervisor(tmp_path, processes):
                 for n in ('a', 'b')]
         print('pids', *pids, flush=True)
         time.sleep(600)
-    ''')
+    """)
     proc = processes.python('-c', driver)
     line = wait_for_line(proc, 'pids', timeout=30)
     pids = [int(p) for p in line.split()[1:]]
     assert len(pids) == 2 and all(alive(p) for p in pids)
     processes.stop(proc, signal.SIGKILL)
     survivors = wait_gone(pids, 10.0)
-    for pid in survivors:   # do not leave them behind when the test fails
+    for pid in survivors:  # do not leave them behind when the test fails
         os.kill(pid, signal.SIGKILL)
     assert not survivors, 'children of a killed supervisor must not survive it'
 
 
 # ------------------------------------------------------------------------------------ the real nodes
 def _start_launch(processes, tmp_path, *extra):
-    args = [BIN / 'lego_loam_py', 'launch', '--stats-dir', tmp_path / 'stats', '--log-dir', tmp_path / 'logs',
-            '--quiet-nodes', '-p', f'map_optimization.file_directory:={tmp_path / "maps"}', *extra]
+    args = [
+        BIN / 'lego_loam_py',
+        'launch',
+        '--stats-dir',
+        tmp_path / 'stats',
+        '--log-dir',
+        tmp_path / 'logs',
+        '--quiet-nodes',
+        '-p',
+        f'map_optimization.file_directory:={tmp_path / "maps"}',
+        *extra,
+    ]
     return processes.start(args, stderr=subprocess.STDOUT)
 
 
@@ -193,7 +206,7 @@ def test_ctrl_c_stops_every_node_cleanly(tmp_path, ros_domain, processes):
     launcher = _start_launch(processes, tmp_path)
     head = read_until(launcher, 'ready after', timeout=90)
     assert 'ready after' in head and 'imageProjection, featureAssociation, mapOptimization, transformFusion' in head
-    os.kill(launcher.pid, signal.SIGINT)   # what Ctrl-C in a terminal does: only the supervisor gets it
+    os.kill(launcher.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: only the supervisor gets it
     out, _ = launcher.communicate(timeout=60)
     out = head + out
     assert launcher.returncode == 0, out + _logs(tmp_path)
@@ -213,7 +226,7 @@ def test_a_crashed_node_stops_the_run_with_a_failure(tmp_path, ros_domain, proce
     head = read_until(launcher, 'ready after', timeout=90)
     pids = started_pids(head)
     assert set(pids) == {'imageProjection', 'featureAssociation'}
-    os.kill(pids['featureAssociation'], signal.SIGKILL)   # a crash
+    os.kill(pids['featureAssociation'], signal.SIGKILL)  # a crash
     out, _ = launcher.communicate(timeout=60)
     out = head + out
     assert launcher.returncode == 1, out
@@ -224,23 +237,27 @@ def test_a_crashed_node_stops_the_run_with_a_failure(tmp_path, ros_domain, proce
 
 
 def test_invalid_parameters_stop_before_anything_starts(tmp_path, ros_domain):
-    result = subprocess.run([BIN / 'lego_loam_py', 'launch', '-p', 'sensor.n_scann:=16'], capture_output=True,
-                            text=True, timeout=60)
+    result = subprocess.run(
+        [BIN / 'lego_loam_py', 'launch', '-p', 'sensor.n_scann:=16'], capture_output=True, text=True, timeout=60
+    )
     assert result.returncode == 2
     assert "unknown parameter 'sensor.n_scann' (did you mean 'sensor.n_scan'?)" in result.stderr
     assert 'started' not in result.stderr
-    result = subprocess.run([BIN / 'lego_loam_py', 'launch', '--bag', tmp_path / 'missing'], capture_output=True,
-                            text=True, timeout=60)
-    assert result.returncode == 1 and 'bag not found' in result.stderr   # (data, as for every command)
+    result = subprocess.run(
+        [BIN / 'lego_loam_py', 'launch', '--bag', tmp_path / 'missing'], capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 1 and 'bag not found' in result.stderr  # (data, as for every command)
     assert 'Traceback' not in result.stderr and 'started' not in result.stderr
 
 
 def test_cli_and_launch_script_offer_the_supervisor():
     from lego_loam_py.cli import COMMANDS
+
     names = [c[0] for c in COMMANDS]
     assert 'launch' in names and 'demo' in names
-    result = subprocess.run([sys.executable, REPO / 'launch_scripts' / 'lego_loam.py', '--help'],
-                            capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [sys.executable, REPO / 'launch_scripts' / 'lego_loam.py', '--help'], capture_output=True, text=True, timeout=60
+    )
     assert result.returncode == 0 and '--bag' in result.stdout and '--record' in result.stdout
     # ./demo.sh: install.sh (a no-op here), then `lego_loam_py demo` with the arguments passed on.
     assert os.access(REPO / 'demo.sh', os.X_OK)
@@ -277,8 +294,19 @@ def _stand(name: str, positional: int = 0, allowed: tuple[str, ...] = ()):
 
 # The keyword arguments of the real classes (launch / launch_ros, Humble .. Kilted) the launch file may use.
 _ACTION = ('condition',)
-_EXECUTE_PROCESS = _ACTION + ('output', 'emulate_tty', 'respawn', 'respawn_delay', 'sigterm_timeout',
-                              'sigkill_timeout', 'additional_env', 'cwd', 'shell', 'prefix', 'on_exit')
+_EXECUTE_PROCESS = _ACTION + (
+    'output',
+    'emulate_tty',
+    'respawn',
+    'respawn_delay',
+    'sigterm_timeout',
+    'sigkill_timeout',
+    'additional_env',
+    'cwd',
+    'shell',
+    'prefix',
+    'on_exit',
+)
 STANDS = {
     'launch': {'LaunchDescription': _stand('LaunchDescription', 1)},
     'launch.actions': {
@@ -297,9 +325,24 @@ STANDS = {
         'PathJoinSubstitution': _stand('PathJoinSubstitution', 1),
         'PythonExpression': _stand('PythonExpression', 1),
     },
-    'launch_ros.actions': {'Node': _stand('Node', 0, _EXECUTE_PROCESS + (
-        'executable', 'package', 'name', 'namespace', 'exec_name', 'parameters', 'remappings', 'ros_arguments',
-        'arguments'))},
+    'launch_ros.actions': {
+        'Node': _stand(
+            'Node',
+            0,
+            _EXECUTE_PROCESS
+            + (
+                'executable',
+                'package',
+                'name',
+                'namespace',
+                'exec_name',
+                'parameters',
+                'remappings',
+                'ros_arguments',
+                'arguments',
+            ),
+        )
+    },
     'launch_ros.parameter_descriptions': {'ParameterValue': _stand('ParameterValue', 1, ('value_type',))},
     'launch_ros.substitutions': {'FindPackageShare': _stand('FindPackageShare', 1)},
 }
@@ -331,11 +374,10 @@ def test_launch_file_builds_the_four_nodes_rviz_and_the_player(stand_in_launch):
     entities = description.args[0]
     arguments = {e.args[0]: e.kwargs for e in entities if isinstance(e, s['DeclareLaunchArgument'])}
     assert set(arguments) >= {'params_file', 'use_sim_time', 'rviz', 'rviz_config', 'bag', 'rate'}
-    assert arguments['use_sim_time']['default_value'] == 'true'   # like the original's run.launch
+    assert arguments['use_sim_time']['default_value'] == 'true'  # like the original's run.launch
     share = s['FindPackageShare']('lego_loam_py')
     assert arguments['params_file']['default_value'] == s['PathJoinSubstitution']([share, 'config', 'params.yaml'])
-    assert arguments['rviz_config']['default_value'] == \
-        s['PathJoinSubstitution']([share, 'config', 'lego_loam.rviz'])
+    assert arguments['rviz_config']['default_value'] == s['PathJoinSubstitution']([share, 'config', 'lego_loam.rviz'])
 
     nodes = [e for e in entities if isinstance(e, s['Node'])]
     pipeline = [n for n in nodes if n.kwargs['package'] == 'lego_loam_py' and n.kwargs['executable'] in NODES]
@@ -388,12 +430,19 @@ def test_rviz_config_shows_the_pipeline_in_the_map_frame():
     # The loop markers are latched: the display must ask for transient local to get them after they were sent.
     assert by_topic['/loop_closures']['Topic']['Durability Policy'] == 'Transient Local'
     assert any(d['Class'] == 'rviz_default_plugins/TF' and d['Enabled'] for d in displays)
-    for topic, display in by_topic.items():   # only topics the pipeline publishes, with a matching display
+    for topic, display in by_topic.items():  # only topics the pipeline publishes, with a matching display
         assert topic in ALL, topic
-        expected = {'sensor_msgs/msg/PointCloud2': 'PointCloud2', 'nav_msgs/msg/Odometry': 'Odometry',
-                    'visualization_msgs/msg/MarkerArray': 'MarkerArray'}[ALL[topic][1]]
+        expected = {
+            'sensor_msgs/msg/PointCloud2': 'PointCloud2',
+            'nav_msgs/msg/Odometry': 'Odometry',
+            'visualization_msgs/msg/MarkerArray': 'MarkerArray',
+        }[ALL[topic][1]]
         assert display['Class'] == f'rviz_default_plugins/{expected}', topic
-        assert display['Topic']['Reliability Policy'] == 'Reliable'   # the nodes publish reliable
+        assert display['Topic']['Reliability Policy'] == 'Reliable'  # the nodes publish reliable
     # Subscriber-gated clouds that are off by default cost nothing until switched on.
-    assert {t for t, d in by_topic.items() if d['Enabled'] and t in GATED} == \
-        {'/laser_cloud_surround', '/registered_cloud', '/key_pose_origin', '/segmented_cloud_pure'}
+    assert {t for t, d in by_topic.items() if d['Enabled'] and t in GATED} == {
+        '/laser_cloud_surround',
+        '/registered_cloud',
+        '/key_pose_origin',
+        '/segmented_cloud_pure',
+    }

@@ -7,6 +7,7 @@ the ground truth beside them. The truth is put in the map's frame through the ma
 their true poses), so the figures measure the localization, not the 1-2 % drift of the map itself (the benchmark
 reports both).
 """
+
 from __future__ import annotations
 
 import json
@@ -37,8 +38,9 @@ def reverse_drive() -> Path:
 def localize(bag: Path, map_dir: Path, max_scans: int | None = None, **overrides):
     from lego_loam_py.offline import run_bag
 
-    params = Params().replace(map_optimization__mode='localization', map_optimization__map_path=str(map_dir),
-                              **overrides)
+    params = Params().replace(
+        map_optimization__mode='localization', map_optimization__map_path=str(map_dir), **overrides
+    )
     return run_bag(bag, params, progress=False, max_scans=max_scans)
 
 
@@ -49,52 +51,57 @@ def errors_against_truth(result, bag: Path) -> np.ndarray:
 
     prior = result.mapper.prior
     stamps, poses = result.trajectory()
-    (fit,) = [e for e in errors_in_map(bag, prior.bundle.source, prior.bundle.stamps_ns, prior.poses_lidar, stamps,
-                                       poses) if e.anchor == 'map_fit']
+    (fit,) = [
+        e
+        for e in errors_in_map(bag, prior.bundle.source, prior.bundle.stamps_ns, prior.poses_lidar, stamps, poses)
+        if e.anchor == 'map_fit'
+    ]
     return fit
 
 
 # ------------------------------------------------------------------------------------------- hand-checked pieces
 
+
 def test_levelling_keeps_the_heading_and_removes_roll_and_pitch():
     from scipy.spatial.transform import Rotation
 
-    from lego_loam_py.core.prior_map import heading, levelling
+    from lego_loam_py.core.localization.prior_map import heading, levelling
 
     pose = np.eye(4)
     pose[:3, :3] = Rotation.from_euler('ZYX', [30.0, 4.0, -3.0], degrees=True).as_matrix()
-    assert math.degrees(heading(pose)) == pytest.approx(30.0, abs=1e-9)   # [deg]
+    assert math.degrees(heading(pose)) == pytest.approx(30.0, abs=1e-9)  # [deg]
     tilt = levelling(pose)
     assert np.allclose(Rotation.from_euler('z', 30.0, degrees=True).as_matrix() @ tilt, pose[:3, :3], atol=1e-12)
     assert Rotation.from_matrix(tilt).as_euler('ZYX', degrees=True) == pytest.approx([0.0, 4.0, -3.0], abs=1e-9)
 
 
 def test_a_hint_moves_on_with_the_odometry():
-    from lego_loam_py.core.relocalization import Hint
+    from lego_loam_py.core.localization.relocalization import Hint
 
     pose, odometry = np.eye(4), np.eye(4)
-    pose[:3, 3] = (10.0, 5.0, 0.0)          # in the map
-    odometry[:3, 3] = (2.0, 0.0, 0.0)       # in the odometry's own frame, when the hint was given
+    pose[:3, 3] = (10.0, 5.0, 0.0)  # in the map
+    odometry[:3, 3] = (2.0, 0.0, 0.0)  # in the odometry's own frame, when the hint was given
     later = odometry.copy()
-    later[0, 3] = 3.5                       # 1.5 m further forward
+    later[0, 3] = 3.5  # 1.5 m further forward
     assert np.allclose(Hint(pose, odometry, 5.0).now(later)[:3, 3], (11.5, 5.0, 0.0))
 
 
 def test_fusion_in_localization_publishes_only_with_a_recent_map_correction():
-    from lego_loam_py.core.transform_fusion import TransformFusion
+    from lego_loam_py.core.mapping.transform_fusion import TransformFusion
 
     mapping = TransformFusion()
-    assert mapping.publishable(5_000_000_000)   # mapping: always, as the original
+    assert mapping.publishable(5_000_000_000)  # mapping: always, as the original
     fusion = TransformFusion(max_correction_age_ns=2_000_000_000)
-    assert not fusion.publishable(1_000_000_000)          # no fix yet
+    assert not fusion.publishable(1_000_000_000)  # no fix yet
     fusion.on_mapped(np.eye(4), np.eye(4), 1_000_000_000)
     assert fusion.publishable(1_100_000_000) and fusion.publishable(3_000_000_000)
-    assert not fusion.publishable(3_100_000_000)           # the last verified step is older than 2 s
+    assert not fusion.publishable(3_100_000_000)  # the last verified step is older than 2 s
     fusion.reset()
     assert fusion.max_correction_age_ns == 2_000_000_000 and not fusion.publishable(1_100_000_000)
 
 
 # -------------------------------------------------------------------------------------------- localization
+
 
 def test_without_an_initial_pose_the_place_is_found_verified_and_tracked(campus_map, reverse_drive):
     result = localize(reverse_drive, campus_map)
@@ -107,29 +114,35 @@ def test_without_an_initial_pose_the_place_is_found_verified_and_tracked(campus_
     assert stamps[0] > loc.first_fix_ns and len(stamps) >= result.counts['scans_in'] - 10 * fix - 3
     error = errors_against_truth(result, reverse_drive)
     assert error.median_m < 0.05 and error.max_m < 0.15, error
-    # The saved map stays as it was: localization adds no keyframe.
-    assert result.counts['keyframes'] == 0 and loc.save('/nonexistent') == {}
+    # The saved map stays as it was: localization adds no keyframe, it is a mapper that builds no map.
+    from lego_loam_py.core.mapping.mapper import Mapper
+
+    assert result.counts['keyframes'] == 0 and not loc.builds_map and not hasattr(loc, 'save')
+    assert isinstance(loc, Mapper) and result.mapper.prior.bundle is not None
 
 
 @pytest.mark.parametrize('offset_m, offset_deg', [(0.0, 0.0), (3.0, 20.0)])
-def test_an_initial_pose_is_used_and_verified_even_when_3_m_and_20_deg_off(campus_map, reverse_drive, offset_m,
-                                                                           offset_deg):
-    from lego_loam_py.core.map_bundle import read_bundle
-    from lego_loam_py.evaluation import rigid_fit
-    from lego_loam_py.sim.output import load_scenario, true_poses
+def test_an_initial_pose_is_used_and_verified_even_when_3_m_and_20_deg_off(
+    campus_map, reverse_drive, offset_m, offset_deg
+):
     from scipy.spatial.transform import Rotation
 
     from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix
+    from lego_loam_py.core.mapping.map_bundle import read_bundle
+    from lego_loam_py.evaluation import rigid_fit
+    from lego_loam_py.inputs.sidecars import load_scenario
+    from lego_loam_py.sim.output import true_poses
 
     bundle = read_bundle(campus_map)
     keyframes = np.array([camera_pose_to_lidar(pose6_to_matrix(p)) for p in bundle.poses6])
-    map_from_world = np.linalg.inv(rigid_fit(keyframes[:, :3, 3],
-                                             true_poses(bundle.source['simulated'], bundle.stamps_ns)[:, :3, 3]))
+    map_from_world = np.linalg.inv(
+        rigid_fit(keyframes[:, :3, 3], true_poses(bundle.source['simulated'], bundle.stamps_ns)[:, :3, 3])
+    )
     scenario = load_scenario(reverse_drive)
     drive = {'config': scenario['config'], 'start_stamp_ns': scenario['recording']['start_stamp_ns']}
     truth = map_from_world @ true_poses(drive, np.array([drive['start_stamp_ns'] + 100_000_000]))[0]
     yaw = math.degrees(math.atan2(truth[1, 0], truth[0, 0]))
-    x, y = truth[:2, 3] + offset_m * truth[:2, 1]           # to the left
+    x, y = truth[:2, 3] + offset_m * truth[:2, 1]  # to the left
     result = localize(reverse_drive, campus_map, localization__initial_pose=[float(x), float(y), yaw + offset_deg])
     loc = result.mapper
     (hint,) = [e for e in loc.events if e.kind == 'hint']
@@ -142,9 +155,9 @@ def test_an_initial_pose_is_used_and_verified_even_when_3_m_and_20_deg_off(campu
 
 
 def test_a_gap_in_the_data_loses_track_and_the_place_is_found_again(campus_map, reverse_drive, tmp_path):
-    from tests.support.bags import cut_bag
+    from lego_loam_py.testing.bags import cut_bag
 
-    cut = cut_bag(reverse_drive, tmp_path / 'cut', 2.0, 2.5)   # (the benchmark cuts 10 s of a longer drive)
+    cut = cut_bag(reverse_drive, tmp_path / 'cut', 2.0, 2.5)  # (the benchmark cuts 10 s of a longer drive)
     result = localize(cut, campus_map)
     loc = result.mapper
     kinds = [e.kind for e in loc.events]
@@ -168,11 +181,12 @@ def test_a_robot_carried_elsewhere_without_a_gap_loses_track_and_is_found_again(
 
     def clouds(bag, first, count):
         with BagReader(bag) as reader:
-            messages = [m for m in reader.messages(topics=['/velodyne_points'])][first:first + count]
+            messages = [m for m in reader.messages(topics=['/velodyne_points'])][first : first + count]
             return [cloud_msg_to_array(reader.deserialize(m)) for m in messages]
 
-    params = Params().replace(map_optimization__mode='localization', map_optimization__map_path=str(campus_map),
-                              sensor__imu_topic='')
+    params = Params().replace(
+        map_optimization__mode='localization', map_optimization__map_path=str(campus_map), sensor__imu_topic=''
+    )
     pipeline = Pipeline(params)
     scans = clouds(reverse_drive, 0, 30) + clouds(CAMPUS, 10, 50)
     for k, points in enumerate(scans):
@@ -182,7 +196,7 @@ def test_a_robot_carried_elsewhere_without_a_gap_loses_track_and_is_found_again(
     assert [e.kind for e in loc.events] == ['fix', 'lost', 'fix'], [(e.kind, e.detail) for e in loc.events]
     lost = [e for e in loc.events if e.kind == 'lost'][0]
     assert lost.detail.startswith('3 tracking steps in a row failed')
-    assert lost.stamp_ns - 1_700_000_000_000_000_000 <= 4.5e9   # (the jump at 3 s, a step every 0.4 s)
+    assert lost.stamp_ns - 1_700_000_000_000_000_000 <= 4.5e9  # (the jump at 3 s, a step every 0.4 s)
     again = [e for e in loc.events if e.kind == 'fix'][1]
     assert again.stamp_ns - lost.stamp_ns <= 3e9
     # The new place: bags/campus_8s's own poses are the map's keyframes there.
@@ -190,9 +204,11 @@ def test_a_robot_carried_elsewhere_without_a_gap_loses_track_and_is_found_again(
     after = poses[stamps > again.stamp_ns]
     bundle = loc.prior.bundle
     for stamp, pose in zip(stamps[stamps > again.stamp_ns], after):
-        k = int(round((stamp - 1_700_000_000_000_000_000) * 1e-8)) - 30 + 10   # the scan of campus_8s it was
-        truth = [np.interp(1_700_000_000_000_000_000 + k * 100_000_000, bundle.stamps_ns, bundle.poses6[:, 3 + i])
-                 for i in range(3)]
+        k = int(round((stamp - 1_700_000_000_000_000_000) * 1e-8)) - 30 + 10  # the scan of campus_8s it was
+        truth = [
+            np.interp(1_700_000_000_000_000_000 + k * 100_000_000, bundle.stamps_ns, bundle.poses6[:, 3 + i])
+            for i in range(3)
+        ]
         assert np.linalg.norm(pose[:3, 3] - truth) < 0.1
 
 
@@ -201,7 +217,7 @@ def test_another_scene_never_localizes_its_look_alike_places_fail_the_verificati
     # (3 s of the hairpin: 7 attempts of 3 places).
     result = localize(AGGRESSIVE, campus_map, max_scans=30, localization__relocalization_threshold=1.0)
     loc = result.mapper
-    assert loc.counters.get('fixes', 0) == 0 and result.trajectory()[0].size == 0
+    assert loc.counters.get('fixes', 0) == 0 and len(result.trajectory()) == 0
     assert loc.counters.get('places_rejected', 0) >= 10 and loc.counters.get('places_verified', 0) == 0, loc.counters
     status = loc.status()
     assert status.state == 'relocalizing' and not status.localized
@@ -210,10 +226,15 @@ def test_another_scene_never_localizes_its_look_alike_places_fail_the_verificati
 
 # ------------------------------------------------------------------------------------------------- run --map
 
+
 def test_run_with_a_map_localizes_and_reports_the_first_fix(campus_map, reverse_drive, tmp_path):
     out = tmp_path / 'out'
-    done = subprocess.run([BIN / 'lego_loam_py', 'run', reverse_drive, '--map', campus_map, '-o', out,
-                           '--no-progress'], capture_output=True, text=True, timeout=300)
+    done = subprocess.run(
+        [BIN / 'lego_loam_py', 'run', reverse_drive, '--map', campus_map, '-o', out, '--no-progress'],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 0, done.stderr
     assert 'localization in' in done.stdout and 'first fix after' in done.stdout
     summary = json.loads((out / 'summary.json').read_text())
@@ -223,16 +244,33 @@ def test_run_with_a_map_localizes_and_reports_the_first_fix(campus_map, reverse_
     assert {e['anchor'] for e in localization['error_in_map']} == {'first_keyframe', 'map_fit'}
     assert summary['counts']['keyframes'] == 0 and not (out / 'map').exists()
     assert (out / 'trajectory.tum').is_file() and summary['poses'] == round(
-        localization['localized_fraction'] * summary['counts']['scans_in'])
+        localization['localized_fraction'] * summary['counts']['scans_in']
+    )
     # A bundle that cannot be used: one line naming the problem, exit code 1, nothing else.
-    done = subprocess.run([BIN / 'lego_loam_py', 'run', reverse_drive, '--map', tmp_path / 'nowhere', '-o',
-                           tmp_path / 'x', '--no-progress'], capture_output=True, text=True, timeout=300)
-    assert done.returncode == 1 and done.stderr.strip().splitlines()[-1] == \
-        f'error: map bundle {tmp_path / "nowhere"}: no such directory'
+    done = subprocess.run(
+        [
+            BIN / 'lego_loam_py',
+            'run',
+            reverse_drive,
+            '--map',
+            tmp_path / 'nowhere',
+            '-o',
+            tmp_path / 'x',
+            '--no-progress',
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert (
+        done.returncode == 1
+        and done.stderr.strip().splitlines()[-1] == f'error: map bundle {tmp_path / "nowhere"}: no such directory'
+    )
     assert 'Traceback' not in done.stderr
 
 
 # ----------------------------------------------------------------------------------------------------- the node
+
 
 def _initial_pose(frame: str, x: float, y: float, yaw_deg: float, variance: float = 0.25):
     from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -250,7 +288,7 @@ def test_initial_pose_messages_as_rviz_sends_them():
     from lego_loam_py.ros.localization import initial_pose_of
 
     hint = initial_pose_of(_initial_pose('map', 3.0, -2.0, 30.0), 5.0)
-    assert hint == pytest.approx((3.0, -2.0, 30.0, 5.0), abs=1e-9)   # (x, y [m], yaw [deg], radius [m])
+    assert hint == pytest.approx((3.0, -2.0, 30.0, 5.0), abs=1e-9)  # (x, y [m], yaw [deg], radius [m])
     # A wide covariance widens the search: 3 sigma of x and y, at most 100 m.
     assert initial_pose_of(_initial_pose('map', 0.0, 0.0, 0.0, variance=16.0), 5.0)[3] == pytest.approx(12.0, abs=1e-9)
     assert initial_pose_of(_initial_pose('map', 0.0, 0.0, 0.0, variance=1e6), 5.0)[3] == 100.0
@@ -260,8 +298,10 @@ def test_initial_pose_messages_as_rviz_sends_them():
     msg.pose.pose.orientation.y, msg.pose.pose.orientation.z = msg.pose.pose.orientation.z, 0.0
     assert initial_pose_of(msg, 5.0)[:3] == pytest.approx((7.0, 2.0, 0.0), abs=1e-9)
     bad = _initial_pose('map', float('nan'), 0.0, 0.0)
-    for msg, reason in ((_initial_pose('odom', 0.0, 0.0, 0.0), "frame 'odom' is neither 'map' nor 'camera_init'"),
-                        (bad, 'the pose is not finite')):
+    for msg, reason in (
+        (_initial_pose('odom', 0.0, 0.0, 0.0), "frame 'odom' is neither 'map' nor 'camera_init'"),
+        (bad, 'the pose is not finite'),
+    ):
         with pytest.raises(ValueError, match=re.escape(reason)):
             initial_pose_of(msg, 5.0)
     msg = _initial_pose('map', 0.0, 0.0, 0.0)
@@ -285,9 +325,13 @@ def test_the_node_publishes_nothing_until_localized_and_says_why(context, campus
 
     # A map that is not there: an error, said once in the log and on /localization_status, and the node carries on.
     missing = tmp_path / 'no_map'
-    node, rec = make_node(context, MapOptimizationNode, tmp_path, **{'map_optimization.mode': 'localization',
-                                                                    'map_optimization.map_path': str(missing)})
-    node.localization.publish_status()   # (the recorder was installed after the node's first status)
+    node, rec = make_node(
+        context,
+        MapOptimizationNode,
+        tmp_path,
+        **{'map_optimization.mode': 'localization', 'map_optimization.map_path': str(missing)},
+    )
+    node.localization.publish_status()  # (the recorder was installed after the node's first status)
     status = rec.out('/localization_status')[-1]
     assert status.level == DiagnosticStatus.ERROR and f'map bundle {missing}: no such directory' in status.message
     for parts in inputs[:4]:
@@ -298,8 +342,12 @@ def test_the_node_publishes_nothing_until_localized_and_says_why(context, campus
     assert node._save_now()[0] is True and 'never modified' in node._save_now()[1]
     node.destroy_node()
 
-    node, rec = make_node(context, MapOptimizationNode, tmp_path, **{'map_optimization.mode': 'localization',
-                                                                    'map_optimization.map_path': str(campus_map)})
+    node, rec = make_node(
+        context,
+        MapOptimizationNode,
+        tmp_path,
+        **{'map_optimization.mode': 'localization', 'map_optimization.map_path': str(campus_map)},
+    )
     # Bad /initialpose messages are dropped with a warning.
     node.localization.on_initial_pose(_initial_pose('odom', 1.0, 0.0, 0.0))
     node.localization.on_initial_pose(_initial_pose('map', float('inf'), 0.0, 0.0))
@@ -311,7 +359,7 @@ def test_the_node_publishes_nothing_until_localized_and_says_why(context, campus
     for parts in inputs:
         feed(node, parts)
         published.append(len(rec.out('/aft_mapped_to_init')))
-        if not published[-1]:   # until the fix: nothing out, and it says so
+        if not published[-1]:  # until the fix: nothing out, and it says so
             assert rec.out('/localization_status')[-1].level == DiagnosticStatus.WARN
     assert not rec.errors and published[-1] >= 2, published
     assert any(key == 'not_localized' and text.startswith('no pose yet: ') for key, text in rec.warnings)
@@ -323,8 +371,9 @@ def test_the_node_publishes_nothing_until_localized_and_says_why(context, campus
     bundle = node.core.prior.bundle
     for msg in rec.out('/aft_mapped_to_init'):
         position = odometry_to_pose(msg)[:3, 3]
-        on_the_way = [np.interp(stamp_to_ns(msg.header.stamp), bundle.stamps_ns, bundle.poses6[:, 3 + i])
-                      for i in range(3)]
+        on_the_way = [
+            np.interp(stamp_to_ns(msg.header.stamp), bundle.stamps_ns, bundle.poses6[:, 3 + i]) for i in range(3)
+        ]
         assert np.linalg.norm(position - on_the_way) < 0.05, (position, on_the_way)
     assert node.statistics()['localization']['fixes'] == 1
     assert {v.key: v.value for v in node.diagnostic_status().values}['localization_state'] == 'localized'
@@ -340,15 +389,27 @@ def test_no_initial_pose_message_breaks_the_node(context, campus_map, tmp_path):
     from lego_loam_py.ros.map_optimization_node import MapOptimizationNode
     from tests.support.inprocess import make_node, mapping_inputs, pipeline_outputs
 
-    node, rec = make_node(context, MapOptimizationNode, tmp_path, **{'map_optimization.mode': 'localization',
-                                                                    'map_optimization.map_path': str(campus_map)})
+    node, rec = make_node(
+        context,
+        MapOptimizationNode,
+        tmp_path,
+        **{'map_optimization.mode': 'localization', 'map_optimization.map_path': str(campus_map)},
+    )
     values = st.floats(allow_nan=True, allow_infinity=True, width=64) | st.sampled_from([0.0, 1.0, -1.0, 1e300])
     tried = []
 
-    @settings(max_examples=300, deadline=None, derandomize=True, database=None,
-              suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
-    @given(st.sampled_from(['map', '/map', 'camera_init', '', 'odom', 'base_link', 'map\x00']),
-           st.lists(values, min_size=7, max_size=7), st.lists(values, min_size=36, max_size=36))
+    @settings(
+        max_examples=300,
+        deadline=None,
+        derandomize=True,
+        database=None,
+        suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+    )
+    @given(
+        st.sampled_from(['map', '/map', 'camera_init', '', 'odom', 'base_link', 'map\x00']),
+        st.lists(values, min_size=7, max_size=7),
+        st.lists(values, min_size=36, max_size=36),
+    )
     def check(frame, pose, covariance):
         msg = _initial_pose(frame, 0.0, 0.0, 0.0)
         p = msg.pose.pose
@@ -362,7 +423,7 @@ def test_no_initial_pose_message_breaks_the_node(context, campus_map, tmp_path):
     check()
     counted = node.counters.get('initial_poses', 0) + node.counters.get('initial_pose_dropped', 0)
     assert counted == len(tried) and node.counters['initial_pose_dropped'] > 0
-    for parts in mapping_inputs(pipeline_outputs(context, tmp_path))[:4]:   # (it still runs its steps)
+    for parts in mapping_inputs(pipeline_outputs(context, tmp_path))[:4]:  # (it still runs its steps)
         for name, msg in zip(('corner', 'surf', 'outlier', 'odometry'), parts):
             node.on_part(name, msg)
     assert not rec.errors and node.core.counters['steps'] >= 1
@@ -371,24 +432,44 @@ def test_no_initial_pose_message_breaks_the_node(context, campus_map, tmp_path):
 
 # ------------------------------------------------------------------------------------------------------ over DDS
 
+
 def test_launch_in_localization_mode_publishes_integrated_to_init_in_the_saved_maps_frame(
-        campus_map, reverse_drive, tmp_path, ros_domain, processes):
+    campus_map, reverse_drive, tmp_path, ros_domain, processes
+):
     """The four nodes as users start them, replaying the reverse drive: /integrated_to_init comes out in the saved
     map's frame (camera_init of the map), only once a place was verified, and the map is left as it was."""
     from lego_loam_py.bag.io import BagReader
-    from lego_loam_py.core.frames import quaternion_to_matrix
-    from lego_loam_py.core.map_bundle import read_bundle
+    from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix, quaternion_to_matrix
+    from lego_loam_py.core.mapping.map_bundle import read_bundle
     from lego_loam_py.evaluation import errors_in_map
-    from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix
 
     before = {p.name: p.read_bytes() for p in campus_map.iterdir()}
     record = tmp_path / 'recording'
-    launcher = processes.start([BIN / 'lego_loam_py', 'launch', '--bag', reverse_drive, '--record',
-                                '/integrated_to_init', '/localization_status', '-o', record,
-                                '--stats-dir', tmp_path / 'stats', '--log-dir', tmp_path / 'logs', '--quiet-nodes',
-                                '-p', f'map_optimization.file_directory:={tmp_path / "maps"}',
-                                '-p', 'map_optimization.mode:=localization',
-                                '-p', f'map_optimization.map_path:={campus_map}'], stderr=subprocess.STDOUT)
+    launcher = processes.start(
+        [
+            BIN / 'lego_loam_py',
+            'launch',
+            '--bag',
+            reverse_drive,
+            '--record',
+            '/integrated_to_init',
+            '/localization_status',
+            '-o',
+            record,
+            '--stats-dir',
+            tmp_path / 'stats',
+            '--log-dir',
+            tmp_path / 'logs',
+            '--quiet-nodes',
+            '-p',
+            f'map_optimization.file_directory:={tmp_path / "maps"}',
+            '-p',
+            'map_optimization.mode:=localization',
+            '-p',
+            f'map_optimization.map_path:={campus_map}',
+        ],
+        stderr=subprocess.STDOUT,
+    )
     out, _ = launcher.communicate(timeout=300)
     logs = '\n'.join(p.read_text()[-3000:] for p in sorted((tmp_path / 'logs').glob('*.log')))
     assert launcher.returncode == 0, out + logs
@@ -407,22 +488,35 @@ def test_launch_in_localization_mode_publishes_integrated_to_init_in_the_saved_m
     bundle = read_bundle(campus_map)
     keyframes = np.array([camera_pose_to_lidar(pose6_to_matrix(p)) for p in bundle.poses6])
     lidar_poses = np.array([camera_pose_to_lidar(p) for p in poses])
-    (fit,) = [e for e in errors_in_map(reverse_drive, bundle.source, bundle.stamps_ns, keyframes, stamps,
-                                       lidar_poses) if e.anchor == 'map_fit']
+    (fit,) = [
+        e
+        for e in errors_in_map(reverse_drive, bundle.source, bundle.stamps_ns, keyframes, stamps, lidar_poses)
+        if e.anchor == 'map_fit'
+    ]
     # In the map's frame: 12 m along it and the other way round, not at the odometry's origin (its first pose).
     assert fit.max_m < 0.2 and np.linalg.norm(poses[0][:3, 3]) > 5.0, fit
     statistics = json.loads((tmp_path / 'stats' / 'mapOptimization.json').read_text())['localization']
     assert statistics['fixes'] >= 1 and statistics['state'] == 'localized', statistics
     first_fix = min(e['stamp_ns'] for e in statistics['events'] if e['kind'] == 'fix')
-    assert stamps.min() > first_fix                        # nothing before the fix
+    assert stamps.min() > first_fix  # nothing before the fix
     assert status[-1].level == 0 and status[-1].message.startswith('localized in the map')
-    assert {p.name: p.read_bytes() for p in campus_map.iterdir()} == before   # the saved map, untouched
+    assert {p.name: p.read_bytes() for p in campus_map.iterdir()} == before  # the saved map, untouched
     assert 'Traceback' not in logs
 
 
 def test_launch_refuses_a_saved_map_that_is_not_there(tmp_path, ros_domain):
-    done = subprocess.run([BIN / 'lego_loam_py', 'launch', '-p', 'map_optimization.mode:=localization',
-                           '-p', f'map_optimization.map_path:={tmp_path / "none"}'], capture_output=True, text=True,
-                          timeout=60)
+    done = subprocess.run(
+        [
+            BIN / 'lego_loam_py',
+            'launch',
+            '-p',
+            'map_optimization.mode:=localization',
+            '-p',
+            f'map_optimization.map_path:={tmp_path / "none"}',
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert done.returncode == 1 and f'error: map bundle {tmp_path / "none"}: no such directory' in done.stderr
     assert 'started' not in done.stderr and 'Traceback' not in done.stderr

@@ -1,11 +1,13 @@
 """The map bundle (issue 18): what mapOptimization saves so that it can localize in it later, and what loading says
 about a bundle it cannot use. The map is the one ``lego_loam_py run bags/campus_8s`` makes (the ``campus_map``
 fixture)."""
+
 from __future__ import annotations
 
 import dataclasses
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,7 +16,7 @@ from lego_loam_py.core.params import Params
 
 
 def test_the_saved_bundle_loads_back_as_it_was_mapped(campus_map):
-    from lego_loam_py.core.map_bundle import FORMAT_VERSION, MANIFEST, read_bundle
+    from lego_loam_py.core.mapping.map_bundle import FORMAT_VERSION, MANIFEST, read_bundle
 
     bundle = read_bundle(campus_map)
     manifest = json.loads((campus_map / MANIFEST).read_text())
@@ -30,6 +32,7 @@ def test_the_saved_bundle_loads_back_as_it_was_mapped(campus_map):
     # An odometry factor measures the motion between its keyframes in lidar axes (forward, along x); without loops
     # the graph's estimate is that chain.
     from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix
+
     first, second = (camera_pose_to_lidar(pose6_to_matrix(p)) for p in bundle.poses6[:2])
     step = bundle.factors[1].measured
     assert np.allclose(step, np.linalg.inv(first) @ second, atol=1e-6) and 0.3 <= step[0, 3] < 1.0
@@ -39,12 +42,13 @@ def test_the_saved_bundle_loads_back_as_it_was_mapped(campus_map):
     assert bundle.corner[3].dtype == np.float32 and bundle.corner[3].shape[1] == 4
     assert len(bundle.surface_map) > 1000 and np.isfinite(bundle.poses6).all()
     # The PCDs users view are still there beside it.
-    assert {'global_map.pcd', 'corner_map.pcd', 'surface_map.pcd', 'trajectory.tum'} <= \
-        {p.name for p in campus_map.iterdir()}
+    assert {'global_map.pcd', 'corner_map.pcd', 'surface_map.pcd', 'trajectory.tum'} <= {
+        p.name for p in campus_map.iterdir()
+    }
 
 
 def test_loading_names_what_is_wrong_with_a_bundle(campus_map, tmp_path):
-    from lego_loam_py.core.map_bundle import MANIFEST, MapBundleError, check_compatible, read_bundle
+    from lego_loam_py.core.mapping.map_bundle import MANIFEST, MapBundleError, check_compatible, read_bundle
 
     def broken(change) -> Path:
         copy = tmp_path / f'copy{len(list(tmp_path.iterdir()))}'
@@ -57,6 +61,7 @@ def test_loading_names_what_is_wrong_with_a_bundle(campus_map, tmp_path):
             manifest = json.loads((path / MANIFEST).read_text())
             manifest.update(values)
             (path / MANIFEST).write_text(json.dumps(manifest))
+
         return change
 
     def data_file(path) -> Path:
@@ -67,12 +72,16 @@ def test_loading_names_what_is_wrong_with_a_bundle(campus_map, tmp_path):
         (broken(lambda p: (p / MANIFEST).unlink()), f'no {MANIFEST} in it'),
         (broken(lambda p: (p / MANIFEST).write_text('{"format": ')), 'cannot be read'),
         (broken(manifest_edit(format='something else')), 'is not a lego_loam_py map bundle manifest'),
-        (broken(manifest_edit(format_version=2)), 'format version 2 was written by a newer lego_loam_py; this one '
-                                                  'reads version 1'),
+        (
+            broken(manifest_edit(format_version=2)),
+            'format version 2 was written by a newer lego_loam_py; this one reads version 1',
+        ),
         (broken(manifest_edit(format_version='one')), "unknown format version 'one'"),
         (broken(lambda p: data_file(p).unlink()), 'is missing'),
-        (broken(lambda p: data_file(p).write_bytes(data_file(p).read_bytes()[:-100] + bytes(100))),
-         'is corrupt (its checksum differs'),
+        (
+            broken(lambda p: data_file(p).write_bytes(data_file(p).read_bytes()[:-100] + bytes(100))),
+            'is corrupt (its checksum differs',
+        ),
     ]
     for path, message in cases:
         with pytest.raises(MapBundleError, match=message.replace('(', r'\(')):
@@ -90,15 +99,21 @@ def test_loading_names_what_is_wrong_with_a_bundle(campus_map, tmp_path):
 
 
 def test_a_save_interrupted_before_its_manifest_leaves_the_previous_bundle_whole(campus_map, tmp_path, monkeypatch):
-    from lego_loam_py.core import map_bundle
-    from lego_loam_py.core.map_bundle import MANIFEST, read_bundle, write_bundle
+    from lego_loam_py.core.mapping import map_bundle
+    from lego_loam_py.core.mapping.map_bundle import MANIFEST, read_bundle, write_bundle
 
     directory = tmp_path / 'map'
     shutil.copytree(campus_map, directory)
     before = read_bundle(directory)
-    half = dataclasses.replace(before, stamps_ns=before.stamps_ns[:5], poses6=before.poses6[:5],
-                               corner=before.corner[:5], surf=before.surf[:5], outlier=before.outlier[:5],
-                               factors=before.factors[:5])
+    half = dataclasses.replace(
+        before,
+        stamps_ns=before.stamps_ns[:5],
+        poses6=before.poses6[:5],
+        corner=before.corner[:5],
+        surf=before.surf[:5],
+        outlier=before.outlier[:5],
+        factors=before.factors[:5],
+    )
 
     def crash(*args, **kwargs):
         raise OSError('killed')
@@ -107,8 +122,8 @@ def test_a_save_interrupted_before_its_manifest_leaves_the_previous_bundle_whole
     with pytest.raises(OSError, match='killed'):
         write_bundle(directory, half)
     monkeypatch.undo()
-    assert len(list(directory.glob('map_bundle.*.npz'))) == 2   # the new data, which no manifest names
-    assert len(read_bundle(directory)) == 20                     # the previous bundle, whole
-    write_bundle(directory, half)                                # the next save completes, and tidies up
+    assert len(list(directory.glob('map_bundle.*.npz'))) == 2  # the new data, which no manifest names
+    assert len(read_bundle(directory)) == 20  # the previous bundle, whole
+    write_bundle(directory, half)  # the next save completes, and tidies up
     assert len(read_bundle(directory)) == 5 and len(list(directory.glob('map_bundle.*.npz'))) == 1
     assert (directory / MANIFEST).is_file() and not list(directory.glob('.*tmp*'))

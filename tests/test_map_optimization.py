@@ -1,5 +1,6 @@
 """mapOptimization core: line/plane fitting, Jacobians, scan-to-map recovery, iSAM2 loop correction,
 keyframes and the surrounding map, golden parity, saving."""
+
 from __future__ import annotations
 
 import math
@@ -8,13 +9,13 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import matrix_to_quaternion, pose6_to_matrix, transform_cloud, transform_points
-from lego_loam_py.core.image_projection import ImageProjection, prepare_input
-from lego_loam_py.core.map_optimization import MapOptimization
+from lego_loam_py.core.mapping.map_optimization import MapOptimization
+from lego_loam_py.core.mapping.scan_to_map import edge_correspondences, map_jacobian_rows, plane_correspondences
+from lego_loam_py.core.odometry.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.params import Params, default_params_file, load_params
 from lego_loam_py.core.pipeline import Pipeline
-from lego_loam_py.core.scan_to_map import edge_correspondences, map_jacobian_rows, plane_correspondences
+from lego_loam_py.core.projection.image_projection import ImageProjection, prepare_input
 from lego_loam_py.core.voxel import voxel_downsample
 from tests.support.sweeps import room_world, sweep
 
@@ -64,13 +65,12 @@ def test_a_plane_needs_neighbours_that_span_one_not_a_ring_of_points_along_a_lin
     principal spreads are checked by hand."""
     from lego_loam_py.core.geometry import fit_planes, principal_spreads
 
-    ring = np.array([[[x, -1.8, 10.0 + 0.002 * x * x] for x in (-0.8, -0.4, 0.0, 0.4, 0.8)]])   # a ring arc
-    patch = np.array([[[0.0, -1.8, 10.0], [1.0, -1.8, 10.0], [0.0, -1.8, 10.5], [1.0, -1.8, 10.5],
-                       [0.5, -1.8, 10.25]]])
+    ring = np.array([[[x, -1.8, 10.0 + 0.002 * x * x] for x in (-0.8, -0.4, 0.0, 0.4, 0.8)]])  # a ring arc
+    patch = np.array([[[0.0, -1.8, 10.0], [1.0, -1.8, 10.0], [0.0, -1.8, 10.5], [1.0, -1.8, 10.5], [0.5, -1.8, 10.25]]])
     # The patch: variance 4 x 0.5^2 / 5 = 0.2 m^2 across x, 4 x 0.25^2 / 5 = 0.05 m^2 along z.
     along, across = principal_spreads(patch)
     assert along[0] == pytest.approx(math.sqrt(0.2), rel=1e-9) and across[0] == pytest.approx(math.sqrt(0.05), rel=1e-9)
-    along, across = principal_spreads(ring)    # 0.57 m RMS along x; the arc bends by 1.3 mm
+    along, across = principal_spreads(ring)  # 0.57 m RMS along x; the arc bends by 1.3 mm
     assert along[0] == pytest.approx(math.sqrt(0.32), rel=1e-3) and across[0] < 0.001
     assert len(fit_planes(ring, 0.2)[0]) == 1 and len(fit_planes(ring, 0.2, 0.2)[0]) == 0
     assert len(fit_planes(patch, 0.2, 0.2)[0]) == 1
@@ -112,14 +112,15 @@ def test_scan_registered_to_a_map_of_itself_under_a_known_offset_is_recovered():
     surf_map = voxel_downsample(f.less_flat, 0.4)
     corner_ds, surf_ds = corner_map.copy(), surf_map.copy()
     truth = np.zeros(6)
-    start = np.array([0.01, math.radians(2.0), -0.01, 0.15, -0.05, 0.2])   # offset of the initial guess
+    start = np.array([0.01, math.radians(2.0), -0.01, 0.15, -0.05, 0.2])  # offset of the initial guess
     pose = mo.register_to_map(corner_map, surf_map, corner_ds, surf_ds, start)
     assert np.abs(pose[3:] - truth[3:]).max() < 0.01
     assert math.degrees(np.abs(pose[:3] - truth[:3]).max()) < 0.05
 
 
-def plane_grid(axis: int, at: float, first: tuple[float, float], second: tuple[float, float],
-               spacing: float) -> np.ndarray:
+def plane_grid(
+    axis: int, at: float, first: tuple[float, float], second: tuple[float, float], spacing: float
+) -> np.ndarray:
     """Points on the plane ``coordinate[axis] = at`` [m], a grid over the other two coordinates (in order)."""
     u, v = (np.arange(low, high + 1e-9, spacing) for low, high in (first, second))
     u, v = (g.ravel() for g in np.meshgrid(u, v))
@@ -145,27 +146,26 @@ def register_in_corridor(end_walls: bool, start: np.ndarray, **overrides):
     """The corridor's surfaces seen from the origin (3 mm noise) registered to themselves from ``start``:
     (pose, RegistrationCounts)."""
     from lego_loam_py.core.gauss_newton import DegeneracyProjection
-    from lego_loam_py.core.scan_to_map import register_scan_to_map
+    from lego_loam_py.core.mapping.scan_to_map import register_scan_to_map
 
     surfaces = corridor_surfaces(end_walls)
     scan = surfaces.copy()
     scan[:, :3] += np.random.default_rng(0).normal(0, 0.003, (len(scan), 3)).astype(np.float32)
     none = np.zeros((0, 4), np.float32)
-    return register_scan_to_map(none, surfaces, none, scan, start, PARAMS.replace(**overrides),
-                                DegeneracyProjection(6))
+    return register_scan_to_map(none, surfaces, none, scan, start, PARAMS.replace(**overrides), DegeneracyProjection(6))
 
 
 def test_a_corridor_height_held_by_fifty_floor_and_ceiling_matches_is_not_degenerate():
     """The condition (smallest eigenvalue of the normal matrix) counts the full-weight correspondences holding
     the worst direction: here the height, held only by the 50 floor and ceiling points. That registers it to
     the millimetre; the original's threshold (100) called it degenerate and kept the initial guess's 5 cm."""
-    start = np.array([0.0, 0.0, math.radians(0.5), 0.0, 0.05, 0.0])    # 0.5 deg roll, 5 cm too high
+    start = np.array([0.0, 0.0, math.radians(0.5), 0.0, 0.05, 0.0])  # 0.5 deg roll, 5 cm too high
     pose, counts = register_in_corridor(True, start)
-    assert 45 < counts.condition < 50 and not counts.degenerate       # 50 matches of weight 0.98-1
+    assert 45 < counts.condition < 50 and not counts.degenerate  # 50 matches of weight 0.98-1
     assert np.abs(pose[3:]).max() < 0.002 and math.degrees(np.abs(pose[:3]).max()) < 0.05
     pose, counts = register_in_corridor(True, start, map_optimization__degeneracy_threshold=100.0)
     assert counts.degenerate and counts.condition < 50
-    assert pose[4] == pytest.approx(0.05, abs=0.002)                  # the height was never registered
+    assert pose[4] == pytest.approx(0.05, abs=0.002)  # the height was never registered
 
 
 def test_scan_to_map_holds_what_the_map_cannot_see_and_registers_the_rest():
@@ -191,14 +191,15 @@ def test_isam2_loop_factor_corrects_a_drifted_chain():
         step = np.eye(4)
         turn = math.pi / 2 if k % 10 == 9 else 0.0
         step[:3, :3] = pose6_to_matrix([0, turn, 0, 0, 0, 0])[:3, :3]
-        step[2, 3] = 2.0                                   # 2 m forward (camera z)
+        step[2, 3] = 2.0  # 2 m forward (camera z)
         truth = truth @ step
         noisy = step.copy()
         noisy[:3, :3] = pose6_to_matrix([0, turn + math.radians(1.5), 0, 0, 0, 0])[:3, :3]  # 1.5 deg over-turn
         belief = belief @ noisy
         true_poses.append(truth.copy())
-        mo.transform_aft = mo.transform_tobe = np.array([*__import__('lego_loam_py.core.frames', fromlist=['x'])
-                                                        .matrix_to_euler(belief[:3, :3]), *belief[:3, 3]])
+        mo.transform_aft = mo.transform_tobe = np.array(
+            [*__import__('lego_loam_py.core.frames', fromlist=['x']).matrix_to_euler(belief[:3, :3]), *belief[:3, 3]]
+        )
         assert mo._save_keyframe(k, empty, empty, empty)
         drifted.append(pose6_to_matrix(mo.keyframes[-1].pose6))
     error_before = np.linalg.norm(drifted[-1][:3, 3] - true_poses[-1][:3, 3])
@@ -215,7 +216,7 @@ def test_isam2_loop_factor_corrects_a_drifted_chain():
 
 def moved(x: float) -> np.ndarray:
     pose = np.eye(4)
-    pose[0, 3] = x          # forward (lidar x)
+    pose[0, 3] = x  # forward (lidar x)
     return pose
 
 
@@ -225,7 +226,7 @@ def test_keyframes_every_0_3_m_and_the_surrounding_map():
     added = []
     for k in range(8):
         f = features_of(scene, moved(0.16 * k))
-        odometry = np.array([0, 0, 0, 0, 0, 0.16 * k])     # the odometry agrees: 16 cm per step (camera z)
+        odometry = np.array([0, 0, 0, 0, 0, 0.16 * k])  # the odometry agrees: 16 cm per step (camera z)
         step = mo.process(k * 400_000_000, odometry, f.less_sharp, f.less_flat, np.zeros((0, 4), np.float32))
         added.append(step.keyframe_added)
         assert abs(step.transform_aft[5] - 0.16 * k) < 0.03
@@ -239,8 +240,10 @@ def test_keyframes_every_0_3_m_and_the_surrounding_map():
     expected = sorted({int(np.mean([i for i in range(4) if (cells[i] == cell).all()])) for cell in cells})
     assert ids == expected and mo._corner_accumulator.ids() <= set(ids)
     # Steps closer than mapping_process_interval are skipped.
-    assert mo.process(7 * 400_000_000 + 200_000_000, np.zeros(6), f.less_sharp, f.less_flat,
-                      np.zeros((0, 4), np.float32)) is None
+    assert (
+        mo.process(7 * 400_000_000 + 200_000_000, np.zeros(6), f.less_sharp, f.less_flat, np.zeros((0, 4), np.float32))
+        is None
+    )
 
 
 def test_keypose_pick_latest_maps_a_second_pass_with_its_own_keyframes():
@@ -252,7 +255,7 @@ def test_keypose_pick_latest_maps_a_second_pass_with_its_own_keyframes():
         mo.transform_aft = mo.transform_tobe = np.array([0, 0, 0, 0, 0, z])
         mo._save_keyframe(k, empty, empty, empty)
     mo.current_position = np.array([0, 0, 0.5])
-    assert mo._surrounding_ids() == list(range(16, 32))     # each place's latest keyframe: the second pass
+    assert mo._surrounding_ids() == list(range(16, 32))  # each place's latest keyframe: the second pass
     # The original averages the indices in each 1 m voxel (quirk 8.5): place j holds keyframes j and j + 16,
     # so it picks j + 8, a keyframe 16 m away from place j.
     original = MapOptimization(PARAMS)
@@ -269,14 +272,19 @@ def test_surrounding_map_radius_and_recent_modes():
         mo._save_keyframe(k, empty, empty, empty)
     mo.current_position = np.array([0, 0, 0.0])
     ids = mo._surrounding_ids()
-    assert max(ids) <= 25 and min(ids) == 0              # within 50 m
+    assert max(ids) <= 25 and min(ids) == 0  # within 50 m
     verified = MapOptimization(PARAMS.replace(loop_closure__loop_closure_enable_flag=True))
-    verified.keyframes, verified._positions, verified.current_position = mo.keyframes, mo._positions, mo.current_position
-    assert verified._surrounding_ids() == ids                     # the verified loop closure keeps the radius
-    loop_mode = MapOptimization(PARAMS.replace(loop_closure__loop_closure_enable_flag=True,
-                                               loop_closure__method='original'))
+    verified.keyframes, verified._positions, verified.current_position = (
+        mo.keyframes,
+        mo._positions,
+        mo.current_position,
+    )
+    assert verified._surrounding_ids() == ids  # the verified loop closure keeps the radius
+    loop_mode = MapOptimization(
+        PARAMS.replace(loop_closure__loop_closure_enable_flag=True, loop_closure__method='original')
+    )
     loop_mode.keyframes, loop_mode._positions = mo.keyframes, mo._positions
-    assert loop_mode._surrounding_ids() == list(range(10, 60))   # the last 50
+    assert loop_mode._surrounding_ids() == list(range(10, 60))  # the last 50
 
 
 def test_map_equals_the_originals_on_golden_data(shared_data):
@@ -299,16 +307,26 @@ def test_map_equals_the_originals_on_golden_data(shared_data):
 
 
 def test_save_writes_complete_files_atomically(tmp_path):
-    from lego_loam_py.core.io import read_pcd, read_tum
+    from lego_loam_py.formats import read_pcd, read_tum
+
     scene = room_world(seed=9)
     mo = MapOptimization(PARAMS)
     for k in range(4):
         f = features_of(scene, moved(0.4 * k))
-        mo.process(k * 400_000_000, np.array([0, 0, 0, 0, 0, 0.4 * k]), f.less_sharp, f.less_flat,
-                   np.zeros((0, 4), np.float32))
+        mo.process(
+            k * 400_000_000, np.array([0, 0, 0, 0, 0, 0.4 * k]), f.less_sharp, f.less_flat, np.zeros((0, 4), np.float32)
+        )
     written = mo.save(tmp_path)
-    assert set(written) == {'global_map', 'corner_map', 'surface_map', 'trajectory', 'trajectory_tum',
-                            'trajectory_camera_init_tum', 'map_bundle', 'map_bundle_data'}
+    assert set(written) == {
+        'global_map',
+        'corner_map',
+        'surface_map',
+        'trajectory',
+        'trajectory_tum',
+        'trajectory_camera_init_tum',
+        'map_bundle',
+        'map_bundle_data',
+    }
     stamps, poses = read_tum(written['trajectory_tum'])
     assert len(stamps) == len(mo.keyframes) == 4
     # REP-103 map axes: the 0.4 m steps along camera z are steps along x.
@@ -323,14 +341,17 @@ def test_save_writes_complete_files_atomically(tmp_path):
 def test_transform_cloud_is_the_world_convention():
     pose = np.array([0.1, 0.5, -0.2, 1.0, 2.0, 3.0])
     points = cloud([[1.0, 0.0, 0.0], [0.0, 0.0, 5.0]])
-    assert np.allclose(transform_cloud(points, pose)[:, :3],
-                       transform_points(pose6_to_matrix(pose), points[:, :3].astype(float)), atol=1e-5)
+    assert np.allclose(
+        transform_cloud(points, pose)[:, :3],
+        transform_points(pose6_to_matrix(pose), points[:, :3].astype(float)),
+        atol=1e-5,
+    )
 
 
 def test_an_empty_map_is_saved_as_a_valid_empty_pcd(tmp_path):
     """A save before the first keyframe (or of a map without outliers) writes valid empty files, not none and
     not an error: open3d refuses to write an empty cloud, so the writer makes the header itself."""
-    from lego_loam_py.core.io import pcd_is_complete, read_pcd, write_pcd_atomic
+    from lego_loam_py.formats import pcd_is_complete, read_pcd, write_pcd_atomic
 
     for columns in (3, 4):
         path = write_pcd_atomic(tmp_path / f'empty{columns}.pcd', np.zeros((0, columns), np.float32))
@@ -343,15 +364,15 @@ def test_an_empty_map_is_saved_as_a_valid_empty_pcd(tmp_path):
 
 def _translation(z: float) -> np.ndarray:
     pose = np.eye(4)
-    pose[2, 3] = z   # forward, in camera axes
+    pose[2, 3] = z  # forward, in camera axes
     return pose
 
 
 def test_odometry_continuity_tells_a_restart_from_motion():
-    from lego_loam_py.core.odometry_continuity import OdometryContinuity
+    from lego_loam_py.core.mapping.odometry_continuity import OdometryContinuity
 
     continuity = OdometryContinuity()
-    ns = 100_000_000   # 0.1 s
+    ns = 100_000_000  # 0.1 s
     # 10 m/s forward, one publisher: motion.
     assert all(continuity.check(k * ns, _translation(float(k)), b'a') is None for k in range(20))
     # 100 m in 0.1 s: no vehicle does that.
@@ -360,7 +381,7 @@ def test_odometry_continuity_tells_a_restart_from_motion():
     assert jump.previous[0] == 19 * ns and jump.older is not None and jump.older[0] == 18 * ns
     # Back at the origin after 3 s (featureAssociation restarted): 119 m in 3 s is plausible motion, the origin is not.
     jump = continuity.check(50 * ns, np.eye(4), b'a')
-    assert jump is not None and jump.older is None   # (the pose before the last belonged to the old frame)
+    assert jump is not None and jump.older is None  # (the pose before the last belonged to the old frame)
     # Another publisher: 0.2 m is motion, 1 m is a restart elsewhere (only the publisher tells).
     assert continuity.check(51 * ns, _translation(0.2), b'b') is None
     jump = continuity.check(52 * ns, _translation(1.2), b'c')
@@ -373,8 +394,11 @@ def test_reanchoring_continues_from_the_last_mapped_pose_at_the_last_speed():
     """Odometry and map frames agree (T_aft = T_bef); the odometry drove to z = 10 m at 10 m/s, went away for
     0.5 s and came back at its origin: the next prediction is where the vehicle is now, z = 15 m."""
     from lego_loam_py.core.frames import invert_pose, matrix_to_pose6, pose6_to_matrix
-    from lego_loam_py.core.odometry_continuity import (OdometryContinuity, anchored_transform_bef,
-                                                      MAX_EXTRAPOLATION_S)
+    from lego_loam_py.core.mapping.odometry_continuity import (
+        MAX_EXTRAPOLATION_S,
+        OdometryContinuity,
+        anchored_transform_bef,
+    )
 
     ns = 100_000_000
     continuity = OdometryContinuity()
@@ -392,5 +416,4 @@ def test_reanchoring_continues_from_the_last_mapped_pose_at_the_last_speed():
     jump = continuity.check(210 * ns + int((MAX_EXTRAPOLATION_S + 1) * 1e9), np.eye(4))
     assert jump is not None
     bef = anchored_transform_bef(jump, np.eye(4), same, same)
-    np.testing.assert_allclose(pose6_to_matrix(same) @ invert_pose(pose6_to_matrix(bef)), _translation(4.0),
-                               atol=1e-9)
+    np.testing.assert_allclose(pose6_to_matrix(same) @ invert_pose(pose6_to_matrix(bef)), _translation(4.0), atol=1e-9)

@@ -1,8 +1,10 @@
 """The mapOptimization node in this process, fed featureAssociation's outputs for the first 3 s of the campus:
 what it reports about each mapping step."""
+
 from __future__ import annotations
 
-from tests.support.inprocess import make_node, mapping_inputs, pipeline_outputs, restamped, stamp_of
+from lego_loam_py.testing.messages import restamped, stamp_of
+from tests.support.inprocess import make_node, mapping_inputs, pipeline_outputs
 
 
 def map_campus(context, tmp_path, **overrides):
@@ -24,7 +26,7 @@ def test_each_mapping_step_reports_how_well_the_map_held_it(context, tmp_path):
     every direction with hundreds of them, so no step is degenerate. A threshold above that makes every
     registration degenerate: counted and warned about (the log throttles the repeats)."""
     node, recorder = map_campus(context, tmp_path)
-    steps = node.counters['steps']
+    steps = node.counters['mapping_steps']
     measures = node.statistics()['measures']
     assert steps >= 4
     # The first step has no map to register against: no condition.
@@ -35,8 +37,8 @@ def test_each_mapping_step_reports_how_well_the_map_held_it(context, tmp_path):
     node.destroy_node()
 
     node, recorder = map_campus(context, tmp_path, **{'map_optimization.degeneracy_threshold': 1e9})
-    assert node.counters['degenerate'] == node.counters['steps'] - 1
+    assert node.counters['mapping_degenerate'] == node.counters['mapping_steps'] - 1
     warnings = [text for key, text in recorder.warnings if key == 'degenerate']
-    assert len(warnings) == node.counters['degenerate']   # (the recorder sees every call; the log is throttled)
+    assert len(warnings) == node.counters['mapping_degenerate']  # (the recorder sees every call; the log is throttled)
     assert 'held by fewer than 1e+09 correspondences' in warnings[0]
     node.destroy_node()

@@ -1,12 +1,13 @@
 """One bad message never silences a node (issue 14): property tests of every node's message handling.
 
 Each node runs in this process and gets, from hypothesis, a sequence of malformed messages on the topics it
-subscribes to (every field of every message type, from ``tests.support.malformed``: boundary and absurd
+subscribes to (every field of every message type, from ``lego_loam_py.testing.malformed``: boundary and absurd
 values, other lengths, broken layouts, stamps far away), then valid input that continues the valid timeline.
 The invariant: no unexpected error, and the first valid input produces finite output again. Then the memory
 cases (a 2,000,000-point cloud is rejected on its header, before it is decoded) and the last line of defence
 (a state poisoned past the checks is found and reset, keeping what was built).
 """
+
 from __future__ import annotations
 
 import math
@@ -16,13 +17,17 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tests.support.inprocess import campus_messages, make_node, mapping_inputs, pipeline_outputs, restamped, stamp_of
-from tests.support.malformed import (malformed_cloud, malformed_cloud_info, malformed_imu, malformed_odometry)
+from lego_loam_py.testing.malformed import malformed_cloud, malformed_cloud_info, malformed_imu, malformed_odometry
+from lego_loam_py.testing.messages import restamped, stamp_of
+from tests.support.inprocess import campus_messages, make_node, mapping_inputs, pipeline_outputs
 
-SETTINGS = dict(deadline=None, derandomize=True, database=None,
-                suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture,
-                                       HealthCheck.data_too_large])
-SEQUENCES = st.tuples(st.integers(0, 2**32 - 1), st.integers(1, 6))   # (seed, bad messages before valid input)
+SETTINGS = dict(
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture, HealthCheck.data_too_large],
+)
+SEQUENCES = st.tuples(st.integers(0, 2**32 - 1), st.integers(1, 6))  # (seed, bad messages before valid input)
 
 
 class Clock:
@@ -45,6 +50,7 @@ def finite_pose(msg) -> bool:
 
 def finite_cloud(msg) -> bool:
     from lego_loam_py.ros.conversions import cloud_msg_to_xyzi
+
     return bool(np.isfinite(cloud_msg_to_xyzi(msg)).all())
 
 
@@ -100,6 +106,7 @@ def as_received(name: str, msg):
     if name != 'info':
         return msg
     from rclpy.serialization import serialize_message
+
     try:
         return serialize_message(msg)
     except Exception:
@@ -181,14 +188,14 @@ def test_map_optimization_maps_the_next_valid_input_after_any_bad_messages(conte
     outputs = pipeline_outputs(context, tmp_path)
     mo, rec = make_node(context, MapOptimizationNode, tmp_path)
     inputs = mapping_inputs(outputs)
-    clock = Clock(step_ns=400_000_000)   # more than the 0.3 s between two mapping steps
+    clock = Clock(step_ns=400_000_000)  # more than the 0.3 s between two mapping steps
 
     def valid_input(k: int, stamp: int) -> None:
         for name, msg in zip(('corner', 'surf', 'outlier'), inputs[k][:3]):
             mo.on_part(name, restamped(msg, stamp))
         mo.on_odometry(restamped(inputs[k][3], stamp), {})
 
-    for k in range(min(4, len(inputs))):   # a map to register against
+    for k in range(min(4, len(inputs))):  # a map to register against
         valid_input(k, clock.next())
     assert rec.out('/aft_mapped_to_init') and mo.core.keyframes
     keyframes = len(mo.core.keyframes)
@@ -213,7 +220,7 @@ def test_map_optimization_maps_the_next_valid_input_after_any_bad_messages(conte
         assert finite_pose(out[0]) and mo.core.health_problem() is None
 
     for_any_bad_messages(60, bad, valid)
-    assert len(mo.core.keyframes) >= keyframes   # nothing built was lost
+    assert len(mo.core.keyframes) >= keyframes  # nothing built was lost
     mo.destroy_node()
 
 
@@ -254,12 +261,24 @@ def test_a_huge_cloud_is_rejected_on_its_header_before_it_is_decoded(context, tm
 
     outputs = pipeline_outputs(context, tmp_path)
     module, cls, template, deliver = {
-        'imageProjection': (ip_module, ip_module.ImageProjectionNode, outputs['clouds'][0],
-                            lambda node, m: node.on_cloud(m)),
-        'featureAssociation': (fa_module, fa_module.FeatureAssociationNode, outputs['segmented'][0],
-                               lambda node, m: node.on_part('cloud', m)),
-        'mapOptimization': (mo_module, mo_module.MapOptimizationNode, outputs['surf_last'][0],
-                            lambda node, m: node.on_part('surf', m)),
+        'imageProjection': (
+            ip_module,
+            ip_module.ImageProjectionNode,
+            outputs['clouds'][0],
+            lambda node, m: node.on_cloud(m),
+        ),
+        'featureAssociation': (
+            fa_module,
+            fa_module.FeatureAssociationNode,
+            outputs['segmented'][0],
+            lambda node, m: node.on_part('cloud', m),
+        ),
+        'mapOptimization': (
+            mo_module,
+            mo_module.MapOptimizationNode,
+            outputs['surf_last'][0],
+            lambda node, m: node.on_part('surf', m),
+        ),
     }[node_name]
     decoded = []
     for name in ('cloud_msg_to_array', 'cloud_msg_to_xyzi'):
@@ -275,17 +294,23 @@ def test_a_huge_cloud_is_rejected_on_its_header_before_it_is_decoded(context, tm
 
 
 def test_validation_names_the_field_the_value_and_the_bound():
-    from lego_loam_py.core.image_projection import CloudInfo
     from lego_loam_py.core.params import Params
+    from lego_loam_py.core.projection.image_projection import CloudInfo
     from lego_loam_py.core.validation import InputRejected, check_cloud_info
 
     params = Params()
-    good = dict(start_ring_index=np.zeros(16, np.int32), end_ring_index=np.full(16, 9, np.int32),
-                start_orientation=np.float32(-0.1), end_orientation=np.float32(-0.1 + 2 * math.pi),
-                orientation_diff=np.float32(2 * math.pi), segmented_cloud_ground_flag=np.zeros(10, bool),
-                segmented_cloud_col_ind=np.arange(10, dtype=np.uint32), segmented_cloud_range=np.ones(10, np.float32))
+    good = dict(
+        start_ring_index=np.zeros(16, np.int32),
+        end_ring_index=np.full(16, 9, np.int32),
+        start_orientation=np.float32(-0.1),
+        end_orientation=np.float32(-0.1 + 2 * math.pi),
+        orientation_diff=np.float32(2 * math.pi),
+        segmented_cloud_ground_flag=np.zeros(10, bool),
+        segmented_cloud_col_ind=np.arange(10, dtype=np.uint32),
+        segmented_cloud_range=np.ones(10, np.float32),
+    )
     check_cloud_info('info', CloudInfo(**good), params, 10)
-    with pytest.raises(InputRejected, match=r"info.orientation_diff = 1e-30, outside \[3.1406, 9.4258\] rad"):
+    with pytest.raises(InputRejected, match=r'info.orientation_diff = 1e-30, outside \[3.1406, 9.4258\] rad'):
         check_cloud_info('info', CloudInfo(**{**good, 'orientation_diff': np.float32(1e-30)}), params)
     with pytest.raises(InputRejected, match='end_orientation .* must equal start_orientation'):
         check_cloud_info('info', CloudInfo(**{**good, 'end_orientation': np.float32(3.0)}), params)
@@ -294,18 +319,19 @@ def test_validation_names_the_field_the_value_and_the_bound():
     with pytest.raises(InputRejected, match='segmented_cloud_range length = 10, shorter than the segmented cloud'):
         check_cloud_info('info', CloudInfo(**good), params, 12)
     with pytest.raises(InputRejected, match='segmented_cloud_col_ind = 1800, beyond the 1800 columns'):
-        check_cloud_info('info', CloudInfo(**{**good, 'segmented_cloud_col_ind': np.full(10, 1800, np.uint32)}), params,
-                         10)
+        check_cloud_info(
+            'info', CloudInfo(**{**good, 'segmented_cloud_col_ind': np.full(10, 1800, np.uint32)}), params, 10
+        )
 
 
-@pytest.mark.filterwarnings('ignore:invalid value encountered:RuntimeWarning')   # (the poisoned scan below)
+@pytest.mark.filterwarnings('ignore:invalid value encountered:RuntimeWarning')  # (the poisoned scan below)
 def test_feature_association_recovers_from_a_poisoned_state_and_keeps_its_pose(context, tmp_path):
     """The last line of defence: a state that got poisoned anyway (here by a scan handed to the core past the
     node's checks, with the orientation_diff of 1e-30 that used to silence the node for good) is found at the
     next scan, reset with one error, and odometry goes on from the pose reached so far."""
     import copy
 
-    from lego_loam_py.core.feature_association import ScanInput
+    from lego_loam_py.core.odometry.feature_association import ScanInput
     from lego_loam_py.ros.conversions import cloud_info_from_msg, cloud_msg_to_xyzi
     from lego_loam_py.ros.feature_association_node import FeatureAssociationNode
 
@@ -317,15 +343,18 @@ def test_feature_association_recovers_from_a_poisoned_state_and_keeps_its_pose(c
     pose = fa.core.transform_sum.copy()
     info = copy.copy(cloud_info_from_msg(outputs['info'][3]))
     info.orientation_diff = np.float32(1e-30)
-    fa.core.process(ScanInput(clock.next(), cloud_msg_to_xyzi(outputs['segmented'][3]), info,
-                              cloud_msg_to_xyzi(outputs['outlier'][3])))
-    assert fa.core.health_problem() is not None   # what the node would have published from on
+    fa.core.process(
+        ScanInput(
+            clock.next(), cloud_msg_to_xyzi(outputs['segmented'][3]), info, cloud_msg_to_xyzi(outputs['outlier'][3])
+        )
+    )
+    assert fa.core.health_problem() is not None  # what the node would have published from on
     before = len(rec.out('/laser_odom_to_init'))
     send_scan(fa, outputs, 4, clock.next())
     assert len(rec.resets) == 1 and 'last corner cloud intensities' in rec.resets[0][1], rec.resets
     send_scan(fa, outputs, 5, clock.next())
     after = rec.out('/laser_odom_to_init')[before:]
-    assert len(after) == 1 and finite_pose(after[0])   # the next scan: odometry again, from the pose kept
+    assert len(after) == 1 and finite_pose(after[0])  # the next scan: odometry again, from the pose kept
     p = after[0].pose.pose.position
     assert np.linalg.norm(np.array([p.x, p.y, p.z]) - pose[3:]) < 1.0
     send_scan(fa, outputs, 6, clock.next())
@@ -333,7 +362,7 @@ def test_feature_association_recovers_from_a_poisoned_state_and_keeps_its_pose(c
     fa.destroy_node()
 
 
-@pytest.mark.filterwarnings('ignore:invalid value encountered:RuntimeWarning')   # (the NaN pose planted below)
+@pytest.mark.filterwarnings('ignore:invalid value encountered:RuntimeWarning')  # (the NaN pose planted below)
 def test_map_optimization_heals_a_poisoned_optimizer_and_keeps_the_map(context, tmp_path):
     from lego_loam_py.ros.map_optimization_node import MapOptimizationNode
 
@@ -352,7 +381,7 @@ def test_map_optimization_heals_a_poisoned_optimizer_and_keeps_the_map(context, 
     for k in range(4):
         valid_input(k)
     kept = len(mo.core.keyframes)
-    mo.core.keyframes[-1].pose6 = np.full(6, np.nan)    # a broken optimizer solution
+    mo.core.keyframes[-1].pose6 = np.full(6, np.nan)  # a broken optimizer solution
     mo.core.transform_aft = np.full(6, np.inf)
     valid_input(4)
     assert len(rec.resets) == 1 and 'not finite' in rec.resets[0][1] and 'keyframes kept' in rec.resets[0][1]
@@ -360,7 +389,7 @@ def test_map_optimization_heals_a_poisoned_optimizer_and_keeps_the_map(context, 
     stamp = valid_input(5)
     out = [m for m in rec.out('/aft_mapped_to_init') if stamp_of(m) == stamp]
     assert len(out) == 1 and finite_pose(out[0])
-    assert mo._save_now()[0]   # the map built before is still there, and saves
+    assert mo._save_now()[0]  # the map built before is still there, and saves
     mo.destroy_node()
 
 
@@ -374,8 +403,12 @@ def test_the_short_dds_campaign_finds_no_crash_no_silence_and_no_non_finite_outp
     from pathlib import Path
 
     repo = Path(__file__).resolve().parents[1]
-    done = subprocess.run([sys.executable, str(repo / 'benchmarks' / 'campaign.py'), '--short', '--out', str(tmp_path)],
-                          capture_output=True, text=True, timeout=600)
+    done = subprocess.run(
+        [sys.executable, str(repo / 'benchmarks' / 'campaign.py'), '--short', '--out', str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     summary = json.loads((tmp_path / 'summary.json').read_text())
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     for node, report in summary['nodes'].items():

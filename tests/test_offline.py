@@ -6,6 +6,7 @@
   overlaps work, it never changes which mapping results a scan is fused with);
 * a bag without the cloud topic fails with a clear message and exit code 1.
 """
+
 from __future__ import annotations
 
 import json
@@ -16,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lego_loam_py.core.io import read_pcd, read_tum
 from lego_loam_py.core.params import Params
+from lego_loam_py.formats import read_pcd, read_tum
 from lego_loam_py.offline import run_bag
 
 REPO = Path(__file__).resolve().parents[1]
@@ -30,8 +31,9 @@ ATE_BOUND_M = 0.05
 
 def test_run_writes_trajectories_maps_png_and_an_accurate_summary(tmp_path):
     out = tmp_path / 'out'
-    done = subprocess.run([str(CLI), 'run', str(BAG), '-o', str(out), '--no-progress'], capture_output=True,
-                          text=True, timeout=300)
+    done = subprocess.run(
+        [str(CLI), 'run', str(BAG), '-o', str(out), '--no-progress'], capture_output=True, text=True, timeout=300
+    )
     assert done.returncode == 0, done.stderr
     assert 'x real time' in done.stdout and 'accuracy vs ground truth: ATE RMSE' in done.stdout
     summary = json.loads((out / 'summary.json').read_text())
@@ -60,9 +62,21 @@ def test_mapping_thread_gives_the_sequential_result():
 
 
 def test_a_bag_without_the_cloud_topic_fails_clearly(tmp_path):
-    done = subprocess.run([str(CLI), 'run', str(BAG), '-o', str(tmp_path / 'out'), '--no-progress',
-                           '-p', 'sensor.point_cloud_topic:=/no_such_points'],
-                          capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [
+            str(CLI),
+            'run',
+            str(BAG),
+            '-o',
+            str(tmp_path / 'out'),
+            '--no-progress',
+            '-p',
+            'sensor.point_cloud_topic:=/no_such_points',
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 1
     assert 'no /no_such_points topic' in done.stderr and 'Traceback' not in done.stderr
 
@@ -98,8 +112,13 @@ def test_run_on_a_recording_of_a_few_scans_writes_complete_readable_files(tmp_pa
 
     bag = _first_scans(tmp_path / f'scans_{scans}', scans)
     out = tmp_path / 'out'
-    done = subprocess.run([str(CLI), 'run', str(bag), '-o', str(out), '--no-progress'], capture_output=True,
-                          text=True, timeout=300, preexec_fn=lambda: os.umask(0o022))
+    done = subprocess.run(
+        [str(CLI), 'run', str(bag), '-o', str(out), '--no-progress'],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        preexec_fn=lambda: os.umask(0o022),
+    )
     assert done.returncode == 0, done.stderr
     assert 'Traceback' not in done.stderr and 'not evaluated' in done.stdout
     summary = json.loads((out / 'summary.json').read_text())
@@ -109,7 +128,7 @@ def test_run_on_a_recording_of_a_few_scans_writes_complete_readable_files(tmp_pa
     assert files and not [p for p in files if p.stat().st_size == 0 or '.tmp' in p.name]
     assert all(stat.S_IMODE(p.stat().st_mode) == 0o644 for p in files), {p.name: oct(p.stat().st_mode) for p in files}
     assert (out / 'trajectory.tum').exists() == (scans >= 2)
-    assert (out / 'trajectory.png').exists() == (scans >= 2)   # an empty plot is no picture of a run
+    assert (out / 'trajectory.png').exists() == (scans >= 2)  # an empty plot is no picture of a run
     if scans >= 2:
         assert len(read_tum(out / 'trajectory.tum')[0]) == scans - 1
         assert len(read_pcd(out / 'map' / 'global_map.pcd')) > 100
@@ -121,7 +140,7 @@ def test_files_are_written_with_the_users_umask(tmp_path):
     import os
     import stat
 
-    from lego_loam_py.core.io import write_text_atomic, write_tum_atomic
+    from lego_loam_py.formats import write_text_atomic, write_tum_atomic
 
     previous = os.umask(0o027)
     try:
@@ -153,7 +172,7 @@ def test_the_one_scan_facade_gives_odometry_per_scan_and_says_why_a_scan_is_drop
     assert first.odometry is None and first.dropped is None
     second = pipeline.process_scan(clouds[1][1], clouds[1][0])
     assert second.odometry.shape == (4, 4) and np.isfinite(second.odometry).all()
-    assert 0.05 < np.linalg.norm(second.odometry[:3, 3]) < 1.0   # 0.1 s of a drive at a few m/s
+    assert 0.05 < np.linalg.norm(second.odometry[:3, 3]) < 1.0  # 0.1 s of a drive at a few m/s
     empty = pipeline.process_scan(clouds[2][1][:0], clouds[2][0])
     assert empty.odometry is None and empty.dropped and warnings and 'dropped' in warnings[-1]
     assert pipeline.skip_scan(clouds[2][0] + 1, 'undecodable').dropped == 'undecodable'
@@ -167,6 +186,7 @@ def _errors_from_the_first_pose(bag: Path, stamps_ns: np.ndarray, poses: np.ndar
     """(position errors [m], rotation errors [deg]) of poses (REP-103 ``map`` axes) against the ground truth
     beside the bag, both trajectories placed on their first pose."""
     from scipy.spatial.transform import Rotation
+
     truth = np.loadtxt(bag / 'ground_truth.tum')
     index = np.searchsorted(truth[:, 0], stamps_ns * 1e-9 - 1e-6)
     true = np.repeat(np.eye(4)[None], len(index), axis=0)
@@ -174,8 +194,10 @@ def _errors_from_the_first_pose(bag: Path, stamps_ns: np.ndarray, poses: np.ndar
     true[:, :3, 3] = truth[index, 1:4]
     placed = (true[0] @ np.linalg.inv(poses[0]))[None] @ poses
     rotation = np.einsum('nji,njk->nik', true[:, :3, :3], placed[:, :3, :3])
-    return (np.linalg.norm(placed[:, :3, 3] - true[:, :3, 3], axis=1),
-            np.degrees(np.linalg.norm(Rotation.from_matrix(rotation).as_rotvec(), axis=1)))
+    return (
+        np.linalg.norm(placed[:, :3, 3] - true[:, :3, 3], axis=1),
+        np.degrees(np.linalg.norm(Rotation.from_matrix(rotation).as_rotvec(), axis=1)),
+    )
 
 
 def test_lidar_only_through_a_150_deg_per_s_turn_on_the_spot():
@@ -186,6 +208,7 @@ def test_lidar_only_through_a_150_deg_per_s_turn_on_the_spot():
     not). A turn it cannot follow (400 deg/s) used to run away by kilometres. The bounds are twice those
     figures, for other machines' rounding: a lost turn breaks them by far."""
     from lego_loam_py.sim.simulator import cached_scenario
+
     bag = cached_scenario('corridor', duration=18.0, turn_rate=150.0)
     result = run_bag(bag, Params(), imu_topic='', progress=False)
     stamps, poses = result.trajectory(axes='map', which='integrated')

@@ -1,4 +1,5 @@
 """Parameters: defaults equal the original and config/params.yaml, presets, clear errors, ROS declaration."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -7,8 +8,15 @@ import textwrap
 
 import pytest
 
-from lego_loam_py.core.params import (SENSOR_PRESETS, ParameterError, Params, default_params_file, load_params,
-                                      params_from_mapping, read_params_file)
+from lego_loam_py.core.params import (
+    SENSOR_PRESETS,
+    ParameterError,
+    Params,
+    default_params_file,
+    load_params,
+    params_from_mapping,
+    read_params_file,
+)
 
 
 def write(tmp_path, text: str):
@@ -39,24 +47,34 @@ def test_defaults_are_the_originals_vlp16_values():
     assert (mo.corner_leaf_size, mo.surf_leaf_size, mo.keyframe_distance) == (0.2, 0.4, 0.3)
     assert mo.prior_noise_variances == (1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-6)
     lc = p.loop_closure
-    assert lc.loop_closure_enable_flag and lc.method == 'verified'   # a deliberate deviation: the original has it off
-    assert (lc.history_keyframe_search_radius, lc.history_keyframe_search_num,
-            lc.history_keyframe_fitness_score) == (7.0, 25, 0.3)
+    assert lc.loop_closure_enable_flag and lc.method == 'verified'  # a deliberate deviation: the original has it off
+    assert (lc.history_keyframe_search_radius, lc.history_keyframe_search_num, lc.history_keyframe_fitness_score) == (
+        7.0,
+        25,
+        0.3,
+    )
 
 
 def test_deliberate_deviations_and_the_file_that_restores_the_original():
     """The defaults differ from the C++ on purpose in a few documented places; config/original.yaml puts
     every one of them back."""
     default = Params()
-    assert (default.image_projection.ground_rule, default.feature_association.relative_time_source,
-            default.feature_association.odometry_model, default.feature_association.step_scale) == \
-        ('refined', 'azimuth', 'sweep_start', 1.0)
+    assert (
+        default.image_projection.ground_rule,
+        default.feature_association.relative_time_source,
+        default.feature_association.odometry_model,
+        default.feature_association.step_scale,
+    ) == ('refined', 'azimuth', 'sweep_start', 1.0)
     assert default.feature_association.imu_rotation_prior > 0
     assert default.map_optimization.degeneracy_threshold == 10.0
     original = load_params(default_params_file().parent / 'original.yaml')
-    assert (original.image_projection.ground_rule, original.feature_association.relative_time_source,
-            original.feature_association.odometry_model, original.feature_association.step_scale,
-            original.feature_association.imu_rotation_prior) == ('original', 'original', 'original', 0.05, 0.0)
+    assert (
+        original.image_projection.ground_rule,
+        original.feature_association.relative_time_source,
+        original.feature_association.odometry_model,
+        original.feature_association.step_scale,
+        original.feature_association.imu_rotation_prior,
+    ) == ('original', 'original', 'original', 0.05, 0.0)
     assert original.map_optimization.degeneracy_threshold == 100.0
     assert (default.loop_closure.method, original.loop_closure.method) == ('verified', 'original')
     assert default.loop_closure.loop_closure_enable_flag and not original.loop_closure.loop_closure_enable_flag
@@ -92,19 +110,24 @@ def test_preset_values_from_the_reference():
 
 
 def test_explicit_geometry_overrides_the_preset(tmp_path):
-    path = write(tmp_path, """
+    path = write(
+        tmp_path,
+        """
         /**:
           ros__parameters:
             sensor:
               preset: HDL-32E
               ground_scan_ind: 12
-    """)
+    """,
+    )
     p = load_params(path)
     assert p.sensor.n_scan == 32 and p.sensor.ground_scan_ind == 12
 
 
 def test_node_specific_section_applies_on_top(tmp_path):
-    path = write(tmp_path, """
+    path = write(
+        tmp_path,
+        """
         /**:
           ros__parameters:
             sensor: {sensor_minimum_range: 2.0}
@@ -114,7 +137,8 @@ def test_node_specific_section_applies_on_top(tmp_path):
         mapOptimization:
           ros__parameters:
             sensor: {sensor_minimum_range: 4.0}
-    """)
+    """,
+    )
     assert load_params(path, node_name='imageProjection').sensor.sensor_minimum_range == 3.0
     assert load_params(path, node_name='/featureAssociation').sensor.sensor_minimum_range == 2.0
 
@@ -124,7 +148,7 @@ def test_every_mode_switch_is_typed_with_its_choices():
     checks it, and the defaults are among the names."""
     import typing
 
-    from lego_loam_py.core import param_types
+    from lego_loam_py.core.params import types as param_types
 
     modes = {}
     for section in dataclasses.fields(Params):
@@ -133,44 +157,59 @@ def test_every_mode_switch_is_typed_with_its_choices():
             if typing.get_origin(hint) is typing.Literal:
                 modes[f'{section.name}.{name}'] = typing.get_args(hint)
                 assert getattr(getattr(Params(), section.name), name) in typing.get_args(hint)
-    assert modes == {'image_projection.ground_rule': typing.get_args(param_types.GroundRule),
-                     'feature_association.relative_time_source': ('azimuth', 'point_time', 'original'),
-                     'feature_association.odometry_model': ('sweep_start', 'original'),
-                     'feature_association.imu_attitude': ('gyro', 'orientation'),
-                     'map_optimization.keypose_pick': ('averaged_index', 'latest'),
-                     'map_optimization.mode': ('mapping', 'localization'),
-                     'loop_closure.method': ('verified', 'original'),
-                     'loop_closure.robust_kernel': ('huber', 'cauchy', 'none')}
+    assert modes == {
+        'image_projection.ground_rule': typing.get_args(param_types.GroundRule),
+        'feature_association.relative_time_source': ('azimuth', 'point_time', 'original'),
+        'feature_association.odometry_model': ('sweep_start', 'original'),
+        'feature_association.imu_attitude': ('gyro', 'orientation'),
+        'map_optimization.keypose_pick': ('averaged_index', 'latest'),
+        'map_optimization.mode': ('mapping', 'localization'),
+        'loop_closure.method': ('verified', 'original'),
+        'loop_closure.robust_kernel': ('huber', 'cauchy', 'none'),
+    }
 
 
 def test_int_accepted_for_float():
     assert load_params(overrides={'sensor.sensor_minimum_range': 2}).sensor.sensor_minimum_range == 2.0
 
 
-@pytest.mark.parametrize('key,value,fragment', [
-    ('sensor.n_scann', 16, "unknown parameter 'sensor.n_scann' (did you mean 'sensor.n_scan'?)"),
-    ('sensors.n_scan', 16, "unknown parameter 'sensors.n_scan'"),
-    ('sensor.n_scan', 16.0, "'sensor.n_scan' must be an integer"),
-    ('sensor.n_scan', True, "'sensor.n_scan' must be an integer"),
-    ('sensor.use_cloud_ring', 1, "'sensor.use_cloud_ring' must be a boolean"),
-    ('sensor.ang_res_x', 'fast', "'sensor.ang_res_x' must be a number"),
-    ('sensor.ang_res_x', float('nan'), "'sensor.ang_res_x' must be a finite number"),
-    ('sensor.point_cloud_topic', 5, "'sensor.point_cloud_topic' must be a string"),
-    ('sensor.preset', 'VLP-17', "'sensor.preset' must be one of"),
-    ('sensor.ground_scan_ind', 40, "'sensor.ground_scan_ind' must lie in 1..n_scan-1"),
-    ('map_optimization.prior_noise_variances', [1, 2], "'map_optimization.prior_noise_variances' must be 6"),
-    ('map_optimization.prior_noise_variances', 3.0, "'map_optimization.prior_noise_variances' must be a list"),
-    ('image_projection.segment_theta', 60.0, "'image_projection.segment_theta' must lie in (0, pi) radians"),
-    ('feature_association.odometry_model', 'sweepstart',
-     "'feature_association.odometry_model' must be 'sweep_start' or 'original', got 'sweepstart'"),
-    ('feature_association.relative_time_source', 'time',
-     "'feature_association.relative_time_source' must be 'azimuth', 'point_time' or 'original'"),
-    ('image_projection.ground_rule', 1, "'image_projection.ground_rule' must be 'refined' or 'original', got 1"),
-    ('map_optimization.keypose_pick', 'first', "'map_optimization.keypose_pick' must be 'averaged_index' or 'latest'"),
-    ('map_optimization.mode', 'localisation', "'map_optimization.mode' must be 'mapping' or 'localization'"),
-    ('localization.initial_pose', [1.0, 2.0], "'localization.initial_pose' must be [] (none), [x, y, yaw] or"),
-    ('localization.min_overlap', 1.5, "'localization.min_overlap' must be within 0..1"),
-])
+@pytest.mark.parametrize(
+    'key,value,fragment',
+    [
+        ('sensor.n_scann', 16, "unknown parameter 'sensor.n_scann' (did you mean 'sensor.n_scan'?)"),
+        ('sensors.n_scan', 16, "unknown parameter 'sensors.n_scan'"),
+        ('sensor.n_scan', 16.0, "'sensor.n_scan' must be an integer"),
+        ('sensor.n_scan', True, "'sensor.n_scan' must be an integer"),
+        ('sensor.use_cloud_ring', 1, "'sensor.use_cloud_ring' must be a boolean"),
+        ('sensor.ang_res_x', 'fast', "'sensor.ang_res_x' must be a number"),
+        ('sensor.ang_res_x', float('nan'), "'sensor.ang_res_x' must be a finite number"),
+        ('sensor.point_cloud_topic', 5, "'sensor.point_cloud_topic' must be a string"),
+        ('sensor.preset', 'VLP-17', "'sensor.preset' must be one of"),
+        ('sensor.ground_scan_ind', 40, "'sensor.ground_scan_ind' must lie in 1..n_scan-1"),
+        ('map_optimization.prior_noise_variances', [1, 2], "'map_optimization.prior_noise_variances' must be 6"),
+        ('map_optimization.prior_noise_variances', 3.0, "'map_optimization.prior_noise_variances' must be a list"),
+        ('image_projection.segment_theta', 60.0, "'image_projection.segment_theta' must lie in (0, pi) radians"),
+        (
+            'feature_association.odometry_model',
+            'sweepstart',
+            "'feature_association.odometry_model' must be 'sweep_start' or 'original', got 'sweepstart'",
+        ),
+        (
+            'feature_association.relative_time_source',
+            'time',
+            "'feature_association.relative_time_source' must be 'azimuth', 'point_time' or 'original'",
+        ),
+        ('image_projection.ground_rule', 1, "'image_projection.ground_rule' must be 'refined' or 'original', got 1"),
+        (
+            'map_optimization.keypose_pick',
+            'first',
+            "'map_optimization.keypose_pick' must be 'averaged_index' or 'latest'",
+        ),
+        ('map_optimization.mode', 'localisation', "'map_optimization.mode' must be 'mapping' or 'localization'"),
+        ('localization.initial_pose', [1.0, 2.0], "'localization.initial_pose' must be [] (none), [x, y, yaw] or"),
+        ('localization.min_overlap', 1.5, "'localization.min_overlap' must be within 0..1"),
+    ],
+)
 def test_errors_name_the_key(key, value, fragment):
     with pytest.raises(ParameterError) as info:
         load_params(overrides={key: value})
@@ -180,18 +219,26 @@ def test_errors_name_the_key(key, value, fragment):
 def test_localization_needs_a_map_path():
     with pytest.raises(ParameterError, match="'map_optimization.map_path' must name the directory of a map bundle"):
         load_params(overrides={'map_optimization.mode': 'localization'})
-    p = load_params(overrides={'map_optimization.mode': 'localization', 'map_optimization.map_path': '/maps/site',
-                               'localization.initial_pose': [1, 2, 90]})
+    p = load_params(
+        overrides={
+            'map_optimization.mode': 'localization',
+            'map_optimization.map_path': '/maps/site',
+            'localization.initial_pose': [1, 2, 90],
+        }
+    )
     assert p.localization.initial_pose == (1.0, 2.0, 90.0) and Params().localization.initial_pose == ()
 
 
 def test_file_errors_name_the_file_and_key(tmp_path):
-    path = write(tmp_path, """
+    path = write(
+        tmp_path,
+        """
         /**:
           ros__parameters:
             feature_association:
               edge_treshold: 0.2
-    """)
+    """,
+    )
     with pytest.raises(ParameterError) as info:
         load_params(path)
     message = str(info.value)
@@ -228,18 +275,25 @@ def test_ros_node_declares_every_parameter_from_a_params_file(tmp_path, ros_doma
 
     from lego_loam_py.ros.params import declare_params
 
-    path = write(tmp_path, """
+    path = write(
+        tmp_path,
+        """
         /**:
           ros__parameters:
             sensor: {preset: OS1-64, sensor_minimum_range: 0.5}
             map_optimization: {prior_noise_variances: [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]}
-    """)
+    """,
+    )
     context = Context()
-    rclpy.init(args=['x', '--ros-args', '--params-file', str(path), '-p', 'loop_closure.time_gap:=12.5'],
-               context=context, domain_id=ros_domain)
+    rclpy.init(
+        args=['x', '--ros-args', '--params-file', str(path), '-p', 'loop_closure.time_gap:=12.5'],
+        context=context,
+        domain_id=ros_domain,
+    )
     try:
-        node = rclpy.create_node('imageProjection', context=context,
-                                 automatically_declare_parameters_from_overrides=True)
+        node = rclpy.create_node(
+            'imageProjection', context=context, automatically_declare_parameters_from_overrides=True
+        )
         params = declare_params(node)
         assert params.sensor.n_scan == 64 and params.sensor.sensor_minimum_range == 0.5
         assert params.loop_closure.time_gap == 12.5
@@ -250,8 +304,12 @@ def test_ros_node_declares_every_parameter_from_a_params_file(tmp_path, ros_doma
             assert node.has_parameter(name), name
         node.destroy_node()
 
-        bad = rclpy.create_node('bad', context=context, automatically_declare_parameters_from_overrides=True,
-                                parameter_overrides=[rclpy.parameter.Parameter('sensor.n_scans', value=3)])
+        bad = rclpy.create_node(
+            'bad',
+            context=context,
+            automatically_declare_parameters_from_overrides=True,
+            parameter_overrides=[rclpy.parameter.Parameter('sensor.n_scans', value=3)],
+        )
         with pytest.raises(ParameterError, match="unknown parameter 'sensor.n_scans'"):
             declare_params(bad)
         bad.destroy_node()
@@ -266,10 +324,21 @@ def test_a_written_params_file_is_read_back_and_loaded(tmp_path):
 
     from lego_loam_py.core.params import write_params_file
 
-    path = write_params_file(tmp_path / 'p.yaml', {'sensor.n_scan': 32, 'map_optimization.file_directory': Path('/m'),
-                                                   'use_sim_time': True, 'image_projection.ground_rule': 'original'})
-    assert read_params_file(path) == {'sensor.n_scan': 32, 'map_optimization.file_directory': '/m',
-                                      'use_sim_time': True, 'image_projection.ground_rule': 'original'}
+    path = write_params_file(
+        tmp_path / 'p.yaml',
+        {
+            'sensor.n_scan': 32,
+            'map_optimization.file_directory': Path('/m'),
+            'use_sim_time': True,
+            'image_projection.ground_rule': 'original',
+        },
+    )
+    assert read_params_file(path) == {
+        'sensor.n_scan': 32,
+        'map_optimization.file_directory': '/m',
+        'use_sim_time': True,
+        'image_projection.ground_rule': 'original',
+    }
     values = read_params_file(path)
     del values['use_sim_time']
     loaded = load_params(overrides=values)

@@ -1,5 +1,6 @@
 """The pure helpers of benchmarks/real_data.py and its KISS-ICP runner, without KISS-ICP or the network: the
 runner's PCD reader and TUM writer, and the time-shift diagnostic on synthetic trajectories."""
+
 from __future__ import annotations
 
 import sys
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from lego_loam_py.core.io import read_tum
+from lego_loam_py.formats import read_tum
 from lego_loam_py.inputs.point_files import read_pcd_points
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'benchmarks'))
@@ -19,8 +20,17 @@ import real_data  # noqa: E402
 
 def tiny_points() -> np.ndarray:
     """Five points with a field before x, a two-value field, intensity and a float64 time."""
-    dtype = np.dtype([('ring', '<u2'), ('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('normal', '<f4', (2,)),
-                      ('intensity', '<f4'), ('time', '<f8')])
+    dtype = np.dtype(
+        [
+            ('ring', '<u2'),
+            ('x', '<f4'),
+            ('y', '<f4'),
+            ('z', '<f4'),
+            ('normal', '<f4', (2,)),
+            ('intensity', '<f4'),
+            ('time', '<f8'),
+        ]
+    )
     points = np.zeros(5, dtype=dtype)
     points['ring'] = [3, 1, 4, 1, 5]
     points['x'], points['y'], points['z'] = [1.5, -2.25, 3, 0.125, 7], [0, 1, -1, 2.5, 9], [-0.5, 0.25, 4, 8, -3]
@@ -31,9 +41,11 @@ def tiny_points() -> np.ndarray:
 
 
 def pcd_header(points: np.ndarray, data: str) -> bytes:
-    return ('# .PCD v0.7\nVERSION 0.7\nFIELDS ring x y z normal intensity time\nSIZE 2 4 4 4 4 4 8\n'
-            'TYPE U F F F F F F\nCOUNT 1 1 1 1 2 1 1\n'
-            f'WIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\nDATA {data}\n').encode()
+    return (
+        '# .PCD v0.7\nVERSION 0.7\nFIELDS ring x y z normal intensity time\nSIZE 2 4 4 4 4 4 8\n'
+        'TYPE U F F F F F F\nCOUNT 1 1 1 1 2 1 1\n'
+        f'WIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\nDATA {data}\n'
+    ).encode()
 
 
 def test_the_runner_reads_x_y_z_and_the_time_of_binary_and_ascii_pcd(tmp_path):
@@ -41,8 +53,11 @@ def test_the_runner_reads_x_y_z_and_the_time_of_binary_and_ascii_pcd(tmp_path):
     binary = tmp_path / 'binary.pcd'
     binary.write_bytes(pcd_header(points, 'binary') + points.tobytes())
     ascii_file = tmp_path / 'ascii.pcd'
-    rows = [f'{p["ring"]} {p["x"]} {p["y"]} {p["z"]} {p["normal"][0]} {p["normal"][1]} {p["intensity"]} '
-            f'{float(p["time"])!r}' for p in points]
+    rows = [
+        f'{p["ring"]} {p["x"]} {p["y"]} {p["z"]} {p["normal"][0]} {p["normal"][1]} {p["intensity"]} '
+        f'{float(p["time"])!r}'
+        for p in points
+    ]
     ascii_file.write_bytes(pcd_header(points, 'ascii') + ('\n'.join(rows) + '\n').encode())
     expected = np.column_stack([points['x'], points['y'], points['z']]).astype(np.float64)
     for path in (binary, ascii_file):
@@ -101,6 +116,7 @@ def test_the_tum_writer_keeps_stamps_exact_and_poses_to_a_micrometre():
 
 def read_tum_text(text: str):
     import tempfile
+
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / 'trajectory.tum'
         path.write_text(text)
@@ -125,7 +141,7 @@ def test_a_trajectory_stamped_late_is_found_at_the_opposite_shift():
     an exact estimate is best at 0."""
     truth_stamps = np.arange(0, 300, dtype=np.int64) * 100_000_000 + 1_000_000_000_000
     truth = (truth_stamps, wavy_drive((truth_stamps - truth_stamps[0]) * 1e-9))
-    instants = truth_stamps[5:-5] + 37_000_000             # the estimate's own instants, between the reference's
+    instants = truth_stamps[5:-5] + 37_000_000  # the estimate's own instants, between the reference's
     frame = np.eye(4)
     frame[:3, :3] = Rotation.from_euler('xyz', [0.02, -0.01, 1.2]).as_matrix()
     frame[:3, 3] = [4.0, -7.0, 0.5]
@@ -153,8 +169,10 @@ def test_poses_are_interpolated_linearly_and_by_slerp():
 
 
 def test_the_readme_row_holds_the_median_figures():
-    runs = [dict(run=k, ate_m=a, rpe_percent=r, cpu_ms_per_scan=c, x_realtime=x, note='text')
-            for k, a, r, c, x in ((1, 0.07, 0.8, 120.0, 0.8), (2, 0.05, 0.6, 100.0, 1.0), (3, 0.06, 0.7, 300.0, 0.2))]
+    runs = [
+        dict(run=k, ate_m=a, rpe_percent=r, cpu_ms_per_scan=c, x_realtime=x, note='text')
+        for k, a, r, c, x in ((1, 0.07, 0.8, 120.0, 0.8), (2, 0.05, 0.6, 100.0, 1.0), (3, 0.06, 0.7, 300.0, 0.2))
+    ]
     median = real_data.median_summary(runs)
     assert median == {'ate_m': 0.06, 'rpe_percent': 0.7, 'cpu_ms_per_scan': 120.0, 'x_realtime': 0.8}
     row = real_data.markdown_row('drive', 105.54, median, dict(median, ate_m=0.142, cpu_ms_per_scan=104.2))

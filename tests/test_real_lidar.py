@@ -1,6 +1,7 @@
 """What real lidar data does that clean simulations did not: a header stamp taken at the sweep's end, scans stored
 laser by laser without a ring field, a common error of the beams' elevation; and the accuracy on the real KITTI
 HDL-64E city drive of ../shared (its GPS/INS reference) with the HDL-64E preset's defaults, lidar only."""
+
 from __future__ import annotations
 
 import math
@@ -8,11 +9,17 @@ import math
 import numpy as np
 import pytest
 
-from lego_loam_py.core.elevation_bias import MIN_SCANS, ElevationBias, apply_elevation_offset, ground_cone_deg
 from lego_loam_py.core.frames import invert_pose, make_pose
-from lego_loam_py.core.laser_order import rows_from_laser_order
+from lego_loam_py.core.odometry.sweep import StampInstant
 from lego_loam_py.core.params import Params, load_params
-from lego_loam_py.core.sweep import StampInstant, pose_delay
+from lego_loam_py.core.params.timing import pose_delay
+from lego_loam_py.core.projection.elevation_bias import (
+    MIN_SCANS,
+    ElevationBias,
+    apply_elevation_offset,
+    ground_cone_deg,
+)
+from lego_loam_py.core.projection.laser_order import rows_from_laser_order
 from lego_loam_py.evaluation import evaluate
 from lego_loam_py.inputs import open_source
 from lego_loam_py.offline import run_source
@@ -26,11 +33,12 @@ def _rot_z(angle: float) -> np.ndarray:
 
 # --------------------------------------------------------------------------------------------- stamp instant
 
+
 def test_a_pose_stamped_at_the_sweep_end_is_the_next_sweep_start_and_the_first_one_the_origin():
     """s0 = 1: the published pose of a sweep is its start pose moved by its whole motion, i.e. the next sweep's
     start under constant motion; the first published pose stays where the odometry started."""
     instant = StampInstant(Params().replace(sensor__stamp_position=1.0))
-    motion = make_pose(_rot_z(0.02), np.array([0.0, 0.0, 1.0]))   # camera axes: 1 m forward, a small turn
+    motion = make_pose(_rot_z(0.02), np.array([0.0, 0.0, 1.0]))  # camera axes: 1 m forward, a small turn
     start = np.eye(4)
     instant.begin(start)
     first = instant.pose(start, motion)
@@ -78,14 +86,15 @@ def test_the_hdl64e_preset_stamps_at_the_sweep_end_and_a_recording_of_it_is_foll
         truth = source.ground_truth()
         result = run_source(source, params, progress=False)
     stamps, poses = result.trajectory()
-    assert np.isin(stamps, truth[0]).all()
+    assert np.isin(stamps, truth.stamps_ns).all()
     metrics = evaluate(truth, (stamps, poses))
     assert metrics.ate_rmse_m < 0.03, metrics.summary()
-    late = evaluate(truth, (stamps, poses), max_time_diff=0.2)   # (sanity: the same figures when matched loosely)
+    late = evaluate(truth, (stamps, poses), max_time_diff=0.2)  # (sanity: the same figures when matched loosely)
     assert late.ate_rmse_m == pytest.approx(metrics.ate_rmse_m)
 
 
 # ---------------------------------------------------------------------------------------------- laser order
+
 
 def _laser_by_laser(points: np.ndarray, cut_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """The points of a simulated sweep stored as KITTI stores its scans: laser by laser from the top one down,
@@ -100,6 +109,7 @@ def _laser_by_laser(points: np.ndarray, cut_deg: float = 0.0) -> tuple[np.ndarra
 @pytest.fixture(scope='module')
 def hdl64e_sweep() -> np.ndarray:
     from lego_loam_py.inputs import Scan
+
     with open_source(cached_scenario('campus', duration=0.3, preset='HDL-64E')) as source:
         return next(item.points for item in source.items() if isinstance(item, Scan))
 
@@ -118,26 +128,29 @@ def test_a_cloud_stored_laser_by_laser_gives_every_point_its_laser(hdl64e_sweep,
 
 def test_a_cloud_in_firing_order_or_with_too_many_turns_is_not_taken_for_one_stored_laser_by_laser(hdl64e_sweep):
     points = hdl64e_sweep
-    assert rows_from_laser_order(points['x'], points['y'], points['z'], 64) is None   # the driver's order
+    assert rows_from_laser_order(points['x'], points['y'], points['z'], 64) is None  # the driver's order
     xyz, _ = _laser_by_laser(points)
-    assert rows_from_laser_order(xyz[:, 0], xyz[:, 1], xyz[:, 2], 16) is None   # 64 turns: not a 16-beam lidar
+    assert rows_from_laser_order(xyz[:, 0], xyz[:, 1], xyz[:, 2], 16) is None  # 64 turns: not a 16-beam lidar
 
 
 def test_without_a_ring_field_the_range_image_takes_the_rows_from_the_laser_order(hdl64e_sweep):
     """Through imageProjection: the KITTI-ordered cloud without a ring field lands on the same pixels as the cloud
     with its ring field; from the elevation and the nominal table it would not."""
-    from lego_loam_py.core.image_projection import ImageProjection, prepare_input
-    from lego_loam_py.core.pointcloud import xyzi_points, velodyne_points
+    from lego_loam_py.core.pointcloud import velodyne_points, xyzi_points
+    from lego_loam_py.core.projection.image_projection import ImageProjection, prepare_input
+
     xyz, ring = _laser_by_laser(hdl64e_sweep)
     params = load_params(overrides={'sensor.preset': 'HDL-64E'})
-    with_ring = ImageProjection(params).process(prepare_input(velodyne_points(xyz, None, ring.astype(np.uint16)),
-                                                              params))
+    with_ring = ImageProjection(params).process(
+        prepare_input(velodyne_points(xyz, None, ring.astype(np.uint16)), params)
+    )
     values = np.concatenate([xyz, np.zeros((len(xyz), 1), np.float32)], axis=1)
     without = ImageProjection(params).process(prepare_input(xyzi_points(values), params))
     assert np.array_equal(np.isfinite(with_ring.full_cloud[:, 0]), np.isfinite(without.full_cloud[:, 0]))
 
 
 # -------------------------------------------------------------------------------------------- elevation bias
+
 
 def test_the_ground_cone_of_a_known_elevation_error_is_measured_and_corrected():
     rng = np.random.default_rng(1)
@@ -146,8 +159,8 @@ def test_the_ground_cone_of_a_known_elevation_error_is_measured_and_corrected():
     ground = np.stack([rho * np.cos(azimuth), rho * np.sin(azimuth), -1.7 + 0.01 * rng.standard_normal(20000)], 1)
     assert abs(ground_cone_deg(ground)) < 0.01
     reads_low = ground.copy()
-    reads_low[:, 2] -= math.tan(math.radians(0.2)) * rho     # every point 0.2 deg low
-    reads_low[rng.random(20000) < 0.1, 2] += 1.0             # and a tenth of them kerbs and cars
+    reads_low[:, 2] -= math.tan(math.radians(0.2)) * rho  # every point 0.2 deg low
+    reads_low[rng.random(20000) < 0.1, 2] += 1.0  # and a tenth of them kerbs and cars
     assert ground_cone_deg(reads_low) == pytest.approx(0.2, abs=0.01)
     corrected = reads_low.astype(np.float32)
     apply_elevation_offset(corrected, 0.2)
@@ -158,7 +171,7 @@ def test_the_ground_cone_of_a_known_elevation_error_is_measured_and_corrected():
 def test_the_correction_is_taken_only_once_scans_agree_and_never_for_a_rolling_ground():
     rng = np.random.default_rng(2)
     rho = rng.uniform(5.0, 30.0, 3000)
-    x = rho * np.where(rng.random(3000) < 0.5, 1.0, -1.0)   # ahead and behind
+    x = rho * np.where(rng.random(3000) < 0.5, 1.0, -1.0)  # ahead and behind
     ground = np.stack([x, np.zeros_like(rho), -1.7 - math.tan(math.radians(0.2)) * rho], axis=1)
     assert ElevationBias().observe(ground[x > 0]) is None and ground_cone_deg(ground[x > 0]) is None
     bias = ElevationBias()
@@ -166,7 +179,7 @@ def test_the_correction_is_taken_only_once_scans_agree_and_never_for_a_rolling_g
     assert found[:-1] == [None] * (MIN_SCANS - 1) and found[-1] == pytest.approx(0.2, abs=1e-3)
     assert not bias.looking and bias.offset_deg == pytest.approx(0.2, abs=1e-3)
     rolling = ElevationBias()
-    for k in range(3 * MIN_SCANS):   # a crest, then a dip: cones of +-1 deg, never the same twice
+    for k in range(3 * MIN_SCANS):  # a crest, then a dip: cones of +-1 deg, never the same twice
         curve = math.tan(math.radians(math.sin(k / 3.0)))
         assert rolling.observe(np.stack([x, np.zeros_like(rho), -1.7 - curve * rho], axis=1)) is None
     assert rolling.offset_deg == 0.0
@@ -174,6 +187,7 @@ def test_the_correction_is_taken_only_once_scans_agree_and_never_for_a_rolling_g
     assert not fixed.looking and fixed.offset_deg == 0.3
     assert load_params(None).image_projection.estimate_elevation_offset
     from lego_loam_py.core.params import default_params_file
+
     original = load_params(default_params_file().parent / 'original.yaml')
     assert not original.image_projection.estimate_elevation_offset
 
@@ -188,15 +202,16 @@ def test_a_simulated_lidar_reading_low_is_found_out_and_sinks_less():
     assert SimConfig('rows', beam_elevation_error=0.2, **config).validate().to_dict()['beam_elevation_error'] == 0.2
 
     def height_error(bag, estimate: bool) -> tuple[float, dict]:
-        params = load_params(overrides={'sensor.preset': 'HDL-64E',
-                                        'image_projection.estimate_elevation_offset': estimate})
+        params = load_params(
+            overrides={'sensor.preset': 'HDL-64E', 'image_projection.estimate_elevation_offset': estimate}
+        )
         with open_source(bag, imu_topic='') as source:
             truth = source.ground_truth()
             result = run_source(source, params, progress=False)
         stamps, poses = result.trajectory()
-        index = np.searchsorted(truth[0], stamps)
+        index = np.searchsorted(truth.stamps_ns, stamps)
         ours = np.linalg.inv(poses[0]) @ poses[-1]
-        true = np.linalg.inv(truth[1][index[0]]) @ truth[1][index[-1]]
+        true = np.linalg.inv(truth.poses[index[0]]) @ truth.poses[index[-1]]
         return abs(ours[2, 3] - true[2, 3]), result.counts
 
     left_alone, _ = height_error(wrong, False)
@@ -207,6 +222,7 @@ def test_a_simulated_lidar_reading_low_is_found_out_and_sinks_less():
 
 
 # ------------------------------------------------------------------------------------------------ real data
+
 
 def test_the_real_kitti_city_drive_is_followed_with_the_hdl64e_defaults(shared_data):
     """The 108 real HDL-64E scans of KITTI's city drive 0001 (x y z intensity, no ring, no point time, stamped as

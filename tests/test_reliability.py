@@ -9,6 +9,7 @@ long ones (many more fuzz inputs, 3x real time, a 30-minute soak) and reports th
 ``LEGO_LOAM_FUZZ_EXAMPLES`` overrides the number of fuzz inputs per entry point; with
 ``LEGO_LOAM_FUZZ_REPORT=file.json`` the tests record how many inputs each entry point received.
 """
+
 from __future__ import annotations
 
 import array
@@ -28,25 +29,41 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from lego_loam_py.core.io import pcd_is_complete, tum_is_complete
 from lego_loam_py.core.params import write_params_file
-from tests.support.inprocess import (CAMPUS, campus_messages, make_node, mapping_inputs, mapping_publishers,
-                                     pipeline_outputs, restamped, stamp_of)
-from tests.support.malformed import set_sequence
-from tests.support.measure import rss_mb
-from tests.support.ros import Diagnostics, publish_in_lockstep, release, spin_until, wait_for_line
+from lego_loam_py.formats import pcd_is_complete, tum_is_complete
+from lego_loam_py.testing.malformed import set_sequence
+from lego_loam_py.testing.measure import rss_mb
+from lego_loam_py.testing.messages import restamped
+from lego_loam_py.testing.nodes import Diagnostics, publish_in_lockstep, release, spin_until, wait_for_line
+from tests.support.inprocess import (
+    CAMPUS,
+    campus_messages,
+    make_node,
+    mapping_inputs,
+    mapping_publishers,
+    pipeline_outputs,
+    stamp_of,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 FUZZ_EXAMPLES = int(os.environ.get('LEGO_LOAM_FUZZ_EXAMPLES', '0'))
-TRIED: Counter = Counter()   # fuzz inputs per entry point
+TRIED: Counter = Counter()  # fuzz inputs per entry point
 
 
 def fuzz_settings(examples: int):
-    return settings(max_examples=FUZZ_EXAMPLES or examples, deadline=None, derandomize=not FUZZ_EXAMPLES,
-                    database=None,
-                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
-                                           HealthCheck.function_scoped_fixture, HealthCheck.filter_too_much])
+    return settings(
+        max_examples=FUZZ_EXAMPLES or examples,
+        deadline=None,
+        derandomize=not FUZZ_EXAMPLES,
+        database=None,
+        suppress_health_check=[
+            HealthCheck.too_slow,
+            HealthCheck.data_too_large,
+            HealthCheck.function_scoped_fixture,
+            HealthCheck.filter_too_much,
+        ],
+    )
 
 
 @pytest.fixture(scope='module', autouse=True)
@@ -60,6 +77,7 @@ def fuzz_report():
 
 
 # ------------------------------------------------------------------------------------------ in-process nodes
+
 
 class Short(tuple):
     """A tuple of messages with a short repr (hypothesis prints failing inputs; messages print megabytes)."""
@@ -96,15 +114,20 @@ def point_clouds(draw):
     row_step = min(row_step, 2**32 - 1)
     exact = row_step * height
     mode = draw(st.sampled_from(['exact', 'exact', 'short', 'long', 'empty']))
-    size = {'exact': exact, 'short': exact - draw(st.integers(1, 64)), 'long': exact + draw(st.integers(1, 64)),
-            'empty': 0}[mode]
+    size = {
+        'exact': exact,
+        'short': exact - draw(st.integers(1, 64)),
+        'long': exact + draw(st.integers(1, 64)),
+        'empty': 0,
+    }[mode]
     size = size if 0 <= size <= 200_000 else draw(st.integers(0, 256))
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
     if draw(st.booleans()):
         data = rng.bytes(size)
-    else:   # floats with special values, in either byte order
-        values = np.where(rng.random(size // 4 + 1) < 0.3, rng.choice(SPECIAL, size // 4 + 1),
-                          rng.normal(0, 30, size // 4 + 1)).astype('>f4' if draw(st.booleans()) else '<f4')
+    else:  # floats with special values, in either byte order
+        values = np.where(
+            rng.random(size // 4 + 1) < 0.3, rng.choice(SPECIAL, size // 4 + 1), rng.normal(0, 30, size // 4 + 1)
+        ).astype('>f4' if draw(st.booleans()) else '<f4')
         data = values.tobytes()[:size]
     msg = PointCloud2(check_fields=True)
     msg.header = make_header(draw(st.integers(0, 2**62)), draw(st.text(max_size=12)))
@@ -140,8 +163,9 @@ def velodyne_clouds(draw):
             points[name] = values
     points['ring'] = rng.integers(0, draw(st.sampled_from([1, 16, 17, 65536])), n)
     height = draw(st.sampled_from([1, 1, 16])) if n % 16 == 0 and n else 1
-    return array_to_cloud_msg(points.reshape(height, -1) if height > 1 else points,
-                              make_header(draw(st.integers(0, 2**62)), 'velodyne'))
+    return array_to_cloud_msg(
+        points.reshape(height, -1) if height > 1 else points, make_header(draw(st.integers(0, 2**62)), 'velodyne')
+    )
 
 
 def assert_handled(recorder, before, what: str, processed_topic: str | None = None):
@@ -176,8 +200,9 @@ def test_fuzz_point_cloud_layouts_and_data(context):
         before = rec.mark()
         ip.on_cloud(msg)
         assert_handled(rec, before, 'values', '/segmented_cloud')
-        for out in rec.out('/segmented_cloud')[before[2].get('/segmented_cloud', 0):]:
+        for out in rec.out('/segmented_cloud')[before[2].get('/segmented_cloud', 0) :]:
             from lego_loam_py.ros.conversions import cloud_msg_to_xyzi
+
             assert np.isfinite(cloud_msg_to_xyzi(out)).all()
 
     check_values()
@@ -212,7 +237,7 @@ def test_oversized_clouds_are_dropped_before_they_are_read(context):
     TRIED['imageProjection /velodyne_points (10 M points)'] += 1
     assert ip.counters['clouds_dropped'] == 1 and not rec.out('/segmented_cloud') and not rec.errors
     assert 'not a scan of this sensor' in rec.warnings[-1][1]
-    assert elapsed < 1.0, elapsed   # generous: it is rejected from the header alone (about 10 us)
+    assert elapsed < 1.0, elapsed  # generous: it is rejected from the header alone (about 10 us)
     del msg, data
     ip.destroy_node()
 
@@ -230,19 +255,32 @@ def mutated_scans(draw, outputs):
     cloud, info, outlier = outputs['segmented'][k], copy.copy(outputs['info'][k]), outputs['outlier'][k]
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
     # Few mutations at a time, so that many inputs get past the checks into the algorithm.
-    targets = ['segmented_cloud_range', 'segmented_cloud_col_ind', 'segmented_cloud_ground_flag', 'start_ring_index',
-               'end_ring_index', 'orientation', 'cloud', 'outlier']
+    targets = [
+        'segmented_cloud_range',
+        'segmented_cloud_col_ind',
+        'segmented_cloud_ground_flag',
+        'start_ring_index',
+        'end_ring_index',
+        'orientation',
+        'cloud',
+        'outlier',
+    ]
     chosen = set(draw(st.lists(st.sampled_from(targets), max_size=draw(st.sampled_from([0, 1, 1, 2, 8])))))
-    for name, typecode in (('segmented_cloud_range', 'f'), ('segmented_cloud_col_ind', 'I'),
-                           ('segmented_cloud_ground_flag', None), ('start_ring_index', 'i'), ('end_ring_index', 'i')):
+    for name, typecode in (
+        ('segmented_cloud_range', 'f'),
+        ('segmented_cloud_col_ind', 'I'),
+        ('segmented_cloud_ground_flag', None),
+        ('start_ring_index', 'i'),
+        ('end_ring_index', 'i'),
+    ):
         if name not in chosen:
             continue
         values = np.array(getattr(info, name))
         how = draw(st.sampled_from(['shorter', 'longer', 'empty', 'values', 'small']))
         if how == 'shorter':
-            values = values[:rng.integers(0, max(len(values), 1))]
+            values = values[: rng.integers(0, max(len(values), 1))]
         elif how == 'longer':
-            values = np.concatenate([values, values[:rng.integers(1, 50)]])
+            values = np.concatenate([values, values[: rng.integers(1, 50)]])
         elif how == 'empty':
             values = values[:0]
         elif how == 'values' and typecode == 'f':
@@ -251,7 +289,7 @@ def mutated_scans(draw, outputs):
         elif how == 'values' and typecode in ('i', 'I'):
             info_max = np.iinfo(np.int32 if typecode == 'i' else np.uint32)
             values = rng.integers(info_max.min, info_max.max, len(values), endpoint=True)
-        elif how == 'small' and typecode is not None:   # plausible but wrong: small random values
+        elif how == 'small' and typecode is not None:  # plausible but wrong: small random values
             values = rng.integers(0 if typecode == 'I' else -10, 2000, len(values)).astype(values.dtype)
         set_sequence(info, name, values, typecode)
     for name in ('start_orientation', 'end_orientation', 'orientation_diff'):
@@ -268,13 +306,13 @@ def mutated_scans(draw, outputs):
         elif how == 'intensity':
             points[:, 3] = rng.choice([-1.0, 16.0, 1e9, math.nan, 3.5])
         elif how == 'truncate':
-            points = points[:rng.integers(0, len(points) + 1)]
+            points = points[: rng.integers(0, len(points) + 1)]
         elif how == 'empty':
             points = points[:0]
         elif how == 'layout':
             structured = np.zeros(len(points), dtype=[('x', '<f8'), ('y', '<f8'), ('z', '<f8')])
             return array_to_cloud_msg(structured, msg.header)
-        elif how == 'scale':   # plausible coordinates, wrong geometry
+        elif how == 'scale':  # plausible coordinates, wrong geometry
             points[:, :3] *= rng.choice([0.0, 0.01, 10.0, 100.0])
         out = xyzi_to_cloud_msg(points, msg.header)
         assert out.fields[0].name == 'x' and POINT_XYZI_DTYPE.itemsize == out.point_step
@@ -302,14 +340,16 @@ def test_fuzz_feature_association_inputs(context, tmp_path):
     def check(parts):
         TRIED['featureAssociation /segmented_cloud + info + outlier'] += 1
         before = rec.mark()
-        scans = fa.counters.get('scans', 0)
+        scans = fa.counters.get('scans_processed', 0)
         send(*parts)
-        TRIED['featureAssociation /segmented_cloud + info + outlier: processed'] += fa.counters.get('scans', 0) - scans
+        TRIED['featureAssociation /segmented_cloud + info + outlier: processed'] += (
+            fa.counters.get('scans_processed', 0) - scans
+        )
         assert_handled(rec, before, 'scan', None)
         # processed, dropped with a warning, or held (it came more than 1 s after the last processed scan)
-        assert fa.counters.get('scans', 0) > scans or len(rec.warnings) > before[0] or fa.order.holding
+        assert fa.counters.get('scans_processed', 0) > scans or len(rec.warnings) > before[0] or fa.order.holding
         assert fa.core.health_problem() is None
-        for msg in rec.out('/laser_odom_to_init')[before[2].get('/laser_odom_to_init', 0):]:
+        for msg in rec.out('/laser_odom_to_init')[before[2].get('/laser_odom_to_init', 0) :]:
             p = msg.pose.pose.position
             assert np.isfinite([p.x, p.y, p.z]).all()
 
@@ -329,13 +369,27 @@ def imu_messages(draw):
 
     from lego_loam_py.ros.conversions import make_header
 
-    value = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(-2, 2),
-                      st.sampled_from([0.0, 1e200, -1e308, 1e-200, 9.81]))
+    value = st.one_of(
+        st.floats(allow_nan=True, allow_infinity=True),
+        st.floats(-2, 2),
+        st.sampled_from([0.0, 1e200, -1e308, 1e-200, 9.81]),
+    )
     msg = Imu()
     msg.header = make_header(draw(st.integers(0, 2**62)), 'imu_link')
-    quaternion = draw(st.one_of(st.tuples(value, value, value, value),
-                                st.sampled_from([(0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), (1e200, 0.0, 0.0, 1e200),
-                                                 (0.0, 0.0, 0.0, 1e-7), (0.5, 0.5, 0.5, 0.5)])))
+    quaternion = draw(
+        st.one_of(
+            st.tuples(value, value, value, value),
+            st.sampled_from(
+                [
+                    (0.0, 0.0, 0.0, 0.0),
+                    (0.0, 0.0, 0.0, 1.0),
+                    (1e200, 0.0, 0.0, 1e200),
+                    (0.0, 0.0, 0.0, 1e-7),
+                    (0.5, 0.5, 0.5, 0.5),
+                ]
+            ),
+        )
+    )
     o = msg.orientation
     o.x, o.y, o.z, o.w = quaternion
     w, a = msg.angular_velocity, msg.linear_acceleration
@@ -377,15 +431,23 @@ def odometry_messages(draw):
 
     from lego_loam_py.ros.conversions import make_header
 
-    value = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(-100, 100),
-                      st.sampled_from([0.0, 1e200, -1e308, 1e7, 1.0]))
+    value = st.one_of(
+        st.floats(allow_nan=True, allow_infinity=True),
+        st.floats(-100, 100),
+        st.sampled_from([0.0, 1e200, -1e308, 1e7, 1.0]),
+    )
     msg = Odometry()
     msg.header = make_header(draw(st.integers(0, 2**62)), 'camera_init')
     p, q = msg.pose.pose.position, msg.pose.pose.orientation
     p.x, p.y, p.z = draw(st.tuples(value, value, value))
-    q.x, q.y, q.z, q.w = draw(st.one_of(st.tuples(value, value, value, value),
-                                        st.sampled_from([(0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0, 0.0),
-                                                         (1e200, 0.0, 0.0, 1e200), (0.0, 0.6, 0.0, 0.8)])))
+    q.x, q.y, q.z, q.w = draw(
+        st.one_of(
+            st.tuples(value, value, value, value),
+            st.sampled_from(
+                [(0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0, 0.0), (1e200, 0.0, 0.0, 1e200), (0.0, 0.6, 0.0, 0.8)]
+            ),
+        )
+    )
     t = msg.twist.twist
     t.angular.x, t.angular.y, t.angular.z = draw(st.tuples(value, value, value))
     t.linear.x, t.linear.y, t.linear.z = draw(st.tuples(value, value, value))
@@ -412,18 +474,19 @@ def test_fuzz_odometry(context, tmp_path):
     def check(msg, continuous):
         TRIED['transformFusion /laser_odom_to_init + /aft_mapped_to_init'] += 1
         TRIED['mapOptimization /laser_odom_to_init'] += 1
-        if continuous and tf.last_stamp_ns is not None:   # also reach the code after the stamp checks
+        if continuous and tf.last_stamp_ns is not None:  # also reach the code after the stamp checks
             msg = restamped(msg, tf.last_stamp_ns + 50_000_000)
         before = rec.mark()
         tf.on_mapped(msg)
         tf.on_odometry(msg)
         assert not rec.errors
         assert np.isfinite(tf.core.correction).all()
-        for out in rec.out('/integrated_to_init')[before[2].get('/integrated_to_init', 0):]:
+        for out in rec.out('/integrated_to_init')[before[2].get('/integrated_to_init', 0) :]:
             p, q = out.pose.pose.position, out.pose.pose.orientation
             assert np.isfinite([p.x, p.y, p.z, q.x, q.y, q.z, q.w]).all()
-        k = stamp_to_ns(msg.header.stamp) % min(len(outputs[key]) for key in ('corner_last', 'surf_last',
-                                                                             'outlier_last'))
+        k = stamp_to_ns(msg.header.stamp) % min(
+            len(outputs[key]) for key in ('corner_last', 'surf_last', 'outlier_last')
+        )
         stamp = stamp_to_ns(msg.header.stamp)
         for name, key in (('corner', 'corner_last'), ('surf', 'surf_last'), ('outlier', 'outlier_last')):
             mo.on_part(name, restamped(outputs[key][k], stamp))
@@ -470,6 +533,7 @@ def test_fuzz_mapping_inputs(context, tmp_path):
     @st.composite
     def mutated(draw):
         from lego_loam_py.ros.conversions import cloud_msg_to_xyzi, xyzi_to_cloud_msg
+
         parts = list(inputs[draw(st.integers(0, len(inputs) - 1))])
         rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
         for i in range(3):
@@ -495,22 +559,23 @@ def test_fuzz_mapping_inputs(context, tmp_path):
     def check(parts):
         TRIED['mapOptimization /laser_cloud_*_last + odometry'] += 1
         before = rec.mark()
-        steps = mo.counters.get('steps', 0) + mo.counters.get('inputs_skipped_by_interval', 0)
+        steps = mo.counters.get('mapping_steps', 0) + mo.counters.get('inputs_skipped_by_interval', 0)
         send(*parts)
-        TRIED['mapOptimization /laser_cloud_*_last + odometry: processed'] += \
-            mo.counters.get('steps', 0) + mo.counters.get('inputs_skipped_by_interval', 0) - steps
+        TRIED['mapOptimization /laser_cloud_*_last + odometry: processed'] += (
+            mo.counters.get('mapping_steps', 0) + mo.counters.get('inputs_skipped_by_interval', 0) - steps
+        )
         assert_handled(rec, before, 'mapping input')
         assert np.isfinite(mo.core.transform_aft).all() and np.isfinite(mo.core.transform_tobe).all()
-        assert len(mo.core.keyframes) >= keyframes   # never loses the map
-        for out in rec.out('/aft_mapped_to_init')[before[2].get('/aft_mapped_to_init', 0):]:
+        assert len(mo.core.keyframes) >= keyframes  # never loses the map
+        for out in rec.out('/aft_mapped_to_init')[before[2].get('/aft_mapped_to_init', 0) :]:
             p = out.pose.pose.position
             assert np.isfinite([p.x, p.y, p.z]).all()
 
     check()
-    before = mo.counters.get('steps', 0)
+    before = mo.counters.get('mapping_steps', 0)
     for parts in inputs:
         send(*parts)
-    assert mo.counters.get('steps', 0) > before
+    assert mo.counters.get('mapping_steps', 0) > before
     written = mo.core.save(tmp_path / 'after_fuzz')
     assert all(Path(p).stat().st_size > 0 for p in written.values())
     mo.destroy_node()
@@ -549,13 +614,19 @@ def test_warnings_are_throttled_and_their_state_is_bounded(context):
 
     ip, rec = make_node(context, ImageProjectionNode)
     logged = []
-    ip.get_logger().warning = lambda text, **_: logged.append(text)   # the logger call behind warn()
+    ip.get_logger().warning = lambda text, **_: logged.append(text)  # the logger call behind warn()
     logger = ip.get_logger()
     ip.get_logger = lambda: logger
     for k in range(5000):
-        msg = PointCloud2(header=make_header(k, f'frame_{k}_{chr(97 + k % 26) * (k % 7)}'), height=1, width=k % 50,
-                          point_step=4, row_step=4 * (k % 50), data=bytes(3),
-                          fields=[PointField(name=f'f{k}', offset=0, datatype=7, count=1)])
+        msg = PointCloud2(
+            header=make_header(k, f'frame_{k}_{chr(97 + k % 26) * (k % 7)}'),
+            height=1,
+            width=k % 50,
+            point_step=4,
+            row_step=4 * (k % 50),
+            data=bytes(3),
+            fields=[PointField(name=f'f{k}', offset=0, datatype=7, count=1)],
+        )
         ip.on_cloud(msg)
     assert ip.counters['clouds_dropped'] == 5000
     assert len(logged) <= 20, logged[:30]
@@ -566,10 +637,11 @@ def test_warnings_are_throttled_and_their_state_is_bounded(context):
 
 # ------------------------------------------------------------------------------------------------- time
 
+
 def test_stamp_order_policy():
     """process / drop / hold; a jump forward believed at the next input, a restart after three inputs on the new
     timeline; held inputs refuted by the old timeline are discarded; wrong stamps ahead are found out (resync)."""
-    from lego_loam_py.core.sync import StampOrder
+    from lego_loam_py.ros.sync import StampOrder
 
     order = StampOrder(jump_ns=1000)
 
@@ -585,47 +657,47 @@ def test_stamp_order_policy():
 
     assert step(10_000).action == 'process' and step(10_100).action == 'process'
     assert step(10_100).reason == 'duplicate stamp' and step(10_050).reason == 'out of order'
-    assert step(50_000).action == 'hold'                          # forward jump: held ...
-    d = step(10_200)                                               # ... refuted by the old timeline
+    assert step(50_000).action == 'hold'  # forward jump: held ...
+    d = step(10_200)  # ... refuted by the old timeline
     assert d.action == 'process' and d.discarded == [50_000] and order.last_ns == 10_200
-    assert step(1_000).action == 'hold'                           # back in time, to before the timeline: held ...
-    assert step(1_000).action == 'drop'                           # (a duplicate of the held one)
-    assert step(1_100).action == 'hold'                           # ... a second input on the new timeline ...
-    d = step(1_200)                                                # ... and a third: a restart, all processed
+    assert step(1_000).action == 'hold'  # back in time, to before the timeline: held ...
+    assert step(1_000).action == 'drop'  # (a duplicate of the held one)
+    assert step(1_100).action == 'hold'  # ... a second input on the new timeline ...
+    d = step(1_200)  # ... and a third: a restart, all processed
     assert d.action == 'reset' and d.held == [1_000, 1_100] and d.jump_ns == 1_000 - 10_200
     assert order.last_ns == 1_200 and order.first_ns == 1_000
     assert step(90_000).action == 'hold'
     d = step(90_500)
     assert d.action == 'jump' and d.held == [90_000] and order.last_ns == 90_500
-    assert step(5).action == 'hold' and step(200_000).action == 'hold'   # two jumps: the newest is held
+    assert step(5).action == 'hold' and step(200_000).action == 'hold'  # two jumps: the newest is held
     assert step(200_100).action == 'jump' and order.last_ns == 200_100
     # A sparse stream (inputs 2 s apart) loses nothing, each input waits for the next one.
     actions = [step(200_100 + k * 2000).action for k in range(1, 5)]
     assert actions == ['hold', 'jump', 'hold', 'jump'] and order.last_ns == 200_100 + 4 * 2000
     # Back in time: confirmed only by inputs before the old timeline; two are not enough.
     assert step(100).action == 'hold' and step(200).action == 'hold'
-    d = step(208_300)                                               # the old timeline goes on: refuted
+    d = step(208_300)  # the old timeline goes on: refuted
     assert d.action == 'process' and d.discarded == [100, 200]
     # Two inputs stamped a little ahead (within the jump bound) were taken: three in a row behind them show it.
-    assert step(208_900).action == 'process' and step(209_100).action == 'process'   # (these two were wrong)
+    assert step(208_900).action == 'process' and step(209_100).action == 'process'  # (these two were wrong)
     assert [step(t).action for t in (208_400, 208_500)] == ['drop', 'drop']
     d = step(208_600)
     assert d.action == 'resync' and order.last_ns == 208_600
     assert step(208_700).action == 'process'
     # Back to a point inside the current timeline (after its start), confirmed: wrong stamps ahead, no restart.
-    assert step(500_000).action == 'hold' and step(500_100).action == 'jump'   # (wrongly stamped, both taken)
+    assert step(500_000).action == 'hold' and step(500_100).action == 'jump'  # (wrongly stamped, both taken)
     assert [step(t).action for t in (208_800, 208_900)] == ['hold', 'hold']
     d = step(209_000)
     assert d.action == 'resync' and d.held == [208_800, 208_900] and order.first_ns == 1_000
 
 
 def test_synchronizer_forgets_sets_of_another_timeline():
-    from lego_loam_py.core.sync import StampSynchronizer
+    from lego_loam_py.ros.sync import StampSynchronizer
 
     sync = StampSynchronizer(['a', 'b'], tolerance_ns=5, horizon_ns=1000)
     assert sync.add('a', 100_000, 1) is None and sync.add('a', 100_200, 2) is None
     assert len(sync) == 2
-    assert sync.add('a', 5_000, 3) is None             # time jumped back: the old sets can never complete
+    assert sync.add('a', 5_000, 3) is None  # time jumped back: the old sets can never complete
     assert len(sync) == 1 and sync.dropped == 2
     assert sync.add('b', 5_002, 4) == {'a': 3, 'b': 4}
 
@@ -633,7 +705,7 @@ def test_synchronizer_forgets_sets_of_another_timeline():
 def test_imu_buffer_rejects_garbage_and_restarts_after_a_jump_back():
     from scipy.spatial.transform import Rotation
 
-    from lego_loam_py.core.imu import ImuBuffer
+    from lego_loam_py.core.imu.buffer import ImuBuffer
 
     buffer = ImuBuffer()
     level = (0.0, 0.0, 0.0, 1.0)
@@ -644,13 +716,12 @@ def test_imu_buffer_rejects_garbage_and_restarts_after_a_jump_back():
     assert 'angular velocity' in buffer.add(10.01, level, (1e3, 0, 0), (0, 0, 9.81))
     assert 'acceleration' in buffer.add(10.01, level, (0, 0, 0), (0, 0, 1e300))
     assert 'malformed' in buffer.add(10.01, (0, 0, 1), (0, 0, 0), (0, 0, 9.81))
-    q = Rotation.from_euler('z', 0.3).as_quat() * 1.05   # 5 % off: normalised and accepted
+    q = Rotation.from_euler('z', 0.3).as_quat() * 1.05  # 5 % off: normalised and accepted
     assert buffer.add(10.01, q, (0, 0, 0), (0, 0, 9.81)) is None
-    assert 'out of order' in buffer.add(9.5, level, (0, 0, 0), (0, 0, 9.81))    # 0.5 s back: dropped
-    assert buffer.add(3.0, level, (0, 0, 0), (0, 0, 9.81)) is None              # 7 s back: restarted
+    assert 'out of order' in buffer.add(9.5, level, (0, 0, 0), (0, 0, 9.81))  # 0.5 s back: dropped
+    assert buffer.add(3.0, level, (0, 0, 0), (0, 0, 9.81)) is None  # 7 s back: restarted
     assert len(buffer) == 1 and buffer.resets == 1 and buffer.times[0] == 3.0
     assert sum(buffer.rejected.values()) == 7
-
 
 
 def test_time_out_of_order_duplicates_jumps_and_glitches(context, tmp_path):
@@ -674,30 +745,30 @@ def test_time_out_of_order_duplicates_jumps_and_glitches(context, tmp_path):
     send(0, s)
     send(1, s + second // 10)
     send(2, s + 2 * second // 10)
-    send(2, s + 2 * second // 10)                    # duplicate
-    send(1, s + second // 20)                        # out of order
+    send(2, s + 2 * second // 10)  # duplicate
+    send(1, s + second // 20)  # out of order
     assert odometry_stamps() == [s + second // 10, s + 2 * second // 10]
     assert fa.counters['scans_dropped'] == 2
-    send(3, s + 3600 * second)                       # a glitch: one hour ahead, then back on time
+    send(3, s + 3600 * second)  # a glitch: one hour ahead, then back on time
     send(3, s + 3 * second // 10)
     assert odometry_stamps()[-1] == s + 3 * second // 10 and fa.counters.get('resets', 0) == 0
     assert any('wrong stamp' in text for _, text in rec.warnings)
-    send(4, s - 3600 * second)                       # a glitch into the past: no reset either
+    send(4, s - 3600 * second)  # a glitch into the past: no reset either
     send(4, s + 4 * second // 10)
     assert odometry_stamps()[-1] == s + 4 * second // 10 and fa.counters.get('resets', 0) == 0
-    send(5, s + 30 * second)                         # a real jump forward (a gap in the data)
+    send(5, s + 30 * second)  # a real jump forward (a gap in the data)
     send(6, s + 30 * second + second // 10)
     assert odometry_stamps()[-2:] == [s + 30 * second, s + 30 * second + second // 10]
     assert fa.counters['forward_jumps'] == 1
-    send(0, s - 500 * second)                        # the bag restarted: reset, re-initialise, go on
+    send(0, s - 500 * second)  # the bag restarted: reset, re-initialise, go on
     send(1, s - 500 * second + second // 10)
     send(2, s - 500 * second + 2 * second // 10)
     assert fa.counters['resets'] == 1
     assert odometry_stamps()[-2:] == [s - 500 * second + second // 10, s - 500 * second + 2 * second // 10]
     assert any('odometry reset' in text for _, text in rec.warnings)
-    send(0, 0)                                       # clock at zero (before /clock) and back: two resets
+    send(0, 0)  # clock at zero (before /clock) and back: two resets
     send(1, second // 10)
-    assert fa.counters['resets'] == 1                # (two scans back in time are not yet a restart)
+    assert fa.counters['resets'] == 1  # (two scans back in time are not yet a restart)
     send(2, 2 * second // 10)
     assert fa.counters['resets'] == 2 and odometry_stamps()[-2:] == [second // 10, 2 * second // 10]
     assert not rec.errors
@@ -717,7 +788,7 @@ def test_imu_missing_late_and_looping(context, tmp_path):
 
     def feed(k, with_imu=True, offset=0):
         stamp = stamp_of(scans[k][0])
-        for m in imu:   # the IMU samples up to the end of this sweep (IMU data arrives before the cloud)
+        for m in imu:  # the IMU samples up to the end of this sweep (IMU data arrives before the cloud)
             if sent['until'] < stamp_of(m) + offset <= stamp + offset + 120_000_000:
                 if with_imu:
                     fa.on_imu(restamped(m, stamp_of(m) + offset))
@@ -725,17 +796,17 @@ def test_imu_missing_late_and_looping(context, tmp_path):
         for name, msg in zip(('cloud', 'info', 'outlier'), scans[k]):
             fa.on_part(name, restamped(msg, stamp + offset))
 
-    for k in range(4):                          # the IMU starts late: scans 0-3 without it
+    for k in range(4):  # the IMU starts late: scans 0-3 without it
         feed(k, with_imu=False)
-    assert fa.counters['scans'] == 4 and fa.counters.get('scans_with_imu', 0) == 0
+    assert fa.counters['scans_processed'] == 4 and fa.counters.get('scans_with_imu', 0) == 0
     for k in range(4, 10):
         feed(k)
     with_imu = fa.counters['scans_with_imu']
-    assert with_imu >= 4            # deskewing with the IMU needs it over this sweep and the previous one
-    for k in range(10, 14):                     # the IMU stops for a while
+    assert with_imu >= 4  # deskewing with the IMU needs it over this sweep and the previous one
+    for k in range(10, 14):  # the IMU stops for a while
         feed(k, with_imu=False)
-    assert fa.counters['scans_with_imu'] == with_imu and fa.counters['scans'] == 14
-    for k in range(14, 20):                     # ... and comes back
+    assert fa.counters['scans_with_imu'] == with_imu and fa.counters['scans_processed'] == 14
+    for k in range(14, 20):  # ... and comes back
         feed(k)
     assert fa.counters['scans_with_imu'] >= with_imu + 4
     assert fa.counters.get('imu_dropped', 0) == 0
@@ -755,7 +826,7 @@ def test_imu_missing_late_and_looping(context, tmp_path):
 def test_mapping_resets_after_a_loop_and_keeps_the_map_on_disk(context, tmp_path):
     """mapOptimization: a jump back saves the map built so far, then starts a new one; a glitch does not; an
     odometry that restarts at the origin is re-anchored at the last mapped pose."""
-    from lego_loam_py.core.io import read_tum
+    from lego_loam_py.formats import read_tum
     from lego_loam_py.ros.map_optimization_node import MapOptimizationNode
 
     outputs = pipeline_outputs(context, tmp_path)
@@ -771,17 +842,17 @@ def test_mapping_resets_after_a_loop_and_keeps_the_map_on_disk(context, tmp_path
         send(parts)
     keyframes = len(mo.core.keyframes)
     assert keyframes >= 3 and mo.counters.get('resets', 0) == 0
-    send(inputs[0], offset=3600 * 10**9)         # a glitch: no reset, nothing saved
+    send(inputs[0], offset=3600 * 10**9)  # a glitch: no reset, nothing saved
     send(inputs[-1], offset=100_000_000)
     assert mo.counters.get('resets', 0) == 0 and len(mo.core.keyframes) >= keyframes
     assert not (tmp_path / 'maps' / 'trajectory.tum').exists()
     span = stamp_of(inputs[-1][0]) - stamp_of(inputs[0][0]) + 10**9
-    for parts in inputs[:4]:                     # the bag restarted
+    for parts in inputs[:4]:  # the bag restarted
         send(parts, offset=-span)
     assert mo.counters['resets'] == 1
     stamps, _ = read_tum(tmp_path / 'maps' / 'trajectory.tum')
-    assert len(stamps) >= keyframes                # the previous map was saved before the reset
-    assert len(mo.core.keyframes) >= 1 and mo.counters['steps'] >= 2
+    assert len(stamps) >= keyframes  # the previous map was saved before the reset
+    assert len(mo.core.keyframes) >= 1 and mo.counters['mapping_steps'] >= 2
     assert any('mapping reset; the previous map was saved' in text for _, text in rec.warnings)
     assert not rec.errors
     mo.destroy_node()
@@ -805,8 +876,9 @@ def test_mapping_reanchors_a_restarted_odometry(context, tmp_path):
         mo.on_odometry(restamped(odometry, stamp), {'publisher_gid': {'data': publisher}})
 
     t = 500 * 10**9
-    shift = pose6_to_matrix(np.array([0.0, 0.8, 0.0, 20.0, 0.0, 30.0]))   # as if the drive started elsewhere
+    shift = pose6_to_matrix(np.array([0.0, 0.8, 0.0, 20.0, 0.0, 30.0]))  # as if the drive started elsewhere
     from lego_loam_py.ros.conversions import odometry_to_pose
+
     for k, parts in enumerate(inputs):
         send(parts, t + k * 200_000_000, shift @ odometry_to_pose(parts[3]))
     aft = mo.core.transform_aft.copy()
@@ -824,8 +896,12 @@ def test_mapping_reanchors_a_restarted_odometry(context, tmp_path):
     t3 = t2 + 2 * 200_000_000 + 2 * 10**9
     start = pose6_to_matrix(np.array([0.0, 0.3, 0.0, 1.0, 0.0, 2.8]))
     send(inputs[2], t3, start, publisher=b'second')
-    send(inputs[3], t3 + 200_000_000, start @ np.linalg.inv(odometry_to_pose(inputs[2][3])) @
-         odometry_to_pose(inputs[3][3]), publisher=b'second')
+    send(
+        inputs[3],
+        t3 + 200_000_000,
+        start @ np.linalg.inv(odometry_to_pose(inputs[2][3])) @ odometry_to_pose(inputs[3][3]),
+        publisher=b'second',
+    )
     assert mo.counters['odometry_restarts'] == 2
     assert np.linalg.norm(mo.core.transform_aft[3:] - aft[3:]) < 8.0
     assert np.linalg.norm(mo.core.transform_aft[3:]) > 25.0
@@ -844,22 +920,27 @@ def test_fusion_drops_stale_mapping_results_after_a_restart(context):
     def odometry(stamp, x=0.0):
         pose = np.eye(4)
         pose[0, 3] = x
-        return pose_to_odometry(pose, make_header(stamp, 'camera_init'), 'laser_odom',
-                                twist_angular=(0.0, 0.0, 0.0), twist_linear=(0.0, 0.0, 0.0))
+        return pose_to_odometry(
+            pose,
+            make_header(stamp, 'camera_init'),
+            'laser_odom',
+            twist_angular=(0.0, 0.0, 0.0),
+            twist_linear=(0.0, 0.0, 0.0),
+        )
 
     for k in range(5):
         tf.on_odometry(odometry(s + k * 100_000_000, 0.1 * k))
-    tf.on_mapped(odometry(s + 300_000_000, 5.0))          # correction: +5 m
+    tf.on_mapped(odometry(s + 300_000_000, 5.0))  # correction: +5 m
     assert tf.counters['mapped'] == 1
-    tf.on_odometry(odometry(s - 60 * 10**9))               # the bag restarted (confirmed by the next two)
+    tf.on_odometry(odometry(s - 60 * 10**9))  # the bag restarted (confirmed by the next two)
     tf.on_odometry(odometry(s - 60 * 10**9 + 100_000_000))
     assert tf.counters.get('resets', 0) == 0
     tf.on_odometry(odometry(s - 60 * 10**9 + 200_000_000))
     assert tf.counters['resets'] == 1
-    tf.on_mapped(odometry(s + 400_000_000, 5.0))           # a late result of the old timeline
+    tf.on_mapped(odometry(s + 400_000_000, 5.0))  # a late result of the old timeline
     assert tf.counters['mapped'] == 1 and tf.counters['mapped_dropped'] == 1
     integrated = rec.out('/integrated_to_init')
-    assert integrated[-1].pose.pose.position.x == pytest.approx(0.0)   # correction reset, stale result ignored
+    assert integrated[-1].pose.pose.position.x == pytest.approx(0.0)  # correction reset, stale result ignored
     tf.destroy_node()
 
 
@@ -868,7 +949,7 @@ def test_a_stuck_dds_teardown_ends_the_process_instead_of_hanging_it(tmp_path):
     exits with its own code after a bounded wait, and a process with more to do carries on without it."""
     import subprocess
 
-    script = textwrap.dedent('''
+    script = textwrap.dedent("""
         import sys, threading, time
         from lego_loam_py.ros import runtime
         runtime.TEARDOWN_TIMEOUT_S = 0.5
@@ -879,7 +960,7 @@ def test_a_stuck_dds_teardown_ends_the_process_instead_of_hanging_it(tmp_path):
         print('carried on', flush=True)
         runtime.teardown_guard(7, 'a stuck node shutdown')
         blocked.wait()   # what a deadlocked destroy_node does
-    ''')
+    """)
     result = subprocess.run([sys.executable, '-c', script], capture_output=True, text=True, timeout=60, cwd=REPO)
     assert result.returncode == 7, result.stderr
     assert 'carried on' in result.stdout
@@ -890,7 +971,7 @@ def test_a_stuck_dds_teardown_ends_the_process_instead_of_hanging_it(tmp_path):
 def test_stale_temporary_files_of_a_killed_save_are_removed(tmp_path, processes):
     """atomic_path names its temporaries after the writer's pid; those of dead writers are removed, those of
     live writers never are."""
-    from lego_loam_py.core.io import atomic_path, remove_stale_temporaries
+    from lego_loam_py.formats import atomic_path, remove_stale_temporaries
 
     child = processes.python('-c', 'import time; time.sleep(60)')
     dead = processes.python('-c', 'pass')
@@ -901,8 +982,9 @@ def test_stale_temporary_files_of_a_killed_save_are_removed(tmp_path, processes)
     (tmp_path / 'global_map.pcd').write_bytes(b'complete')
     (tmp_path / f'.other.{dead.pid}.abc.tmp.txt').write_bytes(b'not ours')
     removed = remove_stale_temporaries(tmp_path, stems=['global_map', 'trajectory_camera_init'])
-    assert sorted(p.name for p in removed) == sorted([f'.global_map.{dead.pid}.abc_12.tmp.pcd',
-                                                      f'.trajectory_camera_init.{dead.pid}.q9.tmp.tum'])
+    assert sorted(p.name for p in removed) == sorted(
+        [f'.global_map.{dead.pid}.abc_12.tmp.pcd', f'.trajectory_camera_init.{dead.pid}.q9.tmp.tum']
+    )
     assert (tmp_path / f'.global_map.{child.pid}.xyz.tmp.pcd').exists()
     assert (tmp_path / f'.other.{dead.pid}.abc.tmp.txt').exists()
     with atomic_path(tmp_path / 'x.txt') as path:
@@ -955,8 +1037,12 @@ class NodeProcesses:
 
 
 def wait_for_publishers(context, node, topics, nodes: NodeProcesses, timeout=30.0):
-    ok = spin_until(context, node, lambda: all(node.count_publishers(t) > 0 for t in topics)
-                    or not all(nodes.alive().values()), timeout)
+    ok = spin_until(
+        context,
+        node,
+        lambda: all(node.count_publishers(t) > 0 for t in topics) or not all(nodes.alive().values()),
+        timeout,
+    )
     assert all(nodes.alive().values()), {n: nodes.log(n)[-2000:] for n, a in nodes.alive().items() if not a}
     assert ok, f'publishers of {topics} not discovered'
 
@@ -964,19 +1050,25 @@ def wait_for_publishers(context, node, topics, nodes: NodeProcesses, timeout=30.
 def listener(context, name, topics):
     """A node storing (arrival time, message) per topic."""
     import rclpy
-    from cloud_msgs.msg import CloudInfo
     from nav_msgs.msg import Odometry
     from sensor_msgs.msg import PointCloud2
 
+    from cloud_msgs.msg import CloudInfo
     from lego_loam_py.ros import qos
 
     node = rclpy.create_node(name, context=context)
     got = {t: [] for t in topics}
     for topic in topics:
-        cls = Odometry if topic in ('/laser_odom_to_init', '/aft_mapped_to_init', '/integrated_to_init') else \
-            CloudInfo if topic == '/segmented_cloud_info' else PointCloud2
-        node.create_subscription(cls, topic, lambda m, _t=topic: got[_t].append((time.monotonic(), m)),
-                                 qos.reliable(100))
+        cls = (
+            Odometry
+            if topic in ('/laser_odom_to_init', '/aft_mapped_to_init', '/integrated_to_init')
+            else CloudInfo
+            if topic == '/segmented_cloud_info'
+            else PointCloud2
+        )
+        node.create_subscription(
+            cls, topic, lambda m, _t=topic: got[_t].append((time.monotonic(), m)), qos.reliable(100)
+        )
     return node, got
 
 
@@ -989,16 +1081,24 @@ def test_a_node_keeps_serving_through_a_stream_of_bad_messages(rclpy_context, pr
     from tests.test_image_projection_node import make_bad_clouds
 
     nodes = NodeProcesses(processes, tmp_path)
-    node, got = listener(rclpy_context, 'bad_stream_listener', ['/segmented_cloud', '/laser_odom_to_init',
-                                                                 '/laser_cloud_corner_last'])
+    node, got = listener(
+        rclpy_context, 'bad_stream_listener', ['/segmented_cloud', '/laser_odom_to_init', '/laser_cloud_corner_last']
+    )
     cloud_pub = node.create_publisher(PointCloud2, '/velodyne_points', qos.reliable(10))
     imu_pub = node.create_publisher(Imu, '/imu/data', qos.reliable(100))
     for name in ('imageProjection', 'featureAssociation'):
         nodes.start(name)
     wait_for_publishers(rclpy_context, node, ['/segmented_cloud', '/laser_odom_to_init'], nodes)
-    assert spin_until(rclpy_context, node, lambda: cloud_pub.get_subscription_count() > 0 and
-                      imu_pub.get_subscription_count() > 0 and
-                      node.count_subscribers('/segmented_cloud') >= 2, 20)
+    assert spin_until(
+        rclpy_context,
+        node,
+        lambda: (
+            cloud_pub.get_subscription_count() > 0
+            and imu_pub.get_subscription_count() > 0
+            and node.count_subscribers('/segmented_cloud') >= 2
+        ),
+        20,
+    )
     bad_clouds, _ = make_bad_clouds()
     rng = np.random.default_rng(3)
     rounds, imu_batch = [], []
@@ -1006,7 +1106,7 @@ def test_a_node_keeps_serving_through_a_stream_of_bad_messages(rclpy_context, pr
         if topic == '/imu/data':
             imu_batch.append(msg)
             continue
-        garbage = restamped(msg, stamp_of(msg) - 50_000_000)   # the layout of a real scan, random bytes
+        garbage = restamped(msg, stamp_of(msg) - 50_000_000)  # the layout of a real scan, random bytes
         garbage.data = array.array('B', rng.bytes(len(msg.data)))
         rounds.append((stamp_of(msg), (imu_batch, garbage, msg)))
         imu_batch = []
@@ -1017,7 +1117,7 @@ def test_a_node_keeps_serving_through_a_stream_of_bad_messages(rclpy_context, pr
         imu, garbage, good = round_
         for msg in imu:
             imu_pub.publish(msg)
-            if rng.random() < 0.2:   # a bad IMU sample between good ones
+            if rng.random() < 0.2:  # a bad IMU sample between good ones
                 bad = Imu()
                 bad.header = msg.header
                 bad.orientation.x, bad.orientation.w = float(rng.choice([np.nan, 1e200, 0.0])), 0.0
@@ -1035,14 +1135,16 @@ def test_a_node_keeps_serving_through_a_stream_of_bad_messages(rclpy_context, pr
         the first scan: its burst would replace the first scan's parts in the depth-1 queues, featureAssociation
         would start on the second scan, and that one would never get odometry.)"""
         done = got['/laser_odom_to_init'] + (got['/laser_cloud_corner_last'] if stamp == good_stamps[0] else [])
-        return any(stamp_of(m) == stamp for _, m in got['/segmented_cloud']) and \
-            any(stamp_of(m) == stamp for _, m in done)
+        return any(stamp_of(m) == stamp for _, m in got['/segmented_cloud']) and any(
+            stamp_of(m) == stamp for _, m in done
+        )
 
     # The bursts go to a best-effort input: a busy machine can lose the good scan itself on the way (the shared
     # memory segment is full of bad clouds). It is sent again, alone, until it comes out; the nodes drop it as
     # 'not newer' if they had it after all.
-    left = publish_in_lockstep(rclpy_context, node, send, rounds, through,
-                               resend=lambda round_: cloud_pub.publish(round_[2]))
+    left = publish_in_lockstep(
+        rclpy_context, node, send, rounds, through, resend=lambda round_: cloud_pub.publish(round_[2])
+    )
     assert all(nodes.alive().values())
     codes = nodes.stop_all()
     logs = {name: nodes.log(name) for name in codes}
@@ -1062,7 +1164,7 @@ def test_a_node_keeps_serving_through_a_stream_of_bad_messages(rclpy_context, pr
 
 def start_feeder(processes, tmp_path, *args, **popen):
     log = open(tmp_path / 'feeder.err', 'w')
-    proc = processes.python('-m', 'tests.support.feeder', CAMPUS, *map(str, args), cwd=REPO, stderr=log, **popen)
+    proc = processes.python('-m', 'lego_loam_py.testing.feeder', CAMPUS, *map(str, args), cwd=REPO, stderr=log, **popen)
     log.close()
     wait_for_line(proc, 'ready', timeout=40)
     return proc
@@ -1091,11 +1193,14 @@ def test_the_pipeline_recovers_when_a_node_is_killed_and_restarted(rclpy_context
     wait_for_publishers(rclpy_context, node, topics + ['/segmented_cloud'], nodes)
     # Data at 1x for as long as the test needs it (continuous stamps over laps); stopped at the end.
     feeder = start_feeder(processes, tmp_path, '--duration', 600)
-    assert spin_until(rclpy_context, node, lambda: len(got['/aft_mapped_to_init']) > 2 and
-                      len(got['/integrated_to_init']) > 10, 60), {t: len(v) for t, v in got.items()}
+    assert spin_until(
+        rclpy_context, node, lambda: len(got['/aft_mapped_to_init']) > 2 and len(got['/integrated_to_init']) > 10, 60
+    ), {t: len(v) for t, v in got.items()}
     events = {}
-    for name, output, publisher_topic in (('mapOptimization', '/aft_mapped_to_init', '/aft_mapped_to_init'),
-                                          ('imageProjection', '/integrated_to_init', '/segmented_cloud')):
+    for name, output, publisher_topic in (
+        ('mapOptimization', '/aft_mapped_to_init', '/aft_mapped_to_init'),
+        ('imageProjection', '/integrated_to_init', '/segmented_cloud'),
+    ):
         old_gids = publisher_gids(node, publisher_topic)
         killed = time.monotonic()
         nodes.kill(name)
@@ -1103,15 +1208,17 @@ def test_the_pipeline_recovers_when_a_node_is_killed_and_restarted(rclpy_context
         # The new process is up once its publisher is discovered: how long that takes depends on the machine
         # (a Python process importing numpy, scipy and rclpy); from then on the output must come back within
         # a few scans of data. (The killed one's endpoints stay in the graph until its DDS lease expires.)
-        assert spin_until(rclpy_context, node, lambda: publisher_gids(node, publisher_topic) - old_gids or
-                          not nodes.alive()[name], 90), nodes.log(name)[-3000:]
+        assert spin_until(
+            rclpy_context, node, lambda: publisher_gids(node, publisher_topic) - old_gids or not nodes.alive()[name], 90
+        ), nodes.log(name)[-3000:]
         up = time.monotonic()
         # (Scans already on their way when the node was killed may still come out before it is up.)
         recovered = spin_until(rclpy_context, node, lambda: len([t for t, _ in got[output] if t > up]) > 2, 30)
         assert recovered, (name, nodes.log(name)[-3000:])
         first_output = next(t for t, _ in got[output] if t > up)
-        events[name] = dict(killed=killed, up=up, restart=up - killed, recovery=first_output - killed,
-                            output_after_up=first_output - up)
+        events[name] = dict(
+            killed=killed, up=up, restart=up - killed, recovery=first_output - killed, output_after_up=first_output - up
+        )
     # Ten more fused poses after imageProjection is back, then the data stops.
     after = len(got['/integrated_to_init'])
     assert spin_until(rclpy_context, node, lambda: len(got['/integrated_to_init']) >= after + 10, 60)
@@ -1124,7 +1231,7 @@ def test_the_pipeline_recovers_when_a_node_is_killed_and_restarted(rclpy_context
     assert not any('Traceback' in text for text in logs.values()), logs
     # Recovery: once the restarted process is discovered, its first output follows within 5 s of data
     # (50 scans; it needs one or two, plus its subscriptions matching the running nodes).
-    for name, event in events.items():
+    for event in events.values():
         assert event['output_after_up'] < 5.0, events
     # The other nodes kept serving: odometry and fusion went on while mapOptimization was away, with at most
     # a short stall (a reader killed with SIGKILL can hold Fast DDS shared-memory buffers of its writers for a
@@ -1158,8 +1265,9 @@ class SavingMapper:
         self.inputs = mapping_inputs(outputs)
 
     def wait_linked(self) -> None:
-        assert spin_until(self.context, self.node, lambda: all(p.get_subscription_count() for p in self.pubs.values()),
-                          20)
+        assert spin_until(
+            self.context, self.node, lambda: all(p.get_subscription_count() for p in self.pubs.values()), 20
+        )
 
     def feed(self, parts_list, pause: float) -> None:
         """Each mapping input (corner, surf, outlier, odometry), ``pause`` seconds apart."""
@@ -1172,9 +1280,9 @@ class SavingMapper:
 def test_map_files_are_complete_after_sigkill_during_a_save(rclpy_context, processes, tmp_path):
     """mapOptimization killed with SIGKILL in the middle of writing its map: every file is the previous complete
     version or the new complete one, never partial; the restarted node removes the killed writer's temporaries."""
-    from cloud_msgs.msg import CloudInfo  # noqa: F401 (type support loaded before the node starts)
     from std_srvs.srv import Trigger
 
+    from cloud_msgs.msg import CloudInfo  # noqa: F401 (type support loaded before the node starts)
     from lego_loam_py.ros.map_optimization_node import MAP_FILE_STEMS
 
     mapper = SavingMapper(rclpy_context, processes, tmp_path, 'save_killer')
@@ -1191,17 +1299,18 @@ def test_map_files_are_complete_after_sigkill_during_a_save(rclpy_context, proce
         assert spin_until(rclpy_context, node, future.done, 30)
         return future.result()
 
-    feed(inputs[:len(inputs) // 2])
+    feed(inputs[: len(inputs) // 2])
     # A map to save: mapOptimization made its first keyframe (its inputs are small queues: on a busy machine
     # it skips some, and takes its time).
-    assert spin_until(rclpy_context, node, lambda: diagnostics.counter('mapOptimization', 'keyframes') >= 1, 60), \
+    assert spin_until(rclpy_context, node, lambda: diagnostics.counter('mapOptimization', 'keyframes') >= 1, 60), (
         nodes.log('mapOptimization')[-3000:]
+    )
     response = save()
     assert response.success, response.message
     names = [f'{stem}{".tum" if "trajectory_" in stem else ".pcd"}' for stem in MAP_FILE_STEMS] + ['trajectory.tum']
     names = sorted(set(names))
     assert all((maps / name).is_file() for name in names), sorted(p.name for p in maps.iterdir())
-    feed(inputs[len(inputs) // 2:])
+    feed(inputs[len(inputs) // 2 :])
     caught = None
     for attempt in range(20):
         previous = {name: (maps / name).read_bytes() for name in names}
@@ -1225,13 +1334,13 @@ def test_map_files_are_complete_after_sigkill_during_a_save(rclpy_context, proce
         data = (maps / name).read_bytes()
         complete = pcd_is_complete(maps / name) if name.endswith('.pcd') else tum_is_complete(maps / name)
         assert data == previous[name] or complete, name
-        assert complete, name    # the previous version was complete too
-    leftovers = [p.name for p in maps.iterdir() if '.tmp' in p.name]   # what the killed writer left behind ...
+        assert complete, name  # the previous version was complete too
+    leftovers = [p.name for p in maps.iterdir() if '.tmp' in p.name]  # what the killed writer left behind ...
     nodes.start('mapOptimization')
     assert client.wait_for_service(timeout_sec=30)
     if leftovers:
         assert spin_until(rclpy_context, node, lambda: 'removed' in nodes.log('mapOptimization'), 20)
-    assert not [p.name for p in maps.iterdir() if '.tmp' in p.name]   # ... is gone once it restarted
+    assert not [p.name for p in maps.iterdir() if '.tmp' in p.name]  # ... is gone once it restarted
     nodes.stop_all()
     assert 'Traceback' not in nodes.log('mapOptimization')
     release(node)
@@ -1240,24 +1349,33 @@ def test_map_files_are_complete_after_sigkill_during_a_save(rclpy_context, proce
 def test_save_map_answers_twenty_concurrent_callers_with_at_most_two_saves(rclpy_context, processes, tmp_path):
     """20 clients call save_map at once while mapOptimization maps: every one gets an answer from a save that
     started after it asked or was going on (coalesced: two saves), and the files are complete."""
-    from cloud_msgs.msg import CloudInfo  # noqa: F401 (type support loaded before the node starts)
     from std_srvs.srv import Trigger
+
+    from cloud_msgs.msg import CloudInfo  # noqa: F401 (type support loaded before the node starts)
 
     mapper = SavingMapper(rclpy_context, processes, tmp_path, 'save_callers')
     maps, nodes, node, diagnostics, inputs = mapper.maps, mapper.nodes, mapper.node, mapper.diagnostics, mapper.inputs
     clients = [node.create_client(Trigger, 'save_map') for _ in range(20)]
     assert all(client.wait_for_service(timeout_sec=30) for client in clients)
     mapper.wait_linked()
-    mapper.feed(inputs[:len(inputs) // 2], 0.1)
+    mapper.feed(inputs[: len(inputs) // 2], 0.1)
     assert spin_until(rclpy_context, node, lambda: diagnostics.counter('mapOptimization', 'keyframes') >= 1, 60)
     futures = [client.call_async(Trigger.Request()) for client in clients]
-    mapper.feed(inputs[len(inputs) // 2:], 0.05)   # mapping goes on meanwhile
-    assert spin_until(rclpy_context, node, lambda: all(f.done() for f in futures), 90), \
+    mapper.feed(inputs[len(inputs) // 2 :], 0.05)  # mapping goes on meanwhile
+    assert spin_until(rclpy_context, node, lambda: all(f.done() for f in futures), 90), (
         f'{sum(f.done() for f in futures)} of 20 answered: {nodes.log("mapOptimization")[-2000:]}'
+    )
     assert all(f.result().success for f in futures), [f.result().message for f in futures]
     # Every caller has its answer, so the saves are done: the next /diagnostics (1 Hz) shows them all.
-    assert spin_until(rclpy_context, node, lambda: diagnostics.counter('mapOptimization', 'save_requests') >= 20 and
-                      diagnostics.counter('mapOptimization', 'saves') >= 1, 10)
+    assert spin_until(
+        rclpy_context,
+        node,
+        lambda: (
+            diagnostics.counter('mapOptimization', 'save_requests') >= 20
+            and diagnostics.counter('mapOptimization', 'saves') >= 1
+        ),
+        10,
+    )
     assert diagnostics.counter('mapOptimization', 'saves') <= 2
     for name in ('global_map.pcd', 'corner_map.pcd', 'surface_map.pcd', 'trajectory.pcd'):
         assert pcd_is_complete(maps / name), name
@@ -1270,7 +1388,7 @@ def test_save_map_answers_twenty_concurrent_callers_with_at_most_two_saves(rclpy
 def test_coalescing_runner_serves_every_caller_with_at_most_two_runs():
     import threading
 
-    from lego_loam_py.core.io import CoalescingRunner
+    from lego_loam_py.ros.coalescing import CoalescingRunner
 
     release_job, started = threading.Event(), threading.Event()
 
@@ -1282,7 +1400,7 @@ def test_coalescing_runner_serves_every_caller_with_at_most_two_runs():
     runner = CoalescingRunner(job, 'test')
     first = runner.request()
     assert started.wait(10)
-    later = [runner.request() for _ in range(19)]   # while the first run is going on: they share the next
+    later = [runner.request() for _ in range(19)]  # while the first run is going on: they share the next
     assert all(f is later[0] for f in later) and not later[0].done()
     release_job.set()
     assert first.result(10) == 1 and all(f.result(10) == 2 for f in later)
@@ -1294,7 +1412,7 @@ def test_coalescing_runner_serves_every_caller_with_at_most_two_runs():
     broken = CoalescingRunner(failing)
     with pytest.raises(OSError, match='disk full'):
         broken.request().result(10)
-    assert broken.request().exception(10) is not None   # and it keeps answering
+    assert broken.request().exception(10) is not None  # and it keeps answering
 
 
 def test_a_burst_of_clouds_keeps_queues_and_memory_bounded(rclpy_context, processes, tmp_path):
@@ -1310,8 +1428,9 @@ def test_a_burst_of_clouds_keeps_queues_and_memory_bounded(rclpy_context, proces
     for name in ('imageProjection', 'featureAssociation'):
         nodes.start(name)
     wait_for_publishers(rclpy_context, node, topics, nodes)
-    feeder = start_feeder(processes, tmp_path, '--duration', 5, '--burst', 100, '--burst-handshake',
-                          stdin=subprocess.PIPE)
+    feeder = start_feeder(
+        processes, tmp_path, '--duration', 5, '--burst', 100, '--burst-handshake', stdin=subprocess.PIPE
+    )
     rss = {name: [] for name in nodes.procs}
     wait_for_line(feeder, 'burst ready', timeout=60)
     image_projection = nodes.procs['imageProjection'].pid
@@ -1334,20 +1453,25 @@ def test_a_burst_of_clouds_keeps_queues_and_memory_bounded(rclpy_context, proces
     assert 'done 150' in out, out
     # The last scan fed is the one a depth-1 queue keeps: it comes out, however late.
     fed_last = max(stamp_of(m) for t, m in campus_messages(5.0) if t == '/velodyne_points')
-    assert spin_until(rclpy_context, node, lambda: sample() and got['/laser_odom_to_init'] and
-                      stamp_of(got['/laser_odom_to_init'][-1][1]) == fed_last, 30)
+    assert spin_until(
+        rclpy_context,
+        node,
+        lambda: sample() and got['/laser_odom_to_init'] and stamp_of(got['/laser_odom_to_init'][-1][1]) == fed_last,
+        30,
+    )
     processed = [stamp_of(m) for _, m in got['/segmented_cloud']]
     codes = nodes.stop_all()
     peak = {name: max(values) for name, values in rss.items()}
-    (tmp_path / 'burst_figures.json').write_text(json.dumps(dict(baseline=baseline, peak=peak,
-                                                                 processed=len(processed))))
+    (tmp_path / 'burst_figures.json').write_text(
+        json.dumps(dict(baseline=baseline, peak=peak, processed=len(processed)))
+    )
     assert codes == {'imageProjection': 0, 'featureAssociation': 0}
     # Latest data wins: most of the burst was skipped, not queued; the live scans after it were processed.
     assert len(processed) < 50 + 100 // 2, len(processed)
     assert processed[-1] == fed_last
     assert [stamp_of(m) for _, m in got['/laser_odom_to_init']][-1] == fed_last
     growth = {name: peak[name] - baseline[name] for name in peak}
-    assert all(g < 300 for g in growth.values()), (baseline, peak)   # 100 clouds are 40 MB
+    assert all(g < 300 for g in growth.values()), (baseline, peak)  # 100 clouds are 40 MB
     assert not any('Traceback' in nodes.log(n) for n in nodes.procs)
     release(node)
 
@@ -1363,18 +1487,39 @@ def test_a_bag_played_in_a_loop_resets_cleanly(rclpy_context, processes, tmp_pat
     for name in NODES:
         nodes.start(name)
     wait_for_publishers(rclpy_context, node, topics + ['/segmented_cloud', '/laser_odom_to_init'], nodes)
-    player = processes.start([BIN / 'lego_loam_py', 'play', shared_data / 'golden' / 'vlp16_static_indoor_20hz_ros2',
-                              '--loop', '3', '--rate', '0.5', '--wait-for-subscribers', '20', '--no-progress'])
+    player = processes.start(
+        [
+            BIN / 'lego_loam_py',
+            'play',
+            shared_data / 'golden' / 'vlp16_static_indoor_20hz_ros2',
+            '--loop',
+            '3',
+            '--rate',
+            '0.5',
+            '--wait-for-subscribers',
+            '20',
+            '--no-progress',
+        ]
+    )
     assert spin_until(rclpy_context, node, lambda: player.poll() is not None, 120), 'the player did not finish'
     assert player.returncode == 0, player.communicate()
     assert '(3 plays)' in player.communicate()[1]
     # The last loop's scans are through once both resets are logged and the fused poses stop coming.
-    assert spin_until(rclpy_context, node, lambda: all(nodes.log(name).count('time jumped back') >= 2 for name in
-                                                       ('featureAssociation', 'transformFusion')), 60), \
-        {name: nodes.log(name)[-2000:] for name in NODES}
+    assert spin_until(
+        rclpy_context,
+        node,
+        lambda: all(
+            nodes.log(name).count('time jumped back') >= 2 for name in ('featureAssociation', 'transformFusion')
+        ),
+        60,
+    ), {name: nodes.log(name)[-2000:] for name in NODES}
     settled = []
-    spin_until(rclpy_context, node, lambda: settled.append(len(got['/integrated_to_init'])) or
-               (len(settled) > 40 and settled[-1] == settled[-41]), 30)   # 2 s (40 x 50 ms) without a new pose
+    spin_until(
+        rclpy_context,
+        node,
+        lambda: settled.append(len(got['/integrated_to_init'])) or (len(settled) > 40 and settled[-1] == settled[-41]),
+        30,
+    )  # 2 s (40 x 50 ms) without a new pose
     assert all(nodes.alive().values())
     codes = nodes.stop_all()
     logs = {name: nodes.log(name) for name in NODES}

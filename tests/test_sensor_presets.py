@@ -1,5 +1,6 @@
 """The presets of the lidars users have (core.sensor_presets): consistent geometry, the makers' beam tables, the
 OS1-128's against a real unit's metadata, and each one simulated and run through the offline pipeline."""
+
 from __future__ import annotations
 
 import json
@@ -7,10 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from lego_loam_py.core.beam_table import OS1_128_UNIT_ELEVATIONS, table_problem
 from lego_loam_py.core.params import SENSOR_PRESETS, Params
-from lego_loam_py.core.range_image import RangeImageProjection, prepare_input
-from lego_loam_py.core.sensor_presets import MORE_SENSOR_PRESETS
+from lego_loam_py.core.params.beams import OS1_128_UNIT_ELEVATIONS, table_problem
+from lego_loam_py.core.params.presets import MORE_SENSOR_PRESETS
+from lego_loam_py.core.projection.range_image import RangeImageProjection, prepare_input
 from lego_loam_py.sim.lidar import LidarModel
 
 NEW = sorted(MORE_SENSOR_PRESETS)
@@ -21,7 +22,7 @@ OUSTER = 'real/ouster_os128_pcaps_with_imu'
 def test_each_preset_is_a_consistent_geometry(preset):
     s = Params().replace(sensor__preset=preset).sensor
     assert s.preset == preset and s.horizon_scan * s.ang_res_x == pytest.approx(360.0)
-    beams = np.asarray(LidarModel.from_preset(preset).ring_elevations)   # the table, or the even rows
+    beams = np.asarray(LidarModel.from_preset(preset).ring_elevations)  # the table, or the even rows
     assert len(beams) == s.n_scan and np.all(np.diff(beams) > 0)
     if s.beam_elevations:
         assert table_problem(s.beam_elevations, s.n_scan) is None
@@ -37,11 +38,23 @@ def test_each_preset_is_a_consistent_geometry(preset):
 
 def test_the_original_presets_are_unchanged_and_the_new_ones_added():
     assert list(SENSOR_PRESETS)[:6] == ['VLP-16', 'HDL-32E', 'VLS-128', 'HDL-64E', 'OS1-16', 'OS1-64']
-    assert SENSOR_PRESETS['VLP-16'] == dict(n_scan=16, horizon_scan=1800, ang_res_x=0.2, ang_res_y=2.0,
-                                            ang_bottom=15.0 + 0.1, ground_scan_ind=7)
+    assert SENSOR_PRESETS['VLP-16'] == dict(
+        n_scan=16, horizon_scan=1800, ang_res_x=0.2, ang_res_y=2.0, ang_bottom=15.0 + 0.1, ground_scan_ind=7
+    )
     assert set(NEW) <= set(SENSOR_PRESETS) and len(NEW) == 17
-    assert {'VLP-32C', 'OS0-128', 'OS1-32', 'OS2-64', 'Pandar64', 'Pandar40P', 'PandarXT-32', 'RS-LiDAR-16',
-            'RS-LiDAR-32', 'RS-Helios-1615', 'RS-Ruby-128'} <= set(NEW)
+    assert {
+        'VLP-32C',
+        'OS0-128',
+        'OS1-32',
+        'OS2-64',
+        'Pandar64',
+        'Pandar40P',
+        'PandarXT-32',
+        'RS-LiDAR-16',
+        'RS-LiDAR-32',
+        'RS-Helios-1615',
+        'RS-Ruby-128',
+    } <= set(NEW)
 
 
 def _metadata_angles(path) -> np.ndarray:
@@ -68,8 +81,9 @@ def test_the_os1_128_preset_against_a_real_units_metadata_and_scans(shared_data)
         source.close()
     params = Params().replace(sensor__preset='OS1-128')
     with_ring = prepare_input(points, params)
-    assert not with_ring.rings_from_top and np.array_equal(with_ring.ring, points['ring'][with_ring.source_index]
-                                                           if with_ring.source_index is not None else points['ring'])
+    assert not with_ring.rings_from_top and np.array_equal(
+        with_ring.ring, points['ring'][with_ring.source_index] if with_ring.source_index is not None else points['ring']
+    )
     no_ring = params.replace(sensor__use_cloud_ring=False)
     data = prepare_input(points, no_ring)
     ring = points['ring'] if data.source_index is None else points['ring'][data.source_index]
@@ -88,8 +102,8 @@ def test_the_os1_128_preset_against_a_real_units_metadata_and_scans(shared_data)
 def test_each_preset_simulates_and_runs_offline(preset):
     """1 s of the simulated campus with the sensor: every scan processed, the trajectory within a few cm."""
     from lego_loam_py.evaluation import evaluate
+    from lego_loam_py.inputs.sidecars import load_ground_truth
     from lego_loam_py.offline import run_bag
-    from lego_loam_py.sim.output import load_ground_truth
     from lego_loam_py.sim.simulator import cached_scenario
 
     bag = cached_scenario('campus', duration=1.0, preset=preset)

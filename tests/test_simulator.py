@@ -1,4 +1,5 @@
 """The lidar + IMU simulator: sensor model, motion, IMU consistency, ground truth, labels, outputs, CLI, bags."""
+
 from __future__ import annotations
 
 import ast
@@ -15,7 +16,9 @@ from scipy.spatial.transform import Rotation
 from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
 from lego_loam_py.core.params import SENSOR_PRESETS
 from lego_loam_py.core.pointcloud import VELODYNE_PACKED_DTYPE, VELODYNE_POINT_DTYPE
-from lego_loam_py.sim import output as sidecars
+from lego_loam_py.formats import read_tum
+from lego_loam_py.inputs import sidecars
+from lego_loam_py.sim import output as sim_output
 from lego_loam_py.sim.imu import GRAVITY, ImuModel, ImuNoise
 from lego_loam_py.sim.lidar import VLP16_FIRING_ELEVATIONS, LidarModel, column_of_azimuth, simulate_sweep
 from lego_loam_py.sim.scenarios import SCENARIOS, build_world
@@ -25,10 +28,11 @@ REPO = Path(__file__).resolve().parents[1]
 CLI = str(Path(sys.executable).parent / 'lego_loam_py')
 BAGS = REPO / 'bags'
 SCAN_NS = 100_000_000
-SIGMA = 0.015   # VLP-16 range noise [m]
+SIGMA = 0.015  # VLP-16 range noise [m]
 
 
 # ------------------------------------------------------------------------------------------------ helpers
+
 
 def read_bag(path: Path) -> dict:
     """Clouds (stamp, points) and IMU arrays of a simulated bag."""
@@ -39,8 +43,9 @@ def read_bag(path: Path) -> dict:
             msg = reader.deserialize(message)
             stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
             if message.topic == '/velodyne_points':
-                clouds.append((stamp, cloud_msg_to_array(msg).copy(), msg.header.frame_id, bool(msg.is_dense),
-                               message.timestamp))
+                clouds.append(
+                    (stamp, cloud_msg_to_array(msg).copy(), msg.header.frame_id, bool(msg.is_dense), message.timestamp)
+                )
             else:
                 imu['stamp'].append(stamp)
                 imu['bag_time'].append(message.timestamp)
@@ -48,8 +53,11 @@ def read_bag(path: Path) -> dict:
                 imu['accel'].append([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
                 imu['quat'].append([msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w])
                 imu['frame'].add(msg.header.frame_id)
-                imu['cov'] = (np.array(msg.orientation_covariance), np.array(msg.angular_velocity_covariance),
-                              np.array(msg.linear_acceleration_covariance))
+                imu['cov'] = (
+                    np.array(msg.orientation_covariance),
+                    np.array(msg.angular_velocity_covariance),
+                    np.array(msg.linear_acceleration_covariance),
+                )
     for key in ('stamp', 'bag_time', 'gyro', 'accel', 'quat'):
         imu[key] = np.array(imu[key])
     return {'topics': topics, 'clouds': clouds, 'imu': imu}
@@ -109,10 +117,12 @@ def contents(bags):
         if name not in cache:
             cache[name] = read_bag(bags[name])
         return cache[name]
+
     return get
 
 
 # ------------------------------------------------------------------------------------ outputs and parsing
+
 
 @pytest.mark.parametrize('name', list(SCENARIOS))
 def test_every_scenario_generates_a_bag_that_parses_with_ground_truth_and_labels(name, bags, contents):
@@ -128,14 +138,14 @@ def test_every_scenario_generates_a_bag_that_parses_with_ground_truth_and_labels
     assert np.array_equal(gt_stamps, [c[0] for c in clouds])
     assert np.allclose(gt_poses[0], np.eye(4), atol=1e-12)
     assert np.array_equal(labels.stamps, gt_stamps)
-    for k, (stamp, points, frame_id, is_dense, _) in enumerate(clouds):
+    for k, (_, points, frame_id, is_dense, _) in enumerate(clouds):
         assert points.dtype == VELODYNE_POINT_DTYPE and frame_id == 'velodyne' and is_dense
         assert len(points) > 15000, f'{name} scan {k}: only {len(points)} points'
         for field in ('x', 'y', 'z', 'intensity', 'time'):
             assert np.isfinite(points[field]).all()
         assert len(labels[k]) == len(points) and labels[k].dtype == np.uint32
     all_labels = np.concatenate([labels[k] for k in range(10)])
-    assert 0.02 < np.mean(all_labels == 1) < 0.8          # ground is there, and not everything
+    assert 0.02 < np.mean(all_labels == 1) < 0.8  # ground is there, and not everything
     assert len(np.unique(all_labels[all_labels >= 2])) >= 5  # several objects
     assert max(all_labels) < len(labels.classes) and labels.classes[:2] == ['none', 'ground']
     for name_ in (sidecars.GROUND_TRUTH_DENSE, sidecars.SCENARIO, sidecars.NOTE):
@@ -149,7 +159,7 @@ def test_firing_order_and_clockwise_azimuth(contents):
     model = LidarModel.from_preset('VLP-16')
     _, points, *_ = contents('campus_ideal')['clouds'][3]
     # Lasers fire within the first 62 % of a column period: +0.2 finds the column despite float32 rounding.
-    column = np.floor(points["time"].astype(np.float64) / model.column_period + 0.2).astype(int)
+    column = np.floor(points['time'].astype(np.float64) / model.column_period + 0.2).astype(int)
     azimuth = np.arctan2(points['y'].astype(float), points['x'].astype(float))
     # Every point lies on its column's azimuth, which decreases with time (clockwise spin from +x).
     assert np.array_equal(column_of_azimuth(azimuth, model.columns), column)
@@ -183,7 +193,7 @@ def test_time_field_is_the_firing_time_since_the_sweep_start(contents):
 
 def test_sixteen_rings_at_the_vlp16_elevations(contents):
     assert VLP16_FIRING_ELEVATIONS[:4] == (-15, 1, -13, 3)
-    _, points, *_ = contents('corridor')['clouds'][0]   # indoors every beam hits something
+    _, points, *_ = contents('corridor')['clouds'][0]  # indoors every beam hits something
     assert set(points['ring'].tolist()) == set(range(16))
     elevation = np.degrees(np.arctan2(points['z'], np.hypot(points['x'], points['y'])).astype(float))
     for ring in range(16):
@@ -197,7 +207,7 @@ def test_other_presets_use_their_geometry(preset):
     model = LidarModel.from_preset(preset)
     geometry = SENSOR_PRESETS[preset]
     assert model.n_rings == geometry['n_scan'] and model.columns == geometry['horizon_scan']
-    if geometry.get('beam_elevations'):   # a preset with a beam table (HDL-64E): those beams, or evenly spaced
+    if geometry.get('beam_elevations'):  # a preset with a beam table (HDL-64E): those beams, or evenly spaced
         assert model.ring_elevations == pytest.approx(geometry['beam_elevations'])
         uniform = LidarModel.from_preset(preset, uniform_beams=True)
         assert np.allclose(np.diff(uniform.ring_elevations), geometry['ang_res_y'], atol=1e-5)
@@ -245,7 +255,7 @@ def test_range_noise_is_gaussian_along_the_beam_with_the_documented_sigma(conten
     d = np.concatenate(differences)
     assert len(d) > 100000
     assert abs(d.mean()) < 1e-3 and 0.9 * SIGMA < d.std() < 1.1 * SIGMA
-    assert np.mean(np.abs(d) > 3 * SIGMA) < 0.005          # Gaussian tails, no outliers
+    assert np.mean(np.abs(d) > 3 * SIGMA) < 0.005  # Gaussian tails, no outliers
 
 
 def test_intensity_follows_the_surface_material(bags, contents):
@@ -263,6 +273,7 @@ def test_intensity_follows_the_surface_material(bags, contents):
 
 
 # ---------------------------------------------------------------------------------- motion and ground truth
+
 
 @pytest.mark.parametrize('ideal', [True, False], ids=['ideal', 'noisy'])
 def test_points_reprojected_at_their_firing_time_land_on_the_mesh_they_hit(bags, contents, ideal):
@@ -285,7 +296,7 @@ def test_points_reprojected_at_their_firing_time_land_on_the_mesh_they_hit(bags,
         assert d.max() < bound, d.max()
     else:
         assert np.quantile(d, 0.997) < bound and d.max() < 0.03 + 6 * SIGMA, (np.quantile(d, 0.997), d.max())
-    assert np.mean(np.concatenate(skewed) > bound) > 0.2   # the motion is large: deskewing matters
+    assert np.mean(np.concatenate(skewed) > bound) > 0.2  # the motion is large: deskewing matters
     assert np.mean(agree) > 0.99
     labels.close()
 
@@ -350,8 +361,10 @@ def test_in_place_turns_stop_spin_at_the_peak_rate_and_walk_on_where_they_left_o
     rotation, position = turns.pose(np.array([first_middle]))
     assert np.allclose(position, base.trajectory.pose(np.array([10.0]))[1], atol=1e-9)
     # Smooth: braking and walking on are no harder than the walk itself.
-    assert np.linalg.norm(turns.acceleration(t), axis=1).max() < 1.2 * np.linalg.norm(
-        base.trajectory.acceleration(t), axis=1).max()
+    assert (
+        np.linalg.norm(turns.acceleration(t), axis=1).max()
+        < 1.2 * np.linalg.norm(base.trajectory.acceleration(t), axis=1).max()
+    )
     # After the turns, the pose is the base one, 5.5 s later per turn; before the first, the base one.
     for later, turns_before in ((5.0, 0), (30.0, 1), (67.0, 2)):
         assert np.allclose(turns.matrices([later]), base.trajectory.matrices([later - 5.5 * turns_before]), atol=1e-9)
@@ -374,7 +387,8 @@ def test_another_route_drives_the_same_path_through_the_same_scene_from_another_
     route = build_world('campus', 0, route_start=100.0, reverse=True)
     assert route.facts['reverse'] and route.facts['route_start_m'] == 100.0
     assert route.scene.distance(np.array([[10.0, -37.0, 1.0], [40.0, 0.0, 1.0]])) == pytest.approx(
-        base.scene.distance(np.array([[10.0, -37.0, 1.0], [40.0, 0.0, 1.0]])))   # the same scenery
+        base.scene.distance(np.array([[10.0, -37.0, 1.0], [40.0, 0.0, 1.0]]))
+    )  # the same scenery
     # It starts where asked (the lidar sits 1.8 m above the road, tilted with the car: within a few cm of the
     # path) and heads the other way: along -tangent at s = 100 m, then back along the path.
     rotation, position = route.trajectory.pose(np.array([0.0, 10.0]))
@@ -394,6 +408,7 @@ def test_another_route_drives_the_same_path_through_the_same_scene_from_another_
 
 # ------------------------------------------------------------------------------------------------------- IMU
 
+
 def _integrate_gyro(rotation0: np.ndarray, gyro: np.ndarray, dt: float) -> np.ndarray:
     rotation = rotation0.copy()
     for k in range(len(gyro) - 1):
@@ -407,7 +422,7 @@ def test_gyro_integrated_over_10_s_stays_within_the_bias_and_noise_bound(scenari
     (0.02 deg/s bias per axis, 0.01 deg/s/sqrt(Hz)); noise-free the error is < 1e-4 rad."""
     world = build_world(scenario, 0)
     model = ImuModel()
-    t = np.arange(2001) / 200.0 + 0.5                      # 10 s through the hairpin / over bumps
+    t = np.arange(2001) / 200.0 + 0.5  # 10 s through the hairpin / over bumps
     truth = world.trajectory.pose(t)[0]
     ideal = model.ideal().measure(world.trajectory, t, model.ideal().draw_biases(np.random.default_rng(0)), None)
     error = Rotation.from_matrix(truth[-1].T @ _integrate_gyro(truth[0], ideal.angular_velocity, 0.005)).magnitude()
@@ -434,7 +449,9 @@ def _integrate_specific_force(bag: Path, data: dict, window: int) -> tuple[float
     h = 0.005
     worst = 0.0
     for start in range(2, len(stamps) - window - 1, 50):
-        velocity = (position[start - 2] - 8 * position[start - 1] + 8 * position[start + 1] - position[start + 2]) / (12 * h)
+        velocity = (position[start - 2] - 8 * position[start - 1] + 8 * position[start + 1] - position[start + 2]) / (
+            12 * h
+        )
         p = position[start].copy()
         for k in range(start, start + window):
             p = p + velocity * h + (2 * accel[k] + accel[k + 1]) / 6 * h * h
@@ -442,7 +459,7 @@ def _integrate_specific_force(bag: Path, data: dict, window: int) -> tuple[float
         worst = max(worst, float(np.linalg.norm(p - position[start + window])))
     biases = sidecars.load_scenario(bag)['imu']['biases']['accel']
     seconds = window * h
-    bound = 0.5 * np.linalg.norm(biases) * seconds ** 2 + 4 * ImuNoise().accel_noise_density * seconds ** 1.5 + 1e-3
+    bound = 0.5 * np.linalg.norm(biases) * seconds**2 + 4 * ImuNoise().accel_noise_density * seconds**1.5 + 1e-3
     return worst, bound
 
 
@@ -467,15 +484,17 @@ def test_imu_messages_carry_the_documented_noise_and_bias(bags, contents):
     accel_truth = np.einsum('nji,nj->ni', rotation, world.trajectory.acceleration(t) + [0.0, 0.0, GRAVITY])
     accel_error = data['accel'] - accel_truth
     n = len(t)
-    for error, bias, sigma in ((gyro_error, info['biases']['gyro'], model.gyro_sigma),
-                               (accel_error, info['biases']['accel'], model.accel_sigma)):
+    for error, bias, sigma in (
+        (gyro_error, info['biases']['gyro'], model.gyro_sigma),
+        (accel_error, info['biases']['accel'], model.accel_sigma),
+    ):
         assert np.allclose(error.mean(axis=0), bias, atol=5 * sigma / math.sqrt(n))
         assert np.allclose(error.std(axis=0), sigma, rtol=0.15)
     orientation_error = (Rotation.from_quat(data['quat']) * Rotation.from_matrix(rotation).inv()).magnitude()
     assert orientation_error.max() < math.radians(3.0)
     orientation_cov, gyro_cov, accel_cov = data['cov']
-    assert np.allclose(gyro_cov, np.eye(3).ravel() * model.gyro_sigma ** 2)
-    assert np.allclose(accel_cov, np.eye(3).ravel() * model.accel_sigma ** 2)
+    assert np.allclose(gyro_cov, np.eye(3).ravel() * model.gyro_sigma**2)
+    assert np.allclose(accel_cov, np.eye(3).ravel() * model.accel_sigma**2)
     assert np.all(orientation_cov[[0, 4, 8]] > 0)
     # At (nearly) constant velocity on a flat road the accelerometer reads about +g on z.
     straight = np.abs(data['gyro'][:, 2]) < math.radians(1.0)
@@ -484,8 +503,9 @@ def test_imu_messages_carry_the_documented_noise_and_bias(bags, contents):
 
 
 def test_imu_extrinsic_rotation(tmp_path):
-    path = simulate(SimConfig('aggressive', duration=2.0, ideal=True, imu_extrinsic_rpy=(0.0, 0.0, 90.0)),
-                    tmp_path / 'rotated').bag_path
+    path = simulate(
+        SimConfig('aggressive', duration=2.0, ideal=True, imu_extrinsic_rpy=(0.0, 0.0, 90.0)), tmp_path / 'rotated'
+    ).bag_path
     data = read_bag(path)['imu']
     world = build_world('aggressive', 0)
     t = (data['stamp'] - START_STAMP_NS) / 1e9
@@ -519,8 +539,14 @@ def test_imu_lever_arm_orientation_frame_and_time_offset(tmp_path):
     position, the orientation is that frame's, the stamps are 20 ms late against the bag time (the time of
     measurement, when a recorder receives the sample)."""
     lever_arm, orientation_rpy = np.array([0.2, 0.1, -0.2]), (180.0, 0.0, 90.0)
-    config = SimConfig('aggressive', duration=3.0, ideal=True, imu_lever_arm=tuple(lever_arm),
-                       imu_orientation_rpy=orientation_rpy, imu_time_offset=0.02)
+    config = SimConfig(
+        'aggressive',
+        duration=3.0,
+        ideal=True,
+        imu_lever_arm=tuple(lever_arm),
+        imu_orientation_rpy=orientation_rpy,
+        imu_time_offset=0.02,
+    )
     path = simulate(config, tmp_path / 'mounted').bag_path
     data = read_bag(path)['imu']
     assert np.all(data['stamp'] - data['bag_time'] == 20_000_000)
@@ -532,7 +558,7 @@ def test_imu_lever_arm_orientation_frame_and_time_offset(tmp_path):
     alpha = (trajectory.angular_velocity(t + h) - trajectory.angular_velocity(t - h)) / (2 * h)
     at_lidar = np.einsum('nji,nj->ni', rotation, trajectory.acceleration(t) - [0.0, 0.0, -GRAVITY])
     lever = np.cross(alpha, lever_arm) + np.cross(omega, np.cross(omega, lever_arm))
-    assert np.abs(lever).max() > 0.3          # the hairpin: up to 90 deg/s, enough to feel at 0.3 m
+    assert np.abs(lever).max() > 0.3  # the hairpin: up to 90 deg/s, enough to feel at 0.3 m
     assert np.allclose(data['accel'], at_lidar + lever, atol=2e-3)
     orientation = rotation @ Rotation.from_euler('xyz', orientation_rpy, degrees=True).as_matrix()
     assert np.allclose(Rotation.from_quat(data['quat']).as_matrix(), orientation, atol=1e-9)
@@ -545,6 +571,7 @@ def test_imu_lever_arm_orientation_frame_and_time_offset(tmp_path):
 
 
 # ------------------------------------------------------------------------------------- determinism, outputs
+
 
 def _messages(path: Path) -> list[tuple]:
     with BagReader(path) as reader:
@@ -577,7 +604,7 @@ def test_ros1_bag_and_packed_layout(tmp_path):
     assert all(c[1].dtype == VELODYNE_PACKED_DTYPE for c in data['clouds'])
     with BagReader(result.bag_path) as reader:
         assert reader.is_ros1
-    assert len(sidecars.load_ground_truth(result.bag_path)[0]) == 3
+    assert len(sidecars.load_ground_truth(result.bag_path)) == 3
     assert len(sidecars.load_labels(result.bag_path)[2]) == len(data['clouds'][2][1])
 
 
@@ -588,7 +615,7 @@ def test_ros2_storage_options(tmp_path, storage, compress):
     data = read_bag(path)
     assert len(data['clouds']) == 3 and len(data['imu']['stamp']) == 61
     reference = simulate(SimConfig('corridor', duration=0.3), tmp_path / 'reference').bag_path
-    assert _messages(path) == _messages(reference)   # the same messages whatever the storage
+    assert _messages(path) == _messages(reference)  # the same messages whatever the storage
 
 
 def test_sidecar_paths_and_missing_ground_truth(tmp_path):
@@ -600,8 +627,8 @@ def test_sidecar_paths_and_missing_ground_truth(tmp_path):
     poses = np.tile(np.eye(4), (2, 1, 1))
     poses[1, :3, :3] = Rotation.from_euler('xyz', [0.1, -0.2, 3.0]).as_matrix()
     poses[1, :3, 3] = [1.5, -2.25, 0.125]
-    sidecars.write_tum(tmp_path / 'x.tum', stamps, poses)
-    read_stamps, read_poses = sidecars.read_tum(tmp_path / 'x.tum')
+    sim_output.write_tum(tmp_path / 'x.tum', stamps, poses)
+    read_stamps, read_poses = read_tum(tmp_path / 'x.tum')
     assert np.array_equal(read_stamps, stamps) and np.allclose(read_poses, poses, atol=1e-9)
 
 
@@ -615,14 +642,19 @@ def test_cached_scenario_generates_once(tmp_path, monkeypatch):
     assert cached_scenario('corridor', duration=0.3, seed=2) != first
     assert not [p for p in (tmp_path / 'cache' / 'sim').iterdir() if p.name.startswith('.')]
     # The command line finds the same entry (and does not regenerate it).
-    run = subprocess.run([CLI, 'simulate', 'corridor', '--cached', '--duration', '0.3', '--seed', '1',
-                          '--no-progress'], capture_output=True, text=True, timeout=120,
-                         env={**os.environ, 'LEGO_LOAM_CACHE': str(tmp_path / 'cache')})
+    run = subprocess.run(
+        [CLI, 'simulate', 'corridor', '--cached', '--duration', '0.3', '--seed', '1', '--no-progress'],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, 'LEGO_LOAM_CACHE': str(tmp_path / 'cache')},
+    )
     assert run.returncode == 0 and run.stdout.strip() == str(first), run.stderr
     assert (first / 'metadata.yaml').stat().st_mtime_ns == mtime
 
 
 # ------------------------------------------------------------------------------------------ CLI and viewer
+
 
 def test_cli_lists_simulates_and_refuses_to_overwrite(tmp_path):
     listing = subprocess.run([CLI, 'simulate', '--list'], capture_output=True, text=True, timeout=120)
@@ -632,32 +664,44 @@ def test_cli_lists_simulates_and_refuses_to_overwrite(tmp_path):
     args = [CLI, 'simulate', 'corridor', '-o', str(out), '--duration', '0.2', '--seed', '5', '--no-progress']
     run = subprocess.run(args, capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
-    assert 'wrote' in run.stderr and len(sidecars.load_ground_truth(out)[0]) == 2
-    assert sidecars.load_scenario(out)['command'] == 'lego_loam_py simulate corridor -o corridor --duration 0.2 --seed 5'
+    assert 'wrote' in run.stderr and len(sidecars.load_ground_truth(out)) == 2
+    assert (
+        sidecars.load_scenario(out)['command'] == 'lego_loam_py simulate corridor -o corridor --duration 0.2 --seed 5'
+    )
     again = subprocess.run(args, capture_output=True, text=True, timeout=120)
     assert again.returncode == 1 and 'exists' in again.stderr
-    unknown = subprocess.run([CLI, 'simulate', 'moon', '-o', str(tmp_path / 'm')], capture_output=True, text=True,
-                             timeout=120)
+    unknown = subprocess.run(
+        [CLI, 'simulate', 'moon', '-o', str(tmp_path / 'm')], capture_output=True, text=True, timeout=120
+    )
     assert unknown.returncode == 1 and "unknown scenario 'moon'" in unknown.stderr
 
 
 def test_view_writes_png_for_simulated_and_real_bags(bags, tmp_path):
     for color in ('label', 'intensity'):
         png = tmp_path / f'{color}.png'
-        run = subprocess.run([CLI, 'view', str(bags['campus']), '--scan', '4', '--color', color, '-o', str(png)],
-                             capture_output=True, text=True, timeout=120)
+        run = subprocess.run(
+            [CLI, 'view', str(bags['campus']), '--scan', '4', '--color', color, '-o', str(png)],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert run.returncode == 0, run.stderr
         assert png.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n' and png.stat().st_size > 20000
-    bad = subprocess.run([CLI, 'view', str(bags['campus']), '--scan', '99', '-o', str(tmp_path / 'x.png')],
-                         capture_output=True, text=True, timeout=120)
+    bad = subprocess.run(
+        [CLI, 'view', str(bags['campus']), '--scan', '99', '-o', str(tmp_path / 'x.png')],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert bad.returncode == 1 and 'out of range' in bad.stderr and not (tmp_path / 'x.png').exists()
     real = REPO.parent / 'shared' / 'data' / 'golden' / 'vlp16_single_rotation.bag'
-    if real.is_file():   # a real VLP-16 scan (ROS 1 bag, no labels beside it)
+    if real.is_file():  # a real VLP-16 scan (ROS 1 bag, no labels beside it)
         png = tmp_path / 'real.png'
         run = subprocess.run([CLI, 'view', str(real), '-o', str(png)], capture_output=True, text=True, timeout=120)
         assert run.returncode == 0 and png.stat().st_size > 20000, run.stderr
-        run = subprocess.run([CLI, 'view', str(real), '--color', 'label', '-o', str(png)], capture_output=True,
-                             text=True, timeout=120)
+        run = subprocess.run(
+            [CLI, 'view', str(real), '--color', 'label', '-o', str(png)], capture_output=True, text=True, timeout=120
+        )
         assert run.returncode == 1 and 'labels.npz' in run.stderr
 
 
@@ -665,8 +709,13 @@ def test_simulator_package_imports_no_ros():
     roots = ('rclpy', 'sensor_msgs', 'std_msgs', 'geometry_msgs', 'nav_msgs', 'builtin_interfaces', 'rosgraph_msgs')
     for path in sorted((REPO / 'lego_loam_py' / 'sim').glob('*.py')):
         for node in ast.walk(ast.parse(path.read_text())):
-            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
-                [node.module] if isinstance(node, ast.ImportFrom) and node.module else []
+            names = (
+                [a.name for a in node.names]
+                if isinstance(node, ast.Import)
+                else [node.module]
+                if isinstance(node, ast.ImportFrom) and node.module
+                else []
+            )
             for name in names:
                 assert name.split('.')[0] not in roots and not name.startswith('lego_loam_py.ros'), (path, name)
 
@@ -680,7 +729,7 @@ def test_committed_bags_exist_and_fit_the_budget():
     names = {p.name for p in COMMITTED}
     assert any(n.startswith('campus') for n in names) and any(n.startswith('aggressive') for n in names), names
     total = sum(f.stat().st_size for f in BAGS.rglob('*') if f.is_file())
-    assert total <= 60 * 2 ** 20, f'bags/ holds {total / 2 ** 20:.1f} MiB'
+    assert total <= 60 * 2**20, f'bags/ holds {total / 2**20:.1f} MiB'
     listing = (BAGS / 'README.md').read_text()
     for bag in COMMITTED:
         assert bag.name in listing
@@ -697,17 +746,28 @@ def test_committed_bags_exist_and_fit_the_budget():
 #   resolution, so such a ulp can move a point by one whole range step along its beam.
 # * A ray that grazes an edge can hit the surface behind it on another CPU: at most GRAZING_SHARE of a scan.
 # Counts, stamps, frames, rings and firing times come from integer and exact arithmetic: they must be equal.
-IMU_TOLERANCE = 1e-6            # [rad, rad/s, m/s^2] per component
-RANGE_STEP = 0.002              # the VLP-16's range resolution [m] (sim.lidar.LIDAR_SPECS)
-POINT_TOLERANCE = RANGE_STEP + 1e-4   # one range step, plus float32 rounding of x, y, z at 100 m
-GRAZING_SHARE = 1e-3            # points of a scan allowed beyond POINT_TOLERANCE
-MOVED_SHARE = 0.02              # points of a scan allowed to move at all (by one range step at most)
+IMU_TOLERANCE = 1e-6  # [rad, rad/s, m/s^2] per component
+RANGE_STEP = 0.002  # the VLP-16's range resolution [m] (sim.lidar.LIDAR_SPECS)
+POINT_TOLERANCE = RANGE_STEP + 1e-4  # one range step, plus float32 rounding of x, y, z at 100 m
+GRAZING_SHARE = 1e-3  # points of a scan allowed beyond POINT_TOLERANCE
+MOVED_SHARE = 0.02  # points of a scan allowed to move at all (by one range step at most)
 
 
 def imu_vector(msg) -> np.ndarray:
-    return np.array([msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w,
-                     msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z,
-                     msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
+    return np.array(
+        [
+            msg.orientation.x,
+            msg.orientation.y,
+            msg.orientation.z,
+            msg.orientation.w,
+            msg.angular_velocity.x,
+            msg.angular_velocity.y,
+            msg.angular_velocity.z,
+            msg.linear_acceleration.x,
+            msg.linear_acceleration.y,
+            msg.linear_acceleration.z,
+        ]
+    )
 
 
 def recording_differences(expected: list, actual: list) -> list[str]:
@@ -715,12 +775,17 @@ def recording_differences(expected: list, actual: list) -> list[str]:
     tolerances above (empty when they are the same recording)."""
     problems = []
     if [(t, s) for t, s, _ in expected] != [(t, s) for t, s, _ in actual]:
-        return [f'topics and bag stamps differ: {[(t, s) for t, s, _ in expected][:5]} ... vs '
-                f'{[(t, s) for t, s, _ in actual][:5]} ... ({len(expected)} vs {len(actual)} messages)']
+        return [
+            f'topics and bag stamps differ: {[(t, s) for t, s, _ in expected][:5]} ... vs '
+            f'{[(t, s) for t, s, _ in actual][:5]} ... ({len(expected)} vs {len(actual)} messages)'
+        ]
     for index, ((topic, stamp, a), (_, _, b)) in enumerate(zip(expected, actual)):
         where = f'message {index} ({topic} at {stamp})'
-        if (a.header.stamp.sec, a.header.stamp.nanosec, a.header.frame_id) != \
-                (b.header.stamp.sec, b.header.stamp.nanosec, b.header.frame_id):
+        if (a.header.stamp.sec, a.header.stamp.nanosec, a.header.frame_id) != (
+            b.header.stamp.sec,
+            b.header.stamp.nanosec,
+            b.header.frame_id,
+        ):
             problems.append(f'{where}: header {a.header} vs {b.header}')
         elif topic == '/imu/data':
             difference = np.abs(imu_vector(a) - imu_vector(b)).max()
@@ -736,8 +801,10 @@ def recording_differences(expected: list, actual: list) -> list[str]:
             beyond = int((moved > POINT_TOLERANCE).sum())
             changed = int((moved > 0).sum())
             if not exact or beyond > GRAZING_SHARE * len(pa) or changed > MOVED_SHARE * len(pa):
-                problems.append(f'{where}: rings/times equal {exact}; {changed} of {len(pa)} points moved, '
-                                f'{beyond} by more than {POINT_TOLERANCE} m (max {moved.max():.4f} m)')
+                problems.append(
+                    f'{where}: rings/times equal {exact}; {changed} of {len(pa)} points moved, '
+                    f'{beyond} by more than {POINT_TOLERANCE} m (max {moved.max():.4f} m)'
+                )
     return problems
 
 
@@ -759,8 +826,9 @@ def test_committed_bag_has_ground_truth_and_is_reproducible_from_its_note(bag, t
     assert scenario['command'] in note and f'-o {bag.name}' in scenario['command']
     # Regenerate the first 0.3 s with the recorded configuration: the same messages, within the tolerances
     # that another CPU or library build needs (see above).
-    config = SimConfig(**{**scenario['config'], 'duration': 0.3, 'imu_extrinsic_rpy':
-                          tuple(scenario['config']['imu_extrinsic_rpy'])})
+    config = SimConfig(
+        **{**scenario['config'], 'duration': 0.3, 'imu_extrinsic_rpy': tuple(scenario['config']['imu_extrinsic_rpy'])}
+    )
     again = read_messages(simulate(config, tmp_path / 'again').bag_path)
     assert sum(topic == '/velodyne_points' for topic, _, _ in first) == 3
     assert recording_differences(first, again) == []
@@ -782,30 +850,30 @@ def test_recording_comparison_sees_a_moved_point_a_lost_point_and_a_changed_imu(
         msg = copy.copy(cloud)
         raw = np.frombuffer(bytes(cloud.data), np.uint8).reshape(-1, stride).copy()
         if len(changed) < len(points):
-            raw = raw[:len(changed)]
+            raw = raw[: len(changed)]
         view = raw.view(np.uint8)
         offsets = {f.name: f.offset for f in cloud.fields}
         for name in 'xyz':
-            view[:, offsets[name]:offsets[name] + 4] = changed[name].astype('<f4').view(np.uint8).reshape(-1, 4)
+            view[:, offsets[name] : offsets[name] + 4] = changed[name].astype('<f4').view(np.uint8).reshape(-1, 4)
         msg.data = raw.reshape(-1)
         msg.width = len(changed)
         msg.row_step = len(changed) * stride
-        return first[:index] + [(topic, stamp, msg)] + first[index + 1:]
+        return first[:index] + [(topic, stamp, msg)] + first[index + 1 :]
 
     same = points.copy()
     assert recording_differences(first, with_points(same)) == []
     one_step = points.copy()
-    one_step['x'][:10] += RANGE_STEP * 0.9      # a few points one range step away: another CPU's rounding
+    one_step['x'][:10] += RANGE_STEP * 0.9  # a few points one range step away: another CPU's rounding
     assert recording_differences(first, with_points(one_step)) == []
     moved = points.copy()
-    moved['x'][: int(len(points) * 0.01)] += 0.005   # 1 % of a scan 5 mm away: a different recording
+    moved['x'][: int(len(points) * 0.01)] += 0.005  # 1 % of a scan 5 mm away: a different recording
     assert 'moved' in ' '.join(recording_differences(first, with_points(moved)))
     assert 'points' in ' '.join(recording_differences(first, with_points(points[:-1])))
     imu_index = next(i for i, (topic, _, _) in enumerate(first) if topic == '/imu/data')
     topic, stamp, imu = first[imu_index]
     changed = copy.deepcopy(imu)
     changed.linear_acceleration.x += 1e-4
-    altered = first[:imu_index] + [(topic, stamp, changed)] + first[imu_index + 1:]
+    altered = first[:imu_index] + [(topic, stamp, changed)] + first[imu_index + 1 :]
     assert 'IMU values differ' in ' '.join(recording_differences(first, altered))
 
 
@@ -816,7 +884,7 @@ def test_committed_bag_plays_over_dds(rclpy_context, processes):
     from lego_loam_py.ros import qos
     from lego_loam_py.ros.conversions import cloud_msg_to_array as ros_cloud_to_array
     from lego_loam_py.ros.conversions import stamp_to_ns
-    from tests.support.ros import release, spin_until
+    from lego_loam_py.testing.nodes import release, spin_until
 
     bag = next(p for p in COMMITTED if p.name.startswith('aggressive'))
     stamps, _ = sidecars.load_ground_truth(bag)
@@ -826,8 +894,12 @@ def test_committed_bag_plays_over_dds(rclpy_context, processes):
     node.create_subscription(PointCloud2, '/velodyne_points', clouds.append, qos.reliable(100))
     node.create_subscription(Imu, '/imu/data', imus.append, qos.reliable(2000))
     player = processes.start([CLI, 'play', str(bag), '--rate', '4', '--wait-for-subscribers', '20', '--no-progress'])
-    done = spin_until(rclpy_context, node, lambda: len(clouds) == len(stamps) and len(imus) == n_imu
-                      and player.poll() is not None, timeout=90)
+    done = spin_until(
+        rclpy_context,
+        node,
+        lambda: len(clouds) == len(stamps) and len(imus) == n_imu and player.poll() is not None,
+        timeout=90,
+    )
     _, err = player.communicate(timeout=10)
     assert done, f'clouds {len(clouds)}/{len(stamps)}, imu {len(imus)}/{n_imu}: {err}'
     assert [stamp_to_ns(m.header.stamp) for m in clouds] == stamps.tolist()
@@ -857,8 +929,8 @@ def test_map_distance_to_scene_places_the_map_with_the_estimated_first_pose():
     map_from_world = lidar_in_map @ np.linalg.inv(world_from_lidar)
     in_map = hits @ map_from_world[:3, :3].T + map_from_world[:3, 3]
     stamp = START_STAMP_NS + 2_000_000_000
-    assert np.median(sidecars.map_distance_to_scene(BAGS / 'campus_8s', in_map, stamp, lidar_in_map)) < 1e-3
+    assert np.median(sim_output.map_distance_to_scene(BAGS / 'campus_8s', in_map, stamp, lidar_in_map)) < 1e-3
     shifted = lidar_in_map.copy()
     shifted[:3, 3] += [0.0, 0.0, 1.0]
-    assert np.median(sidecars.map_distance_to_scene(BAGS / 'campus_8s', in_map, stamp, shifted)) > 0.3
-    assert sidecars.map_distance_to_scene(REPO / 'tests', in_map, stamp, lidar_in_map) is None
+    assert np.median(sim_output.map_distance_to_scene(BAGS / 'campus_8s', in_map, stamp, shifted)) > 0.3
+    assert sim_output.map_distance_to_scene(REPO / 'tests', in_map, stamp, lidar_in_map) is None

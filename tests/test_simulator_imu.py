@@ -1,5 +1,6 @@
 """The simulator's IMU: error models, profiles, rates, stamps and recording order (issue 34), measured on the
 simulated samples against the ground truth; and the default recordings unchanged, byte for byte."""
+
 from __future__ import annotations
 
 import functools
@@ -17,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from lego_loam_py.bag.io import BagReader
 from lego_loam_py.core.pointcloud import VELODYNE_POINT_DTYPE
-from lego_loam_py.sim import output as sidecars
+from lego_loam_py.inputs import sidecars
 from lego_loam_py.sim.imu import GRAVITY, ImuModel, ImuNoise
 from lego_loam_py.sim.lidar import LidarModel, simulate_sweep
 from lego_loam_py.sim.scenarios import build_world, scenario_rng
@@ -32,13 +33,20 @@ CLI = str(Path(sys.executable).parent / 'lego_loam_py')
 # bytes) and every sidecar file change only when the data do.
 DIGEST_CONFIGS = {
     'aggressive_default': dict(scenario='aggressive', duration=0.5),
-    'forest_mounted_400hz': dict(scenario='forest', duration=0.3, imu_rate=400.0, imu_time_offset=0.02,
-                                 imu_extrinsic_rpy=(0.0, 0.0, 90.0), imu_lever_arm=(0.1, 0.0, -0.1),
-                                 imu_orientation_rpy=(180.0, 0.0, 0.0)),
-    'corridor_ideal_100hz_ros1': dict(scenario='corridor', duration=0.3, imu_rate=100.0, ideal=True, ros1=True,
-                                      layout='packed'),
+    'forest_mounted_400hz': dict(
+        scenario='forest',
+        duration=0.3,
+        imu_rate=400.0,
+        imu_time_offset=0.02,
+        imu_extrinsic_rpy=(0.0, 0.0, 90.0),
+        imu_lever_arm=(0.1, 0.0, -0.1),
+        imu_orientation_rpy=(180.0, 0.0, 0.0),
+    ),
+    'corridor_ideal_100hz_ros1': dict(
+        scenario='corridor', duration=0.3, imu_rate=100.0, ideal=True, ros1=True, layout='packed'
+    ),
 }
-DIGESTS = {   # name -> (cache key, digest)
+DIGESTS = {  # name -> (cache key, digest)
     'aggressive_default': ('a6059bfaeaa6', 'ed431091e6cf458d'),
     'forest_mounted_400hz': ('ff16c75b6ce8', '44fbe6fcc55bf3f4'),
     'corridor_ideal_100hz_ros1': ('43c584011b29', 'ac8ec70547053b60'),
@@ -57,11 +65,23 @@ def platform_fingerprint() -> str:
     t = np.arange(101) / 200.0
     rotation, position = world.trajectory.pose(t)
     digest = hashlib.sha256()
-    for array in (rotation, position, world.trajectory.angular_velocity(t), world.trajectory.acceleration(t),
-                  Rotation.from_matrix(rotation).as_quat(), np.einsum('nji,nj->ni', rotation, position)):
+    for array in (
+        rotation,
+        position,
+        world.trajectory.angular_velocity(t),
+        world.trajectory.acceleration(t),
+        Rotation.from_matrix(rotation).as_quat(),
+        np.einsum('nji,nj->ni', rotation, position),
+    ):
         digest.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
-    sweep = simulate_sweep(LidarModel.from_preset('VLP-16'), world.scene, world.trajectory, 0.0,
-                           scenario_rng(0, 'lidar', 0), VELODYNE_POINT_DTYPE)
+    sweep = simulate_sweep(
+        LidarModel.from_preset('VLP-16'),
+        world.scene,
+        world.trajectory,
+        0.0,
+        scenario_rng(0, 'lidar', 0),
+        VELODYNE_POINT_DTYPE,
+    )
     digest.update(sweep.points.tobytes())
     return digest.hexdigest()[:16]
 
@@ -74,8 +94,7 @@ def recording_digest(bag: Path) -> str:
         for message in reader.messages():
             digest.update(f'{message.topic} {message.timestamp} {len(bytes(message.data))}\n'.encode())
             digest.update(bytes(message.data))
-    for name in (sidecars.GROUND_TRUTH, sidecars.GROUND_TRUTH_DENSE, sidecars.LABELS, sidecars.SCENARIO,
-                 sidecars.NOTE):
+    for name in (sidecars.GROUND_TRUTH, sidecars.GROUND_TRUTH_DENSE, sidecars.LABELS, sidecars.SCENARIO, sidecars.NOTE):
         data = sidecars.sidecar_path(bag, name).read_bytes()
         if name in (sidecars.SCENARIO, sidecars.NOTE):
             data = re.sub(rb'lego_loam_py [0-9][^ ,)]*', b'lego_loam_py VERSION', data)
@@ -95,13 +114,16 @@ def test_default_imu_options_keep_the_recordings_byte_for_byte(name, tmp_path):
     assert cache_key == DIGESTS[name][0], 'the default options changed the cache key'
     fingerprint = platform_fingerprint()
     if fingerprint != PLATFORM_FINGERPRINT:
-        pytest.skip(f'libraries round differently here ({fingerprint}, digests recorded with {PLATFORM_FINGERPRINT}): '
-                    'tests/test_simulator.py compares the committed recordings within their tolerances instead')
+        pytest.skip(
+            f'libraries round differently here ({fingerprint}, digests recorded with {PLATFORM_FINGERPRINT}): '
+            'tests/test_simulator.py compares the committed recordings within their tolerances instead'
+        )
     assert digest == DIGESTS[name][1], 'the default options changed the recorded bytes'
 
 
-if __name__ == '__main__':   # prints the digests to record (run at the commit whose bytes are the reference)
+if __name__ == '__main__':  # prints the digests to record (run at the commit whose bytes are the reference)
     import tempfile
+
     with tempfile.TemporaryDirectory() as folder:
         print('PLATFORM_FINGERPRINT =', repr(platform_fingerprint()))
         for config_name in DIGEST_CONFIGS:
@@ -133,8 +155,12 @@ def read_recording(bag: Path) -> dict:
                 clouds[0].append(stamp)
                 clouds[1].append(message.timestamp)
     out = {key: np.array(value) for key, value in imu.items()}
-    out.update(order=order, cloud_stamp=np.array(clouds[0]), cloud_time=np.array(clouds[1]),
-               scenario=sidecars.load_scenario(bag))
+    out.update(
+        order=order,
+        cloud_stamp=np.array(clouds[0]),
+        cloud_time=np.array(clouds[1]),
+        scenario=sidecars.load_scenario(bag),
+    )
     return out
 
 
@@ -164,10 +190,11 @@ def orientation_error(data: dict, rotation: np.ndarray) -> Rotation:
 def gauss_markov_step_sigma(sigma: float, correlation_time: float, rate: float) -> float:
     """Per-sample driving sigma of a Gauss-Markov process of stationary ``sigma``."""
     decay = math.exp(-1.0 / (rate * correlation_time))
-    return sigma * math.sqrt(1.0 - decay ** 2)
+    return sigma * math.sqrt(1.0 - decay**2)
 
 
 # ------------------------------------------------------------------------------------------------- biases
+
 
 def test_constant_biases_are_drawn_per_unit_in_their_ranges_and_are_the_mean_error(tmp_path):
     """1-3 mrad/s and 0.02-0.07 m/s^2 (the unit of issue 34), over the default unit's white noise: the mean error
@@ -180,8 +207,10 @@ def test_constant_biases_are_drawn_per_unit_in_their_ranges_and_are_the_mean_err
     assert np.all((np.abs(biases['accel']) >= 0.02) & (np.abs(biases['accel']) <= 0.07)), biases['accel']
     rotation, omega, specific = truth('campus', measured_seconds(data))
     n = len(omega)
-    for error, bias, sigma in ((data['gyro'] - omega, biases['gyro'], imu['gyro_sigma_per_sample']),
-                               (data['accel'] - specific, biases['accel'], imu['accel_sigma_per_sample'])):
+    for error, bias, sigma in (
+        (data['gyro'] - omega, biases['gyro'], imu['gyro_sigma_per_sample']),
+        (data['accel'] - specific, biases['accel'], imu['accel_sigma_per_sample']),
+    ):
         assert np.allclose(error.mean(axis=0), bias, atol=5 * sigma / math.sqrt(n)), (error.mean(axis=0), bias)
         assert np.allclose(error.std(axis=0), sigma, rtol=0.15)
     # Drawn per unit: the same seed draws the same unit, another seed another.
@@ -194,16 +223,25 @@ def test_bias_wander_spreads_as_its_gauss_markov_model_says():
     """Over 300 units, the wandering bias's spread at time t is sigma sqrt(1 - exp(-2 t / tau)) (it starts at
     0), carried on across the simulator's per-sweep chunks of 20 samples."""
     sigma, tau, rate = 0.01, 2.0, 200.0
-    model = ImuModel(rate=rate, noise=replace(ImuNoise.none(), gyro_bias_instability=sigma, gyro_bias_time=tau,
-                                              accel_bias_instability=2 * sigma, accel_bias_time=tau,
-                                              heading_drift=3 * sigma, heading_drift_time=tau))
-    runs, chunk, chunks = 300, 20, 60                      # 6 s each: 3 tau
+    model = ImuModel(
+        rate=rate,
+        noise=replace(
+            ImuNoise.none(),
+            gyro_bias_instability=sigma,
+            gyro_bias_time=tau,
+            accel_bias_instability=2 * sigma,
+            accel_bias_time=tau,
+            heading_drift=3 * sigma,
+            heading_drift_time=tau,
+        ),
+    )
+    runs, chunk, chunks = 300, 20, 60  # 6 s each: 3 tau
     walks = np.empty((runs, chunk * chunks, 7))
     for run in range(runs):
         previous = None
         for c in range(chunks):
             part = model.wander(chunk, scenario_rng(run, 'test-walk', c), previous)
-            walks[run, c * chunk:(c + 1) * chunk] = part
+            walks[run, c * chunk : (c + 1) * chunk] = part
             previous = part[-1]
     scale = np.array([1.0] * 3 + [2.0] * 3 + [3.0])
     for seconds in (0.25, 1.0, 2.0, 6.0 - 1 / rate):
@@ -218,27 +256,45 @@ def test_wandering_biases_in_a_recording_take_gauss_markov_steps(tmp_path):
     """Ideal samples but for the wander: the gyro's and accelerometer's errors start at 0 and step by
     x[k] - a x[k-1] with the process's driving sigma, across the sweeps' chunks too."""
     gyro_walk, accel_walk = (0.5, 2.0), (0.05, 4.0)
-    data = record(tmp_path, 'wander', scenario='campus', duration=3.0, ideal=True, imu_gyro_bias_walk=gyro_walk,
-                  imu_accel_bias_walk=accel_walk)
+    data = record(
+        tmp_path,
+        'wander',
+        scenario='campus',
+        duration=3.0,
+        ideal=True,
+        imu_gyro_bias_walk=gyro_walk,
+        imu_accel_bias_walk=accel_walk,
+    )
     rotation, omega, specific = truth('campus', measured_seconds(data))
-    for error, (sigma, tau) in ((data['gyro'] - omega, (gyro_walk[0] * DEG, gyro_walk[1])),
-                                (data['accel'] - specific, accel_walk)):
+    for error, (sigma, tau) in (
+        (data['gyro'] - omega, (gyro_walk[0] * DEG, gyro_walk[1])),
+        (data['accel'] - specific, accel_walk),
+    ):
         decay = math.exp(-1.0 / (200.0 * tau))
         steps = error[1:] - decay * error[:-1]
         step_sigma = gauss_markov_step_sigma(sigma, tau, 200.0)
         assert np.allclose(steps.std(axis=0), step_sigma, rtol=0.1), (steps.std(axis=0), step_sigma)
         assert np.abs(steps).max() < 5 * step_sigma and np.abs(error[0]).max() < 5 * step_sigma
-        assert np.abs(error).max() > 10 * step_sigma   # it wanders
+        assert np.abs(error).max() > 10 * step_sigma  # it wanders
 
 
 # ------------------------------------------------------------------------------------- scale, misalignment
+
 
 def test_scale_errors_and_misalignment_show_on_a_turn(tmp_path):
     """2 % scale errors and 0.5 deg cross-axis terms on the aggressive drive's hairpin: the samples are
     M_g omega and M_a f with the matrices recorded in scenario.yaml, within their bounds; the yaw rate reads
     off by the z scale error on the turn."""
-    data = record(tmp_path, 'scaled', scenario='aggressive', duration=4.0, ideal=True, imu_gyro_scale_error=2.0,
-                  imu_accel_scale_error=2.0, imu_misalignment=0.5)
+    data = record(
+        tmp_path,
+        'scaled',
+        scenario='aggressive',
+        duration=4.0,
+        ideal=True,
+        imu_gyro_scale_error=2.0,
+        imu_accel_scale_error=2.0,
+        imu_misalignment=0.5,
+    )
     biases = data['scenario']['imu']['biases']
     gyro_matrix, accel_matrix = np.array(biases['gyro_matrix']), np.array(biases['accel_matrix'])
     rotation, omega, specific = truth('aggressive', measured_seconds(data))
@@ -256,14 +312,16 @@ def test_scale_errors_and_misalignment_show_on_a_turn(tmp_path):
 
 # ------------------------------------------------------------------------------------- orientation field
 
+
 def test_orientation_field_tilt_and_yaw_offset(tmp_path):
     """A constant 0.2 deg tilt and a 40 deg yaw offset: the reported attitude is Rz(40) Exp(tilt) of the true
     one, its up axis 0.2 deg off, its heading 40 deg off."""
-    data = record(tmp_path, 'tilted', scenario='campus', duration=1.0, ideal=True, imu_tilt_error=(0.2, 0.2),
-                  imu_yaw_offset=40.0)
+    data = record(
+        tmp_path, 'tilted', scenario='campus', duration=1.0, ideal=True, imu_tilt_error=(0.2, 0.2), imu_yaw_offset=40.0
+    )
     rotation, _, _ = truth('campus', measured_seconds(data))
     error = orientation_error(data, rotation).as_matrix()
-    up = error.transpose(0, 2, 1)[:, :, 2]                  # E^T z: the tilt alone
+    up = error.transpose(0, 2, 1)[:, :, 2]  # E^T z: the tilt alone
     assert np.allclose(np.degrees(np.arccos(np.clip(up[:, 2], -1, 1))), 0.2, atol=1e-6)
     heading = np.degrees(np.arctan2(error[:, 1, 0], error[:, 0, 0]))
     assert np.allclose(heading, 40.0, atol=1e-3)
@@ -293,6 +351,7 @@ def test_orientation_white_noise_and_heading_drift(tmp_path):
 
 
 # ----------------------------------------------------------------------------------------------- profiles
+
 
 def test_the_consumer_profile_is_the_unit_of_issue_34():
     """Every unit it draws has 1-3 mrad/s gyro biases, 0.02-0.07 m/s^2 accelerometer biases, an orientation tilted
@@ -338,6 +397,7 @@ def test_a_profile_recording_is_its_drawn_unit_plus_noise(tmp_path, profile):
 
 # ------------------------------------------------------------------------------- rates, stamps, recording
 
+
 @pytest.mark.parametrize('rate', [100.0, 200.0, 400.0])
 def test_every_rate_covers_every_sweep_through_the_whole_pipeline(tmp_path, rate):
     """At 100, 200 and 400 Hz the samples are 1/rate apart, each sweep's are recorded before its cloud, up to
@@ -351,7 +411,7 @@ def test_every_rate_covers_every_sweep_through_the_whole_pipeline(tmp_path, rate
     assert len(data['stamp']) == int(rate) + 1
     assert np.all(np.abs(np.diff(data['stamp']) - 1e9 / rate) <= 0.5)
     imu_before = 0
-    for topic, bag_time, stamp in data['order']:   # every cloud after its sweep's samples, up to its end
+    for topic, bag_time, stamp in data['order']:  # every cloud after its sweep's samples, up to its end
         if topic == IMU_TOPIC:
             imu_before = stamp
         else:
@@ -362,7 +422,7 @@ def test_every_rate_covers_every_sweep_through_the_whole_pipeline(tmp_path, rate
 
 def test_stamp_jitter_has_its_sigma_and_stamps_stay_increasing(tmp_path):
     data = record(tmp_path, 'jitter', scenario='corridor', duration=2.0, imu_stamp_jitter=0.0005)
-    jitter = (data['stamp'] - data['bag_time']) / 1e9          # bag time: when measured
+    jitter = (data['stamp'] - data['bag_time']) / 1e9  # bag time: when measured
     assert np.all(np.diff(data['stamp']) > 0)
     assert np.all(np.diff(data['bag_time']) == 5_000_000)
     assert jitter.std() == pytest.approx(0.0005, rel=0.12)
@@ -385,15 +445,15 @@ def test_a_late_imu_records_its_messages_at_their_stamps_after_their_sweep(tmp_p
         times = [t for _, t, _ in data['order']]
         assert times == sorted(times)
         position = {}
-        for index, (topic, _, stamp) in enumerate(data['order']):
+        for index, (topic, _, _) in enumerate(data['order']):
             position.setdefault(topic, []).append(index)
         clouds, samples = np.array(position[CLOUD_TOPIC]), np.array(position[IMU_TOPIC])
-        when = data['stamp'] - 20_000_000                       # when each sample was measured
+        when = data['stamp'] - 20_000_000  # when each sample was measured
         for k, sweep_start in enumerate(data['cloud_stamp']):
             in_sweep = (when > sweep_start) & (when <= sweep_start + 100_000_000)
             after = samples[in_sweep] > clouds[k]
             last_20_ms = when[in_sweep] > sweep_start + 80_000_000
-            if is_late:   # the last 20 ms of the sweep (stamped after its end) arrive after its cloud
+            if is_late:  # the last 20 ms of the sweep (stamped after its end) arrive after its cloud
                 assert np.array_equal(after, last_20_ms), k
             else:
                 assert not after.any(), k
@@ -402,11 +462,22 @@ def test_a_late_imu_records_its_messages_at_their_stamps_after_their_sweep(tmp_p
 
 # ------------------------------------------------------------------------------------ configuration, CLI
 
-IMU_OPTIONS = dict(imu_profile='consumer', imu_gyro_bias=(0.1, 0.2), imu_gyro_bias_walk=(0.01, 50.0),
-                   imu_accel_bias=(0.02, 0.07), imu_accel_bias_walk=(0.001, 80.0), imu_gyro_scale_error=1.5,
-                   imu_accel_scale_error=0.5, imu_misalignment=0.2, imu_tilt_error=(0.1, 0.3), imu_yaw_offset=-35.0,
-                   imu_orientation_noise=0.05, imu_heading_drift=(1.0, 60.0), imu_stamp_jitter=0.0002,
-                   imu_record_late=True)
+IMU_OPTIONS = dict(
+    imu_profile='consumer',
+    imu_gyro_bias=(0.1, 0.2),
+    imu_gyro_bias_walk=(0.01, 50.0),
+    imu_accel_bias=(0.02, 0.07),
+    imu_accel_bias_walk=(0.001, 80.0),
+    imu_gyro_scale_error=1.5,
+    imu_accel_scale_error=0.5,
+    imu_misalignment=0.2,
+    imu_tilt_error=(0.1, 0.3),
+    imu_yaw_offset=-35.0,
+    imu_orientation_noise=0.05,
+    imu_heading_drift=(1.0, 60.0),
+    imu_stamp_jitter=0.0002,
+    imu_record_late=True,
+)
 
 
 def test_imu_options_enter_the_cache_key_and_scenario_only_when_set():
@@ -433,15 +504,18 @@ def test_the_command_line_reproduces_every_imu_option():
     assert args.scenario == 'campus' and args.duration == 2.0
 
 
-@pytest.mark.parametrize('options, message', [
-    (dict(imu_profile='tactical'), 'unknown IMU profile'),
-    (dict(imu_gyro_bias=(0.2, 0.1)), 'low <= high'),
-    (dict(imu_accel_bias=(-0.1, 0.1)), 'non-negative'),
-    (dict(imu_gyro_bias_walk=(0.01, 0.0)), 'correlation time'),
-    (dict(imu_gyro_scale_error=-1.0), 'scale error'),
-    (dict(imu_yaw_offset=float('nan')), 'yaw offset'),
-    (dict(imu_stamp_jitter=-0.001), 'jitter'),
-])
+@pytest.mark.parametrize(
+    'options, message',
+    [
+        (dict(imu_profile='tactical'), 'unknown IMU profile'),
+        (dict(imu_gyro_bias=(0.2, 0.1)), 'low <= high'),
+        (dict(imu_accel_bias=(-0.1, 0.1)), 'non-negative'),
+        (dict(imu_gyro_bias_walk=(0.01, 0.0)), 'correlation time'),
+        (dict(imu_gyro_scale_error=-1.0), 'scale error'),
+        (dict(imu_yaw_offset=float('nan')), 'yaw offset'),
+        (dict(imu_stamp_jitter=-0.001), 'jitter'),
+    ],
+)
 def test_imu_options_out_of_range_are_refused(options, message):
     with pytest.raises(ValueError, match=message):
         SimConfig('campus', **options).validate()
@@ -449,14 +523,36 @@ def test_imu_options_out_of_range_are_refused(options, message):
 
 def test_cli_simulates_a_profile_with_options_and_refuses_an_unknown_one(tmp_path):
     out = tmp_path / 'consumer'
-    run = subprocess.run([CLI, 'simulate', 'corridor', '-o', str(out), '--duration', '0.2', '--imu-profile', 'consumer',
-                          '--imu-gyro-bias', '0.1', '0.1', '--imu-record-late', '--no-progress'],
-                         capture_output=True, text=True, timeout=120)
+    run = subprocess.run(
+        [
+            CLI,
+            'simulate',
+            'corridor',
+            '-o',
+            str(out),
+            '--duration',
+            '0.2',
+            '--imu-profile',
+            'consumer',
+            '--imu-gyro-bias',
+            '0.1',
+            '0.1',
+            '--imu-record-late',
+            '--no-progress',
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert run.returncode == 0, run.stderr
     scenario = sidecars.load_scenario(out)
     assert scenario['config']['imu_profile'] == 'consumer' and scenario['config']['imu_gyro_bias'] == [0.1, 0.1]
     assert np.allclose(np.abs(scenario['imu']['biases']['gyro']), 0.1 * DEG)
     assert '--imu-profile consumer --imu-gyro-bias 0.1 0.1 --imu-record-late' in scenario['command']
-    bad = subprocess.run([CLI, 'simulate', 'corridor', '-o', str(tmp_path / 'x'), '--imu-profile', 'tactical'],
-                         capture_output=True, text=True, timeout=120)
+    bad = subprocess.run(
+        [CLI, 'simulate', 'corridor', '-o', str(tmp_path / 'x'), '--imu-profile', 'tactical'],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert bad.returncode == 1 and 'unknown IMU profile' in bad.stderr

@@ -1,4 +1,5 @@
 """``lego_loam_py viewer`` over DDS: it takes the nodes' standard topics and saves them to a .rrd."""
+
 from __future__ import annotations
 
 import sys
@@ -8,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.support.ros import read_until, release
+from lego_loam_py.testing.nodes import read_until, release
 
 pytest.importorskip('rerun')
 CLI = Path(sys.executable).parent / 'lego_loam_py'
@@ -31,14 +32,14 @@ def test_the_viewer_process_logs_the_scans_it_hears_with_their_fused_pose(rclpy_
     points = np.random.default_rng(0).uniform(-5, 5, (500, 4)).astype(np.float32)
     stop = threading.Event()
 
-    def feed() -> None:   # a scan and its fused pose every 0.1 s until the viewer has logged one (bounded)
+    def feed() -> None:  # a scan and its fused pose every 0.1 s until the viewer has logged one (bounded)
         for k in range(300):
             if stop.is_set():
                 return
             header = make_header(1_000_000_000 + k * 100_000_000, 'base_link')
             clouds.publish(xyzi_to_cloud_msg(points, header))
             pose = np.eye(4)
-            pose[2, 3] = 0.1 * k   # camera z = forward
+            pose[2, 3] = 0.1 * k  # camera z = forward
             fused.publish(pose_to_odometry(pose, make_header(header.stamp, 'camera_init'), 'camera'))
             stop.wait(0.1)
 

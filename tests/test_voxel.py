@@ -1,4 +1,5 @@
 """Voxel-grid downsampling with PCL's VoxelGrid semantics, alone and per group (ring)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -11,10 +12,15 @@ from lego_loam_py.core.voxel import VoxelAccumulator, voxel_downsample, voxel_do
 
 def test_centroids_in_voxel_index_order():
     # Leaf 1 m, grid anchored at floor(min) = (0, 0, 0): voxel index x + 2 y (x fastest; 2 voxels along x).
-    points = np.array([[1.5, 0.5, 0.0, 10.0],    # voxel (1, 0) -> index 1
-                       [0.2, 0.2, 0.0, 1.0],     # voxel (0, 0) -> index 0
-                       [0.4, 0.6, 0.0, 3.0],     # voxel (0, 0)
-                       [0.5, 1.5, 0.0, 7.0]], dtype=np.float32)   # voxel (0, 1) -> index 2
+    points = np.array(
+        [
+            [1.5, 0.5, 0.0, 10.0],  # voxel (1, 0) -> index 1
+            [0.2, 0.2, 0.0, 1.0],  # voxel (0, 0) -> index 0
+            [0.4, 0.6, 0.0, 3.0],  # voxel (0, 0)
+            [0.5, 1.5, 0.0, 7.0],
+        ],
+        dtype=np.float32,
+    )  # voxel (0, 1) -> index 2
     out, counts = voxel_downsample(points, 1.0, return_counts=True)
     assert np.allclose(out, [[0.3, 0.4, 0.0, 2.0], [1.5, 0.5, 0.0, 10.0], [0.5, 1.5, 0.0, 7.0]])
     assert counts.tolist() == [2, 1, 1]
@@ -35,9 +41,15 @@ def test_groups_are_filtered_on_their_own_grids():
 
 
 @settings(max_examples=200, deadline=None)
-@given(arrays(np.float32, st.tuples(st.integers(1, 300), st.just(4)),
-              elements=st.floats(-50, 50, width=32) | st.just(np.float32(np.nan))),
-       st.integers(0, 2**31 - 1), st.sampled_from([0.05, 0.2, 0.4, 1.0]))
+@given(
+    arrays(
+        np.float32,
+        st.tuples(st.integers(1, 300), st.just(4)),
+        elements=st.floats(-50, 50, width=32) | st.just(np.float32(np.nan)),
+    ),
+    st.integers(0, 2**31 - 1),
+    st.sampled_from([0.05, 0.2, 0.4, 1.0]),
+)
 def test_grouped_filter_equals_one_filter_per_group(points, seed, leaf):
     groups = np.random.default_rng(seed).integers(0, 16, len(points))
     parts = [voxel_downsample(points[groups == g], leaf) for g in np.unique(groups)]
@@ -77,8 +89,11 @@ def test_accumulator_equals_one_filter_of_the_union_through_adds_and_removes(see
             cloud = np.concatenate([centre + rng.normal(0, 2.0, (size, 3)), rng.uniform(0, 100, (size, 1))], 1)
             clouds[step] = cloud.astype(np.float32)
             union.add(step, clouds[step])
-        expected = voxel_downsample(np.concatenate(list(clouds.values())).reshape(-1, 4), leaf) \
-            if clouds else np.zeros((0, 4), np.float32)
+        expected = (
+            voxel_downsample(np.concatenate(list(clouds.values())).reshape(-1, 4), leaf)
+            if clouds
+            else np.zeros((0, 4), np.float32)
+        )
         assert union.centroids().shape == expected.shape
         assert np.allclose(union.centroids(), expected, atol=1e-4)
     rebuilt = VoxelAccumulator(leaf)

@@ -21,31 +21,45 @@ rotation on ``--topic`` (header stamp = time of the rotation's first firing; bag
 driver's point layout (``--layout driver``: x, y, z, intensity, ring, time at offsets 0/4/8/16/20/24,
 32 B) or the ROS 1 driver's packed one (``--layout packed``, 22 B).
 """
+
 from __future__ import annotations
 
 import argparse
 import shutil
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 from rosbags.typesys import get_types_from_msg
 
 from lego_loam_py.bag.io import BagError, BagReader, BagWriter, make_cloud_msg, ros2_typestore
 from lego_loam_py.core.frames import matrix_to_quaternion
-from lego_loam_py.sensors.ouster import (IMU_PACKET_SIZE, OusterDecoder, OusterFormatError, OusterMetadata,
-                                      decode_imu)
-from lego_loam_py.sensors.pcap import PcapError, UdpDatagrams, read_udp
 from lego_loam_py.core.pointcloud import VELODYNE_PACKED_DTYPE, VELODYNE_POINT_DTYPE
-from lego_loam_py.sensors.velodyne import PACKET_SIZE, VelodyneFormatError, Vlp16Decoder
 from lego_loam_py.errors import LegoLoamError, UsageError
+from lego_loam_py.sensors.ouster import IMU_PACKET_SIZE, OusterDecoder, OusterFormatError, OusterMetadata, decode_imu
+from lego_loam_py.sensors.pcap import PcapError, UdpDatagrams, read_udp
+from lego_loam_py.sensors.velodyne import PACKET_SIZE, VelodyneFormatError, Vlp16Decoder
 
-__all__ = ['add_arguments', 'main', 'convert', 'ConvertOptions', 'ConvertSummary', 'VELODYNE_SCAN_TYPES',
-           'velodyne_scan_typestore', 'velodyne_bag_packets', 'detect_format', 'ConvertError', 'velodyne_decoder',
-           'pcap_velodyne_chunks', 'find_ouster_metadata', 'ouster_lidar_packets', 'ouster_scans']
+__all__ = [
+    'add_arguments',
+    'main',
+    'convert',
+    'ConvertOptions',
+    'ConvertSummary',
+    'VELODYNE_SCAN_TYPES',
+    'velodyne_scan_typestore',
+    'velodyne_bag_packets',
+    'detect_format',
+    'ConvertError',
+    'velodyne_decoder',
+    'pcap_velodyne_chunks',
+    'find_ouster_metadata',
+    'ouster_lidar_packets',
+    'ouster_scans',
+]
 
 VELODYNE_DATA_PORT = 2368
 VELODYNE_SCAN = 'velodyne_msgs/msg/VelodyneScan'
@@ -54,7 +68,7 @@ VELODYNE_SCAN_TYPES = {
     VELODYNE_SCAN: 'std_msgs/Header header\nVelodynePacket[] packets\n',
     'velodyne_msgs/msg/VelodynePacket': 'builtin_interfaces/Time stamp\nuint8[1206] data\n',
 }
-_FEED_PACKETS = 4096          # Velodyne packets decoded per vectorised step (bounds memory)
+_FEED_PACKETS = 4096  # Velodyne packets decoded per vectorised step (bounds memory)
 _OUSTER_BATCH_PACKETS = 1024  # Ouster packets (whole scans) decoded per step
 _PCAP_MAGICS = {b'\xd4\xc3\xb2\xa1', b'\xa1\xb2\xc3\xd4', b'\x4d\x3c\xb2\xa1', b'\xa1\xb2\x3c\x4d', b'\x0a\x0d\x0d\x0a'}
 
@@ -65,13 +79,13 @@ class ConvertError(LegoLoamError, RuntimeError):
 
 @dataclass
 class ConvertOptions:
-    format: str = 'auto'                 # auto, pcap, rosbag
-    model: str = 'auto'                  # auto (packets must claim VLP-16) or VLP-16 (forced)
+    format: str = 'auto'  # auto, pcap, rosbag
+    model: str = 'auto'  # auto (packets must claim VLP-16) or VLP-16 (forced)
     split: str = 'wrap'
     min_completeness: float = 0.95
     restamp_period: float | None = None  # [s]
     topic: str = '/velodyne_points'
-    frame_id: str | None = None          # default: velodyne, or os_sensor for Ouster
+    frame_id: str | None = None  # default: velodyne, or os_sensor for Ouster
     layout: str = 'driver'
     ros1: bool = False
     storage: str = 'mcap'
@@ -103,10 +117,14 @@ class ConvertSummary:
         if self.points:
             counts = np.array(self.points)
             span = (self.stamps_ns[-1] - self.stamps_ns[0]) / 1e9
-            out.append(f'  points per rotation min/median/max {counts.min()}/{int(np.median(counts))}/{counts.max()}'
-                       f', {counts.sum()} in all')
-            out.append(f'  stamps {self.stamps_ns[0] / 1e9:.6f} .. {self.stamps_ns[-1] / 1e9:.6f} s '
-                       f'({span:.3f} s from first to last)')
+            out.append(
+                f'  points per rotation min/median/max {counts.min()}/{int(np.median(counts))}/{counts.max()}'
+                f', {counts.sum()} in all'
+            )
+            out.append(
+                f'  stamps {self.stamps_ns[0] / 1e9:.6f} .. {self.stamps_ns[-1] / 1e9:.6f} s '
+                f'({span:.3f} s from first to last)'
+            )
         if self.imu_messages:
             out.append(f'  {self.imu_messages} IMU messages')
         if self.dropped_incomplete:
@@ -114,8 +132,10 @@ class ConvertSummary:
         if self.bad_packets:
             out.append(f'  {self.bad_packets} malformed packet(s) skipped')
         rate = self.packets / self.wall_time if self.wall_time > 0 else 0.0
-        out.append(f'  {self.wall_time:.2f} s ({rate:.0f} packets/s, '
-                   f'{self.rotations / self.wall_time if self.wall_time > 0 else 0:.1f} rotations/s)')
+        out.append(
+            f'  {self.wall_time:.2f} s ({rate:.0f} packets/s, '
+            f'{self.rotations / self.wall_time if self.wall_time > 0 else 0:.1f} rotations/s)'
+        )
         return out + [f'  note: {n}' for n in self.notes]
 
 
@@ -133,8 +153,12 @@ def velodyne_scan_typestore():
 def detect_format(path: Path) -> str:
     """'pcap', 'rosbag' or 'scans' from the path (bag directory / .bag / .db3 / .mcap, another folder) or the
     file's magic."""
-    if path.is_dir() and not (path / 'metadata.yaml').is_file() and not any(path.glob('*.db3')) \
-            and not any(path.glob('*.mcap')):
+    if (
+        path.is_dir()
+        and not (path / 'metadata.yaml').is_file()
+        and not any(path.glob('*.db3'))
+        and not any(path.glob('*.mcap'))
+    ):
         return 'scans'
     if path.is_dir() or path.suffix in ('.bag', '.db3', '.mcap'):
         return 'rosbag'
@@ -180,14 +204,17 @@ class _Output:
         q = matrix_to_quaternion(matrix_mm[:3, :3])
         t = matrix_mm[:3, 3] / 1000.0
         transform = T['geometry_msgs/msg/TransformStamped'](
-            header=self.bag.header(stamp_ns, parent), child_frame_id=child,
+            header=self.bag.header(stamp_ns, parent),
+            child_frame_id=child,
             transform=T['geometry_msgs/msg/Transform'](
                 translation=T['geometry_msgs/msg/Vector3'](x=float(t[0]), y=float(t[1]), z=float(t[2])),
-                rotation=T['geometry_msgs/msg/Quaternion'](x=float(q[0]), y=float(q[1]), z=float(q[2]),
-                                                           w=float(q[3]))))
-        if 'tf2_msgs/msg/TFMessage' not in self.bag.typestore.fielddefs:   # the ROS 1 store lacks it
-            self.bag.typestore.register(get_types_from_msg('geometry_msgs/TransformStamped[] transforms',
-                                                           'tf2_msgs/msg/TFMessage'))
+                rotation=T['geometry_msgs/msg/Quaternion'](x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+            ),
+        )
+        if 'tf2_msgs/msg/TFMessage' not in self.bag.typestore.fielddefs:  # the ROS 1 store lacks it
+            self.bag.typestore.register(
+                get_types_from_msg('geometry_msgs/TransformStamped[] transforms', 'tf2_msgs/msg/TFMessage')
+            )
         msg = self.types['tf2_msgs/msg/TFMessage'](transforms=[transform])
         self.bag.add_topic('/tf_static', msg.__msgtype__, latching=True)
         self.bag.write_msg('/tf_static', stamp_ns, msg)
@@ -201,12 +228,15 @@ class _Output:
             header=self.bag.header(stamp_ns, frame_id, seq=self.summary.imu_messages),
             orientation=T['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=1.0),
             orientation_covariance=unknown,
-            angular_velocity=T['geometry_msgs/msg/Vector3'](x=float(angular_velocity[0]), y=float(angular_velocity[1]),
-                                                            z=float(angular_velocity[2])),
+            angular_velocity=T['geometry_msgs/msg/Vector3'](
+                x=float(angular_velocity[0]), y=float(angular_velocity[1]), z=float(angular_velocity[2])
+            ),
             angular_velocity_covariance=covariance,
-            linear_acceleration=T['geometry_msgs/msg/Vector3'](x=float(acceleration[0]), y=float(acceleration[1]),
-                                                               z=float(acceleration[2])),
-            linear_acceleration_covariance=covariance)
+            linear_acceleration=T['geometry_msgs/msg/Vector3'](
+                x=float(acceleration[0]), y=float(acceleration[1]), z=float(acceleration[2])
+            ),
+            linear_acceleration_covariance=covariance,
+        )
         self.bag.write_msg(self.options.imu_topic, stamp_ns, msg)
         self.summary.imu_messages += 1
 
@@ -218,9 +248,13 @@ class _Output:
 def velodyne_decoder(options: ConvertOptions) -> Vlp16Decoder:
     """The VLP-16 decoder the options ask for (model, split, completeness, restamping, point layout)."""
     period = None if options.restamp_period is None else int(round(options.restamp_period * 1e9))
-    return Vlp16Decoder(force_model=options.model.upper() == 'VLP-16', split=options.split,
-                        min_completeness=options.min_completeness, restamp_period_ns=period,
-                        point_dtype=_layout(options.layout))
+    return Vlp16Decoder(
+        force_model=options.model.upper() == 'VLP-16',
+        split=options.split,
+        min_completeness=options.min_completeness,
+        restamp_period_ns=period,
+        point_dtype=_layout(options.layout),
+    )
 
 
 def _run_velodyne(chunks: Iterator[tuple[np.ndarray, np.ndarray]], output: _Output, options: ConvertOptions) -> None:
@@ -255,8 +289,9 @@ def pcap_velodyne_chunks(udp: UdpDatagrams) -> Iterator[tuple[np.ndarray, np.nda
         yield udp.gather(PACKET_SIZE, index), udp.stamps_ns[index]
 
 
-def velodyne_bag_packets(reader: BagReader, topic: str,
-                         chunk: int = _FEED_PACKETS) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+def velodyne_bag_packets(
+    reader: BagReader, topic: str, chunk: int = _FEED_PACKETS
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """Raw packets of the VelodyneScan messages on ``topic``, in order, as ((n, 1206) uint8 data,
     (n,) VelodynePacket.stamp [ns]) chunks of about ``chunk`` packets."""
     store = velodyne_scan_typestore()
@@ -284,8 +319,9 @@ def _run_ouster(udp: UdpDatagrams, metadata_path: Path, output: _Output, options
     lidar = ouster_lidar_packets(udp, meta)
     decoder = OusterDecoder(meta, min_completeness=options.min_completeness, point_dtype=_layout(options.layout))
     frame_id = options.frame_id or 'os_sensor'
-    summary.sensor = (f'Ouster {meta.prod_line} {meta.columns_per_frame}x{meta.pixels_per_column} '
-                      f'{meta.udp_profile_lidar}')
+    summary.sensor = (
+        f'Ouster {meta.prod_line} {meta.columns_per_frame}x{meta.pixels_per_column} {meta.udp_profile_lidar}'
+    )
     summary.packets += len(lidar)
     period = None if options.restamp_period is None else int(round(options.restamp_period * 1e9))
     first_stamp = None
@@ -308,8 +344,9 @@ def _run_ouster(udp: UdpDatagrams, metadata_path: Path, output: _Output, options
         else:
             keep = np.ones(len(samples.stamps_ns), dtype=bool)
         output.static_transform(int(summary.stamps_ns[0]), frame_id, 'os_imu', meta.imu_to_sensor_transform)
-        for stamp, acceleration, gyro in zip(samples.stamps_ns[keep], samples.linear_acceleration[keep],
-                                             samples.angular_velocity[keep]):
+        for stamp, acceleration, gyro in zip(
+            samples.stamps_ns[keep], samples.linear_acceleration[keep], samples.angular_velocity[keep]
+        ):
             output.imu(int(stamp), 'os_imu', acceleration, gyro)
 
 
@@ -317,8 +354,10 @@ def ouster_lidar_packets(udp: UdpDatagrams, meta: OusterMetadata) -> UdpDatagram
     """The capture's Ouster lidar packets (the metadata's port and packet size); ConvertError without any."""
     lidar = udp.select((udp.dst_ports == meta.udp_port_lidar) & (udp.lengths == meta.lidar_packet_size))
     if len(lidar) == 0:
-        raise ConvertError(f'no Ouster lidar packets ({meta.lidar_packet_size} bytes for {meta.udp_profile_lidar}, '
-                           f'port {meta.udp_port_lidar}) in the capture: does the metadata belong to it?')
+        raise ConvertError(
+            f'no Ouster lidar packets ({meta.lidar_packet_size} bytes for {meta.udp_profile_lidar}, '
+            f'port {meta.udp_port_lidar}) in the capture: does the metadata belong to it?'
+        )
     return lidar
 
 
@@ -391,8 +430,10 @@ def _convert(source: Path, destination: Path, kind: str, options: ConvertOptions
             if metadata is not None:
                 summary.notes.append(f'Ouster metadata: {metadata}')
         if metadata is None and len(velodyne) == 0:
-            raise ConvertError(f'{source}: no Velodyne data packets ({PACKET_SIZE} B to port {options.port}); '
-                               f'the capture holds {_describe_udp(udp)}. For an Ouster capture give --metadata.')
+            raise ConvertError(
+                f'{source}: no Velodyne data packets ({PACKET_SIZE} B to port {options.port}); '
+                f'the capture holds {_describe_udp(udp)}. For an Ouster capture give --metadata.'
+            )
         output = _Output(destination, options, summary)
         try:
             if metadata is not None:
@@ -411,12 +452,16 @@ def _convert(source: Path, destination: Path, kind: str, options: ConvertOptions
             topics = [t for t, m in reader.topics().items() if m == VELODYNE_SCAN]
             if options.input_topic is not None:
                 if options.input_topic not in topics:
-                    raise ConvertError(f'{source}: topic {options.input_topic} with {VELODYNE_SCAN} not found '
-                                       f'(bag topics: {reader.topics()})')
+                    raise ConvertError(
+                        f'{source}: topic {options.input_topic} with {VELODYNE_SCAN} not found '
+                        f'(bag topics: {reader.topics()})'
+                    )
                 topics = [options.input_topic]
             if len(topics) != 1:
-                raise ConvertError(f'{source}: expected one {VELODYNE_SCAN} topic, found {topics or "none"} '
-                                   f'(bag topics: {reader.topics()}); choose one with --input-topic')
+                raise ConvertError(
+                    f'{source}: expected one {VELODYNE_SCAN} topic, found {topics or "none"} '
+                    f'(bag topics: {reader.topics()}); choose one with --input-topic'
+                )
             output = _Output(destination, options, summary)
             try:
                 _run_velodyne(velodyne_bag_packets(reader, topics[0]), output, options)
@@ -430,12 +475,13 @@ def _convert(source: Path, destination: Path, kind: str, options: ConvertOptions
         raise ConvertError(f"unknown format '{kind}' (pcap, rosbag, scans or kitti)")
 
 
-def _run_scan_folder(source: Path, kind: str, destination: Path, options: ConvertOptions,
-                     summary: ConvertSummary) -> None:
+def _run_scan_folder(
+    source: Path, kind: str, destination: Path, options: ConvertOptions, summary: ConvertSummary
+) -> None:
     """A folder of scans (or a KITTI sequence) -> clouds as its files hold them, and its ground truth beside."""
-    from lego_loam_py.core.io import write_tum_atomic
+    from lego_loam_py.formats import write_tum_atomic
     from lego_loam_py.inputs import Scan, SourceError, open_source
-    from lego_loam_py.sim.output import GROUND_TRUTH, sidecar_path
+    from lego_loam_py.inputs.sidecars import GROUND_TRUTH, sidecar_path
 
     try:
         recording = open_source(source, kind)
@@ -455,45 +501,87 @@ def _run_scan_folder(source: Path, kind: str, destination: Path, options: Conver
         output.close()
     if truth is not None:
         write_tum_atomic(sidecar_path(destination, GROUND_TRUTH), *truth)
-        summary.notes.append(f'ground truth ({len(truth[0])} poses) beside the bag')
+        summary.notes.append(f'ground truth ({len(truth)} poses) beside the bag')
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument('input', type=Path, help='pcap file (Velodyne VLP-16 or Ouster), a ROS 1/ROS 2 bag of '
-                                                 'velodyne_msgs/VelodyneScan raw packets, or a folder of scans / '
-                                                 'KITTI sequence')
-    parser.add_argument('-o', '--output', type=Path, required=True, metavar='OUT_BAG',
-                        help='output bag: a ROS 2 bag directory, or a ROS 1 .bag file with --ros1 (must not exist)')
-    parser.add_argument('--format', choices=['auto', 'pcap', 'rosbag', 'rosbag1', 'rosbag2', 'scans', 'kitti'],
-                        default='auto',
-                        help='input kind (default: auto-detected from the path and file magic)')
-    parser.add_argument('--model', choices=['auto', 'VLP-16'], default='auto',
-                        help='Velodyne model: auto = trust the packets\' product id (must say VLP-16); VLP-16 = decode '
-                             'as VLP-16 whatever the packets claim (early VLP-16 firmware reports HDL-32E)')
-    parser.add_argument('--split', choices=['wrap', 'start'], default='wrap',
-                        help='cut rotations at azimuth 0 (wrap, as the driver) or at the first firing\'s azimuth '
-                             '(start: a capture of one sweep)')
-    parser.add_argument('--min-completeness', type=float, default=0.95, metavar='F',
-                        help='drop rotations covering less than this fraction of 360 deg, gaps from lost packets '
-                             'excluded (default 0.95): the fragments at the start and end of a capture')
-    parser.add_argument('--restamp-period', type=float, default=None, metavar='S',
-                        help='header stamp k = stamp 0 + k*S (e.g. 0.1 to feed a 20 Hz recording to LeGO-LOAM, '
-                             'which assumes 10 Hz); the per-point time field is not rescaled')
+    parser.add_argument(
+        'input',
+        type=Path,
+        help='pcap file (Velodyne VLP-16 or Ouster), a ROS 1/ROS 2 bag of '
+        'velodyne_msgs/VelodyneScan raw packets, or a folder of scans / '
+        'KITTI sequence',
+    )
+    parser.add_argument(
+        '-o',
+        '--output',
+        type=Path,
+        required=True,
+        metavar='OUT_BAG',
+        help='output bag: a ROS 2 bag directory, or a ROS 1 .bag file with --ros1 (must not exist)',
+    )
+    parser.add_argument(
+        '--format',
+        choices=['auto', 'pcap', 'rosbag', 'rosbag1', 'rosbag2', 'scans', 'kitti'],
+        default='auto',
+        help='input kind (default: auto-detected from the path and file magic)',
+    )
+    parser.add_argument(
+        '--model',
+        choices=['auto', 'VLP-16'],
+        default='auto',
+        help="Velodyne model: auto = trust the packets' product id (must say VLP-16); VLP-16 = decode "
+        'as VLP-16 whatever the packets claim (early VLP-16 firmware reports HDL-32E)',
+    )
+    parser.add_argument(
+        '--split',
+        choices=['wrap', 'start'],
+        default='wrap',
+        help="cut rotations at azimuth 0 (wrap, as the driver) or at the first firing's azimuth "
+        '(start: a capture of one sweep)',
+    )
+    parser.add_argument(
+        '--min-completeness',
+        type=float,
+        default=0.95,
+        metavar='F',
+        help='drop rotations covering less than this fraction of 360 deg, gaps from lost packets '
+        'excluded (default 0.95): the fragments at the start and end of a capture',
+    )
+    parser.add_argument(
+        '--restamp-period',
+        type=float,
+        default=None,
+        metavar='S',
+        help='header stamp k = stamp 0 + k*S (e.g. 0.1 to feed a 20 Hz recording to LeGO-LOAM, '
+        'which assumes 10 Hz); the per-point time field is not rescaled',
+    )
     parser.add_argument('--topic', default='/velodyne_points', help='output cloud topic (default /velodyne_points)')
     parser.add_argument('--frame-id', default=None, help='cloud frame id (default velodyne; os_sensor for Ouster)')
-    parser.add_argument('--layout', choices=['driver', 'packed'], default='driver',
-                        help='point layout: driver = x,y,z,intensity,ring,time at 0/4/8/16/20/24, 32 B (ROS 2 '
-                             'velodyne driver); packed = 0/4/8/12/16/18, 22 B (ROS 1 driver)')
+    parser.add_argument(
+        '--layout',
+        choices=['driver', 'packed'],
+        default='driver',
+        help='point layout: driver = x,y,z,intensity,ring,time at 0/4/8/16/20/24, 32 B (ROS 2 '
+        'velodyne driver); packed = 0/4/8/12/16/18, 22 B (ROS 1 driver)',
+    )
     parser.add_argument('--ros1', action='store_true', help='write a ROS 1 .bag instead of a ROS 2 bag')
     parser.add_argument('--storage', choices=['mcap', 'sqlite3'], default='mcap', help='ROS 2 storage (default mcap)')
     parser.add_argument('--compress', action='store_true', help='zstd-compress the ROS 2 bag')
     parser.add_argument('--max-rotations', type=int, default=None, metavar='N', help='stop after N rotations')
-    parser.add_argument('--metadata', type=Path, default=None, metavar='JSON',
-                        help='Ouster sensor metadata (.json); selects the Ouster decoder')
-    parser.add_argument('--port', type=int, default=VELODYNE_DATA_PORT,
-                        help=f'Velodyne data UDP port (default {VELODYNE_DATA_PORT})')
-    parser.add_argument('--input-topic', default=None,
-                        help='VelodyneScan topic of an input bag (default: the only one)')
+    parser.add_argument(
+        '--metadata',
+        type=Path,
+        default=None,
+        metavar='JSON',
+        help='Ouster sensor metadata (.json); selects the Ouster decoder',
+    )
+    parser.add_argument(
+        '--port', type=int, default=VELODYNE_DATA_PORT, help=f'Velodyne data UDP port (default {VELODYNE_DATA_PORT})'
+    )
+    parser.add_argument(
+        '--input-topic', default=None, help='VelodyneScan topic of an input bag (default: the only one)'
+    )
     parser.add_argument('--imu-topic', default='/imu/data', help='IMU topic for Ouster captures (default /imu/data)')
     parser.add_argument('--no-imu', action='store_true', help='do not convert Ouster IMU packets')
     parser.add_argument('-q', '--quiet', action='store_true', help='no summary')
@@ -507,11 +595,24 @@ def main(args: argparse.Namespace) -> int:
     if not 0.0 <= args.min_completeness <= 1.0:
         raise UsageError('--min-completeness must be within [0, 1]')
     options = ConvertOptions(
-        format=args.format, model=args.model, split=args.split, min_completeness=args.min_completeness,
-        restamp_period=args.restamp_period, topic=args.topic, frame_id=args.frame_id, layout=args.layout,
-        ros1=args.ros1, storage=args.storage, compress=args.compress, max_rotations=args.max_rotations,
-        metadata=args.metadata, port=args.port, input_topic=args.input_topic, imu_topic=args.imu_topic,
-        imu=not args.no_imu)
+        format=args.format,
+        model=args.model,
+        split=args.split,
+        min_completeness=args.min_completeness,
+        restamp_period=args.restamp_period,
+        topic=args.topic,
+        frame_id=args.frame_id,
+        layout=args.layout,
+        ros1=args.ros1,
+        storage=args.storage,
+        compress=args.compress,
+        max_rotations=args.max_rotations,
+        metadata=args.metadata,
+        port=args.port,
+        input_topic=args.input_topic,
+        imu_topic=args.imu_topic,
+        imu=not args.no_imu,
+    )
     output = args.output
     if args.ros1 and output.suffix != '.bag':
         output = output.with_suffix('.bag')

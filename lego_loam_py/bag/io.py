@@ -8,19 +8,20 @@
 * :func:`ros2_typestore` is the Kilted type store plus every message type installed on this machine that
   it lacks (``cloud_msgs/msg/CloudInfo`` above all), found through ``AMENT_PREFIX_PATH``.
 """
+
 from __future__ import annotations
 
 import functools
 import os
 import re
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator
+from typing import Any
 
 import numpy as np
 from rosbags.highlevel import AnyReader
-from rosbags.interfaces import (Connection, Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
-                                QosTime)
+from rosbags.interfaces import Connection, Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
@@ -30,14 +31,35 @@ from rosbags.typesys.store import Typestore
 from lego_loam_py.core.pointcloud import CloudBuffer, PointField, array_to_cloud, cloud_to_array
 from lego_loam_py.errors import LegoLoamError
 
-__all__ = ['BagError', 'BagReader', 'BagWriter', 'BagMessage', 'ros2_typestore', 'ros1_typestore',
-           'resolve_bag_path', 'cloud_msg_to_array', 'make_cloud_msg', 'CLOUD_INFO_MSG_TYPE']
+__all__ = [
+    'BagError',
+    'BagReader',
+    'BagWriter',
+    'BagMessage',
+    'ros2_typestore',
+    'ros1_typestore',
+    'resolve_bag_path',
+    'cloud_msg_to_array',
+    'make_cloud_msg',
+    'CLOUD_INFO_MSG_TYPE',
+]
 
 CLOUD_INFO_MSG_TYPE = 'cloud_msgs/msg/CloudInfo'
 _FOREVER = QosTime(2147483647, 4294967295)
 # Offered QoS of a latched topic (/tf_static), as rosbag2 records it.
-_LATCHED_QOS = [Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, _FOREVER,
-                    _FOREVER, QosLiveliness.AUTOMATIC, _FOREVER, avoid_ros_namespace_conventions=False)]
+_LATCHED_QOS = [
+    Qos(
+        QosHistory.KEEP_LAST,
+        1,
+        QosReliability.RELIABLE,
+        QosDurability.TRANSIENT_LOCAL,
+        _FOREVER,
+        _FOREVER,
+        QosLiveliness.AUTOMATIC,
+        _FOREVER,
+        avoid_ros_namespace_conventions=False,
+    )
+]
 _ROS1_RENAMES = {'tf/msg/tfMessage': 'tf2_msgs/msg/TFMessage'}
 
 
@@ -58,8 +80,25 @@ def _msg_files() -> dict[str, Path]:
     return found
 
 
-_PRIMITIVES = {'bool', 'byte', 'char', 'float32', 'float64', 'int8', 'uint8', 'int16', 'uint16', 'int32',
-               'uint32', 'int64', 'uint64', 'string', 'wstring', 'time', 'duration'}
+_PRIMITIVES = {
+    'bool',
+    'byte',
+    'char',
+    'float32',
+    'float64',
+    'int8',
+    'uint8',
+    'int16',
+    'uint16',
+    'int32',
+    'uint32',
+    'int64',
+    'uint64',
+    'string',
+    'wstring',
+    'time',
+    'duration',
+}
 
 
 def _msg_dependencies(text: str, package: str) -> list[str]:
@@ -135,9 +174,9 @@ class BagMessage:
     """One message of a bag, as ROS 2 CDR bytes."""
 
     topic: str
-    msgtype: str       # ROS 2 name, e.g. 'sensor_msgs/msg/PointCloud2'
-    timestamp: int     # recording time [ns]
-    data: bytes        # CDR, ready for rclpy's Publisher.publish(bytes)
+    msgtype: str  # ROS 2 name, e.g. 'sensor_msgs/msg/PointCloud2'
+    timestamp: int  # recording time [ns]
+    data: bytes  # CDR, ready for rclpy's Publisher.publish(bytes)
 
 
 class BagReader:
@@ -153,7 +192,7 @@ class BagReader:
         self._converters: dict[str, Callable[[bytes | memoryview], bytes]] = {}
         self._dst_store: Typestore | None = None
 
-    def __enter__(self) -> 'BagReader':
+    def __enter__(self) -> BagReader:
         self.open()
         return self
 
@@ -210,32 +249,37 @@ class BagReader:
         key = connection.msgtype
         if key not in self._converters:
             from rosbags.convert.converter import generate_message_converter
+
             if self._dst_store is None:
                 self._dst_store = get_typestore(Stores.ROS2_KILTED)
             dst_type = _ROS1_RENAMES.get(key, key)
             if dst_type not in self._dst_store.fielddefs:
                 # A type unknown to ROS 2 Kilted: keep its ROS 1 layout minus Header.seq.
-                typs = get_types_from_msg(self._reader.typestore.generate_msgdef(key, ros_version=2)[0],
-                                          dst_type)
+                typs = get_types_from_msg(self._reader.typestore.generate_msgdef(key, ros_version=2)[0], dst_type)
                 typs.pop('std_msgs/msg/Header', None)
                 self._dst_store.register(typs)
-            convert = generate_message_converter(self._reader.typestore, self._dst_store, key, dst_type, {},
-                                                 src_is2=False, dst_is2=True)
+            convert = generate_message_converter(
+                self._reader.typestore, self._dst_store, key, dst_type, {}, src_is2=False, dst_is2=True
+            )
             self._converters[key] = lambda raw: bytes(convert(raw))
         return self._converters[key]
 
-    def messages(self, topics: Iterable[str] | None = None, start: int | None = None,
-                 stop: int | None = None) -> Iterator[BagMessage]:
+    def messages(
+        self, topics: Iterable[str] | None = None, start: int | None = None, stop: int | None = None
+    ) -> Iterator[BagMessage]:
         """Messages in recording-time order, as ROS 2 CDR. ``start``/``stop`` are absolute [ns]."""
         self.open()
         wanted = set(topics) if topics else None
         connections = [c for c in self._reader.connections if wanted is None or c.topic in wanted]
         if not connections:
             return
-        for connection, timestamp, raw in self._reader.messages(connections=connections, start=start,
-                                                                 stop=stop):
-            yield BagMessage(connection.topic, _ROS1_RENAMES.get(connection.msgtype, connection.msgtype),
-                             int(timestamp), self._converter(connection)(raw))
+        for connection, timestamp, raw in self._reader.messages(connections=connections, start=start, stop=stop):
+            yield BagMessage(
+                connection.topic,
+                _ROS1_RENAMES.get(connection.msgtype, connection.msgtype),
+                int(timestamp),
+                self._converter(connection)(raw),
+            )
 
     def deserialize(self, message: BagMessage) -> Any:
         """A rosbags message object (ROS 2 types) for a :class:`BagMessage`."""
@@ -253,8 +297,14 @@ class BagWriter:
     :meth:`write_msg` come from :attr:`typestore` (``writer.types['sensor_msgs/msg/Imu']``).
     """
 
-    def __init__(self, path: str | Path, storage: str = 'mcap', ros1: bool = False,
-                 extra_types: Iterable[str] = (CLOUD_INFO_MSG_TYPE,), compress: bool = False):
+    def __init__(
+        self,
+        path: str | Path,
+        storage: str = 'mcap',
+        ros1: bool = False,
+        extra_types: Iterable[str] = (CLOUD_INFO_MSG_TYPE,),
+        compress: bool = False,
+    ):
         self.path = Path(path)
         self.ros1 = ros1
         if self.path.exists():
@@ -269,8 +319,9 @@ class BagWriter:
             self.typestore = ros2_typestore(extra_types)
             self._writer = Writer2(self.path, version=8, storage_plugin=plugins[storage])
             if compress:  # zstd chunks inside the mcap / sqlite3 file, as rosbag2's storage compression
-                self._writer.set_compression(CompressionMode.STORAGE if storage == 'mcap' else CompressionMode.FILE,
-                                             CompressionFormat.ZSTD)
+                self._writer.set_compression(
+                    CompressionMode.STORAGE if storage == 'mcap' else CompressionMode.FILE, CompressionFormat.ZSTD
+                )
         self._connections: dict[str, Connection] = {}
         self._writer.open()
 
@@ -278,7 +329,7 @@ class BagWriter:
     def types(self) -> dict[str, type]:
         return self.typestore.types
 
-    def __enter__(self) -> 'BagWriter':
+    def __enter__(self) -> BagWriter:
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -288,19 +339,21 @@ class BagWriter:
         """Declare a topic (done implicitly by the first write)."""
         if topic in self._connections:
             return
-        if msgtype not in self.typestore.fielddefs and not _register_installed(self.typestore, msgtype,
-                                                                                 _msg_files()):
+        if msgtype not in self.typestore.fielddefs and not _register_installed(self.typestore, msgtype, _msg_files()):
             raise BagError(f"message type '{msgtype}' is not installed on this machine")
         if self.ros1:
-            self._connections[topic] = self._writer.add_connection(topic, msgtype, typestore=self.typestore,
-                                                                   latching=int(latching))
+            self._connections[topic] = self._writer.add_connection(
+                topic, msgtype, typestore=self.typestore, latching=int(latching)
+            )
         else:
             qos = _LATCHED_QOS if latching else []
-            self._connections[topic] = self._writer.add_connection(topic, msgtype, typestore=self.typestore,
-                                                                   offered_qos_profiles=qos)
+            self._connections[topic] = self._writer.add_connection(
+                topic, msgtype, typestore=self.typestore, offered_qos_profiles=qos
+            )
 
-    def write_raw(self, topic: str, msgtype: str, timestamp: int, data: bytes | memoryview,
-                  latching: bool = False) -> None:
+    def write_raw(
+        self, topic: str, msgtype: str, timestamp: int, data: bytes | memoryview, latching: bool = False
+    ) -> None:
         """Write serialized bytes (CDR for ROS 2 bags, ROS 1 serialization for ROS 1 bags)."""
         self.add_topic(topic, msgtype, latching)
         self._writer.write(self._connections[topic], int(timestamp), data)
@@ -316,8 +369,9 @@ class BagWriter:
 
     def header(self, stamp_ns: int, frame_id: str, seq: int = 0) -> Any:
         """std_msgs/Header of this bag's flavour."""
-        time = self.types['builtin_interfaces/msg/Time'](sec=int(stamp_ns // 1_000_000_000),
-                                                          nanosec=int(stamp_ns % 1_000_000_000))
+        time = self.types['builtin_interfaces/msg/Time'](
+            sec=int(stamp_ns // 1_000_000_000), nanosec=int(stamp_ns % 1_000_000_000)
+        )
         if self.ros1:
             return self.types['std_msgs/msg/Header'](seq=seq, stamp=time, frame_id=frame_id)
         return self.types['std_msgs/msg/Header'](stamp=time, frame_id=frame_id)
@@ -334,14 +388,30 @@ def make_cloud_msg(types: dict[str, type], header: Any, points: np.ndarray) -> A
     field_type = types['sensor_msgs/msg/PointField']
     fields = [field_type(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count) for f in buf.fields]
     return types['sensor_msgs/msg/PointCloud2'](
-        header=header, height=buf.height, width=buf.width, fields=fields, is_bigendian=buf.is_bigendian,
-        point_step=buf.point_step, row_step=buf.row_step, data=np.asarray(buf.data, dtype=np.uint8),
-        is_dense=buf.is_dense)
+        header=header,
+        height=buf.height,
+        width=buf.width,
+        fields=fields,
+        is_bigendian=buf.is_bigendian,
+        point_step=buf.point_step,
+        row_step=buf.row_step,
+        data=np.asarray(buf.data, dtype=np.uint8),
+        is_dense=buf.is_dense,
+    )
 
 
 def cloud_msg_to_array(msg: Any, flatten: bool = True) -> np.ndarray:
     """Structured array of a rosbags PointCloud2 object."""
-    return cloud_to_array(CloudBuffer(
-        fields=[PointField(f.name, int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields],
-        point_step=int(msg.point_step), width=int(msg.width), height=int(msg.height), row_step=int(msg.row_step),
-        is_bigendian=bool(msg.is_bigendian), is_dense=bool(msg.is_dense), data=msg.data), flatten=flatten)
+    return cloud_to_array(
+        CloudBuffer(
+            fields=[PointField(f.name, int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields],
+            point_step=int(msg.point_step),
+            width=int(msg.width),
+            height=int(msg.height),
+            row_step=int(msg.row_step),
+            is_bigendian=bool(msg.is_bigendian),
+            is_dense=bool(msg.is_dense),
+            data=msg.data,
+        ),
+        flatten=flatten,
+    )

@@ -5,6 +5,7 @@ time divided by the rate factor. /clock carries the bag time at ``clock_hz`` (40
 every message with 0), so nodes with ``use_sim_time`` follow the bag. ``--loop`` plays the bag again and again, like
 ``rosbag play -l``: stamps and /clock jump back to the bag's start at every repetition.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -21,11 +22,11 @@ from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 
 from lego_loam_py.bag.io import BagReader
+from lego_loam_py.errors import UsageError
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import ns_to_stamp
 from lego_loam_py.ros.message_types import get_message_class
 from lego_loam_py.ros.runtime import teardown_guard
-from lego_loam_py.errors import UsageError
 
 __all__ = ['PlayStats', 'play', 'add_arguments', 'main']
 
@@ -35,11 +36,11 @@ _LATCHED_TOPICS = ('/tf_static',)
 @dataclass
 class PlayStats:
     published: dict[str, int] = field(default_factory=dict)
-    skipped_topics: dict[str, str] = field(default_factory=dict)   # topic -> reason
+    skipped_topics: dict[str, str] = field(default_factory=dict)  # topic -> reason
     wall_time: float = 0.0
     bag_time: float = 0.0
     interrupted: bool = False
-    loops: int = 0   # complete plays of the bag
+    loops: int = 0  # complete plays of the bag
 
 
 def _parse_remaps(remaps: list[str]) -> dict[str, str]:
@@ -52,10 +53,22 @@ def _parse_remaps(remaps: list[str]) -> dict[str, str]:
     return out
 
 
-def play(node: Node, reader: BagReader, *, topics: list[str] | None = None, rate: float = 1.0,
-         start_offset: float = 0.0, clock_hz: float = 40.0, publish_clock: bool = True,
-         remaps: dict[str, str] | None = None, wait_for_subscribers: float = 0.0, depth: int = 100,
-         progress: bool = True, stop: threading.Event | None = None, loops: int = 1) -> PlayStats:
+def play(
+    node: Node,
+    reader: BagReader,
+    *,
+    topics: list[str] | None = None,
+    rate: float = 1.0,
+    start_offset: float = 0.0,
+    clock_hz: float = 40.0,
+    publish_clock: bool = True,
+    remaps: dict[str, str] | None = None,
+    wait_for_subscribers: float = 0.0,
+    depth: int = 100,
+    progress: bool = True,
+    stop: threading.Event | None = None,
+    loops: int = 1,
+) -> PlayStats:
     """Publish the bag's messages on ``node``; returns what was published. Blocks until done or ``stop``.
 
     ``loops``: how many times the bag is played (0: until ``stop``)."""
@@ -94,8 +107,15 @@ def play(node: Node, reader: BagReader, *, topics: list[str] | None = None, rate
     bar = None
     if progress:
         from tqdm import tqdm
-        bar = tqdm(total=total * loops if loops else None, unit='msg', desc='play', file=sys.stderr,
-                   dynamic_ncols=True, mininterval=0.5)
+
+        bar = tqdm(
+            total=total * loops if loops else None,
+            unit='msg',
+            desc='play',
+            file=sys.stderr,
+            dynamic_ncols=True,
+            mininterval=0.5,
+        )
     clock_period = 1.0 / clock_hz if clock_hz > 0 else float('inf')
 
     def publish_clock_at(bag_ns: int) -> None:
@@ -145,13 +165,13 @@ def play(node: Node, reader: BagReader, *, topics: list[str] | None = None, rate
                 if bar is not None:
                     bar.update(1)
             if bag_start is not None:
-                publish_clock_at(last_stamp)   # the clock ends where the bag's messages end
+                publish_clock_at(last_stamp)  # the clock ends where the bag's messages end
                 bag_span += (last_stamp - bag_start) / 1e9
             if stats.interrupted:
                 break
             stats.loops += 1
             if published_in_loop == 0:
-                break   # nothing to play: never spin on an empty selection
+                break  # nothing to play: never spin on an empty selection
         if stop.is_set() and (loops == 0 or stats.loops < loops):
             stats.interrupted = True
     finally:
@@ -172,19 +192,38 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('bag', help='ROS 1 .bag file or ROS 2 bag directory (.db3 or .mcap)')
     parser.add_argument('-r', '--rate', type=float, default=1.0, help='playback rate factor (default 1.0)')
     parser.add_argument('--topics', nargs='+', metavar='TOPIC', help='play only these topics (default: all)')
-    parser.add_argument('-s', '--start-offset', type=float, default=0.0, metavar='SEC',
-                        help='skip the first SEC seconds of the bag')
-    parser.add_argument('--clock', type=float, default=40.0, metavar='HZ',
-                        help='publish /clock at this rate, with the messages and between them (default 40, as '
-                             'rosbag2; 0: before every message)')
+    parser.add_argument(
+        '-s', '--start-offset', type=float, default=0.0, metavar='SEC', help='skip the first SEC seconds of the bag'
+    )
+    parser.add_argument(
+        '--clock',
+        type=float,
+        default=40.0,
+        metavar='HZ',
+        help='publish /clock at this rate, with the messages and between them (default 40, as '
+        'rosbag2; 0: before every message)',
+    )
     parser.add_argument('--no-clock', action='store_true', help='do not publish /clock')
     parser.add_argument('--remap', nargs='+', default=[], metavar='FROM:=TO', help='topic remappings')
-    parser.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='SEC',
-                        help='before playing, wait up to SEC seconds until every topic has a subscriber')
+    parser.add_argument(
+        '--wait-for-subscribers',
+        type=float,
+        default=0.0,
+        metavar='SEC',
+        help='before playing, wait up to SEC seconds until every topic has a subscriber',
+    )
     parser.add_argument('--qos-depth', type=int, default=100, help='publisher queue depth (default 100)')
-    parser.add_argument('-l', '--loop', type=int, nargs='?', const=0, default=1, metavar='N',
-                        help='play the bag N times (without N: until interrupted), like rosbag play -l; '
-                             'stamps and /clock jump back to the start at every repetition')
+    parser.add_argument(
+        '-l',
+        '--loop',
+        type=int,
+        nargs='?',
+        const=0,
+        default=1,
+        metavar='N',
+        help='play the bag N times (without N: until interrupted), like rosbag play -l; '
+        'stamps and /clock jump back to the start at every repetition',
+    )
     parser.add_argument('--no-progress', action='store_true', help='no progress bar')
     parser.add_argument('-q', '--quiet', action='store_true', help='no summary at the end')
 
@@ -203,10 +242,21 @@ def main(args: argparse.Namespace) -> int:
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     node = rclpy.create_node('lego_loam_py_player')
     try:
-        stats = play(node, reader, topics=args.topics, rate=args.rate, start_offset=args.start_offset,
-                     clock_hz=args.clock, publish_clock=not args.no_clock, remaps=remaps,
-                     wait_for_subscribers=args.wait_for_subscribers, depth=args.qos_depth,
-                     progress=not args.no_progress, stop=stop, loops=args.loop)
+        stats = play(
+            node,
+            reader,
+            topics=args.topics,
+            rate=args.rate,
+            start_offset=args.start_offset,
+            clock_hz=args.clock,
+            publish_clock=not args.no_clock,
+            remaps=remaps,
+            wait_for_subscribers=args.wait_for_subscribers,
+            depth=args.qos_depth,
+            progress=not args.no_progress,
+            stop=stop,
+            loops=args.loop,
+        )
         reader.close()
         for topic, reason in stats.skipped_topics.items():
             print(f'warning: {topic} not played: {reason}', file=sys.stderr)
@@ -215,11 +265,15 @@ def main(args: argparse.Namespace) -> int:
             rate = count / stats.wall_time if stats.wall_time > 0 else 0.0
             state = 'interrupted' if stats.interrupted else 'done'
             loops = f' ({stats.loops} plays)' if stats.loops > 1 else ''
-            print(f'{state}: {count} messages on {len(stats.published)} topics, {stats.bag_time:.2f} s of bag{loops} '
-                  f'in {stats.wall_time:.2f} s ({rate:.1f} msg/s)', file=sys.stderr, flush=True)
+            print(
+                f'{state}: {count} messages on {len(stats.published)} topics, {stats.bag_time:.2f} s of bag{loops} '
+                f'in {stats.wall_time:.2f} s ({rate:.1f} msg/s)',
+                file=sys.stderr,
+                flush=True,
+            )
     finally:
         reader.close()
-        guard = teardown_guard(0, 'the player\'s ROS 2 shutdown')
+        guard = teardown_guard(0, "the player's ROS 2 shutdown")
         node.destroy_node()
         rclpy.try_shutdown()
         guard.cancel()

@@ -4,6 +4,7 @@ Subscriptions take serialized messages (no deserialization) and are created as t
 that matches their publishers (best effort when any publisher is best effort, transient local for latched
 topics). SIGINT / SIGTERM finish the bag cleanly: metadata written, file complete.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -21,9 +22,9 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
 from lego_loam_py.bag.io import BagError, BagWriter
+from lego_loam_py.errors import UsageError
 from lego_loam_py.ros.message_types import get_message_class
 from lego_loam_py.ros.runtime import teardown_guard
-from lego_loam_py.errors import UsageError
 
 __all__ = ['Recorder', 'add_arguments', 'main']
 
@@ -33,8 +34,15 @@ _IGNORED_TOPICS = ('/rosout', '/parameter_events')
 class Recorder:
     """Records ``topics`` (or every topic when ``record_all``) of ``node``'s graph into ``writer``."""
 
-    def __init__(self, node: Node, writer: BagWriter, topics: list[str] | None, record_all: bool = False,
-                 discovery_period: float = 0.2, depth: int = 100):
+    def __init__(
+        self,
+        node: Node,
+        writer: BagWriter,
+        topics: list[str] | None,
+        record_all: bool = False,
+        discovery_period: float = 0.2,
+        depth: int = 100,
+    ):
         self.node = node
         self.writer = writer
         self.wanted = set(topics or [])
@@ -47,17 +55,18 @@ class Recorder:
         self._closed = False
         # Steady clock: with use_sim_time the ROS clock stands still until /clock arrives, and a timer on it
         # would never discover the topics that appear after start-up.
-        self._timer = node.create_timer(discovery_period, self.discover,
-                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._timer = node.create_timer(discovery_period, self.discover, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.discover()
 
     def _qos_for(self, topic: str) -> QoSProfile:
         infos = self.node.get_publishers_info_by_topic(topic)
         best_effort = any(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for i in infos)
         latched = bool(infos) and all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos)
-        return QoSProfile(depth=self.depth,
-                          reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE,
-                          durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+        return QoSProfile(
+            depth=self.depth,
+            reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
+        )
 
     def discover(self) -> None:
         for topic, types in self.node.get_topic_names_and_types():
@@ -77,7 +86,8 @@ class Recorder:
                 self._subscriptions[topic] = None
                 continue
             self._subscriptions[topic] = self.node.create_subscription(
-                cls, topic, lambda data, t=topic, m=msgtype: self._write(t, m, data), profile, raw=True)
+                cls, topic, lambda data, t=topic, m=msgtype: self._write(t, m, data), profile, raw=True
+            )
             self.counts.setdefault(topic, 0)
 
     def _write(self, topic: str, msgtype: str, data: bytes) -> None:
@@ -101,10 +111,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('topics', nargs='*', metavar='TOPIC', help='topics to record')
     parser.add_argument('-a', '--all', action='store_true', help='record every topic')
     parser.add_argument('-o', '--output', help='bag directory to create (default: rosbag2_<date>-<time>)')
-    parser.add_argument('-s', '--storage', choices=['mcap', 'sqlite3'], default='mcap',
-                        help='storage format (default mcap)')
-    parser.add_argument('-d', '--duration', type=float, default=0.0, metavar='SEC',
-                        help='stop after SEC seconds (default: until Ctrl-C)')
+    parser.add_argument(
+        '-s', '--storage', choices=['mcap', 'sqlite3'], default='mcap', help='storage format (default mcap)'
+    )
+    parser.add_argument(
+        '-d',
+        '--duration',
+        type=float,
+        default=0.0,
+        metavar='SEC',
+        help='stop after SEC seconds (default: until Ctrl-C)',
+    )
     parser.add_argument('--use-sim-time', action='store_true', help='stamp messages with /clock time')
     parser.add_argument('-q', '--quiet', action='store_true', help='no summary at the end')
 
@@ -117,9 +134,10 @@ def main(args: argparse.Namespace) -> int:
     stop = threading.Event()
     rclpy.init(args=getattr(args, 'ros_args', None), signal_handler_options=SignalHandlerOptions.NO)
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    node = rclpy.create_node('lego_loam_py_recorder',
-                             parameter_overrides=[Parameter('use_sim_time', value=True)]
-                             if args.use_sim_time else [])
+    node = rclpy.create_node(
+        'lego_loam_py_recorder',
+        parameter_overrides=[Parameter('use_sim_time', value=True)] if args.use_sim_time else [],
+    )
     recorder = Recorder(node, writer, args.topics, record_all=args.all)
     deadline = time.monotonic() + args.duration if args.duration > 0 else float('inf')
     try:
@@ -134,7 +152,7 @@ def main(args: argparse.Namespace) -> int:
             print(f'recorded {total} messages into {output} ({detail})', file=sys.stderr, flush=True)
     finally:
         recorder.close()
-        guard = teardown_guard(0, 'the recorder\'s ROS 2 shutdown')
+        guard = teardown_guard(0, "the recorder's ROS 2 shutdown")
         node.destroy_node()
         rclpy.try_shutdown()
         guard.cancel()

@@ -8,6 +8,7 @@ mid-run is Dask's to handle: the scheduler gives the task to another worker (``a
 default); a run that fails on its own (exit code, timeout) is retried here up to ``retries`` times. Workers
 of a remote cluster must see the recordings and the output folder at the same paths (a shared file system).
 """
+
 from __future__ import annotations
 
 import json
@@ -15,15 +16,15 @@ import os
 import shlex
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 from lego_loam_py.batch.execute import read_status, record_failure, remove_partials, run_one
 from lego_loam_py.batch.plan import ParameterSet, RunSpec, code_version, expand_recordings, plan_runs
 from lego_loam_py.batch.report import collect_records, write_report
-from lego_loam_py.core.io import write_text_atomic
 from lego_loam_py.errors import LegoLoamError, UsageError
+from lego_loam_py.formats import write_text_atomic
 
 __all__ = ['BatchResult', 'run_batch', 'local_cluster']
 
@@ -47,6 +48,7 @@ class BatchResult:
     def table(self):
         """The records as a pandas DataFrame."""
         from lego_loam_py.batch.report import as_dataframe
+
         return as_dataframe(self.records)
 
 
@@ -81,8 +83,14 @@ def local_cluster(workers: int | None = None):
 
     from dask.distributed import LocalCluster
 
-    return LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
-                        host='127.0.0.1', dashboard_address=None, silence_logs=logging.ERROR)
+    return LocalCluster(
+        n_workers=workers or os.cpu_count() or 1,
+        threads_per_worker=1,
+        processes=True,
+        host='127.0.0.1',
+        dashboard_address=None,
+        silence_logs=logging.ERROR,
+    )
 
 
 def _pending(specs: Sequence[RunSpec], out: Path, retries: int) -> tuple[list[tuple[RunSpec, int]], int]:
@@ -100,11 +108,21 @@ def _pending(specs: Sequence[RunSpec], out: Path, retries: int) -> tuple[list[tu
     return todo, reused
 
 
-def run_batch(recordings: Sequence[str | Path], parameter_sets: Sequence[ParameterSet] | None = None,
-              out: str | Path = 'batch', *, imu: str = 'on', client=None, scheduler: str | None = None,
-              workers: int | None = None, timeout_s: float | None = 3600.0, retries: int = 1,
-              progress: bool = True, command_line: Sequence[str] | None = None,
-              run_args: Sequence[str] = ()) -> BatchResult:
+def run_batch(
+    recordings: Sequence[str | Path],
+    parameter_sets: Sequence[ParameterSet] | None = None,
+    out: str | Path = 'batch',
+    *,
+    imu: str = 'on',
+    client=None,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    timeout_s: float | None = 3600.0,
+    retries: int = 1,
+    progress: bool = True,
+    command_line: Sequence[str] | None = None,
+    run_args: Sequence[str] = (),
+) -> BatchResult:
     """Run every recording x parameter set x IMU mode (``'on'``, ``'off'``, ``'both'``) and write the report.
 
     ``recordings``: paths or glob patterns. ``parameter_sets``: from :func:`~lego_loam_py.batch.plan.
@@ -122,10 +140,20 @@ def run_batch(recordings: Sequence[str | Path], parameter_sets: Sequence[Paramet
     out.mkdir(parents=True, exist_ok=True)
     lock = _acquire_lock(out)
     try:
-        remove_partials(out / 'runs')   # what a killed batch left; no batch runs here now (the lock)
-        write_text_atomic(out / 'batch.json', json.dumps({
-            'command': shlex.join(command_line) if command_line else None, 'version': version,
-            'runs': [dict(spec.describe(), name=spec.name) for spec in specs]}, indent=1, default=str) + '\n')
+        remove_partials(out / 'runs')  # what a killed batch left; no batch runs here now (the lock)
+        write_text_atomic(
+            out / 'batch.json',
+            json.dumps(
+                {
+                    'command': shlex.join(command_line) if command_line else None,
+                    'version': version,
+                    'runs': [dict(spec.describe(), name=spec.name) for spec in specs],
+                },
+                indent=1,
+                default=str,
+            )
+            + '\n',
+        )
         todo, reused = _pending(specs, out, retries)
         if todo:
             _run_on_dask(todo, out, version, client, scheduler, workers, timeout_s, retries, progress)
@@ -137,8 +165,17 @@ def run_batch(recordings: Sequence[str | Path], parameter_sets: Sequence[Paramet
     return BatchResult(records, ran=len(todo), reused=reused, report=report)
 
 
-def _run_on_dask(todo: list[tuple[RunSpec, int]], out: Path, version: dict, client, scheduler: str | None,
-                 workers: int | None, timeout_s: float | None, retries: int, progress: bool) -> None:
+def _run_on_dask(
+    todo: list[tuple[RunSpec, int]],
+    out: Path,
+    version: dict,
+    client,
+    scheduler: str | None,
+    workers: int | None,
+    timeout_s: float | None,
+    retries: int,
+    progress: bool,
+) -> None:
     from dask.distributed import Client, as_completed
 
     own_cluster = None
@@ -151,13 +188,22 @@ def _run_on_dask(todo: list[tuple[RunSpec, int]], out: Path, version: dict, clie
     bar = None
     if progress:
         from tqdm import tqdm
+
         bar = tqdm(total=len(todo), unit='run', desc='batch', file=sys.stderr, dynamic_ncols=True)
     try:
         futures = {}
 
         def submit(spec: RunSpec, attempt: int) -> None:
-            future = client.submit(run_one, spec, str(out), attempt, version, timeout_s, pure=False,
-                                   key=f'lego-loam-run-{spec.run_id[:16]}-{attempt}-{time.monotonic_ns()}')
+            future = client.submit(
+                run_one,
+                spec,
+                str(out),
+                attempt,
+                version,
+                timeout_s,
+                pure=False,
+                key=f'lego-loam-run-{spec.run_id[:16]}-{attempt}-{time.monotonic_ns()}',
+            )
             futures[future] = (spec, attempt)
             queue.add(future)
 
@@ -168,7 +214,7 @@ def _run_on_dask(todo: list[tuple[RunSpec, int]], out: Path, version: dict, clie
             spec, attempt = futures.pop(future)
             try:
                 status = future.result()
-            except Exception as exc:   # the task itself failed: its workers were lost again and again
+            except Exception as exc:  # the task itself failed: its workers were lost again and again
                 status = record_failure(spec, out, attempt, version, f'{type(exc).__name__}: {exc}')
             if status.get('status') != 'ok' and attempt <= retries:
                 submit(spec, attempt + 1)
@@ -183,4 +229,3 @@ def _run_on_dask(todo: list[tuple[RunSpec, int]], out: Path, version: dict, clie
             client.close()
         if own_cluster is not None:
             own_cluster.close()
-

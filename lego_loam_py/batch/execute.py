@@ -8,6 +8,7 @@ summary.json) and ``params.yaml`` (every parameter, as the run read them), ``com
 (SIGKILL, a worker lost, a power cut) leaves only a ``.partial-`` folder, which the next batch removes and
 never reads as a result.
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -25,8 +26,8 @@ from pathlib import Path
 from typing import Any
 
 from lego_loam_py.batch.plan import RunSpec
-from lego_loam_py.core.io import write_text_atomic
 from lego_loam_py.core.params import write_params_file
+from lego_loam_py.formats import write_text_atomic
 
 __all__ = ['run_one', 'run_command', 'read_status', 'publish', 'remove_partials', 'PARTIAL_PREFIX', 'metrics_of']
 
@@ -37,8 +38,17 @@ _PR_SET_PDEATHSIG = 1
 
 def run_command(spec: RunSpec, output: Path, params_file: Path) -> list[str]:
     """The ``lego_loam_py run`` arguments of a run (what a user would type, with every parameter in a file)."""
-    command = ['lego_loam_py', 'run', str(spec.recording), '-o', str(output), '--params-file', str(params_file),
-               '--no-progress', *spec.run_args]
+    command = [
+        'lego_loam_py',
+        'run',
+        str(spec.recording),
+        '-o',
+        str(output),
+        '--params-file',
+        str(params_file),
+        '--no-progress',
+        *spec.run_args,
+    ]
     return command + ([] if spec.imu else ['--no-imu'])
 
 
@@ -54,11 +64,12 @@ def die_with_parent_then_run(parent_pid: int, argv: list[str]) -> int:
     threaded worker.)"""
     try:
         ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
-    except (OSError, AttributeError):   # not Linux: the run outlives a killed worker, as any child would
+    except (OSError, AttributeError):  # not Linux: the run outlives a killed worker, as any child would
         pass
-    if os.getppid() != parent_pid:      # the worker died before the request took effect
+    if os.getppid() != parent_pid:  # the worker died before the request took effect
         return 1
     from lego_loam_py.cli import main
+
     return main(argv)
 
 
@@ -122,7 +133,7 @@ def _error_line(log: str) -> str:
     lines = [line for line in log.splitlines() if line.strip()]
     for line in reversed(lines):
         if line.startswith('error:'):
-            return line[len('error:'):].strip()
+            return line[len('error:') :].strip()
     return lines[-1].strip() if lines else 'no output'
 
 
@@ -142,12 +153,19 @@ def run_one(spec: RunSpec, out: str | Path, attempt: int, version: dict, timeout
     write_text_atomic(partial / 'command.txt', shlex.join(shown) + '\n')
     write_text_atomic(partial / 'version.json', json.dumps(version, indent=1) + '\n')
     write_text_atomic(partial / 'inputs.json', json.dumps(spec.describe(), indent=1, default=str) + '\n')
-    status: dict[str, Any] = {'run_id': spec.run_id, 'name': spec.name, 'attempt': attempt,
-                              'host': socket.gethostname(), 'pid': os.getpid(), 'started': time.time()}
+    status: dict[str, Any] = {
+        'run_id': spec.run_id,
+        'name': spec.name,
+        'attempt': attempt,
+        'host': socket.gethostname(),
+        'pid': os.getpid(),
+        'started': time.time(),
+    }
     start = time.monotonic()
     with open(partial / 'run.log', 'wb') as log:
-        child = subprocess.Popen(_child_command(command), stdout=log, stderr=subprocess.STDOUT,
-                                 stdin=subprocess.DEVNULL)
+        child = subprocess.Popen(
+            _child_command(command), stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL
+        )
         try:
             code = child.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
@@ -183,8 +201,16 @@ def record_failure(spec: RunSpec, out: str | Path, attempt: int, version: dict, 
     partial.mkdir(parents=True)
     write_text_atomic(partial / 'version.json', json.dumps(version, indent=1) + '\n')
     write_text_atomic(partial / 'inputs.json', json.dumps(spec.describe(), indent=1, default=str) + '\n')
-    status = {'run_id': spec.run_id, 'name': spec.name, 'attempt': attempt, 'status': 'failed', 'error': error,
-              'exit_code': None, 'started': time.time(), 'elapsed_s': 0.0}
+    status = {
+        'run_id': spec.run_id,
+        'name': spec.name,
+        'attempt': attempt,
+        'status': 'failed',
+        'error': error,
+        'exit_code': None,
+        'started': time.time(),
+        'elapsed_s': 0.0,
+    }
     write_text_atomic(partial / 'status.json', json.dumps(status, indent=1) + '\n')
     publish(partial, runs / spec.name)
     return status

@@ -1,6 +1,7 @@
 """What a batch runs: recordings x parameter sets x IMU modes, each combination a :class:`RunSpec` with the
 identity that lets a batch resume (a hash of the recording, the resolved parameters and the code version).
 """
+
 from __future__ import annotations
 
 import glob
@@ -8,9 +9,10 @@ import hashlib
 import itertools
 import json
 import subprocess
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any
 
 import yaml
 
@@ -18,8 +20,15 @@ from lego_loam_py import __version__
 from lego_loam_py.core.params import load_params
 from lego_loam_py.errors import UsageError
 
-__all__ = ['RunSpec', 'ParameterSet', 'expand_recordings', 'parameter_grid', 'code_version', 'plan_runs',
-           'split_values']
+__all__ = [
+    'RunSpec',
+    'ParameterSet',
+    'expand_recordings',
+    'parameter_grid',
+    'code_version',
+    'plan_runs',
+    'split_values',
+]
 
 IMU_MODES = {'on': (True,), 'off': (False,), 'both': (True, False)}
 
@@ -49,7 +58,7 @@ class RunSpec:
     imu: bool
     flat_params: Mapping[str, Any]
     run_id: str
-    run_args: tuple[str, ...] = ()   # more arguments of ``run``: how to read the recording (--dataloader, ...)
+    run_args: tuple[str, ...] = ()  # more arguments of ``run``: how to read the recording (--dataloader, ...)
 
     @property
     def name(self) -> str:
@@ -58,9 +67,14 @@ class RunSpec:
 
     def describe(self) -> dict:
         """What the report shows of the run's inputs (JSON-ready)."""
-        return {'recording': str(self.recording), 'params_file': str(self.parameters.params_file or ''),
-                'overrides': dict(self.parameters.overrides), 'imu': self.imu, 'run_args': list(self.run_args),
-                'run_id': self.run_id}
+        return {
+            'recording': str(self.recording),
+            'params_file': str(self.parameters.params_file or ''),
+            'overrides': dict(self.parameters.overrides),
+            'imu': self.imu,
+            'run_args': list(self.run_args),
+            'run_id': self.run_id,
+        }
 
 
 def recording_name(path: Path) -> str:
@@ -143,8 +157,11 @@ def parameter_grid(sweeps: Sequence[str], params_files: Sequence[str | Path] = (
         if path is not None and not path.is_file():
             raise UsageError(f'no such parameter file: {path}')
     names = list(axes)
-    return [ParameterSet(path, dict(zip(names, values)))
-            for path in files for values in itertools.product(*(axes[n] for n in names))]
+    return [
+        ParameterSet(path, dict(zip(names, values)))
+        for path in files
+        for values in itertools.product(*(axes[n] for n in names))
+    ]
 
 
 def code_version(repo: Path | None = None) -> dict:
@@ -175,8 +192,13 @@ def _fingerprint(recording: Path) -> list:
     return [[str(p), p.stat().st_size, p.stat().st_mtime_ns] for p in files]
 
 
-def plan_runs(recordings: Iterable[Path], parameter_sets: Sequence[ParameterSet], imu: str = 'on',
-              version: Mapping[str, Any] | None = None, run_args: Sequence[str] = ()) -> list[RunSpec]:
+def plan_runs(
+    recordings: Iterable[Path],
+    parameter_sets: Sequence[ParameterSet],
+    imu: str = 'on',
+    version: Mapping[str, Any] | None = None,
+    run_args: Sequence[str] = (),
+) -> list[RunSpec]:
     """Every recording x parameter set x IMU mode (``on``, ``off`` or ``both``), with its run id; ``run_args``
     go to every ``run`` (how to read the recordings: ``--dataloader``, ``--rate-hz``, ...) and into the id.
     Parameters are resolved (and checked) here, once, so that a typo fails before anything starts."""
@@ -190,7 +212,7 @@ def plan_runs(recordings: Iterable[Path], parameter_sets: Sequence[ParameterSet]
         for parameters, flat in zip(parameter_sets, resolved):
             for use_imu in IMU_MODES[imu]:
                 identity = {'recording': fingerprint, 'params': flat, 'imu': use_imu, 'version': version}
-                if run_args:   # (absent when empty: the ids of plain bag runs stay as they were)
+                if run_args:  # (absent when empty: the ids of plain bag runs stay as they were)
                     identity['run_args'] = list(run_args)
                 digest = hashlib.sha256(json.dumps(identity, sort_keys=True, default=str).encode()).hexdigest()
                 specs.append(RunSpec(recording, parameters, use_imu, flat, digest, tuple(run_args)))

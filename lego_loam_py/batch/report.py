@@ -2,23 +2,31 @@
 at any time): ``report.csv`` (one row per run), ``report.md`` (the table, per-parameter summaries of a sweep,
 the plots) and the plots ``ate_per_run.png`` and ``ate_vs_<parameter>.png``.
 """
+
 from __future__ import annotations
 
 import csv
 import io
 import json
 import math
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 from lego_loam_py.batch.execute import PARTIAL_PREFIX, read_status
-from lego_loam_py.core.io import write_text_atomic
+from lego_loam_py.formats import write_text_atomic
 
 __all__ = ['collect_records', 'write_report', 'swept_keys', 'as_dataframe', 'COLUMNS']
 
 # The per-run figures of the table, in order: (record key, heading, format).
-COLUMNS = [('ate_rmse_m', 'ATE m', '.3f'), ('rpe_percent', 'RPE %', '.2f'), ('drift_percent', 'drift %', '.2f'),
-           ('length_m', 'length m', '.1f'), ('ms_per_scan', 'ms/scan', '.1f'), ('x_real_time', 'x RT', '.2f')]
+COLUMNS = [
+    ('ate_rmse_m', 'ATE m', '.3f'),
+    ('rpe_percent', 'RPE %', '.2f'),
+    ('drift_percent', 'drift %', '.2f'),
+    ('length_m', 'length m', '.1f'),
+    ('ms_per_scan', 'ms/scan', '.1f'),
+    ('x_real_time', 'x RT', '.2f'),
+]
 
 
 def _read_json(path: Path) -> dict:
@@ -37,18 +45,27 @@ def collect_records(out: str | Path) -> list[dict]:
         if run_dir.name.startswith('.') or not run_dir.is_dir():
             continue
         status = read_status(run_dir)
-        if status is None:   # not a run directory of ours (a run directory always has one)
+        if status is None:  # not a run directory of ours (a run directory always has one)
             continue
         inputs = _read_json(run_dir / 'inputs.json')
-        record = {'run': run_dir.name, 'recording': Path(inputs.get('recording', '')).name,
-                  'recording_path': inputs.get('recording', ''), 'params_file': Path(inputs.get('params_file') or '').name,
-                  'imu': inputs.get('imu'), 'status': status.get('status'), 'error': status.get('error', ''),
-                  'attempt': status.get('attempt'), 'elapsed_s': status.get('elapsed_s'),
-                  'overrides': inputs.get('overrides', {}), 'run_id': status.get('run_id', '')}
+        record = {
+            'run': run_dir.name,
+            'recording': Path(inputs.get('recording', '')).name,
+            'recording_path': inputs.get('recording', ''),
+            'params_file': Path(inputs.get('params_file') or '').name,
+            'imu': inputs.get('imu'),
+            'status': status.get('status'),
+            'error': status.get('error', ''),
+            'attempt': status.get('attempt'),
+            'elapsed_s': status.get('elapsed_s'),
+            'overrides': inputs.get('overrides', {}),
+            'run_id': status.get('run_id', ''),
+        }
         record.update(_read_json(run_dir / 'metrics.json'))
         records.append(record)
-    records.sort(key=lambda r: (r['recording'], r['params_file'], json.dumps(r['overrides'], sort_keys=True),
-                                not r['imu']))
+    records.sort(
+        key=lambda r: (r['recording'], r['params_file'], json.dumps(r['overrides'], sort_keys=True), not r['imu'])
+    )
     return records
 
 
@@ -80,8 +97,18 @@ def _csv_text(records: Sequence[dict], keys: Sequence[str]) -> str:
     figures = [key for key, _, _ in COLUMNS]
     writer.writerow(['run', 'recording', *keys, 'status', *figures, 'scans', 'attempt', 'error'])
     for r in records:
-        writer.writerow([r['run'], r['recording'], *[_value(r, k) for k in keys], r['status'],
-                         *[r.get(f) for f in figures], r.get('scans'), r['attempt'], r['error']])
+        writer.writerow(
+            [
+                r['run'],
+                r['recording'],
+                *[_value(r, k) for k in keys],
+                r['status'],
+                *[r.get(f) for f in figures],
+                r.get('scans'),
+                r['attempt'],
+                r['error'],
+            ]
+        )
     return buffer.getvalue()
 
 
@@ -98,8 +125,11 @@ def _summaries(records: Sequence[dict], keys: Sequence[str]) -> list[str]:
                     values[json.dumps(_value(r, key))].append(r['ate_rmse_m'])
         for value, ates in values.items():
             mean = sum(ates) / len(ates) if ates else None
-            lines.append(f'| {json.loads(value)} | {sum(1 for r in records if r["status"] == "ok" and json.dumps(_value(r, key)) == value)} '
-                         f'| {_fmt(mean, ".3f")} | {_fmt(min(ates) if ates else None, ".3f")} |')
+            runs_ok = sum(1 for r in records if r['status'] == 'ok' and json.dumps(_value(r, key)) == value)
+            lines.append(
+                f'| {json.loads(value)} | {runs_ok} '
+                f'| {_fmt(mean, ".3f")} | {_fmt(min(ates) if ates else None, ".3f")} |'
+            )
         lines.append('')
     return lines
 
@@ -107,6 +137,7 @@ def _summaries(records: Sequence[dict], keys: Sequence[str]) -> list[str]:
 def _plots(records: Sequence[dict], keys: Sequence[str], out: Path) -> list[str]:
     """ate_per_run.png and ate_vs_<key>.png (one line per recording); the names of those written."""
     import matplotlib
+
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
@@ -155,16 +186,27 @@ def write_report(out: str | Path, records: Sequence[dict] | None = None, plots: 
     files = {'csv': write_text_atomic(out / 'report.csv', _csv_text(records, keys))}
     ok = sum(r['status'] == 'ok' for r in records)
     partial = sum(1 for p in (out / 'runs').glob(f'{PARTIAL_PREFIX}*')) if (out / 'runs').is_dir() else 0
-    lines = [f'# Batch report: {out.name}', '',
-             f'{len(records)} runs: {ok} finished, {len(records) - ok} failed'
-             + (f' ({partial} unfinished, left by an interrupted batch)' if partial else '') + '.', '',
-             '| run | recording | ' + ''.join(f'{k} | ' for k in keys) + 'status | '
-             + ' | '.join(h for _, h, _ in COLUMNS) + ' |',
-             '|---|---|' + '---|' * len(keys) + '---|' + '---|' * len(COLUMNS)]
+    lines = [
+        f'# Batch report: {out.name}',
+        '',
+        f'{len(records)} runs: {ok} finished, {len(records) - ok} failed'
+        + (f' ({partial} unfinished, left by an interrupted batch)' if partial else '')
+        + '.',
+        '',
+        '| run | recording | '
+        + ''.join(f'{k} | ' for k in keys)
+        + 'status | '
+        + ' | '.join(h for _, h, _ in COLUMNS)
+        + ' |',
+        '|---|---|' + '---|' * len(keys) + '---|' + '---|' * len(COLUMNS),
+    ]
     for r in records:
         figures = ' | '.join(_fmt(r.get(key), spec) for key, _, spec in COLUMNS)
-        lines.append(f'| {r["run"]} | {r["recording"]} | ' + ''.join(f'{_value(r, k)} | ' for k in keys)
-                     + f'{r["status"]} | {figures} |')
+        lines.append(
+            f'| {r["run"]} | {r["recording"]} | '
+            + ''.join(f'{_value(r, k)} | ' for k in keys)
+            + f'{r["status"]} | {figures} |'
+        )
     failed = [r for r in records if r['status'] != 'ok']
     if failed:
         lines += ['', '## Failed runs', ''] + [f'- `{r["run"]}` (attempt {r["attempt"]}): {r["error"]}' for r in failed]

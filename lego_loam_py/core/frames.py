@@ -37,6 +37,7 @@ fixed to the lidar (``base_link``), described as the static transform ``base_lin
   ``timeshift_cam_imu`` sign, ``t_imu = t_lidar + offset``); a sample stamped ``t`` was measured at lidar time
   ``t - time_offset``.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -45,14 +46,44 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 __all__ = [
-    'MAP_FRAME', 'CAMERA_INIT_FRAME', 'CAMERA_FRAME', 'BASE_LINK_FRAME', 'LASER_ODOM_FRAME',
-    'AFT_MAPPED_FRAME', 'LIDAR_TO_CAMERA', 'CAMERA_TO_LIDAR', 'lidar_to_camera', 'camera_to_lidar',
-    'rot_x', 'rot_y', 'rot_z', 'GENERATOR_X', 'GENERATOR_Y', 'GENERATOR_Z', 'euler_to_matrix', 'euler_to_matrices',
-    'rotate_by_euler', 'matrix_to_euler', 'quaternion_to_matrix',
-    'matrix_to_quaternion', 'euler_to_quaternion', 'quaternion_to_euler', 'make_pose', 'pose6_to_matrix',
-    'matrix_to_pose6', 'invert_pose', 'camera_pose_to_lidar', 'lidar_pose_to_camera',
-    'MAP_T_CAMERA_INIT', 'CAMERA_T_BASE_LINK', 'transform_points', 'transform_cloud', 'wrap_angle',
-    'rpy_to_matrix', 'matrix_to_rpy', 'ImuMounting',
+    'MAP_FRAME',
+    'CAMERA_INIT_FRAME',
+    'CAMERA_FRAME',
+    'BASE_LINK_FRAME',
+    'LASER_ODOM_FRAME',
+    'AFT_MAPPED_FRAME',
+    'LIDAR_TO_CAMERA',
+    'CAMERA_TO_LIDAR',
+    'lidar_to_camera',
+    'camera_to_lidar',
+    'rot_x',
+    'rot_y',
+    'rot_z',
+    'GENERATOR_X',
+    'GENERATOR_Y',
+    'GENERATOR_Z',
+    'euler_to_matrix',
+    'euler_to_matrices',
+    'rotate_by_euler',
+    'matrix_to_euler',
+    'quaternion_to_matrix',
+    'matrix_to_quaternion',
+    'euler_to_quaternion',
+    'quaternion_to_euler',
+    'make_pose',
+    'pose6_to_matrix',
+    'matrix_to_pose6',
+    'invert_pose',
+    'camera_pose_to_lidar',
+    'lidar_pose_to_camera',
+    'MAP_T_CAMERA_INIT',
+    'CAMERA_T_BASE_LINK',
+    'transform_points',
+    'transform_cloud',
+    'wrap_angle',
+    'rpy_to_matrix',
+    'matrix_to_rpy',
+    'ImuMounting',
 ]
 
 # Frame ids, without the original's leading slashes (invalid in tf2).
@@ -64,9 +95,7 @@ LASER_ODOM_FRAME = 'laser_odom'
 AFT_MAPPED_FRAME = 'aft_mapped'
 
 # p_camera = LIDAR_TO_CAMERA @ p_lidar, i.e. (x_c, y_c, z_c) = (y_l, z_l, x_l).
-LIDAR_TO_CAMERA = np.array([[0.0, 1.0, 0.0],
-                            [0.0, 0.0, 1.0],
-                            [1.0, 0.0, 0.0]])
+LIDAR_TO_CAMERA = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
 CAMERA_TO_LIDAR = LIDAR_TO_CAMERA.T.copy()
 
 
@@ -134,8 +163,7 @@ def euler_to_matrices(rx: np.ndarray, ry: np.ndarray, rz: np.ndarray) -> np.ndar
     return _euler_entries(rx, ry, rz).transpose(2, 0, 1).copy()
 
 
-def rotate_by_euler(left: np.ndarray, rx: np.ndarray, ry: np.ndarray, rz: np.ndarray,
-                    xyz: np.ndarray) -> np.ndarray:
+def rotate_by_euler(left: np.ndarray, rx: np.ndarray, ry: np.ndarray, rz: np.ndarray, xyz: np.ndarray) -> np.ndarray:
     """``(left @ euler_to_matrix(rx[n], ry[n], rz[n])) @ xyz[n]`` for every point: (n, 3) float64 (a view).
 
     Bit for bit ``np.einsum('nij,nj->ni', np.einsum('ij,njk->nik', left, euler_to_matrices(rx, ry, rz)), xyz)``
@@ -146,8 +174,9 @@ def rotate_by_euler(left: np.ndarray, rx: np.ndarray, ry: np.ndarray, rz: np.nda
     """
     entries = _euler_entries(rx, ry, rz)
     left = np.asarray(left, dtype=np.float64)
-    product = (left[:, 0, None, None] * entries[0] + left[:, 1, None, None] * entries[1]
-               + left[:, 2, None, None] * entries[2])   # (3, 3, n): left @ R
+    product = (
+        left[:, 0, None, None] * entries[0] + left[:, 1, None, None] * entries[1] + left[:, 2, None, None] * entries[2]
+    )  # (3, 3, n): left @ R
     x, y, z = np.asarray(xyz)[:, :3].T.astype(np.float64)
     return ((product[:, 0] * x + product[:, 2] * z) + product[:, 1] * y + 0.0).T
 
@@ -271,23 +300,34 @@ def matrix_to_rpy(rotation: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True, eq=False)
 class ImuMounting:
     """How the IMU sits on the lidar and how its clock relates to the lidar's (see the module docstring, which
-    spells the conventions out; :func:`lego_loam_py.core.imu.imu_mounting` builds it from the ``imu.*``
+    spells the conventions out; :func:`lego_loam_py.core.imu.buffer.imu_mounting` builds it from the ``imu.*``
     parameters)."""
 
-    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))              # R_lidar_imu
-    lever_arm: np.ndarray = field(default_factory=lambda: np.zeros(3))           # IMU origin, lidar frame [m]
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))  # R_lidar_imu
+    lever_arm: np.ndarray = field(default_factory=lambda: np.zeros(3))  # IMU origin, lidar frame [m]
     orientation_rotation: np.ndarray = field(default_factory=lambda: np.eye(3))  # R_imu_orientation
-    time_offset: float = 0.0                                                     # IMU stamp - lidar stamp [s]
+    time_offset: float = 0.0  # IMU stamp - lidar stamp [s]
 
     @classmethod
-    def from_rpy(cls, rotation_rpy=(0.0, 0.0, 0.0), lever_arm=(0.0, 0.0, 0.0), orientation_rpy=(0.0, 0.0, 0.0),
-                 time_offset: float = 0.0) -> 'ImuMounting':
+    def from_rpy(
+        cls,
+        rotation_rpy=(0.0, 0.0, 0.0),
+        lever_arm=(0.0, 0.0, 0.0),
+        orientation_rpy=(0.0, 0.0, 0.0),
+        time_offset: float = 0.0,
+    ) -> ImuMounting:
         """From (roll, pitch, yaw) angles [deg], the lever arm [m] and the time offset [s]. Zero angles give
         exact identity matrices."""
+
         def rotation(rpy) -> np.ndarray:
             return np.eye(3) if not np.any(rpy) else rpy_to_matrix(rpy)
-        return cls(rotation(rotation_rpy), np.asarray(lever_arm, dtype=float).copy(), rotation(orientation_rpy),
-                   float(time_offset))
+
+        return cls(
+            rotation(rotation_rpy),
+            np.asarray(lever_arm, dtype=float).copy(),
+            rotation(orientation_rpy),
+            float(time_offset),
+        )
 
     @property
     def rotates(self) -> bool:
@@ -306,7 +346,11 @@ class ImuMounting:
 
     def describe(self) -> str:
         """The mounting as the parameters spell it, e.g. ``rotation_rpy [0, 0, 90] deg, ...``."""
+
         def angles(matrix: np.ndarray) -> str:
             return '[' + ', '.join(f'{a:.6g}' for a in np.round(matrix_to_rpy(matrix), 4) + 0.0) + ']'
-        return (f'rotation_rpy {angles(self.rotation)} deg, translation [{", ".join(f"{v:g}" for v in self.lever_arm)}]'
-                f' m, orientation_rpy {angles(self.orientation_rotation)} deg, time_offset {self.time_offset:g} s')
+
+        return (
+            f'rotation_rpy {angles(self.rotation)} deg, translation [{", ".join(f"{v:g}" for v in self.lever_arm)}]'
+            f' m, orientation_rpy {angles(self.orientation_rotation)} deg, time_offset {self.time_offset:g} s'
+        )

@@ -7,6 +7,7 @@ A step solves the normal equations ``AᵀA x = Aᵀb``. On the first iteration o
 are the degenerate directions; from then on every step is projected onto the well-constrained ones, so a
 corridor or a flat floor does not move the estimate along what the points cannot see.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -39,11 +40,11 @@ class DegeneracyProjection:
 
     def update(self, ata: np.ndarray, threshold: float) -> None:
         """Find the directions of ``ata`` (the normal matrix) whose eigenvalues are below ``threshold``."""
-        values, vectors = np.linalg.eigh(ata)           # ascending
+        values, vectors = np.linalg.eigh(ata)  # ascending
         self.smallest_eigenvalue = float(values[0])
         keep = np.ones(len(values), dtype=bool)
         self.degenerate = False
-        for i in range(len(values)):                    # from the smallest up to the first >= threshold
+        for i in range(len(values)):  # from the smallest up to the first >= threshold
             if values[i] < threshold:
                 keep[i] = False
                 self.degenerate = True

@@ -1,14 +1,24 @@
 """Point-to-plane and point-to-line geometry shared by the odometry and the mapping (docs/original.md §6.2
 step 7, §6.3), in float32 where the original computes in float.
 """
+
 from __future__ import annotations
 
 import math
 
 import numpy as np
 
-__all__ = ['plane_through', 'plane_distance', 'plane_coefficients', 'nearest_within', 'fit_planes', 'principal_spreads',
-           'line_offsets', 'cross_rows', 'line_coefficients']
+__all__ = [
+    'plane_through',
+    'plane_distance',
+    'plane_coefficients',
+    'nearest_within',
+    'fit_planes',
+    'principal_spreads',
+    'line_offsets',
+    'cross_rows',
+    'line_coefficients',
+]
 
 _F32 = np.float32
 
@@ -69,16 +79,24 @@ def fit_planes(neighbours: np.ndarray, max_residual: float, min_aspect: float = 
     det = xx * c00 + xy * c01 + xz * c02
     solvable = np.flatnonzero(np.abs(det) > 1e-12)
     with np.errstate(divide='ignore', invalid='ignore'):
-        normal = np.stack([c00 * b[:, 0] + c01 * b[:, 1] + c02 * b[:, 2],
-                           c01 * b[:, 0] + c11 * b[:, 1] + c12 * b[:, 2],
-                           c02 * b[:, 0] + c12 * b[:, 1] + c22 * b[:, 2]], axis=1) / det[:, None]
+        normal = (
+            np.stack(
+                [
+                    c00 * b[:, 0] + c01 * b[:, 1] + c02 * b[:, 2],
+                    c01 * b[:, 0] + c11 * b[:, 1] + c12 * b[:, 2],
+                    c02 * b[:, 0] + c12 * b[:, 1] + c22 * b[:, 2],
+                ],
+                axis=1,
+            )
+            / det[:, None]
+        )
     neighbours, normal = neighbours[solvable], normal[solvable]
     norm = np.linalg.norm(normal, axis=1)
     normal /= norm[:, None]
     offset = 1.0 / norm
     residuals = np.abs(np.einsum('mki,mi->mk', neighbours, normal) + offset[:, None])
     valid = (residuals <= max_residual).all(axis=1)
-    if min_aspect > 0.0:   # (from the sums above; solvable rows only)
+    if min_aspect > 0.0:  # (from the sums above; solvable rows only)
         k = neighbours.shape[1]
         along, across = _principal_spreads(-b[solvable] / k, *(m[solvable] / k for m in (xx, yy, zz, xy, xz, yz)))
         valid &= across >= min_aspect * along
@@ -90,8 +108,10 @@ def principal_spreads(neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     square roots of the largest and middle eigenvalues of its covariance). Points along a line, such as the
     nearest points of one lidar ring, spread along it only: any plane about the line fits them."""
     k = neighbours.shape[1]
-    moments = [np.einsum('mk,mk->m', neighbours[..., i], neighbours[..., j]) / k for i, j in
-               ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))]
+    moments = [
+        np.einsum('mk,mk->m', neighbours[..., i], neighbours[..., j]) / k
+        for i, j in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+    ]
     return _principal_spreads(neighbours.sum(axis=1) / k, *moments)
 
 

@@ -3,6 +3,7 @@
 Used by the feature selection (the regions of a ring) and the correspondence search (the windows around a
 nearest neighbour), so neither needs a Python loop over points.
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -8,38 +8,51 @@ transformFusion, and mapOptimization on the mapping inputs, in the order a repla
 
 The offline mode (``lego_loam_py run``) is this call in a loop over a bag; the ROS nodes run the same cores,
 one per process. With ``map_optimization.mode: localization`` mapOptimization's core is
-:class:`~lego_loam_py.core.localization.Localization` in the saved map of ``map_optimization.map_path``, and
+:class:`~lego_loam_py.core.localization.localizer.Localization` in the saved map of ``map_optimization.map_path``, and
 transformFusion publishes only while its map correction is recent (see :class:`TransformFusion`).
 mapOptimization may run on a worker thread (``mapping_thread``): it then overlaps the next scans'
 imageProjection and featureAssociation (numpy and scipy release the GIL), with the same result as without it,
 since the worker takes the mapping inputs and IMU samples in arrival order and transformFusion applies each
 mapping result before the scans that follow it.
 """
+
 from __future__ import annotations
 
 import sys
 import time
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
-from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
-from lego_loam_py.core.frames import camera_pose_to_lidar, pose6_to_matrix, transform_cloud
-from lego_loam_py.core.elevation_bias import elevation_note
-from lego_loam_py.core.image_projection import ImageProjection, InputError, prepare_input
-from lego_loam_py.core.imu import uncovered_counter, uncovered_warning, warn_uncovered
-from lego_loam_py.core.localization import Localization
-from lego_loam_py.core.map_optimization import MapOptimization
-from lego_loam_py.core.odometry_continuity import OdometryContinuity
-from lego_loam_py.core.param_types import Params
-from lego_loam_py.core.pipeline_events import (LoopChecked, MapStepped, PipelineListener, ScanFused,
-                                               ScanProcessed)
+from lego_loam_py.core.frames import pose6_to_matrix, transform_cloud
+from lego_loam_py.core.guard import (
+    MAPPING_DEGENERATE,
+    MAPPING_STEPS,
+    MAPPING_STEPS_FAILED,
+    SCANS_DROPPED,
+    SCANS_IN,
+    SCANS_PROCESSED,
+    SCANS_WITH_IMU,
+    STATE_RESETS,
+    StepGuard,
+)
+from lego_loam_py.core.imu.buffer import uncovered_counter, uncovered_warning, warn_uncovered
+from lego_loam_py.core.localization.localizer import Localization
+from lego_loam_py.core.mapping.map_optimization import MapOptimization
+from lego_loam_py.core.mapping.mapper import Mapper
+from lego_loam_py.core.mapping.odometry_continuity import OdometryContinuity
+from lego_loam_py.core.mapping.transform_fusion import TransformFusion
+from lego_loam_py.core.odometry.feature_association import FeatureAssociation, ScanInput
+from lego_loam_py.core.params.timing import pose_delay
+from lego_loam_py.core.params.types import Params
+from lego_loam_py.core.pipeline_events import LoopChecked, MapStepped, PipelineListener, ScanFused, ScanProcessed
 from lego_loam_py.core.pointcloud import CloudLayoutError
-from lego_loam_py.core.sweep import pose_delay
-from lego_loam_py.core.transform_fusion import TransformFusion
+from lego_loam_py.core.projection.elevation_bias import elevation_note
+from lego_loam_py.core.projection.image_projection import ImageProjection, InputError, prepare_input
+from lego_loam_py.core.trajectory import Trajectory
 
 __all__ = ['Pipeline', 'ScanOutput', 'RunResult', 'pose_time_offset_ns']
 
@@ -50,7 +63,8 @@ MAPPED_POSE_LAG_NS = 300_000_000
 
 def pose_time_offset_ns(params: Params) -> int:
     """[ns] to add to a scan's stamp to get the time of the sensor pose the pipeline publishes for it (see
-    :func:`~lego_loam_py.core.sweep.pose_delay`). Applies to /laser_odom_to_init and /integrated_to_init alike."""
+    :func:`~lego_loam_py.core.params.timing.pose_delay`). Applies to /laser_odom_to_init and /integrated_to_init
+    alike."""
     return int(round(pose_delay(params) * 1e9))
 
 
@@ -58,19 +72,19 @@ def pose_time_offset_ns(params: Params) -> int:
 class RunResult:
     """Everything a run produced; poses are 4x4 in camera_init (LOAM camera axes)."""
 
-    stamps: list[int] = field(default_factory=list)            # scans with an odometry pose
+    stamps: list[int] = field(default_factory=list)  # scans with an odometry pose
     integrated: list[np.ndarray] = field(default_factory=list)  # /integrated_to_init (those not published too)
-    published: list[bool] = field(default_factory=list)        # of each: published (localization: in the map)
-    odometry: list[np.ndarray] = field(default_factory=list)    # /laser_odom_to_init
+    published: list[bool] = field(default_factory=list)  # of each: published (localization: in the map)
+    odometry: list[np.ndarray] = field(default_factory=list)  # /laser_odom_to_init
     mapped_stamps: list[int] = field(default_factory=list)
-    mapped: list[np.ndarray] = field(default_factory=list)      # /aft_mapped_to_init
+    mapped: list[np.ndarray] = field(default_factory=list)  # /aft_mapped_to_init
     timings_ms: dict[str, list[float]] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
     wall_time: float = 0.0
     bag_duration: float = 0.0
-    first_scan_ns: int | None = None   # stamp of the first cloud
-    mapper: MapOptimization | Localization | None = None
-    pose_time_offset_ns: int = 0   # the original odometry model's pose of scan k is the sensor's at k + one sweep
+    first_scan_ns: int | None = None  # stamp of the first cloud
+    mapper: Mapper | None = None
+    pose_time_offset_ns: int = 0  # the original odometry model's pose of scan k is the sensor's at k + one sweep
     # What the IMU checks decided, in order: (node, core.imu_monitor.AlignmentEvent).
     imu_alignment: list[tuple[str, object]] = field(default_factory=list)
 
@@ -80,39 +94,42 @@ class RunResult:
     def time(self, name: str, ms: float) -> None:
         self.timings_ms.setdefault(name, []).append(ms)
 
-    def trajectory(self, axes: str = 'map', which: str = 'integrated') -> tuple[np.ndarray, np.ndarray]:
-        """(stamps [ns] of the sensor poses, poses) of the fused ('integrated') or odometry ('odometry')
-        trajectory; ``axes`` 'map' (REP-103) or 'camera_init'. Stamps include the model's pose time offset. The
-        fused trajectory holds the poses transformFusion published (in localization: those in the saved map)."""
+    def trajectory(self, axes: str = 'map', which: str = 'integrated') -> Trajectory:
+        """The sensor's trajectory (core.trajectory: unpacks as ``stamps, poses``) of the fused ('integrated') or
+        odometry ('odometry') poses; ``axes`` 'map' (REP-103) or 'camera_init'. Stamps include the model's pose time
+        offset. The fused trajectory holds the poses transformFusion published (in localization: those in the saved
+        map)."""
         stamps = np.array(self.stamps, dtype=np.int64) + self.pose_time_offset_ns
         poses = np.array(self.integrated if which == 'integrated' else self.odometry).reshape(-1, 4, 4)
+        trajectory = Trajectory(stamps, poses, 'camera_init')
         if which == 'integrated' and not all(self.published):
-            stamps, poses = stamps[np.array(self.published, dtype=bool)], poses[np.array(self.published, dtype=bool)]
-        if axes == 'map':
-            poses = np.array([camera_pose_to_lidar(p) for p in poses]).reshape(-1, 4, 4)
-        return stamps, poses
+            trajectory = trajectory.select(np.array(self.published, dtype=bool))
+        return trajectory.to(axes)
 
-    def optimized_trajectory(self, axes: str = 'map') -> tuple[np.ndarray, np.ndarray]:
+    def optimized_trajectory(self, axes: str = 'map') -> Trajectory:
         """The fused trajectory as the pose graph has it at the end: each pose moved by the correction its last
         keyframe (at or before it) received since it was mapped (the loops closed later), so that the whole path
         is in the corrected frame. Without a mapper, or without corrections, it is :meth:`trajectory`."""
         stamps, poses = self.trajectory(axes='camera_init')
-        if self.mapper is not None and self.mapper.keyframes and len(poses):
+        if self.mapper is not None and self.mapper.builds_map and self.mapper.keyframes and len(poses):
             mapped = dict(zip(self.mapped_stamps, self.mapped))
             keyframes = [kf for kf in self.mapper.keyframes if kf.stamp_ns in mapped]
             key_stamps = np.array([kf.stamp_ns for kf in keyframes], dtype=np.int64) + self.pose_time_offset_ns
             # (the first keyframe is the graph's anchor: it never moves, though the step that made it published
             # no mapped pose of its own yet)
-            corrections = np.array([np.eye(4) if kf is self.mapper.keyframes[0] else
-                                    pose6_to_matrix(kf.pose6) @ np.linalg.inv(mapped[kf.stamp_ns])
-                                    for kf in keyframes]).reshape(-1, 4, 4)
+            corrections = np.array(
+                [
+                    np.eye(4)
+                    if kf is self.mapper.keyframes[0]
+                    else pose6_to_matrix(kf.pose6) @ np.linalg.inv(mapped[kf.stamp_ns])
+                    for kf in keyframes
+                ]
+            ).reshape(-1, 4, 4)
             which = np.searchsorted(key_stamps, stamps, side='right') - 1
             if len(keyframes):
                 moved = np.einsum('nij,njk->nik', corrections[np.maximum(which, 0)], poses)
                 poses = np.where((which >= 0)[:, None, None], moved, poses)
-        if axes == 'map':
-            poses = np.array([camera_pose_to_lidar(p) for p in poses]).reshape(-1, 4, 4)
-        return stamps, poses
+        return Trajectory(stamps, poses, 'camera_init').to(axes)
 
 
 @dataclass(frozen=True)
@@ -135,8 +152,15 @@ class Pipeline:
     fusion only. ``warn`` receives a line for each scan or step dropped or repaired (default: stderr).
     ``listener`` receives the run's events (core.pipeline_events) as they happen; without one none is made."""
 
-    def __init__(self, params: Params, *, mapping: bool = True, mapping_thread: bool = False,
-                 warn: Callable[[str], None] | None = None, listener: PipelineListener | None = None):
+    def __init__(
+        self,
+        params: Params,
+        *,
+        mapping: bool = True,
+        mapping_thread: bool = False,
+        warn: Callable[[str], None] | None = None,
+        listener: PipelineListener | None = None,
+    ):
         self.params = params
         self.ip, self.fa = ImageProjection(params), FeatureAssociation(params)
         self.localizing = params.map_optimization.mode == 'localization' and mapping
@@ -148,8 +172,15 @@ class Pipeline:
         self.record.pose_time_offset_ns = pose_time_offset_ns(params)
         self._warn = warn or _to_stderr
         self._listener = listener
-        self._back_end = _BackEnd(self.mo if mapping else None, self.fusion, self.record, self._warn,
-                                  threaded=mapping and mapping_thread, listener=listener)
+        self._fa_guard = StepGuard(params.reliability.reset_after_failures)
+        self._back_end = _BackEnd(
+            self.mo if mapping else None,
+            self.fusion,
+            self.record,
+            self._warn,
+            threaded=mapping and mapping_thread,
+            listener=listener,
+        )
         self._next_loop_check: int | None = None
 
     def add_imu(self, sample: tuple) -> None:
@@ -160,7 +191,7 @@ class Pipeline:
 
     def skip_scan(self, stamp_ns: int, reason: str) -> ScanOutput:
         """A scan the caller could not even decode: counted and warned about like any dropped scan."""
-        self.record.count('scans_in')
+        self.record.count(SCANS_IN)
         output = self._dropped(stamp_ns, reason)
         self._after_scan(stamp_ns)
         return output
@@ -169,7 +200,7 @@ class Pipeline:
         """One cloud (structured array with x, y, z, intensity and optionally ring / time) stamped
         ``stamp_ns`` [ns]: its odometry now, its fused pose and mapping as their results come (see
         :meth:`finish`)."""
-        self.record.count('scans_in')
+        self.record.count(SCANS_IN)
         output = self._one_scan(points, stamp_ns)
         self._after_scan(stamp_ns)
         return output
@@ -178,7 +209,7 @@ class Pipeline:
         if self.record.first_scan_ns is None:
             self.record.first_scan_ns = stamp_ns
         lc = self.params.loop_closure
-        if self.mapping and lc.loop_closure_enable_flag and not self.localizing:   # every loop_closure.period s
+        if self.mapping and lc.loop_closure_enable_flag and not self.localizing:  # every loop_closure.period s
             if self._next_loop_check is None:
                 self._next_loop_check = stamp_ns + int(lc.period * 1e9)
             elif stamp_ns >= self._next_loop_check:
@@ -192,10 +223,10 @@ class Pipeline:
             self._back_end.drain(wait=True)
         finally:
             self.close()
-        self.record.counts['keyframes'] = len(self.mo.keyframes) if self.mapping else 0
+        self.record.counts['keyframes'] = len(self.mo.keyframes) if self.mapping and self.mo.builds_map else 0
         if self.localizing:
             self.record.counts.update({f'localization_{k}': v for k, v in self.mo.counters.items()})
-        if self.mapping and self.params.loop_closure.loop_closure_enable_flag:
+        if self.mapping and self.mo.builds_map and self.params.loop_closure.loop_closure_enable_flag:
             # (a loop verified and left waiting for a second one that never came counts as rejected)
             accepted = sum(loop.accepted for loop in self.mo.loops)
             self.record.counts.update(loops_closed=accepted, loops_rejected=len(self.mo.loops) - accepted)
@@ -206,7 +237,7 @@ class Pipeline:
         self._back_end.close()
 
     def _dropped(self, stamp_ns: int, reason: str) -> ScanOutput:
-        self.record.count('scans_dropped')
+        self.record.count(SCANS_DROPPED)
         self._warn(f'scan at {stamp_ns * 1e-9:.3f} s dropped: {reason}')
         return ScanOutput(stamp_ns, dropped=reason)
 
@@ -222,41 +253,51 @@ class Pipeline:
         if 'elevation_offset_found' in segmentation.stats:
             self._warn(elevation_note(segmentation.stats['elevation_offset_found'], stamp))
         for mapped_stamp, pose6 in self._back_end.mapped_before(stamp - MAPPED_POSE_LAG_NS):
-            event = self.fa.add_mapped_pose(mapped_stamp, pose6_to_matrix(pose6))   # (featureAssociation's IMU check)
+            event = self.fa.add_mapped_pose(mapped_stamp, pose6_to_matrix(pose6))  # (featureAssociation's IMU check)
             if event is not None:
                 self._back_end.imu_alignment('featureAssociation', event)
         features = self.fa.process(ScanInput.from_segmentation(stamp, segmentation))
         t2 = time.perf_counter()
         record.time('featureAssociation', (t2 - t1) * 1e3)
-        problem = self.fa.health_problem()
-        if problem is not None:   # the same self-check as the node's: start the odometry again, keep the pose
+        heal = self._fa_guard.after_step(self.fa.health_problem())
+        if heal is not None:  # the guard of the node's (core.guard): start the odometry again, keep the pose
             self.fa.restart()
-            record.count('state_resets')
-            record.count('scans_dropped')
-            self._warn(f'scan at {stamp * 1e-9:.3f} s: {problem}: odometry restarted')
-            return ScanOutput(stamp, dropped=f'{problem}: odometry restarted')
-        record.count('scans_processed')
+            record.count(STATE_RESETS)
+            record.count(SCANS_DROPPED)
+            self._warn(f'scan at {stamp * 1e-9:.3f} s: {heal}: odometry restarted')
+            return ScanOutput(stamp, dropped=f'{heal}: odometry restarted')
+        record.count(SCANS_PROCESSED)
         if features.imu_used:
-            record.count('scans_with_imu')
+            record.count(SCANS_WITH_IMU)
         if features.imu_uncovered is not None:
             counter = uncovered_counter(features.imu_uncovered)
             record.count(counter)
             if warn_uncovered(record.counts[counter]):
-                self._warn(uncovered_warning(features.imu_uncovered, record.counts[counter], stamp,
-                                             self.params.imu.time_offset))
+                self._warn(
+                    uncovered_warning(
+                        features.imu_uncovered, record.counts[counter], stamp, self.params.imu.time_offset
+                    )
+                )
         if features.imu_alignment is not None:
             self._back_end.imu_alignment('featureAssociation', features.imu_alignment)
-        if self._listener is not None:   # (before the fusion, whose event follows)
-            self._listener(ScanProcessed(stamp, segmentation, features, None if features.initialized else
-                                         features.pose, {'imageProjection': (t1 - t0) * 1e3,
-                                                         'featureAssociation': (t2 - t1) * 1e3}))
+        if self._listener is not None:  # (before the fusion, whose event follows)
+            self._listener(
+                ScanProcessed(
+                    stamp,
+                    segmentation,
+                    features,
+                    None if features.initialized else features.pose,
+                    {'imageProjection': (t1 - t0) * 1e3, 'featureAssociation': (t2 - t1) * 1e3},
+                )
+            )
         if not features.initialized:
             record.stamps.append(stamp)
             record.odometry.append(features.pose)
             self._back_end.fuse(stamp, features.pose)
         if features.corner_last is not None and features.outlier_last is not None:
-            self._back_end.map(stamp, features.transform_sum, features.corner_last, features.surf_last,
-                               features.outlier_last)
+            self._back_end.map(
+                stamp, features.transform_sum, features.corner_last, features.surf_last, features.outlier_last
+            )
         return ScanOutput(stamp, None if features.initialized else features.pose, imu_used=features.imu_used)
 
 
@@ -294,11 +335,19 @@ class _BackEnd:
     with exactly the mapping results of the scans before it, whether the worker is a thread or not.
     """
 
-    def __init__(self, mo: MapOptimization | Localization | None, fusion: TransformFusion, result: RunResult,
-                 warn: Callable[[str], None], threaded: bool, listener: PipelineListener | None = None):
+    def __init__(
+        self,
+        mo: Mapper | None,
+        fusion: TransformFusion,
+        result: RunResult,
+        warn: Callable[[str], None],
+        threaded: bool,
+        listener: PipelineListener | None = None,
+    ):
         self.mo, self.fusion, self.result, self.warn = mo, fusion, result, warn
         self.listener = listener
-        self.continuity = OdometryContinuity()   # (used on the mapping worker only)
+        self.continuity = OdometryContinuity()  # (used on the mapping worker only)
+        self.guard = StepGuard(1 if mo is None else mo.params.reliability.reset_after_failures)  # (likewise)
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix='mapping') if threaded else None
         # CPU time of mapping and loop closure: the worker thread's own (wall time would count its waits for the
         # GIL while the main thread runs the next scans), or the whole process's when nothing else runs beside
@@ -306,13 +355,13 @@ class _BackEnd:
         self._cpu_time = time.thread_time if threaded else time.process_time
         self._imu: list[tuple] = []
         self._events: deque[_Fuse | _Mapped | _LoopChecked] = deque()
-        self._unheard: deque[_Mapped] = deque()   # mapping steps featureAssociation has not heard of yet
+        self._unheard: deque[_Mapped] = deque()  # mapping steps featureAssociation has not heard of yet
 
     def _submit(self, job) -> Future:
         imu, self._imu = self._imu, []
 
         def with_imu():
-            for sample in imu:   # the IMU samples that arrived before this job, as in the sequential run
+            for sample in imu:  # the IMU samples that arrived before this job, as in the sequential run
                 self.mo.imu.add(*sample)
             return job()
 
@@ -339,18 +388,18 @@ class _BackEnd:
             transform_sum = inputs[0]
             pose = pose6_to_matrix(transform_sum)
             jump = self.continuity.check(stamp, pose)
-            if jump is not None:   # the same protection as the node's: continue the map, do not drag it
+            if jump is not None:  # the same protection as the node's: continue the map, do not drag it
                 self.warn(f'mapping input at {stamp * 1e-9:.3f} s: {jump.describe()}')
                 self.mo.reanchor(jump, pose, transform_sum)
             mapped = self.mo.process(stamp, *inputs)
-            problem = self.mo.health_problem() if mapped is not None else None
-            if problem is not None:   # the same self-check as the node's: reset what is poisoned, keep the map
-                self.warn(f'mapping step at {stamp * 1e-9:.3f} s: {problem}: {self.mo.heal()}')
+            heal = self.guard.after_step(self.mo.health_problem()) if mapped is not None else None
+            if heal is not None:  # the guard of the node's (core.guard): reset what is poisoned, keep the map
+                self.warn(f'mapping step at {stamp * 1e-9:.3f} s: {heal}: {self.mo.heal()}')
                 mapped = None
             cpu_ms = (self._cpu_time() - t) * 1e3
             # (Read here, on the worker, where the keyframes cannot change meanwhile.)
             seen = self._keyframes_seen(mapped is not None and mapped.keyframe_added) if self.listener else None
-            return mapped, cpu_ms, seen
+            return mapped, cpu_ms, seen, heal is not None
 
         mapped = _Mapped(stamp, self._submit(step))
         self._events.append(mapped)
@@ -392,14 +441,17 @@ class _BackEnd:
                 if self.listener is not None:
                     self.listener(ScanFused(event.stamp_ns, result.integrated[-1]))
             elif isinstance(event, _Mapped):
-                step, ms, seen = event.future.result()
+                step, ms, seen, healed = event.future.result()
+                if healed:
+                    result.count(STATE_RESETS)
+                    result.count(MAPPING_STEPS_FAILED)
                 if step is not None and step.imu_alignment is not None:
                     self.imu_alignment('mapOptimization', step.imu_alignment)
                 if step is not None:
                     result.time('mapOptimization', ms)
-                    result.count('mapping_steps')
-                    if step.degenerate:   # (a direction held at the prediction, see core.scan_to_map)
-                        result.count('mapping_degenerate')
+                    result.count(MAPPING_STEPS)
+                    if step.degenerate:  # (a direction held at the prediction, see core.scan_to_map)
+                        result.count(MAPPING_DEGENERATE)
                     aft, bef = pose6_to_matrix(step.transform_aft), pose6_to_matrix(step.transform_bef)
                     self.fusion.on_mapped(aft, bef, event.stamp_ns)
                     result.mapped_stamps.append(event.stamp_ns)
@@ -420,10 +472,9 @@ class _BackEnd:
         None; (K, 3) positions of every keyframe in camera_init), for a listener."""
         poses = self.mo.keyframe_poses()
         cloud = None
-        if new_keyframe and self.mo.keyframes:
+        if new_keyframe and self.mo.builds_map and self.mo.keyframes:
             keyframe = self.mo.keyframes[-1]
-            cloud = transform_cloud(np.concatenate([keyframe.corner, keyframe.surf, keyframe.outlier]),
-                                    keyframe.pose6)
+            cloud = transform_cloud(np.concatenate([keyframe.corner, keyframe.surf, keyframe.outlier]), keyframe.pose6)
         return cloud, poses[:, 3:6].copy()
 
     def imu_alignment(self, node: str, event) -> None:

@@ -6,10 +6,11 @@ nothing is collected. Events hold references to the stages' results, which the p
 
 Frames: poses are 4x4 in camera_init (LOAM camera axes, as the pipeline's own); clouds say their frame.
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, Union
 
 import numpy as np
 
@@ -21,10 +22,10 @@ class ScanProcessed:
     """A scan went through imageProjection and featureAssociation."""
 
     stamp_ns: int
-    segmentation: object           # core.image_projection.SegmentationResult: clouds in the sensor frame (lidar axes)
-    features: object               # core.feature_association.FeatureAssociationResult (camera axes, sweep start)
-    odometry: np.ndarray | None    # 4x4 /laser_odom_to_init (None: the scan initialised the odometry)
-    timings_ms: dict[str, float] = field(default_factory=dict)   # stage -> [ms]
+    segmentation: object  # core.image_projection.SegmentationResult: clouds in the sensor frame (lidar axes)
+    features: object  # core.feature_association.FeatureAssociationResult (camera axes, sweep start)
+    odometry: np.ndarray | None  # 4x4 /laser_odom_to_init (None: the scan initialised the odometry)
+    timings_ms: dict[str, float] = field(default_factory=dict)  # stage -> [ms]
 
 
 @dataclass(frozen=True)
@@ -40,10 +41,10 @@ class MapStepped:
     """A mapping step of the scan stamped ``stamp_ns`` (/aft_mapped_to_init)."""
 
     stamp_ns: int
-    step: object                            # core.map_optimization.MappingStep
-    pose: np.ndarray                        # 4x4 transform_aft
-    keyframe_cloud: np.ndarray | None       # (n, 4) the new keyframe's clouds in camera_init (None: no keyframe)
-    keyframe_positions: np.ndarray          # (K, 3) every keyframe's position in camera_init after the step
+    step: object  # core.map_optimization.MappingStep
+    pose: np.ndarray  # 4x4 transform_aft
+    keyframe_cloud: np.ndarray | None  # (n, 4) the new keyframe's clouds in camera_init (None: no keyframe)
+    keyframe_positions: np.ndarray  # (K, 3) every keyframe's position in camera_init after the step
     cpu_ms: float
 
 
@@ -52,9 +53,9 @@ class LoopChecked:
     """A loop-closure check: ``loop`` is the core.loop_closure.LoopResult of a candidate (None: none found)."""
 
     loop: object | None
-    keyframe_positions: np.ndarray          # (K, 3) after the correction, camera_init
-    cpu_ms: float                           # detection and verification, the mapping worker's CPU time
+    keyframe_positions: np.ndarray  # (K, 3) after the correction, camera_init
+    cpu_ms: float  # detection and verification, the mapping worker's CPU time
 
 
-PipelineEvent = Union[ScanProcessed, ScanFused, MapStepped, LoopChecked]
+PipelineEvent = ScanProcessed | ScanFused | MapStepped | LoopChecked
 PipelineListener = Callable[[PipelineEvent], None]

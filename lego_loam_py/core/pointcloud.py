@@ -7,34 +7,56 @@ layout works: the velodyne driver's, Ouster's, xyz-only clouds, padded or big-en
 clouds (height > 1). :func:`array_to_cloud` goes the other way. The ROS message adapters live in
 ``lego_loam_py.ros.conversions`` (rclpy messages) and ``lego_loam_py.bag.io`` (rosbags messages); both
 only move attributes in and out of :class:`CloudBuffer`. What the fields of each driver's layout mean (points at
-the origin, rings counted from the top, time fields in any unit) is :mod:`lego_loam_py.core.driver_layouts`.
+the origin, rings counted from the top, time fields in any unit) is :mod:`lego_loam_py.core.projection.driver_layouts`.
 """
+
 from __future__ import annotations
 
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
 from lego_loam_py.errors import LegoLoamError
 
 __all__ = [
-    'CloudLayoutError', 'PointField', 'CloudBuffer', 'DATATYPE_TO_NUMPY', 'NUMPY_TO_DATATYPE',
-    'dtype_from_fields', 'fields_from_dtype', 'cloud_to_array', 'array_to_cloud', 'xyz_array',
-    'VELODYNE_POINT_DTYPE', 'VELODYNE_PACKED_DTYPE', 'velodyne_points', 'has_field', 'POINT_XYZI_DTYPE',
-    'POINT_XYZIT_DTYPE', 'xyzi_points', 'xyzi_array',
+    'CloudLayoutError',
+    'PointField',
+    'CloudBuffer',
+    'DATATYPE_TO_NUMPY',
+    'NUMPY_TO_DATATYPE',
+    'dtype_from_fields',
+    'fields_from_dtype',
+    'cloud_to_array',
+    'array_to_cloud',
+    'xyz_array',
+    'VELODYNE_POINT_DTYPE',
+    'VELODYNE_PACKED_DTYPE',
+    'velodyne_points',
+    'has_field',
+    'POINT_XYZI_DTYPE',
+    'POINT_XYZIT_DTYPE',
+    'xyzi_points',
+    'xyzi_array',
 ]
 
 # sensor_msgs/PointField datatype constants.
 INT8, UINT8, INT16, UINT16, INT32, UINT32, FLOAT32, FLOAT64 = range(1, 9)
 DATATYPE_TO_NUMPY: dict[int, str] = {
-    INT8: 'i1', UINT8: 'u1', INT16: 'i2', UINT16: 'u2', INT32: 'i4', UINT32: 'u4', FLOAT32: 'f4', FLOAT64: 'f8',
+    INT8: 'i1',
+    UINT8: 'u1',
+    INT16: 'i2',
+    UINT16: 'u2',
+    INT32: 'i4',
+    UINT32: 'u4',
+    FLOAT32: 'f4',
+    FLOAT64: 'f8',
 }
 NUMPY_TO_DATATYPE: dict[str, int] = {v: k for k, v in DATATYPE_TO_NUMPY.items()}
 
 
-MAX_POINT_STEP = 1 << 20   # bytes per point; real layouts use 12-64 (numpy cannot even describe > 2**31 - 1)
+MAX_POINT_STEP = 1 << 20  # bytes per point; real layouts use 12-64 (numpy cannot even describe > 2**31 - 1)
 
 
 class CloudLayoutError(LegoLoamError, ValueError):
@@ -59,7 +81,7 @@ class CloudBuffer:
     point_step: int
     width: int
     height: int = 1
-    row_step: int | None = None      # None: width * point_step
+    row_step: int | None = None  # None: width * point_step
     is_bigendian: bool = False
     is_dense: bool = True
     data: bytes | bytearray | memoryview | np.ndarray = b''
@@ -91,8 +113,9 @@ def dtype_from_fields(fields: Sequence[PointField], point_step: int, is_bigendia
         base = np.dtype(order + DATATYPE_TO_NUMPY[f.datatype])
         size = base.itemsize * f.count
         if f.offset < 0 or f.offset + size > point_step:
-            raise CloudLayoutError(f"field '{f.name}' (offset {f.offset}, {size} bytes) does not fit in "
-                                   f'point_step {point_step}')
+            raise CloudLayoutError(
+                f"field '{f.name}' (offset {f.offset}, {size} bytes) does not fit in point_step {point_step}"
+            )
         spans.append((f.offset, f.offset + size, f.name))
         names.append(f.name)
         formats.append(base if f.count == 1 else (base, (f.count,)))
@@ -143,16 +166,17 @@ def cloud_to_array(cloud: CloudBuffer, flatten: bool = True) -> np.ndarray:
         raise CloudLayoutError(f'negative cloud size {width}x{height}')
     row_step = width * cloud.point_step if cloud.row_step is None else int(cloud.row_step)
     if row_step < width * cloud.point_step:
-        raise CloudLayoutError(f'row_step {row_step} is smaller than width*point_step '
-                               f'{width * cloud.point_step}')
+        raise CloudLayoutError(f'row_step {row_step} is smaller than width*point_step {width * cloud.point_step}')
     buffer = cloud.data
     if isinstance(buffer, np.ndarray):
         buffer = buffer.view(np.uint8).reshape(-1)
     size = memoryview(buffer).nbytes
     expected = row_step * height
     if size != expected:
-        raise CloudLayoutError(f'data has {size} bytes but width*height*point_step says {expected} '
-                               f'({width}x{height} points of {cloud.point_step} bytes, row_step {row_step})')
+        raise CloudLayoutError(
+            f'data has {size} bytes but width*height*point_step says {expected} '
+            f'({width}x{height} points of {cloud.point_step} bytes, row_step {row_step})'
+        )
     if width == 0 or height == 0:
         empty = np.zeros(0, dtype=dtype)
         return empty if flatten else empty.reshape(height, width)
@@ -164,8 +188,9 @@ def cloud_to_array(cloud: CloudBuffer, flatten: bool = True) -> np.ndarray:
     return grid.reshape(-1) if flatten else grid
 
 
-def array_to_cloud(points: np.ndarray, width: int | None = None, height: int = 1,
-                   is_dense: bool | None = None) -> CloudBuffer:
+def array_to_cloud(
+    points: np.ndarray, width: int | None = None, height: int = 1, is_dense: bool | None = None
+) -> CloudBuffer:
     """CloudBuffer holding the bytes of a structured array (one copy, into a contiguous buffer).
 
     ``points`` of shape (N,) become an unorganised cloud (height 1); a 2-D array keeps its shape.
@@ -183,8 +208,16 @@ def array_to_cloud(points: np.ndarray, width: int | None = None, height: int = 1
         is_dense = True
         if all(has_field(points, n) for n in 'xyz') and points.size:
             is_dense = all(bool(np.isfinite(points[n]).all()) for n in 'xyz')
-    return CloudBuffer(fields=fields, point_step=point_step, width=int(width), height=int(height),
-                       row_step=int(width) * point_step, is_bigendian=bigendian, is_dense=is_dense, data=data)
+    return CloudBuffer(
+        fields=fields,
+        point_step=point_step,
+        width=int(width),
+        height=int(height),
+        row_step=int(width) * point_step,
+        is_bigendian=bigendian,
+        is_dense=is_dense,
+        data=data,
+    )
 
 
 def has_field(points: np.ndarray, name: str) -> bool:
@@ -206,42 +239,50 @@ def xyz_array(points: np.ndarray, dtype: type = np.float64) -> np.ndarray:
 
 # The ROS velodyne driver's PointXYZIRT layout (PCL alignment pads x,y,z to 16 bytes): x, y, z, intensity
 # float32 at 0/4/8/16, ring uint16 at 20, time float32 (s since the sweep's first firing) at 24.
-VELODYNE_POINT_DTYPE = np.dtype({
-    'names': ['x', 'y', 'z', 'intensity', 'ring', 'time'],
-    'formats': ['<f4', '<f4', '<f4', '<f4', '<u2', '<f4'],
-    'offsets': [0, 4, 8, 16, 20, 24],
-    'itemsize': 32,
-})
+VELODYNE_POINT_DTYPE = np.dtype(
+    {
+        'names': ['x', 'y', 'z', 'intensity', 'ring', 'time'],
+        'formats': ['<f4', '<f4', '<f4', '<f4', '<u2', '<f4'],
+        'offsets': [0, 4, 8, 16, 20, 24],
+        'itemsize': 32,
+    }
+)
 
 
 # The ROS 1 velodyne_pointcloud driver's packed PointcloudXYZIRT (the golden bags use it): x, y, z,
 # intensity float32 at 0/4/8/12, ring uint16 at 16, time float32 at 18, point_step 22.
-VELODYNE_PACKED_DTYPE = np.dtype({
-    'names': ['x', 'y', 'z', 'intensity', 'ring', 'time'],
-    'formats': ['<f4', '<f4', '<f4', '<f4', '<u2', '<f4'],
-    'offsets': [0, 4, 8, 12, 16, 18],
-    'itemsize': 22,
-})
+VELODYNE_PACKED_DTYPE = np.dtype(
+    {
+        'names': ['x', 'y', 'z', 'intensity', 'ring', 'time'],
+        'formats': ['<f4', '<f4', '<f4', '<f4', '<u2', '<f4'],
+        'offsets': [0, 4, 8, 12, 16, 18],
+        'itemsize': 22,
+    }
+)
 
 
 # PCL's PointXYZI as pcl::toROSMsg publishes it (what every LeGO-LOAM topic carries): x, y, z float32 at
 # 0/4/8, intensity float32 at 16, point_step 32.
-POINT_XYZI_DTYPE = np.dtype({
-    'names': ['x', 'y', 'z', 'intensity'],
-    'formats': ['<f4', '<f4', '<f4', '<f4'],
-    'offsets': [0, 4, 8, 16],
-    'itemsize': 32,
-})
+POINT_XYZI_DTYPE = np.dtype(
+    {
+        'names': ['x', 'y', 'z', 'intensity'],
+        'formats': ['<f4', '<f4', '<f4', '<f4'],
+        'offsets': [0, 4, 8, 16],
+        'itemsize': 32,
+    }
+)
 
 
 # The same with a per-point time [s since the sweep start] in PointXYZI's padding (offset 20): readers that
 # look fields up by name (PCL, rviz, the original's nodes) see a plain PointXYZI.
-POINT_XYZIT_DTYPE = np.dtype({
-    'names': ['x', 'y', 'z', 'intensity', 'time'],
-    'formats': ['<f4', '<f4', '<f4', '<f4', '<f4'],
-    'offsets': [0, 4, 8, 16, 20],
-    'itemsize': 32,
-})
+POINT_XYZIT_DTYPE = np.dtype(
+    {
+        'names': ['x', 'y', 'z', 'intensity', 'time'],
+        'formats': ['<f4', '<f4', '<f4', '<f4', '<f4'],
+        'offsets': [0, 4, 8, 16, 20],
+        'itemsize': 32,
+    }
+)
 
 
 def xyzi_points(values: np.ndarray, time: np.ndarray | None = None) -> np.ndarray:
@@ -264,8 +305,13 @@ def xyzi_array(points: np.ndarray) -> np.ndarray:
     return out
 
 
-def velodyne_points(xyz: np.ndarray, intensity: np.ndarray | None = None, ring: np.ndarray | None = None,
-                    time: np.ndarray | None = None, dtype: np.dtype = VELODYNE_POINT_DTYPE) -> np.ndarray:
+def velodyne_points(
+    xyz: np.ndarray,
+    intensity: np.ndarray | None = None,
+    ring: np.ndarray | None = None,
+    time: np.ndarray | None = None,
+    dtype: np.dtype = VELODYNE_POINT_DTYPE,
+) -> np.ndarray:
     """Structured array in the velodyne driver's layout from plain arrays (missing fields are 0)."""
     xyz = np.asarray(xyz)
     out = np.zeros(len(xyz), dtype=dtype)

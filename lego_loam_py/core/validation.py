@@ -10,6 +10,7 @@ One home for the bounds that keep a node serving whatever it is sent:
 
 Units: metres, radians, seconds. Clouds are float32 ``(n, 4)`` arrays (x, y, z, intensity).
 """
+
 from __future__ import annotations
 
 import math
@@ -19,18 +20,33 @@ import numpy as np
 
 from lego_loam_py.errors import LegoLoamError
 
-__all__ = ['InputRejected', 'MAX_COORDINATE', 'MAX_POSITION', 'MAX_ANGULAR_VELOCITY', 'MAX_ACCELERATION',
-           'MAX_SWEEP_TRANSLATION', 'MAX_SPEED', 'ORIENTATION_TOLERANCE', 'check_count', 'derived_points_limit',
-           'raw_points_limit', 'check_cloud', 'check_cloud_info', 'check_pose', 'pose6_problem', 'cloud_problem',
-           'vector_problem']
+__all__ = [
+    'InputRejected',
+    'MAX_COORDINATE',
+    'MAX_POSITION',
+    'MAX_ANGULAR_VELOCITY',
+    'MAX_ACCELERATION',
+    'MAX_SWEEP_TRANSLATION',
+    'MAX_SPEED',
+    'ORIENTATION_TOLERANCE',
+    'check_count',
+    'derived_points_limit',
+    'raw_points_limit',
+    'check_cloud',
+    'check_cloud_info',
+    'check_pose',
+    'pose6_problem',
+    'cloud_problem',
+    'vector_problem',
+]
 
-MAX_COORDINATE = 1e4         # [m] a point further out on any axis is garbage (lidars reach a few hundred m)
-MAX_POSITION = 1e6           # [m] a pose further from its origin than 1000 km is garbage, not a map
+MAX_COORDINATE = 1e4  # [m] a point further out on any axis is garbage (lidars reach a few hundred m)
+MAX_POSITION = 1e6  # [m] a pose further from its origin than 1000 km is garbage, not a map
 MAX_ANGULAR_VELOCITY = 100.0  # [rad/s] anything faster is garbage (gyros saturate at 35-70 rad/s)
-MAX_ACCELERATION = 1000.0    # [m/s^2] about 100 g (accelerometers saturate at 16-200 g)
+MAX_ACCELERATION = 1000.0  # [m/s^2] about 100 g (accelerometers saturate at 16-200 g)
 MAX_SWEEP_TRANSLATION = 100.0  # [m] between two sweeps (0.1 s): 1000 m/s is no vehicle
-MAX_SPEED = 1000.0           # [m/s] an integrated velocity beyond this is garbage
-MAX_ANGLE = 100.0            # [rad] Euler angles of a pose six-vector beyond this are garbage
+MAX_SPEED = 1000.0  # [m/s] an integrated velocity beyond this is garbage
+MAX_ANGLE = 100.0  # [rad] Euler angles of a pose six-vector beyond this are garbage
 ORIENTATION_TOLERANCE = 1e-3  # [rad] float32 rounding of the sweep orientations, with margin
 
 
@@ -49,6 +65,7 @@ def _show(value: Any) -> str:
 
 
 # ---------------------------------------------------------------------------------------------- inputs
+
 
 def derived_points_limit(params) -> int:
     """Most points a cloud derived from the range image can hold: one per pixel (rings x columns)."""
@@ -83,12 +100,13 @@ def check_cloud(field: str, cloud: np.ndarray, n_scan: int | None = None) -> Non
         low, high = float(cloud[:, 3].min()), float(cloud[:, 3].max())
         if low < 0 or high >= n_scan:
             value = low if low < 0 else high
-            raise InputRejected(f'{field} intensity', value, f'outside [0, {n_scan}) (row + column / 10000, '
-                                                             f'rows 0..{n_scan - 1})')
+            raise InputRejected(
+                f'{field} intensity', value, f'outside [0, {n_scan}) (row + column / 10000, rows 0..{n_scan - 1})'
+            )
 
 
 def check_cloud_info(field: str, info, params, n_points: int | None = None) -> None:
-    """imageProjection's CloudInfo (a core :class:`~lego_loam_py.core.image_projection.CloudInfo` with array
+    """imageProjection's CloudInfo (a core :class:`~lego_loam_py.core.projection.image_projection.CloudInfo` with array
     fields) on its own and, with ``n_points``, for a segmented cloud of that many points."""
     n_scan, columns = params.sensor.n_scan, params.sensor.horizon_scan
     limit = derived_points_limit(params)
@@ -109,28 +127,35 @@ def check_cloud_info(field: str, info, params, n_points: int | None = None) -> N
     for name in ('segmented_cloud_range', 'segmented_cloud_col_ind', 'segmented_cloud_ground_flag'):
         length = len(getattr(info, name))
         if length < covered:
-            raise InputRejected(f'{field}.{name} length', length, f'shorter than the end_ring_index it carries '
-                                                                  f'({covered - 1})')
+            raise InputRejected(
+                f'{field}.{name} length', length, f'shorter than the end_ring_index it carries ({covered - 1})'
+            )
     start, end, diff = (float(info.start_orientation), float(info.end_orientation), float(info.orientation_diff))
     tolerance = ORIENTATION_TOLERANCE
     # imageProjection: start = -atan2 of the first point, end = start + diff with diff wrapped into [pi, 3 pi].
     if not (math.isfinite(start) and abs(start) <= math.pi + tolerance):
-        raise InputRejected(f'{field}.start_orientation', start,
-                            f'outside [{-math.pi - tolerance:.4f}, {math.pi + tolerance:.4f}] rad')
+        raise InputRejected(
+            f'{field}.start_orientation', start, f'outside [{-math.pi - tolerance:.4f}, {math.pi + tolerance:.4f}] rad'
+        )
     if not (math.isfinite(diff) and math.pi - tolerance <= diff <= 3 * math.pi + tolerance):
-        raise InputRejected(f'{field}.orientation_diff', diff, f'outside [{math.pi - tolerance:.4f}, '
-                                                               f'{3 * math.pi + tolerance:.4f}] rad (a sweep\'s angle)')
+        raise InputRejected(
+            f'{field}.orientation_diff',
+            diff,
+            f"outside [{math.pi - tolerance:.4f}, {3 * math.pi + tolerance:.4f}] rad (a sweep's angle)",
+        )
     if not (math.isfinite(end) and abs(end - start - diff) <= 4 * tolerance):
-        raise InputRejected(f'{field}.end_orientation', end, f'must equal start_orientation + orientation_diff '
-                                                             f'({start + diff:.4f} rad)')
+        raise InputRejected(
+            f'{field}.end_orientation', end, f'must equal start_orientation + orientation_diff ({start + diff:.4f} rad)'
+        )
     if n_points is None:
         return
     for name in ('segmented_cloud_range', 'segmented_cloud_col_ind', 'segmented_cloud_ground_flag'):
         length = len(getattr(info, name))
         # The original publishes 28800-long arrays whatever the cloud holds: only the first n_points matter.
         if length < n_points:
-            raise InputRejected(f'{field}.{name} length', length,
-                                f'shorter than the segmented cloud ({n_points} points)')
+            raise InputRejected(
+                f'{field}.{name} length', length, f'shorter than the segmented cloud ({n_points} points)'
+            )
     # (A ring's feature regions run from its start index to its end index; imageProjection's margins put the
     # start up to 10 past the end when a ring holds (almost) nothing, never the end past the cloud.)
     for name, bound in (('start_ring_index', n_points + 10), ('end_ring_index', n_points)):
@@ -140,11 +165,16 @@ def check_cloud_info(field: str, info, params, n_points: int | None = None) -> N
     ranges = np.asarray(info.segmented_cloud_range[:n_points], dtype=np.float64)
     if len(ranges) and not (np.isfinite(ranges).all() and np.abs(ranges).max() <= 2 * MAX_COORDINATE):
         bad = ranges[~np.isfinite(ranges) | (np.abs(ranges) > 2 * MAX_COORDINATE)][0]
-        raise InputRejected(f'{field}.segmented_cloud_range', float(bad), f'not finite or beyond {2 * MAX_COORDINATE:g} m')
+        raise InputRejected(
+            f'{field}.segmented_cloud_range', float(bad), f'not finite or beyond {2 * MAX_COORDINATE:g} m'
+        )
     columns_used = np.asarray(info.segmented_cloud_col_ind[:n_points])
     if len(columns_used) and int(columns_used.max()) >= columns:
-        raise InputRejected(f'{field}.segmented_cloud_col_ind', int(columns_used.max()),
-                            f'beyond the {columns} columns of the range image')
+        raise InputRejected(
+            f'{field}.segmented_cloud_col_ind',
+            int(columns_used.max()),
+            f'beyond the {columns} columns of the range image',
+        )
 
 
 def check_pose(field: str, pose: np.ndarray) -> None:
@@ -161,6 +191,7 @@ def check_pose(field: str, pose: np.ndarray) -> None:
 
 # ----------------------------------------------------------------------------------------------- state
 
+
 def vector_problem(name: str, values: np.ndarray, bound: float, unit: str) -> str | None:
     """Why ``values`` are not a sane state (non-finite, or beyond ``bound``), or None."""
     values = np.asarray(values, dtype=np.float64)
@@ -175,8 +206,9 @@ def vector_problem(name: str, values: np.ndarray, bound: float, unit: str) -> st
 def pose6_problem(name: str, pose6: np.ndarray, position_bound: float = MAX_POSITION) -> str | None:
     """Why a pose six-vector (rx, ry, rz, tx, ty, tz) is not a sane state, or None."""
     pose6 = np.asarray(pose6, dtype=np.float64)
-    return vector_problem(f'{name} angles', pose6[:3], MAX_ANGLE, 'rad') or \
-        vector_problem(f'{name} position', pose6[3:], position_bound, 'm')
+    return vector_problem(f'{name} angles', pose6[:3], MAX_ANGLE, 'rad') or vector_problem(
+        f'{name} position', pose6[3:], position_bound, 'm'
+    )
 
 
 def cloud_problem(name: str, cloud: np.ndarray | None, intensity_bound: float | None = None) -> str | None:

@@ -9,6 +9,7 @@ PCL's filter, which the original uses everywhere (less-flat features, mapping cl
 
 Points with a non-finite coordinate are ignored, as PCL does. Fully vectorised: a sort and segment sums.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -64,16 +65,16 @@ def voxel_downsample_groups(points: np.ndarray, groups: np.ndarray, leaf_size: f
         raise ValueError(f'voxel leaf size must be positive, got {leaf_size}')
     points = np.asarray(points, dtype=np.float32)
     groups = np.asarray(groups, dtype=np.int64)
-    if not np.isfinite(points[:, :3]).all():   # one whole-array test first: non-finite points are rare
+    if not np.isfinite(points[:, :3]).all():  # one whole-array test first: non-finite points are rare
         finite = np.isfinite(points[:, :3]).all(axis=1)
         points, groups = points[finite], groups[finite]
     if len(points) == 0:
         return np.zeros((0, points.shape[1]), dtype=np.float32)
-    if (groups[1:] < groups[:-1]).any():   # the features come ring by ring: usually in group order already
+    if (groups[1:] < groups[:-1]).any():  # the features come ring by ring: usually in group order already
         by_group = np.argsort(groups, kind='stable')
         points, groups = points[by_group], groups[by_group]
     group_starts = np.flatnonzero(np.concatenate(([True], groups[1:] != groups[:-1])))
-    group_sizes = np.diff(np.append(group_starts, len(groups)))   # per-group values reach the points by repeat
+    group_sizes = np.diff(np.append(group_starts, len(groups)))  # per-group values reach the points by repeat
     inverse = np.float32(1.0) / np.float32(leaf_size)
     # floor(min(p) / leaf) == min(floor(p / leaf)): the product and floor are monotonic in float32 too.
     scaled = np.floor(points[:, :3] * inverse)
@@ -81,8 +82,11 @@ def voxel_downsample_groups(points: np.ndarray, groups: np.ndarray, leaf_size: f
     max_b = np.maximum.reduceat(scaled, group_starts, axis=0)
     div = (max_b - min_b).astype(np.int64) + 1
     ijk = (scaled - np.repeat(min_b, group_sizes, axis=0)).astype(np.int64)
-    local = ijk[:, 0] + ijk[:, 1] * np.repeat(div[:, 0], group_sizes) + \
-        ijk[:, 2] * np.repeat(div[:, 0] * div[:, 1], group_sizes)
+    local = (
+        ijk[:, 0]
+        + ijk[:, 1] * np.repeat(div[:, 0], group_sizes)
+        + ijk[:, 2] * np.repeat(div[:, 0] * div[:, 1], group_sizes)
+    )
     span = int((div[:, 0] * div[:, 1] * div[:, 2]).max())
     index = np.repeat(np.arange(len(group_starts)) * span, group_sizes) + local
     order = np.argsort(index, kind='stable')

@@ -14,14 +14,24 @@ pcap       Velodyne VLP-16 or Ouster capture, :mod:`lego_loam_py.inputs.pcap`  `
 (:mod:`lego_loam_py.bag`) and the sensor decoders (:mod:`lego_loam_py.sensors`) beside this package do the
 decoding; nothing here imports ROS.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
 
 from lego_loam_py.inputs.source import ImuSample, Scan, Source, SourceError, SourceItem, UnreadableScan
 
-__all__ = ['open_source', 'guess_kind', 'SOURCE_KINDS', 'Source', 'SourceError', 'Scan', 'ImuSample',
-           'UnreadableScan', 'SourceItem']
+__all__ = [
+    'open_source',
+    'guess_kind',
+    'SOURCE_KINDS',
+    'Source',
+    'SourceError',
+    'Scan',
+    'ImuSample',
+    'UnreadableScan',
+    'SourceItem',
+]
 
 SOURCE_KINDS = ('rosbag', 'kitti', 'scans', 'pcap')
 
@@ -42,13 +52,22 @@ def guess_kind(path: str | Path) -> str:
         return 'scans'
     if path.suffix in ('.pcap', '.cap') or is_pcap(path):
         return 'pcap'
-    raise SourceError(f'{path}: not a recording lego_loam_py reads (a ROS bag, a KITTI sequence folder, a folder '
-                      'of .pcd/.ply/.bin scans or a Velodyne/Ouster pcap); --dataloader forces a kind')
+    raise SourceError(
+        f'{path}: not a recording lego_loam_py reads (a ROS bag, a KITTI sequence folder, a folder '
+        'of .pcd/.ply/.bin scans or a Velodyne/Ouster pcap); --dataloader forces a kind'
+    )
 
 
-def open_source(path: str | Path, kind: str | None = None, *, cloud_topic: str | None = None,
-                imu_topic: str | None = None, rate_hz: float = 10.0, model: str = 'auto',
-                metadata: str | Path | None = None) -> Source:
+def open_source(
+    path: str | Path,
+    kind: str | None = None,
+    *,
+    cloud_topic: str | None = None,
+    imu_topic: str | None = None,
+    rate_hz: float = 10.0,
+    model: str = 'auto',
+    metadata: str | Path | None = None,
+) -> Source:
     """The source of the recording at ``path``. ``kind``: one of :data:`SOURCE_KINDS` (None: guessed).
 
     ``cloud_topic`` / ``imu_topic``: a bag's topics (None: chosen, see :mod:`~lego_loam_py.inputs.rosbag`;
@@ -57,16 +76,20 @@ def open_source(path: str | Path, kind: str | None = None, *, cloud_topic: str |
     kind = kind or guess_kind(path)
     if kind == 'rosbag':
         from lego_loam_py.inputs.rosbag import BagSource
+
         return BagSource(path, cloud_topic, imu_topic)
     if rate_hz <= 0:
         raise SourceError(f'the scan rate must be positive, got {rate_hz:g} Hz')
     if kind == 'kitti':
         from lego_loam_py.inputs.kitti import KittiSource
+
         return KittiSource(path, rate_hz)
     if kind == 'scans':
         from lego_loam_py.inputs.scan_folder import ScanFolderSource
+
         return ScanFolderSource(path, rate_hz)
     if kind == 'pcap':
         from lego_loam_py.inputs.pcap import PcapSource
+
         return PcapSource(path, model=model, metadata=metadata)
     raise SourceError(f"unknown dataloader '{kind}' (one of {', '.join(SOURCE_KINDS)})")

@@ -12,20 +12,29 @@ The ground truth is the lidar's: ``Tr^-1 P_k Tr`` with ``P_k`` the camera pose o
 poses are taken as the lidar's). KITTI's scans have no ring and no per-point time: rows come from the beams'
 elevations (``sensor.preset: HDL-64E`` carries the sensor's table) and point times from the azimuth.
 """
+
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
-from lego_loam_py.core.io import read_kitti_poses, write_kitti_poses_atomic
+from lego_loam_py.core.trajectory import Trajectory
+from lego_loam_py.formats import read_kitti_poses, write_kitti_poses_atomic
 from lego_loam_py.inputs.point_files import read_bin_points
-from lego_loam_py.inputs.source import GroundTruth, Scan, Source, SourceError, SourceItem
+from lego_loam_py.inputs.source import Scan, Source, SourceError, SourceItem
 
-__all__ = ['KittiSource', 'is_kitti_sequence', 'read_times', 'write_times', 'read_calibration',
-           'write_kitti_sequence_files', 'lidar_ground_truth',
-           'KITTI_VELO_TO_CAM']
+__all__ = [
+    'KittiSource',
+    'is_kitti_sequence',
+    'read_times',
+    'write_times',
+    'read_calibration',
+    'write_kitti_sequence_files',
+    'lidar_ground_truth',
+    'KITTI_VELO_TO_CAM',
+]
 
 # The axes KITTI's cam0 has relative to its velodyne (x right, y down, z forward vs x forward, y left, z up):
 # the rotation of Tr without KITTI's small mounting offsets, for sequences made here.
@@ -70,11 +79,11 @@ def _poses_file(folder: Path) -> Path | None:
     beside = folder / 'poses.txt'
     if beside.is_file():
         return beside
-    shipped = folder.parent.parent / 'poses' / f'{folder.name}.txt'   # dataset/poses/NN.txt
+    shipped = folder.parent.parent / 'poses' / f'{folder.name}.txt'  # dataset/poses/NN.txt
     return shipped if shipped.is_file() else None
 
 
-def lidar_ground_truth(folder: Path, stamps: np.ndarray) -> GroundTruth | None:
+def lidar_ground_truth(folder: Path, stamps: np.ndarray) -> Trajectory | None:
     """The lidar trajectory of a folder's ``poses.txt`` (camera poses with ``calib.txt``, else the lidar's),
     stamped with ``stamps``, relative to the first pose; None without poses.txt."""
     path = _poses_file(folder)
@@ -91,7 +100,7 @@ def lidar_ground_truth(folder: Path, stamps: np.ndarray) -> GroundTruth | None:
         tr = read_calibration(calib)
         poses = np.linalg.inv(tr)[None] @ poses @ tr[None]
     poses = np.linalg.inv(poses[0])[None] @ poses if len(poses) else poses
-    return stamps.copy(), poses
+    return Trajectory(stamps.copy(), poses, 'map')
 
 
 class KittiSource(Source):
@@ -121,7 +130,7 @@ class KittiSource(Source):
     def scan_count(self) -> int:
         return len(self.scan_files)
 
-    def ground_truth(self) -> GroundTruth | None:
+    def ground_truth(self) -> Trajectory | None:
         return self._ground_truth
 
     def describe(self) -> str:

@@ -6,16 +6,25 @@ Ouster capture its IMU packets as samples without orientation (as ``convert`` wr
 Ouster one when it has no Velodyne data packets and a metadata JSON is given or found beside it (a ``.json``
 whose name starts the pcap's). Each scan reaches the pipeline with the IMU samples up to its last point.
 """
+
 from __future__ import annotations
 
 import heapq
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
-from lego_loam_py.bag.convert import (VELODYNE_DATA_PORT, ConvertError, ConvertOptions, find_ouster_metadata,
-                                      ouster_lidar_packets, ouster_scans, pcap_velodyne_chunks, velodyne_decoder)
+from lego_loam_py.bag.convert import (
+    VELODYNE_DATA_PORT,
+    ConvertError,
+    ConvertOptions,
+    find_ouster_metadata,
+    ouster_lidar_packets,
+    ouster_scans,
+    pcap_velodyne_chunks,
+    velodyne_decoder,
+)
 from lego_loam_py.inputs.source import ImuSample, Scan, Source, SourceError, SourceItem
 from lego_loam_py.sensors.ouster import IMU_PACKET_SIZE, OusterDecoder, OusterMetadata, decode_imu
 from lego_loam_py.sensors.pcap import PcapError, read_udp
@@ -24,7 +33,7 @@ from lego_loam_py.sensors.velodyne import PACKET_SIZE, VelodyneFormatError
 __all__ = ['PcapSource', 'is_pcap']
 
 _PCAP_MAGICS = {b'\xd4\xc3\xb2\xa1', b'\xa1\xb2\xc3\xd4', b'\x4d\x3c\xb2\xa1', b'\xa1\xb2\x3c\x4d'}
-_NO_ORIENTATION = (0.0, 0.0, 0.0, 1.0)   # (convert writes the same, with covariance[0] = -1)
+_NO_ORIENTATION = (0.0, 0.0, 0.0, 1.0)  # (convert writes the same, with covariance[0] = -1)
 
 
 def is_pcap(path: Path) -> bool:
@@ -41,8 +50,9 @@ class PcapSource(Source):
 
     kind = 'pcap'
 
-    def __init__(self, path: str | Path, model: str = 'auto', metadata: str | Path | None = None,
-                 port: int = VELODYNE_DATA_PORT):
+    def __init__(
+        self, path: str | Path, model: str = 'auto', metadata: str | Path | None = None, port: int = VELODYNE_DATA_PORT
+    ):
         self.path = Path(path)
         self.name = self.path.stem
         try:
@@ -55,8 +65,10 @@ class PcapSource(Source):
         if self.metadata is None and len(self._velodyne) == 0:
             self.metadata = find_ouster_metadata(self.path)
         if self.metadata is None and len(self._velodyne) == 0:
-            raise SourceError(f'{self.path}: no Velodyne data packets ({PACKET_SIZE} B to port {port}) and no Ouster '
-                              'metadata JSON beside it; for an Ouster capture give --metadata')
+            raise SourceError(
+                f'{self.path}: no Velodyne data packets ({PACKET_SIZE} B to port {port}) and no Ouster '
+                'metadata JSON beside it; for an Ouster capture give --metadata'
+            )
         self._meta = None
         if self.metadata is not None:
             try:
@@ -73,8 +85,10 @@ class PcapSource(Source):
 
     def describe(self) -> str:
         if self._meta is not None:
-            return (f'Ouster pcap {self.path} ({self._meta.prod_line} {self._meta.columns_per_frame}x'
-                    f'{self._meta.pixels_per_column}, metadata {self.metadata})')
+            return (
+                f'Ouster pcap {self.path} ({self._meta.prod_line} {self._meta.columns_per_frame}x'
+                f'{self._meta.pixels_per_column}, metadata {self.metadata})'
+            )
         return f'Velodyne pcap {self.path} ({len(self._velodyne)} data packets, decoded as VLP-16)'
 
     def items(self) -> Iterator[SourceItem]:
@@ -83,7 +97,7 @@ class PcapSource(Source):
                 yield from self._ouster_items()
             else:
                 yield from self._velodyne_items()
-        except (ConvertError, VelodyneFormatError) as exc:   # (the message names run's --model where it helps)
+        except (ConvertError, VelodyneFormatError) as exc:  # (the message names run's --model where it helps)
             raise SourceError(f'{self.path}: {exc}') from None
 
     def _velodyne_items(self) -> Iterator[SourceItem]:
@@ -97,17 +111,23 @@ class PcapSource(Source):
     def _ouster_items(self) -> Iterator[SourceItem]:
         meta = self._meta
         decoder = OusterDecoder(meta, min_completeness=self._options.min_completeness)
-        scans = (_scan(scan.stamp_ns, scan.points) for scan in ouster_scans(ouster_lidar_packets(self._udp, meta),
-                                                                          decoder, meta))
-        first = next(scans, None)   # (the decoder knows the sensor's clock once it decoded a scan)
+        scans = (
+            _scan(scan.stamp_ns, scan.points)
+            for scan in ouster_scans(ouster_lidar_packets(self._udp, meta), decoder, meta)
+        )
+        first = next(scans, None)  # (the decoder knows the sensor's clock once it decoded a scan)
         if first is None:
             return
         imu = self._udp.select((self._udp.dst_ports == meta.udp_port_imu) & (self._udp.lengths == IMU_PACKET_SIZE))
         samples: Iterator[SourceItem] = iter(())
         if len(imu) and meta.udp_profile_imu == 'LEGACY' and decoder.clock_offset_ns is not None:
             decoded = decode_imu(imu.gather(IMU_PACKET_SIZE), decoder.clock_offset_ns)
-            samples = (ImuSample((int(t) * 1e-9, _NO_ORIENTATION, tuple(w), tuple(a)), int(t)) for t, w, a in
-                       zip(decoded.stamps_ns, decoded.angular_velocity.tolist(), decoded.linear_acceleration.tolist()))
+            samples = (
+                ImuSample((int(t) * 1e-9, _NO_ORIENTATION, tuple(w), tuple(a)), int(t))
+                for t, w, a in zip(
+                    decoded.stamps_ns, decoded.angular_velocity.tolist(), decoded.linear_acceleration.tolist()
+                )
+            )
         merged = heapq.merge(_chain(first, scans), samples, key=lambda item: item.received_ns)
         yield from merged
 

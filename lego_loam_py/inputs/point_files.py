@@ -10,6 +10,7 @@ Field names are kept as the file has them (the pipeline reads ``x y z`` and, whe
 ``ring`` and ``time``, see ``sensor.ring_field`` and ``sensor.time_field``). Whole files are read at once and
 decoded with numpy, without a loop over points.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -18,15 +19,47 @@ import numpy as np
 
 from lego_loam_py.inputs.source import SourceError
 
-__all__ = ['read_points', 'read_pcd_points', 'read_ply_points', 'read_bin_points', 'write_pcd_points',
-           'write_bin_points', 'POINT_FILE_SUFFIXES']
+__all__ = [
+    'read_points',
+    'read_pcd_points',
+    'read_ply_points',
+    'read_bin_points',
+    'write_pcd_points',
+    'write_bin_points',
+    'POINT_FILE_SUFFIXES',
+]
 
 POINT_FILE_SUFFIXES = ('.pcd', '.ply', '.bin')
-_PCD_TYPES = {('F', 4): 'f4', ('F', 8): 'f8', ('U', 1): 'u1', ('U', 2): 'u2', ('U', 4): 'u4', ('U', 8): 'u8',
-              ('I', 1): 'i1', ('I', 2): 'i2', ('I', 4): 'i4', ('I', 8): 'i8'}
-_PLY_TYPES = {'char': 'i1', 'int8': 'i1', 'uchar': 'u1', 'uint8': 'u1', 'short': 'i2', 'int16': 'i2',
-              'ushort': 'u2', 'uint16': 'u2', 'int': 'i4', 'int32': 'i4', 'uint': 'u4', 'uint32': 'u4',
-              'float': 'f4', 'float32': 'f4', 'double': 'f8', 'float64': 'f8'}
+_PCD_TYPES = {
+    ('F', 4): 'f4',
+    ('F', 8): 'f8',
+    ('U', 1): 'u1',
+    ('U', 2): 'u2',
+    ('U', 4): 'u4',
+    ('U', 8): 'u8',
+    ('I', 1): 'i1',
+    ('I', 2): 'i2',
+    ('I', 4): 'i4',
+    ('I', 8): 'i8',
+}
+_PLY_TYPES = {
+    'char': 'i1',
+    'int8': 'i1',
+    'uchar': 'u1',
+    'uint8': 'u1',
+    'short': 'i2',
+    'int16': 'i2',
+    'ushort': 'u2',
+    'uint16': 'u2',
+    'int': 'i4',
+    'int32': 'i4',
+    'uint': 'u4',
+    'uint32': 'u4',
+    'float': 'f4',
+    'float32': 'f4',
+    'double': 'f8',
+    'float64': 'f8',
+}
 KITTI_BIN_DTYPE = np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', '<f4')])
 
 
@@ -71,10 +104,17 @@ def read_pcd_points(path: str | Path) -> np.ndarray:
         sizes = [int(v) for v in header['SIZE']]
         kinds = header['TYPE']
         counts = [int(v) for v in header.get('COUNT', ['1'] * len(names))]
-        points = int(header['POINTS'][0]) if 'POINTS' in header else \
-            int(header['WIDTH'][0]) * int(header.get('HEIGHT', ['1'])[0])
-        dtype = np.dtype([(name, '<' + _PCD_TYPES[(kind, size)], (count,) if count > 1 else ())
-                          for name, kind, size, count in zip(names, kinds, sizes, counts)])
+        points = (
+            int(header['POINTS'][0])
+            if 'POINTS' in header
+            else int(header['WIDTH'][0]) * int(header.get('HEIGHT', ['1'])[0])
+        )
+        dtype = np.dtype(
+            [
+                (name, '<' + _PCD_TYPES[(kind, size)], (count,) if count > 1 else ())
+                for name, kind, size, count in zip(names, kinds, sizes, counts)
+            ]
+        )
     except (KeyError, ValueError, IndexError) as exc:
         raise SourceError(f'{path}: not a PCD header this reader understands ({exc})') from None
     if not (len(names) == len(sizes) == len(kinds) == len(counts)):
@@ -82,8 +122,10 @@ def read_pcd_points(path: str | Path) -> np.ndarray:
     layout = header['DATA'][0].lower()
     if layout == 'binary':
         if len(data) - offset < points * dtype.itemsize:
-            raise SourceError(f'{path}: truncated: {points} points of {dtype.itemsize} bytes need '
-                              f'{points * dtype.itemsize} bytes, the file has {len(data) - offset}')
+            raise SourceError(
+                f'{path}: truncated: {points} points of {dtype.itemsize} bytes need '
+                f'{points * dtype.itemsize} bytes, the file has {len(data) - offset}'
+            )
         return np.frombuffer(data, dtype=dtype, count=points, offset=offset).copy()
     if layout == 'ascii':
         table = np.loadtxt(data[offset:].decode('ascii').splitlines(), dtype=np.float64, ndmin=2)
@@ -104,7 +146,7 @@ def _from_columns(table: np.ndarray, dtype: np.dtype, path: Path) -> np.ndarray:
     column = 0
     for name in dtype.names:
         width = int(np.prod(dtype[name].shape)) or 1
-        values = table[:, column:column + width]
+        values = table[:, column : column + width]
         out[name] = values.reshape(out[name].shape)
         column += width
     return out
@@ -162,8 +204,10 @@ def read_ply_points(path: str | Path) -> np.ndarray:
         raise SourceError(f"{path}: unknown PLY format '{layout}'")
     dtype = np.dtype([(name, order + kind) for name, kind in properties])
     if len(data) - offset < vertices * dtype.itemsize:
-        raise SourceError(f'{path}: truncated: {vertices} vertices need {vertices * dtype.itemsize} bytes, '
-                          f'the file has {len(data) - offset}')
+        raise SourceError(
+            f'{path}: truncated: {vertices} vertices need {vertices * dtype.itemsize} bytes, '
+            f'the file has {len(data) - offset}'
+        )
     points = np.frombuffer(data, dtype=dtype, count=vertices, offset=offset)
     return points.astype(dtype.newbyteorder('<'))
 
@@ -173,8 +217,9 @@ def read_bin_points(path: str | Path) -> np.ndarray:
     path = Path(path)
     size = path.stat().st_size
     if size % KITTI_BIN_DTYPE.itemsize:
-        raise SourceError(f'{path}: {size} bytes is not a whole number of 16-byte points (float32 x y z '
-                          'intensity): not a KITTI scan')
+        raise SourceError(
+            f'{path}: {size} bytes is not a whole number of 16-byte points (float32 x y z intensity): not a KITTI scan'
+        )
     return np.fromfile(path, dtype=KITTI_BIN_DTYPE)
 
 
@@ -191,12 +236,20 @@ def write_pcd_points(path: str | Path, points: np.ndarray) -> None:
     """A binary PCD with every scalar field of a structured array (little endian)."""
     kinds = {'f': 'F', 'u': 'U', 'i': 'I'}
     names = points.dtype.names
-    header = ['# .PCD v0.7 - Point Cloud Data file format', 'VERSION 0.7', 'FIELDS ' + ' '.join(names),
-              'SIZE ' + ' '.join(str(points.dtype[n].itemsize) for n in names),
-              'TYPE ' + ' '.join(kinds[points.dtype[n].kind] for n in names),
-              'COUNT ' + ' '.join('1' for _ in names), f'WIDTH {len(points)}', 'HEIGHT 1',
-              'VIEWPOINT 0 0 0 1 0 0 0', f'POINTS {len(points)}', 'DATA binary']
-    packed = np.dtype([(n, points.dtype[n].newbyteorder('<')) for n in names])   # (no padding)
+    header = [
+        '# .PCD v0.7 - Point Cloud Data file format',
+        'VERSION 0.7',
+        'FIELDS ' + ' '.join(names),
+        'SIZE ' + ' '.join(str(points.dtype[n].itemsize) for n in names),
+        'TYPE ' + ' '.join(kinds[points.dtype[n].kind] for n in names),
+        'COUNT ' + ' '.join('1' for _ in names),
+        f'WIDTH {len(points)}',
+        'HEIGHT 1',
+        'VIEWPOINT 0 0 0 1 0 0 0',
+        f'POINTS {len(points)}',
+        'DATA binary',
+    ]
+    packed = np.dtype([(n, points.dtype[n].newbyteorder('<')) for n in names])  # (no padding)
     body = np.empty(len(points), dtype=packed)
     for name in names:
         body[name] = points[name]

@@ -5,21 +5,23 @@ bag's only PointCloud2 topic. The IMU topic likewise (None: ``/imu/data`` or els
 none; a topic asked for and missing: none, as the nodes run without an IMU). Clouds are stamped with
 their header stamp; the ground truth is the simulator's ``ground_truth.tum`` beside the bag, when there is one.
 """
+
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 from lego_loam_py.bag.io import BagError, BagReader, cloud_msg_to_array, resolve_bag_path
-from lego_loam_py.core.imu import imu_sample
+from lego_loam_py.core.imu.buffer import imu_sample
 from lego_loam_py.core.pointcloud import CloudLayoutError
-from lego_loam_py.inputs.source import GroundTruth, ImuSample, Scan, Source, SourceItem, UnreadableScan
+from lego_loam_py.core.trajectory import Trajectory
+from lego_loam_py.inputs.source import ImuSample, Scan, Source, SourceItem, UnreadableScan
 
 __all__ = ['BagSource', 'CLOUD_TYPE', 'IMU_TYPE']
 
 CLOUD_TYPE = 'sensor_msgs/msg/PointCloud2'
 IMU_TYPE = 'sensor_msgs/msg/Imu'
-DEFAULT_CLOUD_TOPIC, DEFAULT_IMU_TOPIC = '/velodyne_points', '/imu/data'   # (sensor.* parameters' defaults)
+DEFAULT_CLOUD_TOPIC, DEFAULT_IMU_TOPIC = '/velodyne_points', '/imu/data'  # (sensor.* parameters' defaults)
 
 
 class BagSource(Source):
@@ -45,8 +47,10 @@ class BagSource(Source):
         if cloud_topic is None and DEFAULT_CLOUD_TOPIC not in topics:
             clouds = sorted(t for t, kind in topics.items() if kind == CLOUD_TYPE)
             if len(clouds) != 1:
-                raise BagError(f'{self.path}: no {DEFAULT_CLOUD_TOPIC} topic and {len(clouds)} PointCloud2 topics '
-                               f'to choose from (topics: {listed}); name one with -p sensor.point_cloud_topic:=TOPIC')
+                raise BagError(
+                    f'{self.path}: no {DEFAULT_CLOUD_TOPIC} topic and {len(clouds)} PointCloud2 topics '
+                    f'to choose from (topics: {listed}); name one with -p sensor.point_cloud_topic:=TOPIC'
+                )
             notes.append(f'clouds from {clouds[0]}, the only PointCloud2 topic')
             cloud_topic = clouds[0]
         cloud_topic = cloud_topic or DEFAULT_CLOUD_TOPIC
@@ -67,8 +71,9 @@ class BagSource(Source):
     def scan_count(self) -> int | None:
         return self._reader.topic_counts().get(self.cloud_topic, 0)
 
-    def ground_truth(self) -> GroundTruth | None:
-        from lego_loam_py.sim.output import load_ground_truth
+    def ground_truth(self) -> Trajectory | None:
+        from lego_loam_py.inputs.sidecars import load_ground_truth
+
         return load_ground_truth(self.path)
 
     def describe(self) -> str:
@@ -94,4 +99,3 @@ class BagSource(Source):
 
     def close(self) -> None:
         self._reader.close()
-

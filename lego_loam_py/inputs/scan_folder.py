@@ -6,18 +6,21 @@ stamped from ``times.txt`` in the folder when there is one (one time [s] a line)
 scan; camera poses when a KITTI ``calib.txt`` is beside it, else the lidar's) or ``ground_truth.tum``.
 Fields are kept as the files have them, so a PCD with ``ring`` and ``time`` feeds the pipeline as a bag does.
 """
+
 from __future__ import annotations
 
 import re
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
-from lego_loam_py.core.io import read_tum
+from lego_loam_py.core.trajectory import Trajectory
+from lego_loam_py.formats import read_tum
 from lego_loam_py.inputs.kitti import lidar_ground_truth, read_times
 from lego_loam_py.inputs.point_files import POINT_FILE_SUFFIXES, read_points
-from lego_loam_py.inputs.source import GroundTruth, Scan, Source, SourceError, SourceItem
+from lego_loam_py.inputs.sidecars import GROUND_TRUTH
+from lego_loam_py.inputs.source import Scan, Source, SourceError, SourceItem
 
 __all__ = ['ScanFolderSource', 'scan_files', 'natural_key']
 
@@ -29,8 +32,9 @@ def natural_key(path: Path) -> list:
 
 def scan_files(folder: Path) -> list[Path]:
     """The point files of a folder in name order."""
-    return sorted((p for p in folder.iterdir() if p.suffix.lower() in POINT_FILE_SUFFIXES and p.is_file()),
-                  key=natural_key)
+    return sorted(
+        (p for p in folder.iterdir() if p.suffix.lower() in POINT_FILE_SUFFIXES and p.is_file()), key=natural_key
+    )
 
 
 class ScanFolderSource(Source):
@@ -58,12 +62,12 @@ class ScanFolderSource(Source):
             self.timed_by = f'{rate_hz:g} Hz'
         self._ground_truth = self._find_ground_truth()
 
-    def _find_ground_truth(self) -> GroundTruth | None:
+    def _find_ground_truth(self) -> Trajectory | None:
         truth = lidar_ground_truth(self.path, self.stamps)
-        tum = self.path / 'ground_truth.tum'
+        tum = self.path / GROUND_TRUTH
         if truth is None and tum.is_file():
             try:
-                truth = read_tum(tum)
+                truth = Trajectory(*read_tum(tum), 'map')
             except ValueError as exc:
                 raise SourceError(str(exc)) from None
         return truth
@@ -75,13 +79,14 @@ class ScanFolderSource(Source):
     def scan_count(self) -> int:
         return len(self.files)
 
-    def ground_truth(self) -> GroundTruth | None:
+    def ground_truth(self) -> Trajectory | None:
         return self._ground_truth
 
     def describe(self) -> str:
         truth = 'with ground truth' if self._ground_truth is not None else 'no ground truth'
-        return (f'{len(self.files)} {self.files[0].suffix.lower()} scans in {self.path} timed by {self.timed_by}, '
-                f'{truth}')
+        return (
+            f'{len(self.files)} {self.files[0].suffix.lower()} scans in {self.path} timed by {self.timed_by}, {truth}'
+        )
 
     def items(self) -> Iterator[SourceItem]:
         for stamp, path in zip(self.stamps, self.files):

@@ -13,20 +13,19 @@ other command that feeds the pipeline) uses only this interface.
 Points are structured arrays (:mod:`lego_loam_py.core.pointcloud`: x, y, z [m] in the sensor frame, REP-103 axes;
 intensity, ring and time when the recording has them); stamps are integer nanoseconds of the sweep start.
 """
+
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Union
 
 import numpy as np
 
+from lego_loam_py.core.trajectory import Trajectory
 from lego_loam_py.errors import LegoLoamError
 
-__all__ = ['Scan', 'ImuSample', 'UnreadableScan', 'SourceItem', 'Source', 'SourceError', 'GroundTruth']
-
-# (stamps [ns] int64 (N,), lidar poses (N, 4, 4) in REP-103 axes relative to the first)
-GroundTruth = tuple[np.ndarray, np.ndarray]
+__all__ = ['Scan', 'ImuSample', 'UnreadableScan', 'SourceItem', 'Source', 'SourceError']
 
 
 class SourceError(LegoLoamError, RuntimeError):
@@ -61,16 +60,16 @@ class UnreadableScan:
     received_ns: int
 
 
-SourceItem = Union[Scan, ImuSample, UnreadableScan]
+SourceItem = Scan | ImuSample | UnreadableScan
 
 
 class Source:
     """A recording to run the pipeline on. Subclasses set :attr:`kind`, :attr:`path`, :attr:`name` and implement
     :meth:`items`; the rest has defaults. Use as a context manager (:meth:`close` releases files)."""
 
-    kind: str = ''                  # 'rosbag', 'kitti', 'scans', 'pcap'
+    kind: str = ''  # 'rosbag', 'kitti', 'scans', 'pcap'
     path: Path
-    name: str                       # default name of the output folder
+    name: str  # default name of the output folder
 
     @property
     def duration_s(self) -> float:
@@ -81,8 +80,9 @@ class Source:
         """Scans in the recording, when known without reading them (for a progress bar)."""
         return None
 
-    def ground_truth(self) -> GroundTruth | None:
-        """The sensor's true trajectory when the recording has one."""
+    def ground_truth(self) -> Trajectory | None:
+        """The sensor's true trajectory when the recording has one: lidar poses in REP-103 axes relative to the
+        first (frame 'map')."""
         return None
 
     def describe(self) -> str:
@@ -96,7 +96,7 @@ class Source:
     def close(self) -> None:
         pass
 
-    def __enter__(self) -> 'Source':
+    def __enter__(self) -> Source:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -8,12 +8,13 @@ The nodes publish their clouds and CloudInfo as serialized bytes (``Publisher.pu
 1.4 ms for a 20 000-point cloud, a third of a millisecond for a CloudInfo's 20 000 bools) before the middleware
 serializes it again. Subscribers receive the same message either way.
 """
+
 from __future__ import annotations
 
 import array
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -24,18 +25,43 @@ from sensor_msgs.msg import PointField as PointFieldMsg
 from std_msgs.msg import Header
 
 from lego_loam_py.core.frames import matrix_to_quaternion, quaternion_to_matrix
-from lego_loam_py.core.image_projection import CloudInfo as CloudInfoData
+from lego_loam_py.core.pointcloud import (
+    CloudBuffer,
+    PointField,
+    array_to_cloud,
+    cloud_to_array,
+    xyzi_array,
+    xyzi_points,
+)
+from lego_loam_py.core.projection.image_projection import CloudInfo as CloudInfoData
 from lego_loam_py.core.validation import MAX_POSITION
-from lego_loam_py.core.pointcloud import (CloudBuffer, PointField, array_to_cloud, cloud_to_array, xyzi_array,
-                                          xyzi_points)
 
 __all__ = [
-    'stamp_to_ns', 'ns_to_stamp', 'make_header', 'cloud_msg_to_buffer', 'cloud_msg_to_array',
-    'array_to_cloud_msg', 'pose_to_odometry', 'odometry_to_pose', 'pose_to_transform',
-    'numpy_to_array', 'xyzi_to_cloud_msg', 'cloud_msg_to_xyzi', 'cloud_info_to_msg', 'cloud_info_from_msg',
-    'imu_sample_from_serialized', 'serialized_stamp_ns', 'cloud_info_from_serialized', 'odometry_to_transform',
-    'serialized_cloud', 'serialized_xyzi_cloud', 'serialized_cloud_info', 'cloud_from_serialized',
-    'SerializedCloud', 'serialized_odometry', 'MAX_POSITION',
+    'stamp_to_ns',
+    'ns_to_stamp',
+    'make_header',
+    'cloud_msg_to_buffer',
+    'cloud_msg_to_array',
+    'array_to_cloud_msg',
+    'pose_to_odometry',
+    'odometry_to_pose',
+    'pose_to_transform',
+    'numpy_to_array',
+    'xyzi_to_cloud_msg',
+    'cloud_msg_to_xyzi',
+    'cloud_info_to_msg',
+    'cloud_info_from_msg',
+    'imu_sample_from_serialized',
+    'serialized_stamp_ns',
+    'cloud_info_from_serialized',
+    'odometry_to_transform',
+    'serialized_cloud',
+    'serialized_xyzi_cloud',
+    'serialized_cloud_info',
+    'cloud_from_serialized',
+    'SerializedCloud',
+    'serialized_odometry',
+    'MAX_POSITION',
 ]
 
 
@@ -60,7 +86,7 @@ def make_header(stamp: Time | int, frame_id: str) -> Header:
 # then 37 float64 aligned to 8 bytes from the end of the encapsulation: orientation (x, y, z, w), its
 # covariance (9), angular velocity (3), its covariance (9), linear acceleration (3), its covariance (9).
 _IMU_DOUBLES = 37
-_XCDR1 = {b'\x00\x00': '>', b'\x00\x01': '<'}   # encapsulation id -> byte order
+_XCDR1 = {b'\x00\x00': '>', b'\x00\x01': '<'}  # encapsulation id -> byte order
 
 
 def serialized_stamp_ns(data: bytes) -> int | None:
@@ -74,7 +100,7 @@ def serialized_stamp_ns(data: bytes) -> int | None:
 
 
 def imu_sample_from_serialized(data: bytes) -> tuple[float, tuple, tuple, tuple]:
-    """``ImuBuffer.add``'s arguments (see :func:`lego_loam_py.core.imu.imu_sample`) straight from the bytes of a
+    """``ImuBuffer.add``'s arguments (see :func:`lego_loam_py.core.imu.buffer.imu_sample`) straight from the bytes of a
     sensor_msgs/Imu as a ``raw=True`` subscription takes them: about ten times cheaper than rclpy's message
     objects (an IMU at 200 Hz costs a node more in messages than in their use). Other encodings are read
     through rclpy's deserializer; a message too short for its layout raises ValueError."""
@@ -85,13 +111,14 @@ def imu_sample_from_serialized(data: bytes) -> tuple[float, tuple, tuple, tuple]
         from rclpy.serialization import deserialize_message
         from sensor_msgs.msg import Imu
 
-        from lego_loam_py.core.imu import imu_sample
+        from lego_loam_py.core.imu.buffer import imu_sample
+
         try:
             return imu_sample(deserialize_message(bytes(data), Imu))
-        except Exception as exc:   # rclpy raises its RMWError for bytes that are no Imu
+        except Exception as exc:  # rclpy raises its RMWError for bytes that are no Imu
             raise ValueError(f'not a serialized Imu ({exc})') from None
     sec, nanosec, name_length = struct.unpack_from(order + 'iII', data, 4)
-    start = 4 + ((12 + name_length + 7) & ~7)   # (alignment counts from the end of the encapsulation)
+    start = 4 + ((12 + name_length + 7) & ~7)  # (alignment counts from the end of the encapsulation)
     if start + 8 * _IMU_DOUBLES > len(data):
         raise ValueError(f'serialized Imu of {len(data)} bytes is too short for its frame id ({name_length} bytes)')
     v = struct.unpack_from(order + '37d', data, start)
@@ -109,9 +136,14 @@ def cloud_msg_to_buffer(msg: PointCloud2) -> CloudBuffer:
     """The layout and bytes of a PointCloud2 message (no copy of the data)."""
     return CloudBuffer(
         fields=[PointField(f.name, int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields],
-        point_step=int(msg.point_step), width=int(msg.width), height=int(msg.height),
-        row_step=int(msg.row_step), is_bigendian=bool(msg.is_bigendian), is_dense=bool(msg.is_dense),
-        data=msg.data)
+        point_step=int(msg.point_step),
+        width=int(msg.width),
+        height=int(msg.height),
+        row_step=int(msg.row_step),
+        is_bigendian=bool(msg.is_bigendian),
+        is_dense=bool(msg.is_dense),
+        data=msg.data,
+    )
 
 
 def cloud_msg_to_array(msg: PointCloud2, flatten: bool = True) -> np.ndarray:
@@ -119,16 +151,16 @@ def cloud_msg_to_array(msg: PointCloud2, flatten: bool = True) -> np.ndarray:
     return cloud_to_array(cloud_msg_to_buffer(msg), flatten=flatten)
 
 
-def array_to_cloud_msg(points: np.ndarray, header: Header, width: int | None = None, height: int = 1,
-                       is_dense: bool | None = None) -> PointCloud2:
+def array_to_cloud_msg(
+    points: np.ndarray, header: Header, width: int | None = None, height: int = 1, is_dense: bool | None = None
+) -> PointCloud2:
     """PointCloud2 carrying a structured array (layout taken from its dtype)."""
     buf = array_to_cloud(points, width=width, height=height, is_dense=is_dense)
     # Field checks stay on: with them, an array.array is stored as is; without, it is copied again.
     msg = PointCloud2(check_fields=True)
     msg.header = header
     msg.height, msg.width = buf.height, buf.width
-    msg.fields = [PointFieldMsg(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count)
-                  for f in buf.fields]
+    msg.fields = [PointFieldMsg(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count) for f in buf.fields]
     msg.is_bigendian = buf.is_bigendian
     msg.point_step = buf.point_step
     msg.row_step = buf.row_step
@@ -139,8 +171,9 @@ def array_to_cloud_msg(points: np.ndarray, header: Header, width: int | None = N
     return msg
 
 
-def xyzi_to_cloud_msg(values: np.ndarray, header: Header, is_dense: bool = True,
-                      time: np.ndarray | None = None) -> PointCloud2:
+def xyzi_to_cloud_msg(
+    values: np.ndarray, header: Header, is_dense: bool = True, time: np.ndarray | None = None
+) -> PointCloud2:
     """(N, 4) float32 x, y, z, intensity -> PointCloud2 in PCL's PointXYZI layout (as the original publishes),
     with a ``time`` field in the layout's padding when ``time`` is given."""
     return array_to_cloud_msg(xyzi_points(values, time), header, is_dense=is_dense)
@@ -211,8 +244,9 @@ def serialized_cloud(points: np.ndarray, header: Header, is_dense: bool | None =
     return out.bytes()
 
 
-def serialized_xyzi_cloud(values: np.ndarray, header: Header, is_dense: bool = True,
-                          time: np.ndarray | None = None) -> bytes:
+def serialized_xyzi_cloud(
+    values: np.ndarray, header: Header, is_dense: bool = True, time: np.ndarray | None = None
+) -> bytes:
     """The serialized form of :func:`xyzi_to_cloud_msg` (PCL's PointXYZI layout, ``time`` in its padding)."""
     return serialized_cloud(xyzi_points(values, time), header, is_dense=is_dense)
 
@@ -261,11 +295,13 @@ def cloud_info_from_msg(msg) -> CloudInfoData:
     return CloudInfoData(
         start_ring_index=np.array(msg.start_ring_index, dtype=np.int32),
         end_ring_index=np.array(msg.end_ring_index, dtype=np.int32),
-        start_orientation=np.float32(msg.start_orientation), end_orientation=np.float32(msg.end_orientation),
+        start_orientation=np.float32(msg.start_orientation),
+        end_orientation=np.float32(msg.end_orientation),
         orientation_diff=np.float32(msg.orientation_diff),
         segmented_cloud_ground_flag=np.array(msg.segmented_cloud_ground_flag, dtype=bool),
         segmented_cloud_col_ind=np.array(msg.segmented_cloud_col_ind, dtype=np.uint32),
-        segmented_cloud_range=np.array(msg.segmented_cloud_range, dtype=np.float32))
+        segmented_cloud_range=np.array(msg.segmented_cloud_range, dtype=np.float32),
+    )
 
 
 class _CdrReader:
@@ -274,7 +310,7 @@ class _CdrReader:
 
     def __init__(self, data, what: str):
         self.order = _XCDR1[bytes(data[:2])]
-        self.body = memoryview(data)[4:]   # (alignment counts from the end of the encapsulation)
+        self.body = memoryview(data)[4:]  # (alignment counts from the end of the encapsulation)
         self.position = 0
         self.what = what
 
@@ -288,8 +324,9 @@ class _CdrReader:
             self.position = (self.position + item.alignment - 1) & ~(item.alignment - 1)
         end = self.position + count * item.itemsize
         if end > len(self.body):
-            raise ValueError(f'serialized {self.what} of {len(self.body) + 4} bytes ends inside its '
-                             f'{count}-element field')
+            raise ValueError(
+                f'serialized {self.what} of {len(self.body) + 4} bytes ends inside its {count}-element field'
+            )
         values = np.frombuffer(self.body, dtype=item, count=count, offset=self.position)
         self.position = end
         return values
@@ -307,9 +344,10 @@ class _CdrReader:
 def _deserialized(data: bytes, message_type, what: str):
     """rclpy's reading of bytes in an encoding other than XCDR1 (ValueError when they are not that message)."""
     from rclpy.serialization import deserialize_message
+
     try:
         return deserialize_message(bytes(data), message_type)
-    except Exception as exc:   # rclpy raises its RMWError for bytes that are no such message
+    except Exception as exc:  # rclpy raises its RMWError for bytes that are no such message
         raise ValueError(f'not a serialized {what} ({exc})') from None
 
 
@@ -321,11 +359,12 @@ def cloud_info_from_serialized(data: bytes, copy: bool = True) -> tuple[int, Clo
     through rclpy's deserializer; bytes too short for the lengths they announce raise ValueError."""
     if bytes(data[:2]) not in _XCDR1:
         from cloud_msgs.msg import CloudInfo
+
         msg = _deserialized(data, CloudInfo, 'CloudInfo')
         return stamp_to_ns(msg.header.stamp), cloud_info_from_msg(msg)
     read = _CdrReader(data, 'CloudInfo')
     stamp = read.stamp_ns()
-    read.string()   # the frame id
+    read.string()  # the frame id
     start_ring_index, end_ring_index = read.array('i4'), read.array('i4')
     start_orientation, end_orientation, orientation_diff = read.array('f4', 3)
     ground_flag = read.array('u1') != 0
@@ -335,10 +374,15 @@ def cloud_info_from_serialized(data: bytes, copy: bool = True) -> tuple[int, Clo
         return values.astype(dtype, copy=copy)
 
     return stamp, CloudInfoData(
-        start_ring_index=native(start_ring_index, np.int32), end_ring_index=native(end_ring_index, np.int32),
-        start_orientation=np.float32(start_orientation), end_orientation=np.float32(end_orientation),
-        orientation_diff=np.float32(orientation_diff), segmented_cloud_ground_flag=ground_flag,
-        segmented_cloud_col_ind=native(col_ind, np.uint32), segmented_cloud_range=native(ranges, np.float32))
+        start_ring_index=native(start_ring_index, np.int32),
+        end_ring_index=native(end_ring_index, np.int32),
+        start_orientation=np.float32(start_orientation),
+        end_orientation=np.float32(end_orientation),
+        orientation_diff=np.float32(orientation_diff),
+        segmented_cloud_ground_flag=ground_flag,
+        segmented_cloud_col_ind=native(col_ind, np.uint32),
+        segmented_cloud_range=native(ranges, np.float32),
+    )
 
 
 @dataclass
@@ -375,14 +419,26 @@ def cloud_from_serialized(data: bytes) -> SerializedCloud | PointCloud2:
     is_bigendian = bool(read.scalar('u1'))
     point_step, row_step = (int(v) for v in read.array('u4', 2))
     points = read.array('u1')
-    return SerializedCloud(header=header, height=height, width=width, fields=fields, is_bigendian=is_bigendian,
-                           point_step=point_step, row_step=row_step, data=memoryview(points),
-                           is_dense=bool(read.scalar('u1')))
+    return SerializedCloud(
+        header=header,
+        height=height,
+        width=width,
+        fields=fields,
+        is_bigendian=is_bigendian,
+        point_step=point_step,
+        row_step=row_step,
+        data=memoryview(points),
+        is_dense=bool(read.scalar('u1')),
+    )
 
 
-def pose_to_odometry(pose: np.ndarray, header: Header, child_frame_id: str,
-                     twist_angular: Sequence[float] | None = None,
-                     twist_linear: Sequence[float] | None = None) -> Odometry:
+def pose_to_odometry(
+    pose: np.ndarray,
+    header: Header,
+    child_frame_id: str,
+    twist_angular: Sequence[float] | None = None,
+    twist_linear: Sequence[float] | None = None,
+) -> Odometry:
     """nav_msgs/Odometry with the pose of ``child_frame_id`` in ``header.frame_id`` (4x4 matrix).
 
     The twist fields are filled only when given (mapOptimization uses them to carry a pose, as the
@@ -404,11 +460,13 @@ def pose_to_odometry(pose: np.ndarray, header: Header, child_frame_id: str,
     return msg
 
 
-
-
-def serialized_odometry(pose: np.ndarray, header: Header, child_frame_id: str,
-                        twist_angular: Sequence[float] | None = None,
-                        twist_linear: Sequence[float] | None = None) -> tuple[bytes, bytes]:
+def serialized_odometry(
+    pose: np.ndarray,
+    header: Header,
+    child_frame_id: str,
+    twist_angular: Sequence[float] | None = None,
+    twist_linear: Sequence[float] | None = None,
+) -> tuple[bytes, bytes]:
     """The serialized nav_msgs/Odometry that :func:`pose_to_odometry` would give, and the tf2_msgs/TFMessage
     carrying its transform (:func:`odometry_to_transform`): the two every node publishes per pose, from one
     quaternion."""
@@ -418,10 +476,11 @@ def serialized_odometry(pose: np.ndarray, header: Header, child_frame_id: str,
     odometry = _CdrWriter()
     odometry.header(header)
     odometry.string(child_frame_id)
-    odometry.scalars('43d', *position, *orientation, *([0.0] * 36))   # the pose, its covariance
-    twist = [float(v) for v in (twist_linear if twist_linear is not None else (0.0, 0.0, 0.0))] + \
-        [float(v) for v in (twist_angular if twist_angular is not None else (0.0, 0.0, 0.0))]
-    odometry.scalars('42d', *twist, *([0.0] * 36))                  # the twist (linear, angular), its covariance
+    odometry.scalars('43d', *position, *orientation, *([0.0] * 36))  # the pose, its covariance
+    twist = [float(v) for v in (twist_linear if twist_linear is not None else (0.0, 0.0, 0.0))] + [
+        float(v) for v in (twist_angular if twist_angular is not None else (0.0, 0.0, 0.0))
+    ]
+    odometry.scalars('42d', *twist, *([0.0] * 36))  # the twist (linear, angular), its covariance
     transforms = _CdrWriter()
     transforms.scalars('I', 1)
     transforms.header(header)
@@ -442,7 +501,7 @@ def odometry_to_pose(msg: Odometry) -> np.ndarray:
     if not (np.isfinite(q).all() and np.isfinite(t).all()):
         raise ValueError('odometry pose is not finite')
     scale = float(np.abs(q).max())
-    norm = scale * float(np.linalg.norm(q / scale)) if scale > 0 else 0.0   # no overflow for huge values
+    norm = scale * float(np.linalg.norm(q / scale)) if scale > 0 else 0.0  # no overflow for huge values
     if norm < 1e-6:
         raise ValueError('odometry orientation quaternion has zero norm')
     if abs(norm - 1.0) > 0.1:
@@ -462,8 +521,11 @@ def odometry_to_transform(msg: Odometry) -> TransformStamped:
     out.header = msg.header
     out.child_frame_id = msg.child_frame_id
     p = msg.pose.pose
-    out.transform.translation.x, out.transform.translation.y, out.transform.translation.z = \
-        p.position.x, p.position.y, p.position.z
+    out.transform.translation.x, out.transform.translation.y, out.transform.translation.z = (
+        p.position.x,
+        p.position.y,
+        p.position.z,
+    )
     out.transform.rotation = p.orientation
     return out
 

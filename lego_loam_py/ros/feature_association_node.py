@@ -5,7 +5,7 @@ and synchronises them by stamp (within ``feature_association.sync_tolerance``); 
 depth 200, polled: the samples are taken with each scan, no wake-up per sample) when ``sensor.imu_topic`` is
 set, and then /aft_mapped_to_init (reliable, depth 5), mapOptimization's poses, against which the IMU check
 compares the IMU's turn (``imu.alignment_check``; an IMU that disagrees is warned about and not used, see
-:mod:`lego_loam_py.core.imu_monitor`). Publishes, stamped with the scan:
+:mod:`lego_loam_py.core.imu.monitor`). Publishes, stamped with the scan:
 
 * every scan: /laser_odom_to_init (nav_msgs/Odometry, camera_init -> laser_odom) and its TF;
 * every ``skip_frame_num + 1`` scans: /laser_cloud_corner_last, /laser_cloud_surf_last, /outlier_cloud_last
@@ -16,11 +16,12 @@ Scans with an older stamp than the previous one are dropped (out of order or dup
 second is believed once later scans continue the new timeline (a wrong stamp costs that scan only): forward,
 the next scan; back in time, three scans in a row, and then, when the new timeline starts before the current
 one did (a bag restarted or looped), the odometry resets with a warning; otherwise the scans ahead had wrong
-stamps and the node carries on (see :class:`lego_loam_py.core.sync.StampOrder`).
+stamps and the node carries on (see :class:`lego_loam_py.ros.sync.StampOrder`).
 Inputs are checked against what imageProjection can produce, each part on arrival (see
 :mod:`lego_loam_py.core.validation`), and dropped with a throttled warning; should the odometry's state ever be
 poisoned anyway, it restarts from the next scan at the pose reached so far. A reset keeps the IMU samples.
 """
+
 from __future__ import annotations
 
 import copy
@@ -28,28 +29,38 @@ import sys
 import time
 
 import numpy as np
-from cloud_msgs.msg import CloudInfo
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu, PointCloud2
 
+from cloud_msgs.msg import CloudInfo
 from lego_loam_py.core import validation
-from lego_loam_py.core.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, LASER_ODOM_FRAME
-from lego_loam_py.core.imu import uncovered_counter, uncovered_warning, warn_uncovered
-from lego_loam_py.core.sync import StampOrder, StampSynchronizer
+from lego_loam_py.core.guard import SCANS_DROPPED, SCANS_PROCESSED, SCANS_WITH_IMU
+from lego_loam_py.core.imu.buffer import uncovered_counter, uncovered_warning, warn_uncovered
+from lego_loam_py.core.odometry.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.ros import qos
-from lego_loam_py.ros.conversions import (cloud_info_from_msg, cloud_info_from_serialized, cloud_msg_to_array,
-                                          cloud_msg_to_xyzi, make_header, odometry_to_pose, serialized_odometry,
-                                          serialized_stamp_ns, serialized_xyzi_cloud, stamp_to_ns)
+from lego_loam_py.ros.conversions import (
+    cloud_info_from_msg,
+    cloud_info_from_serialized,
+    cloud_msg_to_array,
+    cloud_msg_to_xyzi,
+    make_header,
+    odometry_to_pose,
+    serialized_odometry,
+    serialized_stamp_ns,
+    serialized_xyzi_cloud,
+    stamp_to_ns,
+)
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
+from lego_loam_py.ros.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros.tf import TransformBroadcaster
 
 __all__ = ['FeatureAssociationNode', 'main']
 
-RESET_JUMP_NS = 1_000_000_000   # a jump back in time by more than this resets the odometry
+RESET_JUMP_NS = 1_000_000_000  # a jump back in time by more than this resets the odometry
 INPUT_TOPICS = {'cloud': '/segmented_cloud', 'info': '/segmented_cloud_info', 'outlier': '/outlier_cloud'}
-IMU_QUEUE_DEPTH = 200   # IMU samples kept between two scans (1 s at 200 Hz)
+IMU_QUEUE_DEPTH = 200  # IMU samples kept between two scans (1 s at 200 Hz)
 
 
 class FeatureAssociationNode(LegoLoamNode):
@@ -60,17 +71,17 @@ class FeatureAssociationNode(LegoLoamNode):
         self.sync = StampSynchronizer(['cloud', 'info', 'outlier'], int(fa.sync_tolerance * 1e9))
         depth1 = qos.reliable(1)
         # All three serialized: read from their bytes (cloud_from_serialized, cloud_info_from_serialized).
-        self.create_subscription(PointCloud2, '/segmented_cloud', lambda m: self.on_part('cloud', m), depth1,
-                                 raw=True)
-        self.create_subscription(CloudInfo, '/segmented_cloud_info', lambda m: self.on_part('info', m), depth1,
-                                 raw=True)
-        self.create_subscription(PointCloud2, '/outlier_cloud', lambda m: self.on_part('outlier', m), depth1,
-                                 raw=True)
+        self.create_subscription(PointCloud2, '/segmented_cloud', lambda m: self.on_part('cloud', m), depth1, raw=True)
+        self.create_subscription(
+            CloudInfo, '/segmented_cloud_info', lambda m: self.on_part('info', m), depth1, raw=True
+        )
+        self.create_subscription(PointCloud2, '/outlier_cloud', lambda m: self.on_part('outlier', m), depth1, raw=True)
         self.imu_subscription = None
-        if self.params.sensor.imu_topic:   # taken with each scan (1 s of samples wait at 200 Hz)
-            self.imu_subscription = self.create_polled_subscription(Imu, self.params.sensor.imu_topic,
-                                                                    qos.sensor_input(IMU_QUEUE_DEPTH), raw=True)
-            if self.params.imu.alignment_check:   # mapOptimization's poses: the lidar's turn, for the IMU check
+        if self.params.sensor.imu_topic:  # taken with each scan (1 s of samples wait at 200 Hz)
+            self.imu_subscription = self.create_polled_subscription(
+                Imu, self.params.sensor.imu_topic, qos.sensor_input(IMU_QUEUE_DEPTH), raw=True
+            )
+            if self.params.imu.alignment_check:  # mapOptimization's poses: the lidar's turn, for the IMU check
                 self.create_subscription(Odometry, '/aft_mapped_to_init', self.on_mapped, qos.reliable(5))
         self.pub_odometry = self.create_publisher(Odometry, '/laser_odom_to_init', qos.reliable(5))
         self.tf = TransformBroadcaster(self)
@@ -88,7 +99,8 @@ class FeatureAssociationNode(LegoLoamNode):
             f'featureAssociation: IMU {self.params.sensor.imu_topic or "off"}, relative point time: '
             f'{fa.relative_time_source}, mapping every {fa.skip_frame_num + 1} scans; poses at the header stamp, '
             f'taken at {self.params.sensor.stamp_position:g} of the sweep (sensor.stamp_position: 0 its start, 1 its '
-            'end, as the Velodyne ROS driver stamps unless timestamp_first_packet is true)')
+            'end, as the Velodyne ROS driver stamps unless timestamp_first_packet is true)'
+        )
 
     # ----------------------------------------------------------------------------------- inputs
     def on_part(self, name: str, msg) -> None:
@@ -98,18 +110,24 @@ class FeatureAssociationNode(LegoLoamNode):
             ok, msg = self.take_cloud(msg, 'scans_dropped', f'{INPUT_TOPICS[name]} dropped unread', 'bad_scan')
             if not ok:
                 return
-        ok, _ = self.take(lambda: self._check_size(name, msg), 'scans_dropped',
-                          f'{INPUT_TOPICS[name]} dropped unread', 'oversized', msg)
+        ok, _ = self.take(
+            lambda: self._check_size(name, msg),
+            'scans_dropped',
+            f'{INPUT_TOPICS[name]} dropped unread',
+            'oversized',
+            msg,
+        )
         if not ok:
             return
         ok, decoded = self.take(lambda: self._decode(name, msg), 'scans_dropped', 'scan dropped', 'bad_scan')
         if not ok:
             return
         stamp_ns = None
-        if isinstance(msg, bytes):   # (another encoding than XCDR1: the deserializer reads the stamp)
+        if isinstance(msg, bytes):  # (another encoding than XCDR1: the deserializer reads the stamp)
             stamp_ns = serialized_stamp_ns(msg) or cloud_info_from_serialized(msg, copy=False)[0]
-        complete = self.add_part(self.sync, name, msg, self.params.feature_association.sync_tolerance,
-                                 item=(msg, decoded), stamp_ns=stamp_ns)
+        complete = self.add_part(
+            self.sync, name, msg, self.params.feature_association.sync_tolerance, item=(msg, decoded), stamp_ns=stamp_ns
+        )
         if complete is not None:
             self.on_scan(complete['cloud'], complete['info'], complete['outlier'])
 
@@ -155,15 +173,24 @@ class FeatureAssociationNode(LegoLoamNode):
     def on_scan(self, cloud, info, outlier) -> None:
         """A synchronised scan: each part is (message, decoded content)."""
         self.count('scans_in')
-        self.drain(self.imu_subscription, self.on_imu)   # the IMU samples that came with this scan first
+        self.drain(self.imu_subscription, self.on_imu)  # the IMU samples that came with this scan first
         stamp = stamp_to_ns(cloud[0].header.stamp)
-        decision = self.check_order(self.order, stamp, (cloud, info, outlier),
-                                    lambda held: stamp_to_ns(held[0][0].header.stamp), 'scan', 'scans_dropped')
+        decision = self.check_order(
+            self.order,
+            stamp,
+            (cloud, info, outlier),
+            lambda held: stamp_to_ns(held[0][0].header.stamp),
+            'scan',
+            'scans_dropped',
+        )
         if decision is None:
             return
         if decision.action == 'reset':
-            self.warn('reset', f'time jumped back by {-decision.jump_ns * 1e-9:.1f} s (bag restarted?): '
-                               'odometry reset', period=0.0)
+            self.warn(
+                'reset',
+                f'time jumped back by {-decision.jump_ns * 1e-9:.1f} s (bag restarted?): odometry reset',
+                period=0.0,
+            )
             self._reset()
         for held in decision.held:
             self._process(*held)
@@ -181,7 +208,7 @@ class FeatureAssociationNode(LegoLoamNode):
         stamp = stamp_to_ns(cloud_msg.header.stamp)
         try:
             scan = self._scan_input(stamp, cloud[1], info[1], outlier[1])
-        except ValueError as exc:   # InputRejected is a ValueError
+        except ValueError as exc:  # InputRejected is a ValueError
             # Each part passed its own checks, but the CloudInfo does not fit the cloud: one of them belongs to
             # another scan (a wrong stamp). The CloudInfo goes; the clouds wait for the one that fits them.
             self.count('scans_dropped')
@@ -195,28 +222,31 @@ class FeatureAssociationNode(LegoLoamNode):
         except Exception:
             self.count('scans_dropped')
             self.error('process_exception', 'unexpected error in featureAssociation; scan dropped')
-            problem = self.core.health_problem()
-            if problem is not None or self.step_failed():
-                self._heal(problem or f'{self.params.reliability.reset_after_failures} scans in a row failed')
+            heal = self.guard.after_failure(self.core.health_problem())
+            if heal is not None:
+                self._heal(heal)
             return
-        problem = self.core.health_problem() or _cloud_problem(result)
-        if problem is not None:
-            self.count('scans_dropped')
-            self._heal(problem)
+        heal = self.guard.after_step(self.core.health_problem() or _cloud_problem(result))
+        if heal is not None:
+            self.count(SCANS_DROPPED)
+            self._heal(heal)
             return
-        self.step_succeeded()
         self.order.processed(stamp)
         self._publish(result, cloud_msg.header.stamp)
         self.output_published()
-        self.count('scans')
+        self.count(SCANS_PROCESSED)
         if result.imu_used:
-            self.count('scans_with_imu')
+            self.count(SCANS_WITH_IMU)
         if result.imu_uncovered is not None:
             counter = uncovered_counter(result.imu_uncovered)
             self.count(counter)
             if warn_uncovered(self.counters[counter]):
-                self.warn(counter, uncovered_warning(result.imu_uncovered, self.counters[counter], result.stamp_ns,
-                                                     self.params.imu.time_offset))
+                self.warn(
+                    counter,
+                    uncovered_warning(
+                        result.imu_uncovered, self.counters[counter], result.stamp_ns, self.params.imu.time_offset
+                    ),
+                )
         self.report_imu_alignment(result.imu_alignment)
         if result.odometry is not None:
             self._report_conditioning(result.odometry)
@@ -231,24 +261,35 @@ class FeatureAssociationNode(LegoLoamNode):
             self.record_value('corner_match_ratio', stats.corner_match_ratio)
         if stats.lost:
             self.count('odometry_lost')
-            self.warn('odometry_lost', f'odometry lost (only {stats.extra["lost_match_ratio"]:.0%} of the sharp points '
-                      'matched, a turn too fast for the lidar alone?): ' +
-                      ('registered again from standing still' if stats.recovered else
-                       'standing still matched no better; the estimate is kept'))
+            self.warn(
+                'odometry_lost',
+                f'odometry lost (only {stats.extra["lost_match_ratio"]:.0%} of the sharp points '
+                'matched, a turn too fast for the lidar alone?): '
+                + (
+                    'registered again from standing still'
+                    if stats.recovered
+                    else 'standing still matched no better; the estimate is kept'
+                ),
+            )
         for stage, label in (('surf', 'roll, pitch and height'), ('corner', 'yaw and horizontal position')):
             condition = getattr(stats, f'{stage}_condition')
-            if condition == condition:   # NaN: the stage did not run
+            if condition == condition:  # NaN: the stage did not run
                 self.record_value(f'{stage}_condition', condition)
             else:
                 self.count(f'{stage}_stage_skipped')
-                self.warn(f'{stage}_skipped', f'odometry: too few correspondences for the {label}; '
-                          'that part of the motion is predicted only')
+                self.warn(
+                    f'{stage}_skipped',
+                    f'odometry: too few correspondences for the {label}; that part of the motion is predicted only',
+                )
             if getattr(stats, f'{stage}_degenerate'):
                 self.count(f'{stage}_degenerate')
             if getattr(stats, f'{stage}_walls'):
                 self.count(f'{stage}_wall_fallback')
-                self.warn(f'{stage}_walls', f'odometry: few features for the {label}; walls and ceiling used '
-                          'instead (degenerate surroundings, e.g. a corridor)')
+                self.warn(
+                    f'{stage}_walls',
+                    f'odometry: few features for the {label}; walls and ceiling used '
+                    'instead (degenerate surroundings, e.g. a corridor)',
+                )
 
     def _check_size(self, name: str, msg) -> None:
         """imageProjection's clouds and CloudInfo arrays hold at most one entry per range-image pixel: anything
@@ -257,11 +298,16 @@ class FeatureAssociationNode(LegoLoamNode):
         if name == 'info':
             arrays = cloud_info_from_serialized(msg, copy=False)[1] if isinstance(msg, bytes) else msg
             for field in ('segmented_cloud_range', 'segmented_cloud_col_ind', 'segmented_cloud_ground_flag'):
-                validation.check_count(f'{INPUT_TOPICS[name]}.{field} length', len(getattr(arrays, field)), limit,
-                                       'pixels of the range image')
+                validation.check_count(
+                    f'{INPUT_TOPICS[name]}.{field} length',
+                    len(getattr(arrays, field)),
+                    limit,
+                    'pixels of the range image',
+                )
         else:
-            validation.check_count(f'{INPUT_TOPICS[name]} points', int(msg.width) * int(msg.height), limit,
-                                   'pixels of the range image')
+            validation.check_count(
+                f'{INPUT_TOPICS[name]} points', int(msg.width) * int(msg.height), limit, 'pixels of the range image'
+            )
 
     def _heal(self, problem: str) -> None:
         """The odometry state is poisoned: start it again from the next scan, keeping the pose reached so far
@@ -274,7 +320,7 @@ class FeatureAssociationNode(LegoLoamNode):
         segmented, point_time = cloud
         n = len(segmented)
         validation.check_cloud_info(INPUT_TOPICS['info'], info, self.params, n)
-        info = copy.copy(info)   # (the decoded part may be held for a later scan: never change it)
+        info = copy.copy(info)  # (the decoded part may be held for a later scan: never change it)
         info.segmented_cloud_range = info.segmented_cloud_range[:n]
         info.segmented_cloud_col_ind = info.segmented_cloud_col_ind[:n]
         info.segmented_cloud_ground_flag = info.segmented_cloud_ground_flag[:n]
@@ -284,14 +330,18 @@ class FeatureAssociationNode(LegoLoamNode):
     def _publish(self, result, stamp) -> None:
         pose = result.pose
         header = make_header(stamp, CAMERA_INIT_FRAME)
-        if not result.initialized or result.resumed:   # (after a restart the pose reached so far goes on)
+        if not result.initialized or result.resumed:  # (after a restart the pose reached so far goes on)
             odometry, transform = serialized_odometry(pose, header, LASER_ODOM_FRAME)
             self.pub_odometry.publish(odometry)
             self.tf.send_serialized(transform)
         camera = make_header(stamp, CAMERA_FRAME)
         f = result.features
-        for publisher, cloud in ((self.pub_sharp, f.sharp), (self.pub_less_sharp, f.less_sharp),
-                                 (self.pub_flat, f.flat), (self.pub_less_flat, f.less_flat)):
+        for publisher, cloud in (
+            (self.pub_sharp, f.sharp),
+            (self.pub_less_sharp, f.less_sharp),
+            (self.pub_flat, f.flat),
+            (self.pub_less_flat, f.less_flat),
+        ):
             if publisher.get_subscription_count():
                 publisher.publish(serialized_xyzi_cloud(cloud, camera))
         if result.corner_last is not None:

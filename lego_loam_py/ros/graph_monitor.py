@@ -4,11 +4,12 @@
 which knows no ROS) and asks this node about the ROS graph: which nodes publish their always-on topic yet,
 whether the recorder subscribed to what it records, and when the last pipeline output arrived (the drain).
 """
+
 from __future__ import annotations
 
 import threading
 import time
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import rclpy
 from nav_msgs.msg import Odometry
@@ -35,10 +36,9 @@ class GraphMonitor:
         self.recorder_node = recorder_node
         self.context = Context()
         rclpy.init(context=self.context, signal_handler_options=SignalHandlerOptions.NO)
-        self.node = rclpy.create_node('lego_loam_py_launch', context=self.context,
-                                      start_parameter_services=False)
+        self.node = rclpy.create_node('lego_loam_py_launch', context=self.context, start_parameter_services=False)
         self.count = 0
-        self.last_arrival: float | None = None   # time.monotonic() [s] of the last counted message
+        self.last_arrival: float | None = None  # time.monotonic() [s] of the last counted message
         self.node.create_subscription(Odometry, counted_topic, self._on_output, qos.reliable(100), raw=True)
         self._executor = SingleThreadedExecutor(context=self.context)
         self._executor.add_node(self.node)
@@ -63,7 +63,8 @@ class GraphMonitor:
         missing = [name for name in nodes if not self.node.get_publishers_info_by_topic(self.ready_topics[name])]
         for topic in recorded_topics:
             if self.node.get_publishers_info_by_topic(topic) and not any(
-                    info.node_name == self.recorder_node for info in self.node.get_subscriptions_info_by_topic(topic)):
+                info.node_name == self.recorder_node for info in self.node.get_subscriptions_info_by_topic(topic)
+            ):
                 missing.append(f'recorder on {topic}')
         return missing
 

@@ -12,24 +12,30 @@ Bad clouds (invalid layout, no x/y/z, nothing valid, wrong sensor, more than
 throttled warning; an oversized one before it is decoded, and the memory its message took is given back. The
 node keeps no state between scans, so a bad cloud costs that cloud only.
 """
+
 from __future__ import annotations
 
 import sys
 import time
 
 import numpy as np
-from cloud_msgs.msg import CloudInfo
 from sensor_msgs.msg import PointCloud2
 
-from lego_loam_py.core.elevation_bias import elevation_note
-from lego_loam_py.core.frames import BASE_LINK_FRAME
+from cloud_msgs.msg import CloudInfo
 from lego_loam_py.core import validation
-from lego_loam_py.core.image_projection import ImageProjection, InputError, prepare_input
-from lego_loam_py.core.validation import MAX_COORDINATE
+from lego_loam_py.core.frames import BASE_LINK_FRAME
 from lego_loam_py.core.pointcloud import CloudLayoutError
+from lego_loam_py.core.projection.elevation_bias import elevation_note
+from lego_loam_py.core.projection.image_projection import ImageProjection, InputError, prepare_input
+from lego_loam_py.core.validation import MAX_COORDINATE
 from lego_loam_py.ros import qos
-from lego_loam_py.ros.conversions import (cloud_msg_to_array, make_header, serialized_cloud_info, serialized_xyzi_cloud,
-                                          stamp_to_ns)
+from lego_loam_py.ros.conversions import (
+    cloud_msg_to_array,
+    make_header,
+    serialized_cloud_info,
+    serialized_xyzi_cloud,
+    stamp_to_ns,
+)
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 
@@ -53,8 +59,10 @@ class ImageProjectionNode(LegoLoamNode):
         self.pub_pure = self.create_publisher(PointCloud2, '/segmented_cloud_pure', out)
         s = self.params.sensor
         rows_from = f"the '{s.ring_field}' field" if s.use_cloud_ring else 'the elevation angle'
-        self.get_logger().info(f'imageProjection: {topic} -> /segmented_cloud; {s.preset} range image '
-                               f'{s.n_scan}x{s.horizon_scan}, rows from {rows_from}')
+        self.get_logger().info(
+            f'imageProjection: {topic} -> /segmented_cloud; {s.preset} range image '
+            f'{s.n_scan}x{s.horizon_scan}, rows from {rows_from}'
+        )
 
     def on_cloud(self, msg: PointCloud2 | bytes) -> None:
         """A scan: a PointCloud2, or its serialized bytes."""
@@ -66,11 +74,14 @@ class ImageProjectionNode(LegoLoamNode):
         try:
             s = self.params.sensor
             try:
-                validation.check_count(f'{s.point_cloud_topic} points', int(msg.width) * int(msg.height),
-                                       validation.raw_points_limit(self.params),
-                                       f'points {self.params.reliability.max_points_per_pixel:g} per pixel of the '
-                                       f'{s.n_scan}x{s.horizon_scan} range image of sensor.preset {s.preset} allow '
-                                       '(reliability.max_points_per_pixel): not a scan of this sensor')
+                validation.check_count(
+                    f'{s.point_cloud_topic} points',
+                    int(msg.width) * int(msg.height),
+                    validation.raw_points_limit(self.params),
+                    f'points {self.params.reliability.max_points_per_pixel:g} per pixel of the '
+                    f'{s.n_scan}x{s.horizon_scan} range image of sensor.preset {s.preset} allow '
+                    '(reliability.max_points_per_pixel): not a scan of this sensor',
+                )
             except validation.InputRejected as exc:
                 raise InputError(str(exc)) from None
             points = cloud_msg_to_array(msg)
@@ -79,8 +90,11 @@ class ImageProjectionNode(LegoLoamNode):
                 raise InputError('the cloud has no valid point')
         except (CloudLayoutError, InputError) as exc:
             self.count('clouds_dropped')
-            self.warn('bad_cloud', f'dropping cloud stamped {msg.header.stamp.sec}.{msg.header.stamp.nanosec:09d} '
-                                   f'from {msg.header.frame_id!r}: {exc}')
+            self.warn(
+                'bad_cloud',
+                f'dropping cloud stamped {msg.header.stamp.sec}.{msg.header.stamp.nanosec:09d} '
+                f'from {msg.header.frame_id!r}: {exc}',
+            )
             self.reject_large(msg)
             return
         except Exception:  # never let one message take the node down
@@ -115,7 +129,9 @@ class ImageProjectionNode(LegoLoamNode):
         if self.pub_pure.get_subscription_count():
             self.pub_pure.publish(serialized_xyzi_cloud(result.segmented_cloud_pure, header))
         if 'elevation_offset_found' in result.stats:
-            self.get_logger().info(elevation_note(result.stats['elevation_offset_found'], stamp_to_ns(msg.header.stamp)))
+            self.get_logger().info(
+                elevation_note(result.stats['elevation_offset_found'], stamp_to_ns(msg.header.stamp))
+            )
         self.count('clouds_out')
         self.output_published()
         self.record_time('scan', time.perf_counter() - start)
@@ -125,18 +141,27 @@ class ImageProjectionNode(LegoLoamNode):
         s = self.params.sensor
         names = points.dtype.names or ()
         if s.use_cloud_ring and s.ring_field not in names:
-            self.warn('no_ring', f"the cloud has no '{s.ring_field}' field: rows come from the point order of a "
-                                 'cloud stored laser by laser, else from the elevation angle (set '
-                                 'sensor.use_cloud_ring: false for the elevation angle always and no warning)')
+            self.warn(
+                'no_ring',
+                f"the cloud has no '{s.ring_field}' field: rows come from the point order of a "
+                'cloud stored laser by laser, else from the elevation angle (set '
+                'sensor.use_cloud_ring: false for the elevation angle always and no warning)',
+            )
         if data.ring is not None and data.ring.size:
             highest = int(data.ring.max())
             if highest >= s.n_scan:
                 share = np.count_nonzero(data.ring >= s.n_scan) / data.ring.size
-                self.warn('ring_range', f'{share:.0%} of the points have {s.ring_field} >= {s.n_scan} (up to '
-                                        f'{highest}) and are dropped: is sensor.preset ({s.preset}) right?')
+                self.warn(
+                    'ring_range',
+                    f'{share:.0%} of the points have {s.ring_field} >= {s.n_scan} (up to '
+                    f'{highest}) and are dropped: is sensor.preset ({s.preset}) right?',
+                )
         if data.dropped_non_finite:
-            self.warn('non_finite', f'{data.dropped_non_finite} points with NaN/inf coordinates (or beyond '
-                                    f'{MAX_COORDINATE:g} m) dropped', period=60.0)
+            self.warn(
+                'non_finite',
+                f'{data.dropped_non_finite} points with NaN/inf coordinates (or beyond {MAX_COORDINATE:g} m) dropped',
+                period=60.0,
+            )
 
 
 def main(args=None) -> int:

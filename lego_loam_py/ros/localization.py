@@ -11,6 +11,7 @@
   why), ERROR when the map is not loaded; sent after every step and once a second. While there is no fix, a
   throttled log line says so; fixes and losses are logged as they happen.
 """
+
 from __future__ import annotations
 
 import math
@@ -21,17 +22,17 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.clock import Clock, ClockType
 
 from lego_loam_py.core.frames import CAMERA_INIT_FRAME, MAP_FRAME, camera_pose_to_lidar, quaternion_to_matrix
-from lego_loam_py.core.localization import Localization, LocalizationStatus
-from lego_loam_py.core.map_bundle import MapBundleError
+from lego_loam_py.core.localization.localizer import Localization, LocalizationStatus
+from lego_loam_py.core.mapping.map_bundle import MapBundleError
 from lego_loam_py.core.validation import MAX_POSITION
 from lego_loam_py.ros import qos
 
 __all__ = ['LocalizationFrontEnd', 'initial_pose_of', 'status_message', 'STATUS_TOPIC', 'INITIAL_POSE_TOPIC']
 
 STATUS_TOPIC, INITIAL_POSE_TOPIC = '/localization_status', '/initialpose'
-RETRY_PERIOD = 10.0     # [s] between attempts to load a map that could not be loaded
-LOG_PERIOD = 5.0        # [s] between two 'no pose yet' log lines
-MAX_RADIUS = 100.0      # [m] a covariance wider than this says "anywhere": the search radius stops here
+RETRY_PERIOD = 10.0  # [s] between attempts to load a map that could not be loaded
+LOG_PERIOD = 5.0  # [s] between two 'no pose yet' log lines
+MAX_RADIUS = 100.0  # [m] a covariance wider than this says "anywhere": the search radius stops here
 
 
 def initial_pose_of(msg: PoseWithCovarianceStamped, default_radius: float) -> tuple[float, float, float, float]:
@@ -48,12 +49,12 @@ def initial_pose_of(msg: PoseWithCovarianceStamped, default_radius: float) -> tu
     if not (np.abs(t) <= MAX_POSITION).all():
         raise ValueError(f'the position is beyond {MAX_POSITION:g} m')
     scale = float(np.abs(q).max())
-    norm = scale * float(np.linalg.norm(q / scale)) if scale > 0 else 0.0   # (no overflow for huge values)
+    norm = scale * float(np.linalg.norm(q / scale)) if scale > 0 else 0.0  # (no overflow for huge values)
     if abs(norm - 1.0) > 0.1:
         raise ValueError(f'the orientation is no unit quaternion (norm {norm:.3g})')
     pose = np.eye(4)
     pose[:3, :3], pose[:3, 3] = quaternion_to_matrix(q), t
-    if frame == CAMERA_INIT_FRAME:   # (LOAM camera axes: the same frame as map, its axes turned)
+    if frame == CAMERA_INIT_FRAME:  # (LOAM camera axes: the same frame as map, its axes turned)
         pose = camera_pose_to_lidar(pose)
     yaw = math.degrees(math.atan2(pose[1, 0], pose[0, 0]))
     covariance = np.asarray(msg.pose.covariance, dtype=float)
@@ -67,18 +68,26 @@ def initial_pose_of(msg: PoseWithCovarianceStamped, default_radius: float) -> tu
 def status_message(node_name: str, status: LocalizationStatus | None, error: str | None = None) -> DiagnosticStatus:
     """/localization_status of ``status`` (or, without one, of a map that could not be loaded: ``error``)."""
     if status is None:
-        return DiagnosticStatus(level=DiagnosticStatus.ERROR, name=f'{node_name}/localization',
-                                message=f'no map loaded: {error}', hardware_id='lego_loam_py',
-                                values=[KeyValue(key='state', value='no_map')])
+        return DiagnosticStatus(
+            level=DiagnosticStatus.ERROR,
+            name=f'{node_name}/localization',
+            message=f'no map loaded: {error}',
+            hardware_id='lego_loam_py',
+            values=[KeyValue(key='state', value='no_map')],
+        )
     level = DiagnosticStatus.OK if status.localized else DiagnosticStatus.WARN
-    return DiagnosticStatus(level=level, name=f'{node_name}/localization', message=status.message,
-                            hardware_id='lego_loam_py',
-                            values=[KeyValue(key=k, value=str(v)) for k, v in status.values.items()])
+    return DiagnosticStatus(
+        level=level,
+        name=f'{node_name}/localization',
+        message=status.message,
+        hardware_id='lego_loam_py',
+        values=[KeyValue(key=k, value=str(v)) for k, v in status.values.items()],
+    )
 
 
 class LocalizationFrontEnd:
-    """The ROS side of :class:`~lego_loam_py.core.localization.Localization` for a mapOptimization node (see the
-    module docstring). ``core`` is the localization once the map is loaded, else None."""
+    """The ROS side of :class:`~lego_loam_py.core.localization.localizer.Localization` for a mapOptimization node (see
+    the module docstring). ``core`` is the localization once the map is loaded, else None."""
 
     def __init__(self, node):
         self.node = node
@@ -87,7 +96,7 @@ class LocalizationFrontEnd:
         self._events_seen = 0
         node.create_subscription(PoseWithCovarianceStamped, INITIAL_POSE_TOPIC, self.on_initial_pose, qos.reliable(5))
         self.pub_status = node.create_publisher(DiagnosticStatus, STATUS_TOPIC, qos.latched())
-        wall = Clock(clock_type=ClockType.STEADY_TIME)   # (with use_sim_time and no /clock, ROS time stands still)
+        wall = Clock(clock_type=ClockType.STEADY_TIME)  # (with use_sim_time and no /clock, ROS time stands still)
         node.create_timer(1.0, self.publish_status, clock=wall)
         self.load()
         self._retry = None if self.core is not None else node.create_timer(RETRY_PERIOD, self._load_again, clock=wall)
@@ -100,8 +109,11 @@ class LocalizationFrontEnd:
         except (MapBundleError, OSError, ValueError) as exc:
             self.error = str(exc)
             node.count('map_load_failures')
-            node.warn('map_load', f'localization: {exc}; no pose will be published (trying again every '
-                                  f'{RETRY_PERIOD:g} s)', level='error')
+            node.warn(
+                'map_load',
+                f'localization: {exc}; no pose will be published (trying again every {RETRY_PERIOD:g} s)',
+                level='error',
+            )
         else:
             self.error = None
             for warning in self.core.warnings:
@@ -128,8 +140,10 @@ class LocalizationFrontEnd:
             return
         self.core.set_initial_pose(x, y, None, yaw, radius=radius, origin=INITIAL_POSE_TOPIC)
         node.count('initial_poses')
-        node.get_logger().info(f'{INITIAL_POSE_TOPIC}: x {x:.2f} m, y {y:.2f} m, yaw {yaw:.1f} deg; looking for the '
-                               f'place within {radius:.1f} m of it')
+        node.get_logger().info(
+            f'{INITIAL_POSE_TOPIC}: x {x:.2f} m, y {y:.2f} m, yaw {yaw:.1f} deg; looking for the '
+            f'place within {radius:.1f} m of it'
+        )
         self.publish_status()
 
     def after_step(self, published: bool) -> None:
@@ -137,7 +151,7 @@ class LocalizationFrontEnd:
         line saying why."""
         core, node = self.core, self.node
         new, self._events_seen = core.event_count - self._events_seen, core.event_count
-        for event in (list(core.events)[-new:] if new > 0 else []):
+        for event in list(core.events)[-new:] if new > 0 else []:
             if event.kind in ('fix', 'lost'):
                 log = node.get_logger().info if event.kind == 'fix' else node.get_logger().warning
                 log(f'localization {event.kind}: {event.detail}')

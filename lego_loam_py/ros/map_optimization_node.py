@@ -3,7 +3,7 @@
 Subscribes /laser_cloud_corner_last, /laser_cloud_surf_last, /outlier_cloud_last (reliable, depth 2),
 /laser_odom_to_init (depth 5), synchronised by stamp within ``map_optimization.sync_tolerance``, and
 /imu/data for the roll/pitch blend (not used while the IMU check finds it disagrees with the mapped poses, see
-:mod:`lego_loam_py.core.imu_monitor`). Processes at most every ``mapping_process_interval`` and publishes:
+:mod:`lego_loam_py.core.imu.monitor`). Processes at most every ``mapping_process_interval`` and publishes:
 
 * /aft_mapped_to_init (nav_msgs/Odometry, camera_init -> aft_mapped) and its TF; as in the original its
   twist fields carry the odometry pose the step started from (angular = rx, ry, rz; linear = tx, ty, tz),
@@ -20,8 +20,8 @@ thread of its own, so the ICP does not hold up the mapping steps. The service ``
 ``map_optimization.file_directory``, also on a worker thread (see :mod:`lego_loam_py.ros.services`). The IMU
 samples are taken with each mapping input (a polled subscription: no wake-up per sample).
 
-With ``map_optimization.mode: localization`` the core is :class:`~lego_loam_py.core.localization.Localization` in the
-saved map of ``map_optimization.map_path`` (never modified; no loop closure, no map saved): the same topics come
+With ``map_optimization.mode: localization`` the core is :class:`~lego_loam_py.core.localization.localizer.Localization`
+in the saved map of ``map_optimization.map_path`` (never modified; no loop closure, no map saved): the same topics come
 out, in that map's frame, once a place is verified; /initialpose and /localization_status are
 :mod:`lego_loam_py.ros.localization`'s.
 
@@ -33,6 +33,7 @@ than any vehicle moves between two inputs (featureAssociation restarted or reset
 optimised pose instead of dragging the map along. Inputs with non-finite or absurd values are dropped with a
 throttled warning; a mapping step that fails or yields a non-finite pose is skipped and the map is kept.
 """
+
 from __future__ import annotations
 
 import sys
@@ -45,33 +46,56 @@ from sensor_msgs.msg import Imu, PointCloud2
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
-from lego_loam_py.core.frames import (AFT_MAPPED_FRAME, CAMERA_INIT_FRAME, matrix_to_pose6, pose6_to_matrix,
-                                      transform_cloud)
 from lego_loam_py.core import validation
-from lego_loam_py.core.io import CoalescingRunner
-from lego_loam_py.core.map_optimization import MapOptimization
-from lego_loam_py.core.odometry_continuity import OdometryContinuity
-from lego_loam_py.core.sync import StampOrder, StampSynchronizer
+from lego_loam_py.core.frames import (
+    AFT_MAPPED_FRAME,
+    CAMERA_INIT_FRAME,
+    matrix_to_pose6,
+    pose6_to_matrix,
+    transform_cloud,
+)
+from lego_loam_py.core.guard import (
+    KEYFRAMES,
+    MAPPING_DEGENERATE,
+    MAPPING_STEPS,
+    MAPPING_STEPS_FAILED,
+    ODOMETRY_RESTARTS,
+)
+from lego_loam_py.core.mapping.map_optimization import MapOptimization
+from lego_loam_py.core.mapping.odometry_continuity import OdometryContinuity
 from lego_loam_py.ros import qos
+from lego_loam_py.ros.coalescing import CoalescingRunner
+from lego_loam_py.ros.conversions import (
+    cloud_msg_to_xyzi,
+    make_header,
+    odometry_to_pose,
+    serialized_odometry,
+    serialized_stamp_ns,
+    serialized_xyzi_cloud,
+    stamp_to_ns,
+)
 from lego_loam_py.ros.localization import LocalizationFrontEnd
-from lego_loam_py.ros.conversions import (cloud_msg_to_xyzi, make_header, odometry_to_pose,
-                                          serialized_odometry, serialized_stamp_ns, serialized_xyzi_cloud, stamp_to_ns)
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 from lego_loam_py.ros.services import create_deferred_service
+from lego_loam_py.ros.sync import StampOrder, StampSynchronizer
 from lego_loam_py.ros.tf import TransformBroadcaster
 
 __all__ = ['MapOptimizationNode', 'main']
 
 RESET_JUMP_NS = 1_000_000_000
-IMU_QUEUE_DEPTH = 200   # IMU samples kept between two mapping inputs (1 s at 200 Hz)
+IMU_QUEUE_DEPTH = 200  # IMU samples kept between two mapping inputs (1 s at 200 Hz)
 MAP_FILE_STEMS = ('global_map', 'corner_map', 'surface_map', 'trajectory', 'trajectory_camera_init')
-INPUT_TOPICS = {'corner': '/laser_cloud_corner_last', 'surf': '/laser_cloud_surf_last', 'outlier': '/outlier_cloud_last',
-                'odometry': '/laser_odom_to_init'}
+INPUT_TOPICS = {
+    'corner': '/laser_cloud_corner_last',
+    'surf': '/laser_cloud_surf_last',
+    'outlier': '/outlier_cloud_last',
+    'odometry': '/laser_odom_to_init',
+}
 
 
 class MapOptimizationNode(LegoLoamNode):
-    POLL_CLOCK = False   # the global map and loop-closure timers run on ROS time: every /clock tick counts
+    POLL_CLOCK = False  # the global map and loop-closure timers run on ROS time: every /clock tick counts
 
     def __init__(self, **kwargs):
         super().__init__('mapOptimization', **kwargs)
@@ -83,17 +107,20 @@ class MapOptimizationNode(LegoLoamNode):
         depth2 = qos.reliable(2)
         # Serialized clouds, read from their bytes (cloud_from_serialized).
         for name in ('corner', 'surf', 'outlier'):
-            self.create_subscription(PointCloud2, INPUT_TOPICS[name], lambda m, name=name: self.on_part(name, m),
-                                     depth2, raw=True)
+            self.create_subscription(
+                PointCloud2, INPUT_TOPICS[name], lambda m, name=name: self.on_part(name, m), depth2, raw=True
+            )
         self.create_subscription(Odometry, '/laser_odom_to_init', self._on_odometry_message, qos.reliable(5))
         # The same topic again, serialized and polled, for the publisher of each message (the executor's callbacks
         # get no message info): a restarted featureAssociation is another publisher.
-        self._odometry_senders = self.create_polled_subscription(Odometry, '/laser_odom_to_init', qos.reliable(20),
-                                                                 raw=True)
+        self._odometry_senders = self.create_polled_subscription(
+            Odometry, '/laser_odom_to_init', qos.reliable(20), raw=True
+        )
         self.imu_subscription = None
-        if self.params.sensor.imu_topic:   # taken with each mapping input (1 s of samples wait at 200 Hz)
-            self.imu_subscription = self.create_polled_subscription(Imu, self.params.sensor.imu_topic,
-                                                                    qos.sensor_input(IMU_QUEUE_DEPTH), raw=True)
+        if self.params.sensor.imu_topic:  # taken with each mapping input (1 s of samples wait at 200 Hz)
+            self.imu_subscription = self.create_polled_subscription(
+                Imu, self.params.sensor.imu_topic, qos.sensor_input(IMU_QUEUE_DEPTH), raw=True
+            )
         self.pub_aft_mapped = self.create_publisher(Odometry, '/aft_mapped_to_init', qos.reliable(5))
         self.tf = TransformBroadcaster(self)
         self.pub_key_poses = self.create_publisher(PointCloud2, '/key_pose_origin', depth2)
@@ -103,13 +130,13 @@ class MapOptimizationNode(LegoLoamNode):
         self.pub_history = self.create_publisher(PointCloud2, '/history_cloud', depth2)
         self.pub_corrected = self.create_publisher(PointCloud2, '/corrected_cloud', depth2)
         self.pub_loops = self.create_publisher(MarkerArray, '/loop_closures', qos.latched())
-        self._loops_counted = 0   # accepted loops counted so far (a verified loop may be accepted later)
+        self._loops_counted = 0  # accepted loops counted so far (a verified loop may be accepted later)
         # Saves run on a worker thread, one at a time; callers during a save share the next one (see services.py).
         self.saves = CoalescingRunner(self._save_now, 'save_map')
         create_deferred_service(self, Trigger, 'save_map', self._save_requested, _fill_save_response)
         self.order = StampOrder(RESET_JUMP_NS)
-        self.continuity = OdometryContinuity()   # the odometry poses taken, to see a restarted odometry
-        self._odometry_publisher: dict[int, object] = {}   # stamp -> publisher of recent odometry messages
+        self.continuity = OdometryContinuity()  # the odometry poses taken, to see a restarted odometry
+        self._odometry_publisher: dict[int, object] = {}  # stamp -> publisher of recent odometry messages
         self.last_step_stamp = None
         self.create_timer(mo.global_map_publish_period, self.publish_global_map)
         # Loop closure (an ICP can take seconds) on a worker thread of its own, so that mapping steps go on; the
@@ -121,16 +148,21 @@ class MapOptimizationNode(LegoLoamNode):
             threading.Thread(target=self._loop_worker, name='loop closure', daemon=True).start()
         self._remove_stale_temporaries()
         if self.localization is None:
-            self.get_logger().info(f'mapOptimization: every {mo.mapping_process_interval} s, loop closure '
-                                   f'{"on" if lc.loop_closure_enable_flag else "off"}, maps saved to {mo.file_directory}')
+            self.get_logger().info(
+                f'mapOptimization: every {mo.mapping_process_interval} s, loop closure '
+                f'{"on" if lc.loop_closure_enable_flag else "off"}, maps saved to {mo.file_directory}'
+            )
 
     def _remove_stale_temporaries(self) -> None:
         """A predecessor killed while saving left temporary files (its saved files are complete): remove them."""
-        from lego_loam_py.core.io import remove_stale_temporaries
+        from lego_loam_py.formats import remove_stale_temporaries
+
         removed = remove_stale_temporaries(self.params.map_optimization.file_directory, stems=MAP_FILE_STEMS)
         if removed:
-            self.get_logger().info(f'removed {len(removed)} temporary file(s) of an interrupted save in '
-                                   f'{self.params.map_optimization.file_directory}')
+            self.get_logger().info(
+                f'removed {len(removed)} temporary file(s) of an interrupted save in '
+                f'{self.params.map_optimization.file_directory}'
+            )
 
     # ------------------------------------------------------------------------------------------ inputs
     def on_part(self, name: str, msg, decoded=None) -> None:
@@ -145,10 +177,18 @@ class MapOptimizationNode(LegoLoamNode):
         if decoded is None:
             # A cloud derived from the range image holds at most one point per pixel: anything bigger is rejected
             # on its header, before it is decoded.
-            ok, _ = self.take(lambda: validation.check_count(
-                f'{INPUT_TOPICS[name]} points', int(msg.width) * int(msg.height),
-                validation.derived_points_limit(self.params), 'pixels of the range image'),
-                'inputs_dropped', 'mapping input dropped unread', 'oversized', msg)
+            ok, _ = self.take(
+                lambda: validation.check_count(
+                    f'{INPUT_TOPICS[name]} points',
+                    int(msg.width) * int(msg.height),
+                    validation.derived_points_limit(self.params),
+                    'pixels of the range image',
+                ),
+                'inputs_dropped',
+                'mapping input dropped unread',
+                'oversized',
+                msg,
+            )
             if not ok:
                 return
             ok, decoded = self.take(lambda: self._decode_cloud(name, msg), 'inputs_dropped', 'mapping input dropped')
@@ -203,11 +243,16 @@ class MapOptimizationNode(LegoLoamNode):
 
     def on_inputs(self, parts: dict) -> None:
         self.count('inputs_in')
-        self.drain(self.imu_subscription, self.on_imu)   # the IMU samples up to this input first
+        self.drain(self.imu_subscription, self.on_imu)  # the IMU samples up to this input first
         stamp = stamp_to_ns(parts['odometry'][0].header.stamp)
-        decision = self.check_order(self.order, stamp, parts,
-                                    lambda held: stamp_to_ns(held['odometry'][0].header.stamp), 'input',
-                                    'inputs_dropped')
+        decision = self.check_order(
+            self.order,
+            stamp,
+            parts,
+            lambda held: stamp_to_ns(held['odometry'][0].header.stamp),
+            'input',
+            'inputs_dropped',
+        )
         if decision is None:
             return
         if decision.action == 'reset':
@@ -219,7 +264,7 @@ class MapOptimizationNode(LegoLoamNode):
     def _process(self, parts: dict) -> None:
         """One synchronised input: each part is (message, decoded content), checked on arrival."""
         if self.localization is not None and self.core is None:
-            self.core = self.localization.core   # (loaded meanwhile, or still None: no map, no output)
+            self.core = self.localization.core  # (loaded meanwhile, or still None: no map, no output)
             if self.core is None:
                 self.count('inputs_without_map')
                 return
@@ -234,29 +279,28 @@ class MapOptimizationNode(LegoLoamNode):
             step = self.core.process(stamp, transform_sum, clouds['corner'], clouds['surf'], clouds['outlier'])
         except Exception:
             self.input_valid()
-            self.count('steps_failed')
+            self.count(MAPPING_STEPS_FAILED)
             self.error('process_exception', 'unexpected error in mapOptimization; step skipped, map kept')
-            problem = self.core.health_problem()
-            if problem is not None or self.step_failed():
-                self._heal(problem or f'{self.params.reliability.reset_after_failures} mapping steps in a row failed')
+            heal = self.guard.after_failure(self.core.health_problem())
+            if heal is not None:
+                self._heal(heal)
             return
         if step is None and self.localization is not None and self.core.withheld:
-            self.count('steps_not_localized')   # (no fix in the saved map: nothing to publish, and it says so)
+            self.count('steps_not_localized')  # (no fix in the saved map: nothing to publish, and it says so)
             self.localization.after_step(published=False)
             return
-        if step is None:   # (not due: the original maps every mapping_process_interval; no output expected)
+        if step is None:  # (not due: the original maps every mapping_process_interval; no output expected)
             self.count('inputs_skipped_by_interval')
             return
         self.input_valid()
-        problem = self.core.health_problem()
-        if problem is not None:
-            self.count('steps_failed')
-            self._heal(problem)
+        heal = self.guard.after_step(self.core.health_problem())
+        if heal is not None:
+            self.count(MAPPING_STEPS_FAILED)
+            self._heal(heal)
             return
-        self.step_succeeded()
-        self.count('steps')
+        self.count(MAPPING_STEPS)
         if step.keyframe_added:
-            self.count('keyframes')
+            self.count(KEYFRAMES)
         self._report_conditioning(step)
         self.report_imu_alignment(step.imu_alignment)
         self._publish(step, odometry.header.stamp)
@@ -269,13 +313,16 @@ class MapOptimizationNode(LegoLoamNode):
         """How well the step held the map pose: its condition (smallest eigenvalue of the registration's normal
         matrix, in full-weight correspondences) in the statistics and on /diagnostics, a counter of degenerate
         steps and a throttled warning for them."""
-        if step.condition == step.condition:   # NaN: no registration (no map yet, too few correspondences)
+        if step.condition == step.condition:  # NaN: no registration (no map yet, too few correspondences)
             self.record_value('condition', step.condition)
         if step.degenerate:
-            self.count('degenerate')
-            self.warn('degenerate', 'scan-to-map: a direction is held by fewer than '
-                      f'{self.params.map_optimization.degeneracy_threshold:g} correspondences (degenerate '
-                      'surroundings, e.g. a featureless tunnel); the odometry is kept along it')
+            self.count(MAPPING_DEGENERATE)
+            self.warn(
+                'degenerate',
+                'scan-to-map: a direction is held by fewer than '
+                f'{self.params.map_optimization.degeneracy_threshold:g} correspondences (degenerate '
+                'surroundings, e.g. a featureless tunnel); the odometry is kept along it',
+            )
 
     def _heal(self, problem: str) -> None:
         """The mapping state is poisoned: reset what is, keep the map and the trajectory."""
@@ -283,12 +330,13 @@ class MapOptimizationNode(LegoLoamNode):
         self.continuity.forget()
         self.state_reset(problem, done)
 
-    def _check_odometry_continuity(self, stamp: int, pose: np.ndarray, transform_sum: np.ndarray,
-                                   publisher=None) -> None:
-        """Re-anchor when the odometry restarted (see :mod:`lego_loam_py.core.odometry_continuity`)."""
+    def _check_odometry_continuity(
+        self, stamp: int, pose: np.ndarray, transform_sum: np.ndarray, publisher=None
+    ) -> None:
+        """Re-anchor when the odometry restarted (see :mod:`lego_loam_py.core.mapping.odometry_continuity`)."""
         jump = self.continuity.check(stamp, pose, publisher)
         if jump is not None:
-            self.count('odometry_restarts')
+            self.count(ODOMETRY_RESTARTS)
             self.warn('odometry_jump', jump.describe(), period=0.0)
             self.core.reanchor(jump, pose, transform_sum)
 
@@ -296,7 +344,7 @@ class MapOptimizationNode(LegoLoamNode):
         """A bag restarted: keep the map built so far on disk, then start a new one (the IMU samples stay)."""
         mo = self.params.map_optimization
         jump = jump_ns * 1e-9
-        if self.localization is not None:   # the saved map stays; where the robot is must be found again
+        if self.localization is not None:  # the saved map stays; where the robot is must be found again
             self.warn('reset', f'time jumped back by {jump:.1f} s (bag restarted?): relocalizing', period=0.0)
             if self.core is not None:
                 self.core.restart()
@@ -305,7 +353,7 @@ class MapOptimizationNode(LegoLoamNode):
             self.count('resets')
             return
         saved = ''
-        if self.core.keyframes and mo.save_map_on_shutdown:
+        if self.core.builds_map and self.core.keyframes and mo.save_map_on_shutdown:
             try:
                 self.core.save(mo.file_directory)
                 saved = f'; the previous map was saved to {mo.file_directory}'
@@ -324,8 +372,9 @@ class MapOptimizationNode(LegoLoamNode):
         pose = pose6_to_matrix(step.transform_aft)
         header = make_header(stamp, CAMERA_INIT_FRAME)
         bef = step.transform_bef
-        odometry, transform = serialized_odometry(pose, header, AFT_MAPPED_FRAME, twist_angular=bef[:3],
-                                                  twist_linear=bef[3:])
+        odometry, transform = serialized_odometry(
+            pose, header, AFT_MAPPED_FRAME, twist_angular=bef[:3], twist_linear=bef[3:]
+        )
         self.pub_aft_mapped.publish(odometry)
         self.tf.send_serialized(transform)
         self.last_step_stamp = stamp
@@ -357,6 +406,8 @@ class MapOptimizationNode(LegoLoamNode):
                 self.loop_closure()
 
     def loop_closure(self) -> None:
+        if not self.core.builds_map:  # (localization: the saved map is not changed)
+            return
         try:
             candidate = self.core.detect_loop()
             if candidate is None:
@@ -367,20 +418,29 @@ class MapOptimizationNode(LegoLoamNode):
             return
         stamp = self.last_step_stamp
         if stamp is not None and self.pub_history.get_subscription_count():
-            self.pub_history.publish(serialized_xyzi_cloud(loop_cloud_in_world(candidate, self.params, 'target'),
-                                                           make_header(stamp, CAMERA_INIT_FRAME)))
+            self.pub_history.publish(
+                serialized_xyzi_cloud(
+                    loop_cloud_in_world(candidate, self.core.loop_method, 'target'),
+                    make_header(stamp, CAMERA_INIT_FRAME),
+                )
+            )
         accepted = sum(loop.accepted for loop in self.core.loops)
         if accepted > self._loops_counted:
             self.count('loops_closed', accepted - self._loops_counted)
             self._loops_counted = accepted
-            self.get_logger().info(f'loop closed: keyframe {result.latest} -> {result.candidate} ({result.detector}, '
-                                   f'fit {result.fitness:.3f}, correction {result.correction_m:.2f} m / '
-                                   f'{result.correction_deg:.2f} deg); {accepted} loops in the graph')
+            self.get_logger().info(
+                f'loop closed: keyframe {result.latest} -> {result.candidate} ({result.detector}, '
+                f'fit {result.fitness:.3f}, correction {result.correction_m:.2f} m / '
+                f'{result.correction_deg:.2f} deg); {accepted} loops in the graph'
+            )
             self.publish_loop_markers()
             if stamp is not None and self.pub_corrected.get_subscription_count():
-                self.pub_corrected.publish(serialized_xyzi_cloud(
-                    loop_cloud_in_world(candidate, self.params, 'corrected', result),
-                    make_header(stamp, CAMERA_INIT_FRAME)))
+                self.pub_corrected.publish(
+                    serialized_xyzi_cloud(
+                        loop_cloud_in_world(candidate, self.core.loop_method, 'corrected', result),
+                        make_header(stamp, CAMERA_INIT_FRAME),
+                    )
+                )
         if not result.accepted:
             self.count('loops_pending' if result.reason == 'pending' else 'loops_rejected')
 
@@ -389,8 +449,11 @@ class MapOptimizationNode(LegoLoamNode):
         with self.core.lock:
             positions = self.core.keyframe_poses()[:, 3:]
             index = {kf.stamp_ns: kf.index for kf in self.core.keyframes}
-            pairs = [(index[loop.latest_stamp_ns], index[loop.candidate_stamp_ns]) for loop in self.core.loops
-                     if loop.accepted and loop.latest_stamp_ns in index and loop.candidate_stamp_ns in index]
+            pairs = [
+                (index[loop.latest_stamp_ns], index[loop.candidate_stamp_ns])
+                for loop in self.core.loops
+                if loop.accepted and loop.latest_stamp_ns in index and loop.candidate_stamp_ns in index
+            ]
         if self.last_step_stamp is not None:
             self.pub_loops.publish(loop_markers(make_header(self.last_step_stamp, CAMERA_INIT_FRAME), positions, pairs))
 
@@ -403,9 +466,11 @@ class MapOptimizationNode(LegoLoamNode):
         core = self.core
         directory = self.params.map_optimization.file_directory
         if self.localization is not None:
-            return True, (f'localization: the saved map in {self.params.map_optimization.map_path} is never modified; '
-                          'nothing new to save')
-        if not core.keyframes:   # nothing to write (and the files of an earlier run stay as they are)
+            return True, (
+                f'localization: the saved map in {self.params.map_optimization.map_path} is never modified; '
+                'nothing new to save'
+            )
+        if not core.keyframes:  # nothing to write (and the files of an earlier run stay as they are)
             return False, 'no keyframe yet: nothing to save'
         try:
             written = core.save(directory)
@@ -420,9 +485,15 @@ class MapOptimizationNode(LegoLoamNode):
         out = super().statistics()
         if self.localization is not None:
             status = self.core.status() if self.core is not None else None
-            out['localization'] = dict(state='no_map', error=self.localization.error) if status is None else dict(
-                status.values, message=status.message,
-                events=[dict(stamp_ns=e.stamp_ns, kind=e.kind, detail=e.detail) for e in self.core.events])
+            out['localization'] = (
+                dict(state='no_map', error=self.localization.error)
+                if status is None
+                else dict(
+                    status.values,
+                    message=status.message,
+                    events=[dict(stamp_ns=e.stamp_ns, kind=e.kind, detail=e.detail) for e in self.core.events],
+                )
+            )
             return out
         with self.core.lock:
             keyframes = list(self.core.keyframes)
@@ -433,6 +504,7 @@ class MapOptimizationNode(LegoLoamNode):
             from dataclasses import asdict
 
             from lego_loam_py.results import LoopClosures
+
             out['loop_closures'] = asdict(LoopClosures.of(list(self.core.loops), keyframes[0].stamp_ns))
         return out
 
@@ -441,6 +513,7 @@ class MapOptimizationNode(LegoLoamNode):
         status = super().diagnostic_status()
         if self.localization is not None:
             from diagnostic_msgs.msg import KeyValue
+
             state = self.core.status().state if self.core is not None else 'no_map'
             status.values.append(KeyValue(key='localization_state', value=state))
         return status
@@ -448,7 +521,7 @@ class MapOptimizationNode(LegoLoamNode):
     def on_shutdown(self) -> None:
         self._stopping.set()
         mo = self.params.map_optimization
-        if mo.save_map_on_shutdown and self.localization is None and self.core.keyframes:
+        if mo.save_map_on_shutdown and self.core.builds_map and self.core.keyframes:
             # Through the runner: a save_map call in progress finishes first, then the final map is written.
             success, message = self.saves.request().result()
             if success:
@@ -480,18 +553,18 @@ def loop_markers(header, positions: np.ndarray, pairs) -> MarkerArray:
     return MarkerArray(markers=[clear, lines, ends])
 
 
-def loop_cloud_in_world(candidate, params, which: str, result=None) -> np.ndarray:
+def loop_cloud_in_world(candidate, method, which: str, result=None) -> np.ndarray:
     """(n, 4) world points (camera_init) of a loop candidate's target map ('target') or of its source aligned by the
     registration ('corrected'), for /history_cloud and /corrected_cloud."""
     from lego_loam_py.core.frames import camera_pose_to_lidar, lidar_to_camera
 
-    if params.loop_closure.method == 'original':   # (its clouds are in the world already)
+    if method.clouds_in_world:  # (the original method's; the verified one's are in the keyframes' frames)
         points = candidate.target if which == 'target' else candidate.source.copy()
         if which == 'corrected':
             points[:, :3] = points[:, :3] @ result.correction[:3, :3].T + result.correction[:3, 3]
         return points
-    to_world = camera_pose_to_lidar(candidate.candidate_pose)        # the verified method's are in lidar axes
-    if which == 'corrected':   # the source where the registration put it: latest in the candidate's frame
+    to_world = camera_pose_to_lidar(candidate.candidate_pose)  # the verified method's are in lidar axes
+    if which == 'corrected':  # the source where the registration put it: latest in the candidate's frame
         to_world = to_world @ camera_pose_to_lidar(np.linalg.inv(result.relative))
     points = candidate.target if which == 'target' else candidate.source
     world = points[:, :3] @ to_world[:3, :3].T + to_world[:3, 3]
@@ -501,7 +574,7 @@ def loop_cloud_in_world(candidate, params, which: str, result=None) -> np.ndarra
 def _fill_save_response(response, finished) -> None:
     try:
         response.success, response.message = finished.result()
-    except Exception as exc:   # (_save_now reports its own failures; this is a bug in it)
+    except Exception as exc:  # (_save_now reports its own failures; this is a bug in it)
         response.success, response.message = False, f'saving failed: {exc!r}'
 
 

@@ -1,4 +1,5 @@
 """Message classes from type names ('sensor_msgs/msg/PointCloud2')."""
+
 from __future__ import annotations
 
 import importlib

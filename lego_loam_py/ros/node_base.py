@@ -1,4 +1,5 @@
 """What every lego_loam_py node shares: typed parameters, throttled warnings, timing statistics, diagnostics."""
+
 from __future__ import annotations
 
 import inspect
@@ -15,14 +16,20 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from lego_loam_py.allocator import release_memory
+from lego_loam_py.core.guard import STATE_RESETS, StepGuard
+from lego_loam_py.core.imu.buffer import imu_sample
 from lego_loam_py.core.params import Params
 from lego_loam_py.core.pointcloud import CloudLayoutError
-from lego_loam_py.core.imu import imu_sample
-from lego_loam_py.ros.conversions import (cloud_from_serialized, imu_sample_from_serialized, ns_to_stamp,
-                                          serialized_stamp_ns, stamp_to_ns)
-from lego_loam_py.ros import qos
-from lego_loam_py.ros.params import declare_params
 from lego_loam_py.results import TimingStats
+from lego_loam_py.ros import qos
+from lego_loam_py.ros.conversions import (
+    cloud_from_serialized,
+    imu_sample_from_serialized,
+    ns_to_stamp,
+    serialized_stamp_ns,
+    stamp_to_ns,
+)
+from lego_loam_py.ros.params import declare_params
 
 __all__ = ['LegoLoamNode', 'release_memory', 'LARGE_MESSAGE_BYTES']
 
@@ -54,9 +61,9 @@ class LegoLoamNode(Node):
     """
 
     WARN_PERIOD = 10.0
-    MAX_WARNING_KINDS = 256        # throttling state kept (oldest kinds forgotten first)
-    MAX_VARIANTS_PER_KEY = 16      # distinct texts per key before the key alone decides the kind
-    DIAGNOSTICS_PERIOD = 1.0       # [s] of wall time between two /diagnostics messages
+    MAX_WARNING_KINDS = 256  # throttling state kept (oldest kinds forgotten first)
+    MAX_VARIANTS_PER_KEY = 16  # distinct texts per key before the key alone decides the kind
+    DIAGNOSTICS_PERIOD = 1.0  # [s] of wall time between two /diagnostics messages
     # With use_sim_time, take /clock only when the time is read (see _poll_clock_topic). A node whose timers run
     # on ROS time needs every tick as it comes, and sets this False.
     POLL_CLOCK = True
@@ -70,16 +77,17 @@ class LegoLoamNode(Node):
         self.timings_ms: dict[str, deque] = {}
         self.measures: dict[str, deque] = {}
         self.counters: dict[str, int] = {}
-        self._polled_node = None           # the companion node of create_polled_subscription
-        self._release_pending = False      # a huge message was rejected: give its memory back
-        self._last_problem = ''            # the latest warning or error: the watchdog's reason
+        self._polled_node = None  # the companion node of create_polled_subscription
+        self._release_pending = False  # a huge message was rejected: give its memory back
+        self._last_problem = ''  # the latest warning or error: the watchdog's reason
         self._inputs_without_output = 0
-        self._failures_in_a_row = 0
-        self._imu_disagreement: str | None = None   # why the IMU is not used (its check found it misaligned)
+        self.guard = StepGuard(self.params.reliability.reset_after_failures)  # (core.guard: the policy)
+        self._imu_disagreement: str | None = None  # why the IMU is not used (its check found it misaligned)
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', qos.reliable(10))
         # Wall time: with use_sim_time and no /clock the ROS clock stands still, and so would the diagnostics.
-        self.create_timer(self.DIAGNOSTICS_PERIOD, self.publish_diagnostics,
-                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.create_timer(
+            self.DIAGNOSTICS_PERIOD, self.publish_diagnostics, clock=Clock(clock_type=ClockType.STEADY_TIME)
+        )
         self._polled_clock = self._poll_clock_topic() if self.POLL_CLOCK else None
 
     # ------------------------------------------------------------------------------------------ the clock
@@ -97,16 +105,19 @@ class LegoLoamNode(Node):
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from rosgraph_msgs.msg import Clock as ClockMessage
 
-        polled = self.create_polled_subscription(ClockMessage, subscription.topic_name,
-                                                 QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT),
-                                                 raw=True)
+        polled = self.create_polled_subscription(
+            ClockMessage,
+            subscription.topic_name,
+            QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT),
+            raw=True,
+        )
         self.destroy_subscription(subscription)
-        source._clock_sub = None   # (use_sim_time set again later subscribes rclpy's way)
+        source._clock_sub = None  # (use_sim_time set again later subscribes rclpy's way)
         return polled
 
     def get_clock(self):
         """The node's clock, with the newest /clock tick applied first when ticks are polled."""
-        polled = getattr(self, '_polled_clock', None)   # (rclpy may ask before __init__ is through)
+        polled = getattr(self, '_polled_clock', None)  # (rclpy may ask before __init__ is through)
         if polled is not None and self._time_source.ros_time_is_active:
             newest = []
             self.drain(polled, newest.append, count=False)
@@ -114,6 +125,7 @@ class LegoLoamNode(Node):
             stamp_ns = serialized_stamp_ns(newest[-1]) if newest else None
             if stamp_ns is not None:
                 from rosgraph_msgs.msg import Clock as ClockMessage
+
                 self._time_source.clock_callback(ClockMessage(clock=ns_to_stamp(stamp_ns)))
         return super().get_clock()
 
@@ -128,8 +140,9 @@ class LegoLoamNode(Node):
             return callback(*args)
 
         counted.__signature__ = inspect.signature(callback)
-        return super().create_subscription(msg_type, topic, self._guarded(counted, f'message on {topic}'),
-                                           qos_profile, **kwargs)
+        return super().create_subscription(
+            msg_type, topic, self._guarded(counted, f'message on {topic}'), qos_profile, **kwargs
+        )
 
     def create_timer(self, timer_period_sec, callback, *args, **kwargs):
         return super().create_timer(timer_period_sec, self._guarded(callback, 'timer'), *args, **kwargs)
@@ -144,7 +157,7 @@ class LegoLoamNode(Node):
             return None
 
         def call(*args):
-            if self._release_pending:   # (the message that asked for it is gone by now: the executor held it)
+            if self._release_pending:  # (the message that asked for it is gone by now: the executor held it)
                 self._release_pending = False
                 release_memory()
             try:
@@ -176,11 +189,18 @@ class LegoLoamNode(Node):
         """
         if self._polled_node is None:
             import rclpy
-            self._polled_node = rclpy.create_node(f'{self.get_name()}_polled', namespace=self.get_namespace(),
-                                                  context=self.context, use_global_arguments=False,
-                                                  enable_rosout=False, start_parameter_services=False)
-        return self._polled_node.create_subscription(msg_type, self.resolve_topic_name(topic), lambda _: None,
-                                                     qos_profile, raw=raw)
+
+            self._polled_node = rclpy.create_node(
+                f'{self.get_name()}_polled',
+                namespace=self.get_namespace(),
+                context=self.context,
+                use_global_arguments=False,
+                enable_rosout=False,
+                start_parameter_services=False,
+            )
+        return self._polled_node.create_subscription(
+            msg_type, self.resolve_topic_name(topic), lambda _: None, qos_profile, raw=raw
+        )
 
     def destroy_node(self):
         if self._polled_node is not None:
@@ -224,7 +244,7 @@ class LegoLoamNode(Node):
             try:
                 with subscription.handle:
                     message = subscription.handle.take_message(subscription.msg_type, subscription.raw)
-            except Exception:   # the subscription is being destroyed (shutdown)
+            except Exception:  # the subscription is being destroyed (shutdown)
                 break
             if message is None:
                 break
@@ -246,7 +266,7 @@ class LegoLoamNode(Node):
         are each reported while a repeated one (same text but for sizes, stamps, frame ids and field names)
         is throttled. The state is bounded: a key with many different texts falls back to the key alone.
         """
-        with self._warn_lock:   # mapOptimization warns from two executor threads
+        with self._warn_lock:  # mapOptimization warns from two executor threads
             if key != 'watchdog':
                 self._last_problem = text
             self._warn(key, text, period, level)
@@ -277,7 +297,7 @@ class LegoLoamNode(Node):
             self._warned.popitem(last=False)
 
     def report_imu_alignment(self, event) -> None:
-        """What the core's IMU check decided (a :class:`lego_loam_py.core.imu_monitor.AlignmentEvent`, or None):
+        """What the core's IMU check decided (a :class:`lego_loam_py.core.imu.monitor.AlignmentEvent`, or None):
         counted, warned about (throttled; the check itself repeats its advice only every 30 s of data), and while
         the IMU is not used the node's /diagnostics status is WARN with the reason."""
         if event is None:
@@ -294,20 +314,10 @@ class LegoLoamNode(Node):
         self.warn(key, f'{text}: {traceback.format_exc(limit=6)}', level='error')
 
     # ------------------------------------------------------------------------------- self-healing state
-    def step_failed(self) -> bool:
-        """Count a failed step (an unexpected error); True once ``reliability.reset_after_failures`` failed in
-        a row: the state is then to be treated as poisoned even if no check names the problem."""
-        self._failures_in_a_row += 1
-        return self._failures_in_a_row >= self.params.reliability.reset_after_failures
-
-    def step_succeeded(self) -> None:
-        self._failures_in_a_row = 0
-
     def state_reset(self, problem: str, what: str) -> None:
         """Log (one error per kind and second) and count a reset of poisoned state: ``problem`` is what the
-        check found, ``what`` says what was reset and what was kept."""
-        self._failures_in_a_row = 0
-        self.count('state_resets')
+        check found (core.guard.StepGuard), ``what`` says what was reset and what was kept."""
+        self.count(STATE_RESETS)
         self.warn('state_reset', f'{problem}: {what}', period=1.0, level='error')
 
     def take(self, check, dropped_counter: str, what: str, key: str = 'bad_input', msg=None):
@@ -317,7 +327,7 @@ class LegoLoamNode(Node):
         its memory back."""
         try:
             return True, check()
-        except (CloudLayoutError, ValueError) as exc:   # InputRejected is a ValueError
+        except (CloudLayoutError, ValueError) as exc:  # InputRejected is a ValueError
             self.count(dropped_counter)
             self.warn(key, f'{what}: {exc}')
             if msg is not None:
@@ -355,8 +365,9 @@ class LegoLoamNode(Node):
         limit = self.params.reliability.watchdog_inputs
         return bool(limit) and self._inputs_without_output >= limit
 
-    def add_part(self, sync, name: str, msg, warn_tolerance: float | None = None, item=None,
-                 stamp_ns: int | None = None) -> dict | None:
+    def add_part(
+        self, sync, name: str, msg, warn_tolerance: float | None = None, item=None, stamp_ns: int | None = None
+    ) -> dict | None:
         """Give one message of a synchronised input set to ``sync`` (a StampSynchronizer), filed by its header
         stamp (``stamp_ns`` when given: a serialized message) as ``item`` (default: the message); returns the set
         once complete. Parts that lost their partners are counted as ``unmatched_inputs`` (and, with
@@ -370,8 +381,10 @@ class LegoLoamNode(Node):
         if sync.dropped:
             self.count('unmatched_inputs', sync.dropped)
             if warn_tolerance is not None:
-                self.warn('unmatched', f'{sync.dropped} input message(s) without matching partners within '
-                                       f'{warn_tolerance} s dropped')
+                self.warn(
+                    'unmatched',
+                    f'{sync.dropped} input message(s) without matching partners within {warn_tolerance} s dropped',
+                )
             sync.dropped = 0
         return complete
 
@@ -385,24 +398,33 @@ class LegoLoamNode(Node):
         if decision.discarded:
             self.count(dropped_counter, len(decision.discarded))
             held = stamp_of(decision.discarded[0])
-            self.warn('glitch', f'{len(decision.discarded)} {noun}(s) stamped {(held - (last or held)) * 1e-9:+.1f} s '
-                                f'from the previous one dropped: the next {noun} continued the old timeline (wrong '
-                                'stamps)')
+            self.warn(
+                'glitch',
+                f'{len(decision.discarded)} {noun}(s) stamped {(held - (last or held)) * 1e-9:+.1f} s '
+                f'from the previous one dropped: the next {noun} continued the old timeline (wrong '
+                'stamps)',
+            )
         if decision.action == 'drop':
             self.count(dropped_counter)
             self.warn('order', f'{noun} dropped: {decision.reason} (stamp not newer than the previous {noun})')
             return None
-        if decision.action == 'hold':   # a jump in time: the next inputs tell whether it is real
+        if decision.action == 'hold':  # a jump in time: the next inputs tell whether it is real
             self.count('held')
-            self.warn('hold', f'{article} {noun} stamped {(stamp_ns - (last or stamp_ns)) * 1e-9:+.1f} s from the '
-                              f'previous one is held: the next {noun}s tell whether time jumped')
+            self.warn(
+                'hold',
+                f'{article} {noun} stamped {(stamp_ns - (last or stamp_ns)) * 1e-9:+.1f} s from the '
+                f'previous one is held: the next {noun}s tell whether time jumped',
+            )
             return None
         if decision.action == 'jump':
             self.warn('jump', f'time jumped forward by {decision.jump_ns * 1e-9:.1f} s: carrying on', period=0.0)
             self.count('forward_jumps')
         if decision.action == 'resync':
-            self.warn('resync', f'{noun}s continue {-decision.jump_ns * 1e-9:.3f} s before the previous one: the '
-                                f'{noun}s ahead of them had wrong stamps; carrying on from these')
+            self.warn(
+                'resync',
+                f'{noun}s continue {-decision.jump_ns * 1e-9:.3f} s before the previous one: the '
+                f'{noun}s ahead of them had wrong stamps; carrying on from these',
+            )
             self.count('resyncs')
         return decision
 
@@ -418,8 +440,10 @@ class LegoLoamNode(Node):
         self.measures.setdefault(name, deque(maxlen=keep)).append(float(value))
 
     def timing_summary(self) -> str:
-        parts = [f'{name}: median {t.median:.1f} ms, p95 {t.p95:.1f} ms (n={t.count})'
-                 for name, t in self.timing_stats().items()]
+        parts = [
+            f'{name}: median {t.median:.1f} ms, p95 {t.p95:.1f} ms (n={t.count})'
+            for name, t in self.timing_stats().items()
+        ]
         counters = ', '.join(f'{k}={v}' for k, v in sorted(self.counters.items()))
         return '; '.join(parts + ([counters] if counters else [])) or 'no data'
 
@@ -451,8 +475,9 @@ class LegoLoamNode(Node):
             level, message = DiagnosticStatus.WARN, self._imu_disagreement
         else:
             level, message = DiagnosticStatus.OK, 'running'
-        return DiagnosticStatus(level=level, name=self.get_name(), message=message, hardware_id='lego_loam_py',
-                                values=values)
+        return DiagnosticStatus(
+            level=level, name=self.get_name(), message=message, hardware_id='lego_loam_py', values=values
+        )
 
     def matched_endpoints(self) -> dict[str, int]:
         """How many remote endpoints DDS has matched with each of this node's topics: ``matched subscribers
@@ -486,7 +511,8 @@ class LegoLoamNode(Node):
         directory = os.environ.get('LEGO_LOAM_PY_STATS_DIR')
         if directory:
             try:
-                from lego_loam_py.core.io import atomic_path
+                from lego_loam_py.formats import atomic_path
+
                 with atomic_path(os.path.join(directory, f'{self.get_name()}.json'), suffix='.json') as path:
                     path.write_text(json.dumps(self.statistics(), indent=2))
             except OSError as exc:

@@ -4,6 +4,7 @@ Values come from ``--ros-args --params-file FILE`` / ``-p name:=value`` (rclpy p
 not given takes the default of :class:`Params`. Unknown names and wrong types stop the node with a
 :class:`ParameterError` naming the key.
 """
+
 from __future__ import annotations
 
 from rclpy.node import Node
@@ -26,8 +27,11 @@ def declare_params(node: Node) -> Params:
     The node must be created with ``automatically_declare_parameters_from_overrides=True`` so that the
     overrides are visible here.
     """
-    given = {name: parameter.value for name, parameter in node.get_parameters_by_prefix('').items()
-             if not _is_rclpy_parameter(name)}
+    given = {
+        name: parameter.value
+        for name, parameter in node.get_parameters_by_prefix('').items()
+        if not _is_rclpy_parameter(name)
+    }
     params = params_from_mapping(given)
     for name, value in params.to_flat().items():
         if not node.has_parameter(name):

@@ -3,6 +3,7 @@
 SIGINT and SIGTERM stop the executor while the ROS context is still valid, so a node's ``on_shutdown``
 hook can still log, publish and save (mapOptimization writes its map there) before rclpy shuts down.
 """
+
 from __future__ import annotations
 
 import os
@@ -11,7 +12,7 @@ import sys
 import threading
 import time
 import traceback
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -27,8 +28,12 @@ TEARDOWN_TIMEOUT_S = 5.0
 
 
 def _force_exit(code: int, what: str) -> None:
-    print(f'warning: {what} did not finish within {TEARDOWN_TIMEOUT_S:g} s (the DDS library is stuck); exiting '
-          f'anyway: everything was saved before it', file=sys.stderr, flush=True)
+    print(
+        f'warning: {what} did not finish within {TEARDOWN_TIMEOUT_S:g} s (the DDS library is stuck); exiting '
+        f'anyway: everything was saved before it',
+        file=sys.stderr,
+        flush=True,
+    )
     os._exit(code)
 
 
@@ -73,7 +78,7 @@ def finish_within(teardown: Callable[[], None], what: str, timeout: float = TEAR
     def run() -> None:
         try:
             teardown()
-        except BaseException as exc:   # reported below, in the caller's thread
+        except BaseException as exc:  # reported below, in the caller's thread
             failure.append(exc)
         finally:
             done.set()
@@ -81,8 +86,11 @@ def finish_within(teardown: Callable[[], None], what: str, timeout: float = TEAR
     threading.Thread(target=run, name=f'teardown: {what}', daemon=True).start()
     if not done.wait(timeout):
         _STUCK.append(what)
-        print(f'warning: {what} did not finish within {timeout:g} s (the DDS library is stuck); carrying on',
-              file=sys.stderr, flush=True)
+        print(
+            f'warning: {what} did not finish within {timeout:g} s (the DDS library is stuck); carrying on',
+            file=sys.stderr,
+            flush=True,
+        )
         return False
     if failure:
         raise failure[0]
@@ -94,7 +102,7 @@ def stuck_teardowns() -> list[str]:
     return list(_STUCK)
 
 
-EXECUTOR_VARIABLE = 'LEGO_LOAM_PY_EXECUTOR'   # events (default where rclpy has it) | single
+EXECUTOR_VARIABLE = 'LEGO_LOAM_PY_EXECUTOR'  # events (default where rclpy has it) | single
 
 
 def make_executor():
@@ -126,7 +134,7 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
 
     Returns the process exit code: 0 after a normal shutdown, 2 for invalid parameters.
     """
-    keep_heap_pages()   # freed scan-sized blocks stay in the heap instead of being faulted in again each scan
+    keep_heap_pages()  # freed scan-sized blocks stay in the heap instead of being faulted in again each scan
     rclpy.init(args=list(sys.argv if args is None else args), signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -136,7 +144,7 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
         try:
             executor, spin_once = make_executor()
             node = factory()
-        except LegoLoamError as exc:   # an unknown LEGO_LOAM_PY_EXECUTOR, invalid parameters
+        except LegoLoamError as exc:  # an unknown LEGO_LOAM_PY_EXECUTOR, invalid parameters
             print(f'error: {exc}', file=sys.stderr)
             code = exc.exit_code
             return code

@@ -4,9 +4,10 @@ Messages are tf2_msgs/TFMessage, so rviz2, tf2_echo and every tf2 listener under
 broadcaster behaves like tf2_ros's: one transient-local publisher that re-sends the accumulated set of
 static transforms, so subscribers that start late still receive all of them.
 """
+
 from __future__ import annotations
 
-from typing import Iterable
+from collections.abc import Iterable
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -18,13 +19,26 @@ from tf2_msgs.msg import TFMessage
 from lego_loam_py.core import frames
 from lego_loam_py.ros.conversions import pose_to_transform
 
-__all__ = ['TransformBroadcaster', 'StaticTransformBroadcaster', 'original_static_transforms',
-           'TF_QOS', 'TF_STATIC_QOS']
+__all__ = [
+    'TransformBroadcaster',
+    'StaticTransformBroadcaster',
+    'original_static_transforms',
+    'TF_QOS',
+    'TF_STATIC_QOS',
+]
 
-TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
-                    history=HistoryPolicy.KEEP_LAST)
-TF_STATIC_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                           durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
+TF_QOS = QoSProfile(
+    depth=100,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+    history=HistoryPolicy.KEEP_LAST,
+)
+TF_STATIC_QOS = QoSProfile(
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    history=HistoryPolicy.KEEP_LAST,
+)
 
 
 class TransformBroadcaster:

@@ -16,6 +16,7 @@ result from before that reset, or stamped more than ``MAPPED_AHEAD_NS`` after th
 timeline, after a jump back), is discarded. Poses that
 are not finite, not unit quaternions or absurdly far are dropped with a throttled warning.
 """
+
 from __future__ import annotations
 
 import sys
@@ -25,18 +26,18 @@ import numpy as np
 from nav_msgs.msg import Odometry
 
 from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, pose6_to_matrix
-from lego_loam_py.core.sync import StampOrder
-from lego_loam_py.core.transform_fusion import TransformFusion
+from lego_loam_py.core.mapping.transform_fusion import TransformFusion
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import MAX_POSITION, make_header, odometry_to_pose, serialized_odometry, stamp_to_ns
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
+from lego_loam_py.ros.sync import StampOrder
 from lego_loam_py.ros.tf import StaticTransformBroadcaster, TransformBroadcaster, original_static_transforms
 
 __all__ = ['TransformFusionNode', 'main']
 
 RESET_JUMP_NS = 1_000_000_000
-MAPPED_AHEAD_NS = 1_000_000_000   # a mapping result is never ahead of the odometry it was computed from
+MAPPED_AHEAD_NS = 1_000_000_000  # a mapping result is never ahead of the odometry it was computed from
 
 
 class TransformFusionNode(LegoLoamNode):
@@ -51,7 +52,7 @@ class TransformFusionNode(LegoLoamNode):
         self.static_tf = StaticTransformBroadcaster(self)
         self.static_tf.send(original_static_transforms(self.get_clock().now().nanoseconds))
         self.order = StampOrder(RESET_JUMP_NS)
-        self._timeline_start_ns: int | None = None   # first odometry integrated since the last reset
+        self._timeline_start_ns: int | None = None  # first odometry integrated since the last reset
 
     @property
     def last_stamp_ns(self) -> int | None:
@@ -60,18 +61,23 @@ class TransformFusionNode(LegoLoamNode):
 
     def on_mapped(self, msg: Odometry) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
-        last = self.order.newest_ns   # (an odometry message held after a gap counts: mapping may have used it)
-        if (last is not None and stamp > last + MAPPED_AHEAD_NS) or \
-                (self._timeline_start_ns is not None and stamp < self._timeline_start_ns):
+        last = self.order.newest_ns  # (an odometry message held after a gap counts: mapping may have used it)
+        if (last is not None and stamp > last + MAPPED_AHEAD_NS) or (
+            self._timeline_start_ns is not None and stamp < self._timeline_start_ns
+        ):
             self.count('mapped_dropped')
-            self.warn('stale_mapped', f'/aft_mapped_to_init stamped {(stamp - (last or stamp)) * 1e-9:+.1f} s from the '
-                                      'odometry dropped: it belongs to the timeline before a restart')
+            self.warn(
+                'stale_mapped',
+                f'/aft_mapped_to_init stamped {(stamp - (last or stamp)) * 1e-9:+.1f} s from the '
+                'odometry dropped: it belongs to the timeline before a restart',
+            )
             return
         try:
             aft = odometry_to_pose(msg)
             twist = msg.twist.twist
-            bef6 = np.array([twist.angular.x, twist.angular.y, twist.angular.z,
-                             twist.linear.x, twist.linear.y, twist.linear.z])
+            bef6 = np.array(
+                [twist.angular.x, twist.angular.y, twist.angular.z, twist.linear.x, twist.linear.y, twist.linear.z]
+            )
             if not np.isfinite(bef6).all():
                 raise ValueError('the twist fields (the pre-mapping pose) are not finite')
             if not ((np.abs(bef6[:3]) <= 100.0).all() and (np.abs(bef6[3:]) <= MAX_POSITION).all()):
@@ -86,13 +92,20 @@ class TransformFusionNode(LegoLoamNode):
 
     def on_odometry(self, msg: Odometry) -> None:
         self.count('odometry_in')
-        decision = self.check_order(self.order, stamp_to_ns(msg.header.stamp), msg,
-                                    lambda m: stamp_to_ns(m.header.stamp), 'odometry message', 'odometry_dropped')
-        if decision is None:   # dropped or held
+        decision = self.check_order(
+            self.order,
+            stamp_to_ns(msg.header.stamp),
+            msg,
+            lambda m: stamp_to_ns(m.header.stamp),
+            'odometry message',
+            'odometry_dropped',
+        )
+        if decision is None:  # dropped or held
             return
         if decision.action == 'reset':
-            self.warn('reset', f'time jumped back by {-decision.jump_ns * 1e-9:.1f} s: map correction reset',
-                      period=0.0)
+            self.warn(
+                'reset', f'time jumped back by {-decision.jump_ns * 1e-9:.1f} s: map correction reset', period=0.0
+            )
             self.core.reset()
             self.order.reset()
             self._timeline_start_ns = stamp_to_ns((decision.held[0] if decision.held else msg).header.stamp)
@@ -103,16 +116,19 @@ class TransformFusionNode(LegoLoamNode):
 
     def _integrate(self, msg: Odometry) -> None:
         start = time.perf_counter()
-        ok, odometry = self.take(lambda: odometry_to_pose(msg), 'odometry_dropped', '/laser_odom_to_init dropped',
-                                 'bad_odometry')
+        ok, odometry = self.take(
+            lambda: odometry_to_pose(msg), 'odometry_dropped', '/laser_odom_to_init dropped', 'bad_odometry'
+        )
         if not ok:
             return
         stamp_ns = stamp_to_ns(msg.header.stamp)
-        if not self.core.publishable(stamp_ns):   # (localization without a recent fix: withheld, not silent by fault)
+        if not self.core.publishable(stamp_ns):  # (localization without a recent fix: withheld, not silent by fault)
             self.order.processed(stamp_ns)
             self.count('withheld_not_localized')
-            self.warn('not_localized', 'no /integrated_to_init: mapOptimization has no recent fix in the saved map '
-                                       '(see /localization_status)')
+            self.warn(
+                'not_localized',
+                'no /integrated_to_init: mapOptimization has no recent fix in the saved map (see /localization_status)',
+            )
             return
         self.input_valid()
         problem = self.core.health_problem()
@@ -132,7 +148,7 @@ class TransformFusionNode(LegoLoamNode):
         self.tf.send_serialized(transform)
         self.count('integrated')
         self.output_published()
-        self.record_time('odometry', time.perf_counter() - start)   # conversion, fusion and publishing
+        self.record_time('odometry', time.perf_counter() - start)  # conversion, fusion and publishing
 
 
 def main(args=None) -> int:

@@ -11,6 +11,7 @@ someone listens, as rviz2 does: that costs imageProjection and featureAssociatio
     lego_loam_py viewer                      # a Rerun window (rerun-sdk's native viewer)
     lego_loam_py viewer --save live.rrd      # or into a file, no display needed
 """
+
 from __future__ import annotations
 
 import argparse
@@ -30,9 +31,17 @@ __all__ = ['ViewerNode', 'add_arguments', 'main']
 
 SCAN_TOPICS = ('/ground_cloud', '/segmented_cloud_pure', '/outlier_cloud', '/laser_cloud_sharp', '/laser_cloud_flat')
 ODOMETRY_TOPICS = {'/laser_odom_to_init': 'odometry', '/aft_mapped_to_init': 'mapped', '/integrated_to_init': 'fused'}
-HEALTH_COUNTERS = ('odometry_lost', 'state_resets', 'scans_dropped', 'clouds_dropped', 'callback_errors',
-                   'silent_periods', 'loops_closed', 'loops_rejected')
-_KEPT_SCANS = 20   # scans waiting for their fused pose (older ones never got one)
+HEALTH_COUNTERS = (
+    'odometry_lost',
+    'state_resets',
+    'scans_dropped',
+    'clouds_dropped',
+    'callback_errors',
+    'silent_periods',
+    'loops_closed',
+    'loops_rejected',
+)
+_KEPT_SCANS = 20  # scans waiting for their fused pose (older ones never got one)
 
 
 def _camera_to_map(points: np.ndarray) -> np.ndarray:
@@ -45,11 +54,12 @@ class ViewerNode(Node):
     def __init__(self, scene, **kwargs):
         super().__init__('lego_loam_viewer', **kwargs)
         self.scene = scene
-        self._scan_index: dict[int, int] = {}          # stamp [ns] -> scan index (order of first sight)
+        self._scan_index: dict[int, int] = {}  # stamp [ns] -> scan index (order of first sight)
         self._clouds: dict[int, dict[str, np.ndarray]] = {}
         for topic in SCAN_TOPICS:
-            self.create_subscription(PointCloud2, topic, lambda msg, t=topic: self.on_scan_cloud(t, msg),
-                                     qos.reliable(5))
+            self.create_subscription(
+                PointCloud2, topic, lambda msg, t=topic: self.on_scan_cloud(t, msg), qos.reliable(5)
+            )
         for topic, name in ODOMETRY_TOPICS.items():
             self.create_subscription(Odometry, topic, lambda msg, n=name: self.on_odometry(n, msg), qos.reliable(5))
         self.create_subscription(PointCloud2, '/laser_cloud_surround', self.on_map, qos.reliable(2))
@@ -84,7 +94,7 @@ class ViewerNode(Node):
             self.scene.scan(*(clouds.get(t, empty) for t in SCAN_TOPICS[:3]))
             self.scene.features(*(clouds.get(t, empty) for t in SCAN_TOPICS[3:]))
             self.logged_scans += 1
-            if self.logged_scans == 1:   # (on stdout: tools and tests wait for it)
+            if self.logged_scans == 1:  # (on stdout: tools and tests wait for it)
                 print(f'viewer: first scan logged (stamp {stamp})', flush=True)
 
     def on_map(self, msg: PointCloud2) -> None:
@@ -108,12 +118,12 @@ class ViewerNode(Node):
                     value = float(item.value)
                 except ValueError:
                     continue
-                if ' ' in item.key or '/' in item.key:   # (matched endpoints per topic: not plotted)
+                if ' ' in item.key or '/' in item.key:  # (matched endpoints per topic: not plotted)
                     continue
-                if item.key.endswith('_median_ms'):   # a stage's median over the recent scans
-                    self.scene.scalar(f'timings/{node}/{item.key[:-len("_median_ms")]}', value)
-                elif item.key.endswith('_last'):     # a measure of the latest scan (conditions, match ratios)
-                    self.scene.scalar(f'health/{node}/{item.key[:-len("_last")]}', value)
+                if item.key.endswith('_median_ms'):  # a stage's median over the recent scans
+                    self.scene.scalar(f'timings/{node}/{item.key[: -len("_median_ms")]}', value)
+                elif item.key.endswith('_last'):  # a measure of the latest scan (conditions, match ratios)
+                    self.scene.scalar(f'health/{node}/{item.key[: -len("_last")]}', value)
                 elif item.key in HEALTH_COUNTERS:
                     self.scene.scalar(f'health/{node}/{item.key}', value)
 
@@ -123,8 +133,13 @@ class ViewerNode(Node):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument('--save', type=str, default=None, metavar='FILE.rrd',
-                        help='write the view to a Rerun recording (no display needed)')
+    parser.add_argument(
+        '--save',
+        type=str,
+        default=None,
+        metavar='FILE.rrd',
+        help='write the view to a Rerun recording (no display needed)',
+    )
     parser.add_argument('--no-window', action='store_true', help='no viewer window (with --save)')
 
 

@@ -45,6 +45,7 @@ IMU packets (LEGACY IMU profile, 48 bytes): system, accelerometer and gyroscope 
 acceleration x, y, z (float32, g) and angular velocity x, y, z (float32, deg/s), in the ``os_imu`` frame;
 :func:`decode_imu` converts them to m/s^2 and rad/s.
 """
+
 from __future__ import annotations
 
 import json
@@ -57,8 +58,16 @@ import numpy as np
 from lego_loam_py.core.pointcloud import VELODYNE_POINT_DTYPE, velodyne_points
 from lego_loam_py.errors import LegoLoamError
 
-__all__ = ['OusterMetadata', 'OusterFormatError', 'OusterScan', 'ImuSamples', 'OusterDecoder', 'decode_imu',
-           'STANDARD_GRAVITY', 'IMU_PACKET_SIZE']
+__all__ = [
+    'OusterMetadata',
+    'OusterFormatError',
+    'OusterScan',
+    'ImuSamples',
+    'OusterDecoder',
+    'decode_imu',
+    'STANDARD_GRAVITY',
+    'IMU_PACKET_SIZE',
+]
 
 STANDARD_GRAVITY = 9.80665  # [m/s^2 per g], as ouster_ros
 IMU_PACKET_SIZE = 48
@@ -72,9 +81,9 @@ class OusterFormatError(LegoLoamError, ValueError):
 class _Profile:
     pixel_bytes: int
     range_offset: int
-    range_bytes: int     # 2 or 4
+    range_bytes: int  # 2 or 4
     range_mask: int
-    range_scale: int     # [mm per count]
+    range_scale: int  # [mm per count]
     reflectivity_offset: int
     reflectivity_bytes: int
     signal_offset: int | None
@@ -119,19 +128,26 @@ class OusterMetadata:
     beam_altitude_angles: np.ndarray
     beam_azimuth_angles: np.ndarray
     lidar_origin_to_beam_origin_mm: float
-    lidar_to_sensor_transform: np.ndarray     # (4, 4), translation in mm
-    imu_to_sensor_transform: np.ndarray       # (4, 4), translation in mm
+    lidar_to_sensor_transform: np.ndarray  # (4, 4), translation in mm
+    imu_to_sensor_transform: np.ndarray  # (4, 4), translation in mm
     udp_port_lidar: int
     udp_port_imu: int
     init_id: int
 
     @classmethod
-    def from_json(cls, source: str | Path | dict) -> 'OusterMetadata':
+    def from_json(cls, source: str | Path | dict) -> OusterMetadata:
         meta = source if isinstance(source, dict) else json.loads(Path(source).read_text())
         if not isinstance(meta, dict):
             raise OusterFormatError('Ouster metadata must be a JSON object')
-        profile = str(_find(meta, 'data_format.udp_profile_lidar', 'lidar_data_format.udp_profile_lidar',
-                            'config_params.udp_profile_lidar', default='LEGACY'))
+        profile = str(
+            _find(
+                meta,
+                'data_format.udp_profile_lidar',
+                'lidar_data_format.udp_profile_lidar',
+                'config_params.udp_profile_lidar',
+                default='LEGACY',
+            )
+        )
         if profile not in _PROFILES:
             raise OusterFormatError(f"unsupported udp_profile_lidar '{profile}' (supported: {sorted(_PROFILES)})")
         altitude = np.asarray(_find(meta, 'beam_altitude_angles', 'beam_intrinsics.beam_altitude_angles'), float)
@@ -139,29 +155,49 @@ class OusterMetadata:
         height = int(_find(meta, 'data_format.pixels_per_column', 'lidar_data_format.pixels_per_column'))
         width = int(_find(meta, 'data_format.columns_per_frame', 'lidar_data_format.columns_per_frame'))
         if altitude.shape != (height,) or azimuth.shape != (height,):
-            raise OusterFormatError(f'metadata has {altitude.size} altitude / {azimuth.size} azimuth angles for '
-                                    f'{height} pixels per column')
+            raise OusterFormatError(
+                f'metadata has {altitude.size} altitude / {azimuth.size} azimuth angles for {height} pixels per column'
+            )
         window = _find(meta, 'data_format.column_window', 'lidar_data_format.column_window', default=[0, width - 1])
-        lidar_to_sensor = np.asarray(_find(meta, 'lidar_to_sensor_transform',
-                                           'lidar_intrinsics.lidar_to_sensor_transform'), float).reshape(4, 4)
-        imu_to_sensor = np.asarray(_find(meta, 'imu_to_sensor_transform', 'imu_intrinsics.imu_to_sensor_transform',
-                                         default=np.eye(4).ravel().tolist()), float).reshape(4, 4)
+        lidar_to_sensor = np.asarray(
+            _find(meta, 'lidar_to_sensor_transform', 'lidar_intrinsics.lidar_to_sensor_transform'), float
+        ).reshape(4, 4)
+        imu_to_sensor = np.asarray(
+            _find(
+                meta,
+                'imu_to_sensor_transform',
+                'imu_intrinsics.imu_to_sensor_transform',
+                default=np.eye(4).ravel().tolist(),
+            ),
+            float,
+        ).reshape(4, 4)
         return cls(
             prod_line=str(_find(meta, 'prod_line', 'sensor_info.prod_line', default='unknown')),
             serial=str(_find(meta, 'prod_sn', 'sensor_info.prod_sn', default='')),
             firmware=str(_find(meta, 'build_rev', 'sensor_info.build_rev', default='')),
             columns_per_frame=width,
-            columns_per_packet=int(_find(meta, 'data_format.columns_per_packet',
-                                         'lidar_data_format.columns_per_packet', default=16)),
+            columns_per_packet=int(
+                _find(meta, 'data_format.columns_per_packet', 'lidar_data_format.columns_per_packet', default=16)
+            ),
             pixels_per_column=height,
             column_window=(int(window[0]), int(window[1])),
             udp_profile_lidar=profile,
-            udp_profile_imu=str(_find(meta, 'data_format.udp_profile_imu', 'lidar_data_format.udp_profile_imu',
-                                      'config_params.udp_profile_imu', default='LEGACY')),
-            beam_altitude_angles=altitude, beam_azimuth_angles=azimuth,
-            lidar_origin_to_beam_origin_mm=float(_find(meta, 'lidar_origin_to_beam_origin_mm',
-                                                       'beam_intrinsics.lidar_origin_to_beam_origin_mm')),
-            lidar_to_sensor_transform=lidar_to_sensor, imu_to_sensor_transform=imu_to_sensor,
+            udp_profile_imu=str(
+                _find(
+                    meta,
+                    'data_format.udp_profile_imu',
+                    'lidar_data_format.udp_profile_imu',
+                    'config_params.udp_profile_imu',
+                    default='LEGACY',
+                )
+            ),
+            beam_altitude_angles=altitude,
+            beam_azimuth_angles=azimuth,
+            lidar_origin_to_beam_origin_mm=float(
+                _find(meta, 'lidar_origin_to_beam_origin_mm', 'beam_intrinsics.lidar_origin_to_beam_origin_mm')
+            ),
+            lidar_to_sensor_transform=lidar_to_sensor,
+            imu_to_sensor_transform=imu_to_sensor,
             udp_port_lidar=int(_find(meta, 'udp_port_lidar', 'config_params.udp_port_lidar', default=7502) or 7502),
             udp_port_imu=int(_find(meta, 'udp_port_imu', 'config_params.udp_port_imu', default=7503) or 7503),
             init_id=int(_find(meta, 'initialization_id', 'sensor_info.initialization_id', default=0) or 0),
@@ -192,27 +228,27 @@ class OusterMetadata:
 class OusterScan:
     """One scan (a ``frame_id``) decoded into a point cloud."""
 
-    points: np.ndarray          # structured (x, y, z [m, os_sensor], intensity, ring, time)
-    stamp_ns: int               # time of the first valid column on the capture clock [ns since the epoch]
-    sensor_time_ns: int         # the same instant on the sensor's clock [ns]
+    points: np.ndarray  # structured (x, y, z [m, os_sensor], intensity, ring, time)
+    stamp_ns: int  # time of the first valid column on the capture clock [ns since the epoch]
+    sensor_time_ns: int  # the same instant on the sensor's clock [ns]
     frame_id: int
-    columns: int                # valid columns received
-    completeness: float         # columns / columns in the column window
-    duration: float             # [s] first to last valid column
+    columns: int  # valid columns received
+    completeness: float  # columns / columns in the column window
+    duration: float  # [s] first to last valid column
 
 
 @dataclass
 class ImuSamples:
     """IMU samples in the ``os_imu`` frame."""
 
-    stamps_ns: np.ndarray              # (n,) gyroscope read time on the capture clock [ns]
-    linear_acceleration: np.ndarray    # (n, 3) [m/s^2]
-    angular_velocity: np.ndarray       # (n, 3) [rad/s]
+    stamps_ns: np.ndarray  # (n,) gyroscope read time on the capture clock [ns]
+    linear_acceleration: np.ndarray  # (n, 3) [m/s^2]
+    angular_velocity: np.ndarray  # (n, 3) [rad/s]
 
 
 def _le(raw: np.ndarray, offset: int, nbytes: int) -> np.ndarray:
     """Little-endian unsigned integers of ``nbytes`` at ``offset`` along the last axis, as int64/uint64."""
-    part = np.ascontiguousarray(raw[..., offset:offset + nbytes])
+    part = np.ascontiguousarray(raw[..., offset : offset + nbytes])
     dtype = {1: '<u1', 2: '<u2', 4: '<u4', 8: '<u8'}[nbytes]
     values = part.view(dtype)[..., 0]
     return values.astype(np.uint64 if nbytes == 8 else np.int64)
@@ -221,7 +257,7 @@ def _le(raw: np.ndarray, offset: int, nbytes: int) -> np.ndarray:
 @dataclass
 class DecodeStats:
     packets: int = 0
-    bad_packets: int = 0          # wrong size or packet type
+    bad_packets: int = 0  # wrong size or packet type
     scans: int = 0
     incomplete_scans: int = 0
     notes: list[str] = field(default_factory=list)
@@ -234,29 +270,41 @@ class OusterDecoder:
     partial scans at the start and end of a capture). ``point_dtype``: output layout.
     """
 
-    def __init__(self, metadata: OusterMetadata, *, min_completeness: float = 0.95,
-                 point_dtype: np.dtype = VELODYNE_POINT_DTYPE):
+    def __init__(
+        self, metadata: OusterMetadata, *, min_completeness: float = 0.95, point_dtype: np.dtype = VELODYNE_POINT_DTYPE
+    ):
         self.meta = metadata
         self.profile = _PROFILES[metadata.udp_profile_lidar]
         self.min_completeness = min_completeness
         self.point_dtype = np.dtype(point_dtype)
         self.stats = DecodeStats()
-        self.clock_offset_ns: int | None = None   # capture clock - sensor clock
+        self.clock_offset_ns: int | None = None  # capture clock - sensor clock
         self._direction, self._offset = self._lut()
 
     def _lut(self) -> tuple[np.ndarray, np.ndarray]:
         """(H, W, 3) unit directions (in the sensor frame) and offsets [mm] per beam and measurement id."""
         m = self.meta
         width = m.columns_per_frame
-        encoder = 2.0 * np.pi * (1.0 - np.arange(width) / width)                 # (W,)
-        azimuth = -np.radians(m.beam_azimuth_angles)[:, None]                      # (H, 1)
+        encoder = 2.0 * np.pi * (1.0 - np.arange(width) / width)  # (W,)
+        azimuth = -np.radians(m.beam_azimuth_angles)[:, None]  # (H, 1)
         altitude = np.radians(m.beam_altitude_angles)[:, None]
-        direction = np.stack(np.broadcast_arrays(np.cos(encoder + azimuth) * np.cos(altitude),
-                                                 np.sin(encoder + azimuth) * np.cos(altitude),
-                                                 np.sin(altitude) + 0.0 * encoder), axis=-1)
-        offset = np.stack(np.broadcast_arrays(np.cos(encoder) - direction[..., 0],
-                                              np.sin(encoder) - direction[..., 1],
-                                              -direction[..., 2]), axis=-1) * m.lidar_origin_to_beam_origin_mm
+        direction = np.stack(
+            np.broadcast_arrays(
+                np.cos(encoder + azimuth) * np.cos(altitude),
+                np.sin(encoder + azimuth) * np.cos(altitude),
+                np.sin(altitude) + 0.0 * encoder,
+            ),
+            axis=-1,
+        )
+        offset = (
+            np.stack(
+                np.broadcast_arrays(
+                    np.cos(encoder) - direction[..., 0], np.sin(encoder) - direction[..., 1], -direction[..., 2]
+                ),
+                axis=-1,
+            )
+            * m.lidar_origin_to_beam_origin_mm
+        )
         rotation = m.lidar_to_sensor_transform[:3, :3]
         translation = m.lidar_to_sensor_transform[:3, 3]
         return direction @ rotation.T, offset @ rotation.T + translation
@@ -277,8 +325,10 @@ class OusterDecoder:
         capture_ns = np.asarray(capture_ns, dtype=np.int64)
         self.stats.packets += len(packets)
         if packets.ndim != 2 or packets.shape[1] != m.lidar_packet_size:
-            raise OusterFormatError(f'expected (n, {m.lidar_packet_size}) lidar packets for profile '
-                                    f'{m.udp_profile_lidar}, got {packets.shape}')
+            raise OusterFormatError(
+                f'expected (n, {m.lidar_packet_size}) lidar packets for profile '
+                f'{m.udp_profile_lidar}, got {packets.shape}'
+            )
         if not m.legacy:
             good = _le(packets, 0, 2) == 1
             self.stats.bad_packets += int((~good).sum())
@@ -287,17 +337,17 @@ class OusterDecoder:
             return []
         n, cpp, height = len(packets), m.columns_per_packet, m.pixels_per_column
         start = 0 if m.legacy else 32
-        columns = packets[:, start:start + cpp * m.column_bytes].reshape(n, cpp, m.column_bytes)
-        stamps = _le(columns, 0, 8).astype(np.int64)                           # (n, cpp) sensor ns
+        columns = packets[:, start : start + cpp * m.column_bytes].reshape(n, cpp, m.column_bytes)
+        stamps = _le(columns, 0, 8).astype(np.int64)  # (n, cpp) sensor ns
         measurement = _le(columns, 8, 2)
         if m.legacy:
             frame = _le(columns[:, 0], 10, 2)
             valid = _le(columns, m.column_bytes - 4, 4) == 0xFFFFFFFF
-            pixels = columns[:, :, 16:16 + height * prof.pixel_bytes]
+            pixels = columns[:, :, 16 : 16 + height * prof.pixel_bytes]
         else:
             frame = _le(packets, 2, 2)
             valid = (_le(columns, 10, 2) & 1) == 1
-            pixels = columns[:, :, 12:12 + height * prof.pixel_bytes]
+            pixels = columns[:, :, 12 : 12 + height * prof.pixel_bytes]
         valid &= measurement < m.columns_per_frame
         pixels = pixels.reshape(n, cpp, height, prof.pixel_bytes)
         if self.clock_offset_ns is None:
@@ -312,8 +362,9 @@ class OusterDecoder:
                 scans.append(scan)
         return scans
 
-    def _scan(self, frame_id: int, stamps: np.ndarray, measurement: np.ndarray, valid: np.ndarray,
-              pixels: np.ndarray) -> OusterScan | None:
+    def _scan(
+        self, frame_id: int, stamps: np.ndarray, measurement: np.ndarray, valid: np.ndarray, pixels: np.ndarray
+    ) -> OusterScan | None:
         m, prof = self.meta, self.profile
         height = m.pixels_per_column
         columns = int(np.unique(measurement[valid]).size)
@@ -321,7 +372,7 @@ class OusterDecoder:
         if completeness < self.min_completeness:
             self.stats.incomplete_scans += 1
             return None
-        raw = _le(pixels, prof.range_offset, prof.range_bytes)                 # (p, cpp, H)
+        raw = _le(pixels, prof.range_offset, prof.range_bytes)  # (p, cpp, H)
         range_mm = (raw & prof.range_mask) * prof.range_scale
         keep = (range_mm > 0) & valid[:, :, None]
         beam = np.broadcast_to(np.arange(height), keep.shape)[keep]
@@ -338,9 +389,15 @@ class OusterDecoder:
         ring = (height - 1 - beam).astype(np.uint16)
         points = velodyne_points(xyz.astype(np.float32), intensity, ring, time, dtype=self.point_dtype)
         self.stats.scans += 1
-        return OusterScan(points=points, stamp_ns=first_ns + int(self.clock_offset_ns), sensor_time_ns=first_ns,
-                          frame_id=frame_id, columns=columns, completeness=completeness,
-                          duration=(last_ns - first_ns) / 1e9)
+        return OusterScan(
+            points=points,
+            stamp_ns=first_ns + int(self.clock_offset_ns),
+            sensor_time_ns=first_ns,
+            frame_id=frame_id,
+            columns=columns,
+            completeness=completeness,
+            duration=(last_ns - first_ns) / 1e9,
+        )
 
 
 def decode_imu(packets: np.ndarray, clock_offset_ns: int) -> ImuSamples:
@@ -349,7 +406,9 @@ def decode_imu(packets: np.ndarray, clock_offset_ns: int) -> ImuSamples:
     if packets.ndim != 2 or packets.shape[1] != IMU_PACKET_SIZE:
         raise OusterFormatError(f'expected (n, {IMU_PACKET_SIZE}) IMU packets, got {packets.shape}')
     gyro_ns = _le(packets, 16, 8).astype(np.int64)
-    values = np.ascontiguousarray(packets[:, 24:48]).view('<f4').astype(np.float64)   # (n, 6)
-    return ImuSamples(stamps_ns=gyro_ns + int(clock_offset_ns),
-                      linear_acceleration=values[:, :3] * STANDARD_GRAVITY,
-                      angular_velocity=np.radians(values[:, 3:]))
+    values = np.ascontiguousarray(packets[:, 24:48]).view('<f4').astype(np.float64)  # (n, 6)
+    return ImuSamples(
+        stamps_ns=gyro_ns + int(clock_offset_ns),
+        linear_acceleration=values[:, :3] * STANDARD_GRAVITY,
+        angular_velocity=np.radians(values[:, 3:]),
+    )

@@ -13,6 +13,7 @@ reassembled. Not supported: pcapng (convert with ``editcap -F pcap in.pcapng out
 Walking the records is a short Python loop that only reads record headers (about 1 µs per record); all
 protocol parsing is vectorised over the records.
 """
+
 from __future__ import annotations
 
 import struct
@@ -26,8 +27,10 @@ from lego_loam_py.errors import LegoLoamError
 __all__ = ['PcapError', 'UdpDatagrams', 'read_udp']
 
 _MAGIC = {  # magic as read little-endian -> (byte order, fraction-of-second unit in ns)
-    0xA1B2C3D4: ('<', 1000), 0xD4C3B2A1: ('>', 1000),
-    0xA1B23C4D: ('<', 1), 0x4D3CB2A1: ('>', 1),
+    0xA1B2C3D4: ('<', 1000),
+    0xD4C3B2A1: ('>', 1000),
+    0xA1B23C4D: ('<', 1),
+    0x4D3CB2A1: ('>', 1),
 }
 _PCAPNG_MAGIC = 0x0A0D0D0A
 LINKTYPE_NULL, LINKTYPE_ETHERNET, LINKTYPE_RAW_BSD, LINKTYPE_RAW = 0, 1, 12, 101
@@ -35,7 +38,7 @@ LINKTYPE_LINUX_SLL, LINKTYPE_IPV4, LINKTYPE_LINUX_SLL2 = 113, 228, 276
 _ETHERTYPE_IPV4 = 0x0800
 _VLAN_TAGS = (0x8100, 0x88A8, 0x9100)
 _UDP = 17
-_GATHER_BYTES = 64 << 20   # bytes gathered per fancy-index call (bounds the index array's memory)
+_GATHER_BYTES = 64 << 20  # bytes gathered per fancy-index call (bounds the index array's memory)
 
 
 class PcapError(LegoLoamError, ValueError):
@@ -48,24 +51,32 @@ class UdpDatagrams:
     [offsets[i]:offsets[i] + lengths[i]]``: buffer 0 is the (memory-mapped) file, buffer 1 holds
     datagrams reassembled from IPv4 fragments."""
 
-    buffers: list[np.ndarray]       # uint8 arrays
-    buffer_ids: np.ndarray          # (n,) uint8
-    offsets: np.ndarray             # (n,) int64, payload start in its buffer
-    lengths: np.ndarray             # (n,) int64, UDP payload length [bytes]
-    stamps_ns: np.ndarray           # (n,) int64, capture time [ns since the epoch]
-    src_ports: np.ndarray           # (n,) uint16
-    dst_ports: np.ndarray           # (n,) uint16
+    buffers: list[np.ndarray]  # uint8 arrays
+    buffer_ids: np.ndarray  # (n,) uint8
+    offsets: np.ndarray  # (n,) int64, payload start in its buffer
+    lengths: np.ndarray  # (n,) int64, UDP payload length [bytes]
+    stamps_ns: np.ndarray  # (n,) int64, capture time [ns since the epoch]
+    src_ports: np.ndarray  # (n,) uint16
+    dst_ports: np.ndarray  # (n,) uint16
     linktype: int = LINKTYPE_ETHERNET
-    skipped: int = 0                # records that are not complete IPv4/UDP datagrams
+    skipped: int = 0  # records that are not complete IPv4/UDP datagrams
 
     def __len__(self) -> int:
         return int(self.offsets.size)
 
-    def select(self, mask: np.ndarray) -> 'UdpDatagrams':
+    def select(self, mask: np.ndarray) -> UdpDatagrams:
         """The datagrams where ``mask`` (bool or index array) selects, same buffers."""
-        return UdpDatagrams(self.buffers, self.buffer_ids[mask], self.offsets[mask], self.lengths[mask],
-                            self.stamps_ns[mask], self.src_ports[mask], self.dst_ports[mask], self.linktype,
-                            self.skipped)
+        return UdpDatagrams(
+            self.buffers,
+            self.buffer_ids[mask],
+            self.offsets[mask],
+            self.lengths[mask],
+            self.stamps_ns[mask],
+            self.src_ports[mask],
+            self.dst_ports[mask],
+            self.linktype,
+            self.skipped,
+        )
 
     def gather(self, length: int, indices: np.ndarray | None = None) -> np.ndarray:
         """(k, length) uint8 array of the first ``length`` payload bytes of datagrams ``indices`` (all by
@@ -79,14 +90,14 @@ class UdpDatagrams:
         for buffer_id, buffer in enumerate(self.buffers):
             rows = np.flatnonzero(self.buffer_ids[idx] == buffer_id)
             for start in range(0, rows.size, step):
-                part = rows[start:start + step]
+                part = rows[start : start + step]
                 out[part] = buffer[self.offsets[idx[part]][:, None] + columns]
         return out
 
     def payload(self, i: int) -> bytes:
         """The payload of datagram ``i``."""
         start = int(self.offsets[i])
-        return self.buffers[int(self.buffer_ids[i])][start:start + int(self.lengths[i])].tobytes()
+        return self.buffers[int(self.buffer_ids[i])][start : start + int(self.lengths[i])].tobytes()
 
 
 def _be16(buf: np.ndarray, at: np.ndarray) -> np.ndarray:
@@ -109,12 +120,17 @@ def _record_index(buf: np.ndarray, order: str) -> tuple[np.ndarray, np.ndarray, 
         secs.append(sec)
         fracs.append(frac)
         pos += 16 + caplen
-    return (np.array(offsets, dtype=np.int64), np.array(caplens, dtype=np.int64),
-            np.array(secs, dtype=np.int64), np.array(fracs, dtype=np.int64))
+    return (
+        np.array(offsets, dtype=np.int64),
+        np.array(caplens, dtype=np.int64),
+        np.array(secs, dtype=np.int64),
+        np.array(fracs, dtype=np.int64),
+    )
 
 
-def _network_offsets(buf: np.ndarray, linktype: int, data: np.ndarray, caplen: np.ndarray,
-                     order: str) -> tuple[np.ndarray, np.ndarray]:
+def _network_offsets(
+    buf: np.ndarray, linktype: int, data: np.ndarray, caplen: np.ndarray, order: str
+) -> tuple[np.ndarray, np.ndarray]:
     """(offset of the IPv4 header, is IPv4) for every record of the given link type."""
     if linktype == LINKTYPE_ETHERNET:
         ok = caplen >= 14
@@ -142,18 +158,20 @@ def _network_offsets(buf: np.ndarray, linktype: int, data: np.ndarray, caplen: n
         at = np.where(ok, data, 0)
         family = np.stack([buf[at + i] for i in range(4)], axis=1).view('<u4' if order == '<' else '>u4')
         return data + 4, ok & (family.reshape(-1) == 2)
-    raise PcapError(f'unsupported pcap link type {linktype} (supported: Ethernet, Linux cooked, raw IPv4, '
-                    'BSD loopback)')
+    raise PcapError(
+        f'unsupported pcap link type {linktype} (supported: Ethernet, Linux cooked, raw IPv4, BSD loopback)'
+    )
 
 
-def _reassemble(buf: np.ndarray, records: np.ndarray, l3: np.ndarray, ihl: np.ndarray, total: np.ndarray,
-                stamps: np.ndarray) -> tuple[bytearray, list[tuple[int, int, int, int, int, int]]]:
+def _reassemble(
+    buf: np.ndarray, records: np.ndarray, l3: np.ndarray, ihl: np.ndarray, total: np.ndarray, stamps: np.ndarray
+) -> tuple[bytearray, list[tuple[int, int, int, int, int, int]]]:
     """Reassemble fragmented IPv4/UDP datagrams. Returns (payload bytes, [(record, offset in the bytes,
     payload length, src port, dst port, stamp of the last fragment)])."""
     groups: dict[tuple, list[tuple[int, int, int, bool]]] = {}
     for r in records:
         start = int(l3[r])
-        header = buf[start:start + 20].tobytes()
+        header = buf[start : start + 20].tobytes()
         ident, flags_frag = struct.unpack_from('>HH', header, 4)
         key = (header[12:20], ident)
         more = bool(flags_frag & 0x2000)
@@ -170,7 +188,7 @@ def _reassemble(buf: np.ndarray, records: np.ndarray, l3: np.ndarray, ihl: np.nd
                 complete = False
                 break
             start = int(l3[r] + ihl[r])
-            data += buf[start:int(l3[r] + total[r])].tobytes()
+            data += buf[start : int(l3[r] + total[r])].tobytes()
         if not complete or len(data) < 8:
             continue
         src, dst, udp_length = struct.unpack_from('>HHH', data, 0)
@@ -203,8 +221,16 @@ def read_udp(path: str | Path) -> UdpDatagrams:
     stamps = secs * 1_000_000_000 + fracs * frac_ns
     empty = np.zeros(0, dtype=np.int64)
     if data.size == 0:
-        return UdpDatagrams([buf], empty.astype(np.uint8), empty, empty, empty, empty.astype(np.uint16),
-                            empty.astype(np.uint16), linktype)
+        return UdpDatagrams(
+            [buf],
+            empty.astype(np.uint8),
+            empty,
+            empty,
+            empty,
+            empty.astype(np.uint16),
+            empty.astype(np.uint16),
+            linktype,
+        )
     l3, is_ipv4 = _network_offsets(buf, linktype, data, caplen, order)
     end = data + caplen
     ok = is_ipv4 & (l3 + 20 <= end)
@@ -213,7 +239,7 @@ def read_udp(path: str | Path) -> UdpDatagrams:
     total = _be16(buf, at + 2)
     protocol = buf[at + 9]
     flags_frag = _be16(buf, at + 6)
-    fragmented = (flags_frag & 0x3FFF) != 0      # more-fragments flag or a non-zero fragment offset
+    fragmented = (flags_frag & 0x3FFF) != 0  # more-fragments flag or a non-zero fragment offset
     ok &= (protocol == _UDP) & (ihl >= 20) & (total >= ihl)
     # Some capture writers (VeloView's position packets) leave a wrong, too large IPv4 total length: an
     # unfragmented datagram is accepted when its UDP length fits in the bytes actually captured.
@@ -245,8 +271,17 @@ def read_udp(path: str | Path) -> UdpDatagrams:
             buffer_ids = np.concatenate([buffer_ids, np.ones(len(found), dtype=np.uint8)])
         order_idx = np.argsort(record_of, kind='stable')
         offsets, lengths, src, dst, stamps_out, buffer_ids = (
-            a[order_idx] for a in (offsets, lengths, src, dst, stamps_out, buffer_ids))
+            a[order_idx] for a in (offsets, lengths, src, dst, stamps_out, buffer_ids)
+        )
     skipped = int(data.size - rows.size - n_fragments)
-    return UdpDatagrams(buffers, buffer_ids, offsets.astype(np.int64), lengths.astype(np.int64),
-                        stamps_out.astype(np.int64), src.astype(np.uint16), dst.astype(np.uint16), linktype,
-                        skipped)
+    return UdpDatagrams(
+        buffers,
+        buffer_ids,
+        offsets.astype(np.int64),
+        lengths.astype(np.int64),
+        stamps_out.astype(np.int64),
+        src.astype(np.uint16),
+        dst.astype(np.uint16),
+        linktype,
+        skipped,
+    )

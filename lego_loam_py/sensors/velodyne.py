@@ -50,6 +50,7 @@ driver: the wrap difference is taken modulo 36000 (the driver reuses the previou
 block), and in dual mode both blocks of a pair get the pair's interpolation and timing (the driver uses
 the single-return tables for dual packets).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -60,26 +61,46 @@ from lego_loam_py.core.pointcloud import VELODYNE_POINT_DTYPE, velodyne_points
 from lego_loam_py.errors import LegoLoamError
 
 __all__ = [
-    'PACKET_SIZE', 'RETURN_STRONGEST', 'RETURN_LAST', 'RETURN_DUAL', 'PRODUCT_VLP16', 'PRODUCT_HDL32E',
-    'PRODUCT_NAMES', 'VLP16_ELEVATION_DEG', 'VLP16_RING', 'SEQUENCE_NS', 'LASER_NS',
-    'VelodyneFormatError', 'Rotation', 'DecoderStats', 'Vlp16Decoder', 'decode_vlp16', 'sequence_azimuths',
+    'PACKET_SIZE',
+    'RETURN_STRONGEST',
+    'RETURN_LAST',
+    'RETURN_DUAL',
+    'PRODUCT_VLP16',
+    'PRODUCT_HDL32E',
+    'PRODUCT_NAMES',
+    'VLP16_ELEVATION_DEG',
+    'VLP16_RING',
+    'SEQUENCE_NS',
+    'LASER_NS',
+    'VelodyneFormatError',
+    'Rotation',
+    'DecoderStats',
+    'Vlp16Decoder',
+    'decode_vlp16',
+    'sequence_azimuths',
 ]
 
 PACKET_SIZE = 1206
 BLOCKS_PER_PACKET = 12
 BLOCK_SIZE = 100
-BLOCK_FLAG = 0xEEFF                    # bytes FF EE read little-endian
+BLOCK_FLAG = 0xEEFF  # bytes FF EE read little-endian
 LASERS = 16
 RETURN_STRONGEST, RETURN_LAST, RETURN_DUAL = 0x37, 0x38, 0x39
 PRODUCT_HDL32E, PRODUCT_VLP16 = 0x21, 0x22
-PRODUCT_NAMES = {0x21: 'HDL-32E', 0x22: 'VLP-16', 0x24: 'VLP-16 Hi-Res', 0x28: 'VLP-32C', 0x31: 'Velarray',
-                 0xA1: 'VLS-128'}
+PRODUCT_NAMES = {
+    0x21: 'HDL-32E',
+    0x22: 'VLP-16',
+    0x24: 'VLP-16 Hi-Res',
+    0x28: 'VLP-32C',
+    0x31: 'Velarray',
+    0xA1: 'VLS-128',
+}
 RETURN_MODE_NAMES = {RETURN_STRONGEST: 'strongest', RETURN_LAST: 'last', RETURN_DUAL: 'dual'}
 
-SEQUENCE_NS = 55_296                   # one firing sequence of 16 lasers [ns]
-LASER_NS = 2_304                       # between two lasers of a sequence [ns]
+SEQUENCE_NS = 55_296  # one firing sequence of 16 lasers [ns]
+LASER_NS = 2_304  # between two lasers of a sequence [ns]
 DEVICE_CLOCK_PERIOD_US = 3_600_000_000  # the device timestamp counts µs since the top of the hour
-FULL_TURN = 36_000                     # [0.01 deg]
+FULL_TURN = 36_000  # [0.01 deg]
 
 #: Elevation [deg] of laser id 0..15 (VLP16db.yaml) and its ring (0 = lowest beam).
 VLP16_ELEVATION_DEG = np.array([-15, 1, -13, 3, -11, 5, -9, 7, -7, 9, -5, 11, -3, 13, -1, 15], dtype=np.float64)
@@ -89,18 +110,23 @@ _F32 = np.float32
 # Float32 constants and the per-laser, per-sequence time offsets of the driver (vlp16 timing, in µs).
 _DISTANCE_RESOLUTION = _F32(0.002)
 _BLOCK_DURATION = _F32(110.592)
-_OFFSET_US = (np.arange(LASERS, dtype=_F32)[None, :] * _F32(2.304)
-              + np.arange(2, dtype=_F32)[:, None] * _F32(55.296))      # (sequence, laser)
+_OFFSET_US = np.arange(LASERS, dtype=_F32)[None, :] * _F32(2.304) + np.arange(2, dtype=_F32)[:, None] * _F32(
+    55.296
+)  # (sequence, laser)
 
 
 def _tables() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """cos/sin of every 0.01 deg step and of the 16 elevations, as the driver's float32 tables."""
-    step = _F32(0.01) * np.arange(FULL_TURN, dtype=_F32)              # float32 product, as in the driver
-    angle = (step.astype(np.float64) * np.pi / 180.0).astype(_F32)    # angles::from_degrees, stored as float
-    vertical = np.radians(VLP16_ELEVATION_DEG).astype(_F32)           # vert_correction [rad] read as float
+    step = _F32(0.01) * np.arange(FULL_TURN, dtype=_F32)  # float32 product, as in the driver
+    angle = (step.astype(np.float64) * np.pi / 180.0).astype(_F32)  # angles::from_degrees, stored as float
+    vertical = np.radians(VLP16_ELEVATION_DEG).astype(_F32)  # vert_correction [rad] read as float
     as64 = np.float64
-    return (np.cos(angle.astype(as64)).astype(_F32), np.sin(angle.astype(as64)).astype(_F32),
-            np.cos(vertical.astype(as64)).astype(_F32), np.sin(vertical.astype(as64)).astype(_F32))
+    return (
+        np.cos(angle.astype(as64)).astype(_F32),
+        np.sin(angle.astype(as64)).astype(_F32),
+        np.cos(vertical.astype(as64)).astype(_F32),
+        np.sin(vertical.astype(as64)).astype(_F32),
+    )
 
 
 _COS_AZ, _SIN_AZ, _COS_EL, _SIN_EL = _tables()
@@ -114,14 +140,14 @@ class VelodyneFormatError(LegoLoamError, ValueError):
 class Rotation:
     """One sensor rotation (sweep) decoded into a point cloud."""
 
-    points: np.ndarray            # structured array (x, y, z, intensity, ring, time) in the requested layout
-    stamp_ns: int                 # header stamp [ns]: first firing, or the restamped time
-    first_firing_ns: int          # time of the rotation's first firing sequence [ns since the epoch]
-    first_azimuth_deg: float      # azimuth of the first / last firing sequence (clockwise, 0.01 deg steps)
+    points: np.ndarray  # structured array (x, y, z, intensity, ring, time) in the requested layout
+    stamp_ns: int  # header stamp [ns]: first firing, or the restamped time
+    first_firing_ns: int  # time of the rotation's first firing sequence [ns since the epoch]
+    first_azimuth_deg: float  # azimuth of the first / last firing sequence (clockwise, 0.01 deg steps)
     last_azimuth_deg: float
-    n_sequences: int              # firing sequences in the rotation
-    completeness: float           # azimuth span (less gaps) / 360 deg
-    return_block: np.ndarray      # (n,) uint8: 0 = first block of a dual-return pair (or single return), 1 = second
+    n_sequences: int  # firing sequences in the rotation
+    completeness: float  # azimuth span (less gaps) / 360 deg
+    return_block: np.ndarray  # (n,) uint8: 0 = first block of a dual-return pair (or single return), 1 = second
     dual_return: bool
 
     @property
@@ -133,8 +159,8 @@ class Rotation:
 @dataclass
 class DecoderStats:
     packets: int = 0
-    bad_packets: int = 0          # packets with a block flag other than 0xFFEE (dropped whole)
-    rotations: int = 0            # rotations emitted
+    bad_packets: int = 0  # packets with a block flag other than 0xFFEE (dropped whole)
+    rotations: int = 0  # rotations emitted
     incomplete_rotations: int = 0  # fragments dropped for covering less than min_completeness
     product_id: int | None = None
     return_mode: int | None = None
@@ -148,7 +174,7 @@ def _u16(a: np.ndarray, lo: int) -> np.ndarray:
 def sequence_azimuths(packets: np.ndarray, dual: bool) -> np.ndarray:
     """(n, sequences per packet) int64 azimuth [0.01 deg] of each firing sequence's first laser."""
     n = packets.shape[0]
-    block_az = _u16(packets[:, :BLOCKS_PER_PACKET * BLOCK_SIZE].reshape(n, BLOCKS_PER_PACKET, BLOCK_SIZE), 2)
+    block_az = _u16(packets[:, : BLOCKS_PER_PACKET * BLOCK_SIZE].reshape(n, BLOCKS_PER_PACKET, BLOCK_SIZE), 2)
     base, diff = _block_steps(block_az, dual)
     seq = base.astype(_F32)[:, :, None] + (diff.astype(_F32)[:, :, None] * _OFFSET_US[:, 0]) / _BLOCK_DURATION
     return (_round_half_away(seq) % FULL_TURN).reshape(n, -1)
@@ -197,8 +223,15 @@ class Vlp16Decoder:
       ``VELODYNE_PACKED_DTYPE``, the ROS 1 driver's 22 B).
     """
 
-    def __init__(self, *, force_model: bool = False, split: str = 'wrap', min_completeness: float = 0.95,
-                 restamp_period_ns: int | None = None, point_dtype: np.dtype = VELODYNE_POINT_DTYPE):
+    def __init__(
+        self,
+        *,
+        force_model: bool = False,
+        split: str = 'wrap',
+        min_completeness: float = 0.95,
+        restamp_period_ns: int | None = None,
+        point_dtype: np.dtype = VELODYNE_POINT_DTYPE,
+    ):
         if split not in ('wrap', 'start'):
             raise ValueError(f"split must be 'wrap' or 'start', got {split!r}")
         if not 0.0 <= min_completeness <= 1.0:
@@ -213,11 +246,11 @@ class Vlp16Decoder:
         self.stats = DecoderStats()
         self._dual: bool | None = None
         self._cut: int | None = 0 if split == 'wrap' else None
-        self._anchor: tuple[int, int] | None = None     # (capture ns, unwrapped device µs) of the first packet
-        self._last_device_us: int | None = None          # unwrapped device time of the last packet fed
+        self._anchor: tuple[int, int] | None = None  # (capture ns, unwrapped device µs) of the first packet
+        self._last_device_us: int | None = None  # unwrapped device time of the last packet fed
         self._pending = np.zeros((0, PACKET_SIZE), np.uint8)
-        self._pending_ns = np.zeros(0, np.int64)        # first-firing time of each pending packet
-        self._pending_skip = 0                           # sequences of pending[0] before the open rotation
+        self._pending_ns = np.zeros(0, np.int64)  # first-firing time of each pending packet
+        self._pending_skip = 0  # sequences of pending[0] before the open rotation
         self._first_stamp: int | None = None
 
     @property
@@ -228,7 +261,7 @@ class Vlp16Decoder:
     def _validate(self, packets: np.ndarray) -> np.ndarray:
         """Mask of packets to keep; sets the return mode and checks the model on first use."""
         n = packets.shape[0]
-        flags = _u16(packets[:, :BLOCKS_PER_PACKET * BLOCK_SIZE].reshape(n, BLOCKS_PER_PACKET, BLOCK_SIZE), 0)
+        flags = _u16(packets[:, : BLOCKS_PER_PACKET * BLOCK_SIZE].reshape(n, BLOCKS_PER_PACKET, BLOCK_SIZE), 0)
         good = (flags == BLOCK_FLAG).all(axis=1)
         self.stats.bad_packets += int(n - good.sum())
         if not good.any():
@@ -237,8 +270,10 @@ class Vlp16Decoder:
         products = np.unique(packets[good, 1205])
         unknown = [m for m in modes.tolist() if m not in RETURN_MODE_NAMES]
         if unknown:
-            raise VelodyneFormatError(f'unknown return mode byte(s) {[hex(m) for m in unknown]} '
-                                      '(expected 0x37 strongest, 0x38 last or 0x39 dual)')
+            raise VelodyneFormatError(
+                f'unknown return mode byte(s) {[hex(m) for m in unknown]} '
+                '(expected 0x37 strongest, 0x38 last or 0x39 dual)'
+            )
         dual = modes == RETURN_DUAL
         if dual.any() and not dual.all() or (self._dual is not None and bool(dual[0]) != self._dual):
             raise VelodyneFormatError('the stream mixes single- and dual-return packets')
@@ -251,7 +286,8 @@ class Vlp16Decoder:
             raise VelodyneFormatError(
                 f'packets claim product id {names}, not 0x22 (VLP-16). If the sensor is a VLP-16 whose '
                 'firmware reports another id (early VLP-16 firmware says 0x21, HDL-32E), force the model '
-                '(--model VLP-16 / force_model=True).')
+                '(--model VLP-16 / force_model=True).'
+            )
         return good
 
     def _firing_times(self, packets: np.ndarray, capture_ns: np.ndarray) -> np.ndarray:
@@ -274,8 +310,7 @@ class Vlp16Decoder:
         packets = np.asarray(packets)
         capture_ns = np.asarray(capture_ns, dtype=np.int64).reshape(-1)
         if packets.ndim != 2 or packets.shape[1] != PACKET_SIZE or packets.dtype != np.uint8:
-            raise VelodyneFormatError(f'expected (n, {PACKET_SIZE}) uint8 packets, got {packets.shape} '
-                                      f'{packets.dtype}')
+            raise VelodyneFormatError(f'expected (n, {PACKET_SIZE}) uint8 packets, got {packets.shape} {packets.dtype}')
         if capture_ns.size != packets.shape[0]:
             raise ValueError('one capture time per packet is needed')
         self.stats.packets += packets.shape[0]
@@ -300,13 +335,13 @@ class Vlp16Decoder:
     # ---------------------------------------------------------------- rotations
     def _assemble(self, data: np.ndarray, times: np.ndarray, final: bool) -> list[Rotation]:
         per_packet = self.sequences_per_packet
-        azimuth = sequence_azimuths(data, self._dual).reshape(-1)[self._pending_skip:]
+        azimuth = sequence_azimuths(data, self._dual).reshape(-1)[self._pending_skip :]
         if self._cut is None:
             self._cut = int(azimuth[0])
         wraps = np.concatenate([[0], np.cumsum(np.diff(azimuth) < -FULL_TURN // 2)])
         unwrapped = azimuth + FULL_TURN * wraps
         turn = np.floor_divide(unwrapped - self._cut, FULL_TURN)
-        rotation_of = turn - turn[0]                       # 0 for the open rotation, then 1, 2, ...
+        rotation_of = turn - turn[0]  # 0 for the open rotation, then 1, 2, ...
         starts = np.flatnonzero(np.diff(rotation_of)) + 1  # first sequence of every later rotation
         bounds = np.concatenate([[0], starts, [azimuth.size]])
         n_complete = len(bounds) - 1 if final else len(bounds) - 2
@@ -317,8 +352,17 @@ class Vlp16Decoder:
             if completeness < self.min_completeness:
                 self.stats.incomplete_rotations += 1
                 continue
-            rotations.append(self._decode_rotation(data, times, s0 + self._pending_skip, s1 + self._pending_skip,
-                                                   azimuth[s0], azimuth[s1 - 1], completeness))
+            rotations.append(
+                self._decode_rotation(
+                    data,
+                    times,
+                    s0 + self._pending_skip,
+                    s1 + self._pending_skip,
+                    azimuth[s0],
+                    azimuth[s1 - 1],
+                    completeness,
+                )
+            )
         if final:
             keep_from = azimuth.size
         else:
@@ -330,8 +374,9 @@ class Vlp16Decoder:
         self._pending_skip = first_seq - first_packet * per_packet if not final else 0
         return rotations
 
-    def _decode_rotation(self, data: np.ndarray, times: np.ndarray, s0: int, s1: int, first_az: int,
-                         last_az: int, completeness: float) -> Rotation:
+    def _decode_rotation(
+        self, data: np.ndarray, times: np.ndarray, s0: int, s1: int, first_az: int, last_az: int, completeness: float
+    ) -> Rotation:
         """Points of the firing sequences [s0, s1) (indices over ``data``'s sequences)."""
         per_packet = self.sequences_per_packet
         p0, p1 = s0 // per_packet, (s1 - 1) // per_packet + 1
@@ -340,17 +385,20 @@ class Vlp16Decoder:
         n = packets.shape[0]
         returns = 2 if dual else 1
         groups = BLOCKS_PER_PACKET // returns
-        blocks = packets[:, :BLOCKS_PER_PACKET * BLOCK_SIZE].reshape(n, BLOCKS_PER_PACKET, BLOCK_SIZE)
-        base, diff = _block_steps(_u16(blocks, 2), dual)                  # (n, groups)
+        blocks = packets[:, : BLOCKS_PER_PACKET * BLOCK_SIZE].reshape(n, BLOCKS_PER_PACKET, BLOCK_SIZE)
+        base, diff = _block_steps(_u16(blocks, 2), dual)  # (n, groups)
         # (packet, group, sequence, laser): the driver's float32 azimuth interpolation.
-        az = (base.astype(_F32)[:, :, None, None]
-              + (diff.astype(_F32)[:, :, None, None] * _OFFSET_US) / _BLOCK_DURATION)
+        az = base.astype(_F32)[:, :, None, None] + (diff.astype(_F32)[:, :, None, None] * _OFFSET_US) / _BLOCK_DURATION
         az = _round_half_away(az) % FULL_TURN
         records = blocks[:, :, 4:].reshape(n, groups, returns, 2, LASERS, 3)  # (packet, group, return, seq, laser)
         distance_raw = _u16(records, 0)
         shape = distance_raw.shape
-        sequence = (np.arange(n)[:, None, None] * per_packet + np.arange(groups)[None, :, None] * 2
-                    + np.arange(2)[None, None, :] + p0 * per_packet)        # (packet, group, seq)
+        sequence = (
+            np.arange(n)[:, None, None] * per_packet
+            + np.arange(groups)[None, :, None] * 2
+            + np.arange(2)[None, None, :]
+            + p0 * per_packet
+        )  # (packet, group, seq)
         sequence = np.broadcast_to(sequence[:, :, None, :, None], shape)
         keep = (distance_raw != 0) & (sequence >= s0) & (sequence < s1)
         laser = np.broadcast_to(np.arange(LASERS), shape)[keep]
@@ -362,12 +410,15 @@ class Vlp16Decoder:
         xyz[:, 1] = -(xy * _SIN_AZ[azimuth])
         xyz[:, 2] = d * _SIN_EL[laser]
         first_ns = int(packet_ns[(s0 - p0 * per_packet) // per_packet]) + (s0 % per_packet) * SEQUENCE_NS
-        fire_ns = (packet_ns[:, None, None, None, None] + (np.arange(groups)[None, :, None, None, None] * 2
-                   + np.arange(2)[None, None, None, :, None]) * SEQUENCE_NS
-                   + np.arange(LASERS)[None, None, None, None, :] * LASER_NS)
+        fire_ns = (
+            packet_ns[:, None, None, None, None]
+            + (np.arange(groups)[None, :, None, None, None] * 2 + np.arange(2)[None, None, None, :, None]) * SEQUENCE_NS
+            + np.arange(LASERS)[None, None, None, None, :] * LASER_NS
+        )
         rel_ns = np.broadcast_to(fire_ns, shape)[keep] - first_ns
-        points = velodyne_points(xyz, records[..., 2][keep], VLP16_RING[laser], (rel_ns / 1e9).astype(_F32),
-                                 dtype=self.point_dtype)
+        points = velodyne_points(
+            xyz, records[..., 2][keep], VLP16_RING[laser], (rel_ns / 1e9).astype(_F32), dtype=self.point_dtype
+        )
         return_block = np.broadcast_to(np.arange(returns, dtype=np.uint8)[None, None, :, None, None], shape)[keep]
         if self._first_stamp is None:
             self._first_stamp = first_ns
@@ -375,10 +426,17 @@ class Vlp16Decoder:
         if self.restamp_period_ns is not None:
             stamp = self._first_stamp + self.stats.rotations * self.restamp_period_ns
         self.stats.rotations += 1
-        return Rotation(points=points, stamp_ns=stamp, first_firing_ns=first_ns,
-                        first_azimuth_deg=first_az / 100.0, last_azimuth_deg=last_az / 100.0,
-                        n_sequences=s1 - s0, completeness=float(completeness),
-                        return_block=np.ascontiguousarray(return_block), dual_return=dual)
+        return Rotation(
+            points=points,
+            stamp_ns=stamp,
+            first_firing_ns=first_ns,
+            first_azimuth_deg=first_az / 100.0,
+            last_azimuth_deg=last_az / 100.0,
+            n_sequences=s1 - s0,
+            completeness=float(completeness),
+            return_block=np.ascontiguousarray(return_block),
+            dual_return=dual,
+        )
 
 
 def decode_vlp16(packets: np.ndarray, capture_ns: np.ndarray, *, chunk: int = 4096, **options) -> list[Rotation]:
@@ -386,5 +444,5 @@ def decode_vlp16(packets: np.ndarray, capture_ns: np.ndarray, *, chunk: int = 40
     decoder = Vlp16Decoder(**options)
     rotations: list[Rotation] = []
     for start in range(0, len(packets), chunk):
-        rotations += decoder.feed(packets[start:start + chunk], capture_ns[start:start + chunk])
+        rotations += decoder.feed(packets[start : start + chunk], capture_ns[start : start + chunk])
     return rotations + decoder.finish()

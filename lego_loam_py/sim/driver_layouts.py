@@ -25,6 +25,7 @@ driver's point type and conventions:
 A point's range-image pixel is its ring (row) and its column; the simulator casts every column at azimuth
 ``-2 pi k / columns`` and each return lies on its beam, so the column follows from the point's azimuth.
 """
+
 from __future__ import annotations
 
 import os
@@ -35,34 +36,67 @@ import numpy as np
 
 from lego_loam_py.core.pointcloud import POINT_XYZI_DTYPE
 
-__all__ = ['LAYOUTS', 'OUSTER_DTYPE', 'HESAI_DTYPE', 'ROBOSENSE_DTYPE', 'LIVOX_DTYPE', 'FLOAT64_DTYPE',
-           'pixels_of', 'in_layout', 'rewrite_bag', 'cached_layout']
+__all__ = [
+    'LAYOUTS',
+    'OUSTER_DTYPE',
+    'HESAI_DTYPE',
+    'ROBOSENSE_DTYPE',
+    'LIVOX_DTYPE',
+    'FLOAT64_DTYPE',
+    'pixels_of',
+    'in_layout',
+    'rewrite_bag',
+    'cached_layout',
+]
 
 LAYOUTS = ('plain', 'velodyne_organized', 'ouster', 'hesai', 'robosense', 'livox', 'float64', 'xyzi')
 
 # ouster-ros's legacy point (PCL-aligned): x, y, z float32, intensity float32 at 16, t uint32 [ns] at 20,
 # reflectivity uint16 at 24, ring uint16 at 26, ambient uint16 at 28, range uint32 [mm] at 32; 48 bytes.
-OUSTER_DTYPE = np.dtype({
-    'names': ['x', 'y', 'z', 'intensity', 't', 'reflectivity', 'ring', 'ambient', 'range'],
-    'formats': ['<f4', '<f4', '<f4', '<f4', '<u4', '<u2', '<u2', '<u2', '<u4'],
-    'offsets': [0, 4, 8, 16, 20, 24, 26, 28, 32], 'itemsize': 48})
+OUSTER_DTYPE = np.dtype(
+    {
+        'names': ['x', 'y', 'z', 'intensity', 't', 'reflectivity', 'ring', 'ambient', 'range'],
+        'formats': ['<f4', '<f4', '<f4', '<f4', '<u4', '<u2', '<u2', '<u2', '<u4'],
+        'offsets': [0, 4, 8, 16, 20, 24, 26, 28, 32],
+        'itemsize': 48,
+    }
+)
 # Hesai's PointXYZIT (HesaiLidar_General_ROS): intensity at 16, timestamp float64 [s] at 24, ring uint16 at 32.
-HESAI_DTYPE = np.dtype({
-    'names': ['x', 'y', 'z', 'intensity', 'timestamp', 'ring'],
-    'formats': ['<f4', '<f4', '<f4', '<f4', '<f8', '<u2'], 'offsets': [0, 4, 8, 16, 24, 32], 'itemsize': 48})
+HESAI_DTYPE = np.dtype(
+    {
+        'names': ['x', 'y', 'z', 'intensity', 'timestamp', 'ring'],
+        'formats': ['<f4', '<f4', '<f4', '<f4', '<f8', '<u2'],
+        'offsets': [0, 4, 8, 16, 24, 32],
+        'itemsize': 48,
+    }
+)
 # rslidar_sdk's PointXYZIRT: intensity at 16, ring uint16 at 20, timestamp float64 [s] at 24.
-ROBOSENSE_DTYPE = np.dtype({
-    'names': ['x', 'y', 'z', 'intensity', 'ring', 'timestamp'],
-    'formats': ['<f4', '<f4', '<f4', '<f4', '<u2', '<f8'], 'offsets': [0, 4, 8, 16, 20, 24], 'itemsize': 32})
+ROBOSENSE_DTYPE = np.dtype(
+    {
+        'names': ['x', 'y', 'z', 'intensity', 'ring', 'timestamp'],
+        'formats': ['<f4', '<f4', '<f4', '<f4', '<u2', '<f8'],
+        'offsets': [0, 4, 8, 16, 20, 24],
+        'itemsize': 32,
+    }
+)
 # Livox-style point: x, y, z, intensity float32, tag and line uint8, offset_time uint32 [ns from the stamp].
-LIVOX_DTYPE = np.dtype({
-    'names': ['x', 'y', 'z', 'intensity', 'tag', 'line', 'offset_time'],
-    'formats': ['<f4', '<f4', '<f4', '<f4', 'u1', 'u1', '<u4'], 'offsets': [0, 4, 8, 12, 16, 17, 20],
-    'itemsize': 24})
+LIVOX_DTYPE = np.dtype(
+    {
+        'names': ['x', 'y', 'z', 'intensity', 'tag', 'line', 'offset_time'],
+        'formats': ['<f4', '<f4', '<f4', '<f4', 'u1', 'u1', '<u4'],
+        'offsets': [0, 4, 8, 12, 16, 17, 20],
+        'itemsize': 24,
+    }
+)
 # float64 coordinates, the rest as the velodyne layout.
-FLOAT64_DTYPE = np.dtype({
-    'names': ['x', 'y', 'z', 'intensity', 'ring', 'time'],
-    'formats': ['<f8', '<f8', '<f8', '<f4', '<u2', '<f4'], 'offsets': [0, 8, 16, 24, 28, 32], 'itemsize': 40})
+FLOAT64_DTYPE = np.dtype(
+    {
+        'names': ['x', 'y', 'z', 'intensity', 'ring', 'time'],
+        'formats': ['<f8', '<f8', '<f8', '<f4', '<u2', '<f4'],
+        'offsets': [0, 8, 16, 24, 28, 32],
+        'itemsize': 40,
+    }
+)
 
 
 def pixels_of(points: np.ndarray, columns: int) -> tuple[np.ndarray, np.ndarray]:
@@ -73,8 +107,9 @@ def pixels_of(points: np.ndarray, columns: int) -> tuple[np.ndarray, np.ndarray]
     return points['ring'].astype(np.int64), column
 
 
-def _empty_grid(points: np.ndarray, dtype: np.dtype, rows: int, columns: int,
-                empty_xyz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _empty_grid(
+    points: np.ndarray, dtype: np.dtype, rows: int, columns: int, empty_xyz: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A (rows, columns) grid of ``dtype`` whose x/y/z hold ``empty_xyz``, and the (ring, column) of the points."""
     ring, column = pixels_of(points, columns)
     if np.unique(ring * columns + column).size != len(points):
@@ -85,16 +120,22 @@ def _empty_grid(points: np.ndarray, dtype: np.dtype, rows: int, columns: int,
     return grid, ring, column
 
 
-def in_layout(points: np.ndarray, layout: str, stamp_ns: int, rows: int, columns: int,
-              scan_period: float = 0.1) -> np.ndarray:
+def in_layout(
+    points: np.ndarray, layout: str, stamp_ns: int, rows: int, columns: int, scan_period: float = 0.1
+) -> np.ndarray:
     """A simulated sweep (velodyne layout, ``time`` [s] since the header stamp ``stamp_ns``) in ``layout``:
     a 1-D array (unorganized) or a 2-D (height, width) one (organized)."""
     time = points['time'].astype(np.float64)
     if layout == 'plain':
         return points
     if layout in ('hesai', 'robosense', 'livox', 'float64', 'xyzi'):
-        dtype = {'hesai': HESAI_DTYPE, 'robosense': ROBOSENSE_DTYPE, 'livox': LIVOX_DTYPE,
-                 'float64': FLOAT64_DTYPE, 'xyzi': POINT_XYZI_DTYPE}[layout]
+        dtype = {
+            'hesai': HESAI_DTYPE,
+            'robosense': ROBOSENSE_DTYPE,
+            'livox': LIVOX_DTYPE,
+            'float64': FLOAT64_DTYPE,
+            'xyzi': POINT_XYZI_DTYPE,
+        }[layout]
         out = np.zeros(len(points), dtype=dtype)
         for name in ('x', 'y', 'z', 'intensity'):
             out[name] = points[name]
@@ -116,12 +157,12 @@ def in_layout(points: np.ndarray, layout: str, stamp_ns: int, rows: int, columns
         grid['ring'] = np.arange(rows)[:, None]
         grid['time'] = column_time[None, :]
         grid[ring, column] = points
-        return np.ascontiguousarray(grid.T)   # one row per firing, one column per laser
+        return np.ascontiguousarray(grid.T)  # one row per firing, one column per laser
     if layout == 'ouster':
         grid, ring, column = _empty_grid(points, OUSTER_DTYPE, rows, columns, 0.0)
         grid['ring'] = np.arange(rows)[:, None]
         grid['t'] = np.rint(column_time * 1e9).astype(np.uint32)[None, :]
-        row = rows - 1 - ring   # row 0 is the top beam
+        row = rows - 1 - ring  # row 0 is the top beam
         cell = grid[row, column]
         for name in ('x', 'y', 'z', 'intensity'):
             cell[name] = points[name]
@@ -142,7 +183,7 @@ def rewrite_bag(source: str | Path, output: str | Path, layout: str, max_scans: 
     """Copy the simulated bag ``source`` to ``output`` (a new ROS 2 bag) with its clouds in ``layout``; the IMU
     messages and the ground truth are copied as they are. Returns ``output``."""
     from lego_loam_py.bag.io import BagReader, BagWriter, cloud_msg_to_array, make_cloud_msg
-    from lego_loam_py.sim.output import load_scenario, sidecar_path
+    from lego_loam_py.inputs.sidecars import load_scenario, sidecar_path
     from lego_loam_py.sim.simulator import CLOUD_TOPIC
 
     if layout not in LAYOUTS:
@@ -187,7 +228,7 @@ def cached_layout(source: str | Path, layout: str) -> Path:
         try:
             os.rename(temporary, entry)
         except OSError:
-            if not (entry / 'ground_truth.tum').is_file():   # (another process finished first otherwise)
+            if not (entry / 'ground_truth.tum').is_file():  # (another process finished first otherwise)
                 raise
     finally:
         if temporary.exists():

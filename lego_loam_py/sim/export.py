@@ -11,6 +11,7 @@ seconds since the first, nanosecond digits) and ``poses.txt`` (the ground truth,
 ``lego_loam_py run`` reads either (:mod:`lego_loam_py.inputs`); no IMU is exported, so compare with the bag run
 ``--no-imu``.
 """
+
 from __future__ import annotations
 
 import shutil
@@ -27,10 +28,10 @@ def export_recording(bag: str | Path, folder: str | Path, kind: str) -> int:
     """Write the clouds and ground truth of the simulated ``bag`` into ``folder`` (must not exist) as ``kind``;
     returns the number of scans written."""
     from lego_loam_py.bag.io import BagReader, cloud_msg_to_array
-    from lego_loam_py.core.io import write_kitti_poses_atomic
+    from lego_loam_py.formats import write_kitti_poses_atomic
     from lego_loam_py.inputs.kitti import write_kitti_sequence_files, write_times
     from lego_loam_py.inputs.point_files import write_bin_points, write_pcd_points
-    from lego_loam_py.sim.output import load_ground_truth
+    from lego_loam_py.inputs.sidecars import load_ground_truth
     from lego_loam_py.sim.simulator import CLOUD_TOPIC
 
     if kind not in EXPORT_KINDS:
@@ -56,8 +57,9 @@ def export_recording(bag: str | Path, folder: str | Path, kind: str) -> int:
                     write_pcd_points(scans / f'{k:06d}.pcd', points)
         truth_stamps, poses = truth
         index = np.searchsorted(truth_stamps, stamps)
-        if np.any(index >= len(truth_stamps)) or np.any(truth_stamps[np.minimum(index, len(truth_stamps) - 1)]
-                                                         != stamps):
+        if np.any(index >= len(truth_stamps)) or np.any(
+            truth_stamps[np.minimum(index, len(truth_stamps) - 1)] != stamps
+        ):
             raise ValueError(f'{bag}: the ground truth does not list every cloud stamp')
         poses = poses[index]
         if kind == 'kitti':

@@ -41,6 +41,7 @@ The errors of real 9-axis units (issue 34; all off by default, named sets of the
   that stamps stay increasing), and ``record_late``: the recorder receives each sample at its stamp rather
   than when it was measured (see the simulator).
 """
+
 from __future__ import annotations
 
 import math
@@ -62,31 +63,31 @@ GRAVITY = 9.81  # [m/s^2], LeGO-LOAM's value
 class ImuNoise:
     """White-noise densities and bias magnitudes (1 sigma, per axis)."""
 
-    gyro_noise_density: float = math.radians(0.01)    # [rad/s/sqrt(Hz)]  (0.01 deg/s/sqrt(Hz))
-    gyro_bias_sigma: float = math.radians(0.02)       # [rad/s]           (0.02 deg/s)
-    accel_noise_density: float = 60e-6 * GRAVITY       # [m/s^2/sqrt(Hz)]  (60 ug/sqrt(Hz))
-    accel_bias_sigma: float = 0.02                     # [m/s^2]           (~2 mg)
-    orientation_noise: float = math.radians(0.05)     # white noise on each axis [rad]
-    tilt_bias_sigma: float = math.radians(0.1)        # constant roll/pitch error [rad]
-    heading_bias_sigma: float = math.radians(0.5)     # constant yaw error [rad]
+    gyro_noise_density: float = math.radians(0.01)  # [rad/s/sqrt(Hz)]  (0.01 deg/s/sqrt(Hz))
+    gyro_bias_sigma: float = math.radians(0.02)  # [rad/s]           (0.02 deg/s)
+    accel_noise_density: float = 60e-6 * GRAVITY  # [m/s^2/sqrt(Hz)]  (60 ug/sqrt(Hz))
+    accel_bias_sigma: float = 0.02  # [m/s^2]           (~2 mg)
+    orientation_noise: float = math.radians(0.05)  # white noise on each axis [rad]
+    tilt_bias_sigma: float = math.radians(0.1)  # constant roll/pitch error [rad]
+    heading_bias_sigma: float = math.radians(0.5)  # constant yaw error [rad]
     # The errors below came later (issue 34). At their defaults they draw nothing and change nothing: the unit
     # above, and every recording made with it, stays as it was.
-    gyro_bias_range: tuple[float, float] | None = None    # [rad/s] |constant bias| per axis, uniform, random sign
-    accel_bias_range: tuple[float, float] | None = None   # [m/s^2] (both replace the *_bias_sigma draw)
-    gyro_bias_instability: float = 0.0                    # [rad/s] stationary sigma of the wandering bias
-    gyro_bias_time: float = 100.0                         # [s] its correlation time
-    accel_bias_instability: float = 0.0                   # [m/s^2]
-    accel_bias_time: float = 100.0                        # [s]
-    gyro_scale_error: float = 0.0                         # bound of each axis' scale-factor error (fraction)
+    gyro_bias_range: tuple[float, float] | None = None  # [rad/s] |constant bias| per axis, uniform, random sign
+    accel_bias_range: tuple[float, float] | None = None  # [m/s^2] (both replace the *_bias_sigma draw)
+    gyro_bias_instability: float = 0.0  # [rad/s] stationary sigma of the wandering bias
+    gyro_bias_time: float = 100.0  # [s] its correlation time
+    accel_bias_instability: float = 0.0  # [m/s^2]
+    accel_bias_time: float = 100.0  # [s]
+    gyro_scale_error: float = 0.0  # bound of each axis' scale-factor error (fraction)
     accel_scale_error: float = 0.0
-    misalignment: float = 0.0                             # [rad] bound of each cross-axis term (gyro and accel)
-    tilt_range: tuple[float, float] | None = None         # [rad] |constant roll/pitch error| (replaces tilt_bias_sigma)
-    yaw_offset_range: tuple[float, float] | None = None   # [rad] constant yaw offset, uniform in the range
-    heading_drift: float = 0.0                            # [rad] stationary sigma of the wandering heading error
-    heading_drift_time: float = 60.0                      # [s] its correlation time
+    misalignment: float = 0.0  # [rad] bound of each cross-axis term (gyro and accel)
+    tilt_range: tuple[float, float] | None = None  # [rad] |constant roll/pitch error| (replaces tilt_bias_sigma)
+    yaw_offset_range: tuple[float, float] | None = None  # [rad] constant yaw offset, uniform in the range
+    heading_drift: float = 0.0  # [rad] stationary sigma of the wandering heading error
+    heading_drift_time: float = 60.0  # [s] its correlation time
 
     @staticmethod
-    def none() -> 'ImuNoise':
+    def none() -> ImuNoise:
         return ImuNoise(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
     @property
@@ -104,8 +105,8 @@ class ImuNoise:
         return out
 
 
-_UG = 1e-6 * GRAVITY                  # [m/s^2] per micro-g
-_DEG_H = math.radians(1.0) / 3600.0   # [rad/s] per deg/h
+_UG = 1e-6 * GRAVITY  # [m/s^2] per micro-g
+_DEG_H = math.radians(1.0) / 3600.0  # [rad/s] per deg/h
 
 # Named units (``lego_loam_py simulate --imu-profile``). Where each number comes from is said beside it;
 # "assumed" marks what no data sheet states (the correlation times of the bias wander, residual biases after a
@@ -149,7 +150,8 @@ IMU_PROFILES: dict[str, ImuNoise] = {
         tilt_range=(math.radians(0.1), math.radians(0.3)),
         yaw_offset_range=(-math.pi, math.pi),
         heading_drift=math.radians(1.0),
-        heading_drift_time=60.0),
+        heading_drift_time=60.0,
+    ),
     # An industrial MEMS AHRS of the Xsens MTi (1-series / 300) and VectorNav VN-100 class.
     'industrial': ImuNoise(
         # Xsens MTi-1 series data sheet: gyro 0.007 deg/s/sqrt(Hz), in-run bias stability 10 deg/h; accel
@@ -180,10 +182,11 @@ IMU_PROFILES: dict[str, ImuNoise] = {
         tilt_range=(math.radians(0.05), math.radians(0.2)),
         yaw_offset_range=(-math.pi, math.pi),
         heading_drift=math.radians(1.0),
-        heading_drift_time=60.0),
+        heading_drift_time=60.0,
+    ),
 }
 PROFILE_SOURCES = {
-    'default': 'the simulator\'s unit since its first version (Xsens MTi-300 noise densities)',
+    'default': "the simulator's unit since its first version (Xsens MTi-300 noise densities)",
     'consumer': 'BNO055 / MPU-9250 data sheets; biases and orientation errors as measured in issue 34',
     'industrial': 'Xsens MTi-1 series and MTi-300 data sheets (VectorNav VN-100 class)',
 }
@@ -193,11 +196,11 @@ PROFILE_SOURCES = {
 class ImuBiases:
     """The constant errors of one simulated unit (drawn once per simulation)."""
 
-    gyro: tuple[float, float, float] = (0.0, 0.0, 0.0)          # [rad/s], IMU frame
-    accel: tuple[float, float, float] = (0.0, 0.0, 0.0)         # [m/s^2], IMU frame
-    orientation: tuple[float, float, float] = (0.0, 0.0, 0.0)   # rotation vector in the world [rad]
-    yaw_offset: float = 0.0                                     # [rad] about the world z axis, after ``orientation``
-    gyro_matrix: tuple | None = None    # 3x3 rows, I + scale errors + cross-axis terms (None: the identity)
+    gyro: tuple[float, float, float] = (0.0, 0.0, 0.0)  # [rad/s], IMU frame
+    accel: tuple[float, float, float] = (0.0, 0.0, 0.0)  # [m/s^2], IMU frame
+    orientation: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rotation vector in the world [rad]
+    yaw_offset: float = 0.0  # [rad] about the world z axis, after ``orientation``
+    gyro_matrix: tuple | None = None  # 3x3 rows, I + scale errors + cross-axis terms (None: the identity)
     accel_matrix: tuple | None = None
 
 
@@ -205,28 +208,28 @@ class ImuBiases:
 class ImuSamples:
     """IMU measurements at ``times``."""
 
-    times: np.ndarray                 # (N,) [s]
-    orientation: np.ndarray           # (N, 4) quaternion (x, y, z, w), world <- imu
-    angular_velocity: np.ndarray      # (N, 3) [rad/s], IMU frame
-    linear_acceleration: np.ndarray   # (N, 3) [m/s^2], IMU frame, specific force
+    times: np.ndarray  # (N,) [s]
+    orientation: np.ndarray  # (N, 4) quaternion (x, y, z, w), world <- imu
+    angular_velocity: np.ndarray  # (N, 3) [rad/s], IMU frame
+    linear_acceleration: np.ndarray  # (N, 3) [m/s^2], IMU frame, specific force
 
 
 @dataclass(frozen=True)
 class ImuModel:
     """Rate, noise, mounting and stamping of the simulated IMU."""
 
-    rate: float = 200.0                                               # [Hz]
+    rate: float = 200.0  # [Hz]
     noise: ImuNoise = field(default_factory=ImuNoise)
-    extrinsic_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)   # IMU axes in the lidar frame [deg]
+    extrinsic_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # IMU axes in the lidar frame [deg]
     gravity: float = GRAVITY
-    lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0)           # IMU origin in the lidar frame [m]
+    lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0)  # IMU origin in the lidar frame [m]
     orientation_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # orientation frame in the IMU frame [deg]
-    time_offset: float = 0.0                                          # IMU stamp - lidar stamp [s]
-    stamp_jitter: float = 0.0       # [s] sigma of Gaussian stamp noise (clipped at 0.49 sample periods)
-    record_late: bool = False       # the recorder receives each sample at its stamp, not when measured
-    profile: str = 'default'        # name of the noise's profile (IMU_PROFILES), for the record
+    time_offset: float = 0.0  # IMU stamp - lidar stamp [s]
+    stamp_jitter: float = 0.0  # [s] sigma of Gaussian stamp noise (clipped at 0.49 sample periods)
+    record_late: bool = False  # the recorder receives each sample at its stamp, not when measured
+    profile: str = 'default'  # name of the noise's profile (IMU_PROFILES), for the record
 
-    def ideal(self) -> 'ImuModel':
+    def ideal(self) -> ImuModel:
         return replace(self, noise=ImuNoise.none())
 
     @property
@@ -260,12 +263,15 @@ class ImuModel:
         unit's yaw reference is its own, which a 9-axis driver does not count as an error either)."""
         n = self.noise
         tilt = n.tilt_bias_sigma if n.tilt_range is None else n.tilt_range[1]
-        heading = n.orientation_noise ** 2 + n.heading_bias_sigma ** 2
+        heading = n.orientation_noise**2 + n.heading_bias_sigma**2
         if n.heading_drift:
-            heading += n.heading_drift ** 2
-        orientation = np.diag([n.orientation_noise ** 2 + tilt ** 2] * 2 + [heading])
-        return dict(orientation=orientation.ravel(), angular_velocity=np.eye(3).ravel() * self.gyro_sigma ** 2,
-                    linear_acceleration=np.eye(3).ravel() * self.accel_sigma ** 2)
+            heading += n.heading_drift**2
+        orientation = np.diag([n.orientation_noise**2 + tilt**2] * 2 + [heading])
+        return dict(
+            orientation=orientation.ravel(),
+            angular_velocity=np.eye(3).ravel() * self.gyro_sigma**2,
+            linear_acceleration=np.eye(3).ravel() * self.accel_sigma**2,
+        )
 
     def draw_biases(self, rng: np.random.Generator) -> ImuBiases:
         """The constant errors of one unit. The first three draws are the original unit's, in its order (so
@@ -278,14 +284,21 @@ class ImuModel:
             gyro = _signed_magnitudes(rng, n.gyro_bias_range)
         if n.accel_bias_range is not None:
             accel = _signed_magnitudes(rng, n.accel_bias_range)
-        if n.tilt_range is not None:   # about a horizontal axis in a random direction
+        if n.tilt_range is not None:  # about a horizontal axis in a random direction
             magnitude, azimuth = rng.uniform(*n.tilt_range), rng.uniform(-math.pi, math.pi)
             orientation = np.array([magnitude * math.cos(azimuth), magnitude * math.sin(azimuth), orientation[2] + 0.0])
         yaw_offset = float(rng.uniform(*n.yaw_offset_range)) if n.yaw_offset_range is not None else 0.0
-        matrices = [_sensitivity(rng, scale, n.misalignment) if scale or n.misalignment else None
-                    for scale in (n.gyro_scale_error, n.accel_scale_error)]
-        return ImuBiases(tuple(float(v) for v in gyro), tuple(float(v) for v in accel),
-                         tuple(float(v) for v in orientation), yaw_offset, *matrices)
+        matrices = [
+            _sensitivity(rng, scale, n.misalignment) if scale or n.misalignment else None
+            for scale in (n.gyro_scale_error, n.accel_scale_error)
+        ]
+        return ImuBiases(
+            tuple(float(v) for v in gyro),
+            tuple(float(v) for v in accel),
+            tuple(float(v) for v in orientation),
+            yaw_offset,
+            *matrices,
+        )
 
     def wander(self, count: int, rng: np.random.Generator, previous: np.ndarray | None = None) -> np.ndarray:
         """The next ``count`` samples (count, 7) of the wandering errors: gyro bias (3, rad/s), accelerometer
@@ -295,13 +308,14 @@ class ImuModel:
         sigma = np.array([n.gyro_bias_instability] * 3 + [n.accel_bias_instability] * 3 + [n.heading_drift])
         times = np.array([n.gyro_bias_time] * 3 + [n.accel_bias_time] * 3 + [n.heading_drift_time])
         decay = np.exp(-1.0 / (self.rate * times))
-        gain = sigma * np.sqrt(1.0 - decay ** 2)
+        gain = sigma * np.sqrt(1.0 - decay**2)
         previous = np.zeros(7) if previous is None else np.asarray(previous, dtype=float)
         drive = rng.standard_normal((count, 7))
         out = np.zeros((count, 7))
-        for axis in np.flatnonzero(sigma):   # x[k] = decay x[k-1] + gain w[k], as a filter (7 axes, no samples)
-            out[:, axis] = lfilter([gain[axis]], [1.0, -decay[axis]], drive[:, axis],
-                                   zi=[decay[axis] * previous[axis]])[0]
+        for axis in np.flatnonzero(sigma):  # x[k] = decay x[k-1] + gain w[k], as a filter (7 axes, no samples)
+            out[:, axis] = lfilter(
+                [gain[axis]], [1.0, -decay[axis]], drive[:, axis], zi=[decay[axis] * previous[axis]]
+            )[0]
         return out
 
     def stamps_ns(self, measured_ns: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
@@ -314,8 +328,14 @@ class ImuModel:
             stamps = stamps + np.round(jitter * 1e9).astype(np.int64)
         return stamps
 
-    def measure(self, trajectory: Trajectory, times: np.ndarray, biases: ImuBiases,
-                rng: np.random.Generator | None, wander: np.ndarray | None = None) -> ImuSamples:
+    def measure(
+        self,
+        trajectory: Trajectory,
+        times: np.ndarray,
+        biases: ImuBiases,
+        rng: np.random.Generator | None,
+        wander: np.ndarray | None = None,
+    ) -> ImuSamples:
         """Measurements at ``times`` [s]; ``rng`` draws the white noise (None: noise-free samples); ``wander``
         (len(times), 7) the wandering errors at those times (:meth:`wander`; None: none)."""
         times = np.asarray(times, dtype=float)
@@ -326,9 +346,9 @@ class ImuModel:
         r_li = self.rotation_lidar_imu
         gravity = np.array([0.0, 0.0, -self.gravity])
         specific_lidar = np.einsum('nji,nj->ni', rotation, accel_world - gravity)
-        gyro = omega_lidar @ r_li                                     # R_li^T omega for each row
+        gyro = omega_lidar @ r_li  # R_li^T omega for each row
         accel = specific_lidar @ r_li
-        if biases.gyro_matrix is not None:   # scale errors and misalignment: M v for each row
+        if biases.gyro_matrix is not None:  # scale errors and misalignment: M v for each row
             gyro = gyro @ np.asarray(biases.gyro_matrix).T
         if biases.accel_matrix is not None:
             accel = accel @ np.asarray(biases.accel_matrix).T
@@ -337,8 +357,9 @@ class ImuModel:
         if wander is not None:
             gyro = gyro + wander[:, :3]
             accel = accel + wander[:, 3:6]
-        world_imu = Rotation.from_matrix(rotation @ (r_li @ self.rotation_imu_orientation
-                                                     if any(self.orientation_rpy_deg) else r_li))
+        world_imu = Rotation.from_matrix(
+            rotation @ (r_li @ self.rotation_imu_orientation if any(self.orientation_rpy_deg) else r_li)
+        )
         error = np.broadcast_to(np.asarray(biases.orientation), (len(times), 3)).copy()
         if rng is not None:
             n = len(times)
@@ -356,7 +377,7 @@ class ImuModel:
     def describe(self, biases: ImuBiases) -> dict:
         """Plain-data summary for scenario.yaml (SI units; the drawn biases included)."""
         mounting = {}
-        if any(self.lever_arm):   # (only when set: the sidecars of recordings without them stay as they were)
+        if any(self.lever_arm):  # (only when set: the sidecars of recordings without them stay as they were)
             mounting['lever_arm_m'] = list(self.lever_arm)
         if any(self.orientation_rpy_deg):
             mounting['orientation_rpy_deg'] = list(self.orientation_rpy_deg)
@@ -376,11 +397,17 @@ class ImuModel:
         for name in ('gyro_matrix', 'accel_matrix'):
             if getattr(biases, name) is not None:
                 drawn[name] = [list(row) for row in getattr(biases, name)]
-        return dict(rate_hz=self.rate, gravity=self.gravity, extrinsic_rpy_deg=list(self.extrinsic_rpy_deg),
-                    rotation_lidar_imu=(self.rotation_lidar_imu.round(12) + 0.0).tolist(), **mounting,
-                    noise={**noise, **self.noise.changed()},
-                    gyro_sigma_per_sample=self.gyro_sigma, accel_sigma_per_sample=self.accel_sigma,
-                    biases=drawn)
+        return dict(
+            rate_hz=self.rate,
+            gravity=self.gravity,
+            extrinsic_rpy_deg=list(self.extrinsic_rpy_deg),
+            rotation_lidar_imu=(self.rotation_lidar_imu.round(12) + 0.0).tolist(),
+            **mounting,
+            noise={**noise, **self.noise.changed()},
+            gyro_sigma_per_sample=self.gyro_sigma,
+            accel_sigma_per_sample=self.accel_sigma,
+            biases=drawn,
+        )
 
 
 _ORIGINAL_NOISE_FIELDS = [f.name for f in fields(ImuNoise)][:7]

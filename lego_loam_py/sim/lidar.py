@@ -29,6 +29,7 @@ received signal (reflectivity x cos(incidence) / range^2: dark surfaces at grazi
 range get lost), transmissive materials (glass, foliage) lose some returns, and a small fraction of
 returns drops at random. Intensity = material reflectivity x incidence factor + noise, 0..255.
 """
+
 from __future__ import annotations
 
 import math
@@ -51,47 +52,161 @@ VLP16_FIRING_ELEVATIONS = (-15, 1, -13, 3, -11, 5, -9, 7, -7, 9, -5, 11, -3, 13,
 # 'ascending': ring order), time between two lasers of a column [s] (0: a whole column at once, as Ouster
 # does), range limits [m], range noise sigma [m] and range resolution [m] from the data sheets.
 LIDAR_SPECS: dict[str, dict] = {
-    'VLP-16': dict(lowest=-15.0, firing='interleaved', firing_interval=2.304e-6, min_range=0.3,
-                   max_range=100.0, range_noise=0.015, range_resolution=0.002),
-    'HDL-32E': dict(lowest=-30.67, firing='interleaved', firing_interval=1.152e-6, min_range=1.0,
-                    max_range=100.0, range_noise=0.01, range_resolution=0.002),
-    'VLS-128': dict(lowest=-25.0, firing='ascending', firing_interval=0.26e-6, min_range=1.0,
-                    max_range=245.0, range_noise=0.015, range_resolution=0.004),
-    'HDL-64E': dict(lowest=-24.9, firing='ascending', firing_interval=0.52e-6, min_range=0.9,
-                    max_range=120.0, range_noise=0.01, range_resolution=0.002),
-    'OS1-16': dict(lowest=-16.6, firing='ascending', firing_interval=0.0, min_range=0.8,
-                   max_range=120.0, range_noise=0.015, range_resolution=0.001),
-    'OS1-64': dict(lowest=-16.6, firing='ascending', firing_interval=0.0, min_range=0.8,
-                   max_range=120.0, range_noise=0.015, range_resolution=0.001),
+    'VLP-16': dict(
+        lowest=-15.0,
+        firing='interleaved',
+        firing_interval=2.304e-6,
+        min_range=0.3,
+        max_range=100.0,
+        range_noise=0.015,
+        range_resolution=0.002,
+    ),
+    'HDL-32E': dict(
+        lowest=-30.67,
+        firing='interleaved',
+        firing_interval=1.152e-6,
+        min_range=1.0,
+        max_range=100.0,
+        range_noise=0.01,
+        range_resolution=0.002,
+    ),
+    'VLS-128': dict(
+        lowest=-25.0,
+        firing='ascending',
+        firing_interval=0.26e-6,
+        min_range=1.0,
+        max_range=245.0,
+        range_noise=0.015,
+        range_resolution=0.004,
+    ),
+    'HDL-64E': dict(
+        lowest=-24.9,
+        firing='ascending',
+        firing_interval=0.52e-6,
+        min_range=0.9,
+        max_range=120.0,
+        range_noise=0.01,
+        range_resolution=0.002,
+    ),
+    'OS1-16': dict(
+        lowest=-16.6,
+        firing='ascending',
+        firing_interval=0.0,
+        min_range=0.8,
+        max_range=120.0,
+        range_noise=0.015,
+        range_resolution=0.001,
+    ),
+    'OS1-64': dict(
+        lowest=-16.6,
+        firing='ascending',
+        firing_interval=0.0,
+        min_range=0.8,
+        max_range=120.0,
+        range_noise=0.015,
+        range_resolution=0.001,
+    ),
 }
 # The presets of core.sensor_presets, with round figures of their kind (approximate: they make plausible clouds,
 # the beams are the presets'): Ouster fires a column at once, the others laser after laser within a column.
 _OUSTER = dict(firing='ascending', firing_interval=0.0, range_resolution=0.001)
-LIDAR_SPECS.update({
-    'VLP-32C': dict(lowest=-25.0, firing='ascending', firing_interval=1.152e-6, min_range=1.0, max_range=200.0,
-                    range_noise=0.015, range_resolution=0.004),
-    **{f'OS0-{n}': dict(_OUSTER, lowest=-46.26, min_range=0.5, max_range=50.0, range_noise=0.02)
-       for n in (32, 64, 128)},
-    **{f'OS1-{n}': dict(_OUSTER, lowest=-21.82, min_range=0.5, max_range=120.0, range_noise=0.015) for n in (32, 128)},
-    **{f'OS2-{n}': dict(_OUSTER, lowest=-11.25, min_range=1.0, max_range=240.0, range_noise=0.025)
-       for n in (32, 64, 128)},
-    'Pandar64': dict(lowest=-24.897, firing='ascending', firing_interval=0.8e-6, min_range=0.3, max_range=200.0,
-                     range_noise=0.02, range_resolution=0.004),
-    'Pandar40P': dict(lowest=-25.0, firing='ascending', firing_interval=1.3e-6, min_range=0.3, max_range=200.0,
-                      range_noise=0.02, range_resolution=0.004),
-    'PandarXT-32': dict(lowest=-16.0, firing='ascending', firing_interval=1.5e-6, min_range=0.05, max_range=120.0,
-                        range_noise=0.01, range_resolution=0.004),
-    'RS-LiDAR-16': dict(lowest=-15.0, firing='ascending', firing_interval=2.8e-6, min_range=0.4, max_range=150.0,
-                        range_noise=0.02, range_resolution=0.005),
-    'RS-LiDAR-32': dict(lowest=-25.0, firing='ascending', firing_interval=1.44e-6, min_range=0.4, max_range=200.0,
-                        range_noise=0.02, range_resolution=0.005),
-    'RS-Helios-1615': dict(lowest=-16.0, firing='ascending', firing_interval=1.5e-6, min_range=0.2, max_range=150.0,
-                           range_noise=0.02, range_resolution=0.0025),
-    'RS-Helios-5515': dict(lowest=-55.0, firing='ascending', firing_interval=1.5e-6, min_range=0.2, max_range=150.0,
-                           range_noise=0.02, range_resolution=0.0025),
-    'RS-Ruby-128': dict(lowest=-25.0, firing='ascending', firing_interval=0.4e-6, min_range=0.4, max_range=250.0,
-                        range_noise=0.03, range_resolution=0.005),
-})
+LIDAR_SPECS.update(
+    {
+        'VLP-32C': dict(
+            lowest=-25.0,
+            firing='ascending',
+            firing_interval=1.152e-6,
+            min_range=1.0,
+            max_range=200.0,
+            range_noise=0.015,
+            range_resolution=0.004,
+        ),
+        **{
+            f'OS0-{n}': dict(_OUSTER, lowest=-46.26, min_range=0.5, max_range=50.0, range_noise=0.02)
+            for n in (32, 64, 128)
+        },
+        **{
+            f'OS1-{n}': dict(_OUSTER, lowest=-21.82, min_range=0.5, max_range=120.0, range_noise=0.015)
+            for n in (32, 128)
+        },
+        **{
+            f'OS2-{n}': dict(_OUSTER, lowest=-11.25, min_range=1.0, max_range=240.0, range_noise=0.025)
+            for n in (32, 64, 128)
+        },
+        'Pandar64': dict(
+            lowest=-24.897,
+            firing='ascending',
+            firing_interval=0.8e-6,
+            min_range=0.3,
+            max_range=200.0,
+            range_noise=0.02,
+            range_resolution=0.004,
+        ),
+        'Pandar40P': dict(
+            lowest=-25.0,
+            firing='ascending',
+            firing_interval=1.3e-6,
+            min_range=0.3,
+            max_range=200.0,
+            range_noise=0.02,
+            range_resolution=0.004,
+        ),
+        'PandarXT-32': dict(
+            lowest=-16.0,
+            firing='ascending',
+            firing_interval=1.5e-6,
+            min_range=0.05,
+            max_range=120.0,
+            range_noise=0.01,
+            range_resolution=0.004,
+        ),
+        'RS-LiDAR-16': dict(
+            lowest=-15.0,
+            firing='ascending',
+            firing_interval=2.8e-6,
+            min_range=0.4,
+            max_range=150.0,
+            range_noise=0.02,
+            range_resolution=0.005,
+        ),
+        'RS-LiDAR-32': dict(
+            lowest=-25.0,
+            firing='ascending',
+            firing_interval=1.44e-6,
+            min_range=0.4,
+            max_range=200.0,
+            range_noise=0.02,
+            range_resolution=0.005,
+        ),
+        'RS-Helios-1615': dict(
+            lowest=-16.0,
+            firing='ascending',
+            firing_interval=1.5e-6,
+            min_range=0.2,
+            max_range=150.0,
+            range_noise=0.02,
+            range_resolution=0.0025,
+        ),
+        'RS-Helios-5515': dict(
+            lowest=-55.0,
+            firing='ascending',
+            firing_interval=1.5e-6,
+            min_range=0.2,
+            max_range=150.0,
+            range_noise=0.02,
+            range_resolution=0.0025,
+        ),
+        'RS-Ruby-128': dict(
+            lowest=-25.0,
+            firing='ascending',
+            firing_interval=0.4e-6,
+            min_range=0.4,
+            max_range=250.0,
+            range_noise=0.03,
+            range_resolution=0.005,
+        ),
+    }
+)
 
 
 @dataclass(frozen=True)
@@ -99,27 +214,32 @@ class LidarModel:
     """Geometry, timing and measurement model of a spinning lidar (units: m, s, deg unless stated)."""
 
     preset: str
-    ring_elevations: tuple[float, ...]   # [deg] per ring, ring 0 = lowest
-    firing_rings: tuple[int, ...]        # ring of each laser in firing order within a column
-    columns: int                         # firings per sweep
-    scan_period: float = 0.1             # [s]
-    firing_interval: float = 2.304e-6    # [s] between consecutive lasers of a column
+    ring_elevations: tuple[float, ...]  # [deg] per ring, ring 0 = lowest
+    firing_rings: tuple[int, ...]  # ring of each laser in firing order within a column
+    columns: int  # firings per sweep
+    scan_period: float = 0.1  # [s]
+    firing_interval: float = 2.304e-6  # [s] between consecutive lasers of a column
     min_range: float = 0.3
     max_range: float = 100.0
-    range_noise: float = 0.015           # Gaussian sigma along the beam [m]
-    range_resolution: float = 0.002      # reported ranges are multiples of this [m] (0: continuous)
-    random_dropout: float = 0.006        # fraction of returns lost at random
-    detection_reference: float = 5.0     # a 100 %-reflective normal target gives signal 1 at this x max_range
-    intensity_noise: float = 1.5         # sigma of the intensity noise [reflectivity units]
-    ideal: bool = False                  # no noise, no quantisation, every hit in range is returned
+    range_noise: float = 0.015  # Gaussian sigma along the beam [m]
+    range_resolution: float = 0.002  # reported ranges are multiples of this [m] (0: continuous)
+    random_dropout: float = 0.006  # fraction of returns lost at random
+    detection_reference: float = 5.0  # a 100 %-reflective normal target gives signal 1 at this x max_range
+    intensity_noise: float = 1.5  # sigma of the intensity noise [reflectivity units]
+    ideal: bool = False  # no noise, no quantisation, every hit in range is returned
     # Every point reads this much lower than its beam really points [deg] (a calibration error common to the
     # beams: KITTI's HDL-64E reads about 0.2 deg low); the returns are cast along the true beams and reported
     # along the calibrated ones.
     elevation_error: float = 0.0
 
     @staticmethod
-    def from_preset(preset: str = 'VLP-16', scan_period: float = 0.1, ideal: bool = False,
-                    uniform_beams: bool = False, elevation_error: float = 0.0) -> 'LidarModel':
+    def from_preset(
+        preset: str = 'VLP-16',
+        scan_period: float = 0.1,
+        ideal: bool = False,
+        uniform_beams: bool = False,
+        elevation_error: float = 0.0,
+    ) -> LidarModel:
         """The model of a sensor preset (:data:`SENSOR_PRESETS` geometry + :data:`LIDAR_SPECS`); its beam table
         when it has one, unless ``uniform_beams``."""
         if preset not in SENSOR_PRESETS or preset not in LIDAR_SPECS:
@@ -135,17 +255,24 @@ class LidarModel:
             firing = tuple(i // 2 if i % 2 == 0 else half + i // 2 for i in range(n))
         else:
             firing = tuple(range(n))
-        model = LidarModel(preset=preset, ring_elevations=elevations, firing_rings=firing,
-                           columns=int(geometry['horizon_scan']), scan_period=scan_period,
-                           firing_interval=spec['firing_interval'], min_range=spec['min_range'],
-                           max_range=spec['max_range'], range_noise=spec['range_noise'],
-                           range_resolution=spec['range_resolution'], elevation_error=float(elevation_error))
+        model = LidarModel(
+            preset=preset,
+            ring_elevations=elevations,
+            firing_rings=firing,
+            columns=int(geometry['horizon_scan']),
+            scan_period=scan_period,
+            firing_interval=spec['firing_interval'],
+            min_range=spec['min_range'],
+            max_range=spec['max_range'],
+            range_noise=spec['range_noise'],
+            range_resolution=spec['range_resolution'],
+            elevation_error=float(elevation_error),
+        )
         return model.make_ideal() if ideal else model
 
-    def make_ideal(self) -> 'LidarModel':
+    def make_ideal(self) -> LidarModel:
         """The same sensor without noise, quantisation or dropped returns (hits in range are kept)."""
-        return replace(self, range_noise=0.0, range_resolution=0.0, random_dropout=0.0, intensity_noise=0.0,
-                       ideal=True)
+        return replace(self, range_noise=0.0, range_resolution=0.0, random_dropout=0.0, intensity_noise=0.0, ideal=True)
 
     @property
     def n_rings(self) -> int:
@@ -165,9 +292,12 @@ class LidarModel:
         azimuth = self.column_azimuths()[:, None]
         elevation = np.asarray(self.ring_elevations)[list(self.firing_rings)] + (self.elevation_error if true else 0.0)
         elevation = np.radians(elevation)[None, :]
-        return np.stack(np.broadcast_arrays(np.cos(elevation) * np.cos(azimuth),
-                                            np.cos(elevation) * np.sin(azimuth),
-                                            np.sin(elevation)), axis=-1)
+        return np.stack(
+            np.broadcast_arrays(
+                np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)
+            ),
+            axis=-1,
+        )
 
     def firing_offsets(self) -> np.ndarray:
         """(columns, lasers) firing time of every laser since the sweep start [s]."""
@@ -176,33 +306,43 @@ class LidarModel:
 
     def describe(self) -> dict:
         """Plain-data summary for scenario.yaml."""
-        return dict(preset=self.preset, ring_elevations_deg=list(self.ring_elevations),
-                    firing_order_rings=list(self.firing_rings), columns=self.columns,
-                    scan_period_s=self.scan_period, firing_interval_s=self.firing_interval,
-                    min_range_m=self.min_range, max_range_m=self.max_range, range_noise_sigma_m=self.range_noise,
-                    range_resolution_m=self.range_resolution, random_dropout=self.random_dropout,
-                    intensity_noise_sigma=self.intensity_noise, ideal=self.ideal,
-                    **({'elevation_error_deg': self.elevation_error} if self.elevation_error else {}))
+        return dict(
+            preset=self.preset,
+            ring_elevations_deg=list(self.ring_elevations),
+            firing_order_rings=list(self.firing_rings),
+            columns=self.columns,
+            scan_period_s=self.scan_period,
+            firing_interval_s=self.firing_interval,
+            min_range_m=self.min_range,
+            max_range_m=self.max_range,
+            range_noise_sigma_m=self.range_noise,
+            range_resolution_m=self.range_resolution,
+            random_dropout=self.random_dropout,
+            intensity_noise_sigma=self.intensity_noise,
+            ideal=self.ideal,
+            **({'elevation_error_deg': self.elevation_error} if self.elevation_error else {}),
+        )
 
 
 @dataclass
 class Sweep:
     """One simulated sweep: the cloud in message order and the per-point labels."""
 
-    points: np.ndarray   # structured, velodyne layout (x, y, z, intensity, ring, time), firing order
-    labels: np.ndarray   # (N,) uint32: 0 none, 1 ground, >= 2 object instance id
-    hits: int            # rays that hit something in range before dropouts (for statistics)
+    points: np.ndarray  # structured, velodyne layout (x, y, z, intensity, ring, time), firing order
+    labels: np.ndarray  # (N,) uint32: 0 none, 1 ground, >= 2 object instance id
+    hits: int  # rays that hit something in range before dropouts (for statistics)
 
 
 class _SweepGeometry:
     """Per-model constant arrays, computed once."""
 
     def __init__(self, model: LidarModel):
-        self.directions = model.beam_directions().reshape(-1, 3)          # (M, 3) lidar frame, as reported
-        self.cast_directions = (model.beam_directions(true=True).reshape(-1, 3) if model.elevation_error
-                                else self.directions)                        # ... and as the beams point
+        self.directions = model.beam_directions().reshape(-1, 3)  # (M, 3) lidar frame, as reported
+        self.cast_directions = (
+            model.beam_directions(true=True).reshape(-1, 3) if model.elevation_error else self.directions
+        )  # ... and as the beams point
         offsets = model.firing_offsets()
-        self.time = offsets.reshape(-1)                                     # (M,) [s]
+        self.time = offsets.reshape(-1)  # (M,) [s]
         self.column_fraction = ((offsets - offsets[:, :1]) / model.column_period).reshape(-1)
         self.column = np.repeat(np.arange(model.columns), model.n_rings)
         self.ring = np.tile(np.asarray(model.firing_rings, dtype=np.uint16), model.columns)
@@ -228,8 +368,14 @@ def _rotate(vectors: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
     return vectors * cos + cross * sin + axis * dot * (1.0 - cos)
 
 
-def simulate_sweep(model: LidarModel, scene: Scene, trajectory: Trajectory, sweep_start: float,
-                   rng: np.random.Generator | None, dtype: np.dtype = VELODYNE_POINT_DTYPE) -> Sweep:
+def simulate_sweep(
+    model: LidarModel,
+    scene: Scene,
+    trajectory: Trajectory,
+    sweep_start: float,
+    rng: np.random.Generator | None,
+    dtype: np.dtype = VELODYNE_POINT_DTYPE,
+) -> Sweep:
     """Cast one sweep starting at ``sweep_start`` [s] (all rays in one call) and measure the returns.
 
     ``rng`` draws the noise and dropouts (may be None for an ideal model). The cloud is in the lidar frame
@@ -264,8 +410,7 @@ def simulate_sweep(model: LidarModel, scene: Scene, trajectory: Trajectory, swee
     retro = scene.retroreflective[material]
 
     # Calibrated reflectivity seen at this incidence: diffuse surfaces darken at grazing angles.
-    intensity = np.where(retro, reflectivity * (0.9 + 0.1 * cos_incidence),
-                         reflectivity * (0.4 + 0.6 * cos_incidence))
+    intensity = np.where(retro, reflectivity * (0.9 + 0.1 * cos_incidence), reflectivity * (0.4 + 0.6 * cos_incidence))
     if model.ideal:
         keep = np.ones(len(idx), dtype=bool)
         measured = distance

@@ -6,6 +6,7 @@ layout with x, y, z works. Colours: ``height`` (z), ``intensity``, ``ring`` or `
 from the labels.npz beside a simulated bag). The view is in the sensor frame (x forward = up in the
 image, y left = left), matplotlib's Agg backend, no display needed.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -21,9 +22,20 @@ COLOR_MODES = ('height', 'intensity', 'ring', 'label')
 
 # Class colours for --color label (anything else gets a colour from tab10).
 _CLASS_COLORS = {
-    'none': '#5a5a5a', 'ground': '#8c7b6b', 'building': '#4e9ff5', 'tree': '#3cc84a', 'pole': '#ffd22e',
-    'car': '#ff4f4f', 'curb': '#d0d0d0', 'wall': '#4e9ff5', 'ceiling': '#b57bff', 'door': '#ff9b38',
-    'pillar': '#ff4fd0', 'furniture': '#ff4f4f', 'log': '#c0894a', 'rock': '#a8a8a8',
+    'none': '#5a5a5a',
+    'ground': '#8c7b6b',
+    'building': '#4e9ff5',
+    'tree': '#3cc84a',
+    'pole': '#ffd22e',
+    'car': '#ff4f4f',
+    'curb': '#d0d0d0',
+    'wall': '#4e9ff5',
+    'ceiling': '#b57bff',
+    'door': '#ff9b38',
+    'pillar': '#ff4fd0',
+    'furniture': '#ff4f4f',
+    'log': '#c0894a',
+    'rock': '#a8a8a8',
 }
 
 
@@ -36,7 +48,7 @@ def read_scan(bag_path: str | Path, scan: int = 0, topic: str = '/velodyne_point
         topics = reader.topics()
         if topic not in topics:
             clouds = [t for t, m in topics.items() if m == 'sensor_msgs/msg/PointCloud2']
-            hint = f" (PointCloud2 topics: {', '.join(clouds)})" if clouds else ' (it has no PointCloud2 topic)'
+            hint = f' (PointCloud2 topics: {", ".join(clouds)})' if clouds else ' (it has no PointCloud2 topic)'
             raise BagError(f"{reader.path} has no topic '{topic}'{hint}")
         count = reader.topic_counts().get(topic, 0)
         if not 0 <= scan < count:
@@ -46,17 +58,25 @@ def read_scan(bag_path: str | Path, scan: int = 0, topic: str = '/velodyne_point
                 msg = reader.deserialize(message)
                 stamp = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
                 return cloud_msg_to_array(msg).copy(), stamp, msg.header.frame_id, count
-    raise BagError(f'scan {scan} not found in {bag_path}')   # pragma: no cover (counts said it exists)
+    raise BagError(f'scan {scan} not found in {bag_path}')  # pragma: no cover (counts said it exists)
 
 
-def render_top_down(points: np.ndarray, output: str | Path, color: str = 'height', labels: np.ndarray | None = None,
-                    classes: list[str] | None = None, title: str = '', extent: float | None = None) -> Path:
+def render_top_down(
+    points: np.ndarray,
+    output: str | Path,
+    color: str = 'height',
+    labels: np.ndarray | None = None,
+    classes: list[str] | None = None,
+    title: str = '',
+    extent: float | None = None,
+) -> Path:
     """Write a top-down PNG of a cloud (sensor frame) to ``output``; returns the path.
 
     ``extent`` [m] is the half-width of the view (default: the 98th percentile of the horizontal range,
     between 10 and 80 m).
     """
     import matplotlib
+
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     from matplotlib.colors import Normalize, PowerNorm
@@ -90,8 +110,10 @@ def render_top_down(points: np.ndarray, output: str | Path, color: str = 'height
         for c in present:
             mask = names == c
             ax.scatter(u[mask], v[mask], s=size, c=[colours[c]], linewidths=0, rasterized=True)
-        legend = [Line2D([], [], marker='o', linestyle='', color=colours[c], label=f'{c} ({np.sum(names == c)})')
-                  for c in present]
+        legend = [
+            Line2D([], [], marker='o', linestyle='', color=colours[c], label=f'{c} ({np.sum(names == c)})')
+            for c in present
+        ]
     else:
         norm = None
         if color == 'height':
@@ -102,7 +124,7 @@ def render_top_down(points: np.ndarray, output: str | Path, color: str = 'height
                 raise ValueError('the cloud has no intensity field')
             values, cmap, label = np.asarray(points['intensity'], dtype=float)[finite], 'turbo', 'intensity'
             lo, hi = 0.0, max(1.0, float(np.percentile(values, 99.5)) if len(values) else 1.0)
-            norm = PowerNorm(0.5, vmin=lo, vmax=hi)   # spread the many dark returns (asphalt ~10)
+            norm = PowerNorm(0.5, vmin=lo, vmax=hi)  # spread the many dark returns (asphalt ~10)
         else:
             if not has_field(points, 'ring'):
                 raise ValueError('the cloud has no ring field')
@@ -112,8 +134,9 @@ def render_top_down(points: np.ndarray, output: str | Path, color: str = 'height
         order = np.argsort(xyz[:, 2], kind='stable')
         if norm is None:
             norm = Normalize(vmin=lo, vmax=hi)
-        scatter = ax.scatter(u[order], v[order], s=size, c=values[order], cmap=cmap, norm=norm, linewidths=0,
-                             rasterized=True)
+        scatter = ax.scatter(
+            u[order], v[order], s=size, c=values[order], cmap=cmap, norm=norm, linewidths=0, rasterized=True
+        )
         bar = fig.colorbar(scatter, ax=ax, fraction=0.035, pad=0.02)
         bar.set_label(label, color='white')
         bar.ax.yaxis.set_tick_params(color='white', labelcolor='white')
@@ -128,8 +151,15 @@ def render_top_down(points: np.ndarray, output: str | Path, color: str = 'height
     ax.set_ylabel('x (forward) [m]', color='white')
     ax.set_title(title, color='white', fontsize=10)
     if legend:
-        ax.legend(handles=legend, loc='upper right', fontsize=7, facecolor='#222222', labelcolor='white',
-                  markerscale=1.5, framealpha=0.8)
+        ax.legend(
+            handles=legend,
+            loc='upper right',
+            fontsize=7,
+            facecolor='#222222',
+            labelcolor='white',
+            markerscale=1.5,
+            framealpha=0.8,
+        )
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(output, facecolor=fig.get_facecolor(), bbox_inches='tight')
@@ -141,14 +171,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('bag', help='ROS 1 .bag or ROS 2 bag directory (.db3/.mcap) with PointCloud2 clouds')
     parser.add_argument('--scan', type=int, default=0, help='index of the cloud on the topic (default 0)')
     parser.add_argument('-o', '--output', help='PNG to write (default: <bag name>_scan<K>_<colour>.png here)')
-    parser.add_argument('--color', choices=COLOR_MODES, default='height',
-                        help='colour by height (default), intensity, ring or label (simulated bags: labels.npz)')
+    parser.add_argument(
+        '--color',
+        choices=COLOR_MODES,
+        default='height',
+        help='colour by height (default), intensity, ring or label (simulated bags: labels.npz)',
+    )
     parser.add_argument('--topic', default='/velodyne_points', help='cloud topic (default /velodyne_points)')
     parser.add_argument('--extent', type=float, help='half-width of the view [m] (default: from the data)')
 
 
 def main(args: argparse.Namespace) -> int:
-    from lego_loam_py.sim.output import load_labels
+    from lego_loam_py.inputs.sidecars import load_labels
 
     bag = Path(args.bag)
     points, stamp, frame_id, count = read_scan(bag, args.scan, args.topic)
@@ -163,8 +197,10 @@ def main(args: argparse.Namespace) -> int:
             raise LegoLoamError(f'labels of scan {args.scan} ({len(labels)}) do not match its {len(points)} points')
     name = bag.name[:-4] if bag.name.endswith('.bag') else bag.name
     output = Path(args.output) if args.output else Path(f'{name}_scan{args.scan}_{args.color}.png')
-    title = (f'{name}  scan {args.scan}/{count}  stamp {stamp // 1_000_000_000}.{stamp % 1_000_000_000:09d}  '
-             f'{len(points)} points  frame {frame_id}  colour: {args.color}')
+    title = (
+        f'{name}  scan {args.scan}/{count}  stamp {stamp // 1_000_000_000}.{stamp % 1_000_000_000:09d}  '
+        f'{len(points)} points  frame {frame_id}  colour: {args.color}'
+    )
     try:
         render_top_down(points, output, args.color, labels, classes, title, args.extent)
     except ValueError as exc:

@@ -14,21 +14,34 @@ A :class:`Scene` is one triangle soup with two per-triangle attributes:
 All triangles go into a single open3d ``RaycastingScene`` (Embree), so a whole sweep is one
 ``cast_rays`` call.
 """
+
 from __future__ import annotations
 
 import functools
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence
 
 import numpy as np
 
 __all__ = [
-    'Material', 'MATERIALS', 'MATERIAL_NAMES', 'material_index', 'Terrain', 'box_mesh', 'cylinder_mesh',
-    'ellipsoid_mesh', 'heightfield_mesh', 'transform_mesh', 'SceneBuilder', 'Scene', 'NONE_ID', 'GROUND_ID',
+    'Material',
+    'MATERIALS',
+    'MATERIAL_NAMES',
+    'material_index',
+    'Terrain',
+    'box_mesh',
+    'cylinder_mesh',
+    'ellipsoid_mesh',
+    'heightfield_mesh',
+    'transform_mesh',
+    'SceneBuilder',
+    'Scene',
+    'NONE_ID',
+    'GROUND_ID',
 ]
 
-NONE_ID = 0     # label of unlabeled / clutter returns
-GROUND_ID = 1   # label of ground returns
+NONE_ID = 0  # label of unlabeled / clutter returns
+GROUND_ID = 1  # label of ground returns
 
 
 @dataclass(frozen=True)
@@ -83,6 +96,7 @@ def material_index(name: str) -> int:
 
 # ------------------------------------------------------------------------------------------------ terrain
 
+
 @dataclass(frozen=True)
 class Terrain:
     """Smooth analytic height field ``z = h(x, y)`` [m] in the world frame.
@@ -97,8 +111,12 @@ class Terrain:
     offset: float = 0.0
 
     @staticmethod
-    def random(rng: np.random.Generator, components: Sequence[tuple[float, float]],
-               slope: tuple[float, float] = (0.0, 0.0), waves_per_component: int = 2) -> 'Terrain':
+    def random(
+        rng: np.random.Generator,
+        components: Sequence[tuple[float, float]],
+        slope: tuple[float, float] = (0.0, 0.0),
+        waves_per_component: int = 2,
+    ) -> Terrain:
         """Sum of sine waves: for each (amplitude [m], wavelength [m]) ``waves_per_component`` waves with
         random directions and phases, each of amplitude ``amplitude / waves_per_component``."""
         rows = []
@@ -106,8 +124,14 @@ class Terrain:
             for _ in range(waves_per_component):
                 direction = rng.uniform(0.0, 2.0 * np.pi)
                 k = 2.0 * np.pi / wavelength * rng.uniform(0.8, 1.25)
-                rows.append((amplitude / waves_per_component, k * np.cos(direction), k * np.sin(direction),
-                             rng.uniform(0.0, 2.0 * np.pi)))
+                rows.append(
+                    (
+                        amplitude / waves_per_component,
+                        k * np.cos(direction),
+                        k * np.sin(direction),
+                        rng.uniform(0.0, 2.0 * np.pi),
+                    )
+                )
         return Terrain(np.array(rows, dtype=float).reshape(-1, 4), slope)
 
     def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -135,24 +159,34 @@ class Terrain:
 # ------------------------------------------------------------------------------------------ primitives
 # Each returns (vertices (n, 3) float64, triangles (m, 3) int64) in a local frame.
 
+
 def box_mesh(size: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
     """Box of ``size`` (sx, sy, sz) [m], centred on the origin in x/y, from z = 0 to z = sz."""
     sx, sy, sz = (float(s) for s in size)
     corners = np.array([[x, y, z] for z in (0.0, 1.0) for y in (-0.5, 0.5) for x in (-0.5, 0.5)])
     vertices = corners * [sx, sy, sz]
-    triangles = np.array([
-        [0, 2, 1], [1, 2, 3],        # bottom
-        [4, 5, 6], [5, 7, 6],        # top
-        [0, 1, 4], [1, 5, 4],        # -y
-        [2, 6, 3], [3, 6, 7],        # +y
-        [0, 4, 2], [2, 4, 6],        # -x
-        [1, 3, 5], [3, 7, 5],        # +x
-    ])
+    triangles = np.array(
+        [
+            [0, 2, 1],
+            [1, 2, 3],  # bottom
+            [4, 5, 6],
+            [5, 7, 6],  # top
+            [0, 1, 4],
+            [1, 5, 4],  # -y
+            [2, 6, 3],
+            [3, 6, 7],  # +y
+            [0, 4, 2],
+            [2, 4, 6],  # -x
+            [1, 3, 5],
+            [3, 7, 5],  # +x
+        ]
+    )
     return vertices, triangles
 
 
-def cylinder_mesh(radius: float, height: float, segments: int = 12,
-                  top_radius: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+def cylinder_mesh(
+    radius: float, height: float, segments: int = 12, top_radius: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Closed cylinder (or frustum / cone with ``top_radius``) on the z axis from z = 0 to ``height``."""
     top = radius if top_radius is None else top_radius
     angles = np.arange(segments) * (2.0 * np.pi / segments)
@@ -171,6 +205,7 @@ def cylinder_mesh(radius: float, height: float, segments: int = 12,
 @functools.lru_cache(maxsize=4)
 def _unit_icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
     import open3d as o3d
+
     mesh = o3d.geometry.TriangleMesh.create_icosahedron(1.0)
     if subdivisions:
         mesh = mesh.subdivide_midpoint(subdivisions)
@@ -179,8 +214,9 @@ def _unit_icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
     return vertices, np.asarray(mesh.triangles, dtype=np.int64)
 
 
-def ellipsoid_mesh(radii: Sequence[float], subdivisions: int = 2, roughness: float = 0.0,
-                   rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+def ellipsoid_mesh(
+    radii: Sequence[float], subdivisions: int = 2, roughness: float = 0.0, rng: np.random.Generator | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Ellipsoid centred on the origin; ``roughness`` > 0 perturbs each vertex radially by up to that
     fraction (tree crowns, bushes, rocks)."""
     unit, triangles = _unit_icosphere(subdivisions)
@@ -192,8 +228,9 @@ def ellipsoid_mesh(radii: Sequence[float], subdivisions: int = 2, roughness: flo
     return unit * scale[:, None] * np.asarray(radii, dtype=float), triangles.copy()
 
 
-def heightfield_mesh(terrain: Terrain, x_range: tuple[float, float], y_range: tuple[float, float],
-                     spacing: float) -> tuple[np.ndarray, np.ndarray]:
+def heightfield_mesh(
+    terrain: Terrain, x_range: tuple[float, float], y_range: tuple[float, float], spacing: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Grid of the terrain over the world rectangle, ``spacing`` [m] apart, two triangles per cell."""
     xs = np.arange(x_range[0], x_range[1] + 0.5 * spacing, spacing)
     ys = np.arange(y_range[0], y_range[1] + 0.5 * spacing, spacing)
@@ -207,23 +244,33 @@ def heightfield_mesh(terrain: Terrain, x_range: tuple[float, float], y_range: tu
     return vertices, np.vstack([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
 
 
-def transform_mesh(vertices: np.ndarray, yaw: float = 0.0, translation: Sequence[float] = (0.0, 0.0, 0.0),
-                   roll: float = 0.0, pitch: float = 0.0) -> np.ndarray:
+def transform_mesh(
+    vertices: np.ndarray,
+    yaw: float = 0.0,
+    translation: Sequence[float] = (0.0, 0.0, 0.0),
+    roll: float = 0.0,
+    pitch: float = 0.0,
+) -> np.ndarray:
     """Vertices rotated by ``Rz(yaw) Ry(pitch) Rx(roll)`` [rad] then translated [m]."""
     cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
-    rotation = np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                         [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                         [-sp, cp * sr, cp * cr]])
+    rotation = np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
     return vertices @ rotation.T + np.asarray(translation, dtype=float)
 
 
 # -------------------------------------------------------------------------------------------- the scene
 
+
 class SceneBuilder:
     """Collects meshes with their instance labels and materials, then builds a :class:`Scene`."""
 
     def __init__(self) -> None:
-        self.classes: list[str] = ['none', 'ground']   # index = instance id
+        self.classes: list[str] = ['none', 'ground']  # index = instance id
         self._vertices: list[np.ndarray] = []
         self._triangles: list[np.ndarray] = []
         self._instances: list[np.ndarray] = []
@@ -235,8 +282,7 @@ class SceneBuilder:
         self.classes.append(class_name)
         return len(self.classes) - 1
 
-    def add(self, vertices: np.ndarray, triangles: np.ndarray, material: str | np.ndarray,
-            instance: int) -> None:
+    def add(self, vertices: np.ndarray, triangles: np.ndarray, material: str | np.ndarray, instance: int) -> None:
         """Add a mesh (world coordinates). ``material`` is a name or per-triangle material indices;
         ``instance`` is NONE_ID, GROUND_ID or an id from :meth:`new_instance`."""
         if not 0 <= instance < len(self.classes):
@@ -265,18 +311,30 @@ class SceneBuilder:
         """Add geometry whose returns stay unlabeled (label 0): small vegetation, litter."""
         self.add(vertices, triangles, material, NONE_ID)
 
-    def build(self) -> 'Scene':
-        return Scene(np.vstack(self._vertices), np.vstack(self._triangles), np.concatenate(self._instances),
-                     np.concatenate(self._materials), tuple(self.classes))
+    def build(self) -> Scene:
+        return Scene(
+            np.vstack(self._vertices),
+            np.vstack(self._triangles),
+            np.concatenate(self._instances),
+            np.concatenate(self._materials),
+            tuple(self.classes),
+        )
 
 
 class Scene:
     """A triangle soup with per-triangle instance labels and materials, and its ray-casting structure."""
 
-    def __init__(self, vertices: np.ndarray, triangles: np.ndarray, triangle_instance: np.ndarray,
-                 triangle_material: np.ndarray, classes: tuple[str, ...],
-                 materials: tuple[Material, ...] = MATERIALS):
+    def __init__(
+        self,
+        vertices: np.ndarray,
+        triangles: np.ndarray,
+        triangle_instance: np.ndarray,
+        triangle_material: np.ndarray,
+        classes: tuple[str, ...],
+        materials: tuple[Material, ...] = MATERIALS,
+    ):
         import open3d as o3d
+
         self.vertices = np.ascontiguousarray(vertices, dtype=np.float32)
         self.triangles = np.ascontiguousarray(triangles, dtype=np.uint32)
         self.triangle_instance = np.asarray(triangle_instance, dtype=np.uint32)

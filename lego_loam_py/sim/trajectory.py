@@ -15,11 +15,12 @@ down in curves (:class:`SpeedProfile`), follows a terrain with a four-wheel foot
 the wheel contact heights), and adds optional periodic oscillations (walking bob, sway).
 :class:`InPlaceTurns` stops any trajectory at given moments for a whole turn on the spot.
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from scipy.interpolate import make_interp_spline
@@ -28,8 +29,7 @@ from scipy.spatial.transform import Rotation
 
 from lego_loam_py.sim.scene import Terrain
 
-__all__ = ['Trajectory', 'ClosedPath', 'SpeedProfile', 'Oscillation', 'PathTrajectory', 'InPlaceTurns',
-           'rotation_zyx']
+__all__ = ['Trajectory', 'ClosedPath', 'SpeedProfile', 'Oscillation', 'PathTrajectory', 'InPlaceTurns', 'rotation_zyx']
 
 _STEP = 2e-3  # [s] finite-difference step
 
@@ -112,7 +112,7 @@ class Oscillation:
 
     channel: str
     amplitude: float
-    frequency: float   # [Hz]
+    frequency: float  # [Hz]
     phase: float = 0.0
 
     def __call__(self, t: np.ndarray) -> np.ndarray:
@@ -146,7 +146,7 @@ class ClosedPath:
         speed = np.linalg.norm(self._curve_d1(u), axis=1)
         s = np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * np.diff(u))])
         self.length = float(s[-1])
-        residual = u - s * (u_total / self.length)   # periodic in s
+        residual = u - s * (u_total / self.length)  # periodic in s
         residual[-1] = residual[0]
         self._u_scale = u_total / self.length
         self._u_of_s = make_interp_spline(s, residual, k=5, bc_type='periodic')
@@ -172,7 +172,7 @@ class ClosedPath:
         d2 = self._curve.derivative(2)(u)
         return (d1[..., 0] * d2[..., 1] - d1[..., 1] * d2[..., 0]) / np.linalg.norm(d1, axis=-1) ** 3
 
-    def reversed(self) -> 'ClosedPath':
+    def reversed(self) -> ClosedPath:
         """The same curve travelled the other way, from the same first waypoint: the point at arc length
         ``s`` of the reversed path is the one at ``length - s`` of this one. (The interpolating spline through
         the reversed waypoints is this one's, run backwards: the periodic interpolant is unique and the chord
@@ -194,8 +194,15 @@ class SpeedProfile:
     (``s(lap_time) = start + length``) and repeats lap after lap.
     """
 
-    def __init__(self, path: ClosedPath, cruise_speed: float, max_lateral_acceleration: float | None = None,
-                 smoothing: float = 10.0, start: float = 0.0, samples: int = 8192):
+    def __init__(
+        self,
+        path: ClosedPath,
+        cruise_speed: float,
+        max_lateral_acceleration: float | None = None,
+        smoothing: float = 10.0,
+        start: float = 0.0,
+        samples: int = 8192,
+    ):
         self.cruise_speed = float(cruise_speed)
         self.start = float(start)
         self.max_lateral_acceleration = max_lateral_acceleration
@@ -228,10 +235,9 @@ class SpeedProfile:
         t = np.asarray(t, dtype=float)
         return self.start + t * (self.length / self.lap_time) + self._residual(np.mod(t, self.lap_time))
 
-    def on(self, path: ClosedPath, start: float) -> 'SpeedProfile':
+    def on(self, path: ClosedPath, start: float) -> SpeedProfile:
         """The same driving (cruise speed, lateral limit, smoothing) on ``path`` from arc length ``start`` [m]."""
-        return SpeedProfile(path, self.cruise_speed, self.max_lateral_acceleration, self.smoothing, start,
-                            self.samples)
+        return SpeedProfile(path, self.cruise_speed, self.max_lateral_acceleration, self.smoothing, start, self.samples)
 
 
 class PathTrajectory(Trajectory):
@@ -243,8 +249,16 @@ class PathTrajectory(Trajectory):
     head motion. The arc length at t = 0 is the speed profile's ``start``.
     """
 
-    def __init__(self, path: ClosedPath, speed: SpeedProfile, terrain: Terrain, sensor_height: float,
-                 wheelbase: float = 1.0, track: float = 0.8, oscillations: Sequence[Oscillation] = ()):
+    def __init__(
+        self,
+        path: ClosedPath,
+        speed: SpeedProfile,
+        terrain: Terrain,
+        sensor_height: float,
+        wheelbase: float = 1.0,
+        track: float = 0.8,
+        oscillations: Sequence[Oscillation] = (),
+    ):
         for o in oscillations:
             if o.channel not in _CHANNELS:
                 raise ValueError(f"unknown oscillation channel '{o.channel}' (use one of {_CHANNELS})")
@@ -257,8 +271,9 @@ class PathTrajectory(Trajectory):
         self.oscillations = tuple(oscillations)
         # The motion repeats only when every oscillation fits a whole number of times into a lap.
         lap = speed.lap_time
-        self.lap_time = lap if all(abs(o.frequency * lap - round(o.frequency * lap)) < 1e-9
-                                   for o in oscillations) else None
+        self.lap_time = (
+            lap if all(abs(o.frequency * lap - round(o.frequency * lap)) < 1e-9 for o in oscillations) else None
+        )
 
     def _channel(self, name: str, t: np.ndarray) -> np.ndarray | float:
         total: np.ndarray | float = 0.0
@@ -272,11 +287,15 @@ class PathTrajectory(Trajectory):
         s = self.speed(t) + self._channel('surge', t)
         xy = self.path.xy(s)
         tangent = self.path.tangent(s)
-        normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)   # left of the direction of travel
+        normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)  # left of the direction of travel
         half_l, half_w = 0.5 * self.wheelbase, 0.5 * self.track
         heights = {}
-        for name, a, b in (('fl', half_l, half_w), ('fr', half_l, -half_w), ('rl', -half_l, half_w),
-                           ('rr', -half_l, -half_w)):
+        for name, a, b in (
+            ('fl', half_l, half_w),
+            ('fr', half_l, -half_w),
+            ('rl', -half_l, half_w),
+            ('rr', -half_l, -half_w),
+        ):
             contact = xy + a * tangent + b * normal
             heights[name] = self.terrain.height(contact[:, 0], contact[:, 1])
         front = 0.5 * (heights['fl'] + heights['fr'])
@@ -293,15 +312,22 @@ class PathTrajectory(Trajectory):
         mount[:, 2] = self.sensor_height + self._channel('heave', t)
         return rotation, ground + np.einsum('nij,nj->ni', rotation, mount)
 
-    def on_route(self, start: float | None = None, reverse: bool = False) -> 'PathTrajectory':
+    def on_route(self, start: float | None = None, reverse: bool = False) -> PathTrajectory:
         """The same platform, driving and scene on another route along this path: from arc length ``start``
         [m, measured along this path's direction; None: this trajectory's own start], and with ``reverse`` the
         other way round (speed limits in curves, terrain and oscillations as before)."""
         start = self.speed.start if start is None else float(start)
         path = self.path.reversed() if reverse else self.path
         arc = (-start) % self.path.length if reverse else start
-        return PathTrajectory(path, self.speed.on(path, arc), self.terrain, self.sensor_height, self.wheelbase,
-                              self.track, self.oscillations)
+        return PathTrajectory(
+            path,
+            self.speed.on(path, arc),
+            self.terrain,
+            self.sensor_height,
+            self.wheelbase,
+            self.track,
+            self.oscillations,
+        )
 
 
 def _smoothstep(x: np.ndarray) -> np.ndarray:
@@ -314,7 +340,7 @@ def _smoothstep(x: np.ndarray) -> np.ndarray:
 def _smoothstep_integral(x: np.ndarray) -> np.ndarray:
     """``integral_0^x smoothstep`` for x in [0, 1] (1/2 at 1)."""
     x = np.clip(x, 0.0, 1.0)
-    return x ** 4 * (x * (x - 3.0) + 2.5)
+    return x**4 * (x * (x - 3.0) + 2.5)
 
 
 class InPlaceTurns(Trajectory):
@@ -329,8 +355,9 @@ class InPlaceTurns(Trajectory):
     smooth (C2) and the IMU sees it as the lidar does. Each turn alternates direction.
     """
 
-    def __init__(self, base: Trajectory, at: Sequence[float], peak_rate: float, angle: float = 360.0,
-                 brake: float = 1.0):
+    def __init__(
+        self, base: Trajectory, at: Sequence[float], peak_rate: float, angle: float = 360.0, brake: float = 1.0
+    ):
         if not peak_rate > 0 or not angle > 0 or not brake > 0:
             raise ValueError('an in-place turn needs a positive peak rate, angle and braking time')
         self.base = base

@@ -20,6 +20,7 @@ pipeline's events (:class:`~lego_loam_py.viewer.pipeline_view.PipelineView`), ``
 running nodes' topics (:mod:`lego_loam_py.ros.viewer_node`). ``rerun-sdk`` is optional: without it the rest of
 lego_loam_py works, and asking for the viewer says what to install.
 """
+
 from __future__ import annotations
 
 from lego_loam_py.errors import UsageError
@@ -36,6 +37,7 @@ def require_rerun():
     try:
         import rerun
     except ImportError:
-        raise ViewerUnavailable('the viewer needs rerun-sdk (pip install rerun-sdk==0.41.0, or bash install.sh)') \
-            from None
+        raise ViewerUnavailable(
+            'the viewer needs rerun-sdk (pip install rerun-sdk==0.41.0, or bash install.sh)'
+        ) from None
     return rerun

@@ -5,12 +5,14 @@ mapping thread that may be a scan or two later), at its own place on the ``scan`
 loop closures at the scan they belong to. Poses and clouds go from the pipeline's camera_init (LOAM camera axes)
 to ``map`` (REP-103) here.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
 from lego_loam_py.core.frames import CAMERA_TO_LIDAR, camera_pose_to_lidar
 from lego_loam_py.core.pipeline_events import LoopChecked, MapStepped, PipelineEvent, ScanFused, ScanProcessed
+from lego_loam_py.core.trajectory import Trajectory
 from lego_loam_py.viewer.scene import SceneLog
 
 __all__ = ['PipelineView']
@@ -22,14 +24,14 @@ def _to_map(points_camera: np.ndarray) -> np.ndarray:
 
 
 class PipelineView:
-    """A pipeline listener logging to ``scene``; ``ground_truth`` (stamps [ns], lidar poses) is drawn aligned
-    with the estimate at its first fused pose."""
+    """A pipeline listener logging to ``scene``; ``ground_truth`` (the recording's true trajectory) is drawn
+    aligned with the estimate at its first fused pose."""
 
-    def __init__(self, scene: SceneLog, ground_truth: tuple[np.ndarray, np.ndarray] | None = None):
+    def __init__(self, scene: SceneLog, ground_truth: Trajectory | None = None):
         self.scene = scene
-        self._ground_truth = ground_truth
-        self._scan_index: dict[int, int] = {}    # stamp [ns] -> scan index on the timeline
-        self._waiting: dict[int, tuple] = {}     # stamp -> clouds of a scan whose fused pose is not known yet
+        self._ground_truth = None if ground_truth is None else ground_truth.to('map')
+        self._scan_index: dict[int, int] = {}  # stamp [ns] -> scan index on the timeline
+        self._waiting: dict[int, tuple] = {}  # stamp -> clouds of a scan whose fused pose is not known yet
         self._last_index = 0
 
     def __call__(self, event: PipelineEvent) -> None:
@@ -50,18 +52,30 @@ class PipelineView:
         self._last_index = index
         scene = self.scene
         scene.at_scan(index, event.stamp_ns)
-        scene.scalars('timings/scan', event.timings_ms)   # imageProjection, featureAssociation [ms]
+        scene.scalars('timings/scan', event.timings_ms)  # imageProjection, featureAssociation [ms]
         stats = getattr(event.features, 'odometry', None)
         if stats is not None:
-            scene.scalars('health/odometry_condition', {'corner stage': stats.corner_condition,
-                                                        'surface stage': stats.surf_condition})
-            scene.scalars('health/odometry', {
-                'corner match ratio': stats.corner_match_ratio,
-                'degenerate': float(stats.corner_degenerate or stats.surf_degenerate), 'lost': float(stats.lost)})
+            scene.scalars(
+                'health/odometry_condition',
+                {'corner stage': stats.corner_condition, 'surface stage': stats.surf_condition},
+            )
+            scene.scalars(
+                'health/odometry',
+                {
+                    'corner match ratio': stats.corner_match_ratio,
+                    'degenerate': float(stats.corner_degenerate or stats.surf_degenerate),
+                    'lost': float(stats.lost),
+                },
+            )
         segmentation, features = event.segmentation, event.features.features
-        clouds = (segmentation.ground_cloud, segmentation.segmented_cloud_pure, segmentation.outlier_cloud,
-                  _to_map(features.sharp), _to_map(features.flat))
-        if event.odometry is None:   # the first scan: it defines the origin
+        clouds = (
+            segmentation.ground_cloud,
+            segmentation.segmented_cloud_pure,
+            segmentation.outlier_cloud,
+            _to_map(features.sharp),
+            _to_map(features.flat),
+        )
+        if event.odometry is None:  # the first scan: it defines the origin
             self._show_scan(np.eye(4), clouds)
         else:
             scene.trajectory_pose('odometry', camera_pose_to_lidar(event.odometry))

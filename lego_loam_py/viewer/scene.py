@@ -4,6 +4,7 @@ Poses are 4x4 in the ``map`` frame (REP-103 axes); clouds are (n, >=3) float arr
 names. Trajectories are logged in pieces of :data:`TRAJECTORY_PIECE` poses (each piece once), and the map as the
 voxels each keyframe adds, so a long run costs the viewer what it adds, not what it has.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -14,13 +15,22 @@ from lego_loam_py.viewer import require_rerun
 
 __all__ = ['SceneLog', 'SCAN_CLASSES', 'TRAJECTORY_PIECE', 'MAP_VOXEL']
 
-TRAJECTORY_PIECE = 10   # poses per logged piece of a trajectory
-MAP_VOXEL = 0.4         # [m] the map keeps one point per voxel of this size (the original's global map leaf)
+TRAJECTORY_PIECE = 10  # poses per logged piece of a trajectory
+MAP_VOXEL = 0.4  # [m] the map keeps one point per voxel of this size (the original's global map leaf)
 # Class ids of the scan's points (annotation context of world/lidar): name, colour.
-SCAN_CLASSES = {0: ('ground', (120, 200, 80)), 1: ('segmented', (80, 160, 255)), 2: ('outlier', (150, 150, 150)),
-                3: ('corner', (255, 60, 40)), 4: ('surface', (255, 200, 0))}
-TRAJECTORY_COLOURS = {'odometry': (255, 140, 0), 'mapped': (200, 0, 200), 'fused': (0, 120, 255),
-                      'ground_truth': (230, 230, 230)}
+SCAN_CLASSES = {
+    0: ('ground', (120, 200, 80)),
+    1: ('segmented', (80, 160, 255)),
+    2: ('outlier', (150, 150, 150)),
+    3: ('corner', (255, 60, 40)),
+    4: ('surface', (255, 200, 0)),
+}
+TRAJECTORY_COLOURS = {
+    'odometry': (255, 140, 0),
+    'mapped': (200, 0, 200),
+    'fused': (0, 120, 255),
+    'ground_truth': (230, 230, 230),
+}
 
 
 class _Trajectory:
@@ -42,9 +52,10 @@ class _Trajectory:
             return
         points = ([self.last] if self.last is not None else []) + self.pending
         rr = self.log.rr
-        self.log.rec.log(f'world/trajectory/{self.name}/{self.pieces:05d}',
-                         rr.LineStrips3D([np.array(points)], colors=[TRAJECTORY_COLOURS[self.name]],
-                                         radii=rr.Radius.ui_points(3.0)))
+        self.log.rec.log(
+            f'world/trajectory/{self.name}/{self.pieces:05d}',
+            rr.LineStrips3D([np.array(points)], colors=[TRAJECTORY_COLOURS[self.name]], radii=rr.Radius.ui_points(3.0)),
+        )
         self.last, self.pending = self.pending[-1], []
         self.pieces += 1
 
@@ -62,14 +73,17 @@ class SceneLog:
                 Path(save).parent.mkdir(parents=True, exist_ok=True)
                 sinks.append(rr.FileSink(str(save)))
             if spawn:
-                rr.spawn(connect=False)   # a native viewer on this machine, listening on its default port
+                rr.spawn(connect=False)  # a native viewer on this machine, listening on its default port
                 sinks.append(rr.GrpcSink())
             if sinks:
                 self.rec.set_sinks(*sinks)
         self.rec.send_blueprint(self._blueprint())
         self.rec.log('world', rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        self.rec.log('world/lidar', rr.AnnotationContext([(k, name, colour) for k, (name, colour)
-                                                          in SCAN_CLASSES.items()]), static=True)
+        self.rec.log(
+            'world/lidar',
+            rr.AnnotationContext([(k, name, colour) for k, (name, colour) in SCAN_CLASSES.items()]),
+            static=True,
+        )
         self._trajectories = {name: _Trajectory(self, name) for name in TRAJECTORY_COLOURS}
         self._map_voxels = np.zeros(0, dtype=np.int64)
         self._map_pieces = 0
@@ -78,13 +92,20 @@ class SceneLog:
     def _blueprint(self):
         import rerun.blueprint as rrb
 
-        plots = rrb.Vertical(rrb.TimeSeriesView(origin='timings', name='ms per scan'),
-                             rrb.TimeSeriesView(origin='health/odometry_condition', name='odometry: stage condition'),
-                             rrb.TimeSeriesView(origin='health/odometry', name='odometry: matched, degenerate, lost'),
-                             rrb.TimeSeriesView(origin='health/mapping', name='mapping: iterations, degenerate'))
+        plots = rrb.Vertical(
+            rrb.TimeSeriesView(origin='timings', name='ms per scan'),
+            rrb.TimeSeriesView(origin='health/odometry_condition', name='odometry: stage condition'),
+            rrb.TimeSeriesView(origin='health/odometry', name='odometry: matched, degenerate, lost'),
+            rrb.TimeSeriesView(origin='health/mapping', name='mapping: iterations, degenerate'),
+        )
         # Seen from behind and above the sensor, following it (orbit with the mouse).
-        eye = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=(-30.0, -18.0, 28.0), look_target=(0.0, 0.0, 0.0),
-                                eye_up=(0.0, 0.0, 1.0), tracking_entity='world/lidar')
+        eye = rrb.EyeControls3D(
+            kind=rrb.Eye3DKind.Orbital,
+            position=(-30.0, -18.0, 28.0),
+            look_target=(0.0, 0.0, 0.0),
+            eye_up=(0.0, 0.0, 1.0),
+            tracking_entity='world/lidar',
+        )
         scene = rrb.Spatial3DView(origin='world', name='map', background=(12, 14, 18), eye_controls=eye)
         return rrb.Blueprint(rrb.Horizontal(scene, plots, column_shares=[3, 1]), collapse_panels=True)
 
@@ -119,7 +140,7 @@ class SceneLog:
         were new (logged as one more piece of ``world/map``)."""
         xyz = np.asarray(points, dtype=np.float64)[:, :3]
         xyz = xyz[np.isfinite(xyz).all(axis=1)]
-        cells = np.floor(xyz / MAP_VOXEL).astype(np.int64) + (1 << 20)   # (within +-400 km of the origin)
+        cells = np.floor(xyz / MAP_VOXEL).astype(np.int64) + (1 << 20)  # (within +-400 km of the origin)
         keys = (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
         keys, first = np.unique(keys, return_index=True)
         # Membership in the sorted voxels of the map by binary search: O(new points x log map), not a sort of the
@@ -132,9 +153,12 @@ class SceneLog:
             return 0
         self._map_voxels = np.insert(self._map_voxels, at[new], keys[new])
         fresh = xyz[first[new]]
-        self.rec.log(f'world/map/{self._map_pieces:05d}',
-                     self.rr.Points3D(fresh.astype(np.float32), colors=_height_colours(fresh[:, 2]),
-                                      radii=self.rr.Radius.ui_points(1.5)))
+        self.rec.log(
+            f'world/map/{self._map_pieces:05d}',
+            self.rr.Points3D(
+                fresh.astype(np.float32), colors=_height_colours(fresh[:, 2]), radii=self.rr.Radius.ui_points(1.5)
+            ),
+        )
         self._map_pieces += 1
         return int(new.sum())
 
@@ -145,20 +169,31 @@ class SceneLog:
 
     def ground_truth(self, poses: np.ndarray) -> None:
         """The whole true trajectory (poses in ``map``), logged once for every time."""
-        self.rec.log('world/trajectory/ground_truth', self.rr.LineStrips3D(
-            [np.asarray(poses)[:, :3, 3]], colors=[TRAJECTORY_COLOURS['ground_truth']],
-            radii=self.rr.Radius.ui_points(2.0)), static=True)
+        self.rec.log(
+            'world/trajectory/ground_truth',
+            self.rr.LineStrips3D(
+                [np.asarray(poses)[:, :3, 3]],
+                colors=[TRAJECTORY_COLOURS['ground_truth']],
+                radii=self.rr.Radius.ui_points(2.0),
+            ),
+            static=True,
+        )
 
     def keyframes(self, positions: np.ndarray) -> None:
         """Every keyframe's position in ``map``."""
-        self.rec.log('world/keyframes', self.rr.Points3D(np.asarray(positions, dtype=np.float32),
-                                                         colors=[(255, 80, 200)], radii=self.rr.Radius.ui_points(5.0)))
+        self.rec.log(
+            'world/keyframes',
+            self.rr.Points3D(
+                np.asarray(positions, dtype=np.float32), colors=[(255, 80, 200)], radii=self.rr.Radius.ui_points(5.0)
+            ),
+        )
 
     def loop(self, index: int, start: np.ndarray, end: np.ndarray) -> None:
         """An accepted loop closure between two keyframe positions in ``map``."""
-        self.rec.log(f'world/loops/{index:04d}', self.rr.LineStrips3D([np.array([start, end])],
-                                                                      colors=[(0, 230, 0)],
-                                                                      radii=self.rr.Radius.ui_points(4.0)))
+        self.rec.log(
+            f'world/loops/{index:04d}',
+            self.rr.LineStrips3D([np.array([start, end])], colors=[(0, 230, 0)], radii=self.rr.Radius.ui_points(4.0)),
+        )
 
     # ---------------------------------------------------------------------------------------- plots
     def scalar(self, path: str, value: float) -> None:

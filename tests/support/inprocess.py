@@ -1,8 +1,11 @@
 """Nodes run inside the test process: their message handlers called directly with crafted messages, what they
 publish and log recorded. Shared by the reliability and the never-silent tests."""
+
 from __future__ import annotations
 
 from pathlib import Path
+
+from lego_loam_py.testing.messages import stamp_of
 
 REPO = Path(__file__).resolve().parents[2]
 CAMPUS = REPO / 'bags' / 'campus_8s'
@@ -16,8 +19,8 @@ class Recorder:
 
         self.node = node
         self.warnings: list[tuple[str, str]] = []
-        self.errors: list[tuple[str, str]] = []      # unexpected exceptions
-        self.resets: list[tuple[str, str]] = []      # poisoned state found and reset
+        self.errors: list[tuple[str, str]] = []  # unexpected exceptions
+        self.resets: list[tuple[str, str]] = []  # poisoned state found and reset
         self.published: dict[str, list] = {}
         warn = node.warn
 
@@ -109,11 +112,16 @@ def pipeline_outputs(context, tmp_path) -> dict:
     outputs = dict(
         clouds=[m for t, m in campus_messages() if t == '/velodyne_points'],
         imu=[m for t, m in campus_messages() if t == '/imu/data'],
-        segmented=list(ip_rec.out('/segmented_cloud')), info=list(ip_rec.out('/segmented_cloud_info')),
-        outlier=list(ip_rec.out('/outlier_cloud')), odometry=list(fa_rec.out('/laser_odom_to_init')),
-        corner_last=list(fa_rec.out('/laser_cloud_corner_last')), surf_last=list(fa_rec.out('/laser_cloud_surf_last')),
+        segmented=list(ip_rec.out('/segmented_cloud')),
+        info=list(ip_rec.out('/segmented_cloud_info')),
+        outlier=list(ip_rec.out('/outlier_cloud')),
+        odometry=list(fa_rec.out('/laser_odom_to_init')),
+        corner_last=list(fa_rec.out('/laser_cloud_corner_last')),
+        surf_last=list(fa_rec.out('/laser_cloud_surf_last')),
         outlier_last=list(fa_rec.out('/outlier_cloud_last')),
-        fa_statistics=fa.statistics(), fa_diagnostics=fa.diagnostic_status())
+        fa_statistics=fa.statistics(),
+        fa_diagnostics=fa.diagnostic_status(),
+    )
     assert len(outputs['segmented']) == len(outputs['clouds']) and not ip_rec.errors and not fa_rec.errors
     assert len(outputs['corner_last']) >= 10
     ip.destroy_node()
@@ -122,28 +130,15 @@ def pipeline_outputs(context, tmp_path) -> dict:
     return outputs
 
 
-def stamp_of(msg) -> int:
-    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-
-
-def restamped(msg, stamp_ns: int):
-    """A copy of ``msg`` with another header stamp (messages are shared between tests: never mutate them)."""
-    import copy
-
-    from lego_loam_py.ros.conversions import ns_to_stamp
-
-    out = copy.copy(msg)
-    out.header = copy.copy(msg.header)
-    out.header.stamp = ns_to_stamp(stamp_ns)
-    return out
-
-
 def mapping_inputs(outputs: dict) -> list[tuple]:
     """(corner, surf, outlier, odometry) messages of every scan featureAssociation handed to mapping, from
     :func:`pipeline_outputs`."""
     odometry = {stamp_of(m): m for m in outputs['odometry']}
-    return [(c, s, o, odometry[stamp_of(c)]) for c, s, o in
-            zip(outputs['corner_last'], outputs['surf_last'], outputs['outlier_last']) if stamp_of(c) in odometry]
+    return [
+        (c, s, o, odometry[stamp_of(c)])
+        for c, s, o in zip(outputs['corner_last'], outputs['surf_last'], outputs['outlier_last'])
+        if stamp_of(c) in odometry
+    ]
 
 
 def mapping_publishers(node) -> dict:
@@ -153,6 +148,12 @@ def mapping_publishers(node) -> dict:
 
     from lego_loam_py.ros import qos
 
-    return {name: node.create_publisher(cls, topic, qos.reliable(10)) for name, cls, topic in (
-        ('corner', PointCloud2, '/laser_cloud_corner_last'), ('surf', PointCloud2, '/laser_cloud_surf_last'),
-        ('outlier', PointCloud2, '/outlier_cloud_last'), ('odometry', Odometry, '/laser_odom_to_init'))}
+    return {
+        name: node.create_publisher(cls, topic, qos.reliable(10))
+        for name, cls, topic in (
+            ('corner', PointCloud2, '/laser_cloud_corner_last'),
+            ('surf', PointCloud2, '/laser_cloud_surf_last'),
+            ('outlier', PointCloud2, '/outlier_cloud_last'),
+            ('odometry', Odometry, '/laser_odom_to_init'),
+        )
+    }

@@ -1,8 +1,9 @@
 """Test helper process: publishes sample data until killed.
 
-    python -m tests.support.publisher cloud_info   # CloudInfo with tests.support.samples content, 10 Hz
-    python -m tests.support.publisher tf_static    # the original's static transforms, latched, once
+python -m tests.support.publisher cloud_info   # CloudInfo with tests.support.samples content, 10 Hz
+python -m tests.support.publisher tf_static    # the original's static transforms, latched, once
 """
+
 import sys
 import time
 
@@ -18,6 +19,7 @@ def main(mode: str) -> None:
     node = rclpy.create_node(f'test_publisher_{mode}')
     if mode == 'cloud_info':
         from cloud_msgs.msg import CloudInfo
+
         arrays = cloud_info_arrays()
         publisher = node.create_publisher(CloudInfo, '/segmented_cloud_info', qos.reliable(1))
         msg = CloudInfo(check_fields=False)
@@ -36,6 +38,7 @@ def main(mode: str) -> None:
             time.sleep(0.1)
     elif mode == 'tf_static':
         from lego_loam_py.ros.tf import StaticTransformBroadcaster, original_static_transforms
+
         broadcaster = StaticTransformBroadcaster(node)
         broadcaster.send(original_static_transforms(stamp=42))
         print('ready', flush=True)

@@ -1,4 +1,5 @@
 """A plain, loop-by-loop transcription of the original's labelComponents BFS, as a test reference."""
+
 from __future__ import annotations
 
 import math
@@ -9,8 +10,16 @@ import numpy as np
 OUTLIER = 999999
 
 
-def reference_labels(range_image: np.ndarray, empty_or_ground: np.ndarray, alpha_x: float, alpha_y: float,
-                     theta: float, min_cluster: int = 30, valid_points: int = 5, valid_lines: int = 3) -> np.ndarray:
+def reference_labels(
+    range_image: np.ndarray,
+    empty_or_ground: np.ndarray,
+    alpha_x: float,
+    alpha_y: float,
+    theta: float,
+    min_cluster: int = 30,
+    valid_points: int = 5,
+    valid_lines: int = 3,
+) -> np.ndarray:
     """labelMat after segmentation: -1 for ground/empty, 999999 for small clusters, 1.. for segments."""
     n, h = range_image.shape
     label = np.where(empty_or_ground, -1, 0).astype(np.int64)
@@ -40,8 +49,7 @@ def reference_labels(range_image: np.ndarray, empty_or_ground: np.ndarray, alpha
                         label[r, c] = count
                         line_flag[r] = True
                         pushed.append((r, c))
-            feasible = len(pushed) >= min_cluster or (
-                len(pushed) >= valid_points and sum(line_flag) >= valid_lines)
+            feasible = len(pushed) >= min_cluster or (len(pushed) >= valid_points and sum(line_flag) >= valid_lines)
             if feasible:
                 count += 1
             else:

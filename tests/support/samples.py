@@ -1,4 +1,5 @@
 """Deterministic sample data shared by test processes."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -1,4 +1,5 @@
 """Hand-built VLP-16 scans: points placed at chosen range-image pixels, and simple geometric scenes."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -8,11 +9,12 @@ from lego_loam_py.core.pointcloud import velodyne_points
 VLP16_ELEVATIONS_DEG = -15.0 + 2.0 * np.arange(16)
 
 
-def pixel_points(rows, cols, ranges, horizon: int = 1800, ang_res_x: float = 0.2,
-                 elevations_deg=VLP16_ELEVATIONS_DEG) -> np.ndarray:
+def pixel_points(
+    rows, cols, ranges, horizon: int = 1800, ang_res_x: float = 0.2, elevations_deg=VLP16_ELEVATIONS_DEG
+) -> np.ndarray:
     """Velodyne-layout points at the centres of pixels (row = ring, col as the original computes it)."""
     rows, cols, ranges = (np.atleast_1d(np.asarray(v, dtype=float)) for v in (rows, cols, ranges))
-    azimuth = np.radians(90.0 - (cols - horizon // 2) * ang_res_x)     # = atan2(x, y)
+    azimuth = np.radians(90.0 - (cols - horizon // 2) * ang_res_x)  # = atan2(x, y)
     elevation = np.radians(np.asarray(elevations_deg)[rows.astype(int)])
     rho = ranges * np.cos(elevation)
     xyz = np.stack([rho * np.sin(azimuth), rho * np.cos(azimuth), ranges * np.sin(elevation)], axis=1)
@@ -24,8 +26,12 @@ def rays(horizon: int = 1800, ang_res_x: float = 0.2):
     cols = np.arange(horizon)
     azimuth = np.radians(90.0 - (cols - horizon // 2) * ang_res_x)
     elevation = np.radians(VLP16_ELEVATIONS_DEG)[:, None]
-    return np.stack(np.broadcast_arrays(np.cos(elevation) * np.sin(azimuth), np.cos(elevation) * np.cos(azimuth),
-                                        np.sin(elevation)), axis=-1)
+    return np.stack(
+        np.broadcast_arrays(
+            np.cos(elevation) * np.sin(azimuth), np.cos(elevation) * np.cos(azimuth), np.sin(elevation)
+        ),
+        axis=-1,
+    )
 
 
 def scene_points(hit_range: np.ndarray) -> np.ndarray:

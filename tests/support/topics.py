@@ -3,6 +3,7 @@
 Frames are the original's without the leading slash. ``SENSOR_FRAME`` marks CloudInfo, whose header is the
 input cloud's (the simulated bags' lidar frame is ``velodyne``).
 """
+
 from __future__ import annotations
 
 SENSOR_FRAME = 'velodyne'
@@ -54,5 +55,6 @@ ALL = {**ALWAYS, **GATED, **LOOP_CLOSURE}
 def message_class(type_name: str):
     """The rclpy message class of 'pkg/msg/Type'."""
     import importlib
+
     package, _, name = type_name.split('/')
     return getattr(importlib.import_module(f'{package}.msg'), name)

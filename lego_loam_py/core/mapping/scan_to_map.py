@@ -1,0 +1,172 @@
+"""Scan-to-map registration of mapOptimization (docs/original.md §6.3).
+
+For each downsampled corner point, the 5 nearest map corners must span a line (largest eigenvalue > 3 × the
+middle one); for each surface point, the 5 nearest map surface points must fit a plane within 0.2 m. Up to 10
+full Gauss-Newton steps with the original's weights, degeneracy projection (eigenvalues of the first
+iteration's normal matrix below ``degeneracy_threshold``,
+:class:`~lego_loam_py.core.gauss_newton.DegeneracyProjection`) and convergence test (0.05 deg, 0.05 cm). Poses
+are world-convention six-vectors in camera axes (:mod:`lego_loam_py.core.frames`).
+
+The rows of the normal matrix are weight × (unit normal or unit line gradient, its moment about the sensor),
+so an eigenvalue is the number of full-weight correspondences that hold that direction, a rotation counting
+as the displacement it gives 1 m from the sensor: the smallest one (the step's *condition*) says how well the
+worst direction was held.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from lego_loam_py.core.frames import (
+    GENERATOR_X,
+    GENERATOR_Y,
+    GENERATOR_Z,
+    pose6_to_matrix,
+    rot_x,
+    rot_y,
+    rot_z,
+    transform_points,
+)
+from lego_loam_py.core.gauss_newton import DegeneracyProjection
+from lego_loam_py.core.geometry import fit_planes, line_coefficients, nearest_within
+from lego_loam_py.core.params.types import Params
+
+__all__ = [
+    'map_jacobian_rows',
+    'edge_correspondences',
+    'plane_correspondences',
+    'register_scan_to_map',
+    'RegistrationCounts',
+    'map_trees',
+]
+
+_F32 = np.float32
+
+
+def map_jacobian_rows(points: np.ndarray, coeff: np.ndarray, pose6: np.ndarray) -> np.ndarray:
+    """Rows ``coeff · d(R p + t)/d(rx, ry, rz, tx, ty, tz)`` with ``R = Ry(ry) Rx(rx) Rz(rz)``."""
+    rx, ry, rz = (float(v) for v in pose6[:3])
+    Ry, Rx, Rz = rot_y(ry), rot_x(rx), rot_z(rz)
+    p = points[:, :3].astype(np.float64)
+    c = coeff[:, :3].astype(np.float64)
+    rows = np.empty((len(points), 6))
+    for k, derivative in enumerate(
+        (Ry @ Rx @ GENERATOR_X @ Rz, Ry @ GENERATOR_Y @ Rx @ Rz, Ry @ Rx @ Rz @ GENERATOR_Z)
+    ):
+        rows[:, k] = np.einsum('ni,ni->n', c, p @ derivative.T)
+    rows[:, 3:] = c
+    return rows
+
+
+def _neighbourhoods(points_world: np.ndarray, tree: cKDTree, map_points: np.ndarray, mo):
+    """(indices of the points whose ``knn`` nearest map points all lie within the gate, those neighbours
+    (m, k, 3) float64), see :func:`~lego_loam_py.core.geometry.nearest_within`."""
+    used, index = nearest_within(tree, points_world[:, :3], mo.knn, mo.knn_max_sq_dist)
+    return used, map_points[index, :3].astype(np.float64)
+
+
+def edge_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: np.ndarray, params: Params):
+    """Point-to-line coefficients: (index of used points, coeff (m, 4) = s·gradient, s·distance)."""
+    mo = params.map_optimization
+    if len(points_world) == 0 or tree is None:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 4))
+    used, neighbours = _neighbourhoods(points_world, tree, map_points, mo)
+    centroid = neighbours.mean(axis=1)
+    centred = neighbours - centroid[:, None, :]
+    covariance = np.einsum('mki,mkj->mij', centred, centred) / mo.knn
+    values, vectors = np.linalg.eigh(covariance)  # ascending
+    is_line = values[:, 2] > mo.edge_eigen_ratio * values[:, 1]
+    used, centroid, direction = used[is_line], centroid[is_line], vectors[is_line, :, 2]
+    a = centroid + mo.line_half_length * direction
+    b = centroid - mo.line_half_length * direction
+    gradient, dist = line_coefficients(points_world[used], a.astype(_F32), b.astype(_F32))
+    weight = 1.0 - mo.weight_gain * np.abs(dist.astype(np.float64))
+    keep = (weight > mo.min_weight) & np.isfinite(dist) & np.isfinite(gradient).all(axis=1)
+    coeff = np.concatenate([gradient[keep] * weight[keep, None], (weight[keep] * dist[keep])[:, None]], axis=1)
+    return used[keep], coeff
+
+
+def plane_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: np.ndarray, params: Params):
+    """Point-to-plane coefficients: (index of used points, coeff (m, 4) = s·normal, s·distance)."""
+    mo = params.map_optimization
+    if len(points_world) == 0 or tree is None:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 4))
+    used, neighbours = _neighbourhoods(points_world, tree, map_points, mo)
+    planar, normal, offset = fit_planes(neighbours, mo.plane_max_residual, mo.plane_min_aspect)
+    used = used[planar]
+    p = points_world[used, :3].astype(np.float64)
+    dist = np.einsum('mi,mi->m', p, normal) + offset
+    weight = 1.0 - mo.weight_gain * np.abs(dist) / np.sqrt(np.linalg.norm(p, axis=1))
+    keep = weight > mo.min_weight
+    coeff = np.concatenate([normal[keep] * weight[keep, None], (weight[keep] * dist[keep])[:, None]], axis=1)
+    return used[keep], coeff
+
+
+@dataclass
+class RegistrationCounts:
+    """What one scan-to-map registration did."""
+
+    iterations: int = 0
+    correspondences: int = 0  # point-to-line and point-to-plane pairs of the last iteration
+    degenerate: bool = False  # a direction was projected out (found on the first iteration)
+    # Smallest eigenvalue of the first iteration's normal matrix [full-weight correspondences], NaN when too
+    # few correspondences were found to register.
+    condition: float = float('nan')
+
+
+def map_trees(corner_map: np.ndarray, surf_map: np.ndarray) -> tuple[cKDTree, cKDTree]:
+    """The KD-trees :func:`register_scan_to_map` searches in a corner and a surface map."""
+    return (
+        cKDTree(corner_map[:, :3].astype(np.float64), balanced_tree=False),
+        cKDTree(surf_map[:, :3].astype(np.float64), balanced_tree=False),
+    )
+
+
+def register_scan_to_map(
+    corner_map: np.ndarray,
+    surf_map: np.ndarray,
+    corner_ds: np.ndarray,
+    surf_ds: np.ndarray,
+    initial: np.ndarray,
+    params: Params,
+    degeneracy: DegeneracyProjection,
+    trees: tuple[cKDTree, cKDTree] | None = None,
+) -> tuple[np.ndarray, RegistrationCounts]:
+    """Scan-to-map Gauss-Newton from ``initial`` (pose six-vector): (the optimised pose, what it did).
+
+    ``corner_ds`` / ``surf_ds`` are the scan's downsampled features in its sensor frame, the maps are in the
+    world (camera axes). ``degeneracy`` is the mapper's, kept across steps as the original does. ``trees``: the
+    maps' :func:`map_trees` when the caller keeps them across steps (a map that does not change), else built here.
+    """
+    mo = params.map_optimization
+    counts = RegistrationCounts()
+    pose = np.asarray(initial, dtype=float).copy()
+    corner_tree, surf_tree = map_trees(corner_map, surf_map) if trees is None else trees
+    for iteration in range(mo.max_iterations):
+        counts.iterations = iteration + 1
+        world = pose6_to_matrix(pose)
+        corner_world = transform_points(world, corner_ds[:, :3].astype(np.float64)).astype(_F32)
+        surf_world = transform_points(world, surf_ds[:, :3].astype(np.float64)).astype(_F32)
+        ci, cc = edge_correspondences(corner_world, corner_tree, corner_map, params)
+        si, sc = plane_correspondences(surf_world, surf_tree, surf_map, params)
+        points = np.concatenate([corner_ds[ci], surf_ds[si]])
+        coeff = np.concatenate([cc, sc])
+        counts.correspondences = len(coeff)
+        if len(coeff) < mo.min_correspondences:
+            break  # nothing would change in the next iterations
+        a = map_jacobian_rows(points, coeff, pose)
+        x = degeneracy.step(a, -coeff[:, 3], iteration == 0, mo.degeneracy_threshold)
+        counts.degenerate = degeneracy.degenerate
+        counts.condition = degeneracy.smallest_eigenvalue
+        if not np.isfinite(x).all():
+            break
+        pose = pose + x
+        delta_r = math.degrees(math.sqrt(float(x[0] ** 2 + x[1] ** 2 + x[2] ** 2)))
+        delta_t = math.sqrt(float(((x[3:] * 100.0) ** 2).sum()))
+        if delta_r < mo.convergence_rotation and delta_t < mo.convergence_translation:
+            break
+    return pose, counts

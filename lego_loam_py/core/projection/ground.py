@@ -1,0 +1,156 @@
+"""imageProjection's ground removal (docs/original.md §6.1): which range-image pixels are ground.
+
+The original's pair test (vertical neighbours in the lowest rows whose slope lies within a band around the
+sensor's mount angle) in its float32 arithmetic, optionally refined (``image_projection.ground_rule``) by a
+vertical-surface test, a plane fit and a walk up each column.
+
+Frames: points are in the sensor frame (REP-103 lidar axes, ``base_link``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from lego_loam_py.core.params.types import Params
+from lego_loam_py.core.parity.atan2f_decisions import atan2f_exceeds, first_float32_where
+from lego_loam_py.core.parity.libm import float_degrees
+
+__all__ = ['GroundRemoval']
+
+_F32 = np.float32
+
+
+class GroundRemoval:
+    """Ground detection for one sensor configuration; :meth:`ground` handles one scan's range image."""
+
+    def __init__(self, params: Params):
+        self.params = params
+        s = params.sensor
+        self.n_scan = s.n_scan
+        self.horizon_scan = s.horizon_scan
+        # The original's float constants.
+        self._mount_angle = _F32(s.sensor_mount_angle)
+        self._slope_threshold = _F32(params.image_projection.ground_slope_threshold)
+        # The slope test as angle thresholds: a pair is ground where its libm angle a has band 1, that is
+        # a > _slope_above and not a > _slope_at_most (the band is monotone in a, so these are exact).
+        band_starts = first_float32_where(lambda a: self._slope_band(a) >= np.array([1, 2]), -math.pi, math.pi, 2)
+        self._slope_above, self._slope_at_most = np.nextafter(band_starts, _F32(-np.inf))
+
+    def ground(self, full: np.ndarray, filled: np.ndarray) -> np.ndarray:
+        """Ground pixels (the original's groundMat == 1) as a boolean (N_SCAN*H,) mask.
+
+        ``full`` is the (N_SCAN*H, 4) projected cloud, ``filled`` marks non-empty pixels. Pairs of vertically
+        adjacent pixels in rows 0..ground_scan_ind are ground when their slope is within the threshold of
+        the mount angle; the original's write order is kept (a later empty pair un-marks row i+1).
+        """
+        n, h = self.n_scan, self.horizon_scan
+        g = self.params.sensor.ground_scan_ind
+        p = full.reshape(n, h, 4)
+        f = filled.reshape(n, h)
+        lower, upper = p[:g], p[1 : g + 1]
+        empty_pair = ~(f[:g] & f[1 : g + 1])
+        with np.errstate(invalid='ignore'):
+            dx = upper[..., 0] - lower[..., 0]
+            dy = upper[..., 1] - lower[..., 1]
+            dz = upper[..., 2] - lower[..., 2]
+            # The angle of (horizontal, dz) with horizontal >= 0 lies in [-pi/2, pi/2].
+            above, beyond = atan2f_exceeds(
+                dz, np.sqrt(dx * dx + dy * dy), [self._slope_above, self._slope_at_most], (-math.pi / 2, math.pi / 2)
+            )
+            slope_ok = above & ~beyond
+        ground_pair = ~empty_pair & slope_ok
+        # Iteration i writes row i (-1 if the pair has an empty pixel, 1 if ground) and row i+1 (1 if
+        # ground); iteration i+1 runs later and may overwrite row i+1 with -1.
+        mat = np.zeros((n, h), dtype=np.int8)
+        mat[1 : g + 1][ground_pair] = 1
+        rows_i = mat[:g]
+        rows_i[ground_pair] = 1
+        rows_i[empty_pair] = -1
+        ground = mat == 1
+        if self.params.image_projection.ground_rule == 'refined':
+            ground = self._refine_ground(p, f, ground)
+        return ground.reshape(-1)
+
+    def _slope_band(self, angle: np.ndarray) -> np.ndarray:
+        """0 / 1 / 2 where the pair slope [rad] is below / within / above the ground band around the mount
+        angle. Band 1 is the original's |deg(angle) - mount| <= threshold; the band index, unlike that test,
+        is monotone in the angle, so its changes are two angle thresholds."""
+        off = float_degrees(angle) - self._mount_angle
+        return (off >= -self._slope_threshold).astype(np.int8) + (off > self._slope_threshold)
+
+    def _refine_ground(self, p: np.ndarray, f: np.ndarray, ground: np.ndarray) -> np.ndarray:
+        """Remove from the original's ground what a pair test over a 2-degree gap cannot see.
+
+        * A pixel that forms a vertical pair with the pixel above or below it (height step > ratio x horizontal
+          gap, gap < a fraction of the range) lies on a vertical surface: the first ring on a wall's base or a
+          car's side pairs with distant ground at a shallow slope, and the original marks it ground.
+        * Candidates within the plane radius, and the first candidate of every column wherever it lies, must
+          lie within max(tolerance, ratio x range) of a plane fitted (least squares, refitted without the
+          rejects, three rounds) to the candidates within that radius: car hoods and roofs, benches.
+        * Each column is walked upward from the lowest ring: every candidate after the column's first must
+          continue the column's last accepted ground point, a height change of at most tan(chain slope) x the
+          horizontal gap + the chain tolerance. Raised surfaces far out break that chain, while ground that
+          bends away from any single plane, as a forest's uneven terrain does, continues it. (A plane fitted
+          to the whole scan instead dropped up to 77 % of the ground of single forest scans.)
+        """
+        ip = self.params.image_projection
+        g = self.params.sensor.ground_scan_ind
+        top = min(g + 2, self.n_scan)
+        # Contiguous coordinate planes of the rows that can hold ground (strided (n, h, 4) views are slow).
+        x, y, z = (np.ascontiguousarray(p[:top, :, axis]) for axis in range(3))
+        both = f[: top - 1] & f[1:top]
+        with np.errstate(invalid='ignore'):
+            gap = np.hypot(x[1:] - x[:-1], y[1:] - y[:-1])
+            rise = np.abs(z[1:] - z[:-1])
+            reach = np.hypot(x[:-1], y[:-1])
+            vertical = both & (rise > ip.ground_vertical_ratio * gap) & (gap < ip.ground_vertical_gap * reach)
+        ground = ground.copy()
+        ground[: top - 1] &= ~vertical
+        ground[1:top] &= ~vertical
+        pixels = np.flatnonzero(ground)
+        if len(pixels) < 10:
+            return ground
+        # Ground lies in rows < top only: the planes hold every candidate.
+        x, y, z = x.astype(np.float64), y.astype(np.float64), z.astype(np.float64)
+        ground_x, ground_y, ground_z = (plane.reshape(-1)[pixels] for plane in (x, y, z))
+        reach = np.hypot(ground_x, ground_y)
+        tolerance = np.maximum(ip.ground_plane_tolerance, ip.ground_plane_tolerance_ratio * reach)
+        near = reach <= ip.ground_plane_radius
+        fit_near = near.sum() >= 10
+        keep = near if fit_near else np.ones(len(pixels), dtype=bool)
+        design = np.empty((len(pixels), 3))
+        design[:, 0], design[:, 1], design[:, 2] = ground_x, ground_y, 1.0
+        for _ in range(3):
+            if keep.sum() < 3:
+                break
+            # np.compress: the same rows as design[keep], several times faster on a 2-D array.
+            coef, *_ = np.linalg.lstsq(np.compress(keep, design, axis=0), ground_z[keep], rcond=None)
+            refit = (np.abs(ground_z - design @ coef) <= tolerance) & (near if fit_near else True)
+            if np.array_equal(refit, keep):
+                break  # the same points give the same plane again: the remaining rounds change nothing
+            keep = refit
+        on_plane = np.zeros(top * self.horizon_scan, dtype=bool)
+        on_plane[pixels] = np.abs(ground_z - design @ coef) <= tolerance
+        far = np.ones(top * self.horizon_scan, dtype=bool)
+        far[pixels] = ~near
+        on_plane, far = on_plane.reshape(top, -1), far.reshape(top, -1)
+        # The walk up the columns: a loop over the few ground rows, vectorised over the columns.
+        slope = math.tan(math.radians(ip.ground_chain_slope))
+        last_x, last_y, last_z = (np.full(self.horizon_scan, np.nan) for _ in range(3))
+        seeded = np.zeros(self.horizon_scan, dtype=bool)
+        for r in range(top):
+            candidate = ground[r]
+            if not candidate.any():
+                continue
+            with np.errstate(invalid='ignore'):
+                step = np.hypot(x[r] - last_x, y[r] - last_y)
+                # Unseeded columns have a NaN last point: no continuation is needed there.
+                continues = (np.abs(z[r] - last_z) <= slope * step + ip.ground_chain_tolerance) | ~seeded
+            accepted = candidate & continues & (on_plane[r] | (seeded & far[r]))
+            ground[r] = accepted
+            for last, now in ((last_x, x[r]), (last_y, y[r]), (last_z, z[r])):
+                np.copyto(last, now, where=accepted)
+            seeded |= accepted
+        return ground
