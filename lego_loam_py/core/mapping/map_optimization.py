@@ -466,20 +466,35 @@ class MapOptimization:
             global_map=voxel_downsample(np.concatenate([corner_map, surface_map]), mo.global_map_leaf_size),
         )
 
-    def save(self, directory: str | Path) -> dict[str, Path]:
-        """Write the maps (PCD, REP-103 ``map`` axes), the keyframe trajectory (PCD, TUM) and the map bundle that
-        localization loads, each atomically (see :mod:`lego_loam_py.core.mapping.map_files`)."""
+    def keyframes_now(self) -> list[Keyframe]:
+        """The keyframes as they stand, each with a copy of its pose (a loop closure replaces the poses later on;
+        the clouds are never changed): what the occupancy grid is drawn from on another thread."""
+        with self.lock:
+            return [
+                Keyframe(kf.index, kf.stamp_ns, kf.pose6.copy(), kf.corner, kf.surf, kf.outlier)
+                for kf in self.keyframes
+            ]
+
+    def save(self, directory: str | Path, grid=None) -> dict[str, Path]:
+        """Write the maps (PCD, REP-103 ``map`` axes), the keyframe trajectory (PCD, TUM), the map bundle that
+        localization loads and, with ``occupancy_grid.enabled``, the occupancy grid (nav2 map_server files), each
+        atomically (see :mod:`lego_loam_py.core.mapping.map_files`). ``grid``: a
+        :class:`~lego_loam_py.core.mapping.occupancy_grid.OccupancyGrid` kept up to date meanwhile (the node's),
+        brought to the saved keyframes; without it the grid is drawn from them here."""
         from lego_loam_py.core.mapping.map_bundle import MapBundle
         from lego_loam_py.core.mapping.map_files import write_map_files
+        from lego_loam_py.core.mapping.occupancy_grid import OccupancyGrid
 
         maps = self.maps()
         with self.lock:  # (one consistent set of keyframes and factors)
+            keyframes = self.keyframes_now()
             bundle = MapBundle.of(
-                list(self.keyframes),
-                list(self.graph.factors),
-                self.params,
-                maps['corner'],
-                maps['surface'],
-                self.map_source,
+                keyframes, list(self.graph.factors), self.params, maps['corner'], maps['surface'], self.map_source
             )
-        return write_map_files(directory, maps, bundle)
+        occupancy = None
+        if self.params.occupancy_grid.enabled:
+            grid = grid if grid is not None else OccupancyGrid(self.params.occupancy_grid)
+            with grid.lock:  # (the grid of exactly the saved keyframes)
+                grid.sync(keyframes)
+                occupancy = grid.ternary()
+        return write_map_files(directory, maps, bundle, occupancy)
