@@ -229,7 +229,13 @@ def test_a_saved_map_round_trips_its_grid_and_an_older_map_gets_one_drawn(tmp_pa
     off = MapOptimization(Params().replace(occupancy_grid__enabled=False))
     off.keyframes = list(two_views)
     assert 'occupancy_yaml' not in off.save(tmp_path / 'without')
-    assert not (tmp_path / 'without' / 'occupancy.yaml').exists()
+    assert not (tmp_path / 'without' / 'occupancy.yaml').exists() and off.occupancy_problem is None
+    # A grid that cannot be made (more cells than max_cells): the rest of the map is saved, and the save says why.
+    small = MapOptimization(Params().replace(occupancy_grid__max_cells=1000))
+    small.keyframes = list(two_views)
+    written = small.save(tmp_path / 'too_big')
+    assert 'occupancy_yaml' not in written and (tmp_path / 'too_big' / 'trajectory.tum').is_file()
+    assert 'the occupancy grid was not saved' in small.occupancy_problem and 'max_cells 1000' in small.occupancy_problem
 
 
 # ------------------------------------------------------------------------------------------- the ground

@@ -207,10 +207,15 @@ class MapOptimizationNode(LegoLoamNode):
             self.warn('occupancy_grid', f'the occupancy grid could not be updated ({exc}); mapping goes on')
             return
         self.record_time('occupancy_grid', time.perf_counter() - start)
-        self._publish_grid()
+        try:
+            self._publish_grid()
+        except Exception as exc:
+            self.count('occupancy_grid_failures')
+            self.warn('occupancy_grid', f'the occupancy grid could not be published ({exc}); mapping goes on')
 
     def _publish_grid(self) -> None:
-        """/map, when someone subscribes, the grid changed since it was last published and publish_period passed."""
+        """/map, when someone subscribes, the grid changed since it was last published and publish_period passed
+        (on the grid worker; its failures are the worker's to report)."""
         if self.pub_grid.get_subscription_count() == 0:
             return
         grid = self.grid if self.grid is not None else self._saved_grid
@@ -220,21 +225,16 @@ class MapOptimizationNode(LegoLoamNode):
         now = time.monotonic()
         if version == self._grid_published or now - self._grid_published_at < self.params.occupancy_grid.publish_period:
             return
-        try:
-            if isinstance(grid, OccupancyGrid):
-                with grid.lock:  # (the version of the cells taken)
-                    version = (id(grid), grid.version)
-                    ternary = grid.ternary()
-            else:
-                ternary = grid
-            if ternary.width == 0 or ternary.height == 0:  # (nothing seen yet)
-                return
-            stamp = self.last_step_stamp if self.last_step_stamp is not None else self.get_clock().now().to_msg()
-            self.pub_grid.publish(occupancy_grid_msg(message_fields(ternary), stamp))
-        except Exception as exc:
-            self.count('occupancy_grid_failures')
-            self.warn('occupancy_grid', f'the occupancy grid could not be published ({exc}); mapping goes on')
+        if isinstance(grid, OccupancyGrid):
+            with grid.lock:  # (the version of the cells taken)
+                version = (id(grid), grid.version)
+                ternary = grid.ternary()
+        else:
+            ternary = grid
+        if ternary.width == 0 or ternary.height == 0:  # (nothing seen yet)
             return
+        stamp = self.last_step_stamp if self.last_step_stamp is not None else self.get_clock().now().to_msg()
+        self.pub_grid.publish(occupancy_grid_msg(message_fields(ternary), stamp))
         self._grid_published, self._grid_published_at = version, now
         self.count('occupancy_grids_published')
 
@@ -570,6 +570,9 @@ class MapOptimizationNode(LegoLoamNode):
         except Exception as exc:  # report, never crash the node
             self.warn('save_failed', f'saving the map to {directory} failed: {exc}')
             return False, f'saving to {directory} failed: {exc}'
+        if core.occupancy_problem is not None:  # (the rest of the map is saved)
+            self.count('occupancy_grid_failures')
+            self.warn('occupancy_grid', f'{core.occupancy_problem}; the other map files are saved')
         self.count('saves')
         return True, f'saved {len(core.keyframes)} keyframes: ' + ', '.join(str(p) for p in written.values())
 

@@ -117,6 +117,7 @@ class MapOptimization:
         self.last_maps: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 4), _F32), np.zeros((0, 4), _F32))
         self.last_scan: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 4), _F32), np.zeros((0, 4), _F32))
         self.map_source: dict = {}  # where the data came from (a bag), noted in the saved map bundle
+        self.occupancy_problem: str | None = None  # why the last save wrote no occupancy grid (None: it did)
 
     # --------------------------------------------------------------------------------- self-checks
     def health_problem(self) -> str | None:
@@ -480,7 +481,9 @@ class MapOptimization:
         localization loads and, with ``occupancy_grid.enabled``, the occupancy grid (nav2 map_server files), each
         atomically (see :mod:`lego_loam_py.core.mapping.map_files`). ``grid``: a
         :class:`~lego_loam_py.core.mapping.occupancy_grid.OccupancyGrid` kept up to date meanwhile (the node's),
-        brought to the saved keyframes; without it the grid is drawn from them here."""
+        brought to the saved keyframes; without it the grid is drawn from them here. A grid that cannot be made
+        (a pose it refuses, more than ``occupancy_grid.max_cells``) leaves the rest of the save as it is and says why
+        in :attr:`occupancy_problem` (None after a save with its grid)."""
         from lego_loam_py.core.mapping.map_bundle import MapBundle
         from lego_loam_py.core.mapping.map_files import write_map_files
         from lego_loam_py.core.mapping.occupancy_grid import OccupancyGrid
@@ -491,10 +494,13 @@ class MapOptimization:
             bundle = MapBundle.of(
                 keyframes, list(self.graph.factors), self.params, maps['corner'], maps['surface'], self.map_source
             )
-        occupancy = None
+        occupancy, self.occupancy_problem = None, None
         if self.params.occupancy_grid.enabled:
             grid = grid if grid is not None else OccupancyGrid(self.params.occupancy_grid)
-            with grid.lock:  # (the grid of exactly the saved keyframes)
-                grid.sync(keyframes)
-                occupancy = grid.ternary()
+            try:
+                with grid.lock:  # (the grid of exactly the saved keyframes)
+                    grid.sync(keyframes)
+                    occupancy = grid.ternary()
+            except Exception as exc:  # (the map is saved all the same, without its grid; the caller is told)
+                self.occupancy_problem = f'the occupancy grid was not saved: {exc}'
         return write_map_files(directory, maps, bundle, occupancy)
