@@ -29,6 +29,7 @@ import threading
 import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -44,6 +45,9 @@ from lego_loam_py.core.mapping.scan_to_map import register_scan_to_map
 from lego_loam_py.core.params.types import Params
 from lego_loam_py.core.validation import pose6_problem
 from lego_loam_py.core.voxel import VoxelAccumulator, voxel_downsample, voxel_indices
+
+if TYPE_CHECKING:
+    from lego_loam_py.core.mapping.occupancy_grid import OccupancyGrid
 
 __all__ = ['MapOptimization', 'MappingStep', 'Keyframe']
 
@@ -476,7 +480,7 @@ class MapOptimization:
                 for kf in self.keyframes
             ]
 
-    def save(self, directory: str | Path, grid=None) -> dict[str, Path]:
+    def save(self, directory: str | Path, grid: OccupancyGrid | None = None) -> dict[str, Path]:
         """Write the maps (PCD, REP-103 ``map`` axes), the keyframe trajectory (PCD, TUM), the map bundle that
         localization loads and, with ``occupancy_grid.enabled``, the occupancy grid (nav2 map_server files), each
         atomically (see :mod:`lego_loam_py.core.mapping.map_files`). ``grid``: a
