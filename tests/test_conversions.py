@@ -306,3 +306,28 @@ def test_the_header_stamp_is_read_from_a_serialized_message():
     assert serialized_stamp_ns(data) == 1_700_000_000_000_000_123
     assert serialized_stamp_ns(data[:8]) is None  # too short for a stamp
     assert serialized_stamp_ns(b'\x00\x03' + data[2:]) is None  # another encoding (parameter list)
+
+
+def test_an_occupancy_grid_message_holds_the_grid_row_major_from_its_origin():
+    """nav_msgs/OccupancyGrid of a 3 x 4 grid: frame, stamp (also the map load time), resolution, size, origin pose
+    and the cells row by row from the origin (row 0: the lowest y), as a serialized round trip gives them back."""
+    from nav_msgs.msg import OccupancyGrid
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from lego_loam_py.core.mapping import TernaryGrid, message_fields
+    from lego_loam_py.ros.conversions import occupancy_grid_msg
+
+    cells = np.full((3, 4), -1, np.int8)
+    cells[0, 0], cells[0, 1:], cells[2, 3] = 100, 0, 100
+    grid = TernaryGrid(0.05, (-1.25, 2.5), cells, origin_yaw=math.pi / 2)
+    msg = deserialize_message(serialize_message(occupancy_grid_msg(message_fields(grid), 1_500_000_000)), OccupancyGrid)
+    assert msg.header.frame_id == 'map' and (msg.header.stamp.sec, msg.header.stamp.nanosec) == (1, 500_000_000)
+    assert msg.info.map_load_time == msg.header.stamp
+    assert msg.info.resolution == pytest.approx(0.05, rel=1e-7)  # (a float32 field)
+    assert (msg.info.width, msg.info.height) == (4, 3)
+    o = msg.info.origin
+    assert (o.position.x, o.position.y, o.position.z) == (-1.25, 2.5, 0.0)
+    assert (o.orientation.x, o.orientation.y, o.orientation.z, o.orientation.w) == pytest.approx(
+        (0.0, 0.0, math.sqrt(0.5), math.sqrt(0.5)), abs=1e-12
+    )
+    assert list(msg.data) == [100, 0, 0, 0, -1, -1, -1, -1, -1, -1, -1, 100]

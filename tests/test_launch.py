@@ -429,6 +429,8 @@ def test_rviz_config_shows_the_pipeline_in_the_map_frame():
     assert by_topic['/integrated_to_init']['Class'] == 'rviz_default_plugins/Odometry'
     # The loop markers are latched: the display must ask for transient local to get them after they were sent.
     assert by_topic['/loop_closures']['Topic']['Durability Policy'] == 'Transient Local'
+    # So is the occupancy grid (off by default: while shown, mapOptimization converts and publishes it).
+    assert by_topic['/map']['Topic']['Durability Policy'] == 'Transient Local' and not by_topic['/map']['Enabled']
     assert any(d['Class'] == 'rviz_default_plugins/TF' and d['Enabled'] for d in displays)
     for topic, display in by_topic.items():  # only topics the pipeline publishes, with a matching display
         assert topic in ALL, topic
@@ -436,6 +438,7 @@ def test_rviz_config_shows_the_pipeline_in_the_map_frame():
             'sensor_msgs/msg/PointCloud2': 'PointCloud2',
             'nav_msgs/msg/Odometry': 'Odometry',
             'visualization_msgs/msg/MarkerArray': 'MarkerArray',
+            'nav_msgs/msg/OccupancyGrid': 'Map',
         }[ALL[topic][1]]
         assert display['Class'] == f'rviz_default_plugins/{expected}', topic
         assert display['Topic']['Reliability Policy'] == 'Reliable'  # the nodes publish reliable

@@ -326,6 +326,8 @@ def test_save_writes_complete_files_atomically(tmp_path):
         'trajectory_camera_init_tum',
         'map_bundle',
         'map_bundle_data',
+        'occupancy_yaml',  # (the 2D occupancy grid, nav2 map_server files: tests/test_occupancy_grid.py)
+        'occupancy_image',
     }
     stamps, poses = read_tum(written['trajectory_tum'])
     assert len(stamps) == len(mo.keyframes) == 4

@@ -49,6 +49,13 @@ def test_run_writes_trajectories_maps_png_and_an_accurate_summary(tmp_path):
     global_map = read_pcd(out / 'map' / 'global_map.pcd')
     assert len(global_map) > 1000 and np.isfinite(global_map).all()
     assert (out / 'trajectory.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
+    # The 2D occupancy grid for nav2 beside the map (map_server files), listed in the summary.
+    from lego_loam_py.core.mapping import read_occupancy_files
+
+    grid = read_occupancy_files(out / 'map' / 'occupancy.yaml')
+    assert grid.resolution == 0.1 and grid.counts()['occupied'] > 100 and grid.counts()['free'] > 10000
+    assert summary['map_files']['occupancy_yaml'] == str(out / 'map' / 'occupancy.yaml')
+    assert summary['map_files']['occupancy_image'] == str(out / 'map' / 'occupancy.pgm')
 
 
 def test_mapping_thread_gives_the_sequential_result():

@@ -1277,6 +1277,22 @@ class SavingMapper:
             spin_until(self.context, self.node, lambda: False, pause)
 
 
+def map_file_is_complete(path: Path) -> bool:
+    """A saved map file is whole: a PCD or TUM file by its own check, the occupancy grid's YAML and image by
+    reading them as map_server does (a truncated image is refused)."""
+    if path.suffix == '.pcd':
+        return pcd_is_complete(path)
+    if path.suffix == '.tum':
+        return tum_is_complete(path)
+    from lego_loam_py.core.mapping import OccupancyFilesError, read_occupancy_files
+
+    try:
+        read_occupancy_files(path.with_suffix('.yaml'))
+    except OccupancyFilesError:
+        return False
+    return True
+
+
 def test_map_files_are_complete_after_sigkill_during_a_save(rclpy_context, processes, tmp_path):
     """mapOptimization killed with SIGKILL in the middle of writing its map: every file is the previous complete
     version or the new complete one, never partial; the restarted node removes the killed writer's temporaries."""
@@ -1307,7 +1323,12 @@ def test_map_files_are_complete_after_sigkill_during_a_save(rclpy_context, proce
     )
     response = save()
     assert response.success, response.message
-    names = [f'{stem}{".tum" if "trajectory_" in stem else ".pcd"}' for stem in MAP_FILE_STEMS] + ['trajectory.tum']
+    files_of = {'occupancy': ['occupancy.yaml', 'occupancy.pgm']}  # (the grid's map_server files)
+    names = [
+        name
+        for stem in MAP_FILE_STEMS
+        for name in files_of.get(stem, [f'{stem}{".tum" if "trajectory_" in stem else ".pcd"}'])
+    ] + ['trajectory.tum']
     names = sorted(set(names))
     assert all((maps / name).is_file() for name in names), sorted(p.name for p in maps.iterdir())
     feed(inputs[len(inputs) // 2 :])
@@ -1332,7 +1353,7 @@ def test_map_files_are_complete_after_sigkill_during_a_save(rclpy_context, proce
     assert caught is not None, 'no save caught in the act in 20 attempts'
     for name in names:
         data = (maps / name).read_bytes()
-        complete = pcd_is_complete(maps / name) if name.endswith('.pcd') else tum_is_complete(maps / name)
+        complete = map_file_is_complete(maps / name)
         assert data == previous[name] or complete, name
         assert complete, name  # the previous version was complete too
     leftovers = [p.name for p in maps.iterdir() if '.tmp' in p.name]  # what the killed writer left behind ...

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Quaternion, TransformStamped
-from nav_msgs.msg import Odometry
+from nav_msgs.msg import OccupancyGrid, Odometry
 from sensor_msgs.msg import PointCloud2
 from sensor_msgs.msg import PointField as PointFieldMsg
 from std_msgs.msg import Header
@@ -58,6 +58,7 @@ __all__ = [
     'serialized_cloud',
     'serialized_xyzi_cloud',
     'serialized_cloud_info',
+    'occupancy_grid_msg',
     'cloud_from_serialized',
     'SerializedCloud',
     'serialized_odometry',
@@ -539,4 +540,20 @@ def pose_to_transform(pose: np.ndarray, stamp: Time | int, parent: str, child: s
     tr = msg.transform
     tr.translation.x, tr.translation.y, tr.translation.z = (float(v) for v in pose[:3, 3])
     tr.rotation = Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
+    return msg
+
+
+def occupancy_grid_msg(fields, stamp: Time | int) -> OccupancyGrid:
+    """A nav_msgs/OccupancyGrid of ``fields`` (core.mapping.occupancy_grid.OccupancyGridFields: the frame, the
+    resolution [m], the size, the origin's pose, the int8 cells row-major from the origin); ``stamp`` is both the
+    header's and ``info.map_load_time`` (when this grid was made)."""
+    msg = OccupancyGrid()
+    msg.header = make_header(stamp, fields.frame_id)
+    msg.info.map_load_time = msg.header.stamp
+    msg.info.resolution = float(fields.resolution)
+    msg.info.width, msg.info.height = int(fields.width), int(fields.height)
+    position, orientation = msg.info.origin.position, msg.info.origin.orientation
+    position.x, position.y, position.z = (float(v) for v in fields.origin_position)
+    orientation.x, orientation.y, orientation.z, orientation.w = (float(v) for v in fields.origin_orientation)
+    msg.data = fields.data  # (an array.array('b'): taken as is, no per-element copy)
     return msg

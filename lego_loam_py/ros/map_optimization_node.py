@@ -12,7 +12,13 @@ Subscribes /laser_cloud_corner_last, /laser_cloud_surf_last, /outlier_cloud_last
   around the robot), /registered_cloud (the current scan in the map), /laser_cloud_surround (global map,
   every ``global_map_publish_period`` s), /history_cloud and /corrected_cloud (loop closure);
 * /loop_closures (visualization_msgs/MarkerArray, latched): a line between the two keyframes of every accepted
-  loop and a sphere at each end, at their current optimised positions (camera_init), for RViz.
+  loop and a sphere at each end, at their current optimised positions (camera_init), for RViz;
+* /map (nav_msgs/OccupancyGrid, latched: transient local, reliable, depth 1; frame ``map``) with
+  ``occupancy_grid.enabled``: the 2D occupancy grid for nav2 (:mod:`lego_loam_py.core.mapping.occupancy_grid`),
+  kept current on a worker thread of its own (each new keyframe added, everything redrawn from the corrected poses
+  after a loop closure) and published at most every ``occupancy_grid.publish_period`` s while subscribed; in
+  localization, the saved map's grid (its occupancy files, or drawn from its keyframes). A failure of the grid is
+  a throttled warning and the counter ``occupancy_grid_failures``; mapping goes on.
 
 Loop closure (``loop_closure.loop_closure_enable_flag``) runs every ``loop_closure.period`` s on a worker
 thread of its own, so the ICP does not hold up the mapping steps. The service ``save_map``
@@ -41,6 +47,7 @@ import threading
 import time
 
 import numpy as np
+from nav_msgs.msg import OccupancyGrid as OccupancyGridMsg
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu, PointCloud2
 from std_srvs.srv import Trigger
@@ -62,12 +69,14 @@ from lego_loam_py.core.guard import (
     ODOMETRY_RESTARTS,
 )
 from lego_loam_py.core.mapping.map_optimization import MapOptimization
+from lego_loam_py.core.mapping.occupancy_grid import OccupancyGrid, TernaryGrid, message_fields
 from lego_loam_py.core.mapping.odometry_continuity import OdometryContinuity
 from lego_loam_py.ros import qos
 from lego_loam_py.ros.coalescing import CoalescingRunner
 from lego_loam_py.ros.conversions import (
     cloud_msg_to_xyzi,
     make_header,
+    occupancy_grid_msg,
     odometry_to_pose,
     serialized_odometry,
     serialized_stamp_ns,
@@ -85,7 +94,7 @@ __all__ = ['MapOptimizationNode', 'main']
 
 RESET_JUMP_NS = 1_000_000_000
 IMU_QUEUE_DEPTH = 200  # IMU samples kept between two mapping inputs (1 s at 200 Hz)
-MAP_FILE_STEMS = ('global_map', 'corner_map', 'surface_map', 'trajectory', 'trajectory_camera_init')
+MAP_FILE_STEMS = ('global_map', 'corner_map', 'surface_map', 'trajectory', 'trajectory_camera_init', 'occupancy')
 INPUT_TOPICS = {
     'corner': '/laser_cloud_corner_last',
     'surf': '/laser_cloud_surf_last',
@@ -146,12 +155,88 @@ class MapOptimizationNode(LegoLoamNode):
         if lc.loop_closure_enable_flag and self.localization is None:
             self.create_timer(lc.period, self._loop_wanted.set)
             threading.Thread(target=self._loop_worker, name='loop closure', daemon=True).start()
+        self._setup_occupancy_grid()
         self._remove_stale_temporaries()
         if self.localization is None:
             self.get_logger().info(
                 f'mapOptimization: every {mo.mapping_process_interval} s, loop closure '
                 f'{"on" if lc.loop_closure_enable_flag else "off"}, maps saved to {mo.file_directory}'
             )
+
+    def _setup_occupancy_grid(self) -> None:
+        """/map and the worker that keeps the grid current (mapping) or loads the saved map's (localization)."""
+        og = self.params.occupancy_grid
+        self.grid: OccupancyGrid | None = None  # (mapping: drawn from the keyframes; None in localization)
+        self.pub_grid = None
+        if not og.enabled:
+            return
+        if self.localization is None:
+            self.grid = OccupancyGrid(og)
+        self._saved_grid: TernaryGrid | None = None  # (localization: the saved map's, once read)
+        self._saved_grid_tried = False
+        self._grid_published: tuple | None = None  # (grid, version) last published
+        self._grid_published_at = -float('inf')  # [s, monotonic]
+        self.pub_grid = self.create_publisher(OccupancyGridMsg, '/map', qos.latched())
+        self.grid_updates = CoalescingRunner(self._update_grid, 'occupancy_grid')
+        self.create_timer(og.publish_period, self._grid_timer)
+
+    def _grid_timer(self) -> None:
+        """Every publish_period: the worker publishes what changed meanwhile, if anyone listens (a late subscriber
+        of a grid nobody wanted before gets it now)."""
+        if self.pub_grid.get_subscription_count() and (self.localization is not None or self.core.keyframes):
+            self.grid_updates.request()
+
+    def _update_grid(self) -> None:
+        """The grid worker: bring the grid to the keyframes (or read the saved map's), then publish it when due.
+        Never raises: a failure is counted and warned about, and the map goes on."""
+        start = time.perf_counter()
+        try:
+            if self.grid is not None:
+                core, grid = self.core, self.grid
+                if core is not None and core.builds_map:
+                    grid.sync(core.keyframes_now())
+            elif not self._saved_grid_tried:
+                self._saved_grid_tried = True  # (once: a map without grid or keyframes will not get one)
+                from lego_loam_py.core.mapping.occupancy_files import saved_occupancy_grid
+
+                self._saved_grid = saved_occupancy_grid(
+                    self.params.map_optimization.map_path, self.params.occupancy_grid
+                )
+        except Exception as exc:
+            self.count('occupancy_grid_failures')
+            self.warn('occupancy_grid', f'the occupancy grid could not be updated ({exc}); mapping goes on')
+            return
+        self.record_time('occupancy_grid', time.perf_counter() - start)
+        try:
+            self._publish_grid()
+        except Exception as exc:
+            self.count('occupancy_grid_failures')
+            self.warn('occupancy_grid', f'the occupancy grid could not be published ({exc}); mapping goes on')
+
+    def _publish_grid(self) -> None:
+        """/map, when someone subscribes, the grid changed since it was last published and publish_period passed
+        (on the grid worker; its failures are the worker's to report)."""
+        if self.pub_grid.get_subscription_count() == 0:
+            return
+        grid = self.grid if self.grid is not None else self._saved_grid
+        if grid is None:
+            return
+        version = (id(grid), grid.version if isinstance(grid, OccupancyGrid) else 0)
+        now = time.monotonic()
+        if version == self._grid_published or now - self._grid_published_at < self.params.occupancy_grid.publish_period:
+            return
+        if isinstance(grid, OccupancyGrid):
+            with grid.lock:  # (the version of the cells taken)
+                version = (id(grid), grid.version)
+                ternary = grid.ternary()
+        else:
+            ternary = grid
+        if ternary.width == 0 or ternary.height == 0:  # (nothing seen yet)
+            return
+        stamp = self.last_step_stamp if self.last_step_stamp is not None else self.get_clock().now().to_msg()
+        self.pub_grid.publish(occupancy_grid_msg(message_fields(ternary), stamp))
+        self._grid_published, self._grid_published_at = version, now
+        self.count('occupancy_grids_published')
 
     def _remove_stale_temporaries(self) -> None:
         """A predecessor killed while saving left temporary files (its saved files are complete): remove them."""
@@ -304,6 +389,8 @@ class MapOptimizationNode(LegoLoamNode):
         self._report_conditioning(step)
         self.report_imu_alignment(step.imu_alignment)
         self._publish(step, odometry.header.stamp)
+        if step.keyframe_added and self.grid is not None:
+            self.grid_updates.request()
         self.output_published()
         self.record_time('step', time.perf_counter() - start)
         if self.localization is not None:
@@ -329,6 +416,8 @@ class MapOptimizationNode(LegoLoamNode):
         done = self.core.heal()
         self.continuity.forget()
         self.state_reset(problem, done)
+        if self.grid is not None:  # (keyframes may have been dropped: the grid is redrawn without them)
+            self.grid_updates.request()
 
     def _check_odometry_continuity(
         self, stamp: int, pose: np.ndarray, transform_sum: np.ndarray, publisher=None
@@ -363,6 +452,8 @@ class MapOptimizationNode(LegoLoamNode):
         imu = self.core.imu
         self.core = MapOptimization(self.params)
         self.core.imu = imu
+        if self.grid is not None:  # (a new map, a new grid)
+            self.grid = OccupancyGrid(self.params.occupancy_grid)
         self.order.reset()
         self.continuity.forget()
         self.count('resets')
@@ -434,6 +525,8 @@ class MapOptimizationNode(LegoLoamNode):
                 f'{result.correction_deg:.2f} deg); {accepted} loops in the graph'
             )
             self.publish_loop_markers()
+            if self.grid is not None:  # (redrawn from the corrected poses)
+                self.grid_updates.request()
             if stamp is not None and self.pub_corrected.get_subscription_count():
                 self.pub_corrected.publish(
                     serialized_xyzi_cloud(
@@ -473,10 +566,13 @@ class MapOptimizationNode(LegoLoamNode):
         if not core.keyframes:  # nothing to write (and the files of an earlier run stay as they are)
             return False, 'no keyframe yet: nothing to save'
         try:
-            written = core.save(directory)
+            written = core.save(directory, grid=self.grid)
         except Exception as exc:  # report, never crash the node
             self.warn('save_failed', f'saving the map to {directory} failed: {exc}')
             return False, f'saving to {directory} failed: {exc}'
+        if core.occupancy_problem is not None:  # (the rest of the map is saved)
+            self.count('occupancy_grid_failures')
+            self.warn('occupancy_grid', f'{core.occupancy_problem}; the other map files are saved')
         self.count('saves')
         return True, f'saved {len(core.keyframes)} keyframes: ' + ', '.join(str(p) for p in written.values())
 

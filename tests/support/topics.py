@@ -35,6 +35,8 @@ GATED = {
     '/registered_cloud': ('mapOptimization', 'sensor_msgs/msg/PointCloud2', 'camera_init', None),
     '/recent_cloud': ('mapOptimization', 'sensor_msgs/msg/PointCloud2', 'camera_init', None),
     '/laser_cloud_surround': ('mapOptimization', 'sensor_msgs/msg/PointCloud2', 'camera_init', None),
+    # Not in the original: the 2D occupancy grid for nav2 (latched; occupancy_grid.enabled, on by default).
+    '/map': ('mapOptimization', 'nav_msgs/msg/OccupancyGrid', 'map', None),
 }
 
 # Loop closure only (off by default): /history_cloud, /corrected_cloud (camera_init), and,

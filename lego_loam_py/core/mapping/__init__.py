@@ -1,5 +1,5 @@
 """Stage 3, mapOptimization and transformFusion: scan-to-map registration, keyframes and the pose graph, the map
-bundle and map files, and the fusion of odometry and mapping.
+bundle and map files, the 2D occupancy grid for nav2, and the fusion of odometry and mapping.
 
 Its public API, each name from the module that defines it (imported on first use)."""
 
@@ -26,6 +26,24 @@ _EXPORTS = {
     'Keyframe': 'map_optimization',
     'MapOptimization': 'map_optimization',
     'MappingStep': 'map_optimization',
+    'FREE': 'occupancy_grid',
+    'OCCUPIED': 'occupancy_grid',
+    'UNKNOWN': 'occupancy_grid',
+    'KeyframeScan': 'occupancy_ground',
+    'classify_keyframe': 'occupancy_ground',
+    'OccupancyGrid': 'occupancy_grid',
+    'OccupancyGridFields': 'occupancy_grid',
+    'TernaryGrid': 'occupancy_grid',
+    'keyframe_lidar_pose': 'occupancy_grid',
+    'keyframe_points': 'occupancy_grid',
+    'message_fields': 'occupancy_grid',
+    'FREE_THRESH': 'occupancy_files',
+    'OCCUPIED_THRESH': 'occupancy_files',
+    'OCCUPANCY_NAME': 'occupancy_files',
+    'OccupancyFilesError': 'occupancy_files',
+    'read_occupancy_files': 'occupancy_files',
+    'write_occupancy_files': 'occupancy_files',
+    'saved_occupancy_grid': 'occupancy_files',
     'JUMP_M': 'odometry_continuity',
     'JUMP_M_PER_S': 'odometry_continuity',
     'JUMP_RAD': 'odometry_continuity',

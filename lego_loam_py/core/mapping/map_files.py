@@ -3,7 +3,9 @@
 * ``global_map.pcd``, ``corner_map.pcd``, ``surface_map.pcd``: the maps in REP-103 ``map`` axes, intensity kept;
 * ``trajectory.pcd`` (keyframe positions, intensity = index), ``trajectory.tum`` (REP-103 ``map`` axes) and
   ``trajectory_camera_init.tum`` (the original's camera_init axes): the keyframe poses;
-* the map bundle (:mod:`lego_loam_py.core.mapping.map_bundle`).
+* the map bundle (:mod:`lego_loam_py.core.mapping.map_bundle`);
+* ``occupancy.yaml`` and ``occupancy.pgm``: the 2D occupancy grid in the ``map`` frame, as nav2's map_server reads
+  it (:mod:`lego_loam_py.core.mapping.occupancy_files`), when one is given.
 
 Each file is written under a temporary name and renamed, so a crash never leaves a half-written file.
 """
@@ -16,14 +18,19 @@ import numpy as np
 
 from lego_loam_py.core.frames import camera_pose_to_lidar, camera_to_lidar, pose6_to_matrix
 from lego_loam_py.core.mapping.map_bundle import MapBundle, write_bundle
+from lego_loam_py.core.mapping.occupancy_files import write_occupancy_files
+from lego_loam_py.core.mapping.occupancy_grid import TernaryGrid
 from lego_loam_py.formats import write_pcd_atomic, write_tum_atomic
 
 __all__ = ['write_map_files']
 
 
-def write_map_files(directory: str | Path, maps: dict[str, np.ndarray], bundle: MapBundle) -> dict[str, Path]:
+def write_map_files(
+    directory: str | Path, maps: dict[str, np.ndarray], bundle: MapBundle, occupancy: TernaryGrid | None = None
+) -> dict[str, Path]:
     """Write ``maps`` ('global_map', 'corner', 'surface': (N, 4) camera axes, as MapOptimization.maps gives them),
-    the keyframe trajectory of ``bundle`` and ``bundle`` itself into ``directory``; returns the paths by name."""
+    the keyframe trajectory of ``bundle``, ``bundle`` itself and the ``occupancy`` grid (when given and not empty:
+    'occupancy_yaml', 'occupancy_image') into ``directory``; returns the paths by name."""
     from lego_loam_py import __version__
 
     directory = Path(directory)
@@ -46,4 +53,7 @@ def write_map_files(directory: str | Path, maps: dict[str, np.ndarray], bundle: 
         directory / 'trajectory_camera_init.tum', stamps, camera_matrices
     )
     written.update(write_bundle(directory, bundle, f'lego_loam_py {__version__}'))
+    if occupancy is not None and occupancy.width and occupancy.height:
+        files = write_occupancy_files(directory, occupancy)
+        written.update(occupancy_yaml=files['yaml'], occupancy_image=files['image'])
     return written

@@ -29,6 +29,7 @@ import threading
 import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -44,6 +45,9 @@ from lego_loam_py.core.mapping.scan_to_map import register_scan_to_map
 from lego_loam_py.core.params.types import Params
 from lego_loam_py.core.validation import pose6_problem
 from lego_loam_py.core.voxel import VoxelAccumulator, voxel_downsample, voxel_indices
+
+if TYPE_CHECKING:
+    from lego_loam_py.core.mapping.occupancy_grid import OccupancyGrid
 
 __all__ = ['MapOptimization', 'MappingStep', 'Keyframe']
 
@@ -117,6 +121,7 @@ class MapOptimization:
         self.last_maps: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 4), _F32), np.zeros((0, 4), _F32))
         self.last_scan: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 4), _F32), np.zeros((0, 4), _F32))
         self.map_source: dict = {}  # where the data came from (a bag), noted in the saved map bundle
+        self.occupancy_problem: str | None = None  # why the last save wrote no occupancy grid (None: it did)
 
     # --------------------------------------------------------------------------------- self-checks
     def health_problem(self) -> str | None:
@@ -466,20 +471,40 @@ class MapOptimization:
             global_map=voxel_downsample(np.concatenate([corner_map, surface_map]), mo.global_map_leaf_size),
         )
 
-    def save(self, directory: str | Path) -> dict[str, Path]:
-        """Write the maps (PCD, REP-103 ``map`` axes), the keyframe trajectory (PCD, TUM) and the map bundle that
-        localization loads, each atomically (see :mod:`lego_loam_py.core.mapping.map_files`)."""
+    def keyframes_now(self) -> list[Keyframe]:
+        """The keyframes as they stand, each with a copy of its pose (a loop closure replaces the poses later on;
+        the clouds are never changed): what the occupancy grid is drawn from on another thread."""
+        with self.lock:
+            return [
+                Keyframe(kf.index, kf.stamp_ns, kf.pose6.copy(), kf.corner, kf.surf, kf.outlier)
+                for kf in self.keyframes
+            ]
+
+    def save(self, directory: str | Path, grid: OccupancyGrid | None = None) -> dict[str, Path]:
+        """Write the maps (PCD, REP-103 ``map`` axes), the keyframe trajectory (PCD, TUM), the map bundle that
+        localization loads and, with ``occupancy_grid.enabled``, the occupancy grid (nav2 map_server files), each
+        atomically (see :mod:`lego_loam_py.core.mapping.map_files`). ``grid``: a
+        :class:`~lego_loam_py.core.mapping.occupancy_grid.OccupancyGrid` kept up to date meanwhile (the node's),
+        brought to the saved keyframes; without it the grid is drawn from them here. A grid that cannot be made
+        (a pose it refuses, more than ``occupancy_grid.max_cells``) leaves the rest of the save as it is and says why
+        in :attr:`occupancy_problem` (None after a save with its grid)."""
         from lego_loam_py.core.mapping.map_bundle import MapBundle
         from lego_loam_py.core.mapping.map_files import write_map_files
+        from lego_loam_py.core.mapping.occupancy_grid import OccupancyGrid
 
         maps = self.maps()
         with self.lock:  # (one consistent set of keyframes and factors)
+            keyframes = self.keyframes_now()
             bundle = MapBundle.of(
-                list(self.keyframes),
-                list(self.graph.factors),
-                self.params,
-                maps['corner'],
-                maps['surface'],
-                self.map_source,
+                keyframes, list(self.graph.factors), self.params, maps['corner'], maps['surface'], self.map_source
             )
-        return write_map_files(directory, maps, bundle)
+        occupancy, self.occupancy_problem = None, None
+        if self.params.occupancy_grid.enabled:
+            grid = grid if grid is not None else OccupancyGrid(self.params.occupancy_grid)
+            try:
+                with grid.lock:  # (the grid of exactly the saved keyframes)
+                    grid.sync(keyframes)
+                    occupancy = grid.ternary()
+            except Exception as exc:  # (the map is saved all the same, without its grid; the caller is told)
+                self.occupancy_problem = f'the occupancy grid was not saved: {exc}'
+        return write_map_files(directory, maps, bundle, occupancy)

@@ -31,6 +31,7 @@ __all__ = [
     'LocalizationParams',
     'ReliabilityParams',
     'ImuParams',
+    'OccupancyGridParams',
     'Params',
     'SENSOR_PRESETS',
     'GroundRule',
@@ -419,6 +420,51 @@ class ImuParams:
 
 
 @dataclass(frozen=True)
+class OccupancyGridParams:
+    """The 2D occupancy grid of the map for nav2 (not in the original): mapOptimization publishes it on /map
+    (nav_msgs/OccupancyGrid, frame ``map``) and every save writes it as nav2 map_server files (occupancy.yaml and
+    occupancy.pgm). It is rendered from the keyframes (lego_loam_py.core.mapping.occupancy_grid: obstacles in a
+    height band above the ground, free space by ray casting from each keyframe). The defaults suit a ground robot
+    with a VLP-16 about 0.5-2 m above the ground."""
+
+    enabled: bool = True  # publish /map and write occupancy.yaml / occupancy.pgm with every save
+    resolution: float = 0.1  # cell edge [m]
+    # The obstacle band above the local ground [m]: what a ground robot runs into (kerbs and lower steps pass).
+    min_height: float = 0.3
+    max_height: float = 2.0
+    max_range: float = 30.0  # horizontal range of the points used and of the free-space rays [m]
+    min_range: float = 0.0  # nearer points are not used (the robot's own body) [m]
+    publish_period: float = 1.0  # /map goes out at most this often, while subscribed [s]
+    angular_resolution_deg: float = 0.5  # azimuth bins of the free-space rays [deg]
+    obstacle_margin: float = 0.4  # free space stops this short of the nearest obstacle of a bin [m]
+    # Log-odds per keyframe that sees an obstacle in a cell (0.85: p 0.70) / sees through it (-0.4: p 0.40), clamped.
+    hit_log_odds: float = 0.85
+    miss_log_odds: float = -0.4
+    min_log_odds: float = -2.0
+    max_log_odds: float = 3.5
+    occupied_threshold: float = 0.65  # a cell is occupied above this probability ...
+    free_threshold: float = 0.35  # ... free below this, unknown between or when never seen
+    # The ground model of each keyframe (lego_loam_py.core.mapping.occupancy_ground): the ground rises no faster
+    # than ground_max_slope [m/m] between points ground_search_radius [m] apart, and between ground_cell [m] cells
+    # ground_far_radius [m] apart; a ground hit has ground_min_neighbours others within ground_search_radius; a ray
+    # passing under a point in its see_under_deg [deg] azimuth bin rules it out as ground.
+    ground_max_slope: float = 0.5
+    ground_search_radius: float = 2.0
+    ground_cell: float = 1.0
+    ground_far_radius: float = 6.0
+    ground_min_neighbours: int = 2
+    see_under_deg: float = 2.0
+    # The local ground plane is fitted to the cells within ground_plane_radius [m]; ground hits lie at most
+    # ground_plane_margin [m] (+ twice its RMS residual, + ground_plane_margin_slope [m/m] x distance) above it.
+    ground_plane_radius: float = 15.0
+    ground_plane_margin: float = 0.15
+    ground_plane_margin_slope: float = 0.03
+    ground_tolerance: float = 0.15  # a point this close above the ground is a ground hit [m]
+    reclassify_tilt_deg: float = 1.0  # a redraw classifies a keyframe again when its up axis turned more [deg]
+    max_cells: int = 250_000_000  # bound on the grid's arrays (5 bytes a cell: 790 x 790 m at 0.05 m)
+
+
+@dataclass(frozen=True)
 class Params:
     """Every parameter of the four nodes; ``Params()`` is the original's VLP-16 configuration."""
 
@@ -430,6 +476,7 @@ class Params:
     localization: LocalizationParams = field(default_factory=LocalizationParams)
     reliability: ReliabilityParams = field(default_factory=ReliabilityParams)
     imu: ImuParams = field(default_factory=ImuParams)
+    occupancy_grid: OccupancyGridParams = field(default_factory=OccupancyGridParams)
 
     def to_flat(self) -> dict[str, Any]:
         """``{'section.name': value}`` for every parameter (tuples become lists, as ROS stores them)."""

@@ -258,3 +258,42 @@ def _validate(p: Params) -> None:
     for name in ('relocalization_candidates', 'lost_after_steps'):
         need(getattr(lo, name) >= 1, f'localization.{name}', 'must be at least 1')
     need(lo.confirm_steps >= 0, 'localization.confirm_steps', 'must not be negative')
+    og = p.occupancy_grid
+    for name in (
+        'resolution',
+        'max_range',
+        'publish_period',
+        'angular_resolution_deg',
+        'hit_log_odds',
+        'ground_cell',
+        'ground_plane_radius',
+        'see_under_deg',
+        'max_cells',
+    ):
+        need(getattr(og, name) > 0, f'occupancy_grid.{name}', 'must be positive')
+    need(0 <= og.min_height < og.max_height, 'occupancy_grid.min_height', 'must lie in 0..max_height [m]')
+    need(0 <= og.min_range < og.max_range, 'occupancy_grid.min_range', 'must lie in 0..max_range [m]')
+    need(
+        og.max_range <= 4000 * og.resolution,
+        'occupancy_grid.max_range',
+        f'must be at most 4000 cells ({4000 * og.resolution:g} m at resolution {og.resolution:g} m)',
+    )
+    need(0 <= og.ground_tolerance <= og.min_height, 'occupancy_grid.ground_tolerance', 'must lie in 0..min_height [m]')
+    for name in (
+        'obstacle_margin',
+        'ground_max_slope',
+        'ground_search_radius',
+        'ground_far_radius',
+        'ground_min_neighbours',
+        'ground_plane_margin',
+        'ground_plane_margin_slope',
+        'reclassify_tilt_deg',
+    ):
+        need(getattr(og, name) >= 0, f'occupancy_grid.{name}', 'must not be negative')
+    need(og.miss_log_odds < 0, 'occupancy_grid.miss_log_odds', 'must be negative')
+    need(og.min_log_odds < 0 < og.max_log_odds, 'occupancy_grid.min_log_odds', 'must be < 0 < max_log_odds')
+    need(
+        0 < og.free_threshold < 0.5 < og.occupied_threshold < 1,
+        'occupancy_grid.occupied_threshold',
+        'and free_threshold need 0 < free_threshold < 0.5 < occupied_threshold < 1',
+    )
