@@ -29,6 +29,7 @@ import yaml
 from lego_loam_py.core.params.types import (
     SENSOR_PRESETS,
     FeatureAssociationParams,
+    FramesParams,
     ImageProjectionParams,
     ImuParams,
     LocalizationParams,
@@ -50,6 +51,7 @@ __all__ = [
     'LoopClosureParams',
     'LocalizationParams',
     'ReliabilityParams',
+    'FramesParams',
     'ImuParams',
     'Params',
     'SENSOR_PRESETS',
