@@ -166,6 +166,7 @@ def test_every_mode_switch_is_typed_with_its_choices():
         'map_optimization.mode': ('mapping', 'localization'),
         'loop_closure.method': ('verified', 'original'),
         'loop_closure.robust_kernel': ('huber', 'cauchy', 'none'),
+        'frames.lidar_mount': ('parameters', 'tf_static'),
     }
 
 

@@ -18,6 +18,10 @@ The TF tree of the original launch file::
     map --(static)--> camera_init --> camera --(static)--> base_link
 
 where ``map -> camera_init`` turns camera axes into lidar axes and ``camera -> base_link`` does the reverse.
+There ``base_link`` is the lidar itself. With ``frames.rep105`` the tree a navigation stack expects is published
+beside it (:class:`Rep105Frames`)::
+
+    map --> odom --> base_link --(static)--> lidar          map --(static)--> camera_init --> camera
 
 **The IMU on the lidar** (:class:`ImuMounting`, set by the ``imu.*`` parameters): the IMU is a rigid body
 fixed to the lidar (``base_link``), described as the static transform ``base_link -> imu`` would be:
@@ -84,6 +88,8 @@ __all__ = [
     'rpy_to_matrix',
     'matrix_to_rpy',
     'ImuMounting',
+    'Rep105Frames',
+    'body_twist',
 ]
 
 # Frame ids, without the original's leading slashes (invalid in tf2).
@@ -354,3 +360,47 @@ class ImuMounting:
             f'rotation_rpy {angles(self.rotation)} deg, translation [{", ".join(f"{v:g}" for v in self.lever_arm)}]'
             f' m, orientation_rpy {angles(self.orientation_rotation)} deg, time_offset {self.time_offset:g} s'
         )
+
+
+@dataclass(frozen=True, eq=False)
+class Rep105Frames:
+    """The REP-105 tree ``map -> odom -> base_link -> lidar`` from the original's poses (``frames.rep105``).
+
+    ``map`` is the original's ``map``, the saved maps' frame: the lidar's pose at the start in REP-103 axes.
+    ``odom`` is ``base_link`` at the start, so ``odom -> base_link`` starts at identity and is the odometry
+    (continuous, never corrected); ``map -> odom`` is what the mapping (or, in localization, the fix in the saved map)
+    adds to it. ``base_T_lidar`` is the lidar's pose on the robot (``base_link -> lidar``): its origin in base_link
+    [m] and its axes, so ``p_base = R p_lidar + t``.
+    """
+
+    base_T_lidar: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    @classmethod
+    def from_mount(cls, translation=(0.0, 0.0, 0.0), rotation_rpy=(0.0, 0.0, 0.0)) -> Rep105Frames:
+        """From the lidar's origin in base_link [m] and its axes as (roll, pitch, yaw) [deg]."""
+        rotation = np.eye(3) if not np.any(rotation_rpy) else rpy_to_matrix(rotation_rpy)
+        return cls(make_pose(rotation, np.asarray(translation, dtype=float)))
+
+    def base_in(self, camera_pose: np.ndarray) -> np.ndarray:
+        """4x4 base_link pose in the frame where the lidar started (REP-103 axes), from a LOAM pose of the lidar
+        (``camera`` in ``camera_init``): ``map -> base_link`` for a mapped pose, and (see :meth:`odom_to_base`)
+        the odometry's motion of base_link."""
+        return camera_pose_to_lidar(camera_pose) @ invert_pose(self.base_T_lidar)
+
+    def odom_to_base(self, odometry_camera_pose: np.ndarray) -> np.ndarray:
+        """4x4 ``odom -> base_link`` from the odometry's LOAM pose (/laser_odom_to_init)."""
+        return self.base_T_lidar @ self.base_in(odometry_camera_pose)
+
+    def map_to_odom(self, mapped_camera_pose: np.ndarray, odometry_camera_pose: np.ndarray) -> np.ndarray:
+        """4x4 ``map -> odom``: the mapped (or localized) pose of the same instant over the odometry's
+        (/integrated_to_init and /laser_odom_to_init); ``inv(base_T_lidar)`` while they agree."""
+        return self.base_in(mapped_camera_pose) @ invert_pose(self.odom_to_base(odometry_camera_pose))
+
+
+def body_twist(previous: np.ndarray, current: np.ndarray, dt: float) -> np.ndarray:
+    """(vx, vy, vz, wx, wy, wz): the mean velocity [m/s] and angular velocity [rad/s] between two 4x4 poses of one
+    body ``dt`` [s] apart, in the body's frame at ``current`` (nav_msgs/Odometry's twist in child_frame_id)."""
+    rotation = current[:3, :3]
+    linear = rotation.T @ (current[:3, 3] - previous[:3, 3]) / dt
+    angular = Rotation.from_matrix(previous[:3, :3].T @ rotation).as_rotvec() / dt
+    return np.concatenate([linear, angular])

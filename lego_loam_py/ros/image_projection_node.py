@@ -46,6 +46,9 @@ class ImageProjectionNode(LegoLoamNode):
     def __init__(self, **kwargs):
         super().__init__('imageProjection', **kwargs)
         self.core = ImageProjection(self.params)
+        # The clouds are in the lidar's frame: the original's base_link, or in the REP-105 tree the lidar's own.
+        frames = self.params.frames
+        self.cloud_frame = frames.lidar_frame if frames.rep105 else BASE_LINK_FRAME
         topic = self.params.sensor.point_cloud_topic
         # Serialized: the cloud is read from the bytes (cloud_from_serialized), not copied into a message first.
         self.create_subscription(PointCloud2, topic, self.on_cloud, qos.sensor_input(1), raw=True)
@@ -116,7 +119,7 @@ class ImageProjectionNode(LegoLoamNode):
             self.count('clouds_dropped')
             self.error('process_exception', 'unexpected error in imageProjection; scan dropped')
             return
-        header = make_header(msg.header.stamp, BASE_LINK_FRAME)
+        header = make_header(msg.header.stamp, self.cloud_frame)
         self.pub_segmented.publish(serialized_xyzi_cloud(result.segmented_cloud, header, time=result.segmented_time))
         self.pub_info.publish(serialized_cloud_info(result.cloud_info, msg.header))
         self.pub_outlier.publish(serialized_xyzi_cloud(result.outlier_cloud, header))

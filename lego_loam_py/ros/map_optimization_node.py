@@ -42,6 +42,7 @@ throttled warning; a mapping step that fails or yields a non-finite pose is skip
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import threading
 import time
@@ -234,7 +235,8 @@ class MapOptimizationNode(LegoLoamNode):
         if ternary.width == 0 or ternary.height == 0:  # (nothing seen yet)
             return
         stamp = self.last_step_stamp if self.last_step_stamp is not None else self.get_clock().now().to_msg()
-        self.pub_grid.publish(occupancy_grid_msg(message_fields(ternary), stamp))
+        fields = dataclasses.replace(message_fields(ternary), frame_id=self.params.frames.map_frame)
+        self.pub_grid.publish(occupancy_grid_msg(fields, stamp))
         self._grid_published, self._grid_published_at = version, now
         self.count('occupancy_grids_published')
 

@@ -23,6 +23,7 @@ __all__ = [
     'TransformBroadcaster',
     'StaticTransformBroadcaster',
     'original_static_transforms',
+    'StaticTransformListener',
     'TF_QOS',
     'TF_STATIC_QOS',
 ]
@@ -75,9 +76,44 @@ class StaticTransformBroadcaster:
         self._publisher.publish(TFMessage(transforms=list(self._by_child.values())))
 
 
-def original_static_transforms(stamp: Time | int = 0) -> list[TransformStamped]:
-    """The two static transforms of the original run.launch: map->camera_init and camera->base_link."""
-    return [
-        pose_to_transform(frames.MAP_T_CAMERA_INIT, stamp, frames.MAP_FRAME, frames.CAMERA_INIT_FRAME),
-        pose_to_transform(frames.CAMERA_T_BASE_LINK, stamp, frames.CAMERA_FRAME, frames.BASE_LINK_FRAME),
-    ]
+def original_static_transforms(
+    stamp: Time | int = 0, map_frame: str = frames.MAP_FRAME, lidar_is_base_link: bool = True
+) -> list[TransformStamped]:
+    """The two static transforms of the original run.launch: map->camera_init and camera->base_link. The second
+    only while ``base_link`` is the lidar itself: in the REP-105 tree base_link is the robot's body, whose parent is
+    odom (a frame has one parent in tf2)."""
+    out = [pose_to_transform(frames.MAP_T_CAMERA_INIT, stamp, map_frame, frames.CAMERA_INIT_FRAME)]
+    if lidar_is_base_link:
+        out.append(pose_to_transform(frames.CAMERA_T_BASE_LINK, stamp, frames.CAMERA_FRAME, frames.BASE_LINK_FRAME))
+    return out
+
+
+def _transform_pose(t: TransformStamped) -> np.ndarray:
+    tr, q = t.transform.translation, t.transform.rotation
+    return frames.make_pose(frames.quaternion_to_matrix([q.x, q.y, q.z, q.w]), [tr.x, tr.y, tr.z])
+
+
+class StaticTransformListener:
+    """The static transforms on latched /tf_static (a robot_state_publisher's), looked up as a chain of them."""
+
+    def __init__(self, node: Node, topic: str = '/tf_static'):
+        self._parent_of: dict[str, tuple[str, np.ndarray]] = {}  # child -> (parent, parent_T_child)
+        node.create_subscription(TFMessage, topic, self._on_transforms, TF_STATIC_QOS)
+
+    def _on_transforms(self, msg: TFMessage) -> None:
+        for t in msg.transforms:
+            pose = _transform_pose(t)
+            if np.isfinite(pose).all():
+                self._parent_of[t.child_frame_id.lstrip('/')] = (t.header.frame_id.lstrip('/'), pose)
+
+    def lookup(self, parent: str, child: str) -> np.ndarray | None:
+        """4x4 ``parent_T_child`` along the static tree (child up to parent), or None while not (yet) known."""
+        pose, frame = np.eye(4), child
+        for _ in range(len(self._parent_of) + 1):
+            if frame == parent:
+                return pose
+            if frame not in self._parent_of:
+                return None
+            frame, step = self._parent_of[frame]
+            pose = step @ pose
+        return None  # (a cycle)

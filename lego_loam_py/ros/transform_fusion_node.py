@@ -15,6 +15,13 @@ row), and back to before the current timeline began (a bag restarted) it resets 
 result from before that reset, or stamped more than ``MAPPED_AHEAD_NS`` after the latest odometry (the old
 timeline, after a jump back), is discarded. Poses that
 are not finite, not unit quaternions or absurdly far are dropped with a throttled warning.
+
+With ``frames.rep105`` (:class:`~lego_loam_py.core.frames.Rep105Frames`) it also publishes, for every odometry
+message, the REP-105 tree on /tf: ``odom -> base_link`` (the odometry, always) and ``map -> odom`` (the mapping's
+correction; in localization only while /integrated_to_init is), the odometry as nav_msgs/Odometry on
+``frames.odometry_topic`` (twist in base_link) and base_link's pose in the map on ``frames.pose_topic``; the lidar's
+mounting on base_link comes from the ``frames.lidar_*`` parameters (published on /tf_static) or from /tf_static.
+The static ``camera -> base_link`` is then left out: base_link's parent is odom.
 """
 
 from __future__ import annotations
@@ -23,16 +30,30 @@ import sys
 import time
 
 import numpy as np
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 
-from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, pose6_to_matrix
+from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, Rep105Frames, body_twist, pose6_to_matrix
 from lego_loam_py.core.mapping.transform_fusion import TransformFusion
 from lego_loam_py.ros import qos
-from lego_loam_py.ros.conversions import MAX_POSITION, make_header, odometry_to_pose, serialized_odometry, stamp_to_ns
+from lego_loam_py.ros.conversions import (
+    MAX_POSITION,
+    make_header,
+    odometry_to_pose,
+    pose_to_odometry,
+    pose_to_transform,
+    serialized_odometry,
+    stamp_to_ns,
+)
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 from lego_loam_py.ros.sync import StampOrder
-from lego_loam_py.ros.tf import StaticTransformBroadcaster, TransformBroadcaster, original_static_transforms
+from lego_loam_py.ros.tf import (
+    StaticTransformBroadcaster,
+    StaticTransformListener,
+    TransformBroadcaster,
+    original_static_transforms,
+)
 
 __all__ = ['TransformFusionNode', 'main']
 
@@ -50,7 +71,21 @@ class TransformFusionNode(LegoLoamNode):
         self.pub_integrated = self.create_publisher(Odometry, '/integrated_to_init', qos.reliable(5))
         self.tf = TransformBroadcaster(self)
         self.static_tf = StaticTransformBroadcaster(self)
-        self.static_tf.send(original_static_transforms(self.get_clock().now().nanoseconds))
+        frames = self.params.frames
+        now = self.get_clock().now().nanoseconds
+        self.static_tf.send(original_static_transforms(now, frames.map_frame, lidar_is_base_link=not frames.rep105))
+        self.rep105: Rep105Frames | None = None  # the REP-105 tree, once the lidar's mounting is known
+        self._mount_listener: StaticTransformListener | None = None
+        self._previous_base: tuple[int, np.ndarray] | None = None  # (stamp [ns], odom -> base_link)
+        if frames.rep105:
+            self.pub_rep105_odometry = self.create_publisher(Odometry, frames.odometry_topic, qos.reliable(5))
+            self.pub_rep105_pose = self.create_publisher(PoseWithCovarianceStamped, frames.pose_topic, qos.reliable(5))
+            if frames.lidar_mount == 'parameters':
+                self.rep105 = Rep105Frames.from_mount(frames.lidar_translation, frames.lidar_rotation_rpy)
+                mount = pose_to_transform(self.rep105.base_T_lidar, now, frames.base_frame, frames.lidar_frame)
+                self.static_tf.send(mount)
+            else:
+                self._mount_listener = StaticTransformListener(self)
         self.order = StampOrder(RESET_JUMP_NS)
         self._timeline_start_ns: int | None = None  # first odometry integrated since the last reset
 
@@ -108,6 +143,7 @@ class TransformFusionNode(LegoLoamNode):
             )
             self.core.reset()
             self.order.reset()
+            self._previous_base = None
             self._timeline_start_ns = stamp_to_ns((decision.held[0] if decision.held else msg).header.stamp)
             self.count('resets')
         for held in decision.held:
@@ -122,6 +158,8 @@ class TransformFusionNode(LegoLoamNode):
         if not ok:
             return
         stamp_ns = stamp_to_ns(msg.header.stamp)
+        if self.params.frames.rep105:
+            self._publish_odom_frame(msg, odometry, stamp_ns)
         if not self.core.publishable(stamp_ns):  # (localization without a recent fix: withheld, not silent by fault)
             self.order.processed(stamp_ns)
             self.count('withheld_not_localized')
@@ -143,12 +181,57 @@ class TransformFusionNode(LegoLoamNode):
             mapped = self.core.integrate(odometry)
         self.order.processed(stamp_to_ns(msg.header.stamp))
         header = make_header(msg.header.stamp, CAMERA_INIT_FRAME)
-        odometry, transform = serialized_odometry(mapped, header, CAMERA_FRAME)
-        self.pub_integrated.publish(odometry)
+        integrated, transform = serialized_odometry(mapped, header, CAMERA_FRAME)
+        self.pub_integrated.publish(integrated)
         self.tf.send_serialized(transform)
+        if self.rep105 is not None:
+            self._publish_map_frame(msg, mapped, odometry)
         self.count('integrated')
         self.output_published()
         self.record_time('odometry', time.perf_counter() - start)  # conversion, fusion and publishing
+
+    def _mount_known(self) -> bool:
+        """Whether the REP-105 frames can be published: the lidar's mounting is known (from the parameters, or
+        once /tf_static carried base_frame -> lidar_frame)."""
+        if self.rep105 is None and self._mount_listener is not None:
+            frames = self.params.frames
+            base_T_lidar = self._mount_listener.lookup(frames.base_frame, frames.lidar_frame)
+            if base_T_lidar is None:
+                self.count('rep105_waiting_for_mount')
+                self.warn(
+                    'no_mount',
+                    f'no REP-105 frames yet: /tf_static has no {frames.base_frame} -> {frames.lidar_frame} '
+                    '(frames.lidar_mount: tf_static; is a robot_state_publisher running?)',
+                )
+                return False
+            self.rep105 = Rep105Frames(base_T_lidar)
+            self.get_logger().info(f'lidar mounting read from /tf_static: {frames.base_frame} -> {frames.lidar_frame}')
+        return self.rep105 is not None
+
+    def _publish_odom_frame(self, msg: Odometry, odometry: np.ndarray, stamp_ns: int) -> None:
+        """odom -> base_link on /tf and the odometry topic (REP-103 axes, twist in base_link)."""
+        if not self._mount_known():
+            return
+        frames = self.params.frames
+        odom_T_base = self.rep105.odom_to_base(odometry)
+        twist = np.zeros(6)
+        if self._previous_base is not None and stamp_ns > self._previous_base[0]:
+            twist = body_twist(self._previous_base[1], odom_T_base, (stamp_ns - self._previous_base[0]) * 1e-9)
+        self._previous_base = (stamp_ns, odom_T_base)
+        header = make_header(msg.header.stamp, frames.odom_frame)
+        out = pose_to_odometry(odom_T_base, header, frames.base_frame, twist_angular=twist[3:], twist_linear=twist[:3])
+        self.pub_rep105_odometry.publish(out)
+        self.tf.send(pose_to_transform(odom_T_base, msg.header.stamp, frames.odom_frame, frames.base_frame))
+
+    def _publish_map_frame(self, msg: Odometry, mapped: np.ndarray, odometry: np.ndarray) -> None:
+        """map -> odom on /tf and base_link's pose in the map."""
+        frames = self.params.frames
+        map_T_odom = self.rep105.map_to_odom(mapped, odometry)
+        self.tf.send(pose_to_transform(map_T_odom, msg.header.stamp, frames.map_frame, frames.odom_frame))
+        pose = PoseWithCovarianceStamped()
+        pose.header = make_header(msg.header.stamp, frames.map_frame)
+        pose.pose.pose = pose_to_odometry(self.rep105.base_in(mapped), pose.header, frames.base_frame).pose.pose
+        self.pub_rep105_pose.publish(pose)
 
 
 def main(args=None) -> int:

@@ -29,6 +29,7 @@ import yaml
 from lego_loam_py.core.params.types import (
     SENSOR_PRESETS,
     FeatureAssociationParams,
+    FramesParams,
     ImageProjectionParams,
     ImuParams,
     LocalizationParams,
@@ -51,6 +52,7 @@ __all__ = [
     'LoopClosureParams',
     'LocalizationParams',
     'ReliabilityParams',
+    'FramesParams',
     'ImuParams',
     'OccupancyGridParams',
     'Params',

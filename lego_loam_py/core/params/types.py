@@ -32,6 +32,7 @@ __all__ = [
     'ReliabilityParams',
     'ImuParams',
     'OccupancyGridParams',
+    'FramesParams',
     'Params',
     'SENSOR_PRESETS',
     'GroundRule',
@@ -41,6 +42,7 @@ __all__ = [
     'LoopClosureMethod',
     'RobustKernel',
     'MappingMode',
+    'LidarMountSource',
 ]
 
 
@@ -53,6 +55,7 @@ KeyposePick = Literal['averaged_index', 'latest']
 LoopClosureMethod = Literal['verified', 'original']
 RobustKernel = Literal['huber', 'cauchy', 'none']
 MappingMode = Literal['mapping', 'localization']
+LidarMountSource = Literal['parameters', 'tf_static']
 
 
 class ParameterError(LegoLoamError, ValueError):
@@ -465,6 +468,28 @@ class OccupancyGridParams:
 
 
 @dataclass(frozen=True)
+class FramesParams:
+    """The TF frames transformFusion publishes (not in the original). By default the original's tree,
+    ``map -> camera_init -> camera -> base_link``, where ``base_link`` is the lidar; with ``rep105`` the tree a
+    navigation stack expects (REP-105), ``map -> odom -> base_link -> lidar``, in REP-103 axes, beside the
+    original's frames (lego_loam_py.core.frames: :func:`~lego_loam_py.core.frames.rep105_poses`)."""
+
+    rep105: bool = False
+    map_frame: str = 'map'  # the saved map's frame: where the lidar started, REP-103 axes
+    odom_frame: str = 'odom'  # where base_frame started; odom -> base_frame is the continuous odometry
+    base_frame: str = 'base_link'  # the robot's body
+    lidar_frame: str = 'velodyne'  # the lidar's frame on the robot (the input cloud's frame_id)
+    # Where the lidar sits on base_frame: 'parameters' (lidar_translation, lidar_rotation_rpy, published on
+    # /tf_static as base_frame -> lidar_frame) or 'tf_static' (read from /tf_static, e.g. a robot_state_publisher's;
+    # the REP-105 frames wait for it).
+    lidar_mount: LidarMountSource = 'parameters'
+    lidar_translation: tuple[float, ...] = (0.0, 0.0, 0.0)  # the lidar's origin in base_frame [m]
+    lidar_rotation_rpy: tuple[float, ...] = (0.0, 0.0, 0.0)  # the lidar's axes in base_frame, Rz Ry Rx [deg]
+    odometry_topic: str = '/lego_loam/odometry'  # nav_msgs/Odometry odom_frame -> base_frame, with the twist
+    pose_topic: str = '/lego_loam/pose'  # PoseWithCovarianceStamped: base_frame in map_frame
+
+
+@dataclass(frozen=True)
 class Params:
     """Every parameter of the four nodes; ``Params()`` is the original's VLP-16 configuration."""
 
@@ -477,6 +502,7 @@ class Params:
     reliability: ReliabilityParams = field(default_factory=ReliabilityParams)
     imu: ImuParams = field(default_factory=ImuParams)
     occupancy_grid: OccupancyGridParams = field(default_factory=OccupancyGridParams)
+    frames: FramesParams = field(default_factory=FramesParams)
 
     def to_flat(self) -> dict[str, Any]:
         """``{'section.name': value}`` for every parameter (tuples become lists, as ROS stores them)."""

@@ -206,6 +206,16 @@ def _validate(p: Params) -> None:
     need(imu.alignment_window >= 1.0, 'imu.alignment_window', 'must be at least 1 s')
     need(imu.alignment_max_rotation > 0, 'imu.alignment_max_rotation', 'must be positive')
     need(imu.alignment_max_offset > 0, 'imu.alignment_max_offset', 'must be positive')
+    fr = p.frames
+    names = {'map_frame': fr.map_frame, 'odom_frame': fr.odom_frame, 'base_frame': fr.base_frame}
+    names['lidar_frame'] = fr.lidar_frame
+    for key, name in names.items():
+        need(bool(name) and not name.startswith('/') and ' ' not in name, f'frames.{key}', 'must be a tf2 frame id')
+    need(len(set(names.values())) == len(names), 'frames', 'map, odom, base and lidar frames must differ')
+    need(len(fr.lidar_translation) == 3, 'frames.lidar_translation', 'must have 3 values (x, y, z)')
+    need(len(fr.lidar_rotation_rpy) == 3, 'frames.lidar_rotation_rpy', 'must have 3 values (roll, pitch, yaw)')
+    for key in ('odometry_topic', 'pose_topic'):
+        need(getattr(fr, key) != '', f'frames.{key}', 'must not be empty')
     lc = p.loop_closure
     need(lc.period > 0, 'loop_closure.period', 'must be positive')
     need(lc.history_keyframe_leaf_size > 0, 'loop_closure.history_keyframe_leaf_size', 'must be positive')
