@@ -19,6 +19,14 @@ The TF tree of the original launch file::
 
 where ``map -> camera_init`` turns camera axes into lidar axes and ``camera -> base_link`` does the reverse.
 
+**Pose covariance** (:func:`compound_covariance` and the functions beside it): the 6x6 covariance of a pose
+``T = [R, p]`` (child in parent) is that of its error expressed *in the parent frame*, in ROS's order (x, y, z,
+rot x, rot y, rot z): ``δp = p_true - p`` in the parent's axes [m] and ``δφ`` the rotation vector of
+``R_true R^T``, a small rotation about the parent's axes [rad] (``R_true = exp([δφ]x) R``). That is what
+``nav_msgs/Odometry.pose.covariance`` means with the parent as ``header.frame_id``; for the original's topics the
+parent is ``camera_init`` and its axes are LOAM camera axes. A relative motion (pose k in pose k-1) has its
+covariance in pose k-1's axes by the same rule, so chaining is :func:`compound_covariance`.
+
 **The IMU on the lidar** (:class:`ImuMounting`, set by the ``imu.*`` parameters): the IMU is a rigid body
 fixed to the lidar (``base_link``), described as the static transform ``base_link -> imu`` would be:
 
@@ -84,6 +92,16 @@ __all__ = [
     'rpy_to_matrix',
     'matrix_to_rpy',
     'ImuMounting',
+    'MIN_VARIANCE',
+    'MAX_VARIANCE',
+    'skew',
+    'pose_error',
+    'pose_jacobian',
+    'bounded_covariance',
+    'covariance_from_information',
+    'rotate_covariance',
+    'compound_covariance',
+    'relative_covariance',
 ]
 
 # Frame ids, without the original's leading slashes (invalid in tf2).
@@ -354,3 +372,98 @@ class ImuMounting:
             f'rotation_rpy {angles(self.rotation)} deg, translation [{", ".join(f"{v:g}" for v in self.lever_arm)}]'
             f' m, orientation_rpy {angles(self.orientation_rotation)} deg, time_offset {self.time_offset:g} s'
         )
+
+
+# ----------------------------------------------------------------------------------------- pose covariance
+# Bounds on the variances of a published covariance [m^2, rad^2]: positive definite however well a direction is
+# held, and large but finite where nothing holds it (a degenerate direction).
+MIN_VARIANCE = 1e-12
+MAX_VARIANCE = 1e6
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """3x3 ``[v]x`` with ``[v]x w = v x w``."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def pose_error(reference: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """The six-vector error ``(δp, δφ)`` of 4x4 ``other`` from 4x4 ``reference`` in the parent frame (see the module
+    docstring): ``other = [exp([δφ]x) R, p + δp]``; [m, rad]."""
+    rotation = np.asarray(other)[:3, :3] @ np.asarray(reference)[:3, :3].T
+    return np.concatenate([other[:3, 3] - reference[:3, 3], Rotation.from_matrix(rotation).as_rotvec()])
+
+
+def pose_jacobian(pose_of, x: np.ndarray, step: float = 1e-6) -> np.ndarray:
+    """(6, n) derivative of the parent-frame error (:func:`pose_error`) of the 4x4 ``pose_of(x)`` with respect to
+    the n-vector ``x``, by central differences (a handful of 4x4 products; the maps it serves are smooth)."""
+    x = np.asarray(x, dtype=float)
+    centre = pose_of(x)
+    out = np.empty((6, len(x)))
+    for k in range(len(x)):
+        delta = np.zeros(len(x))
+        delta[k] = step
+        out[:, k] = (pose_error(centre, pose_of(x + delta)) - pose_error(centre, pose_of(x - delta))) / (2 * step)
+    return out
+
+
+def bounded_covariance(
+    covariance: np.ndarray, min_variance: float = MIN_VARIANCE, max_variance: float = MAX_VARIANCE
+) -> np.ndarray:
+    """The symmetric part of ``covariance`` with its eigenvalues clipped to [min_variance, max_variance]: finite,
+    symmetric and positive definite (a non-finite input gives ``max_variance`` on the diagonal)."""
+    covariance = np.asarray(covariance, dtype=float)
+    n = len(covariance)
+    if not np.isfinite(covariance).all():
+        return np.eye(n) * max_variance
+    values, vectors = np.linalg.eigh(0.5 * (covariance + covariance.T))
+    out = (vectors * np.clip(values, min_variance, max_variance)) @ vectors.T
+    return 0.5 * (out + out.T)
+
+
+def covariance_from_information(
+    information: np.ndarray, max_variance: float = MAX_VARIANCE, min_variance: float = MIN_VARIANCE
+) -> np.ndarray:
+    """The covariance of an information matrix (Fisher information of a least-squares estimate), a direction
+    holding less than ``1 / max_variance`` (a degenerate direction) given ``max_variance`` instead of an infinite
+    one."""
+    information = np.asarray(information, dtype=float)
+    if not np.isfinite(information).all():
+        return np.eye(len(information)) * max_variance
+    values, vectors = np.linalg.eigh(0.5 * (information + information.T))
+    variances = 1.0 / np.clip(values, 1.0 / max_variance, 1.0 / min_variance)
+    return bounded_covariance((vectors * variances) @ vectors.T, min_variance, max_variance)
+
+
+def rotate_covariance(covariance: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """A pose covariance expressed in axes rotated by ``rotation`` (3x3, new from old): ``B Σ Bᵀ`` with ``B`` =
+    diag(rotation, rotation)."""
+    block = np.zeros((6, 6))
+    block[:3, :3] = block[3:, 3:] = rotation
+    return block @ covariance @ block.T
+
+
+def compound_covariance(
+    parent: np.ndarray, parent_covariance: np.ndarray, relative: np.ndarray, relative_covariance: np.ndarray
+) -> np.ndarray:
+    """Covariance of ``parent @ relative`` (4x4 each) in the parent's parent frame, the two errors independent:
+    ``F Σ_parent Fᵀ + G Σ_relative Gᵀ`` with ``F = [[I, -[R_parent t_relative]x], [0, I]]`` (a rotation error of
+    the parent swings the relative translation) and ``G = diag(R_parent, R_parent)`` (the relative covariance is in
+    the parent's axes). Along a chain the variances grow with the distance travelled, as an odometry's do."""
+    rotation = np.asarray(parent)[:3, :3]
+    lever = np.eye(6)
+    lever[:3, 3:] = -skew(rotation @ np.asarray(relative)[:3, 3])
+    out = lever @ parent_covariance @ lever.T + rotate_covariance(relative_covariance, rotation)
+    return 0.5 * (out + out.T)
+
+
+def relative_covariance(
+    earlier: np.ndarray, earlier_covariance: np.ndarray, later: np.ndarray, later_covariance: np.ndarray
+) -> np.ndarray:
+    """Covariance of ``earlier^-1 @ later`` in ``earlier``'s axes when ``later`` was compounded from ``earlier``
+    along one chain (:func:`compound_covariance`): what the chain added in between, ``Σ_later - F Σ_earlier Fᵀ``
+    rotated into the earlier pose's axes, made positive semi-definite (clipping rounding)."""
+    rotation = np.asarray(earlier)[:3, :3]
+    lever = np.eye(6)
+    lever[:3, 3:] = -skew(np.asarray(later)[:3, 3] - np.asarray(earlier)[:3, 3])
+    added = later_covariance - lever @ earlier_covariance @ lever.T
+    return bounded_covariance(rotate_covariance(added, rotation.T), min_variance=0.0)
