@@ -28,7 +28,14 @@ from nav_msgs.msg import Odometry
 from lego_loam_py.core.frames import CAMERA_FRAME, CAMERA_INIT_FRAME, pose6_to_matrix
 from lego_loam_py.core.mapping.transform_fusion import TransformFusion
 from lego_loam_py.ros import qos
-from lego_loam_py.ros.conversions import MAX_POSITION, make_header, odometry_to_pose, serialized_odometry, stamp_to_ns
+from lego_loam_py.ros.conversions import (
+    MAX_POSITION,
+    make_header,
+    odometry_covariance,
+    odometry_to_pose,
+    serialized_odometry,
+    stamp_to_ns,
+)
 from lego_loam_py.ros.node_base import LegoLoamNode
 from lego_loam_py.ros.runtime import run_node
 from lego_loam_py.ros.sync import StampOrder
@@ -87,7 +94,7 @@ class TransformFusionNode(LegoLoamNode):
             self.count('mapped_dropped')
             self.warn('bad_mapped', f'/aft_mapped_to_init dropped: {exc}')
             return
-        self.core.on_mapped(aft, bef, stamp)
+        self.core.on_mapped(aft, bef, stamp, odometry_covariance(msg))
         self.count('mapped')
 
     def on_odometry(self, msg: Odometry) -> None:
@@ -132,7 +139,8 @@ class TransformFusionNode(LegoLoamNode):
             return
         self.input_valid()
         problem = self.core.health_problem()
-        mapped = self.core.integrate(odometry) if problem is None else None
+        covariance = odometry_covariance(msg)
+        mapped = self.core.integrate(odometry, covariance, stamp_ns) if problem is None else None
         if problem is None and not (np.isfinite(mapped).all() and np.abs(mapped[:3, 3]).max() <= MAX_POSITION):
             problem = 'the fused pose is not finite or absurd'
         if problem is not None:
@@ -140,10 +148,12 @@ class TransformFusionNode(LegoLoamNode):
             # the next /aft_mapped_to_init brings it back.
             self.core.reset()
             self.state_reset(problem, 'map correction reset (the next mapping result restores it)')
-            mapped = self.core.integrate(odometry)
+            mapped = self.core.integrate(odometry, covariance, stamp_ns)
         self.order.processed(stamp_to_ns(msg.header.stamp))
         header = make_header(msg.header.stamp, CAMERA_INIT_FRAME)
-        odometry, transform = serialized_odometry(mapped, header, CAMERA_FRAME)
+        odometry, transform = serialized_odometry(
+            mapped, header, CAMERA_FRAME, pose_covariance=self.core.covariance if covariance is not None else None
+        )
         self.pub_integrated.publish(odometry)
         self.tf.send_serialized(transform)
         self.count('integrated')

@@ -93,6 +93,7 @@ class MappingStep:
     # 6x6 covariance of transform_aft in camera_init (position [m²] in its axes, rotation [rad²] about them; ROS
     # order x, y, z, rot x, rot y, rot z; core.mapping.covariance); None: no covariance known.
     pose_covariance: np.ndarray | None = None
+    registration_covariance: np.ndarray | None = None  # of transform_aft relative to the map (None: not registered)
 
 
 class MapOptimization:
@@ -249,6 +250,7 @@ class MapOptimization:
             step.keyframe_added = self._save_keyframe(stamp_ns, corner_ds, surf_ds, outlier_ds, registration)
             self._correct_poses()
             step.pose_covariance = self._mapped_covariance(step.keyframe_added, registration)
+            step.registration_covariance = registration
             t3 = _time.perf_counter()
             timings.update(
                 map=(t1 - t0) * 1e3, registration=(t2 - t1) * 1e3, graph=(t3 - t2) * 1e3, total=(t3 - t0) * 1e3

@@ -48,11 +48,12 @@ def motion_covariance(
     prior_information: np.ndarray | None = None,
 ) -> np.ndarray:
     """6x6 covariance of :func:`sweep_motion` (start-frame axes) from the information of ``θ``: the points' (None:
-    the sweep was not registered, every direction at :data:`MAX_MOTION_VARIANCE`), their residual variance times
-    ``scale``, and the IMU rotation prior's (``prior_information``, not scaled: it is the IMU's own)."""
+    the sweep was not registered, every direction at :data:`MAX_MOTION_VARIANCE`) and the IMU rotation prior's
+    (``prior_information``), the variances times ``scale``: the registration weighs the prior against the points'
+    residuals in one cost, and what that cost's curvature overstates it overstates for both."""
     if information is None:
         return np.eye(6) * MAX_MOTION_VARIANCE
-    total = information / scale + (0.0 if prior_information is None else prior_information)
+    total = (information + (0.0 if prior_information is None else prior_information)) / scale
     theta_covariance = covariance_from_information(total, MAX_MOTION_VARIANCE)
     jacobian = pose_jacobian(lambda x: sweep_motion(x, shift, rotation_after), theta)
     out = jacobian @ theta_covariance @ jacobian.T
