@@ -33,8 +33,8 @@ import numpy as np  # noqa: E402
 from lego_loam_py.core.frames import compound_covariance, invert_pose, pose6_to_matrix, pose_error  # noqa: E402
 from lego_loam_py.core.params import Params  # noqa: E402
 from lego_loam_py.core.params.validation import params_from_mapping  # noqa: E402
-from lego_loam_py.inputs.sidecars import load_ground_truth  # noqa: E402
-from lego_loam_py.offline import run_bag  # noqa: E402
+from lego_loam_py.inputs import open_source  # noqa: E402
+from lego_loam_py.offline import run_source  # noqa: E402
 
 CHI2_95 = {3: 7.815, 6: 12.592}
 
@@ -73,9 +73,17 @@ def evaluate_run(result, truth, window_s: float) -> dict:
     _, first_truth = truth_at(np.array([first.stamp_ns + result.pose_time_offset_ns]), truth)
     align = pose6_to_matrix(first.pose6) @ invert_pose(first_truth[0])
     truth_poses = align @ truth_poses
-    out = {'relative': [], 'relative_t': [], 'relative_r': [], 'principal': []}
+    out = {'relative': [], 'relative_t': [], 'relative_r': [], 'principal': [], 'errors': [], 'sigmas': []}
     period = np.median(np.diff(stamps)) * 1e-9
     steps = max(1, int(round(window_s / period)))
+    # One sweep: is what each sweep's covariance says consistent on its own (errors independent from sweep to sweep
+    # add up over a window as the compounded covariances do; errors that persist over sweeps grow faster)?
+    single = []
+    for k in range(1, len(stamps)):
+        step = invert_pose(odometry[k - 1]) @ odometry[k]
+        true = invert_pose(truth_poses[k - 1]) @ truth_poses[k]
+        single.append(nees(pose_error(step, true), motion_cov[k]))
+    out['single'] = single
     for i in range(len(stamps) - steps):
         j = i + steps
         if (stamps[j] - stamps[i]) * 1e-9 > 1.5 * window_s:  # (a gap: not one window)
@@ -87,6 +95,8 @@ def evaluate_run(result, truth, window_s: float) -> dict:
             pose = pose @ step
         true = invert_pose(truth_poses[i]) @ truth_poses[j]
         error = pose_error(pose, true)
+        out['errors'].append(error)
+        out['sigmas'].append(np.sqrt(np.diag(covariance)))
         out['relative'].append(nees(error, covariance))
         out['relative_t'].append(nees(error[:3], covariance[:3, :3]))
         out['relative_r'].append(nees(error[3:], covariance[3:, 3:]))
@@ -113,6 +123,12 @@ def report(name: str, out: dict, params: Params) -> None:
     print(f'relative {args_window:.1f} s  NEES (6) {summary(out["relative"], 6)}')
     print(f'   translation (3) {summary(out["relative_t"], 3)}   rotation (3) {summary(out["relative_r"], 3)}')
     print(f'   scale for mean 6: feature_association.covariance_scale ~ {fa * np.mean(out["relative"]) / 6:.3g}')
+    print(f'   one sweep NEES (6) {summary(out["single"], 6)}')
+    errors, sigmas = np.array(out['errors']), np.array(out['sigmas'])
+    print(
+        '   RMS error / RMS sigma (x, y, z [m], rot x, y, z [rad], window axes): '
+        + ', '.join(f'{e:.3g}/{s:.3g}' for e, s in zip(np.sqrt((errors**2).mean(0)), np.sqrt((sigmas**2).mean(0))))
+    )
     if out['mapped']:
         print(f'mapped        NEES (6) {summary(out["mapped"], 6)}')
         print(f'   translation (3) {summary(out["mapped_t"], 3)}   rotation (3) {summary(out["mapped_r"], 3)}')
@@ -146,7 +162,9 @@ def main() -> None:
     global args_window
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--scenarios', nargs='*', default=['campus', 'corridor', 'aggressive'])
-    parser.add_argument('--bags', nargs='*', default=[], help='recordings with ground truth beside them')
+    parser.add_argument(
+        '--bags', nargs='*', default=[], help='recordings with a ground truth (any that lego_loam_py run reads)'
+    )
     parser.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE')
     parser.add_argument('--window', type=float, default=1.0, help='relative motion window [s]')
     parser.add_argument('--max-scans', type=int, default=None)
@@ -163,9 +181,10 @@ def main() -> None:
 
         bags = [cached_scenario(name) for name in args.scenarios]
     for bag in bags:
-        truth = load_ground_truth(bag)
         weak = WeakestDirections()
-        result = run_bag(bag, params, progress=False, max_scans=args.max_scans, listener=weak)
+        with open_source(bag, cloud_topic=params.sensor.point_cloud_topic, imu_topic=params.sensor.imu_topic) as source:
+            truth = source.ground_truth()
+            result = run_source(source, params, progress=False, max_scans=args.max_scans, listener=weak)
         report(bag.name, evaluate_run(result, truth, args.window), params)
         weak.report(truth)
 

@@ -275,3 +275,51 @@ def test_the_fused_covariance_is_the_mapped_one_and_what_the_odometry_added_sinc
         chained = chained @ step
     np.testing.assert_allclose(fusion.covariance, expected, rtol=1e-6, atol=1e-15)
     assert np.trace(fusion.covariance) < np.trace(history[-1][1])
+
+
+# ------------------------------------------------------------------------------------------------- the nodes
+def message_covariance(msg) -> np.ndarray:
+    return np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)
+
+
+def test_the_three_topics_carry_finite_symmetric_positive_definite_covariances(context, tmp_path):
+    """featureAssociation, mapOptimization and transformFusion in this process on the first 3 s of the campus: every
+    /laser_odom_to_init, /aft_mapped_to_init and /integrated_to_init carries a finite, symmetric, positive-definite
+    pose covariance (the odometry's growing along the way, the fused one never below the mapped one it starts
+    from), and zero twist covariance (no node publishes a twist; mapOptimization's twist fields carry the
+    pre-mapping pose, as the original's)."""
+    from lego_loam_py.ros.map_optimization_node import MapOptimizationNode
+    from lego_loam_py.ros.transform_fusion_node import TransformFusionNode
+    from lego_loam_py.testing.messages import restamped, stamp_of
+    from tests.support.inprocess import make_node, mapping_inputs, pipeline_outputs
+
+    outputs = pipeline_outputs(context, tmp_path)
+    odometry = outputs['odometry']
+    assert len(odometry) >= 20
+    for msg in odometry:
+        assert is_covariance(message_covariance(msg)) and not any(msg.twist.covariance)
+    position = [np.trace(message_covariance(m)[:3, :3]) for m in odometry]
+    assert np.all(np.diff(position) >= 0) and position[-1] > 2 * position[3]
+
+    mapping, recorder = make_node(context, MapOptimizationNode, tmp_path)
+    fusion, fused = make_node(context, TransformFusionNode)
+    mapped_seen = 0
+    by_stamp = {stamp_of(parts[0]): parts for parts in mapping_inputs(outputs)}
+    for msg in odometry:
+        stamp = stamp_of(msg)
+        if stamp in by_stamp:
+            for name, part in zip(('corner', 'surf', 'outlier', 'odometry'), by_stamp[stamp]):
+                mapping.on_part(name, restamped(part, stamp))
+            for aft in recorder.out('/aft_mapped_to_init')[mapped_seen:]:
+                fusion.on_mapped(aft)
+            mapped_seen = len(recorder.out('/aft_mapped_to_init'))
+        fusion.on_odometry(msg)
+    mapped = recorder.out('/aft_mapped_to_init')
+    integrated = fused.out('/integrated_to_init')
+    assert len(mapped) >= 4 and len(integrated) == len(odometry)
+    for msg in mapped + integrated:
+        assert is_covariance(message_covariance(msg)) and not any(msg.twist.covariance)
+    assert np.trace(message_covariance(integrated[-1])) >= np.trace(message_covariance(mapped[-1])) * (1 - 1e-9)
+    assert not recorder.errors and not fused.errors
+    mapping.destroy_node()
+    fusion.destroy_node()
