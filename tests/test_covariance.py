@@ -1,8 +1,8 @@
 """Pose covariances (core.frames, core.odometry.covariance, core.mapping.covariance, transformFusion): hand-checkable
 geometry and chains, and that the three odometry topics carry finite, symmetric, positive-definite covariances.
 
-Tolerances: closed forms of linear chains to 1e-9 relative (float64 rounding); numeric derivatives (central
-differences of step 1e-6) to 1e-6; the information of a registration against a noisy plane to 30 % of N/σ² (N of
+Tolerances: closed forms of linear chains to 1e-9 relative (float64 rounding); numeric derivatives (forward
+differences of step 1e-7) to 1e-6; the information of a registration against a noisy plane to 30 % of N/σ² (N of
 about a thousand points: the estimate of σ² from the residuals has a relative spread of ~5 %, the weights and the
 fitted planes add a little)."""
 

@@ -95,6 +95,7 @@ __all__ = [
     'MIN_VARIANCE',
     'MAX_VARIANCE',
     'skew',
+    'rotation_log',
     'pose_error',
     'pose_jacobian',
     'bounded_covariance',
@@ -386,23 +387,38 @@ def skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
+def rotation_log(rotation: np.ndarray) -> np.ndarray:
+    """The rotation vector [rad] of a 3x3 rotation matrix (closed form; the small 3x3s of a covariance's
+    derivatives would spend most of their time building scipy Rotation objects)."""
+    r = np.asarray(rotation, dtype=float)
+    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])  # 2 sin(angle) * unit axis
+    cos = max(-1.0, min(1.0, (r[0, 0] + r[1, 1] + r[2, 2] - 1.0) / 2.0))
+    angle = float(np.arccos(cos))
+    if angle < 1e-6:
+        return 0.5 * axis  # sin(angle) ~ angle
+    if angle > np.pi - 1e-4:  # (near a half turn the antisymmetric part vanishes)
+        return Rotation.from_matrix(r).as_rotvec()
+    return axis * (angle / (2.0 * np.sin(angle)))
+
+
 def pose_error(reference: np.ndarray, other: np.ndarray) -> np.ndarray:
     """The six-vector error ``(δp, δφ)`` of 4x4 ``other`` from 4x4 ``reference`` in the parent frame (see the module
     docstring): ``other = [exp([δφ]x) R, p + δp]``; [m, rad]."""
     rotation = np.asarray(other)[:3, :3] @ np.asarray(reference)[:3, :3].T
-    return np.concatenate([other[:3, 3] - reference[:3, 3], Rotation.from_matrix(rotation).as_rotvec()])
+    return np.concatenate([other[:3, 3] - reference[:3, 3], rotation_log(rotation)])
 
 
-def pose_jacobian(pose_of, x: np.ndarray, step: float = 1e-6) -> np.ndarray:
+def pose_jacobian(pose_of, x: np.ndarray, step: float = 1e-7) -> np.ndarray:
     """(6, n) derivative of the parent-frame error (:func:`pose_error`) of the 4x4 ``pose_of(x)`` with respect to
-    the n-vector ``x``, by central differences (a handful of 4x4 products; the maps it serves are smooth)."""
+    the n-vector ``x``, by forward differences (n + 1 evaluations, a few 4x4 products each; the maps it serves are
+    smooth, so the step's truncation error, ~1e-7 relative, is far below what a covariance needs)."""
     x = np.asarray(x, dtype=float)
     centre = pose_of(x)
     out = np.empty((6, len(x)))
     for k in range(len(x)):
-        delta = np.zeros(len(x))
-        delta[k] = step
-        out[:, k] = (pose_error(centre, pose_of(x + delta)) - pose_error(centre, pose_of(x - delta))) / (2 * step)
+        shifted = x.copy()
+        shifted[k] += step
+        out[:, k] = pose_error(centre, pose_of(shifted)) / step
     return out
 
 
