@@ -4,7 +4,8 @@ geometry and chains, and that the three odometry topics carry finite, symmetric,
 Tolerances: closed forms of linear chains to 1e-9 relative (float64 rounding); numeric derivatives (forward
 differences of step 1e-7) to 1e-6; the information of a registration against a noisy plane to 30 % of N/σ² (N of
 about a thousand points: the estimate of σ² from the residuals has a relative spread of ~5 %, the weights and the
-fitted planes add a little)."""
+fitted planes add a little); iSAM2's marginals to 1e-4 relative (1e-8 absolute: the
+keyframes' 1e-10 rotation variances at metres of lever)."""
 
 from __future__ import annotations
 
@@ -247,6 +248,11 @@ def test_keyframe_covariance_is_a_random_walk_that_a_loop_closure_shrinks():
     graph.add_loop(0, n, relative, noise)
     np.testing.assert_allclose(np.diag(graph.covariance())[:3], n / (n + 1) * s2, rtol=1e-4)
     assert is_covariance(graph.covariance())
+    # Keyframes dropped as poisoned (core.mapping.map_optimization heal): the kept ones keep their covariances.
+    kept = graph.kept([0, 3, n], [poses[0], poses[3], poses[n]])
+    assert len(kept) == 3
+    for new, old in ((1, 3), (2, n)):
+        np.testing.assert_allclose(kept.covariance(new), graph.covariance(old), rtol=1e-4, atol=1e-8)
 
 
 def test_the_fused_covariance_is_the_mapped_one_and_what_the_odometry_added_since():

@@ -52,7 +52,7 @@ from lego_loam_py.core.gauss_newton import DegeneracyProjection
 from lego_loam_py.core.imu.buffer import ImuBuffer, imu_mounting
 from lego_loam_py.core.localization.prior_map import PriorMap, levelling
 from lego_loam_py.core.localization.relocalization import Attempt, Hint, Relocalizer, Verification, scan_points_lidar
-from lego_loam_py.core.mapping.covariance import registration_covariance
+from lego_loam_py.core.mapping.covariance import MAX_REGISTRATION_VARIANCE, registration_covariance
 from lego_loam_py.core.mapping.map_bundle import check_compatible, read_bundle
 from lego_loam_py.core.mapping.map_optimization import MappingStep
 from lego_loam_py.core.mapping.odometry_continuity import OdometryJump, anchored_transform_bef
@@ -243,6 +243,8 @@ class Localization:
             self.withheld = not published
             if published:
                 self._count('steps_localized')
+                if step.pose_covariance is None:  # (a fix found by relocalization, not by a tracking registration)
+                    step.pose_covariance = np.eye(6) * MAX_REGISTRATION_VARIANCE
                 return step
             return None
 

@@ -129,6 +129,25 @@ class KeyframeCovariance:
         self._isam.update()
         self._marginals.clear()
 
+    def kept(self, indices: list[int], poses: list[np.ndarray]) -> KeyframeCovariance:
+        """A graph of the keyframes ``indices`` only (the others were dropped as poisoned), renumbered 0, 1, ...
+        at ``poses`` (4x4 camera_init), each held at its covariance here (their correlations are lost)."""
+        gtsam = self._gtsam
+        out = KeyframeCovariance()
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        for new, (old, pose) in enumerate(zip(indices, poses)):
+            covariance = self.covariance(old) if old < len(self._poses) else np.eye(6) * MAX_REGISTRATION_VARIANCE
+            estimate = out._pose3(pose)
+            to_tangent = np.linalg.inv(_tangent_to_parent(estimate.rotation().matrix()))
+            lidar = rotate_covariance(covariance, CAMERA_TO_LIDAR)
+            noise = gtsam.noiseModel.Gaussian.Covariance(bounded_covariance(to_tangent @ lidar @ to_tangent.T))
+            graph.add(gtsam.PriorFactorPose3(new, estimate, noise))
+            values.insert(new, estimate)
+            out._poses.append(np.array(pose, dtype=float))
+        if out._poses:
+            out._isam.update(graph, values)
+        return out
+
     def covariance(self, k: int = -1) -> np.ndarray:
         """Marginal covariance of keyframe ``k`` (default: the latest) in camera_init (camera axes)."""
         k = k % len(self._poses)

@@ -176,6 +176,9 @@ class MapOptimization:
             good = [kf for kf in self.keyframes if pose6_problem('', kf.pose6) is None]
             if len(good) < len(self.keyframes):
                 done.append(f'{len(self.keyframes) - len(good)} keyframe(s) with a poisoned pose dropped')
+                self.keyframe_covariance = self.keyframe_covariance.kept(
+                    [kf.index for kf in good], [pose6_to_matrix(kf.pose6) for kf in good]
+                )
                 self.keyframes = [
                     Keyframe(i, kf.stamp_ns, kf.pose6, kf.corner, kf.surf, kf.outlier) for i, kf in enumerate(good)
                 ]
@@ -396,6 +399,8 @@ class MapOptimization:
         self.keyframes.append(Keyframe(k, stamp_ns, latest, corner_ds, surf_ds, outlier_ds))
         self._positions = np.vstack([self._positions, latest[3:]])
         if len(self.keyframe_covariance) == k:  # (its keyframes are these, added as they come)
+            if k and registration is None:  # (not registered: no map to register against)
+                registration = np.eye(6) * MAX_REGISTRATION_VARIANCE
             self.keyframe_covariance.add_keyframe(pose6_to_matrix(latest), registration if k else None)
         if k > 0:
             self.transform_aft = latest.copy()
