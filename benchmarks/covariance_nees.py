@@ -142,10 +142,11 @@ def report(name: str, out: dict, params: Params) -> None:
             )
             + f'; |error| at the end {"/".join(f"{v:.3f}" for v in error[-1])}'
         )
-        # A loop closure: the largest fall of the mapped position's sigma from one step to the next.
+        # A loop closure: the largest fall of the mapped position's sigma from one step to the next (after the first
+        # steps, whose fall is the first registration's).
         norm = np.linalg.norm(sigma, axis=1)
-        k = int(np.argmin(np.diff(norm))) if len(norm) > 1 else 0
-        if len(norm) > 1 and norm[k + 1] < norm[k]:
+        k = int(np.argmin(np.diff(norm[2:]))) + 2 if len(norm) > 3 else 0
+        if len(norm) > 3 and norm[k + 1] < norm[k]:
             print(
                 f'   largest fall of the mapped position sigma (a loop closure): {norm[k]:.3f} -> {norm[k + 1]:.3f} m '
                 f'at step {k + 1} of {len(norm)} (|error| there {np.linalg.norm(error[k]):.3f} -> '
