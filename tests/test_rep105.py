@@ -219,3 +219,80 @@ def test_bad_frame_parameters_are_refused_by_name(key, value):
 
     with pytest.raises(ParameterError, match=key.split('.')[0]):
         params_from_mapping({key: value})
+
+
+# ------------------------------------------------------------------------------------------------ covariance
+
+
+def _perturbed(pose: np.ndarray, error: np.ndarray) -> np.ndarray:
+    """``pose`` with a parent-frame error (δp, δφ) applied (the convention of core.frames.pose_error)."""
+    from scipy.spatial.transform import Rotation
+
+    out = pose.copy()
+    out[:3, :3] = Rotation.from_rotvec(error[3:]).as_matrix() @ pose[:3, :3]
+    out[:3, 3] += error[:3]
+    return out
+
+
+def test_a_covariance_follows_a_frame_change_as_its_errors_do():
+    """The Jacobian of transformed_covariance against finite differences of the errors themselves: for each
+    direction of the input error, the error it makes in ``left @ pose @ right`` (to 1e-6 of a 1e-6 step)."""
+    from lego_loam_py.core.frames import pose_error, transformed_covariance
+
+    rng = np.random.default_rng(3)
+    frames = Rep105Frames.from_mount(translation=(0.4, -0.1, 1.2), rotation_rpy=(2.0, -3.0, 90.0))
+    pose = lidar_pose_to_camera(make_pose(rot_z(0.7), [5.0, -2.0, 0.3]))
+    left = frames.base_T_lidar @ lidar_pose_to_camera(np.eye(4)).T  # camera axes into base_link's
+    right = np.linalg.inv(left)
+    step = 1e-6
+    jacobian = np.column_stack(
+        [pose_error(left @ pose @ right, left @ _perturbed(pose, step * e) @ right) / step for e in np.eye(6)]
+    )
+    covariance = rng.normal(size=(6, 6))
+    covariance = covariance @ covariance.T
+    assert np.allclose(
+        transformed_covariance(covariance, left, pose, right), jacobian @ covariance @ jacobian.T, atol=1e-5
+    )
+
+
+def test_the_odometry_covariance_lands_on_base_link_in_odom():
+    """A yaw variance of the lidar (its LOAM y axis) is base_link's yaw variance in odom; a lidar 0.5 m ahead of
+    base_link turning about its own axis swings base_link sideways by 0.5 m per radian."""
+    frames = Rep105Frames.from_mount(translation=(0.5, 0.0, 1.0))
+    variance = 1e-4
+    covariance = np.zeros((6, 6))
+    covariance[4, 4] = variance  # rotation about camera y = the lidar's z
+    out = frames.odom_to_base_covariance(lidar_motion(), covariance)
+    assert out[5, 5] == pytest.approx(variance, rel=1e-12)
+    assert out[1, 1] == pytest.approx(0.25 * variance, rel=1e-9)  # 0.5 m lever, sideways (y)
+    assert abs(out[0, 0]) < 1e-18 and abs(out[2, 2]) < 1e-18
+
+
+def test_rep105_messages_carry_the_covariance_of_their_own_frames(rclpy_context):
+    from lego_loam_py.core.frames import CAMERA_INIT_FRAME, LASER_ODOM_FRAME
+    from lego_loam_py.ros.conversions import make_header, pose_to_odometry
+
+    node, recorder, _ = _fusion(rclpy_context, **{'frames.rep105': True, 'frames.lidar_translation': [0.0, 0.0, 1.0]})
+    try:
+        for k in range(5):
+            covariance = np.diag([1e-4, 1e-4, 4e-4, 1e-6, 1e-6, 1e-6]) * (k + 1)  # growing along the chain
+            pose = lidar_motion(x=0.2 * k)
+            node.on_odometry(
+                pose_to_odometry(
+                    pose,
+                    make_header(10**9 + k * 10**8, CAMERA_INIT_FRAME),
+                    LASER_ODOM_FRAME,
+                    pose_covariance=covariance,
+                )
+            )
+        last = recorder.out('/lego_loam/odometry')[-1]
+        pose_covariance = np.asarray(last.pose.covariance).reshape(6, 6)
+        # camera z (the lidar's x) variance 4e-4 per step -> base_link's x in odom, five steps in, and the lidar's
+        # pitch variance (1e-6 rad^2 a step) swinging base_link, 1 m below it, along x.
+        assert pose_covariance[0, 0] == pytest.approx(5 * (4e-4 + 1.0**2 * 1e-6), rel=1e-9)
+        twist_covariance = np.asarray(last.twist.covariance).reshape(6, 6)
+        # what one step added (4e-4 along x) over 0.1 s squared: (0.02 m/s)^2.
+        assert twist_covariance[0, 0] == pytest.approx(4e-4 / 0.01, rel=1e-6)
+        assert np.linalg.eigvalsh(twist_covariance).min() > 0.0
+    finally:
+        node.destroy_node()

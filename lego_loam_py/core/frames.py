@@ -23,6 +23,14 @@ beside it (:class:`Rep105Frames`)::
 
     map --> odom --> base_link --(static)--> lidar          map --(static)--> camera_init --> camera
 
+**Pose covariance** (:func:`compound_covariance` and the functions beside it): the 6x6 covariance of a pose
+``T = [R, p]`` (child in parent) is that of its error expressed *in the parent frame*, in ROS's order (x, y, z,
+rot x, rot y, rot z): ``δp = p_true - p`` in the parent's axes [m] and ``δφ`` the rotation vector of
+``R_true R^T``, a small rotation about the parent's axes [rad] (``R_true = exp([δφ]x) R``). That is what
+``nav_msgs/Odometry.pose.covariance`` means with the parent as ``header.frame_id``; for the original's topics the
+parent is ``camera_init`` and its axes are LOAM camera axes. A relative motion (pose k in pose k-1) has its
+covariance in pose k-1's axes by the same rule, so chaining is :func:`compound_covariance`.
+
 **The IMU on the lidar** (:class:`ImuMounting`, set by the ``imu.*`` parameters): the IMU is a rigid body
 fixed to the lidar (``base_link``), described as the static transform ``base_link -> imu`` would be:
 
@@ -90,6 +98,18 @@ __all__ = [
     'ImuMounting',
     'Rep105Frames',
     'body_twist',
+    'MIN_VARIANCE',
+    'MAX_VARIANCE',
+    'skew',
+    'rotation_log',
+    'pose_error',
+    'pose_jacobian',
+    'bounded_covariance',
+    'covariance_from_information',
+    'rotate_covariance',
+    'transformed_covariance',
+    'compound_covariance',
+    'relative_covariance',
 ]
 
 # Frame ids, without the original's leading slashes (invalid in tf2).
@@ -396,6 +416,28 @@ class Rep105Frames:
         (/integrated_to_init and /laser_odom_to_init); ``inv(base_T_lidar)`` while they agree."""
         return self.base_in(mapped_camera_pose) @ invert_pose(self.odom_to_base(odometry_camera_pose))
 
+    def base_in_covariance(self, camera_pose: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+        """The covariance of :meth:`base_in` (base_link in map, REP-103 axes) from the LOAM pose's (camera_init)."""
+        return transformed_covariance(covariance, _CAMERA_TO_LIDAR_4, camera_pose, invert_pose(self.base_T_lidar))
+
+    def odom_to_base_covariance(self, odometry_camera_pose: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+        """The covariance of :meth:`odom_to_base` (in odom, REP-103 axes) from the odometry's (camera_init)."""
+        axes = self.base_T_lidar @ _CAMERA_TO_LIDAR_4
+        return transformed_covariance(covariance, axes, odometry_camera_pose, invert_pose(axes))
+
+    def twist_covariance(
+        self,
+        previous_camera_pose: np.ndarray,
+        previous_covariance: np.ndarray,
+        camera_pose: np.ndarray,
+        covariance: np.ndarray,
+        dt: float,
+    ) -> np.ndarray:
+        """The covariance of :func:`body_twist` of base_link between two odometry poses ``dt`` [s] apart, from
+        their covariances (one chain): the motion's in between, in base_link's axes, over ``dt^2``."""
+        motion = relative_covariance(previous_camera_pose, previous_covariance, camera_pose, covariance)
+        return rotate_covariance(motion, self.base_T_lidar[:3, :3] @ CAMERA_TO_LIDAR) / (dt * dt)
+
 
 def body_twist(previous: np.ndarray, current: np.ndarray, dt: float) -> np.ndarray:
     """(vx, vy, vz, wx, wy, wz): the mean velocity [m/s] and angular velocity [rad/s] between two 4x4 poses of one
@@ -404,3 +446,125 @@ def body_twist(previous: np.ndarray, current: np.ndarray, dt: float) -> np.ndarr
     linear = rotation.T @ (current[:3, 3] - previous[:3, 3]) / dt
     angular = Rotation.from_matrix(previous[:3, :3].T @ rotation).as_rotvec() / dt
     return np.concatenate([linear, angular])
+
+
+# ----------------------------------------------------------------------------------------- pose covariance
+# Bounds on the variances of a published covariance [m^2, rad^2]: positive definite however well a direction is
+# held, and large but finite where nothing holds it (a degenerate direction).
+MIN_VARIANCE = 1e-12
+MAX_VARIANCE = 1e6
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """3x3 ``[v]x`` with ``[v]x w = v x w``."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def rotation_log(rotation: np.ndarray) -> np.ndarray:
+    """The rotation vector [rad] of a 3x3 rotation matrix (closed form; the small 3x3s of a covariance's
+    derivatives would spend most of their time building scipy Rotation objects)."""
+    r = np.asarray(rotation, dtype=float)
+    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])  # 2 sin(angle) * unit axis
+    cos = max(-1.0, min(1.0, (r[0, 0] + r[1, 1] + r[2, 2] - 1.0) / 2.0))
+    angle = float(np.arccos(cos))
+    if angle < 1e-6:
+        return 0.5 * axis  # sin(angle) ~ angle
+    if angle > np.pi - 1e-4:  # (near a half turn the antisymmetric part vanishes)
+        return Rotation.from_matrix(r).as_rotvec()
+    return axis * (angle / (2.0 * np.sin(angle)))
+
+
+def pose_error(reference: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """The six-vector error ``(δp, δφ)`` of 4x4 ``other`` from 4x4 ``reference`` in the parent frame (see the module
+    docstring): ``other = [exp([δφ]x) R, p + δp]``; [m, rad]."""
+    rotation = np.asarray(other)[:3, :3] @ np.asarray(reference)[:3, :3].T
+    return np.concatenate([other[:3, 3] - reference[:3, 3], rotation_log(rotation)])
+
+
+def pose_jacobian(pose_of, x: np.ndarray, step: float = 1e-7) -> np.ndarray:
+    """(6, n) derivative of the parent-frame error (:func:`pose_error`) of the 4x4 ``pose_of(x)`` with respect to
+    the n-vector ``x``, by forward differences (n + 1 evaluations, a few 4x4 products each; the maps it serves are
+    smooth, so the step's truncation error, ~1e-7 relative, is far below what a covariance needs)."""
+    x = np.asarray(x, dtype=float)
+    centre = pose_of(x)
+    out = np.empty((6, len(x)))
+    for k in range(len(x)):
+        shifted = x.copy()
+        shifted[k] += step
+        out[:, k] = pose_error(centre, pose_of(shifted)) / step
+    return out
+
+
+def bounded_covariance(
+    covariance: np.ndarray, min_variance: float = MIN_VARIANCE, max_variance: float = MAX_VARIANCE
+) -> np.ndarray:
+    """The symmetric part of ``covariance`` with its eigenvalues clipped to [min_variance, max_variance]: finite,
+    symmetric and positive definite (a non-finite input gives ``max_variance`` on the diagonal)."""
+    covariance = np.asarray(covariance, dtype=float)
+    n = len(covariance)
+    if not np.isfinite(covariance).all():
+        return np.eye(n) * max_variance
+    values, vectors = np.linalg.eigh(0.5 * (covariance + covariance.T))
+    out = (vectors * np.clip(values, min_variance, max_variance)) @ vectors.T
+    return 0.5 * (out + out.T)
+
+
+def covariance_from_information(
+    information: np.ndarray, max_variance: float = MAX_VARIANCE, min_variance: float = MIN_VARIANCE
+) -> np.ndarray:
+    """The covariance of an information matrix (Fisher information of a least-squares estimate), a direction
+    holding less than ``1 / max_variance`` (a degenerate direction) given ``max_variance`` instead of an infinite
+    one."""
+    information = np.asarray(information, dtype=float)
+    if not np.isfinite(information).all():
+        return np.eye(len(information)) * max_variance
+    values, vectors = np.linalg.eigh(0.5 * (information + information.T))
+    variances = 1.0 / np.clip(values, 1.0 / max_variance, 1.0 / min_variance)
+    return bounded_covariance((vectors * variances) @ vectors.T, min_variance, max_variance)
+
+
+def rotate_covariance(covariance: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """A pose covariance expressed in axes rotated by ``rotation`` (3x3, new from old): ``B Σ Bᵀ`` with ``B`` =
+    diag(rotation, rotation)."""
+    block = np.zeros((6, 6))
+    block[:3, :3] = block[3:, 3:] = rotation
+    return block @ covariance @ block.T
+
+
+def transformed_covariance(covariance: np.ndarray, left: np.ndarray, pose: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """The covariance of ``left @ pose @ right`` (4x4 each, ``left`` and ``right`` known exactly) from ``pose``'s,
+    both as errors in the parent frame (:func:`pose_error`): the rotation error turned by ``left``'s rotation, the
+    position error too, plus what the rotation error swings ``right``'s offset by."""
+    rotation = np.asarray(left)[:3, :3]
+    jacobian = np.zeros((6, 6))
+    jacobian[:3, :3] = jacobian[3:, 3:] = rotation
+    jacobian[:3, 3:] = -rotation @ skew(np.asarray(pose)[:3, :3] @ np.asarray(right)[:3, 3])
+    out = jacobian @ np.asarray(covariance, dtype=float) @ jacobian.T
+    return 0.5 * (out + out.T)
+
+
+def compound_covariance(
+    parent: np.ndarray, parent_covariance: np.ndarray, relative: np.ndarray, relative_covariance: np.ndarray
+) -> np.ndarray:
+    """Covariance of ``parent @ relative`` (4x4 each) in the parent's parent frame, the two errors independent:
+    ``F Σ_parent Fᵀ + G Σ_relative Gᵀ`` with ``F = [[I, -[R_parent t_relative]x], [0, I]]`` (a rotation error of
+    the parent swings the relative translation) and ``G = diag(R_parent, R_parent)`` (the relative covariance is in
+    the parent's axes). Along a chain the variances grow with the distance travelled, as an odometry's do."""
+    rotation = np.asarray(parent)[:3, :3]
+    lever = np.eye(6)
+    lever[:3, 3:] = -skew(rotation @ np.asarray(relative)[:3, 3])
+    out = lever @ parent_covariance @ lever.T + rotate_covariance(relative_covariance, rotation)
+    return 0.5 * (out + out.T)
+
+
+def relative_covariance(
+    earlier: np.ndarray, earlier_covariance: np.ndarray, later: np.ndarray, later_covariance: np.ndarray
+) -> np.ndarray:
+    """Covariance of ``earlier^-1 @ later`` in ``earlier``'s axes when ``later`` was compounded from ``earlier``
+    along one chain (:func:`compound_covariance`): what the chain added in between, ``Σ_later - F Σ_earlier Fᵀ``
+    rotated into the earlier pose's axes, made positive semi-definite (clipping rounding)."""
+    rotation = np.asarray(earlier)[:3, :3]
+    lever = np.eye(6)
+    lever[:3, 3:] = -skew(np.asarray(later)[:3, 3] - np.asarray(earlier)[:3, 3])
+    added = later_covariance - lever @ earlier_covariance @ lever.T
+    return bounded_covariance(rotate_covariance(added, rotation.T), min_variance=0.0)

@@ -12,7 +12,23 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ['normal_equations_step', 'DegeneracyProjection']
+__all__ = ['normal_equations_step', 'DegeneracyProjection', 'residual_information']
+
+
+def residual_information(
+    jtj: np.ndarray,
+    squared_residuals: float,
+    residuals: int,
+    parameters: int,
+    min_sigma: float,
+    prior: np.ndarray | None = None,
+) -> np.ndarray:
+    """The Fisher information ``(JᵀJ + prior) / σ²`` of a least-squares estimate at convergence (``jtj``: of its
+    weighted residuals, ``prior``: a prior's share in the residuals' units): ``σ²`` is the weighted residuals' mean
+    square over their degrees of freedom (``residuals`` - ``parameters``), at least ``min_sigma`` squared (units of
+    the residuals, e.g. [m]). Its inverse is the covariance of the estimate when the residuals are independent."""
+    sigma2 = max(squared_residuals / max(residuals - parameters, 1), min_sigma**2)
+    return (jtj if prior is None else jtj + prior) / sigma2
 
 
 def normal_equations_step(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -78,6 +78,12 @@ class RunResult:
     odometry: list[np.ndarray] = field(default_factory=list)  # /laser_odom_to_init
     mapped_stamps: list[int] = field(default_factory=list)
     mapped: list[np.ndarray] = field(default_factory=list)  # /aft_mapped_to_init
+    # The 6x6 covariances of those poses (camera_init: position [m²] in its axes, rotation [rad²] about them; ROS
+    # order; core.frames), unbounded, and of each scan's sweep motion (in the previous sweep start's axes).
+    odometry_covariance: list[np.ndarray] = field(default_factory=list)
+    motion_covariance: list[np.ndarray] = field(default_factory=list)
+    integrated_covariance: list[np.ndarray] = field(default_factory=list)
+    mapped_covariance: list[np.ndarray] = field(default_factory=list)
     timings_ms: dict[str, list[float]] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
     wall_time: float = 0.0
@@ -293,7 +299,9 @@ class Pipeline:
         if not features.initialized:
             record.stamps.append(stamp)
             record.odometry.append(features.pose)
-            self._back_end.fuse(stamp, features.pose)
+            record.odometry_covariance.append(features.pose_covariance)
+            record.motion_covariance.append(features.motion_covariance)
+            self._back_end.fuse(stamp, features.pose, features.pose_covariance)
         if features.corner_last is not None and features.outlier_last is not None:
             self._back_end.map(
                 stamp, features.transform_sum, features.corner_last, features.surf_last, features.outlier_last
@@ -307,6 +315,7 @@ class _Fuse:
 
     stamp_ns: int
     odometry: np.ndarray
+    covariance: np.ndarray | None = None  # the odometry pose's
 
 
 @dataclass(frozen=True)
@@ -375,8 +384,8 @@ class _BackEnd:
         if self.mo is not None:
             self._imu.append(sample)
 
-    def fuse(self, stamp_ns: int, odometry: np.ndarray) -> None:
-        self._events.append(_Fuse(stamp_ns, odometry))
+    def fuse(self, stamp_ns: int, odometry: np.ndarray, covariance: np.ndarray | None = None) -> None:
+        self._events.append(_Fuse(stamp_ns, odometry, covariance))
         self.drain()
 
     def map(self, stamp: int, *inputs) -> None:
@@ -436,7 +445,8 @@ class _BackEnd:
                 return
             self._events.popleft()
             if isinstance(event, _Fuse):
-                result.integrated.append(self.fusion.integrate(event.odometry))
+                result.integrated.append(self.fusion.integrate(event.odometry, event.covariance, event.stamp_ns))
+                result.integrated_covariance.append(self.fusion.covariance.copy())
                 result.published.append(self.fusion.publishable(event.stamp_ns))
                 if self.listener is not None:
                     self.listener(ScanFused(event.stamp_ns, result.integrated[-1]))
@@ -453,9 +463,10 @@ class _BackEnd:
                     if step.degenerate:  # (a direction held at the prediction, see core.scan_to_map)
                         result.count(MAPPING_DEGENERATE)
                     aft, bef = pose6_to_matrix(step.transform_aft), pose6_to_matrix(step.transform_bef)
-                    self.fusion.on_mapped(aft, bef, event.stamp_ns)
+                    self.fusion.on_mapped(aft, bef, event.stamp_ns, step.pose_covariance)
                     result.mapped_stamps.append(event.stamp_ns)
                     result.mapped.append(aft)
+                    result.mapped_covariance.append(step.pose_covariance)
                     if self.listener is not None:
                         self.listener(MapStepped(event.stamp_ns, step, aft, *seen, cpu_ms=ms))
             else:

@@ -24,7 +24,7 @@ from sensor_msgs.msg import PointCloud2
 from sensor_msgs.msg import PointField as PointFieldMsg
 from std_msgs.msg import Header
 
-from lego_loam_py.core.frames import matrix_to_quaternion, quaternion_to_matrix
+from lego_loam_py.core.frames import bounded_covariance, matrix_to_quaternion, quaternion_to_matrix
 from lego_loam_py.core.pointcloud import (
     CloudBuffer,
     PointField,
@@ -44,6 +44,8 @@ __all__ = [
     'cloud_msg_to_array',
     'array_to_cloud_msg',
     'pose_to_odometry',
+    'covariance_fields',
+    'odometry_covariance',
     'odometry_to_pose',
     'pose_to_transform',
     'numpy_to_array',
@@ -433,17 +435,39 @@ def cloud_from_serialized(data: bytes) -> SerializedCloud | PointCloud2:
     )
 
 
+def covariance_fields(covariance: np.ndarray | None) -> list[float]:
+    """The 36 numbers of a message's pose covariance (row-major 6x6, ROS order x, y, z, rot x, rot y, rot z) of a
+    core covariance (:mod:`lego_loam_py.core.frames`: in header.frame_id's axes), bounded to be finite, symmetric
+    and positive definite; None: 36 zeros (unknown)."""
+    if covariance is None:
+        return [0.0] * 36
+    return [float(v) for v in bounded_covariance(covariance).reshape(-1)]
+
+
+def odometry_covariance(msg: Odometry) -> np.ndarray | None:
+    """The 6x6 pose covariance of an Odometry message, or None when it is unknown (all zeros), not finite or absurd
+    (beyond 1e12: no sensor's pose is that uncertain and such numbers would overflow what is computed from them)."""
+    covariance = np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)
+    if not np.isfinite(covariance).all() or not covariance.any() or np.abs(covariance).max() > 1e12:
+        return None
+    return covariance
+
+
 def pose_to_odometry(
     pose: np.ndarray,
     header: Header,
     child_frame_id: str,
     twist_angular: Sequence[float] | None = None,
     twist_linear: Sequence[float] | None = None,
+    pose_covariance: np.ndarray | None = None,
+    twist_covariance: np.ndarray | None = None,
 ) -> Odometry:
-    """nav_msgs/Odometry with the pose of ``child_frame_id`` in ``header.frame_id`` (4x4 matrix).
+    """nav_msgs/Odometry with the pose of ``child_frame_id`` in ``header.frame_id`` (4x4 matrix) and its 6x6
+    covariance (:func:`covariance_fields`; None: zeros).
 
     The twist fields are filled only when given (mapOptimization uses them to carry a pose, as the
-    original does).
+    original does); the twist covariance (linear, angular; child_frame_id's axes) only with a true twist (the REP-105
+    odometry's), else zero.
     """
     msg = Odometry()
     msg.header = header
@@ -452,6 +476,9 @@ def pose_to_odometry(
     p = msg.pose.pose
     p.position.x, p.position.y, p.position.z = (float(v) for v in pose[:3, 3])
     p.orientation = Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
+    msg.pose.covariance = covariance_fields(pose_covariance)
+    if twist_covariance is not None:
+        msg.twist.covariance = covariance_fields(twist_covariance)
     if twist_angular is not None:
         a = msg.twist.twist.angular
         a.x, a.y, a.z = (float(v) for v in twist_angular)
@@ -467,6 +494,7 @@ def serialized_odometry(
     child_frame_id: str,
     twist_angular: Sequence[float] | None = None,
     twist_linear: Sequence[float] | None = None,
+    pose_covariance: np.ndarray | None = None,
 ) -> tuple[bytes, bytes]:
     """The serialized nav_msgs/Odometry that :func:`pose_to_odometry` would give, and the tf2_msgs/TFMessage
     carrying its transform (:func:`odometry_to_transform`): the two every node publishes per pose, from one
@@ -477,11 +505,11 @@ def serialized_odometry(
     odometry = _CdrWriter()
     odometry.header(header)
     odometry.string(child_frame_id)
-    odometry.scalars('43d', *position, *orientation, *([0.0] * 36))  # the pose, its covariance
+    odometry.scalars('43d', *position, *orientation, *covariance_fields(pose_covariance))  # the pose, its covariance
     twist = [float(v) for v in (twist_linear if twist_linear is not None else (0.0, 0.0, 0.0))] + [
         float(v) for v in (twist_angular if twist_angular is not None else (0.0, 0.0, 0.0))
     ]
-    odometry.scalars('42d', *twist, *([0.0] * 36))  # the twist (linear, angular), its covariance
+    odometry.scalars('42d', *twist, *([0.0] * 36))  # the twist (linear, angular), its covariance (no twist)
     transforms = _CdrWriter()
     transforms.scalars('I', 1)
     transforms.header(header)

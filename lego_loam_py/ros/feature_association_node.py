@@ -331,7 +331,9 @@ class FeatureAssociationNode(LegoLoamNode):
         pose = result.pose
         header = make_header(stamp, CAMERA_INIT_FRAME)
         if not result.initialized or result.resumed:  # (after a restart the pose reached so far goes on)
-            odometry, transform = serialized_odometry(pose, header, LASER_ODOM_FRAME)
+            odometry, transform = serialized_odometry(
+                pose, header, LASER_ODOM_FRAME, pose_covariance=result.pose_covariance
+            )
             self.pub_odometry.publish(odometry)
             self.tf.send_serialized(transform)
         camera = make_header(stamp, CAMERA_FRAME)

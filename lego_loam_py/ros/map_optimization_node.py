@@ -466,7 +466,12 @@ class MapOptimizationNode(LegoLoamNode):
         header = make_header(stamp, CAMERA_INIT_FRAME)
         bef = step.transform_bef
         odometry, transform = serialized_odometry(
-            pose, header, AFT_MAPPED_FRAME, twist_angular=bef[:3], twist_linear=bef[3:]
+            pose,
+            header,
+            AFT_MAPPED_FRAME,
+            twist_angular=bef[:3],
+            twist_linear=bef[3:],
+            pose_covariance=step.pose_covariance,
         )
         self.pub_aft_mapped.publish(odometry)
         self.tf.send_serialized(transform)

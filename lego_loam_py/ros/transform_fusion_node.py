@@ -39,6 +39,7 @@ from lego_loam_py.ros import qos
 from lego_loam_py.ros.conversions import (
     MAX_POSITION,
     make_header,
+    odometry_covariance,
     odometry_to_pose,
     pose_to_odometry,
     pose_to_transform,
@@ -76,7 +77,8 @@ class TransformFusionNode(LegoLoamNode):
         self.static_tf.send(original_static_transforms(now, frames.map_frame, lidar_is_base_link=not frames.rep105))
         self.rep105: Rep105Frames | None = None  # the REP-105 tree, once the lidar's mounting is known
         self._mount_listener: StaticTransformListener | None = None
-        self._previous_base: tuple[int, np.ndarray] | None = None  # (stamp [ns], odom -> base_link)
+        # The previous odometry: (stamp [ns], odom -> base_link, its LOAM pose, that one's covariance or None).
+        self._previous_base: tuple | None = None
         if frames.rep105:
             self.pub_rep105_odometry = self.create_publisher(Odometry, frames.odometry_topic, qos.reliable(5))
             self.pub_rep105_pose = self.create_publisher(PoseWithCovarianceStamped, frames.pose_topic, qos.reliable(5))
@@ -122,7 +124,7 @@ class TransformFusionNode(LegoLoamNode):
             self.count('mapped_dropped')
             self.warn('bad_mapped', f'/aft_mapped_to_init dropped: {exc}')
             return
-        self.core.on_mapped(aft, bef, stamp)
+        self.core.on_mapped(aft, bef, stamp, odometry_covariance(msg))
         self.count('mapped')
 
     def on_odometry(self, msg: Odometry) -> None:
@@ -170,7 +172,8 @@ class TransformFusionNode(LegoLoamNode):
             return
         self.input_valid()
         problem = self.core.health_problem()
-        mapped = self.core.integrate(odometry) if problem is None else None
+        covariance = odometry_covariance(msg)
+        mapped = self.core.integrate(odometry, covariance, stamp_ns) if problem is None else None
         if problem is None and not (np.isfinite(mapped).all() and np.abs(mapped[:3, 3]).max() <= MAX_POSITION):
             problem = 'the fused pose is not finite or absurd'
         if problem is not None:
@@ -178,10 +181,12 @@ class TransformFusionNode(LegoLoamNode):
             # the next /aft_mapped_to_init brings it back.
             self.core.reset()
             self.state_reset(problem, 'map correction reset (the next mapping result restores it)')
-            mapped = self.core.integrate(odometry)
+            mapped = self.core.integrate(odometry, covariance, stamp_ns)
         self.order.processed(stamp_to_ns(msg.header.stamp))
         header = make_header(msg.header.stamp, CAMERA_INIT_FRAME)
-        integrated, transform = serialized_odometry(mapped, header, CAMERA_FRAME)
+        integrated, transform = serialized_odometry(
+            mapped, header, CAMERA_FRAME, pose_covariance=self.core.covariance if covariance is not None else None
+        )
         self.pub_integrated.publish(integrated)
         self.tf.send_serialized(transform)
         if self.rep105 is not None:
@@ -209,17 +214,33 @@ class TransformFusionNode(LegoLoamNode):
         return self.rep105 is not None
 
     def _publish_odom_frame(self, msg: Odometry, odometry: np.ndarray, stamp_ns: int) -> None:
-        """odom -> base_link on /tf and the odometry topic (REP-103 axes, twist in base_link)."""
+        """odom -> base_link on /tf and the odometry topic (REP-103 axes, twist in base_link, their covariances)."""
         if not self._mount_known():
             return
         frames = self.params.frames
         odom_T_base = self.rep105.odom_to_base(odometry)
+        covariance = odometry_covariance(msg)
+        pose_covariance = twist_covariance = None
+        if covariance is not None:
+            pose_covariance = self.rep105.odom_to_base_covariance(odometry, covariance)
         twist = np.zeros(6)
-        if self._previous_base is not None and stamp_ns > self._previous_base[0]:
-            twist = body_twist(self._previous_base[1], odom_T_base, (stamp_ns - self._previous_base[0]) * 1e-9)
-        self._previous_base = (stamp_ns, odom_T_base)
+        previous = self._previous_base
+        if previous is not None and stamp_ns > previous[0]:
+            dt = (stamp_ns - previous[0]) * 1e-9
+            twist = body_twist(previous[1], odom_T_base, dt)
+            if covariance is not None and previous[3] is not None:
+                twist_covariance = self.rep105.twist_covariance(previous[2], previous[3], odometry, covariance, dt)
+        self._previous_base = (stamp_ns, odom_T_base, odometry, covariance)
         header = make_header(msg.header.stamp, frames.odom_frame)
-        out = pose_to_odometry(odom_T_base, header, frames.base_frame, twist_angular=twist[3:], twist_linear=twist[:3])
+        out = pose_to_odometry(
+            odom_T_base,
+            header,
+            frames.base_frame,
+            twist_angular=twist[3:],
+            twist_linear=twist[:3],
+            pose_covariance=pose_covariance,
+            twist_covariance=twist_covariance,
+        )
         self.pub_rep105_odometry.publish(out)
         self.tf.send(pose_to_transform(odom_T_base, msg.header.stamp, frames.odom_frame, frames.base_frame))
 
@@ -230,7 +251,12 @@ class TransformFusionNode(LegoLoamNode):
         self.tf.send(pose_to_transform(map_T_odom, msg.header.stamp, frames.map_frame, frames.odom_frame))
         pose = PoseWithCovarianceStamped()
         pose.header = make_header(msg.header.stamp, frames.map_frame)
-        pose.pose.pose = pose_to_odometry(self.rep105.base_in(mapped), pose.header, frames.base_frame).pose.pose
+        covariance = (
+            self.rep105.base_in_covariance(mapped, self.core.covariance) if self.core.covariance.any() else None
+        )
+        pose.pose = pose_to_odometry(
+            self.rep105.base_in(mapped), pose.header, frames.base_frame, pose_covariance=covariance
+        ).pose
         self.pub_rep105_pose.publish(pose)
 
 

@@ -52,6 +52,7 @@ from lego_loam_py.core.gauss_newton import DegeneracyProjection
 from lego_loam_py.core.imu.buffer import ImuBuffer, imu_mounting
 from lego_loam_py.core.localization.prior_map import PriorMap, levelling
 from lego_loam_py.core.localization.relocalization import Attempt, Hint, Relocalizer, Verification, scan_points_lidar
+from lego_loam_py.core.mapping.covariance import MAX_REGISTRATION_VARIANCE, registration_covariance
 from lego_loam_py.core.mapping.map_bundle import check_compatible, read_bundle
 from lego_loam_py.core.mapping.map_optimization import MappingStep
 from lego_loam_py.core.mapping.odometry_continuity import OdometryJump, anchored_transform_bef
@@ -242,6 +243,8 @@ class Localization:
             self.withheld = not published
             if published:
                 self._count('steps_localized')
+                if step.pose_covariance is None:  # (a fix found by relocalization, not by a tracking registration)
+                    step.pose_covariance = np.eye(6) * MAX_REGISTRATION_VARIANCE
                 return step
             return None
 
@@ -270,6 +273,8 @@ class Localization:
             )
             step.optimised, step.iterations, step.correspondences = True, counts.iterations, counts.correspondences
             step.degenerate = counts.degenerate
+            # In the saved map, whose keyframes are fixed: the registration's alone (core.mapping.covariance).
+            step.pose_covariance = registration_covariance(pose6, counts.information, mo.covariance_scale)
             pose = pose6_to_matrix(pose6)
             # The share of the scan on the map from an even sample of its points (a share, not a fit: 1000 tell
             # it to a couple of percent, at a third of the cost of all of them).

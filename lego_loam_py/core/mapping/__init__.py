@@ -8,6 +8,10 @@ from __future__ import annotations
 from lego_loam_py.core._exports import lazy_exports
 
 _EXPORTS = {
+    'KeyframeCovariance': 'covariance',
+    'MAX_REGISTRATION_VARIANCE': 'covariance',
+    'mapped_covariance': 'covariance',
+    'registration_covariance': 'covariance',
     'FACTOR_KINDS': 'map_bundle',
     'FORMAT': 'map_bundle',
     'FORMAT_VERSION': 'map_bundle',
@@ -60,6 +64,7 @@ _EXPORTS = {
     'map_trees': 'scan_to_map',
     'plane_correspondences': 'scan_to_map',
     'register_scan_to_map': 'scan_to_map',
+    'registration_information': 'scan_to_map',
     'TransformFusion': 'transform_fusion',
 }
 __all__ = sorted(_EXPORTS)

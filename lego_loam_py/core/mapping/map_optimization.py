@@ -33,12 +33,24 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from lego_loam_py.core.frames import invert_pose, matrix_to_pose6, pose6_to_matrix, transform_cloud
+from lego_loam_py.core.frames import (
+    camera_pose_to_lidar,
+    invert_pose,
+    matrix_to_pose6,
+    pose6_to_matrix,
+    transform_cloud,
+)
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
 from lego_loam_py.core.imu.buffer import ImuBuffer, imu_mounting
 from lego_loam_py.core.imu.monitor import MappingImuCheck
 from lego_loam_py.core.loop.closure import LoopCandidate, LoopResult
 from lego_loam_py.core.loop.methods import make_loop_method
+from lego_loam_py.core.mapping.covariance import (
+    MAX_REGISTRATION_VARIANCE,
+    KeyframeCovariance,
+    mapped_covariance,
+    registration_covariance,
+)
 from lego_loam_py.core.mapping.odometry_continuity import OdometryJump, anchored_transform_bef
 from lego_loam_py.core.mapping.pose_graph import PoseGraph
 from lego_loam_py.core.mapping.scan_to_map import register_scan_to_map
@@ -82,6 +94,10 @@ class MappingStep:
     surf_map_points: int = 0
     timings_ms: dict = field(default_factory=dict)
     imu_alignment: object = None  # what the IMU check decided at this step (core.imu_monitor.AlignmentEvent)
+    # 6x6 covariance of transform_aft in camera_init (position [m²] in its axes, rotation [rad²] about them; ROS
+    # order x, y, z, rot x, rot y, rot z; core.mapping.covariance); None: no covariance known.
+    pose_covariance: np.ndarray | None = None
+    registration_covariance: np.ndarray | None = None  # of transform_aft relative to the map (None: not registered)
 
 
 class MapOptimization:
@@ -112,6 +128,11 @@ class MapOptimization:
         )
         self.imu_check = MappingImuCheck(params, lambda: self.imu)  # is the IMU mounted as the parameters say?
         self._degeneracy = DegeneracyProjection(6)
+        # The keyframes' uncertainty (a graph of its own, core.mapping.covariance), the last registration's
+        # information and the mapped pose's covariance.
+        self.keyframe_covariance = KeyframeCovariance()
+        self._registration_information: np.ndarray | None = None
+        self.pose_covariance = np.zeros((6, 6))
         self._last_processing_ns: int | None = None
         self.latest_odometry_ns = 0
         self.loop_closed = False
@@ -160,6 +181,9 @@ class MapOptimization:
             good = [kf for kf in self.keyframes if pose6_problem('', kf.pose6) is None]
             if len(good) < len(self.keyframes):
                 done.append(f'{len(self.keyframes) - len(good)} keyframe(s) with a poisoned pose dropped')
+                self.keyframe_covariance = self.keyframe_covariance.kept(
+                    [kf.index for kf in good], [pose6_to_matrix(kf.pose6) for kf in good]
+                )
                 self.keyframes = [
                     Keyframe(i, kf.stamp_ns, kf.pose6, kf.corner, kf.surf, kf.outlier) for i, kf in enumerate(good)
                 ]
@@ -221,14 +245,20 @@ class MapOptimization:
                 corner_map_points=len(corner_map),
                 surf_map_points=len(surf_map),
             )
+            registration = None
             if len(corner_map) > mo.min_corner_map_points and len(surf_map) > mo.min_surf_map_points:
                 self._scan_to_map(corner_map, surf_map, corner_ds, surf_total_ds, step)
                 # As in the original, the poses only move on when a map was there to register against: the
                 # first step (no map yet) keeps transform_aft/bef at their previous values.
                 self._transform_update(stamp_ns, step)
+                registration = registration_covariance(
+                    self.transform_aft, self._registration_information, mo.covariance_scale
+                )
             t2 = _time.perf_counter()
-            step.keyframe_added = self._save_keyframe(stamp_ns, corner_ds, surf_ds, outlier_ds)
+            step.keyframe_added = self._save_keyframe(stamp_ns, corner_ds, surf_ds, outlier_ds, registration)
             self._correct_poses()
+            step.pose_covariance = self._mapped_covariance(step.keyframe_added, registration)
+            step.registration_covariance = registration
             t3 = _time.perf_counter()
             timings.update(
                 map=(t1 - t0) * 1e3, registration=(t2 - t1) * 1e3, graph=(t3 - t2) * 1e3, total=(t3 - t0) * 1e3
@@ -324,6 +354,7 @@ class MapOptimization:
         pose, counts = register_scan_to_map(
             corner_map, surf_map, corner_ds, surf_ds, initial, self.params, self._degeneracy
         )
+        self._registration_information = counts.information
         if step is not None:
             step.optimised = True
             step.iterations, step.correspondences = counts.iterations, counts.correspondences
@@ -337,7 +368,25 @@ class MapOptimization:
         self.transform_aft = self.transform_tobe.copy()
 
     # ------------------------------------------------------------------------------------- the graph
-    def _save_keyframe(self, stamp_ns: int, corner_ds, surf_ds, outlier_ds) -> bool:
+    def _mapped_covariance(self, keyframe_added: bool, registration: np.ndarray | None) -> np.ndarray:
+        """The covariance of transform_aft (see :class:`MappingStep`): a new keyframe's marginal when it is that
+        keyframe, else the registration's on top of the latest keyframe's (the map's); without a registration (no map
+        to register against yet) transform_aft is not a mapped pose: every direction at the registration's bound
+        on top of the latest keyframe's."""
+        if len(self.keyframe_covariance) and len(self.keyframe_covariance) == len(self.keyframes):
+            anchor, anchor_covariance = self.keyframe_pose(-1), self.keyframe_covariance.covariance()
+            aft = pose6_to_matrix(self.transform_aft)
+            if keyframe_added and registration is not None:
+                self.pose_covariance = anchor_covariance
+            else:
+                if registration is None:
+                    registration = np.eye(6) * MAX_REGISTRATION_VARIANCE
+                self.pose_covariance = mapped_covariance(anchor, anchor_covariance, aft, registration)
+        return self.pose_covariance.copy()
+
+    def _save_keyframe(
+        self, stamp_ns: int, corner_ds, surf_ds, outlier_ds, registration: np.ndarray | None = None
+    ) -> bool:
         mo = self.params.map_optimization
         self.current_position = self.transform_aft[3:].copy()
         if (
@@ -354,6 +403,10 @@ class MapOptimization:
             latest = self.graph.add_keyframe(k, self.transform_aft, previous6=self.transform_last)
         self.keyframes.append(Keyframe(k, stamp_ns, latest, corner_ds, surf_ds, outlier_ds))
         self._positions = np.vstack([self._positions, latest[3:]])
+        if len(self.keyframe_covariance) == k:  # (its keyframes are these, added as they come)
+            if k and registration is None:  # (not registered: no map to register against)
+                registration = np.eye(6) * MAX_REGISTRATION_VARIANCE
+            self.keyframe_covariance.add_keyframe(pose6_to_matrix(latest), registration if k else None)
         if k > 0:
             self.transform_aft = latest.copy()
             self.transform_last = latest.copy()
@@ -405,6 +458,7 @@ class MapOptimization:
                 lc.robust_kernel,
                 lc.robust_kernel_width,
             )
+            self.keyframe_covariance.add_loop(candidate, latest, pending.relative_lidar, self.graph.last_loop_noise)
         self.loop_closed = True
         self._correct_poses()
         # The pose being mapped moves with the newest keyframe, so that the next step starts where the corrected
@@ -423,6 +477,9 @@ class MapOptimization:
         iSAM2 and move every keyframe to the new estimate."""
         with self.lock:
             self.graph.add_loop(latest, candidate, relative, variances)
+            self.keyframe_covariance.add_loop(
+                latest, candidate, camera_pose_to_lidar(relative), self.graph.last_loop_noise
+            )
             self.loop_closed = True
             self._correct_poses()
 

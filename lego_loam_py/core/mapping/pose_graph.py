@@ -32,6 +32,7 @@ class PoseGraph:
         self._odometry_noise = gtsam.noiseModel.Diagonal.Variances(np.asarray(mo.odometry_noise_variances, dtype=float))
         self._prior_information = np.diag(1.0 / np.asarray(mo.prior_noise_variances, dtype=float))
         self._odometry_information = np.diag(1.0 / np.asarray(mo.odometry_noise_variances, dtype=float))
+        self.last_loop_noise = None  # the noise model of the last loop constraint added
         self.rebuild([])
 
     def _pose3(self, pose_camera: np.ndarray):
@@ -115,14 +116,8 @@ class PoseGraph:
         axes), with diagonal variances (rot, rot, rot, x, y, z in lidar axes, as the original)."""
         gtsam = self._gtsam
         graph = gtsam.NonlinearFactorGraph()
-        graph.add(
-            gtsam.BetweenFactorPose3(
-                latest,
-                candidate,
-                self._pose3(relative),
-                gtsam.noiseModel.Diagonal.Variances(np.asarray(variances, float)),
-            )
-        )
+        self.last_loop_noise = gtsam.noiseModel.Diagonal.Variances(np.asarray(variances, float))
+        graph.add(gtsam.BetweenFactorPose3(latest, candidate, self._pose3(relative), self.last_loop_noise))
         self._record('loop', (latest, candidate), self._pose3(relative), np.diag(1.0 / np.asarray(variances, float)))
         self._update(graph, gtsam.Values())
 
@@ -147,6 +142,7 @@ class PoseGraph:
                 gtsam.noiseModel.mEstimator.Huber if kernel == 'huber' else gtsam.noiseModel.mEstimator.Cauchy
             ).Create(width)
             noise = gtsam.noiseModel.Robust.Create(estimator, noise)
+        self.last_loop_noise = noise  # (core.mapping.covariance's graph takes the same constraint)
         pose = self._gtsam.Pose3(self._gtsam.Rot3(pose_lidar[:3, :3]), pose_lidar[:3, 3].copy())
         graph = gtsam.NonlinearFactorGraph()
         graph.add(gtsam.BetweenFactorPose3(from_key, to_key, pose, noise))

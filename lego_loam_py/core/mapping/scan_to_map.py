@@ -31,7 +31,7 @@ from lego_loam_py.core.frames import (
     rot_z,
     transform_points,
 )
-from lego_loam_py.core.gauss_newton import DegeneracyProjection
+from lego_loam_py.core.gauss_newton import DegeneracyProjection, residual_information
 from lego_loam_py.core.geometry import fit_planes, line_coefficients, nearest_within
 from lego_loam_py.core.params.types import Params
 
@@ -42,6 +42,7 @@ __all__ = [
     'register_scan_to_map',
     'RegistrationCounts',
     'map_trees',
+    'registration_information',
 ]
 
 _F32 = np.float32
@@ -116,6 +117,25 @@ class RegistrationCounts:
     # Smallest eigenvalue of the first iteration's normal matrix [full-weight correspondences], NaN when too
     # few correspondences were found to register.
     condition: float = float('nan')
+    # 6x6 Fisher information of the pose six-vector (rx, ry, rz [rad], tx, ty, tz [m]; world convention, camera
+    # axes) from the last iteration's rows: the point-to-line and the point-to-plane residuals each with the
+    # variance of their own weighted residuals (:func:`registration_information`); None: not registered.
+    information: np.ndarray | None = None
+
+
+# Smallest residual standard deviation the variance estimate may give [m] (see core.odometry.laser_odometry).
+MIN_RESIDUAL_SIGMA = 0.005
+
+
+def registration_information(rows: np.ndarray, residuals: np.ndarray, corners: int) -> np.ndarray:
+    """The information of a scan-to-map registration from its (n, 6) rows and weighted residuals, the first
+    ``corners`` point-to-line, the rest point-to-plane, each kind with its own residual variance."""
+    out = np.zeros((6, 6))
+    for part in (slice(0, corners), slice(corners, None)):
+        a, r = rows[part], residuals[part]
+        if len(r) > 6:
+            out += residual_information(a.T @ a, float(r @ r), len(r), 6, MIN_RESIDUAL_SIGMA)
+    return out
 
 
 def map_trees(corner_map: np.ndarray, surf_map: np.ndarray) -> tuple[cKDTree, cKDTree]:
@@ -159,6 +179,7 @@ def register_scan_to_map(
         if len(coeff) < mo.min_correspondences:
             break  # nothing would change in the next iterations
         a = map_jacobian_rows(points, coeff, pose)
+        counts.information = registration_information(a, coeff[:, 3].astype(np.float64), len(cc))
         x = degeneracy.step(a, -coeff[:, 3], iteration == 0, mo.degeneracy_threshold)
         counts.degenerate = degeneracy.degenerate
         counts.condition = degeneracy.smallest_eigenvalue

@@ -7,13 +7,20 @@ the last mapping step found (``T_aft`` is the optimised pose of the odometry pos
 In localization (``max_correction_age_ns`` given) a pose is published only while the correction comes from a
 mapping step at most that long before it: before the first fix in the saved map the odometry is in a frame of
 its own, and once tracking is lost the old correction soon no longer holds.
+
+The fused pose's covariance (:attr:`TransformFusion.covariance`; conventions of :mod:`lego_loam_py.core.frames`: in
+camera_init, position [m²] in its axes, rotation [rad²] about them, ROS order) is the mapped pose's compounded with
+what the odometry's covariance grew by since the odometry pose that mapping step started from
+(:func:`~lego_loam_py.core.frames.relative_covariance` of the two odometry covariances along its chain).
 """
 
 from __future__ import annotations
 
+from collections import OrderedDict
+
 import numpy as np
 
-from lego_loam_py.core.frames import invert_pose
+from lego_loam_py.core.frames import compound_covariance, invert_pose, relative_covariance
 from lego_loam_py.core.validation import MAX_POSITION, vector_problem
 
 __all__ = ['TransformFusion']
@@ -25,16 +32,51 @@ class TransformFusion:
         self.mapped_steps = 0
         self.max_correction_age_ns = max_correction_age_ns
         self.correction_stamp_ns: int | None = None  # of the mapping step the correction comes from
+        self.covariance = np.zeros((6, 6))  # of the last fused pose (see the module docstring)
+        # The recent odometry poses and covariances by stamp (a mapping result refers to one of them), and the
+        # mapped pose, its covariance, the odometry pose it came from and that one's covariance.
+        self._odometry: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._mapped: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
 
-    def on_mapped(self, aft: np.ndarray, bef: np.ndarray, stamp_ns: int | None = None) -> None:
+    # (Mapping lags the odometry by a few scans, at most a few seconds when loop closure holds it up.)
+    HISTORY = 400
+
+    def on_mapped(
+        self, aft: np.ndarray, bef: np.ndarray, stamp_ns: int | None = None, aft_covariance: np.ndarray | None = None
+    ) -> None:
         """A mapping result of the scan stamped ``stamp_ns``: the optimised pose ``aft`` of the odometry pose
-        ``bef`` (4x4 each)."""
+        ``bef`` (4x4 each), ``aft``'s covariance (6x6, camera_init) if known."""
         self.correction = aft @ invert_pose(bef)
         self.mapped_steps += 1
         self.correction_stamp_ns = stamp_ns
+        bef_covariance = self._odometry_covariance(stamp_ns)
+        if aft_covariance is not None and bef_covariance is not None:
+            self._mapped = (np.asarray(aft, float), np.asarray(aft_covariance, float), bef, bef_covariance)
 
-    def integrate(self, odometry: np.ndarray) -> np.ndarray:
-        """The map-corrected pose of an odometry pose (4x4)."""
+    def _odometry_covariance(self, stamp_ns: int | None) -> np.ndarray | None:
+        """The covariance of the odometry pose stamped ``stamp_ns`` (the nearest stamp kept), or None."""
+        if stamp_ns is None or not self._odometry:
+            return None
+        nearest = min(self._odometry, key=lambda stamp: abs(stamp - stamp_ns))
+        return self._odometry[nearest][1]
+
+    def integrate(
+        self, odometry: np.ndarray, covariance: np.ndarray | None = None, stamp_ns: int | None = None
+    ) -> np.ndarray:
+        """The map-corrected pose of an odometry pose (4x4); with the odometry's ``covariance`` (6x6, camera_init)
+        and its stamp, :attr:`covariance` becomes the fused pose's."""
+        if covariance is not None:
+            covariance = np.asarray(covariance, dtype=float)
+            if stamp_ns is not None:
+                self._odometry[stamp_ns] = (odometry, covariance)
+                while len(self._odometry) > self.HISTORY:
+                    self._odometry.popitem(last=False)
+            if self._mapped is None:  # no mapped pose yet: the odometry's, moved by the correction
+                self.covariance = compound_covariance(self.correction, np.zeros((6, 6)), odometry, covariance)
+            else:
+                aft, aft_covariance, bef, bef_covariance = self._mapped
+                since = relative_covariance(bef, bef_covariance, odometry, covariance)
+                self.covariance = compound_covariance(aft, aft_covariance, invert_pose(bef) @ odometry, since)
         return self.correction @ odometry
 
     def publishable(self, stamp_ns: int) -> bool:

@@ -47,6 +47,7 @@ from lego_loam_py.core.imu.buffer import (
 )
 from lego_loam_py.core.imu.monitor import SweepImuCheck
 from lego_loam_py.core.imu.sweep import deskew_with_imu, rotate_at_points, sweep_attitude
+from lego_loam_py.core.odometry.covariance import OdometryCovariance, motion_covariance, sweep_motion
 from lego_loam_py.core.odometry.features import FeatureExtractor, ScanFeatures
 from lego_loam_py.core.odometry.laser_odometry import OdometryStats, make_laser_odometry
 from lego_loam_py.core.odometry.sweep import (
@@ -113,6 +114,11 @@ class FeatureAssociationResult:
     resumed: bool = False  # initialised again after a restart, at the pose reached before it
     imu_alignment: object = None  # what the IMU check decided on this scan (core.imu_monitor.AlignmentEvent)
     imu_uncovered: str | None = None  # why the IMU samples could not cover this sweep (core.imu.UNCOVERED)
+    # 6x6 covariance of ``pose`` in camera_init (position [m²] in camera_init axes, rotation [rad²] about them; ROS
+    # order x, y, z, rot x, rot y, rot z; core.odometry.covariance) and of the last sweep's motion (in the previous
+    # sweep start's axes). Unbounded: zero at the first pose (core.frames.bounded_covariance for a message).
+    pose_covariance: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
+    motion_covariance: np.ndarray | None = None
 
     @property
     def pose(self) -> np.ndarray:
@@ -139,6 +145,7 @@ class FeatureAssociation:
         self._period = params.sensor.scan_period
         self._imu_uncovered: str | None = None  # why the IMU did not cover this scan's sweep
         self.transform_sum = np.zeros(6)
+        self.covariance = OdometryCovariance()  # of the accumulated pose (and the last sweep's motion)
         self.initialized = False
         self.frame_count = fa.skip_frame_num
         self._previous_used_imu = False
@@ -194,9 +201,11 @@ class FeatureAssociation:
         jumping back to the origin; the IMU samples are kept when they are sane, else they are dropped too.
         """
         pose = self.transform_sum.copy() if pose6_problem('pose', self.transform_sum) is None else np.zeros(6)
-        instant = self.stamp_instant
+        instant, covariance = self.stamp_instant, self.covariance
         self.reset(keep_imu=self.imu.health_problem() is None)
         self.transform_sum, self.stamp_instant = pose, instant
+        if pose.any():  # carrying on from the pose reached: so does its uncertainty
+            self.covariance = covariance
         self._resumed = bool(np.any(pose != 0.0))
 
     # ------------------------------------------------------------------------------------- per scan
@@ -253,6 +262,7 @@ class FeatureAssociation:
         fa = self.params.feature_association
         event, self._imu_event = self._imu_event, None
         uncovered, self._imu_uncovered = self._imu_uncovered, None
+        covariance = {'pose_covariance': self.covariance.pose.copy()}
         if initialized:
             return FeatureAssociationResult(
                 scan.stamp_ns,
@@ -268,6 +278,7 @@ class FeatureAssociation:
                 resumed=self._resumed,
                 imu_alignment=event,
                 imu_uncovered=uncovered,
+                **covariance,
             )
         self.frame_count += 1
         publish = self.frame_count >= fa.skip_frame_num + 1
@@ -290,6 +301,8 @@ class FeatureAssociation:
             timings,
             imu_alignment=event,
             imu_uncovered=uncovered,
+            motion_covariance=self.covariance.motion.copy(),
+            **covariance,
         )
 
     def _process_sweep_start(self, scan: ScanInput) -> FeatureAssociationResult:
@@ -378,6 +391,10 @@ class FeatureAssociation:
             motion = motion @ make_pose(previous.r_start.T @ attitude.r_start)
         elif imu_attitude is not None and previous is not None:  # on probation
             self._imu_event = check.compare(previous, imu_attitude, motion[:3, :3]) or self._imu_event
+        imu_turn = previous.r_start.T @ attitude.r_start if use_imu else None
+        scale = self.params.feature_association.covariance_scale
+        covariance = motion_covariance(theta, stats.information, None, imu_turn, scale, stats.prior_information)
+        self.covariance.add(self._world_pose, motion, covariance)
         self._world_pose = self._world_pose @ motion
         self.transform_sum = matrix_to_pose6(self._world_pose)
         corner_last = self._deskew_to_start(features.less_sharp, features.less_sharp_index, motion, attitude, points)
@@ -501,6 +518,14 @@ class FeatureAssociation:
         timings['odometry'] = (t3 - t2) * 1e3
         theta = self.odometry.transform_cur.copy()
         shift_end = imu.shift_end if imu is not None else None
+        turn = imu.delta_end if imu is not None else None
+        self.covariance.add(
+            make_pose(euler_to_matrix(*self.transform_sum[:3]), self.transform_sum[3:]),
+            sweep_motion(theta, shift_end, turn),
+            motion_covariance(
+                theta, stats.information, shift_end, turn, self.params.feature_association.covariance_scale
+            ),
+        )
         self.transform_sum = accumulate(self.transform_sum, theta, shift_end)
         if imu is not None:
             rotation = euler_to_matrix(*self.transform_sum[:3]) @ imu.delta_end

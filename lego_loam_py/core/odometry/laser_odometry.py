@@ -33,7 +33,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from lego_loam_py.core.gauss_newton import DegeneracyProjection
+from lego_loam_py.core.gauss_newton import DegeneracyProjection, residual_information
 from lego_loam_py.core.geometry import (
     fit_planes,
     line_coefficients,
@@ -43,6 +43,7 @@ from lego_loam_py.core.geometry import (
     plane_distance,
     plane_through,
 )
+from lego_loam_py.core.imu.agreement import POINT_SIGMA
 from lego_loam_py.core.odometry.correspondences import (
     CornerCorrespondences,
     LastCloud,
@@ -78,6 +79,25 @@ class OdometryStats:
     recovered: bool = False  # ... and registering again from standing still matched more
     skipped: str = ''
     extra: dict = field(default_factory=dict)
+    # 6x6 Fisher information of the sweep motion θ (rx, ry, rz [rad], tx, ty, tz [m]) at convergence: both
+    # stages' point residuals differentiated with respect to all six parameters, each stage's residual variance
+    # estimated from its own residuals (:func:`stage_information`); None: not registered. And the IMU rotation
+    # prior's (its weight over core.imu.agreement.POINT_SIGMA squared, against which it was set; None: no prior).
+    information: np.ndarray | None = None
+    prior_information: np.ndarray | None = None
+
+
+ALL_PARAMS = [0, 1, 2, 3, 4, 5]
+# Smallest residual standard deviation a stage's variance estimate may give [m]: below it the residuals of a
+# few dozen matches near convergence say more about the luck of the draw than about the range noise of a lidar.
+MIN_RESIDUAL_SIGMA = 0.005
+
+
+def stage_information(jtj: np.ndarray, squared_residuals: float, residuals: int) -> np.ndarray:
+    """The information of one registration stage (6x6 ``jtj`` of its weighted residuals with respect to all six
+    parameters), the stage estimating three parameters (:func:`~lego_loam_py.core.gauss_newton.residual_information`).
+    """
+    return residual_information(jtj, squared_residuals, residuals, 3, MIN_RESIDUAL_SIGMA)
 
 
 # Wall points, or a function preparing them on first use.
@@ -204,12 +224,14 @@ class OriginalOdometry(LaserOdometry):
 
     def _register(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints, stats: OdometryStats) -> OdometryStats:
         fa = self.params.feature_association
+        information = np.zeros((6, 6))
         for stage in self._stages(sharp, flat):  # (no walls in the original)
             find, rows = (
                 (find_surf_correspondences, self._surf_rows)
                 if stage.kind == 'surf'
                 else (find_corner_correspondences, self._corner_rows)
             )
+            match, iteration = None, 0
             for iteration in range(fa.max_iterations):
                 setattr(stats, f'{stage.kind}_iterations', iteration + 1)
                 if iteration % fa.reassociate_every == 0:
@@ -227,6 +249,13 @@ class OriginalOdometry(LaserOdometry):
                 setattr(stats, f'{stage.kind}_degenerate', stage.degeneracy.degenerate)
                 if not self._apply(x, stage.active, stage.rotation_rows, stage.translation_rows):
                     break
+            if match is not None:
+                # The last association's rows at the final θ, over all six parameters (b = -step_scale w d).
+                a, b = rows(stage.points, match, iteration, ALL_PARAMS)
+                if len(b) >= fa.min_correspondences:
+                    residual = b / fa.step_scale
+                    information += stage_information(a.T @ a, float(residual @ residual), len(b))
+        stats.information = information if information.any() else None
         return stats
 
     def _weights(self, distance: np.ndarray, scale: np.ndarray, iteration: int) -> np.ndarray:
@@ -236,7 +265,7 @@ class OriginalOdometry(LaserOdometry):
             return np.ones(len(distance), dtype=_F32)
         return (1.0 - fa.weight_gain * np.abs(distance.astype(np.float64)) / scale).astype(_F32)
 
-    def _surf_rows(self, flat: np.ndarray, match: SurfCorrespondences, iteration: int):
+    def _surf_rows(self, flat: np.ndarray, match: SurfCorrespondences, iteration: int, parameters=None):
         fa = self.params.feature_association
         usable = np.flatnonzero((match.index2 >= 0) & (match.index3 >= 0))
         points = flat[usable]
@@ -249,10 +278,10 @@ class OriginalOdometry(LaserOdometry):
         weight = self._weights(distance, norm, iteration)
         ok = (weight > fa.min_weight) & (distance != 0) & np.isfinite(distance)
         coeff = np.concatenate([normal[ok] * weight[ok, None], (weight[ok] * distance[ok])[:, None]], axis=1)
-        rows = plane_jacobian_rows(points[ok], coeff, self.transform_cur, self.SURF_PARAMS)
+        rows = plane_jacobian_rows(points[ok], coeff, self.transform_cur, parameters or self.SURF_PARAMS)
         return rows, -fa.step_scale * coeff[:, 3].astype(np.float64)
 
-    def _corner_rows(self, sharp: np.ndarray, match: CornerCorrespondences, iteration: int):
+    def _corner_rows(self, sharp: np.ndarray, match: CornerCorrespondences, iteration: int, parameters=None):
         fa = self.params.feature_association
         usable = np.flatnonzero(match.index2 >= 0)
         points = sharp[usable]
@@ -262,7 +291,7 @@ class OriginalOdometry(LaserOdometry):
         weight = self._weights(distance, np.ones(len(distance)), iteration)
         ok = (weight > fa.min_weight) & np.isfinite(distance) & np.isfinite(gradient).all(axis=1)
         coeff = np.concatenate([gradient[ok] * weight[ok, None], (weight[ok] * distance[ok])[:, None]], axis=1)
-        rows = plane_jacobian_rows(points[ok], coeff, self.transform_cur, self.CORNER_PARAMS)
+        rows = plane_jacobian_rows(points[ok], coeff, self.transform_cur, parameters or self.CORNER_PARAMS)
         return rows, -fa.step_scale * coeff[:, 3].astype(np.float64)
 
 
@@ -294,9 +323,10 @@ class SweepStartOdometry(LaserOdometry):
         with 5 % steps, which then stop with up to 2 cm / 2 deg left.
         """
         fa = self.params.feature_association
+        information, prior = np.zeros((6, 6)), np.zeros((6, 6))
         for stage in self._stages(sharp, flat, wall):
             kind, active = stage.kind, stage.active
-            iterations, first = 0, True
+            iterations, first, last_residual = 0, True, None
             blocks = -(-fa.max_iterations // fa.reassociate_every)
             for block in range(blocks):
                 residual = self._residual_function(stage, weighted=block > 0)
@@ -304,6 +334,7 @@ class SweepStartOdometry(LaserOdometry):
                     stats.corner_match_ratio = self._own_matches / max(1, len(stage.points))
                 if residual is None:
                     break
+                last_residual = residual
                 before = self.transform_cur.copy()
                 for _ in range(min(fa.reassociate_every, fa.max_iterations - iterations)):
                     iterations += 1
@@ -328,6 +359,13 @@ class SweepStartOdometry(LaserOdometry):
                 ):
                     break  # a whole block changed nothing: converged
             setattr(stats, f'{kind}_iterations', iterations)
+            if last_residual is not None and iterations:
+                jtj, squares, count, stage_prior = last_residual.information(self.transform_cur)
+                information += stage_information(jtj, squares, count)
+                prior += stage_prior
+        stats.information = information if information.any() else None
+        # (The prior's weight is the IMU's information in the registration's units, POINT_SIGMA² per rad².)
+        stats.prior_information = prior / POINT_SIGMA**2 if prior.any() else None
         return stats
 
     def _residual_function(self, stage: _Stage, weighted: bool):
@@ -376,8 +414,23 @@ class SweepStartOdometry(LaserOdometry):
                 rows.append(prior_rows)
             return (np.concatenate(rows) if len(rows) > 1 else rows[0]), values
 
+        def information(theta: np.ndarray):
+            """(JᵀJ of the correspondences' weighted residuals over all six parameters, their sum of squares, how
+            many independent residuals they are (a line offset is two), the rotation prior's JᵀJ) at ``theta``."""
+            residual(theta)  # (the frames at theta, usually those of the last step already)
+            jtj, squares = np.zeros((6, 6)), 0.0
+            for term, frame in zip(terms, last_evaluation[1]):
+                rows = frame.rows(term.coefficients, ALL_PARAMS)
+                jtj += rows.T @ rows
+                squares += float(np.square(term.values(frame)).sum())
+            prior = np.zeros((6, 6))
+            prior[prior_parameters, prior_parameters] = self.rotation_prior
+            count = sum(term.points * (2 if term.kind == 'corner' else 1) for term in terms)
+            return jtj, squares, count, prior
+
         residual.points = sum(term.points for term in terms)
         residual.walls = any(term.wall for term in terms)
+        residual.information = information
         return residual
 
     def _term(self, kind: str, points: np.ndarray, last: LastCloud, weighted: bool, bound: int) -> _Term | None:

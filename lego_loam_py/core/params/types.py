@@ -179,6 +179,14 @@ class FeatureAssociationParams:
     # (0: never). The share is 0.5-1 while the odometry holds (0.49 at worst in the simulated 90 deg/s drive
     # without IMU) and 0.1-0.4 once a turn too fast for the lidar alone has thrown the guess off.
     lost_match_ratio: float = 0.3
+    # The odometry's covariance (core.odometry.covariance): the residual variance the registration estimates from its
+    # own residuals is multiplied by this. The least-squares information assumes independent residuals; they are
+    # not (each line and plane is fitted through a few points of the previous sweep, whose range noise and
+    # deskewing error every point matched to it shares, and features crowd on a few surfaces), so the information
+    # overstates how well the motion is known by a factor set by the kind of data, not by one recording:
+    # benchmarks/covariance_nees.py measures it (the factor that makes the 1 s motion's NEES 6: campus 4.4, aggressive
+    # drive 29, corridor 47); 15 balances the three (docs/covariance.md).
+    covariance_scale: float = 15.0
     suppress_half_window: int = 5  # neighbours marked as picked around a feature
     suppress_column_jump: int = 10  # ... unless the column jumps by more than this
     less_flat_leaf_size: float = 0.2  # voxel leaf of the less-flat cloud [m]
@@ -249,6 +257,10 @@ class MapOptimizationParams:
     convergence_translation: float = 0.05  # [cm]
     imu_blend_weight: float = 0.002  # roll/pitch <- (1 - w) * estimate + w * IMU
     keyframe_distance: float = 0.3  # new keyframe after moving this far [m]
+    # The mapped pose's covariance (core.mapping.covariance): the scan-to-map residual variance times this (the
+    # residuals share the map's planes and lines; see feature_association.covariance_scale). The factor that makes
+    # the mapped pose's NEES 6: campus 1.3, corridor 1.9, aggressive drive 6.6; 3 balances them.
+    covariance_scale: float = 3.0
     isam_relinearize_threshold: float = 0.01
     isam_relinearize_skip: int = 1
     # Diagonal variances (roll, pitch, yaw, x, y, z) of the prior and odometry factors.

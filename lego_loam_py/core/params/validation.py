@@ -170,7 +170,9 @@ def _validate(p: Params) -> None:
     need(fa.imu_que_length > 0, 'feature_association.imu_que_length', 'must be positive')
     need(fa.reassociate_every > 0, 'feature_association.reassociate_every', 'must be positive')
     need(0.0 <= fa.lost_match_ratio <= 1.0, 'feature_association.lost_match_ratio', 'must be within 0..1')
+    need(fa.covariance_scale > 0, 'feature_association.covariance_scale', 'must be positive')
     mo = p.map_optimization
+    need(mo.covariance_scale > 0, 'map_optimization.covariance_scale', 'must be positive')
     for name in (
         'corner_leaf_size',
         'surf_leaf_size',

@@ -1,0 +1,161 @@
+"""The covariance of mapOptimization's pose (/aft_mapped_to_init): the scan-to-map registration's information for
+the mapped pose, on top of the uncertainty of the map it registered against, which is that of the keyframes, kept
+by a pose graph of their own (:class:`KeyframeCovariance`) so that a loop closure shrinks it.
+
+Conventions: :mod:`lego_loam_py.core.frames` (pose covariance): of the error in the parent frame camera_init,
+position in camera_init's axes [m²], rotation a small rotation vector about them [rad²], ROS order (x, y, z, rot x,
+rot y, rot z). camera_init is the map frame here: the first keyframe is where it is, so its covariance is ~0.
+
+Why a graph of its own: the mapping's pose graph (:class:`~lego_loam_py.core.mapping.pose_graph.PoseGraph`) holds
+the original's fixed variances (1e-6 rad², 1e-8 m² per keyframe), which say nothing about how well a keyframe was
+registered and which its estimates (and so the trajectories) depend on. :class:`KeyframeCovariance` has the same
+keyframes and the same loop constraints, but each keyframe's between factor carries the covariance its scan-to-map
+registration had; only its marginal covariances are read, never its estimates.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lego_loam_py.core.frames import (
+    CAMERA_TO_LIDAR,
+    LIDAR_TO_CAMERA,
+    bounded_covariance,
+    camera_pose_to_lidar,
+    compound_covariance,
+    covariance_from_information,
+    invert_pose,
+    pose6_to_matrix,
+    pose_jacobian,
+    rotate_covariance,
+)
+
+__all__ = ['MAX_REGISTRATION_VARIANCE', 'registration_covariance', 'mapped_covariance', 'KeyframeCovariance']
+
+# A registration never leaves a direction less certain than this [m², rad²]: a direction the map does not hold
+# (a corridor's axis) stays at the odometry's prediction, whose error over a mapping interval is below that.
+MAX_REGISTRATION_VARIANCE = 1.0
+# The first keyframe defines the map frame: its variances [m², rad²].
+_ORIGIN_VARIANCE = 1e-10
+
+
+def registration_covariance(pose6: np.ndarray, information: np.ndarray | None, scale: float = 1.0) -> np.ndarray:
+    """6x6 covariance of the pose ``pose6`` (world convention six-vector) relative to the map it was registered
+    against, from the registration's information of the six-vector (None: not registered, every direction at
+    :data:`MAX_REGISTRATION_VARIANCE`), in camera_init axes; the residual variance times ``scale``
+    (``map_optimization.covariance_scale``)."""
+    if information is None or not np.any(information):
+        return np.eye(6) * MAX_REGISTRATION_VARIANCE
+    six = scale * covariance_from_information(information, MAX_REGISTRATION_VARIANCE / max(scale, 1e-12))
+    jacobian = pose_jacobian(pose6_to_matrix, np.asarray(pose6, dtype=float))
+    out = jacobian @ six @ jacobian.T
+    return 0.5 * (out + out.T)
+
+
+def mapped_covariance(
+    anchor: np.ndarray, anchor_covariance: np.ndarray, pose: np.ndarray, registration: np.ndarray
+) -> np.ndarray:
+    """Covariance of a mapped pose (4x4) registered with covariance ``registration`` (camera_init axes) against a
+    map whose uncertainty is that of the keyframe ``anchor`` (4x4, with its covariance)."""
+    relative = invert_pose(anchor) @ pose
+    return compound_covariance(anchor, anchor_covariance, relative, rotate_covariance(registration, anchor[:3, :3].T))
+
+
+def _tangent_to_parent(rotation: np.ndarray) -> np.ndarray:
+    """6x6 ``M`` taking gtsam's Pose3 tangent (rotation, translation; right perturbation ``T exp(ξ)``) to the
+    parent-frame error (position, rotation) of a pose with this rotation: ``δp = R v``, ``δφ = R ω``."""
+    out = np.zeros((6, 6))
+    out[:3, 3:] = rotation
+    out[3:, :3] = rotation
+    return out
+
+
+class KeyframeCovariance:
+    """iSAM2 over the keyframes, in lidar axes like the mapping's graph, with the registration's covariance on
+    each between factor and the loop constraints as the mapping's graph has them; :meth:`covariance` gives a
+    keyframe's marginal covariance in camera_init (camera axes)."""
+
+    def __init__(self):
+        import gtsam
+
+        self._gtsam = gtsam
+        params = gtsam.ISAM2Params()
+        params.setFactorization('QR')  # (a variance of 1e-10 at the origin: see PoseGraph)
+        self._isam = gtsam.ISAM2(params)
+        self._poses: list[np.ndarray] = []  # 4x4 camera axes, as added
+        self._marginals: dict[int, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return len(self._poses)
+
+    def _pose3(self, pose_camera: np.ndarray):
+        lidar = camera_pose_to_lidar(pose_camera)
+        return self._gtsam.Pose3(self._gtsam.Rot3(lidar[:3, :3]), lidar[:3, 3].copy())
+
+    def add_keyframe(self, pose: np.ndarray, registration: np.ndarray | None) -> np.ndarray:
+        """Keyframe ``len(self)`` at ``pose`` (4x4 camera_init), registered with covariance ``registration``
+        (camera_init axes; None: the first keyframe, the origin); returns its covariance."""
+        gtsam = self._gtsam
+        k = len(self._poses)
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        pose3 = self._pose3(pose)
+        if k == 0 or registration is None:
+            noise = gtsam.noiseModel.Diagonal.Variances(np.full(6, _ORIGIN_VARIANCE))
+            graph.add(gtsam.PriorFactorPose3(k, pose3, noise))
+        else:
+            previous = self._poses[-1]
+            relative = self._pose3(previous).between(pose3)
+            # The registration's error, in the previous keyframe's axes, then lidar axes, then gtsam's tangent.
+            in_previous = rotate_covariance(registration, CAMERA_TO_LIDAR @ previous[:3, :3].T)
+            to_tangent = np.linalg.inv(_tangent_to_parent(relative.rotation().matrix()))
+            covariance = bounded_covariance(to_tangent @ in_previous @ to_tangent.T)
+            graph.add(gtsam.BetweenFactorPose3(k - 1, k, relative, gtsam.noiseModel.Gaussian.Covariance(covariance)))
+        values.insert(k, pose3)
+        self._isam.update(graph, values)
+        self._poses.append(np.array(pose, dtype=float))
+        self._marginals.clear()
+        return self.covariance(k)
+
+    def add_loop(self, from_key: int, to_key: int, pose_lidar: np.ndarray, noise) -> None:
+        """The loop constraint 'keyframe ``to_key`` at ``pose_lidar`` (4x4, lidar axes) in keyframe ``from_key``'s
+        frame' under ``noise`` (a gtsam noise model, the one the mapping's graph got)."""
+        gtsam = self._gtsam
+        if max(from_key, to_key) >= len(self._poses):
+            return
+        pose = gtsam.Pose3(gtsam.Rot3(pose_lidar[:3, :3]), pose_lidar[:3, 3].copy())
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(gtsam.BetweenFactorPose3(from_key, to_key, pose, noise))
+        self._isam.update(graph, gtsam.Values())
+        self._isam.update()
+        self._marginals.clear()
+
+    def kept(self, indices: list[int], poses: list[np.ndarray]) -> KeyframeCovariance:
+        """A graph of the keyframes ``indices`` only (the others were dropped as poisoned), renumbered 0, 1, ...
+        at ``poses`` (4x4 camera_init), each held at its covariance here (their correlations are lost)."""
+        gtsam = self._gtsam
+        out = KeyframeCovariance()
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        for new, (old, pose) in enumerate(zip(indices, poses)):
+            covariance = self.covariance(old) if old < len(self._poses) else np.eye(6) * MAX_REGISTRATION_VARIANCE
+            estimate = out._pose3(pose)
+            to_tangent = np.linalg.inv(_tangent_to_parent(estimate.rotation().matrix()))
+            lidar = rotate_covariance(covariance, CAMERA_TO_LIDAR)
+            noise = gtsam.noiseModel.Gaussian.Covariance(bounded_covariance(to_tangent @ lidar @ to_tangent.T))
+            graph.add(gtsam.PriorFactorPose3(new, estimate, noise))
+            values.insert(new, estimate)
+            out._poses.append(np.array(pose, dtype=float))
+        if out._poses:
+            out._isam.update(graph, values)
+        return out
+
+    def covariance(self, k: int = -1) -> np.ndarray:
+        """Marginal covariance of keyframe ``k`` (default: the latest) in camera_init (camera axes)."""
+        k = k % len(self._poses)
+        if k not in self._marginals:
+            estimate = self._isam.calculateEstimatePose3(k)
+            tangent = self._isam.marginalCovariance(k)
+            lidar = _tangent_to_parent(estimate.rotation().matrix())
+            self._marginals[k] = bounded_covariance(
+                rotate_covariance(lidar @ tangent @ lidar.T, LIDAR_TO_CAMERA), _ORIGIN_VARIANCE
+            )
+        return self._marginals[k]
