@@ -79,7 +79,7 @@ def test_launch_with_rep105_records_the_frames_the_grid_and_honest_covariance(tm
     assert cells.size == grids[-1].info.width * grids[-1].info.height and (cells == 100).any() and (cells == 0).any()
 
     for topic in ODOMETRY_TOPICS:
-        assert len(messages[topic]) >= 10, topic
+        assert len(messages[topic]) >= 5, topic  # (mapping: every 0.3 s of data)
         for msg in messages[topic]:
             covariance = np.asarray(msg.pose.covariance).reshape(6, 6)
             assert np.isfinite(covariance).all(), topic

@@ -43,7 +43,7 @@ from lego_loam_py.core.geometry import (
     plane_distance,
     plane_through,
 )
-from lego_loam_py.core.imu.agreement import POINT_SIGMA
+from lego_loam_py.core.imu.agreement import FULL_TRUST
 from lego_loam_py.core.odometry.correspondences import (
     CornerCorrespondences,
     LastCloud,
@@ -82,7 +82,8 @@ class OdometryStats:
     # 6x6 Fisher information of the sweep motion θ (rx, ry, rz [rad], tx, ty, tz [m]) at convergence: both
     # stages' point residuals differentiated with respect to all six parameters, each stage's residual variance
     # estimated from its own residuals (:func:`stage_information`); None: not registered. And the IMU rotation
-    # prior's (its weight over core.imu.agreement.POINT_SIGMA squared, against which it was set; None: no prior).
+    # prior's (what the IMU's turn over a sweep is worth, from the prior's weight: see the end of register(); None: no
+    # prior).
     information: np.ndarray | None = None
     prior_information: np.ndarray | None = None
 
@@ -364,8 +365,11 @@ class SweepStartOdometry(LaserOdometry):
                 information += stage_information(jtj, squares, count)
                 prior += stage_prior
         stats.information = information if information.any() else None
-        # (The prior's weight is the IMU's information in the registration's units, POINT_SIGMA² per rad².)
-        stats.prior_information = prior / POINT_SIGMA**2 if prior.any() else None
+        # The prior keeps its whole weight (the parameter) while the IMU agrees with the mapping to FULL_TRUST a sweep,
+        # and falls as (FULL_TRUST / sigma)^2 beyond (core.imu.agreement): its information is 1 / max(FULL_TRUST,
+        # sigma)^2 [rad^-2], what the agreement vouches for, no more.
+        largest = self.params.feature_association.imu_rotation_prior
+        stats.prior_information = prior / (largest * FULL_TRUST**2) if prior.any() and largest > 0 else None
         return stats
 
     def _residual_function(self, stage: _Stage, weighted: bool):
