@@ -61,7 +61,7 @@ from lego_loam_py.core.odometry.sweep import (
     transform_to_start,
 )
 from lego_loam_py.core.params.types import Params
-from lego_loam_py.core.projection.image_projection import CloudInfo
+from lego_loam_py.core.projection.cloud_info import CloudInfo
 from lego_loam_py.core.validation import (
     MAX_POSITION,
     MAX_SWEEP_TRANSLATION,
