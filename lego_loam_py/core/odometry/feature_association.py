@@ -123,6 +123,9 @@ class FeatureAssociationResult:
 class FeatureAssociation:
     """The featureAssociation algorithm; feed scans (and IMU samples) in time order."""
 
+    # Imported by the first scan, not with this module (a node imports them ahead, once it is ready).
+    DEFERRED_IMPORTS = ('scipy.spatial',)
+
     def __init__(self, params: Params, fix_scan_bound: bool = False):
         self.params = params
         fa = params.feature_association

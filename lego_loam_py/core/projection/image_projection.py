@@ -64,6 +64,9 @@ class SegmentationResult:
 class ImageProjection:
     """The imageProjection algorithm for one sensor configuration; :meth:`process` handles one scan."""
 
+    # Imported by the first scan, not with this module (a node imports them ahead, once it is ready).
+    DEFERRED_IMPORTS = ('scipy.sparse.csgraph',)
+
     def __init__(self, params: Params):
         self.params = params
         self.n_scan = n = params.sensor.n_scan
