@@ -164,7 +164,17 @@ def stop(proc: subprocess.Popen) -> None:
             proc.wait()
 
 
-def measure(name: str, prober: Prober, env: dict, params: Path, settle: float, log: Path) -> dict:
+def measure(name: str, domain: int, env: dict, params: Path, settle: float, log: Path) -> dict:
+    # A new probe for each start: a participant that outlived the previous node's (same ports, same names) often
+    # took one more heartbeat (3 s) to see the next one.
+    prober = Prober(domain)
+    try:
+        return _measure(name, prober, env, params, settle, log)
+    finally:
+        prober.close()
+
+
+def _measure(name: str, prober: Prober, env: dict, params: Path, settle: float, log: Path) -> dict:
     with open(log, 'w') as out:
         start = time.monotonic()
         command = [sys.executable, '-c', _FLOOR_SCRIPT] if name == FLOOR else [str(BIN / name)]
@@ -306,19 +316,15 @@ def main(argv: list[str] | None = None) -> int:
             f'/**:\n  ros__parameters:\n    use_sim_time: true\n    map_optimization.file_directory: {tmp}/maps/\n'
         )
         env = node_env(domain, args.source)
-        prober = Prober(domain)
-        try:
-            for run in range(args.runs):
-                for name in names:
-                    row = measure(name, prober, env, params, args.settle, Path(tmp) / f'{name}_{run}.log')
-                    results[name].append(row)
-                    print(
-                        f'run {run + 1} {name:<20s} wall {row["wall_s"]:.3f} s  CPU {row["cpu_s"]:.3f} s  '
-                        f'settled {row["cpu_settled_s"]:.3f} s',
-                        flush=True,
-                    )
-        finally:
-            prober.close()
+        for run in range(args.runs):
+            for name in names:
+                row = measure(name, domain, env, params, args.settle, Path(tmp) / f'{name}_{run}.log')
+                results[name].append(row)
+                print(
+                    f'run {run + 1} {name:<20s} wall {row["wall_s"]:.3f} s  CPU {row["cpu_s"]:.3f} s  '
+                    f'settled {row["cpu_settled_s"]:.3f} s',
+                    flush=True,
+                )
         if args.runs:
             print(report(results, args.settle, args.source or REPO))
         if args.profile:
