@@ -14,7 +14,6 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 __all__ = [
     'write_tum_atomic',
@@ -163,6 +162,8 @@ def _process_exists(pid: int) -> bool:
 def tum_lines(stamps_ns: np.ndarray, poses: np.ndarray, position_digits: int = 6, rotation_digits: int = 9) -> str:
     """TUM text ``timestamp tx ty tz qx qy qz qw`` for (N,) ns stamps and (N, 4, 4) poses (quaternions with
     qw >= 0, so a pose has one spelling)."""
+    from scipy.spatial.transform import Rotation
+
     stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
     poses = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
     quats = Rotation.from_matrix(poses[:, :3, :3]).as_quat() if len(poses) else np.zeros((0, 4))
@@ -196,6 +197,8 @@ def write_tum_atomic(path: str | Path, stamps_ns: np.ndarray, poses: np.ndarray)
 
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """(stamps [ns] int64 (N,), poses (N, 4, 4)) from a TUM file (comments and blank lines skipped)."""
+    from scipy.spatial.transform import Rotation
+
     stamps, rows = [], []
     for line in Path(path).read_text().splitlines():
         line = line.strip()

@@ -261,6 +261,20 @@ def test_importing_the_core_loads_no_ros_module():
     assert result.returncode == 0, result.stdout + result.stderr
 
 
+# What no node loads before it is ready (benchmarks/bench_startup.py: 0.1-1 s of CPU each); a node imports them
+# where they are used, or on a thread once it is ready (LegoLoamNode.import_deferred).
+HEAVY_AT_START = ('scipy.spatial', 'scipy.sparse', 'open3d', 'gtsam')
+
+
+def test_no_node_imports_kd_trees_open3d_or_gtsam_at_start_up():
+    for node in ('image_projection_node', 'feature_association_node', 'map_optimization_node', 'transform_fusion_node'):
+        code = (
+            f'import sys\nimport lego_loam_py.ros.{node}\nprint([m for m in {HEAVY_AT_START!r} if m in sys.modules])\n'
+        )
+        result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120)
+        assert result.returncode == 0 and result.stdout.strip() == '[]', (node, result.stdout, result.stderr)
+
+
 REPO = CORE.parents[1]
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -148,3 +150,61 @@ def test_rotate_by_euler_is_the_matrix_product_for_every_point():
     assert np.array_equal(
         rotate_by_euler(np.eye(3), np.zeros(2), np.zeros(2), np.zeros(2), xyz[:2]), xyz[:2].astype(np.float64)
     )
+
+
+# ---- the NumPy rotation conversions give scipy's Rotation's bits (frames no longer imports scipy.spatial)
+def _same_bits(a, b) -> bool:
+    a, b = np.asarray(a), np.asarray(b)
+    return a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes()
+
+
+def _random_quaternions(rng, n: int) -> list[np.ndarray]:
+    """Random quaternions of any scale, and the hard cases: w about 0 (turns near 180 deg), w < 0, axis-aligned,
+    signed zeros, not normalised."""
+    out = list(rng.normal(size=(n, 4)) * rng.choice([1e-3, 1.0, 1e3], size=(n, 1)))
+    for w in (0.0, -0.0, 1e-17, -1e-17, 1e-9, -1e-9):
+        for axis in np.eye(3):
+            for scale in (1.0, -1.0, 2.5):
+                out.append(np.array([*(scale * axis), w]))
+    near = rng.normal(size=(n // 4, 4))
+    near[:, 3] = rng.choice([0.0, 1e-12, -1e-12, 1e-6, -1e-6], size=n // 4)
+    out += list(near)
+    out += [np.array([0.0, 0.0, 0.0, 1.0]), np.array([0.0, 0.0, 0.0, -1.0]), np.array([-0.0, 0.0, -0.0, 1.0])]
+    return out
+
+
+def test_quaternion_and_matrix_conversions_are_scipys_bit_for_bit():
+    rng = np.random.default_rng(7)
+    for q in _random_quaternions(rng, 4000):
+        matrix = Rotation.from_quat(q).as_matrix()
+        assert _same_bits(F.quaternion_to_matrix(q), matrix), q
+        # exact rotations, nearly orthogonal ones (scipy's Markley step) and perturbed ones (its SVD projection)
+        for m in (matrix, matrix + rng.normal(size=(3, 3)) * 1e-14, matrix + rng.normal(size=(3, 3)) * 1e-4):
+            expected = Rotation.from_matrix(m).as_quat()
+            assert _same_bits(F.matrix_to_quaternion(m), -expected if expected[3] < 0 else expected), m
+            assert _same_bits(F.matrix_to_rpy(m), Rotation.from_matrix(m).as_euler('xyz', degrees=True)), m
+
+
+def test_rpy_conversions_are_scipys_bit_for_bit_including_gimbal_lock():
+    rng = np.random.default_rng(8)
+    special = np.array([0.0, -0.0, 90.0, -90.0, 180.0, -180.0, 45.0, 1e-9])
+    cases = list(rng.uniform(-400.0, 400.0, size=(3000, 3))) + list(rng.choice(special, size=(1000, 3)))
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore')  # (gimbal lock: both warn)
+        for rpy in cases:
+            matrix = Rotation.from_euler('xyz', rpy, degrees=True).as_matrix()
+            assert _same_bits(F.rpy_to_matrix(rpy), matrix), rpy
+            assert _same_bits(F.matrix_to_rpy(matrix), Rotation.from_matrix(matrix).as_euler('xyz', degrees=True))
+
+
+def test_rotation_conversions_refuse_what_scipy_refuses():
+    for q in (np.zeros(4), np.array([np.nan, 0.0, 0.0, 1.0])):
+        with pytest.raises(ValueError, match='zero norm'):
+            F.quaternion_to_matrix(q)
+    with pytest.raises(ValueError, match='Non-positive determinant'):
+        F.matrix_to_quaternion(np.diag([1.0, 1.0, -1.0]))
+    with pytest.warns(UserWarning, match='Gimbal lock'):
+        F.matrix_to_rpy(F.rpy_to_matrix((10.0, 90.0, 0.0)))
+    # stacks go to scipy itself
+    stack = Rotation.from_euler('xyz', [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]).as_matrix()
+    assert _same_bits(F.matrix_to_rpy(stack), Rotation.from_matrix(stack).as_euler('xyz', degrees=True))

@@ -52,10 +52,11 @@ fixed to the lidar (``base_link``), described as the static transform ``base_lin
 
 from __future__ import annotations
 
+import math
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 __all__ = [
     'MAP_FRAME',
@@ -218,12 +219,15 @@ def matrix_to_euler(rotation: np.ndarray) -> tuple[float, float, float]:
 
 def quaternion_to_matrix(quaternion: np.ndarray) -> np.ndarray:
     """(x, y, z, w) -> 3x3 rotation (the quaternion is normalised first)."""
-    return Rotation.from_quat(np.asarray(quaternion, dtype=float)).as_matrix()
+    q = np.asarray(quaternion, dtype=float)
+    if q.shape != (4,):
+        return _scipy_rotation().from_quat(q).as_matrix()
+    return _matrix_of_quaternion(*_normalised(*q.tolist(), raise_on_zero=True))
 
 
 def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
     """3x3 rotation -> (x, y, z, w) with w >= 0."""
-    q = Rotation.from_matrix(np.asarray(rotation, dtype=float)).as_quat()
+    q = _quaternion_of_matrix(rotation)
     return -q if q[3] < 0 else q
 
 
@@ -314,13 +318,130 @@ def wrap_angle(angle: np.ndarray | float) -> np.ndarray | float:
 def rpy_to_matrix(roll_pitch_yaw_deg) -> np.ndarray:
     """(roll, pitch, yaw) [deg] -> 3x3 ``Rz(yaw) Ry(pitch) Rx(roll)`` (REP-103 angles about the fixed x, y, z axes,
     as tf2's ``setRPY``)."""
-    return Rotation.from_euler('xyz', np.asarray(roll_pitch_yaw_deg, dtype=float), degrees=True).as_matrix()
+    angles = np.asarray(roll_pitch_yaw_deg, dtype=float)
+    if angles.shape != (3,):
+        return _scipy_rotation().from_euler('xyz', angles, degrees=True).as_matrix()
+    roll, pitch, yaw = np.deg2rad(angles).tolist()
+    # Extrinsic x, y, z: q = q_z(yaw) (q_y(pitch) q_x(roll)), elementary quaternions composed in full (their zero
+    # terms included, so that signed zeros come out as scipy's do).
+    q = _compose(_elementary(2, yaw), _compose(_elementary(1, pitch), _elementary(0, roll)))
+    return _matrix_of_quaternion(*q)
 
 
 def matrix_to_rpy(rotation: np.ndarray) -> np.ndarray:
     """Inverse of :func:`rpy_to_matrix`: (roll, pitch, yaw) [deg], pitch within [-90, 90] (at +-90 deg the roll and
     yaw share one axis and the yaw takes all of it)."""
-    return Rotation.from_matrix(np.asarray(rotation, dtype=float)).as_euler('xyz', degrees=True)
+    if np.shape(rotation) != (3, 3):
+        return _scipy_rotation().from_matrix(np.asarray(rotation, dtype=float)).as_euler('xyz', degrees=True)
+    x, y, z, w = _quaternion_of_matrix(rotation).tolist()
+    # Bernardes & Viollet (2022) for the Tait-Bryan sequence x, y, z (extrinsic), as scipy's as_euler.
+    a, b, c, d = w - y, x + z, y + w, z - x
+    pitch = 2.0 * math.atan2(float(np.hypot(c, d)), float(np.hypot(a, b)))
+    half_sum, half_diff = math.atan2(b, a), math.atan2(d, c)
+    if abs(pitch) <= 1e-7:
+        angles = [2.0 * half_sum, pitch, 0.0]
+    elif abs(pitch - math.pi) <= 1e-7:
+        angles = [-(2.0 * half_diff), pitch, 0.0]
+    else:
+        angles = [half_sum - half_diff, pitch, half_sum + half_diff]
+    angles[1] -= math.pi / 2
+    for i, angle in enumerate(angles):
+        if angle < -math.pi:
+            angles[i] = angle + 2.0 * math.pi
+        elif angle > math.pi:
+            angles[i] = angle - 2.0 * math.pi
+    if abs(pitch) <= 1e-7 or abs(pitch - math.pi) <= 1e-7:
+        warnings.warn(
+            'Gimbal lock detected. Setting third angle to zero since it is not possible to uniquely determine all '
+            'angles.',
+            stacklevel=2,
+        )
+    return np.rad2deg(np.array(angles))
+
+
+# ---- Rotation conversions: scipy's Rotation (1.17) bit for bit, in NumPy and Python floats. scipy.spatial costs a
+# node 0.25-0.4 s of CPU to import (kd-trees, sparse matrices, qhull, the array-API layer) where only these few
+# formulas are used; a node that needs scipy.spatial for its kd-trees imports it there. Same operations in the
+# same order as scipy's Cython (IEEE doubles, libm's sqrt, atan2 and hypot), checked against scipy on random and
+# edge-case inputs (tests/test_frames.py). Anything but a single rotation goes to scipy.
+
+
+def _scipy_rotation():
+    from scipy.spatial.transform import Rotation
+
+    return Rotation
+
+
+def _normalised(x: float, y: float, z: float, w: float, raise_on_zero: bool = False) -> tuple[float, ...]:
+    """(x, y, z, w) / its norm; a zero norm leaves it as it is (from_quat raises for a zero or NaN norm)."""
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    if raise_on_zero and (norm == 0 or math.isnan(norm)):
+        raise ValueError('Found zero norm quaternions in `quat`.')
+    if norm == 0:
+        return x, y, z, w
+    return x / norm, y / norm, z / norm, w / norm
+
+
+def _matrix_of_quaternion(x: float, y: float, z: float, w: float) -> np.ndarray:
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    return np.array(
+        [
+            [x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw)],
+            [2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw)],
+            [2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2],
+        ]
+    )
+
+
+def _quaternion_of_matrix(rotation: np.ndarray) -> np.ndarray:
+    """3x3 rotation -> unit (x, y, z, w) as scipy's from_matrix: refused when its determinant is not positive,
+    projected onto the rotations (SVD) when not orthogonal to 1e-12, then Markley's method."""
+    matrix = np.array(rotation, dtype=float)[np.newaxis]
+    dets = np.linalg.det(matrix)
+    if np.any(dets <= 0):
+        raise ValueError(
+            f'Non-positive determinant (left-handed or null coordinate frame) in rotation matrix 0: {matrix[0]}.'
+        )
+    if not np.all(np.isclose(matrix @ np.transpose(matrix, (0, 2, 1)), np.eye(3), atol=1e-12)):
+        u, _, vt = np.linalg.svd(matrix)
+        matrix = u @ vt
+    m = matrix[0].tolist()
+    trace = m[0][0] + m[1][1] + m[2][2]
+    decision = (m[0][0], m[1][1], m[2][2], trace)
+    choice = 0
+    for i in range(1, 4):  # the first largest (NaN never wins)
+        if decision[i] > decision[choice]:
+            choice = i
+    q = [0.0, 0.0, 0.0, 0.0]
+    if choice != 3:
+        i = choice
+        j = (i + 1) % 3
+        k = (j + 1) % 3
+        q[i] = 1 - trace + 2 * m[i][i]
+        q[j] = m[j][i] + m[i][j]
+        q[k] = m[k][i] + m[i][k]
+        q[3] = m[k][j] - m[j][k]
+    else:
+        q = [m[2][1] - m[1][2], m[0][2] - m[2][0], m[1][0] - m[0][1], 1 + trace]
+    return np.array(_normalised(*q))
+
+
+def _elementary(axis: int, angle: float) -> list[float]:
+    q = [0.0, 0.0, 0.0, math.cos(angle / 2)]
+    q[axis] = math.sin(angle / 2)
+    return q
+
+
+def _compose(p: list[float], q: list[float]) -> list[float]:
+    """The quaternion product p q."""
+    cross = (p[1] * q[2] - p[2] * q[1], p[2] * q[0] - p[0] * q[2], p[0] * q[1] - p[1] * q[0])
+    return [
+        p[3] * q[0] + q[3] * p[0] + cross[0],
+        p[3] * q[1] + q[3] * p[1] + cross[1],
+        p[3] * q[2] + q[3] * p[2] + cross[2],
+        p[3] * q[3] - p[0] * q[0] - p[1] * q[1] - p[2] * q[2],
+    ]
 
 
 @dataclass(frozen=True, eq=False)
@@ -444,7 +565,7 @@ def body_twist(previous: np.ndarray, current: np.ndarray, dt: float) -> np.ndarr
     body ``dt`` [s] apart, in the body's frame at ``current`` (nav_msgs/Odometry's twist in child_frame_id)."""
     rotation = current[:3, :3]
     linear = rotation.T @ (current[:3, 3] - previous[:3, 3]) / dt
-    angular = Rotation.from_matrix(previous[:3, :3].T @ rotation).as_rotvec() / dt
+    angular = rotation_log(previous[:3, :3].T @ rotation) / dt
     return np.concatenate([linear, angular])
 
 
@@ -470,7 +591,7 @@ def rotation_log(rotation: np.ndarray) -> np.ndarray:
     if angle < 1e-6:
         return 0.5 * axis  # sin(angle) ~ angle
     if angle > np.pi - 1e-4:  # (near a half turn the antisymmetric part vanishes)
-        return Rotation.from_matrix(r).as_rotvec()
+        return _scipy_rotation().from_matrix(r).as_rotvec()
     return axis * (angle / (2.0 * np.sin(angle)))
 
 

@@ -33,7 +33,7 @@ from lego_loam_py.core.pointcloud import (
     xyzi_array,
     xyzi_points,
 )
-from lego_loam_py.core.projection.image_projection import CloudInfo as CloudInfoData
+from lego_loam_py.core.projection.cloud_info import CloudInfo as CloudInfoData
 from lego_loam_py.core.validation import MAX_POSITION
 
 __all__ = [

@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
@@ -22,10 +23,12 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.clock import Clock, ClockType
 
 from lego_loam_py.core.frames import CAMERA_INIT_FRAME, MAP_FRAME, camera_pose_to_lidar, quaternion_to_matrix
-from lego_loam_py.core.localization.localizer import Localization, LocalizationStatus
 from lego_loam_py.core.mapping.map_bundle import MapBundleError
 from lego_loam_py.core.validation import MAX_POSITION
 from lego_loam_py.ros import qos
+
+if TYPE_CHECKING:  # (the localizer is imported when a map is loaded: a mapping node never needs it)
+    from lego_loam_py.core.localization.localizer import Localization, LocalizationStatus
 
 __all__ = ['LocalizationFrontEnd', 'initial_pose_of', 'status_message', 'STATUS_TOPIC', 'INITIAL_POSE_TOPIC']
 
@@ -105,6 +108,8 @@ class LocalizationFrontEnd:
         """Load the saved map of ``map_optimization.map_path``; logs and keeps the error when it cannot."""
         node, path = self.node, self.node.params.map_optimization.map_path
         try:
+            from lego_loam_py.core.localization.localizer import Localization
+
             self.core = Localization.load(node.params)
         except (MapBundleError, OSError, ValueError) as exc:
             self.error = str(exc)

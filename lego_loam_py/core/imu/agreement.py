@@ -24,7 +24,6 @@ import math
 from collections import deque
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 __all__ = ['ImuAgreement', 'WINDOW', 'MIN_SPAN', 'FULL_TRUST']
 
@@ -54,6 +53,8 @@ class ImuAgreement:
 
     def mapped(self, stamp_ns: int, rotation: np.ndarray) -> None:
         """mapOptimization's pose of the scan stamped ``stamp_ns`` (its rotation, 3x3, lidar axes)."""
+        from scipy.spatial.transform import Rotation
+
         state = self._states.pop(stamp_ns, None)
         if state is None:
             return

@@ -25,11 +25,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from lego_loam_py.core.frames import matrix_to_rpy
+
+if TYPE_CHECKING:
+    from scipy.spatial.transform import Rotation
 
 __all__ = [
     'AlignmentFit',
@@ -63,6 +66,8 @@ def shifted_increments(
     """(m, n, 3) rotation vectors of n IMU increments moved each of m ``offsets`` [s] later at both ends, to first
     order in the offset: ``exp(-w_a offset) dR exp(w_b offset)`` with the body rates (n, 3) [rad/s] at the
     interval's ends (enough for the online check; the calibration shifts exactly)."""
+    from scipy.spatial.transform import Rotation
+
     offsets = np.atleast_1d(np.asarray(offsets, dtype=float))
     m, n = len(offsets), len(increments)
     start = Rotation.from_rotvec((-offsets[:, None, None] * rate_start[None]).reshape(-1, 3))
@@ -76,6 +81,8 @@ class OrientationTrack:
     time inside it: the turns between two times, for :func:`fit_alignment`."""
 
     def __init__(self, times: np.ndarray, quaternions: np.ndarray):
+        from scipy.spatial.transform import Rotation, Slerp
+
         times = np.asarray(times, dtype=float)
         keep = np.concatenate(([True], np.diff(times) > 0))  # (a repeated stamp says nothing new)
         self.times = times[keep]
@@ -96,6 +103,8 @@ class GyroTrack(OrientationTrack):
     of the length in vectorised compositions), not one by one."""
 
     def __init__(self, times: np.ndarray, rates: np.ndarray):
+        from scipy.spatial.transform import Rotation
+
         times, rates = np.asarray(times, dtype=float), np.asarray(rates, dtype=float)
         keep = np.concatenate(([True], np.diff(times) > 0))
         times, rates = times[keep], rates[keep]
@@ -140,6 +149,8 @@ class AlignmentFit:
     @property
     def angle_deg(self) -> float:
         """How far the fitted rotation is from the configured mounting [deg]."""
+        from scipy.spatial.transform import Rotation
+
         return float(np.degrees(np.linalg.norm(Rotation.from_matrix(self.rotation).as_rotvec())))
 
     @property
@@ -149,6 +160,8 @@ class AlignmentFit:
     @property
     def rotation_significance(self) -> float:
         """How many standard deviations the fitted rotation lies from none (Mahalanobis distance)."""
+        from scipy.spatial.transform import Rotation
+
         vector = Rotation.from_matrix(self.rotation).as_rotvec()
         try:
             return float(math.sqrt(max(0.0, vector @ np.linalg.solve(self.rotation_covariance, vector))))
@@ -248,6 +261,8 @@ def _skew(v: np.ndarray) -> np.ndarray:
 def nearest_right_angle_rotation(rotation: np.ndarray, tolerance_deg: float = 10.0) -> np.ndarray | None:
     """The rotation among the 24 that map axes onto axes (IMUs are mostly mounted so) within ``tolerance_deg``
     of ``rotation``, or None."""
+    from scipy.spatial.transform import Rotation
+
     rounded = np.round(np.asarray(rotation))
     if (
         not (np.abs(rounded).sum(axis=0) == 1).all()

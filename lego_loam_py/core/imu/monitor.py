@@ -44,7 +44,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from lego_loam_py.core.frames import CAMERA_TO_LIDAR, LIDAR_TO_CAMERA, ImuMounting, euler_to_matrix, matrix_to_rpy
 from lego_loam_py.core.imu.alignment import (
@@ -195,6 +194,8 @@ class ImuAlignmentMonitor:
     def _window(intervals: deque, seconds: float, interval: tuple) -> deque:
         """``intervals`` with ``interval`` (start, end, turns, rates) appended and those older than ``seconds``
         before its end dropped (all of them when time went back: a bag restarted)."""
+        from scipy.spatial.transform import Rotation
+
         start, end, lidar_turn, imu_turn, rate_start, rate_end = interval
         if intervals and start < intervals[-1][0]:
             intervals.clear()
@@ -218,6 +219,8 @@ class ImuAlignmentMonitor:
         """The up direction the lidar sees (``reference``: the ground's normal, pointing to the lidar's side) and the
         IMU's, both unit vectors in lidar axes. An IMU whose up lies more than :data:`MAX_GROUND_TILT` from it is
         not trusted."""
+        from scipy.spatial.transform import Rotation
+
         if not self.enabled or not self.trusted:
             return None
         tilt = math.degrees(math.acos(float(np.clip(np.dot(up, imu_up), -1.0, 1.0))))
@@ -240,6 +243,8 @@ class ImuAlignmentMonitor:
     def _fit(self, window: deque, min_turn: float = MIN_TURN_DEG) -> AlignmentFit | None:
         """The rotation and offset best explaining the window (None: it turned less than ``min_turn`` degrees in
         all, too little to tell anything)."""
+        from scipy.spatial.transform import Rotation
+
         lidar = np.array([i[2] for i in window])
         if np.degrees(np.linalg.norm(lidar, axis=1).sum()) < min_turn:
             return None
@@ -405,6 +410,8 @@ class SweepImuCheck(_Check):
     def on_probation(self, sweep, previous) -> bool:
         """Whether a sweep (the IMU over it, a :class:`~lego_loam_py.core.imu.buffer.SweepAttitude`; ``previous`` the
         last one's, None for the first sweep: judged by its own turn) is registered without the IMU and compared."""
+        from scipy.spatial.transform import Rotation
+
         if not self.monitor.enabled or not self.trusted or self.monitor.probation_passed:
             return False
         turn, imu, end = None, self._buffer(), sweep.t_start + self._scan_period

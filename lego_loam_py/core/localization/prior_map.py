@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from lego_loam_py.core.frames import camera_pose_to_lidar, camera_to_lidar, pose6_to_matrix
 from lego_loam_py.core.loop.place_recognition import PlaceDatabase, ScanContextConfig, scan_context
@@ -27,6 +27,9 @@ from lego_loam_py.core.mapping.map_bundle import MapBundle
 from lego_loam_py.core.mapping.scan_to_map import map_trees
 from lego_loam_py.core.params.types import Params
 from lego_loam_py.core.voxel import voxel_downsample
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 __all__ = ['PriorMap', 'LocalMap', 'levelling', 'heading']
 
@@ -159,6 +162,8 @@ class PriorMap:
 
     def edge_tree(self) -> cKDTree:
         """KD-tree of the map's corner (edge) points in REP-103 lidar axes (built once, when first needed)."""
+        from scipy.spatial import cKDTree
+
         if self._edges_lidar is None:
             self._edges_lidar = cKDTree(camera_to_lidar(self.corner_map[:, :3].astype(np.float64)))
         return self._edges_lidar

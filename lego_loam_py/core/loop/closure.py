@@ -26,8 +26,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from lego_loam_py.core.frames import (
     camera_pose_to_lidar,
@@ -48,6 +46,8 @@ __all__ = ['LoopCandidate', 'LoopResult', 'LoopCloser', 'find_loop_candidate', '
 
 def rotation_angle_deg(pose: np.ndarray) -> float:
     """Angle [deg] of the rotation of a 4x4 pose."""
+    from scipy.spatial.transform import Rotation
+
     return float(np.degrees(np.linalg.norm(Rotation.from_matrix(pose[:3, :3]).as_rotvec())))
 
 
@@ -169,6 +169,7 @@ def align_loop(candidate: LoopCandidate, lc: LoopClosureParams) -> LoopResult:
     """ICP (point to point, open3d) of the latest keyframe against the candidate's neighbourhood, judged as the
     original: accepted when it converged and its fitness is at most ``history_keyframe_fitness_score``."""
     import open3d as o3d
+    from scipy.spatial import cKDTree
 
     source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(candidate.source[:, :3].astype(np.float64)))
     target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(candidate.target[:, :3].astype(np.float64)))
@@ -271,8 +272,9 @@ class LoopCloser:
             )
         )
         self._described: set[int] = set()
-        if lc.loop_closure_enable_flag:  # (made for loop_closure.method verified only: core.loop.methods)
-            import open3d  # noqa: F401  (the first import costs about 0.5 s of CPU: at start-up, not in a loop)
+        # open3d is imported by the first ICP (on the loop-closure thread), not here: its import costs a node 0.5-1 s
+        # of CPU (it loads plotly and dash for its viewers), paid at start-up by every run, most of which never
+        # verify a loop in their first minutes; the one mapping step that import may delay comes with a loop.
 
     def describe(self, keyframes: Sequence) -> None:
         """Descriptors for the keyframes that have none yet (their clouds levelled by their poses)."""

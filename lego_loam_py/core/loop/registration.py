@@ -18,7 +18,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from lego_loam_py.core.frames import transform_points
 
@@ -87,6 +86,7 @@ def register(
     alone is in :attr:`Registration.subset_shift_m` / ``_deg`` (a source stacked from several keyframes whose
     poses disagree gives a compromise that none of them agrees with)."""
     import open3d as o3d
+    from scipy.spatial import cKDTree
 
     source = np.ascontiguousarray(source[:, :3], dtype=np.float64)
     target = np.ascontiguousarray(target[:, :3], dtype=np.float64)

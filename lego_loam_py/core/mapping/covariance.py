@@ -76,14 +76,20 @@ class KeyframeCovariance:
     keyframe's marginal covariance in camera_init (camera axes)."""
 
     def __init__(self):
-        import gtsam
-
-        self._gtsam = gtsam
-        params = gtsam.ISAM2Params()
-        params.setFactorization('QR')  # (a variance of 1e-10 at the origin: see PoseGraph)
-        self._isam = gtsam.ISAM2(params)
         self._poses: list[np.ndarray] = []  # 4x4 camera axes, as added
         self._marginals: dict[int, np.ndarray] = {}
+
+    def __getattr__(self, name: str):
+        # The gtsam state is made by the first keyframe, not at construction: importing gtsam costs mapOptimization
+        # 0.1 s of CPU before it is ready (as core.mapping.pose_graph.PoseGraph).
+        if name not in ('_gtsam', '_isam'):
+            raise AttributeError(f'{type(self).__name__!r} object has no attribute {name!r}')
+        import gtsam
+
+        params = gtsam.ISAM2Params()
+        params.setFactorization('QR')  # (a variance of 1e-10 at the origin: see PoseGraph)
+        self._gtsam, self._isam = gtsam, gtsam.ISAM2(params)
+        return self.__dict__[name]
 
     def __len__(self) -> int:
         return len(self._poses)

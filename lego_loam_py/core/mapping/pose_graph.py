@@ -23,16 +23,31 @@ __all__ = ['PoseGraph']
 class PoseGraph:
     """iSAM2 over the keyframes 0, 1, ... in the order they are added."""
 
-    def __init__(self, mo: MapOptimizationParams):
-        import gtsam
+    # Made when first used (the first keyframe), not at construction: importing gtsam costs 0.1 s of CPU, which
+    # mapOptimization would otherwise pay before it is ready (its node imports gtsam ahead once it is).
+    _MADE_ON_FIRST_USE = frozenset(('_gtsam', '_isam', '_prior_noise', '_odometry_noise'))
 
-        self._gtsam = gtsam
+    def __init__(self, mo: MapOptimizationParams):
         self._params = mo
-        self._prior_noise = gtsam.noiseModel.Diagonal.Variances(np.asarray(mo.prior_noise_variances, dtype=float))
-        self._odometry_noise = gtsam.noiseModel.Diagonal.Variances(np.asarray(mo.odometry_noise_variances, dtype=float))
         self._prior_information = np.diag(1.0 / np.asarray(mo.prior_noise_variances, dtype=float))
         self._odometry_information = np.diag(1.0 / np.asarray(mo.odometry_noise_variances, dtype=float))
         self.last_loop_noise = None  # the noise model of the last loop constraint added
+        self.factors: list[GraphFactor] = []
+
+    def __getattr__(self, name: str):
+        # (Only for attributes not set yet: the gtsam state, the first time it is needed.)
+        if name not in PoseGraph._MADE_ON_FIRST_USE:
+            raise AttributeError(f'{type(self).__name__!r} object has no attribute {name!r}')
+        self._start()
+        return self.__dict__[name]
+
+    def _start(self) -> None:
+        import gtsam
+
+        mo = self._params
+        self._gtsam = gtsam
+        self._prior_noise = gtsam.noiseModel.Diagonal.Variances(np.asarray(mo.prior_noise_variances, dtype=float))
+        self._odometry_noise = gtsam.noiseModel.Diagonal.Variances(np.asarray(mo.odometry_noise_variances, dtype=float))
         self.rebuild([])
 
     def _pose3(self, pose_camera: np.ndarray):

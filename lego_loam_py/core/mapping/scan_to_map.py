@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from lego_loam_py.core.frames import (
     GENERATOR_X,
@@ -34,6 +34,9 @@ from lego_loam_py.core.frames import (
 from lego_loam_py.core.gauss_newton import DegeneracyProjection, residual_information
 from lego_loam_py.core.geometry import fit_planes, line_coefficients, nearest_within
 from lego_loam_py.core.params.types import Params
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 __all__ = [
     'map_jacobian_rows',
@@ -140,6 +143,8 @@ def registration_information(rows: np.ndarray, residuals: np.ndarray, corners: i
 
 def map_trees(corner_map: np.ndarray, surf_map: np.ndarray) -> tuple[cKDTree, cKDTree]:
     """The KD-trees :func:`register_scan_to_map` searches in a corner and a surface map."""
+    from scipy.spatial import cKDTree
+
     return (
         cKDTree(corner_map[:, :3].astype(np.float64), balanced_tree=False),
         cKDTree(surf_map[:, :3].astype(np.float64), balanced_tree=False),

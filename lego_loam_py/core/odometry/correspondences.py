@@ -12,7 +12,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from lego_loam_py.core.indexing import ragged, ranges
 from lego_loam_py.core.odometry.sweep import ring_of
@@ -84,6 +83,8 @@ class LastCloud:
     """A 'last' feature cloud with its KD-tree and ring look-ups."""
 
     def __init__(self, points: np.ndarray, n_rings: int):
+        from scipy.spatial import cKDTree
+
         self.points = points
         self.n_rings = n_rings
         self.rings = ring_of(points[:, 3])

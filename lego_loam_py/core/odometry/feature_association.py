@@ -62,7 +62,7 @@ from lego_loam_py.core.odometry.sweep import (
     transform_to_start,
 )
 from lego_loam_py.core.params.types import Params
-from lego_loam_py.core.projection.image_projection import CloudInfo
+from lego_loam_py.core.projection.cloud_info import CloudInfo
 from lego_loam_py.core.validation import (
     MAX_POSITION,
     MAX_SWEEP_TRANSLATION,
@@ -128,6 +128,9 @@ class FeatureAssociationResult:
 
 class FeatureAssociation:
     """The featureAssociation algorithm; feed scans (and IMU samples) in time order."""
+
+    # Imported by the first scan, not with this module (a node imports them ahead, once it is ready).
+    DEFERRED_IMPORTS = ('scipy.spatial',)
 
     def __init__(self, params: Params, fix_scan_bound: bool = False):
         self.params = params

@@ -31,7 +31,7 @@ import numpy as np
 
 from lego_loam_py.core.indexing import ragged
 from lego_loam_py.core.params.types import Params
-from lego_loam_py.core.projection.image_projection import CloudInfo
+from lego_loam_py.core.projection.cloud_info import CloudInfo
 from lego_loam_py.core.voxel import voxel_downsample_groups
 
 try:  # the greedy selection in C (native/feature_kernels.c); optional, as the Python loop gives the same

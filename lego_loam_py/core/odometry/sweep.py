@@ -30,7 +30,7 @@ from lego_loam_py.core.frames import (
     rot_z,
 )
 from lego_loam_py.core.parity.libm import atan2f
-from lego_loam_py.core.projection.image_projection import CloudInfo
+from lego_loam_py.core.projection.cloud_info import CloudInfo
 
 __all__ = [
     'sweep_rotation',

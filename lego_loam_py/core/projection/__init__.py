@@ -8,6 +8,7 @@ from __future__ import annotations
 from lego_loam_py.core._exports import lazy_exports
 
 _EXPORTS = {
+    'CloudInfo': 'cloud_info',
     'ABSOLUTE_AFTER': 'driver_layouts',
     'ABSOLUTE_TIME_FIELDS': 'driver_layouts',
     'CloudPoints': 'driver_layouts',
@@ -24,7 +25,6 @@ _EXPORTS = {
     'elevation_note': 'elevation_bias',
     'ground_cone_deg': 'elevation_bias',
     'GroundRemoval': 'ground',
-    'CloudInfo': 'image_projection',
     'ImageProjection': 'image_projection',
     'InputError': 'image_projection',
     'NO_LABEL': 'image_projection',

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lego_loam_py.core.params.types import Params
+from lego_loam_py.core.projection.cloud_info import CloudInfo
 from lego_loam_py.core.projection.elevation_bias import ElevationBias
 from lego_loam_py.core.projection.ground import GroundRemoval
 from lego_loam_py.core.projection.range_image import (
@@ -42,20 +43,6 @@ __all__ = [
 
 
 @dataclass
-class CloudInfo:
-    """Content of cloud_msgs/CloudInfo for one scan. Arrays are as long as the segmented cloud."""
-
-    start_ring_index: np.ndarray  # int32 (N_SCAN,)
-    end_ring_index: np.ndarray  # int32 (N_SCAN,)
-    start_orientation: np.float32  # [rad]
-    end_orientation: np.float32  # [rad]
-    orientation_diff: np.float32  # [rad]
-    segmented_cloud_ground_flag: np.ndarray  # bool (M,)
-    segmented_cloud_col_ind: np.ndarray  # uint32 (M,)
-    segmented_cloud_range: np.ndarray  # float32 (M,) [m]
-
-
-@dataclass
 class SegmentationResult:
     """What imageProjection publishes for one scan; clouds are float32 (k, 4) = x, y, z, intensity."""
 
@@ -76,6 +63,9 @@ class SegmentationResult:
 
 class ImageProjection:
     """The imageProjection algorithm for one sensor configuration; :meth:`process` handles one scan."""
+
+    # Imported by the first scan, not with this module (a node imports them ahead, once it is ready).
+    DEFERRED_IMPORTS = ('scipy.sparse.csgraph',)
 
     def __init__(self, params: Params):
         self.params = params
