@@ -195,7 +195,8 @@ def test_a_single_plane_or_a_corridor_leaves_the_unheld_directions_large():
 def test_a_sweep_motion_covariance_is_the_parameters_turned_into_the_motion():
     """At θ = 0 the motion T(θ)⁻¹ moves by -t and turns by -r: the motion's covariance is the parameters'
     (rotation and translation blocks swapped into ROS order), the variances scaled by ``scale``; the IMU prior adds
-    its information to the rotations; no registration: the per-sweep bound."""
+    its information to the rotations, unscaled (the scale is of the points' residuals); no registration: the
+    per-sweep bound."""
     from lego_loam_py.core.odometry.covariance import MAX_MOTION_VARIANCE, motion_covariance
 
     variances = np.array([1e-6, 2e-6, 3e-6, 1e-4, 2e-4, 3e-4])  # rx, ry, rz, tx, ty, tz
@@ -203,8 +204,31 @@ def test_a_sweep_motion_covariance_is_the_parameters_turned_into_the_motion():
     np.testing.assert_allclose(np.diag(out), 4.0 * np.concatenate([variances[3:], variances[:3]]), rtol=1e-6)
     prior = np.diag([1e6, 1e6, 1e6, 0, 0, 0])
     out = motion_covariance(np.zeros(6), np.diag(1 / variances), prior_information=prior, scale=2.0)
-    assert out[3, 3] == pytest.approx(2 / (1e6 + 1e6), rel=1e-6) and out[0, 0] == pytest.approx(2e-4, rel=1e-6)
+    assert out[3, 3] == pytest.approx(1 / (1e6 / 2 + 1e6), rel=1e-6) and out[0, 0] == pytest.approx(2e-4, rel=1e-6)
     assert np.array_equal(motion_covariance(np.zeros(6), None), np.eye(6) * MAX_MOTION_VARIANCE)
+
+
+def test_what_the_registration_cannot_see_grows_with_the_turn_the_speed_change_and_the_speed():
+    """The deskewing's errors (core.odometry.covariance.unmodelled_covariance), each a standard deviation per
+    axis: ``turn |t| |φ|`` and ``stamp_jitter |t| / period`` for the position, ``change |Δt|`` for the change of the
+    motion since the last sweep; the rotation's change counts only without a gyro."""
+    from lego_loam_py.core.frames import make_pose, rot_y
+    from lego_loam_py.core.odometry.covariance import unmodelled_covariance
+
+    straight = make_pose(None, [0.0, 0.0, 0.5])
+    turning = make_pose(rot_y(0.1), [0.0, 0.0, 0.5])
+    assert np.array_equal(unmodelled_covariance(straight, None, True, 0.1, 0.5, 0.5, 0.0), np.zeros((6, 6)))
+    out = unmodelled_covariance(turning, None, True, 0.1, 0.5, 0.0, 0.0)
+    np.testing.assert_allclose(np.diag(out), [(0.5 * 0.5 * 0.1) ** 2] * 3 + [0.0] * 3, rtol=1e-9)
+    out = unmodelled_covariance(straight, None, True, 0.1, 0.0, 0.0, 0.001)
+    np.testing.assert_allclose(np.diag(out)[:3], [(0.5 * 0.01) ** 2] * 3, rtol=1e-9)
+    slower = make_pose(None, [0.0, 0.0, 0.4])
+    out = unmodelled_covariance(straight, slower, True, 0.1, 0.0, 0.5, 0.0)
+    np.testing.assert_allclose(np.diag(out), [(0.5 * 0.1) ** 2] * 3 + [0.0] * 3, rtol=1e-9)
+    with_gyro = unmodelled_covariance(turning, straight, True, 0.1, 0.0, 0.5, 0.0)
+    without = unmodelled_covariance(turning, straight, False, 0.1, 0.0, 0.5, 0.0)
+    assert np.all(np.diag(with_gyro)[3:] == 0.0)
+    np.testing.assert_allclose(np.diag(without)[3:], [(0.5 * 0.1) ** 2] * 3, rtol=1e-9)
 
 
 def test_the_odometry_covariance_grows_along_the_campus_and_the_mapped_one_stays_bounded(tmp_path):

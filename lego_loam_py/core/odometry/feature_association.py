@@ -47,7 +47,12 @@ from lego_loam_py.core.imu.buffer import (
 )
 from lego_loam_py.core.imu.monitor import SweepImuCheck
 from lego_loam_py.core.imu.sweep import deskew_with_imu, rotate_at_points, sweep_attitude
-from lego_loam_py.core.odometry.covariance import OdometryCovariance, motion_covariance, sweep_motion
+from lego_loam_py.core.odometry.covariance import (
+    OdometryCovariance,
+    motion_covariance,
+    sweep_motion,
+    unmodelled_covariance,
+)
 from lego_loam_py.core.odometry.features import FeatureExtractor, ScanFeatures
 from lego_loam_py.core.odometry.laser_odometry import OdometryStats, make_laser_odometry
 from lego_loam_py.core.odometry.sweep import (
@@ -246,6 +251,23 @@ class FeatureAssociation:
         self.scans += 1
         return points, imu, features, {'deskew': (t1 - t0) * 1e3, 'features': (time.perf_counter() - t1) * 1e3}
 
+    def _motion_covariance(self, theta, stats, shift, turn, motion: np.ndarray) -> np.ndarray:
+        """The sweep's motion covariance (start-frame axes): the registration's information (``stats``) and what it
+        cannot see (the deskewing's errors, core.odometry.covariance); ``turn`` is the gyro's share of the turn
+        (None: no gyro)."""
+        fa = self.params.feature_association
+        seen = motion_covariance(theta, stats.information, shift, turn, fa.covariance_scale, stats.prior_information)
+        unseen = unmodelled_covariance(
+            motion,
+            self.covariance.last_motion,
+            turn is not None,
+            self.params.sensor.scan_period,
+            fa.covariance_turn,
+            fa.covariance_change,
+            fa.covariance_stamp_jitter,
+        )
+        return seen + unseen
+
     def _finish(
         self,
         scan: ScanInput,
@@ -395,8 +417,7 @@ class FeatureAssociation:
         elif imu_attitude is not None and previous is not None:  # on probation
             self._imu_event = check.compare(previous, imu_attitude, motion[:3, :3]) or self._imu_event
         imu_turn = previous.r_start.T @ attitude.r_start if use_imu else None
-        scale = self.params.feature_association.covariance_scale
-        covariance = motion_covariance(theta, stats.information, None, imu_turn, scale, stats.prior_information)
+        covariance = self._motion_covariance(theta, stats, None, imu_turn, motion)
         self.covariance.add(self._world_pose, motion, covariance)
         self._world_pose = self._world_pose @ motion
         self.transform_sum = matrix_to_pose6(self._world_pose)
@@ -522,12 +543,11 @@ class FeatureAssociation:
         theta = self.odometry.transform_cur.copy()
         shift_end = imu.shift_end if imu is not None else None
         turn = imu.delta_end if imu is not None else None
+        motion = sweep_motion(theta, shift_end, turn)
         self.covariance.add(
             make_pose(euler_to_matrix(*self.transform_sum[:3]), self.transform_sum[3:]),
-            sweep_motion(theta, shift_end, turn),
-            motion_covariance(
-                theta, stats.information, shift_end, turn, self.params.feature_association.covariance_scale
-            ),
+            motion,
+            self._motion_covariance(theta, stats, shift_end, turn, motion),
         )
         self.transform_sum = accumulate(self.transform_sum, theta, shift_end)
         if imu is not None:

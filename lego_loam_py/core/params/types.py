@@ -181,12 +181,20 @@ class FeatureAssociationParams:
     lost_match_ratio: float = 0.3
     # The odometry's covariance (core.odometry.covariance): the residual variance the registration estimates from its
     # own residuals is multiplied by this. The least-squares information assumes independent residuals; they are
-    # not (each line and plane is fitted through a few points of the previous sweep, whose range noise and
-    # deskewing error every point matched to it shares, and features crowd on a few surfaces), so the information
-    # overstates how well the motion is known by a factor set by the kind of data, not by one recording:
-    # benchmarks/covariance_nees.py measures it (the factor that makes the 1 s motion's NEES 6: campus 4.4, aggressive
-    # drive 29, corridor 47); 15 balances the three (docs/covariance.md).
-    covariance_scale: float = 15.0
+    # not (each line and plane is fitted through a few points of the previous sweep, whose range noise every point
+    # matched to it shares, and features crowd on a few surfaces). 2: the factor that makes the campus and forest
+    # sweeps' NEES 2-3 per sweep with the three terms below (docs/covariance.md).
+    covariance_scale: float = 2.0
+    # What no residual shows, added per sweep (core.odometry.covariance.unmodelled_covariance), each a deskewing
+    # error the registration absorbs into the motion, its coefficient set for the kind of data (docs/covariance.md):
+    # a turn bends the sweep's path off the deskewing's straight line: a position sigma of this times |t| |phi|
+    # (the arc is |t| |phi| / 2 off at the sweep's end; measured 0.47 on the simulated 60 deg/s drive);
+    covariance_turn: float = 0.5
+    # the motion changing within the sweep (the deskewing assumes it constant): a sigma of this times the change of
+    # the sweep's motion since the last (its translation [m]; its rotation [rad] only without a gyro);
+    covariance_change: float = 0.5
+    # the sweep's stamp off by this [s] (a lidar without hardware time sync: ~1 ms): a sigma of the velocity times it.
+    covariance_stamp_jitter: float = 0.001
     suppress_half_window: int = 5  # neighbours marked as picked around a feature
     suppress_column_jump: int = 10  # ... unless the column jumps by more than this
     less_flat_leaf_size: float = 0.2  # voxel leaf of the less-flat cloud [m]

@@ -171,6 +171,8 @@ def _validate(p: Params) -> None:
     need(fa.reassociate_every > 0, 'feature_association.reassociate_every', 'must be positive')
     need(0.0 <= fa.lost_match_ratio <= 1.0, 'feature_association.lost_match_ratio', 'must be within 0..1')
     need(fa.covariance_scale > 0, 'feature_association.covariance_scale', 'must be positive')
+    for name in ('covariance_turn', 'covariance_change', 'covariance_stamp_jitter'):
+        need(getattr(fa, name) >= 0, f'feature_association.{name}', 'must not be negative')
     mo = p.map_optimization
     need(mo.covariance_scale > 0, 'map_optimization.covariance_scale', 'must be positive')
     for name in (
