@@ -249,6 +249,66 @@ def test_the_odometry_covariance_grows_along_the_campus_and_the_mapped_one_stays
     assert all(m is not None for m in result.motion_covariance)
 
 
+def test_the_mapped_covariance_adds_what_the_odometry_covariance_grew_by_since_the_last_input():
+    """map_optimization.covariance_deskew: the mapped pose's covariance is the registration's and the map's plus
+    what the odometry's pose covariance grew by since the previous mapping input (the sweeps whose motion estimate
+    deskewed the scan). Against a run with covariance_deskew 0 on the first 4 s of bags/campus_8s: the same poses,
+    and each mapped covariance larger by a rotated copy of core.frames.relative_covariance of the odometry
+    covariances skip_frame_num + 1 sweeps apart (same trace, rtol 1e-6: the rotation keeps the trace)."""
+    from lego_loam_py.core.params.validation import params_from_mapping
+    from lego_loam_py.offline import run_bag
+    from tests.support.inprocess import CAMPUS
+
+    assert PARAMS.map_optimization.covariance_deskew == 1.0
+    with_term = run_bag(CAMPUS, PARAMS, progress=False, max_scans=40, mapping_thread=False)
+    without = params_from_mapping({'map_optimization.covariance_deskew': 0.0})
+    plain = run_bag(CAMPUS, without, progress=False, max_scans=40, mapping_thread=False)
+    np.testing.assert_array_equal(np.asarray(with_term.mapped), np.asarray(plain.mapped))
+    index = {stamp: i for i, stamp in enumerate(with_term.stamps)}
+    apart = PARAMS.feature_association.skip_frame_num + 1
+    odometry, covariance = with_term.odometry, with_term.odometry_covariance
+    checked = 0
+    for stamp, mapped, base in zip(with_term.mapped_stamps, with_term.mapped_covariance, plain.mapped_covariance):
+        added = mapped - base
+        assert float(np.linalg.eigvalsh(added).min()) > -1e-12
+        i = index.get(stamp, 0)
+        if i >= apart:
+            grown = relative_covariance(odometry[i - apart], covariance[i - apart], odometry[i], covariance[i])
+            np.testing.assert_allclose(np.trace(added), np.trace(grown), rtol=1e-6)
+            assert np.trace(added) > 1.001 * np.trace(with_term.motion_covariance[i])  # (more than the last sweep)
+            checked += 1
+    assert checked >= 5
+
+
+def test_the_sweep_covariance_is_what_the_odometry_covariance_grew_by_in_the_map_axes():
+    """core.mapping.covariance.SweepCovariance on a compounded chain: each step's covariance back (rtol 1e-9),
+    turned into the axes of the map where the sweep ended at a pose off the odometry by a drift rotation; unknown
+    covariances and a restart give zeros."""
+    from lego_loam_py.core.frames import rotate_covariance
+    from lego_loam_py.core.mapping.covariance import SweepCovariance
+
+    step = make_pose(euler_to_matrix(0.01, 0.05, -0.02), [0.1, 0.0, 1.0])
+    step_covariance = np.diag([1e-4, 2e-4, 3e-4, 1e-6, 2e-6, 3e-6]) + 1e-7
+    drift = make_pose(euler_to_matrix(0.0, 0.3, 0.0), [1.0, 2.0, 3.0])  # map from odometry
+    sweeps = SweepCovariance()
+    pose, covariance = np.eye(4), np.zeros((6, 6))
+    sweeps.add(pose, covariance)
+    assert not sweeps.deskewing(drift @ pose, 1.0).any()
+    for _ in range(6):
+        start = pose
+        covariance = compound_covariance(pose, covariance, step, step_covariance)
+        pose = pose @ step
+        sweeps.add(pose, covariance)
+        np.testing.assert_allclose(sweeps.covariance, step_covariance, rtol=1e-9, atol=1e-15)
+        expected = 0.5 * rotate_covariance(step_covariance, (drift @ start)[:3, :3])
+        np.testing.assert_allclose(sweeps.deskewing(drift @ pose, 0.5), expected, rtol=1e-9, atol=1e-15)
+    sweeps.add(pose @ step, None)
+    assert not sweeps.deskewing(pose, 1.0).any()
+    sweeps.reset()
+    sweeps.add(pose, covariance)
+    assert not sweeps.deskewing(pose, 1.0).any()
+
+
 # ----------------------------------------------------------------------------------------- the keyframes'
 def test_keyframe_covariance_is_a_random_walk_that_a_loop_closure_shrinks():
     """Keyframes 1 m apart along z, each registered with translation variance s² (rotation ~0): keyframe n has

@@ -304,7 +304,12 @@ class Pipeline:
             self._back_end.fuse(stamp, features.pose, features.pose_covariance)
         if features.corner_last is not None and features.outlier_last is not None:
             self._back_end.map(
-                stamp, features.transform_sum, features.corner_last, features.surf_last, features.outlier_last
+                stamp,
+                features.transform_sum,
+                features.corner_last,
+                features.surf_last,
+                features.outlier_last,
+                odometry_covariance=None if features.initialized else features.pose_covariance,
             )
         return ScanOutput(stamp, None if features.initialized else features.pose, imu_used=features.imu_used)
 
@@ -388,7 +393,7 @@ class _BackEnd:
         self._events.append(_Fuse(stamp_ns, odometry, covariance))
         self.drain()
 
-    def map(self, stamp: int, *inputs) -> None:
+    def map(self, stamp: int, *inputs, odometry_covariance: np.ndarray | None = None) -> None:
         if self.mo is None:
             return
 
@@ -400,7 +405,7 @@ class _BackEnd:
             if jump is not None:  # the same protection as the node's: continue the map, do not drag it
                 self.warn(f'mapping input at {stamp * 1e-9:.3f} s: {jump.describe()}')
                 self.mo.reanchor(jump, pose, transform_sum)
-            mapped = self.mo.process(stamp, *inputs)
+            mapped = self.mo.process(stamp, *inputs, odometry_covariance=odometry_covariance)
             heal = self.guard.after_step(self.mo.health_problem()) if mapped is not None else None
             if heal is not None:  # the guard of the node's (core.guard): reset what is poisoned, keep the map
                 self.warn(f'mapping step at {stamp * 1e-9:.3f} s: {heal}: {self.mo.heal()}')

@@ -78,6 +78,7 @@ from lego_loam_py.ros.conversions import (
     cloud_msg_to_xyzi,
     make_header,
     occupancy_grid_msg,
+    odometry_covariance,
     odometry_to_pose,
     serialized_odometry,
     serialized_stamp_ns,
@@ -363,7 +364,14 @@ class MapOptimizationNode(LegoLoamNode):
         self.order.processed(stamp)
         self._check_odometry_continuity(stamp, odometry_pose, transform_sum, self._odometry_publisher.get(stamp))
         try:
-            step = self.core.process(stamp, transform_sum, clouds['corner'], clouds['surf'], clouds['outlier'])
+            step = self.core.process(
+                stamp,
+                transform_sum,
+                clouds['corner'],
+                clouds['surf'],
+                clouds['outlier'],
+                odometry_covariance=odometry_covariance(odometry),
+            )
         except Exception:
             self.input_valid()
             self.count(MAPPING_STEPS_FAILED)

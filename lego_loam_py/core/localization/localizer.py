@@ -205,8 +205,10 @@ class Localization:
         corner_last: np.ndarray,
         surf_last: np.ndarray,
         outlier_last: np.ndarray,
+        odometry_covariance: np.ndarray | None = None,
     ) -> MappingStep | None:
-        """One step: the pose in the saved map, or None when none is published (not due, no fix, a bad step)."""
+        """One step: the pose in the saved map, or None when none is published (not due, no fix, a bad step).
+        ``odometry_covariance`` (the odometry pose's) is not used here."""
         mo, lo = self.params.map_optimization, self.params.localization
         with self.lock:
             self.latest_odometry_ns = stamp_ns

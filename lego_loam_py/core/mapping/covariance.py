@@ -27,10 +27,17 @@ from lego_loam_py.core.frames import (
     invert_pose,
     pose6_to_matrix,
     pose_jacobian,
+    relative_covariance,
     rotate_covariance,
 )
 
-__all__ = ['MAX_REGISTRATION_VARIANCE', 'registration_covariance', 'mapped_covariance', 'KeyframeCovariance']
+__all__ = [
+    'MAX_REGISTRATION_VARIANCE',
+    'registration_covariance',
+    'mapped_covariance',
+    'SweepCovariance',
+    'KeyframeCovariance',
+]
 
 # A registration never leaves a direction less certain than this [m², rad²]: a direction the map does not hold
 # (a corridor's axis) stays at the odometry's prediction, whose error over a mapping interval is below that.
@@ -59,6 +66,49 @@ def mapped_covariance(
     map whose uncertainty is that of the keyframe ``anchor`` (4x4, with its covariance)."""
     relative = invert_pose(anchor) @ pose
     return compound_covariance(anchor, anchor_covariance, relative, rotate_covariance(registration, anchor[:3, :3].T))
+
+
+class SweepCovariance:
+    """The covariance of the odometry's motion since the previous mapping input, read off the odometry's pose
+    covariance (that of /laser_odom_to_init): what it grew by from one input to the next
+    (:func:`~lego_loam_py.core.frames.relative_covariance`), in the earlier input's axes [m², rad²]. With
+    ``feature_association.skip_frame_num`` 1 that is two sweeps: the one whose scan is registered and the one
+    before it.
+
+    Why the mapping needs it: the scan mapOptimization registers was deskewed with the odometry's motion estimate
+    (that sweep's, assumed constant over it; how far that was off, the change from the sweep before, is one of the
+    odometry's deskewing terms, core.odometry.covariance), so an error in the motion bends the scan, and the
+    registration places the bent scan where its residuals are smallest: an error of the mapped pose that no
+    scan-to-map residual shows. :meth:`deskewing` adds it to the mapped pose's covariance. Per input: two 6x6
+    products and an eigendecomposition (``relative_covariance``'s bound).
+    """
+
+    def __init__(self):
+        self._last: tuple[np.ndarray, np.ndarray] | None = None  # the previous input's pose (4x4) and covariance
+        self.covariance: np.ndarray | None = None  # of the motion since the previous input, in that input's axes
+        self.rotation = np.eye(3)  # the rotation since the previous input (this input's axes in that one's)
+
+    def add(self, pose: np.ndarray, covariance: np.ndarray | None) -> None:
+        """The odometry's pose (4x4, camera_init) and its covariance (None: unknown) for the next input."""
+        last, self._last = self._last, (None if covariance is None else (pose, np.asarray(covariance, dtype=float)))
+        if last is None or covariance is None:
+            self.covariance = None
+            return
+        self.covariance = relative_covariance(last[0], last[1], pose, self._last[1])
+        self.rotation = last[0][:3, :3].T @ pose[:3, :3]
+
+    def reset(self) -> None:
+        """The odometry restarted: the next input starts a new chain."""
+        self._last, self.covariance = None, None
+
+    def deskewing(self, pose: np.ndarray, weight: float) -> np.ndarray:
+        """``weight`` (``map_optimization.covariance_deskew``) times the covariance of the motion since the
+        previous input, in the axes of the map frame (camera_init) where this input's scan is at ``pose`` (4x4, its
+        mapped pose): the deskewing's error the mapped pose carries [m², rad²] (zeros when the odometry gave no
+        covariance or restarted)."""
+        if self.covariance is None or weight == 0.0:
+            return np.zeros((6, 6))
+        return weight * rotate_covariance(self.covariance, np.asarray(pose)[:3, :3] @ self.rotation.T)
 
 
 def _tangent_to_parent(rotation: np.ndarray) -> np.ndarray:

@@ -48,6 +48,7 @@ from lego_loam_py.core.loop.methods import make_loop_method
 from lego_loam_py.core.mapping.covariance import (
     MAX_REGISTRATION_VARIANCE,
     KeyframeCovariance,
+    SweepCovariance,
     mapped_covariance,
     registration_covariance,
 )
@@ -135,6 +136,7 @@ class MapOptimization:
         self.keyframe_covariance = KeyframeCovariance()
         self._registration_information: np.ndarray | None = None
         self.pose_covariance = np.zeros((6, 6))
+        self.sweep_covariance = SweepCovariance()  # the motion's since the last input, from the odometry's covariance
         self._last_processing_ns: int | None = None
         self.latest_odometry_ns = 0
         self.loop_closed = False
@@ -172,6 +174,7 @@ class MapOptimization:
         with self.lock:
             self.transform_bef = anchored_transform_bef(jump, pose, self.transform_aft, self.transform_bef)
             self.transform_sum = np.asarray(transform_sum, dtype=float).copy()
+            self.sweep_covariance.reset()
 
     def heal(self) -> str:
         """Reset what :meth:`health_problem` found poisoned and keep the map and the trajectory built so far:
@@ -197,6 +200,7 @@ class MapOptimization:
                 self.transform_sum = np.zeros(6)
             # T_aft · T_bef^-1 · T_sum predicts the anchor for the latest odometry: mapping resumes there.
             self.transform_bef = self.transform_sum.copy()
+            self.sweep_covariance.reset()
             self.current_position = anchor[3:].copy()
             self._previous_keyframe_position = anchor[3:].copy() if self.keyframes else None
             self._corner_accumulator.clear()
@@ -217,13 +221,18 @@ class MapOptimization:
         corner_last: np.ndarray,
         surf_last: np.ndarray,
         outlier_last: np.ndarray,
+        odometry_covariance: np.ndarray | None = None,
     ) -> MappingStep | None:
-        """One mapping step, or None when less than ``mapping_process_interval`` passed since the last one."""
+        """One mapping step, or None when less than ``mapping_process_interval`` passed since the last one.
+        ``odometry_covariance``: the 6x6 covariance of the odometry pose ``transform_sum`` (that of
+        /laser_odom_to_init, camera_init; None: unknown), read for the deskewing's error
+        (:class:`~lego_loam_py.core.mapping.covariance.SweepCovariance`)."""
         mo = self.params.map_optimization
         interval_ns = int(round(mo.mapping_process_interval * 1e9))
         with self.lock:
             self.latest_odometry_ns = stamp_ns
             self.transform_sum = np.asarray(transform_sum, dtype=float).copy()
+            self.sweep_covariance.add(pose6_to_matrix(self.transform_sum), odometry_covariance)
             # (An input stamped before the last step comes after a wrong stamp was found out, see StampOrder's
             # resync: the interval counts from the inputs on the right timeline.)
             if self._last_processing_ns is not None and 0 <= stamp_ns - self._last_processing_ns < interval_ns:
@@ -259,7 +268,10 @@ class MapOptimization:
             t2 = _time.perf_counter()
             step.keyframe_added = self._save_keyframe(stamp_ns, corner_ds, surf_ds, outlier_ds, registration)
             self._correct_poses()
-            step.pose_covariance = self._mapped_covariance(step.keyframe_added, registration)
+            # The scan was deskewed with the odometry's motion estimate: its error is the mapped pose's too, unseen
+            # by the registration (core.mapping.covariance.SweepCovariance).
+            deskewing = self.sweep_covariance.deskewing(pose6_to_matrix(self.transform_aft), mo.covariance_deskew)
+            step.pose_covariance = self._mapped_covariance(step.keyframe_added, registration) + deskewing
             step.registration_covariance = registration
             t3 = _time.perf_counter()
             timings.update(

@@ -32,8 +32,10 @@ class Mapper(Protocol):
         corner_last: np.ndarray,
         surf_last: np.ndarray,
         outlier_last: np.ndarray,
+        odometry_covariance: np.ndarray | None = None,
     ):
-        """One mapping input; the step (core.mapping.map_optimization.MappingStep) or None when none was due."""
+        """One mapping input; the step (core.mapping.map_optimization.MappingStep) or None when none was due.
+        ``odometry_covariance``: the odometry pose's 6x6 covariance (camera_init; None: unknown)."""
 
     def health_problem(self) -> str | None:
         """Why the state is poisoned (non-finite or impossible values), or None."""

@@ -266,9 +266,14 @@ class MapOptimizationParams:
     imu_blend_weight: float = 0.002  # roll/pitch <- (1 - w) * estimate + w * IMU
     keyframe_distance: float = 0.3  # new keyframe after moving this far [m]
     # The mapped pose's covariance (core.mapping.covariance): the scan-to-map residual variance times this (the
-    # residuals share the map's planes and lines; see feature_association.covariance_scale). The factor that makes
-    # the mapped pose's NEES 6: campus 1.3, corridor 1.9, aggressive drive 6.6; 3 balances them.
-    covariance_scale: float = 3.0
+    # residuals share the map's planes and lines, as the odometry's do: feature_association.covariance_scale),
+    # on top of the keyframe's (the map's), plus covariance_deskew times what /laser_odom_to_init's
+    # covariance grew by since the previous mapping input (core.mapping.covariance.SweepCovariance): the scan was
+    # deskewed with that motion, whose error bends the scan unseen by the residuals. 1: the odometry's covariance
+    # as it is. Scale 1.5 of a grid 1.5 / 2 / 3 with it: the mapped NEES nearest 6 together on the campus, corridor
+    # and aggressive drive (docs/covariance.md).
+    covariance_scale: float = 1.5
+    covariance_deskew: float = 1.0  # [dimensionless]; 0: the registration's and the map's only
     isam_relinearize_threshold: float = 0.01
     isam_relinearize_skip: int = 1
     # Diagonal variances (roll, pitch, yaw, x, y, z) of the prior and odometry factors.

@@ -175,6 +175,7 @@ def _validate(p: Params) -> None:
         need(getattr(fa, name) >= 0, f'feature_association.{name}', 'must not be negative')
     mo = p.map_optimization
     need(mo.covariance_scale > 0, 'map_optimization.covariance_scale', 'must be positive')
+    need(mo.covariance_deskew >= 0, 'map_optimization.covariance_deskew', 'must not be negative')
     for name in (
         'corner_leaf_size',
         'surf_leaf_size',
