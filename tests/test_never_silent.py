@@ -417,7 +417,11 @@ def test_the_short_dds_campaign_finds_no_crash_no_silence_and_no_non_finite_outp
         assert report['non_finite_outputs'] == 0 and report['tracebacks_logged'] == 0, node
         assert all(sent == 60 for sent in report['sent'].values()), (node, report['sent'])
         # The bound: resident memory after the campaign at most 50 MB above the baseline. mapOptimization
-        # also keeps the map of the ~200 valid scans fed meanwhile (about 0.2 MB per keyframe): 30 MB more.
+        # also keeps the map of the ~200 valid scans fed meanwhile (about 0.2 MB per keyframe): 30 MB more, and the
+        # occupancy grid drawn from it, whose worker thread keeps its heap (glibc's per-thread arena, trimmed only
+        # beyond allocator.TRIM_THRESHOLD): 50 MB more (measured 2026-11-28: +26 MB after this campaign with the
+        # grid off, +74 MB with it; +45 and +110 MB after three times as many messages and scans, so no leak of
+        # the malformed messages, the map and its grid grow with the valid scans).
         memory = report['memory_mb']
-        allowance = 50 + (30 if node == 'mapOptimization' else 0)
+        allowance = 50 + (30 + 50 if node == 'mapOptimization' else 0)
         assert memory['after'] <= memory['before'] + allowance, (node, memory)
