@@ -1,4 +1,4 @@
-"""The viewer: a run shown live in Rerun (https://rerun.io), or saved as a ``.rrd`` recording to open later.
+"""The viewer: a run shown live in Rerun, or saved as a ``.rrd`` recording to open later.
 
 Everything is logged in the ``map`` frame (REP-103 axes: x forward, y left, z up), on the ``scan`` timeline (one
 step per scan, its index) and the ``stamp`` timeline (the scan's stamp):
