@@ -114,9 +114,9 @@ class _TfRecorder:
         return {(t.header.frame_id, t.child_frame_id) for t in self.sent}
 
     def last(self, parent: str, child: str) -> np.ndarray:
-        from lego_loam_py.ros.tf import _transform_pose
+        from lego_loam_py.ros.conversions import transform_to_pose
 
-        return _transform_pose([t for t in self.sent if (t.header.frame_id, t.child_frame_id) == (parent, child)][-1])
+        return transform_to_pose([t for t in self.sent if (t.header.frame_id, t.child_frame_id) == (parent, child)][-1])
 
 
 def _odometry(pose: np.ndarray, stamp_ns: int):

@@ -28,7 +28,7 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from lego_loam_py.core.pointcloud import CloudBuffer, PointField, array_to_cloud, cloud_to_array
+from lego_loam_py.core.pointcloud import CloudBuffer, array_to_cloud, cloud_to_array
 from lego_loam_py.errors import LegoLoamError
 
 __all__ = [
@@ -402,16 +402,4 @@ def make_cloud_msg(types: dict[str, type], header: Any, points: np.ndarray) -> A
 
 def cloud_msg_to_array(msg: Any, flatten: bool = True) -> np.ndarray:
     """Structured array of a rosbags PointCloud2 object."""
-    return cloud_to_array(
-        CloudBuffer(
-            fields=[PointField(f.name, int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields],
-            point_step=int(msg.point_step),
-            width=int(msg.width),
-            height=int(msg.height),
-            row_step=int(msg.row_step),
-            is_bigendian=bool(msg.is_bigendian),
-            is_dense=bool(msg.is_dense),
-            data=msg.data,
-        ),
-        flatten=flatten,
-    )
+    return cloud_to_array(CloudBuffer.of_message(msg), flatten=flatten)

@@ -86,6 +86,20 @@ class CloudBuffer:
     is_dense: bool = True
     data: bytes | bytearray | memoryview | np.ndarray = b''
 
+    @classmethod
+    def of_message(cls, msg) -> CloudBuffer:
+        """The layout and bytes of a PointCloud2 message, an rclpy or a rosbags one (no copy of the data)."""
+        return cls(
+            fields=[PointField(f.name, int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields],
+            point_step=int(msg.point_step),
+            width=int(msg.width),
+            height=int(msg.height),
+            row_step=int(msg.row_step),
+            is_bigendian=bool(msg.is_bigendian),
+            is_dense=bool(msg.is_dense),
+            data=msg.data,
+        )
+
 
 def dtype_from_fields(fields: Sequence[PointField], point_step: int, is_bigendian: bool = False) -> np.dtype:
     """Structured dtype with the fields at their offsets and itemsize ``point_step``.

@@ -137,16 +137,7 @@ def numpy_to_array(values: np.ndarray, typecode: str) -> array.array:
 
 def cloud_msg_to_buffer(msg: PointCloud2) -> CloudBuffer:
     """The layout and bytes of a PointCloud2 message (no copy of the data)."""
-    return CloudBuffer(
-        fields=[PointField(f.name, int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields],
-        point_step=int(msg.point_step),
-        width=int(msg.width),
-        height=int(msg.height),
-        row_step=int(msg.row_step),
-        is_bigendian=bool(msg.is_bigendian),
-        is_dense=bool(msg.is_dense),
-        data=msg.data,
-    )
+    return CloudBuffer.of_message(msg)
 
 
 def cloud_msg_to_array(msg: PointCloud2, flatten: bool = True) -> np.ndarray:
@@ -585,3 +576,13 @@ def occupancy_grid_msg(fields, stamp: Time | int) -> OccupancyGrid:
     orientation.x, orientation.y, orientation.z, orientation.w = (float(v) for v in fields.origin_orientation)
     msg.data = fields.data  # (an array.array('b'): taken as is, no per-element copy)
     return msg
+
+
+def transform_to_pose(transform: TransformStamped) -> np.ndarray:
+    """4x4 pose of ``child_frame_id`` in ``header.frame_id`` carried by a TransformStamped (the inverse of
+    :func:`pose_to_transform`)."""
+    translation, rotation = transform.transform.translation, transform.transform.rotation
+    pose = np.eye(4)
+    pose[:3, :3] = quaternion_to_matrix([rotation.x, rotation.y, rotation.z, rotation.w])
+    pose[:3, 3] = (translation.x, translation.y, translation.z)
+    return pose

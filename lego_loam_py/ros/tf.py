@@ -17,7 +17,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from tf2_msgs.msg import TFMessage
 
 from lego_loam_py.core import frames
-from lego_loam_py.ros.conversions import pose_to_transform
+from lego_loam_py.ros.conversions import pose_to_transform, transform_to_pose
 
 __all__ = [
     'TransformBroadcaster',
@@ -88,11 +88,6 @@ def original_static_transforms(
     return out
 
 
-def _transform_pose(t: TransformStamped) -> np.ndarray:
-    tr, q = t.transform.translation, t.transform.rotation
-    return frames.make_pose(frames.quaternion_to_matrix([q.x, q.y, q.z, q.w]), [tr.x, tr.y, tr.z])
-
-
 class StaticTransformListener:
     """The static transforms on latched /tf_static (a robot_state_publisher's), looked up as a chain of them."""
 
@@ -102,7 +97,7 @@ class StaticTransformListener:
 
     def _on_transforms(self, msg: TFMessage) -> None:
         for t in msg.transforms:
-            pose = _transform_pose(t)
+            pose = transform_to_pose(t)
             if np.isfinite(pose).all():
                 self._parent_of[t.child_frame_id.lstrip('/')] = (t.header.frame_id.lstrip('/'), pose)
 

@@ -160,8 +160,9 @@ class TransformFusionNode(LegoLoamNode):
         if not ok:
             return
         stamp_ns = stamp_to_ns(msg.header.stamp)
+        covariance = odometry_covariance(msg)
         if self.params.frames.rep105:
-            self._publish_odom_frame(msg, odometry, stamp_ns)
+            self._publish_odom_frame(msg, odometry, covariance, stamp_ns)
         if not self.core.publishable(stamp_ns):  # (localization without a recent fix: withheld, not silent by fault)
             self.order.processed(stamp_ns)
             self.count('withheld_not_localized')
@@ -172,7 +173,6 @@ class TransformFusionNode(LegoLoamNode):
             return
         self.input_valid()
         problem = self.core.health_problem()
-        covariance = odometry_covariance(msg)
         mapped = self.core.integrate(odometry, covariance, stamp_ns) if problem is None else None
         if problem is None and not (np.isfinite(mapped).all() and np.abs(mapped[:3, 3]).max() <= MAX_POSITION):
             problem = 'the fused pose is not finite or absurd'
@@ -213,13 +213,14 @@ class TransformFusionNode(LegoLoamNode):
             self.get_logger().info(f'lidar mounting read from /tf_static: {frames.base_frame} -> {frames.lidar_frame}')
         return self.rep105 is not None
 
-    def _publish_odom_frame(self, msg: Odometry, odometry: np.ndarray, stamp_ns: int) -> None:
+    def _publish_odom_frame(
+        self, msg: Odometry, odometry: np.ndarray, covariance: np.ndarray | None, stamp_ns: int
+    ) -> None:
         """odom -> base_link on /tf and the odometry topic (REP-103 axes, twist in base_link, their covariances)."""
         if not self._mount_known():
             return
         frames = self.params.frames
         odom_T_base = self.rep105.odom_to_base(odometry)
-        covariance = odometry_covariance(msg)
         pose_covariance = twist_covariance = None
         if covariance is not None:
             pose_covariance = self.rep105.odom_to_base_covariance(odometry, covariance)
