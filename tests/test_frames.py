@@ -178,8 +178,9 @@ def test_quaternion_and_matrix_conversions_are_scipys_bit_for_bit():
     for q in _random_quaternions(rng, 4000):
         matrix = Rotation.from_quat(q).as_matrix()
         assert _same_bits(F.quaternion_to_matrix(q), matrix), q
-        # exact rotations, nearly orthogonal ones (scipy's Markley step) and perturbed ones (its SVD projection)
-        for m in (matrix, matrix + rng.normal(size=(3, 3)) * 1e-14, matrix + rng.normal(size=(3, 3)) * 1e-4):
+        # exact rotations, nearly orthogonal ones (scipy's Markley step), perturbed ones (its SVD projection) and
+        # ones about its tolerances (1e-12 off the diagonal of m m^T, 1e-5 on it) where the fast check defers to it
+        for m in (matrix, *(matrix + rng.normal(size=(3, 3)) * s for s in (1e-14, 4e-13, 2e-12, 3e-6, 1e-4))):
             expected = Rotation.from_matrix(m).as_quat()
             assert _same_bits(F.matrix_to_quaternion(m), -expected if expected[3] < 0 else expected), m
             assert _same_bits(F.matrix_to_rpy(m), Rotation.from_matrix(m).as_euler('xyz', degrees=True)), m

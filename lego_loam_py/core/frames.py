@@ -394,19 +394,40 @@ def _matrix_of_quaternion(x: float, y: float, z: float, w: float) -> np.ndarray:
     )
 
 
+def _clearly_orthonormal(m: list[list[float]]) -> bool:
+    """Whether the 3x3 ``m`` passes scipy's checks (positive determinant; ``m m^T`` close to the identity: within
+    1e-12 off the diagonal, 1e-12 + 1e-5 on it) with a margin no rounding of the checks' own arithmetic can cross:
+    the common case decided in Python floats, 20x faster than np.isclose on the product. False sends the matrix
+    through the checks themselves."""
+    (a, b, c), (d, e, f), (g, h, i) = m
+    if not (a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)) > 0.5:
+        return False
+    rows = ((a, b, c), (d, e, f), (g, h, i))
+    for r in range(3):
+        for s in range(r, 3):
+            p, q = rows[r], rows[s]
+            dot = p[0] * q[0] + p[1] * q[1] + p[2] * q[2]
+            # Half of each tolerance: the product's rounding (a few 1e-16) never moves a value across it.
+            if not abs(dot - (1.0 if r == s else 0.0)) <= (0.5e-5 if r == s else 0.5e-12):
+                return False
+    return True
+
+
 def _quaternion_of_matrix(rotation: np.ndarray) -> np.ndarray:
     """3x3 rotation -> unit (x, y, z, w) as scipy's from_matrix: refused when its determinant is not positive,
     projected onto the rotations (SVD) when not orthogonal to 1e-12, then Markley's method."""
     matrix = np.array(rotation, dtype=float)[np.newaxis]
-    dets = np.linalg.det(matrix)
-    if np.any(dets <= 0):
-        raise ValueError(
-            f'Non-positive determinant (left-handed or null coordinate frame) in rotation matrix 0: {matrix[0]}.'
-        )
-    if not np.all(np.isclose(matrix @ np.transpose(matrix, (0, 2, 1)), np.eye(3), atol=1e-12)):
-        u, _, vt = np.linalg.svd(matrix)
-        matrix = u @ vt
     m = matrix[0].tolist()
+    if not _clearly_orthonormal(m):
+        dets = np.linalg.det(matrix)
+        if np.any(dets <= 0):
+            raise ValueError(
+                f'Non-positive determinant (left-handed or null coordinate frame) in rotation matrix 0: {matrix[0]}.'
+            )
+        if not np.all(np.isclose(matrix @ np.transpose(matrix, (0, 2, 1)), np.eye(3), atol=1e-12)):
+            u, _, vt = np.linalg.svd(matrix)
+            matrix = u @ vt
+        m = matrix[0].tolist()
     trace = m[0][0] + m[1][1] + m[2][2]
     decision = (m[0][0], m[1][1], m[2][2], trace)
     choice = 0
