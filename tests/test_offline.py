@@ -2,8 +2,8 @@
 
 * the command on the committed recording writes every output (trajectories in both axes, maps, PNG, summary)
   and tracks the ground truth beside the bag;
-* mapOptimization on its worker thread gives exactly the trajectory of the sequential run (the thread only
-  overlaps work, it never changes which mapping results a scan is fused with);
+* mapOptimization on its worker thread, and imageProjection on its own, give exactly the trajectory of the
+  sequential run (the threads only overlap work, they never change which mapping results a scan is fused with);
 * a bag without the cloud topic fails with a clear message and exit code 1.
 """
 
@@ -58,8 +58,20 @@ def test_run_writes_trajectories_maps_png_and_an_accurate_summary(tmp_path):
     assert summary['map_files']['occupancy_image'] == str(out / 'map' / 'occupancy.pgm')
 
 
-def test_mapping_thread_gives_the_sequential_result():
+@pytest.mark.parametrize('projection_thread', [False, True])
+def test_mapping_thread_gives_the_sequential_result(monkeypatch, projection_thread):
+    """The worker threads (mapOptimization's; imageProjection's ahead of featureAssociation, which the runner uses
+    for 64-beam range images and here for 16) only overlap work."""
+    import lego_loam_py.offline as offline
+    from lego_loam_py.core.pipeline import Pipeline
+
+    started = []
+    monkeypatch.setattr(offline, 'PROJECTION_THREAD_PIXELS', 0 if projection_thread else 10**9)
+    monkeypatch.setattr(
+        offline, 'Pipeline', lambda *a, **k: started.append(k['projection_thread']) or Pipeline(*a, **k)
+    )
     threaded = run_bag(BAG, Params(), progress=False, max_scans=40, mapping_thread=True)
+    assert started == [projection_thread]
     sequential = run_bag(BAG, Params(), progress=False, max_scans=40, mapping_thread=False)
     assert threaded.counts == sequential.counts and threaded.counts['mapping_steps'] >= 5
     assert np.array_equal(np.array(threaded.mapped), np.array(sequential.mapped))

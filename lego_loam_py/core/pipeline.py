@@ -13,7 +13,10 @@ transformFusion publishes only while its map correction is recent (see :class:`T
 mapOptimization may run on a worker thread (``mapping_thread``): it then overlaps the next scans'
 imageProjection and featureAssociation (numpy and scipy release the GIL), with the same result as without it,
 since the worker takes the mapping inputs and IMU samples in arrival order and transformFusion applies each
-mapping result before the scans that follow it.
+mapping result before the scans that follow it. imageProjection may also run on a worker thread
+(``projection_thread``): a caller that knows the next scan hands it to :meth:`Pipeline.project` before the scans
+ahead of it reach featureAssociation (the offline runner does), and the projection overlaps them; it depends on
+nothing but the scans before it, so the result is the same.
 """
 
 from __future__ import annotations
@@ -164,10 +167,16 @@ class Pipeline:
         *,
         mapping: bool = True,
         mapping_thread: bool = False,
+        projection_thread: bool = False,
         warn: Callable[[str], None] | None = None,
         listener: PipelineListener | None = None,
     ):
         self.params = params
+        # imageProjection's worker (see the module docstring): its CPU time is its thread's own, as the mapping's.
+        self._projector = (
+            ThreadPoolExecutor(max_workers=1, thread_name_prefix='projection') if projection_thread else None
+        )
+        self._projection_clock = time.thread_time if projection_thread else time.perf_counter
         self.ip, self.fa = ImageProjection(params), FeatureAssociation(params)
         self.localizing = params.map_optimization.mode == 'localization' and mapping
         # (Localization.load raises MapBundleError, naming the problem, for a bundle it cannot use.)
@@ -202,12 +211,31 @@ class Pipeline:
         self._after_scan(stamp_ns)
         return output
 
-    def process_scan(self, points: np.ndarray, stamp_ns: int) -> ScanOutput:
+    def project(self, points: np.ndarray) -> Future:
+        """Start imageProjection on a cloud (on the projection worker, if there is one): a future of (its
+        segmentation, ms of imageProjection), for :meth:`process_scan`. Clouds must be handed over in the order of
+        their scans (the projection learns from the scans before it, e.g. a beam-elevation error)."""
+
+        def job():
+            start = self._projection_clock()
+            segmentation = self.ip.process(prepare_input(points, self.params))
+            return segmentation, (self._projection_clock() - start) * 1e3
+
+        if self._projector is not None:
+            return self._projector.submit(job)
+        future = Future()
+        try:
+            future.set_result(job())
+        except Exception as exc:  # (raised again where the result is taken, as on the worker)
+            future.set_exception(exc)
+        return future
+
+    def process_scan(self, points: np.ndarray, stamp_ns: int, projected: Future | None = None) -> ScanOutput:
         """One cloud (structured array with x, y, z, intensity and optionally ring / time) stamped
         ``stamp_ns`` [ns]: its odometry now, its fused pose and mapping as their results come (see
-        :meth:`finish`)."""
+        :meth:`finish`). ``projected``: what :meth:`project` returned for this cloud, if it was started ahead."""
         self.record.count(SCANS_IN)
-        output = self._one_scan(points, stamp_ns)
+        output = self._one_scan(projected if projected is not None else self.project(points), stamp_ns)
         self._after_scan(stamp_ns)
         return output
 
@@ -239,7 +267,9 @@ class Pipeline:
         return self.record
 
     def close(self) -> None:
-        """Stop the mapping worker (idempotent)."""
+        """Stop the projection and mapping workers (idempotent)."""
+        if self._projector is not None:
+            self._projector.shutdown(wait=True, cancel_futures=True)
         self._back_end.close()
 
     def _dropped(self, stamp_ns: int, reason: str) -> ScanOutput:
@@ -247,15 +277,14 @@ class Pipeline:
         self._warn(f'scan at {stamp_ns * 1e-9:.3f} s dropped: {reason}')
         return ScanOutput(stamp_ns, dropped=reason)
 
-    def _one_scan(self, points: np.ndarray, stamp: int) -> ScanOutput:
+    def _one_scan(self, projected: Future, stamp: int) -> ScanOutput:
         record = self.record
-        t0 = time.perf_counter()
         try:
-            segmentation = self.ip.process(prepare_input(points, self.params))
+            segmentation, projection_ms = projected.result()
         except (CloudLayoutError, InputError) as exc:
             return self._dropped(stamp, str(exc))
         t1 = time.perf_counter()
-        record.time('imageProjection', (t1 - t0) * 1e3)
+        record.time('imageProjection', projection_ms)
         if 'elevation_offset_found' in segmentation.stats:
             self._warn(elevation_note(segmentation.stats['elevation_offset_found'], stamp))
         for mapped_stamp, pose6 in self._back_end.mapped_before(stamp - MAPPED_POSE_LAG_NS):
@@ -293,7 +322,7 @@ class Pipeline:
                     segmentation,
                     features,
                     None if features.initialized else features.pose,
-                    {'imageProjection': (t1 - t0) * 1e3, 'featureAssociation': (t2 - t1) * 1e3},
+                    {'imageProjection': projection_ms, 'featureAssociation': (t2 - t1) * 1e3},
                 )
             )
         if not features.initialized:
