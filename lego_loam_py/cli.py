@@ -15,7 +15,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from lego_loam_py import __version__
+from lego_loam_py.blas import one_blas_thread
 from lego_loam_py.errors import LegoLoamError
+
+one_blas_thread()  # (before any command imports NumPy)
 
 __all__ = ['main', 'build_parser', 'run_command', 'add_parameter_arguments', 'COMMANDS']
 
