@@ -29,6 +29,7 @@ from lego_loam_py.ros.conversions import (
     serialized_stamp_ns,
     stamp_to_ns,
 )
+from lego_loam_py.ros.logging import NodeLogger
 from lego_loam_py.ros.params import declare_params
 
 __all__ = ['LegoLoamNode', 'release_memory', 'LARGE_MESSAGE_BYTES']
@@ -89,6 +90,13 @@ class LegoLoamNode(Node):
             self.DIAGNOSTICS_PERIOD, self.publish_diagnostics, clock=Clock(clock_type=ClockType.STEADY_TIME)
         )
         self._polled_clock = self._poll_clock_topic() if self.POLL_CLOCK else None
+
+    def get_logger(self) -> NodeLogger:
+        """The node's logger: rclpy's, without its source lookup on every call (see ros.logging)."""
+        logger = self.__dict__.get('_node_logger')
+        if logger is None:
+            logger = self.__dict__['_node_logger'] = NodeLogger(super().get_logger())
+        return logger
 
     # ------------------------------------------------------------------------------------------ the clock
     def _poll_clock_topic(self):
