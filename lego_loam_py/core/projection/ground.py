@@ -22,6 +22,21 @@ __all__ = ['GroundRemoval']
 _F32 = np.float32
 
 
+def _hypotf(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """``np.hypot`` of float32 arrays, bit for bit where neither is infinite, in a third of its time.
+
+    NumPy's float32 hypot is glibc's hypotf (one call per value), which for finite float32 inputs returns
+    (float) sqrt((double) x * x + (double) y * y): the squares are exact in float64, so its FMA build gives the
+    same. Here those operations run as whole-array passes. NaN gives NaN either way; an infinite input with a
+    NaN gives +inf in glibc and NaN here (both compare false).
+    """
+    x64, y64 = x.astype(np.float64), y.astype(np.float64)
+    x64 *= x64
+    y64 *= y64
+    x64 += y64
+    return np.sqrt(x64, out=x64).astype(_F32)
+
+
 class GroundRemoval:
     """Ground detection for one sensor configuration; :meth:`ground` handles one scan's range image."""
 
@@ -47,17 +62,25 @@ class GroundRemoval:
         """
         n, h = self.n_scan, self.horizon_scan
         g = self.params.sensor.ground_scan_ind
-        p = full.reshape(n, h, 4)
+        refined = self.params.image_projection.ground_rule == 'refined'
+        # Rows that can hold ground (and, refined, the row above them), as contiguous coordinate planes: strided
+        # (n, h, 4) views are slow. The steps between vertical neighbours serve the pair test (rows 0..g) and the
+        # refinement (one row more).
+        top = min(g + 2, n) if refined else g + 1
         f = filled.reshape(n, h)
-        lower, upper = p[:g], p[1 : g + 1]
+        planes = full.reshape(n, h, 4)[:top]
+        x, y, z = (np.ascontiguousarray(planes[..., axis]) for axis in range(3))
+        with np.errstate(invalid='ignore'):
+            dx, dy, dz = x[1:] - x[:-1], y[1:] - y[:-1], z[1:] - z[:-1]
         empty_pair = ~(f[:g] & f[1 : g + 1])
         with np.errstate(invalid='ignore'):
-            dx = upper[..., 0] - lower[..., 0]
-            dy = upper[..., 1] - lower[..., 1]
-            dz = upper[..., 2] - lower[..., 2]
             # The angle of (horizontal, dz) with horizontal >= 0 lies in [-pi/2, pi/2].
+            dx_g, dy_g = dx[:g], dy[:g]
             above, beyond = atan2f_exceeds(
-                dz, np.sqrt(dx * dx + dy * dy), [self._slope_above, self._slope_at_most], (-math.pi / 2, math.pi / 2)
+                dz[:g],
+                np.sqrt(dx_g * dx_g + dy_g * dy_g),
+                [self._slope_above, self._slope_at_most],
+                (-math.pi / 2, math.pi / 2),
             )
             slope_ok = above & ~beyond
         ground_pair = ~empty_pair & slope_ok
@@ -69,8 +92,8 @@ class GroundRemoval:
         rows_i[ground_pair] = 1
         rows_i[empty_pair] = -1
         ground = mat == 1
-        if self.params.image_projection.ground_rule == 'refined':
-            ground = self._refine_ground(p, f, ground)
+        if refined:
+            ground = self._refine_ground((x, y, z), (dx, dy, dz), f, ground)
         return ground.reshape(-1)
 
     def _slope_band(self, angle: np.ndarray) -> np.ndarray:
@@ -80,7 +103,7 @@ class GroundRemoval:
         off = float_degrees(angle) - self._mount_angle
         return (off >= -self._slope_threshold).astype(np.int8) + (off > self._slope_threshold)
 
-    def _refine_ground(self, p: np.ndarray, f: np.ndarray, ground: np.ndarray) -> np.ndarray:
+    def _refine_ground(self, planes: tuple, steps: tuple, f: np.ndarray, ground: np.ndarray) -> np.ndarray:
         """Remove from the original's ground what a pair test over a 2-degree gap cannot see.
 
         * A pixel that forms a vertical pair with the pixel above or below it (height step > ratio x horizontal
@@ -96,15 +119,14 @@ class GroundRemoval:
           to the whole scan instead dropped up to 77 % of the ground of single forest scans.)
         """
         ip = self.params.image_projection
-        g = self.params.sensor.ground_scan_ind
-        top = min(g + 2, self.n_scan)
-        # Contiguous coordinate planes of the rows that can hold ground (strided (n, h, 4) views are slow).
-        x, y, z = (np.ascontiguousarray(p[:top, :, axis]) for axis in range(3))
+        x, y, z = planes  # float32 (top, H) [m]: the rows that can hold ground and the one above them
+        dx, dy, dz = steps  # float32 (top - 1, H) [m]: each row's step to the row above
+        top = len(x)
         both = f[: top - 1] & f[1:top]
         with np.errstate(invalid='ignore'):
-            gap = np.hypot(x[1:] - x[:-1], y[1:] - y[:-1])
-            rise = np.abs(z[1:] - z[:-1])
-            reach = np.hypot(x[:-1], y[:-1])
+            gap = _hypotf(dx, dy)  # (np.hypot's values; NaN and inf only compare false below, either way)
+            rise = np.abs(dz)
+            reach = _hypotf(x[:-1], y[:-1])
             vertical = both & (rise > ip.ground_vertical_ratio * gap) & (gap < ip.ground_vertical_gap * reach)
         ground = ground.copy()
         ground[: top - 1] &= ~vertical
@@ -127,12 +149,13 @@ class GroundRemoval:
                 break
             # np.compress: the same rows as design[keep], several times faster on a 2-D array.
             coef, *_ = np.linalg.lstsq(np.compress(keep, design, axis=0), ground_z[keep], rcond=None)
-            refit = (np.abs(ground_z - design @ coef) <= tolerance) & (near if fit_near else True)
+            fits = np.abs(ground_z - design @ coef) <= tolerance  # (of the last plane fitted, after the loop)
+            refit = fits & (near if fit_near else True)
             if np.array_equal(refit, keep):
                 break  # the same points give the same plane again: the remaining rounds change nothing
             keep = refit
         on_plane = np.zeros(top * self.horizon_scan, dtype=bool)
-        on_plane[pixels] = np.abs(ground_z - design @ coef) <= tolerance
+        on_plane[pixels] = fits
         far = np.ones(top * self.horizon_scan, dtype=bool)
         far[pixels] = ~near
         on_plane, far = on_plane.reshape(top, -1), far.reshape(top, -1)
