@@ -85,13 +85,13 @@ class GroundRemoval:
             slope_ok = above & ~beyond
         ground_pair = ~empty_pair & slope_ok
         # Iteration i writes row i (-1 if the pair has an empty pixel, 1 if ground) and row i+1 (1 if
-        # ground); iteration i+1 runs later and may overwrite row i+1 with -1.
-        mat = np.zeros((n, h), dtype=np.int8)
-        mat[1 : g + 1][ground_pair] = 1
-        rows_i = mat[:g]
-        rows_i[ground_pair] = 1
-        rows_i[empty_pair] = -1
-        ground = mat == 1
+        # ground); iteration i+1 runs later and may overwrite row i+1 with -1. So row i ends ground where its
+        # own pair is (never empty then), or the pair below it is and its own pair is not empty; row g where
+        # the pair below it is.
+        ground = np.zeros((n, h), dtype=bool)
+        ground[1 : g + 1] = ground_pair
+        ground[:g] &= ~empty_pair
+        ground[:g] |= ground_pair
         if refined:
             ground = self._refine_ground((x, y, z), (dx, dy, dz), f, ground)
         return ground.reshape(-1)
@@ -135,7 +135,9 @@ class GroundRemoval:
         if len(pixels) < 10:
             return ground
         # Ground lies in rows < top only: the planes hold every candidate.
-        x, y, z = x.astype(np.float64), y.astype(np.float64), z.astype(np.float64)
+        points = np.empty((3,) + x.shape)  # float64 (3, top, H): the planes as one array, for the walk below
+        points[0], points[1], points[2] = x, y, z
+        x, y, z = points
         ground_x, ground_y, ground_z = (plane.reshape(-1)[pixels] for plane in (x, y, z))
         reach = np.hypot(ground_x, ground_y)
         tolerance = np.maximum(ip.ground_plane_tolerance, ip.ground_plane_tolerance_ratio * reach)
@@ -161,19 +163,29 @@ class GroundRemoval:
         on_plane, far = on_plane.reshape(top, -1), far.reshape(top, -1)
         # The walk up the columns: a loop over the few ground rows, vectorised over the columns.
         slope = math.tan(math.radians(ip.ground_chain_slope))
-        last_x, last_y, last_z = (np.full(self.horizon_scan, np.nan) for _ in range(3))
+        last = np.full((3, self.horizon_scan), np.nan)  # each column's last ground point
         seeded = np.zeros(self.horizon_scan, dtype=bool)
-        for r in range(top):
-            candidate = ground[r]
-            if not candidate.any():
-                continue
-            with np.errstate(invalid='ignore'):
-                step = np.hypot(x[r] - last_x, y[r] - last_y)
+        # (Few calls a row, into buffers: on 2083-column rows a numpy call's own cost is a large part.)
+        step, apart = np.empty(self.horizon_scan), np.empty((3, self.horizon_scan))
+        continues, accepted = np.empty(self.horizon_scan, dtype=bool), np.empty(self.horizon_scan, dtype=bool)
+        with np.errstate(invalid='ignore'):
+            for r in range(top):
+                candidate = ground[r]
+                if not candidate.any():
+                    continue
+                np.subtract(points[:, r], last, out=apart)
+                np.hypot(apart[0], apart[1], out=step)
+                step *= slope
+                step += ip.ground_chain_tolerance
+                np.abs(apart[2], out=apart[2])
+                np.less_equal(apart[2], step, out=continues)
                 # Unseeded columns have a NaN last point: no continuation is needed there.
-                continues = (np.abs(z[r] - last_z) <= slope * step + ip.ground_chain_tolerance) | ~seeded
-            accepted = candidate & continues & (on_plane[r] | (seeded & far[r]))
-            ground[r] = accepted
-            for last, now in ((last_x, x[r]), (last_y, y[r]), (last_z, z[r])):
-                np.copyto(last, now, where=accepted)
-            seeded |= accepted
+                np.logical_or(continues, ~seeded, out=continues)
+                np.logical_and(seeded, far[r], out=accepted)
+                accepted |= on_plane[r]
+                accepted &= candidate
+                accepted &= continues
+                ground[r] = accepted
+                np.copyto(last, points[:, r], where=accepted)
+                seeded |= accepted
         return ground
