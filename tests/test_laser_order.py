@@ -30,6 +30,9 @@ def test_mod_equals_numpy_mod_on_and_beyond_its_fast_range(period):
         if trial % 5 == 0:
             values = np.round(values, 1)  # exact multiples and ties
         assert _bits(_mod(values, period)) == _bits(np.mod(values, period))
+        if len(values):  # with the bounds given, computed in place
+            low, high = float(values.min()), float(values.max())
+            assert _bits(_mod(values + 0.0, period, (low, high))) == _bits(np.mod(values, period))
     for edge in edges:  # alone, each also decides the range check
         assert _bits(_mod(np.array([edge, 1.0]), period)) == _bits(np.mod(np.array([edge, 1.0]), period))
     with np.errstate(invalid='ignore'):

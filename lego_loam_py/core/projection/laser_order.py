@@ -33,20 +33,30 @@ _RESTART_DEG = 10.0  # the angle from the cut falling back by more than this beg
 _CUT_CANDIDATES = 4  # most common azimuths of the elevation steps tried as the cut
 
 
-def _mod(values: np.ndarray, period: float) -> np.ndarray:
+def _mod(values: np.ndarray, period: float, bounds: tuple[float, float] | None = None) -> np.ndarray:
     """``np.mod(values, period)`` bit for bit, for float64 ``values`` and a positive ``period``, in a few cheap
     passes where ``np.mod`` (fmod, then a sign fix) costs about 10 ns a value.
 
     On [-period, 2 period) numpy's result is exact arithmetic: fmod is ``v`` itself below ``period`` in size, or
     ``v - period`` (exact, Sterbenz) above it; a negative remainder then gets ``period`` added (rounded, as here);
     a zero one is +0.0. Anything else (a value out of that range, NaN) goes to ``np.mod``.
+
+    ``bounds``: (low, high) that the caller knows every value lies within (then ``values``, which must hold no
+    -0.0, is overwritten with the result); None to find them (``values`` is left alone).
     """
-    low, high = (float(values.min()), float(values.max())) if len(values) else (0.0, 0.0)
+    if bounds is None:
+        low, high = (float(values.min()), float(values.max())) if len(values) else (0.0, 0.0)
+        out = None
+    else:
+        (low, high), out = bounds, values
     if not (-period <= low and high < 2.0 * period):
         return np.mod(values, period)
-    out = values + 0.0  # a copy with -0.0 made +0.0 (np.mod's zero is +0.0); every other value as it was
-    np.add(out, period, out=out, where=values < 0.0)  # (which may round up to period itself, as np.mod's does)
-    np.subtract(out, period, out=out, where=values >= period)
+    if out is None:
+        out = values + 0.0  # a copy with -0.0 made +0.0 (np.mod's zero is +0.0); every other value as it was
+    # (Masks from the values before the first change; the sum may round up to period itself, as np.mod's does.)
+    negative, beyond = values < 0.0, values >= period
+    np.add(out, period, out=out, where=negative)
+    np.subtract(out, period, out=out, where=beyond)
     return out
 
 
@@ -115,7 +125,8 @@ def rows_from_laser_order(x: np.ndarray, y: np.ndarray, z: np.ndarray, n_scan: i
         return None
     # The cut: an azimuth (in the order's sense of turning) at which lasers begin; of the few most common ones,
     # the one that leaves the fewest restarts (a wrong one also restarts every whole turn that crosses it).
-    turned = _mod(direction * azimuth, TWO_PI) * _DEG_PER_RAD  # [deg]
+    turned = _mod(direction * azimuth, TWO_PI) * _DEG_PER_RAD  # [deg]; np.mod's zeros are +0.0
+    turned_low, turned_high = float(turned.min()), float(turned.max())
     counts = np.bincount((turned[starts] // _CUT_BIN_DEG).astype(np.int64), minlength=int(360 / _CUT_BIN_DEG) + 1)
     spacing = math.degrees(_median(np.abs(step)))
     begins = None
@@ -126,7 +137,12 @@ def rows_from_laser_order(x: np.ndarray, y: np.ndarray, z: np.ndarray, n_scan: i
         near = (turned[starts] - mode + 180.0) % 360.0 - 180.0
         cut = mode + float(np.median(near[np.abs(near) <= 2 * _CUT_BIN_DEG]))
         # Half a point spacing before it, so that a laser's first point (at the cut or just after) falls after it.
-        from_cut = _mod(turned - cut + 0.5 * spacing, 360.0)
+        # Rounding is monotone: the ends of turned, shifted by the same operations, bound every value (none is
+        # -0.0: u - cut is +0.0 where they are equal, and turned holds no -0.0).
+        from_cut = turned - cut
+        from_cut += 0.5 * spacing
+        bounds = ((turned_low - cut) + 0.5 * spacing, (turned_high - cut) + 0.5 * spacing)
+        from_cut = _mod(from_cut, 360.0, bounds)
         # Along a laser the angle from the cut only grows; it falls back where the next laser begins.
         candidate = np.flatnonzero(np.diff(from_cut) < -_RESTART_DEG) + 1
         if begins is None or len(candidate) < len(begins):
