@@ -7,7 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from lego_loam_py.core.projection.laser_order import _DEG_PER_RAD, _median, _median_is_not_negative, _mod
+from lego_loam_py.core.projection.laser_order import (
+    _DEG_PER_RAD,
+    MIN_STEP_DEG,
+    _laser_starts,
+    _median,
+    _median_is_not_negative,
+    _mod,
+)
 
 
 def _bits(value) -> bytes:
@@ -73,3 +80,36 @@ def test_degrees_by_the_constant_equal_numpy_degrees():
     rng = np.random.default_rng(5)
     values = np.concatenate([rng.uniform(0.0, 2.0 * math.pi, 10000), [0.0, -0.0, math.pi, 2.0 * math.pi, 5e-324]])
     assert (values * _DEG_PER_RAD).tobytes() == np.degrees(values).tobytes()
+
+
+def _starts_with_hypot(x, y, z):
+    """_laser_starts as first written: np.hypot's elevations throughout."""
+    x, y, z = (np.asarray(c, dtype=np.float64) for c in (x, y, z))
+    elevation = np.arctan2(z, np.hypot(x, y))
+    head = max(1, len(x) // 20)
+    top_first = float(np.median(elevation[:head])) > float(np.median(elevation[-head:]))
+    rise, threshold = np.diff(elevation), math.radians(MIN_STEP_DEG)
+    return top_first, np.flatnonzero(rise < -threshold if top_first else rise > threshold) + 1
+
+
+def test_laser_starts_from_the_fast_range_equal_those_from_hypot():
+    rng = np.random.default_rng(9)
+    threshold = math.radians(MIN_STEP_DEG)
+    for trial in range(40):
+        n = 2000
+        rho = rng.uniform(0.5, 80.0, n)
+        elevation = np.repeat(np.linspace(-0.4, 0.1, 20), n // 20)[:: 1 if trial % 2 else -1]
+        elevation += rng.normal(0.0, 0.0005, n)
+        if trial % 4 == 0:  # steps at the threshold itself, to within float32 rounding
+            elevation[1::2] = elevation[::2] + threshold * (1 if trial % 8 else -1)
+            rho[1::2] = rho[::2]
+        azimuth = rng.uniform(-math.pi, math.pi, n)
+        x, y = (rho * np.cos(azimuth)).astype(np.float32), (rho * np.sin(azimuth)).astype(np.float32)
+        z = (rho * np.tan(elevation)).astype(np.float32)
+        if trial == 5:
+            z[7] = np.nan
+        x64, y64, z64 = (c.astype(np.float64) for c in (x, y, z))
+        top_first, starts = _laser_starts(x64, y64, z64, True)
+        expected_top_first, expected = _starts_with_hypot(x, y, z)
+        assert top_first == expected_top_first and np.array_equal(starts, expected)
+        assert _laser_starts(x64, y64, z64, False)[1].tolist() == expected.tolist()

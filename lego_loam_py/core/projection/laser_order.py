@@ -31,6 +31,7 @@ MIN_STEP_DEG = 0.15  # an elevation step at least this large [deg] may be a chan
 _CUT_BIN_DEG = 1.0  # histogram bin of the steps' azimuths, and the window refining the most common one
 _RESTART_DEG = 10.0  # the angle from the cut falling back by more than this begins a laser
 _CUT_CANDIDATES = 4  # most common azimuths of the elevation steps tried as the cut
+_DECIDED_RAD = 1e-9  # an elevation decision this far from its threshold holds for any rounding of the range
 
 
 def _mod(values: np.ndarray, period: float, bounds: tuple[float, float] | None = None) -> np.ndarray:
@@ -103,24 +104,55 @@ def _median_is_not_negative(values: np.ndarray) -> bool:
     return float(np.mean(pair)) >= 0.0
 
 
+def _laser_starts(x: np.ndarray, y: np.ndarray, z: np.ndarray, single: bool) -> tuple[bool, np.ndarray]:
+    """(whether the order runs from the top laser down, indices where the elevation steps to the next laser)
+    from float64 coordinates [m]: the elevation is arctan2(z, hypot(x, y)), the step a difference of two.
+
+    Only decisions come out, so where the coordinates are float32 values (``single``) the horizontal range is
+    taken as sqrt(x * x + y * y) first, a quarter of np.hypot's time (glibc's hypot, one call a value): the
+    squares are exact in float64 and cannot overflow or underflow, so it is within 2**-51 of the exact range
+    relatively, as np.hypot (< 1 ulp) is; arctan2 moves by at most half of that [rad] (its derivative in the range
+    is at most 1 / (2 range)), plus a few ulps of its own at either range. The elevations agree to within 1e-14
+    rad, their differences to within 3e-14. Every decision taken at least _DECIDED_RAD (1e-9 rad) from its
+    threshold is therefore the same with np.hypot; otherwise (or with NaN) all is recomputed with np.hypot.
+    """
+    threshold = math.radians(MIN_STEP_DEG)
+    head = max(1, len(x) // 20)
+    for exact in (False, True) if single else (True,):
+        if exact:
+            elevation = np.arctan2(z, np.hypot(x, y))
+        else:
+            squares = x * x
+            squares += y * y
+            elevation = np.arctan2(z, np.sqrt(squares, out=squares))
+        first, last = float(np.median(elevation[:head])), float(np.median(elevation[-head:]))
+        top_first = first > last
+        # The elevation rises (falls, from the top laser down) by more than a step where the next laser begins.
+        rise = np.diff(elevation)
+        bound = -threshold if top_first else threshold
+        if not exact:
+            rise -= bound
+            np.abs(rise, out=rise)
+            if not (abs(first - last) > _DECIDED_RAD and np.all(rise > _DECIDED_RAD)):
+                continue  # a decision too close to call (or NaN): the exact elevations
+            rise = np.diff(elevation)
+        return top_first, np.flatnonzero(rise < bound if top_first else rise > bound) + 1
+    raise AssertionError('unreachable')  # (the exact pass always returns)
+
+
 def rows_from_laser_order(x: np.ndarray, y: np.ndarray, z: np.ndarray, n_scan: int) -> np.ndarray | None:
     """int64 row of every point (sensor-frame coordinates [m], in the cloud's order) when the cloud is stored
     laser by laser with at most ``n_scan`` lasers; None when it is not (e.g. in firing order)."""
     if len(x) < 4 * n_scan or n_scan < 2:
         return None
+    single = all(np.asarray(c).dtype == np.float32 for c in (x, y, z))
     # float64 copies made once: the ufuncs' own casting (dtype=np.float64) feeds the same loops in buffers, slower.
     x, y, z = (np.asarray(c, dtype=np.float64) for c in (x, y, z))
     azimuth = np.arctan2(y, x)
     step = np.diff(azimuth)
     step = _mod(step + math.pi, TWO_PI) - math.pi
     direction = 1.0 if _median_is_not_negative(step) else -1.0  # the way the order turns
-    elevation = np.arctan2(z, np.hypot(x, y))
-    head = max(1, len(x) // 20)
-    top_first = float(np.median(elevation[:head])) > float(np.median(elevation[-head:]))
-    # The elevation rises (falls, from the top laser down) by more than a step where the next laser begins.
-    rise = np.diff(elevation)
-    threshold = math.radians(MIN_STEP_DEG)
-    starts = np.flatnonzero(rise < -threshold if top_first else rise > threshold) + 1
+    top_first, starts = _laser_starts(x, y, z, single)
     if len(starts) < n_scan // 4:
         return None
     # The cut: an azimuth (in the order's sense of turning) at which lasers begin; of the few most common ones,
