@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from lego_loam_py.core.params import Params
-from lego_loam_py.core.projection.ground import GroundRemoval, _hypotf
+from lego_loam_py.core.projection.ground import GroundRemoval, float32_hypot
 
 
 def test_hypotf_equals_numpy_hypot_on_float32():
@@ -19,7 +19,7 @@ def test_hypotf_equals_numpy_hypot_on_float32():
     ex, ey = (grid.ravel() for grid in np.meshgrid(edges, edges))
     x, y = np.concatenate([x, ex]), np.concatenate([y, ey])
     with np.errstate(all='ignore'):
-        ours, numpy_s = _hypotf(x, y), np.hypot(x, y)
+        ours, numpy_s = float32_hypot(x, y), np.hypot(x, y)
     same = (ours.view(np.int32) == numpy_s.view(np.int32)) | (np.isnan(ours) & np.isnan(numpy_s))
     infinite_with_nan = (np.isinf(x) & np.isnan(y)) | (np.isnan(x) & np.isinf(y))
     assert same[~infinite_with_nan].all()
