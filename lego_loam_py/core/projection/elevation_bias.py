@@ -22,6 +22,8 @@ import math
 
 import numpy as np
 
+from lego_loam_py.core.projection.ground import float32_hypot
+
 __all__ = ['ElevationBias', 'apply_elevation_offset', 'ground_cone_deg', 'elevation_note']
 
 SECTOR_DEG = 30.0  # ground within this azimuth of straight ahead or behind
@@ -37,7 +39,7 @@ GIVE_UP_SCANS = 600  # no agreement after this many scans: stop looking (the gro
 def apply_elevation_offset(xyz: np.ndarray, offset_deg: float) -> None:
     """Raise every point's elevation by ``offset_deg`` [deg], in place on (n, 3) float32 sensor-frame points."""
     if offset_deg:
-        rho = np.hypot(xyz[:, 0], xyz[:, 1], dtype=np.float32)
+        rho = float32_hypot(xyz[:, 0], xyz[:, 1])  # np.hypot's float32 values, in a third of its time
         xyz[:, 2] += np.float32(math.tan(math.radians(offset_deg))) * rho
 
 

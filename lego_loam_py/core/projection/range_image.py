@@ -186,12 +186,11 @@ class RangeImageProjection:
         for axis, values in enumerate((x, y, z)):  # column by column: ~3x faster than one (n, 3) -> (n, 4) copy
             table[:-1, axis] = values
         table[:-1, 3] = rng
-        table[-1] = (np.nan, np.nan, np.nan, np.finfo(np.float32).max)
+        table[-1] = (np.nan, np.nan, np.nan, -1.0)  # an empty pixel's intensity is -1 in both clouds
         full_info = np.take(table, winner_of_pixel, axis=0)
-        range_image = full_info[:, 3].copy()
-        full_info[:, 3] = np.where(filled, range_image, _F32(-1.0))
+        range_image = np.take(np.append(rng, np.finfo(np.float32).max), winner_of_pixel)  # FLT_MAX where empty
         full = full_info.copy()
-        full[:, 3] = np.where(filled, self._pixel_intensity, _F32(-1.0))
+        np.copyto(full[:, 3], self._pixel_intensity, where=filled)
         time_image = None
         if data.time is not None:
             time_image = np.append(data.time.astype(_F32, copy=False), _F32(0.0))[winner_of_pixel]

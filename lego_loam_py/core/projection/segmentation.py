@@ -38,8 +38,9 @@ class Segmentation:
         self._cos_alpha = (cosf(alpha_x), cosf(alpha_y))
         if s.beam_elevations:  # unevenly spaced beams: each row and the row above it have their own angle
             rows_apart = np.diff(np.radians(np.asarray(s.beam_elevations, dtype=np.float64)))  # (n_scan - 1,)
-            self._sin_alpha = (self._sin_alpha[0], np.sin(rows_apart).astype(_F32))
-            self._cos_alpha = (self._cos_alpha[0], np.cos(rows_apart).astype(_F32))
+            # (n_scan - 1, 1): vertical pairs are (rows - 1, columns) arrays
+            self._sin_alpha = (self._sin_alpha[0], np.sin(rows_apart).astype(_F32)[:, None])
+            self._cos_alpha = (self._cos_alpha[0], np.cos(rows_apart).astype(_F32)[:, None])
         self._theta = _F32(self._settings.segment_theta)
 
     def labels(self, range_image: np.ndarray, filled: np.ndarray, ground: np.ndarray) -> np.ndarray:
@@ -58,13 +59,17 @@ class Segmentation:
         # horizontal criterion often fails on surfaces seen obliquely); the graph's nodes are these runs and
         # its edges the horizontal joins: a quarter of the pixels' nodes and edges, so the components cost
         # much less.
-        node = np.ascontiguousarray(candidate.reshape(n, h).T)
-        depth = np.ascontiguousarray(range_image.reshape(n, h).T)
-        joined_up = np.zeros((h, n), dtype=bool)  # joined to the pixel above (row n-1 has none)
-        joined_up[:, :-1] = node[:, :-1] & node[:, 1:] & self._joins(depth[:, :-1], depth[:, 1:], 1)
-        depth_right = np.roll(depth, -1, axis=0)  # columns wrap around
-        joined_right = node & np.roll(node, -1, axis=0) & self._joins(depth, depth_right, 0)
-        node, joined_up = node.reshape(-1), joined_up.reshape(-1)
+        # The joins are found in the images' row-major order and only the boolean results transposed (a float
+        # image's transposed copy costs more).
+        node_rows = candidate.reshape(n, h)
+        depth = range_image.reshape(n, h)
+        joined_up = np.zeros((n, h), dtype=bool)  # joined to the pixel above (row n-1 has none)
+        joined_up[:-1] = node_rows[:-1] & node_rows[1:] & self._joins(depth[:-1], depth[1:], 1)
+        depth_right = np.roll(depth, -1, axis=1)  # columns wrap around
+        joined_right = node_rows & np.roll(node_rows, -1, axis=1) & self._joins(depth, depth_right, 0)
+        node, joined_up, joined_right = (
+            np.ascontiguousarray(a.T).reshape(-1) for a in (node_rows, joined_up, joined_right)
+        )
 
         joined_below = np.zeros(n * h, dtype=bool)
         joined_below[1:] = joined_up[:-1]
@@ -120,12 +125,20 @@ class Segmentation:
         number = np.full(count, OUTLIER_LABEL, dtype=np.int32)
         valid_ids = np.flatnonzero(valid)
         number[valid_ids[np.argsort(seed[valid_ids])]] = np.arange(1, len(valid_ids) + 1, dtype=np.int32)
-        labels = np.where(node, number[component_of_run][run_of_pixel], np.int32(NO_LABEL))
-        return labels.reshape(h, n).T.reshape(-1)
+        # The column-major order is runs and the gaps between them, one after the other: the labels are each
+        # segment's value repeated over its length (the gaps', maybe empty, NO_LABEL).
+        value = np.full(2 * runs + 1, NO_LABEL, dtype=np.int32)
+        value[1::2] = number[component_of_run]
+        length = np.empty(2 * runs + 1, dtype=np.int64)
+        length[1::2] = run_length
+        length[0:-1:2] = first
+        length[2:-1:2] -= last[:-1] + 1
+        length[-1] = n * h - 1 - last[-1]
+        return np.repeat(value, length).reshape(h, n).T.reshape(-1)
 
     def _joins(self, range_a: np.ndarray, range_b: np.ndarray, direction: int) -> np.ndarray:
         """The segmentation criterion beta > theta for neighbour pairs (direction 0: horizontal, 1: vertical;
-        vertical pairs are (columns, rows - 1) arrays, so a beam table's per-row angles broadcast along rows).
+        vertical pairs are (rows - 1, columns) arrays, so a beam table's per-row angles broadcast along columns).
 
         Computed for every pixel, pair or not (empty pixels' FLT_MAX ranges give finite angles far from theta):
         cheaper than gathering the pairs. beta is libm's atan2f(y, x) with y >= 0, so it lies in [0, pi].
