@@ -111,3 +111,28 @@ def test_the_window_search_keeps_the_first_tie_forward_and_the_last_backward():
         )
         assert index.tolist() == [[2, -1, 0, -1]]
         assert best.tolist() == [[1.0, np.inf, 1.0, np.inf]]
+
+
+@pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
+@settings(max_examples=300, deadline=None)
+@given(st.data())
+def test_native_whole_window_search_equals_numpy(data):
+    """The one-pass search of a ring-ordered cloud (windows, segments and nearest points in C) against the NumPy
+    windows, segments and nearest points, for both correspondence kinds, any forward bound and window."""
+    from lego_loam_py.core.odometry.correspondences import _OTHER, _SAME, LastCloud, _window_search
+    from lego_loam_py.core.params import Params
+
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    last = LastCloud(_cloud(rng, int(rng.integers(1, 80))), 16)
+    queries = _cloud(rng, int(rng.integers(0, 20)))  # (the KD-tree refuses NaN queries)
+    queries[:, :3] += rng.normal(0.0, 0.3, (len(queries), 3)).astype(np.float32) * (rng.random() < 0.5)
+    params = Params().replace(
+        feature_association__nearest_feature_search_sq_dist=float(rng.choice([0.5, 2.0, 25.0])),
+        feature_association__ring_search_window=float(rng.choice([0.5, 1.0, 2.5, 4.0])),
+    )
+    bound = int(rng.integers(0, len(last.points) + 3))
+    kinds = [_SAME + _OTHER, _OTHER][int(rng.integers(0, 2))]
+    native = _window_search(queries, last, params, bound, kinds)
+    reference = _window_search(queries, last, params, bound, kinds, native=False)
+    for a, b in zip(native, reference):
+        np.testing.assert_array_equal(a, b)

@@ -21,6 +21,13 @@
  *   segment (kinds 2 and 3) and the last of a backward one (kinds 0 and 1), as the original's scans meet
  *   them. Writes index (int64, -1: none) and best (float32, inf: none) for every segment; only distances
  *   below limit count.
+ *
+ * nearest_in_windows(xyz_rows, rings, query, closest, ring_window, forward_bound, kinds, limit, index, best)
+ *   The whole window search of a last cloud whose rings (int64, one per point) ascend, for each query (n, 3)
+ *   float32 and its nearest point closest (int64): the index windows of LastCloud.window, cut into the four
+ *   segments of LastCloud.segments (only the kinds whose bit is set in kinds: bit k for kind k), and the
+ *   nearest point of each as nearest_in_segments finds it, without building the index arrays. Writes index
+ *   (int64, n x 4) and best (float32, n x 4) as nearest_in_segments does.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -165,9 +172,105 @@ done:
     return result;
 }
 
+/* First index in [0, n) whose ring is >= value (strict: > value), n if none: NumPy's searchsorted, left (right). */
+static inline int64_t ring_bound(const int64_t *rings, int64_t n, int64_t value, int strict) {
+    int64_t low = 0, high = n;
+    while (low < high) {
+        int64_t middle = low + (high - low) / 2;
+        if (strict ? rings[middle] <= value : rings[middle] < value) {
+            low = middle + 1;
+        } else {
+            high = middle;
+        }
+    }
+    return low;
+}
+
+static PyObject *py_nearest_in_windows(PyObject *self, PyObject *args) {
+    Py_buffer rows, rings_buffer, query, closest_buffer, index, best;
+    long long ring_window, forward_bound;
+    int kinds;
+    float limit;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*LLifw*w*", &rows, &rings_buffer, &query, &closest_buffer, &ring_window,
+                          &forward_bound, &kinds, &limit, &index, &best)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    Py_ssize_t n_points = rows.len / (3 * (Py_ssize_t)sizeof(float));
+    Py_ssize_t n_queries = closest_buffer.len / 8;
+    const float *x = rows.buf, *y = x + n_points, *z = y + n_points, *q = query.buf;
+    const int64_t *rings = rings_buffer.buf, *closest = closest_buffer.buf;
+    int64_t *out_index = index.buf;
+    float *out_best = best.buf;
+    if (rows.len != 3 * n_points * (Py_ssize_t)sizeof(float) || rings_buffer.len != n_points * 8 ||
+        query.len != n_queries * 3 * (Py_ssize_t)sizeof(float) || index.len != n_queries * 4 * 8 ||
+        best.len != n_queries * 4 * (Py_ssize_t)sizeof(float)) {
+        PyErr_SetString(PyExc_ValueError, "nearest_in_windows: inconsistent buffer sizes");
+        goto done;
+    }
+    for (Py_ssize_t i = 0; i < n_queries; ++i) {
+        int64_t c = closest[i];
+        if (c < 0 || c >= n_points) {
+            PyErr_SetString(PyExc_IndexError, "nearest_in_windows: nearest point outside the cloud");
+            goto done;
+        }
+        int64_t ring = rings[c];
+        /* LastCloud.window: forward [c + 1, hi), backward (lo, c - 1]. */
+        int64_t hi = ring_bound(rings, n_points, ring + ring_window, 1);
+        int64_t lo = ring_bound(rings, n_points, ring - ring_window, 0);
+        lo = (lo < c ? lo : c) - 1;
+        hi = hi < forward_bound ? hi : forward_bound;
+        hi = hi > c + 1 ? hi : c + 1;
+        /* LastCloud.segments: the cuts between other rings and the nearest point's own, clipped to the windows. */
+        int64_t backward_cut = ring_bound(rings, n_points, ring, 0);
+        backward_cut = backward_cut > lo + 1 ? backward_cut : lo + 1;
+        backward_cut = backward_cut < c ? backward_cut : c;
+        int64_t forward_cut = ring_bound(rings, n_points, ring, 1);
+        forward_cut = forward_cut > c + 1 ? forward_cut : c + 1;
+        forward_cut = forward_cut < hi ? forward_cut : hi;
+        const int64_t starts[4] = {lo + 1, backward_cut, c + 1, forward_cut};
+        const int64_t stops[4] = {backward_cut, c, forward_cut, hi};
+        const float *p = q + 3 * i;
+        for (int kind = 0; kind < 4; ++kind) {
+            int64_t chosen = -1;
+            float nearest = INFINITY;
+            if (kinds & (1 << kind)) {
+                int backward = kind < 2;
+                for (int64_t j = starts[kind]; j < stops[kind]; ++j) {
+                    float dx = x[j] - p[0], dy = y[j] - p[1], dz = z[j] - p[2];
+                    float d = dx * dx + dy * dy;
+                    d = d + dz * dz;
+                    if (d < nearest || (backward && d == nearest && chosen >= 0)) {
+                        nearest = d;
+                        chosen = j;
+                    }
+                }
+            }
+            if (!(nearest < limit)) {
+                chosen = -1;
+                nearest = INFINITY;
+            }
+            out_index[4 * i + kind] = chosen;
+            out_best[4 * i + kind] = nearest;
+        }
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&rows);
+    PyBuffer_Release(&rings_buffer);
+    PyBuffer_Release(&query);
+    PyBuffer_Release(&closest_buffer);
+    PyBuffer_Release(&index);
+    PyBuffer_Release(&best);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"select", py_select, METH_VARARGS, "The greedy edge and flat selection of every sub-region (see the file)."},
     {"nearest_in_segments", py_nearest_in_segments, METH_VARARGS, "The nearest point of every window segment."},
+    {"nearest_in_windows", py_nearest_in_windows, METH_VARARGS, "The window search of a ring-ordered cloud."},
     {NULL, NULL, 0, NULL},
 };
 
