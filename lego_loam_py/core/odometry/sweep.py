@@ -40,6 +40,7 @@ __all__ = [
     'relative_time_from_azimuth',
     'relative_time',
     'SweepStartFrame',
+    'SweepTrig',
     'transform_to_start',
     'transform_to_end',
     'start_jacobian',
@@ -110,6 +111,28 @@ def relative_time(points_lidar: np.ndarray, info: CloudInfo) -> np.ndarray:
     return ((final - _F32(start)) / _F32(info.orientation_diff)).astype(_F32)
 
 
+class SweepTrig:
+    """``cos(s θ_k)`` and ``sin(s θ_k)`` of fixed relative times ``s`` (n,) float64, remembered per angle (by its
+    bits): a registration stage moves three of the six parameters, so the sines and cosines of the angles it
+    holds fixed are the same at every evaluation, and those it moves repeat between a step's trial and the next
+    iteration. The same products and the same elementwise functions as :class:`SweepStartFrame` computes."""
+
+    def __init__(self, s: np.ndarray):
+        self.s = s
+        self._known: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+
+    def of(self, transform: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """(cosines, sines) of the three angles of ``transform`` (float64), each a list of three (n,) arrays."""
+        keys = list(enumerate(transform[:3].view(np.int64).tolist()))
+        missing = [k for k, key in enumerate(keys) if key not in self._known]
+        if missing:  # all missing angles in one call each (small arrays: per-call cost dominates)
+            angles = np.multiply.outer(transform[missing], self.s)
+            for k, cosine, sine in zip(missing, np.cos(angles), np.sin(angles)):
+                self._known[keys[k]] = cosine, sine
+        pairs = [self._known[key] for key in keys]
+        return [pair[0] for pair in pairs], [pair[1] for pair in pairs]
+
+
 class SweepStartFrame:
     """``R(sθ)^T (p - s t)`` of fixed points at one ``θ`` and its Jacobian rows, sharing the per-point sines,
     cosines and partial products (the Gauss-Newton loop evaluates both at every step).
@@ -118,14 +141,18 @@ class SweepStartFrame:
     ``q = p - s t``, the start point is ``Ry v``.
     """
 
-    def __init__(self, xyz: np.ndarray, s: np.ndarray, transform: np.ndarray):
-        """``xyz`` (3, n) float64, ``s`` (n,) float64."""
+    def __init__(self, xyz: np.ndarray, s: np.ndarray, transform: np.ndarray, trig: SweepTrig | None = None):
+        """``xyz`` (3, n) float64, ``s`` (n,) float64; ``trig``: the sines and cosines of these ``s`` remembered
+        (:class:`SweepTrig`)."""
         transform = np.asarray(transform, dtype=np.float64)
         self.s = s
-        # The three angles (and the three coordinates) in one call each: small arrays, per-call cost dominates.
-        angles = np.multiply.outer(transform[:3], s)
-        self.cx, self.cy, self.cz = np.cos(angles)
-        self.sx, self.sy, self.sz = np.sin(angles)
+        if trig is None:
+            # The three angles (and the three coordinates) in one call each: small arrays, per-call cost dominates.
+            angles = np.multiply.outer(transform[:3], s)
+            self.cx, self.cy, self.cz = np.cos(angles)
+            self.sx, self.sy, self.sz = np.sin(angles)
+        else:
+            (self.cx, self.cy, self.cz), (self.sx, self.sy, self.sz) = trig.of(transform)
         self.qx, self.qy, self.qz = xyz - np.multiply.outer(transform[3:], s)
         cx, sx, cz, sz = self.cx, self.sx, self.cz, self.sz
         self.ux, self.uy = cz * self.qx + sz * self.qy, -sz * self.qx + cz * self.qy  # uz = qz
