@@ -136,3 +136,25 @@ def test_native_whole_window_search_equals_numpy(data):
     reference = _window_search(queries, last, params, bound, kinds, native=False)
     for a, b in zip(native, reference):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
+@settings(max_examples=200, deadline=None)
+@given(st.data())
+def test_native_sweep_rows_equal_numpy(data):
+    """SweepStartFrame.rows in C against its NumPy expressions, bit for bit: one or three coefficient vectors per
+    point, any active parameters, with and without remembered sines and cosines."""
+    from lego_loam_py.core.odometry.sweep import SweepStartFrame, SweepTrig
+
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    n = int(rng.integers(0, 40))
+    xyz = rng.normal(0.0, 10.0, (3, n))
+    s = 1.0 + rng.random(n)
+    theta = rng.normal(0.0, 0.1, 6) * (rng.random(6) < 0.8)
+    frame = SweepStartFrame(xyz, s, theta, SweepTrig(s) if rng.random() < 0.5 else None)
+    coeff = rng.normal(0.0, 1.0, (n, 3, 3) if rng.random() < 0.5 else (n, 3))
+    active = [int(k) for k in rng.choice(6, int(rng.integers(1, 7)), replace=False)]
+    native = frame.rows(coeff, active)
+    reference = frame.rows(coeff, active, native=False)
+    assert native.shape == reference.shape and (native.strides == reference.strides or not n)
+    np.testing.assert_array_equal(native.view(np.int64), reference.view(np.int64))

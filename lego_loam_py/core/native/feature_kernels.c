@@ -267,10 +267,88 @@ done:
     return result;
 }
 
+static PyObject *py_sweep_rows(PyObject *self, PyObject *args) {
+    Py_buffer per_point, coeff, active_buffer, out;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*y*w*", &per_point, &coeff, &active_buffer, &out)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    Py_ssize_t n = per_point.len / (13 * (Py_ssize_t)sizeof(double));
+    Py_ssize_t k = active_buffer.len / 8;
+    Py_ssize_t m = n > 0 ? coeff.len / (n * 3 * (Py_ssize_t)sizeof(double)) : 0;
+    const int64_t *active = active_buffer.buf;
+    if (per_point.len != n * 13 * (Py_ssize_t)sizeof(double) || coeff.len != n * m * 3 * (Py_ssize_t)sizeof(double) ||
+        out.len != k * n * m * (Py_ssize_t)sizeof(double)) {
+        PyErr_SetString(PyExc_ValueError, "sweep_rows: inconsistent buffer sizes");
+        goto done;
+    }
+    for (Py_ssize_t j = 0; j < k; ++j) {
+        if (active[j] < 0 || active[j] > 5) {
+            PyErr_SetString(PyExc_ValueError, "sweep_rows: parameters are 0 to 5");
+            goto done;
+        }
+    }
+    const double *v = per_point.buf, *a = coeff.buf;
+    double *o = out.buf;
+    const Py_ssize_t stride = n * m;
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        const double cx = v[i], sx = v[n + i], cy = v[2 * n + i], sy = v[3 * n + i], cz = v[4 * n + i];
+        const double sz = v[5 * n + i], s = v[6 * n + i], qx = v[7 * n + i], qy = v[8 * n + i], qz = v[9 * n + i];
+        const double ux = v[10 * n + i], uy = v[11 * n + i], vz = v[12 * n + i];
+        for (Py_ssize_t c = 0; c < m; ++c) {
+            const double *row = a + 3 * (i * m + c);
+            const double ax = row[0], ay = row[1], az = row[2];
+            /* coeff^T Ry, then coeff^T Ry Rx (see SweepStartFrame.rows). */
+            const double bx = ax * cy + az * sy, by = ay, bz = -ax * sy + az * cy;
+            const double cx_ = bx, cy_ = by * cx - bz * sx;
+            for (Py_ssize_t j = 0; j < k; ++j) {
+                double value, f1, f2;
+                switch (active[j]) {
+                    case 0:
+                        f1 = -sx * uy + cx * qz;
+                        f2 = -cx * uy - sx * qz;
+                        value = by * f1 + bz * f2;
+                        break;
+                    case 1:
+                        f1 = -sy * ux - cy * vz;
+                        f2 = cy * ux - sy * vz;
+                        value = ax * f1 + az * f2;
+                        break;
+                    case 2:
+                        f1 = -sz * qx + cz * qy;
+                        f2 = -cz * qx - sz * qy;
+                        value = cx_ * f1 + cy_ * f2;
+                        break;
+                    case 3:
+                        value = -(cx_ * cz - cy_ * sz);
+                        break;
+                    case 4:
+                        value = -(cx_ * sz + cy_ * cz);
+                        break;
+                    default:
+                        value = -(by * sx + bz * cx);
+                        break;
+                }
+                o[j * stride + i * m + c] = value * s;
+            }
+        }
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&per_point);
+    PyBuffer_Release(&coeff);
+    PyBuffer_Release(&active_buffer);
+    PyBuffer_Release(&out);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"select", py_select, METH_VARARGS, "The greedy edge and flat selection of every sub-region (see the file)."},
     {"nearest_in_segments", py_nearest_in_segments, METH_VARARGS, "The nearest point of every window segment."},
     {"nearest_in_windows", py_nearest_in_windows, METH_VARARGS, "The window search of a ring-ordered cloud."},
+    {"sweep_rows", py_sweep_rows, METH_VARARGS, "SweepStartFrame.rows in one pass."},
     {NULL, NULL, 0, NULL},
 };
 

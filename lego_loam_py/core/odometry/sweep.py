@@ -32,6 +32,11 @@ from lego_loam_py.core.frames import (
 from lego_loam_py.core.parity.libm import atan2f
 from lego_loam_py.core.projection.cloud_info import CloudInfo
 
+try:  # SweepStartFrame.rows in C (native/feature_kernels.c); optional, the NumPy version gives the same
+    from lego_loam_py.core import _feature_kernels
+except ImportError:
+    _feature_kernels = None
+
 __all__ = [
     'sweep_rotation',
     'sweep_angles',
@@ -186,15 +191,26 @@ class SweepStartFrame:
             self._factors[column] = value
         return self._factors[column]
 
-    def rows(self, coeff: np.ndarray, active: list[int]) -> np.ndarray:
+    def rows(self, coeff: np.ndarray, active: list[int], native: bool = True) -> np.ndarray:
         """``coeff · d/dθ_active [R(sθ)^T (p - s t)]``: (n, len(active)) for ``coeff`` (n, 3) float64, or for
         m coefficient vectors per point, ``coeff`` (n, m, 3), (n * m, len(active)) point by point (all m
         in the same calls).
 
         The rotation derivatives are ``s Ry Rx dRz q``, ``s Ry dRx u`` and ``s dRy v``; the translation ones
         ``-s R^T e_k``, dotted with ``coeff``: ``-s (Rz^T Rx^T Ry^T coeff)_k``. No per-point 3x3 matrices.
+        In C when the extension is built (the same expressions in one pass instead of some forty NumPy calls);
+        ``native=False`` runs the NumPy version (the tests compare the two).
         """
         batched = coeff.ndim == 3
+        if native and _feature_kernels is not None and coeff.dtype == np.float64:
+            per_point = np.array(
+                (self.cx, self.sx, self.cy, self.sy, self.cz, self.sz, self.s)
+                + (self.qx, self.qy, self.qz, self.ux, self.uy, self.vz),
+                dtype=np.float64,
+            )
+            out = np.empty((len(active), coeff.size // 3))
+            _feature_kernels.sweep_rows(per_point, np.ascontiguousarray(coeff), np.asarray(active, dtype=np.int64), out)
+            return out.T  # (column by column, as the NumPy version returns them)
 
         def per_point(value):
             return value[:, None] if batched else value
