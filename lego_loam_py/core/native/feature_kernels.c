@@ -344,11 +344,69 @@ done:
     return result;
 }
 
+static PyObject *py_sweep_frame(PyObject *self, PyObject *args) {
+    Py_buffer b[11];
+    (void)self;
+    memset(b, 0, sizeof(b));
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*y*y*w*w*", &b[0], &b[1], &b[2], &b[3], &b[4], &b[5], &b[6], &b[7],
+                          &b[8], &b[9], &b[10])) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    Py_ssize_t n = b[1].len / (Py_ssize_t)sizeof(double);
+    Py_ssize_t bytes = n * (Py_ssize_t)sizeof(double);
+    int ok = b[0].len == 3 * bytes && b[2].len == 3 * (Py_ssize_t)sizeof(double) && b[9].len == 14 * bytes &&
+             b[10].len == n * 3 * (Py_ssize_t)sizeof(float);
+    for (int i = 3; i < 9; ++i) {
+        ok = ok && b[i].len == bytes;
+    }
+    if (!ok) {
+        PyErr_SetString(PyExc_ValueError, "sweep_frame: inconsistent buffer sizes");
+        goto done;
+    }
+    const double *x = b[0].buf, *y = x + n, *z = y + n, *s = b[1].buf, *t = b[2].buf;
+    const double *cx = b[3].buf, *cy = b[4].buf, *cz = b[5].buf, *sx = b[6].buf, *sy = b[7].buf, *sz = b[8].buf;
+    double *o = b[9].buf;
+    float *start = b[10].buf;
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        const double qx = x[i] - t[0] * s[i], qy = y[i] - t[1] * s[i], qz = z[i] - t[2] * s[i];
+        const double ux = cz[i] * qx + sz[i] * qy, uy = -sz[i] * qx + cz[i] * qy;
+        const double vy = cx[i] * uy + sx[i] * qz, vz = -sx[i] * uy + cx[i] * qz;
+        o[i] = cx[i];
+        o[n + i] = sx[i];
+        o[2 * n + i] = cy[i];
+        o[3 * n + i] = sy[i];
+        o[4 * n + i] = cz[i];
+        o[5 * n + i] = sz[i];
+        o[6 * n + i] = s[i];
+        o[7 * n + i] = qx;
+        o[8 * n + i] = qy;
+        o[9 * n + i] = qz;
+        o[10 * n + i] = ux;
+        o[11 * n + i] = uy;
+        o[12 * n + i] = vz;
+        o[13 * n + i] = vy;
+        start[3 * i] = (float)(cy[i] * ux - sy[i] * vz);
+        start[3 * i + 1] = (float)vy;
+        start[3 * i + 2] = (float)(sy[i] * ux + cy[i] * vz);
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    for (int i = 0; i < 11; ++i) {
+        if (b[i].obj != NULL) {
+            PyBuffer_Release(&b[i]);
+        }
+    }
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"select", py_select, METH_VARARGS, "The greedy edge and flat selection of every sub-region (see the file)."},
     {"nearest_in_segments", py_nearest_in_segments, METH_VARARGS, "The nearest point of every window segment."},
     {"nearest_in_windows", py_nearest_in_windows, METH_VARARGS, "The window search of a ring-ordered cloud."},
     {"sweep_rows", py_sweep_rows, METH_VARARGS, "SweepStartFrame.rows in one pass."},
+    {"sweep_frame", py_sweep_frame, METH_VARARGS, "SweepStartFrame's products and start points in one pass."},
     {NULL, NULL, 0, NULL},
 };
 

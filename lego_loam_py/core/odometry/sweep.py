@@ -146,23 +146,42 @@ class SweepStartFrame:
     ``q = p - s t``, the start point is ``Ry v``.
     """
 
-    def __init__(self, xyz: np.ndarray, s: np.ndarray, transform: np.ndarray, trig: SweepTrig | None = None):
+    def __init__(
+        self, xyz: np.ndarray, s: np.ndarray, transform: np.ndarray, trig: SweepTrig | None = None, native: bool = True
+    ):
         """``xyz`` (3, n) float64, ``s`` (n,) float64; ``trig``: the sines and cosines of these ``s`` remembered
-        (:class:`SweepTrig`)."""
+        (:class:`SweepTrig`). The products and start points in C when the extension is built (one pass instead of
+        some twenty NumPy calls); ``native=False`` runs the NumPy version (the tests compare the two)."""
         transform = np.asarray(transform, dtype=np.float64)
         self.s = s
         if trig is None:
             # The three angles (and the three coordinates) in one call each: small arrays, per-call cost dominates.
             angles = np.multiply.outer(transform[:3], s)
-            self.cx, self.cy, self.cz = np.cos(angles)
-            self.sx, self.sy, self.sz = np.sin(angles)
+            cosines, sines = np.cos(angles), np.sin(angles)
         else:
-            (self.cx, self.cy, self.cz), (self.sx, self.sy, self.sz) = trig.of(transform)
+            cosines, sines = trig.of(transform)
+        self._factors = {}
+        self._block = self._start = None
+        if native and _feature_kernels is not None and xyz.dtype == np.float64 and s.dtype == np.float64:
+            self._block = np.empty((14, len(s)))
+            self._start = np.empty((len(s), 3), dtype=_F32)
+            _feature_kernels.sweep_frame(
+                np.ascontiguousarray(xyz),
+                np.ascontiguousarray(s),
+                np.ascontiguousarray(transform[3:6]),
+                *(np.ascontiguousarray(v) for v in (*cosines, *sines)),
+                self._block,
+                self._start,
+            )
+            (self.cx, self.sx, self.cy, self.sy, self.cz, self.sz, _, self.qx, self.qy, self.qz) = self._block[:10]
+            self.ux, self.uy, self.vz, self.vy = self._block[10:]
+            return
+        self.cx, self.cy, self.cz = cosines
+        self.sx, self.sy, self.sz = sines
         self.qx, self.qy, self.qz = xyz - np.multiply.outer(transform[3:], s)
         cx, sx, cz, sz = self.cx, self.sx, self.cz, self.sz
         self.ux, self.uy = cz * self.qx + sz * self.qy, -sz * self.qx + cz * self.qy  # uz = qz
         self.vy, self.vz = cx * self.uy + sx * self.qz, -sx * self.uy + cx * self.qz  # vx = ux
-        self._factors = {}
 
     @classmethod
     def of(cls, points: np.ndarray, transform: np.ndarray) -> SweepStartFrame:
@@ -171,7 +190,9 @@ class SweepStartFrame:
         return cls(xyz, relative_time_of(points[:, 3]).astype(np.float64), transform)
 
     def xyz(self) -> np.ndarray:
-        """(n, 3) float32 start points."""
+        """(n, 3) float32 start points (made with the frame in C: not to be written to)."""
+        if self._start is not None:
+            return self._start
         out = np.empty((len(self.s), 3), dtype=_F32)
         out[:, 0] = self.cy * self.ux - self.sy * self.vz
         out[:, 1] = self.vy
@@ -203,10 +224,14 @@ class SweepStartFrame:
         """
         batched = coeff.ndim == 3
         if native and _feature_kernels is not None and coeff.dtype == np.float64:
-            per_point = np.array(
-                (self.cx, self.sx, self.cy, self.sy, self.cz, self.sz, self.s)
-                + (self.qx, self.qy, self.qz, self.ux, self.uy, self.vz),
-                dtype=np.float64,
+            per_point = (
+                self._block[:13]
+                if self._block is not None
+                else np.array(
+                    (self.cx, self.sx, self.cy, self.sy, self.cz, self.sz, self.s)
+                    + (self.qx, self.qy, self.qz, self.ux, self.uy, self.vz),
+                    dtype=np.float64,
+                )
             )
             out = np.empty((len(active), coeff.size // 3))
             _feature_kernels.sweep_rows(per_point, np.ascontiguousarray(coeff), np.asarray(active, dtype=np.int64), out)
