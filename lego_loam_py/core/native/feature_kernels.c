@@ -401,12 +401,64 @@ done:
     return result;
 }
 
+static PyObject *py_euler_rotate(PyObject *self, PyObject *args) {
+    Py_buffer left_buffer, cos_buffer, sin_buffer, xyz, out;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*w*", &left_buffer, &cos_buffer, &sin_buffer, &xyz, &out)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    Py_ssize_t n = cos_buffer.len / (3 * (Py_ssize_t)sizeof(double));
+    Py_ssize_t columns = n > 0 ? xyz.len / (n * (Py_ssize_t)sizeof(float)) : 3;
+    if (left_buffer.len != 9 * (Py_ssize_t)sizeof(double) || cos_buffer.len != n * 3 * (Py_ssize_t)sizeof(double) ||
+        sin_buffer.len != cos_buffer.len || columns < 3 || xyz.len != n * columns * (Py_ssize_t)sizeof(float) ||
+        out.len != cos_buffer.len) {
+        PyErr_SetString(PyExc_ValueError, "euler_rotate: inconsistent buffer sizes");
+        goto done;
+    }
+    const double *l = left_buffer.buf, *c = cos_buffer.buf, *sn = sin_buffer.buf;
+    const float *p = xyz.buf;
+    double *o = out.buf;
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        const double cx = c[i], cy = c[n + i], cz = c[2 * n + i], sx = sn[i], sy = sn[n + i], sz = sn[2 * n + i];
+        const double sy_sx = sy * sx, cy_sx = cy * sx;
+        double e[3][3];
+        e[0][0] = cy * cz + sy_sx * sz;
+        e[0][1] = -cy * sz + sy_sx * cz;
+        e[0][2] = sy * cx;
+        e[1][0] = cx * sz;
+        e[1][1] = cx * cz;
+        e[1][2] = -sx;
+        e[2][0] = -sy * cz + cy_sx * sz;
+        e[2][1] = sy * sz + cy_sx * cz;
+        e[2][2] = cy * cx;
+        const double x = (double)p[columns * i], y = (double)p[columns * i + 1], z = (double)p[columns * i + 2];
+        for (int r = 0; r < 3; ++r) {
+            double m[3];
+            for (int k = 0; k < 3; ++k) {
+                m[k] = l[3 * r] * e[0][k] + l[3 * r + 1] * e[1][k] + l[3 * r + 2] * e[2][k];
+            }
+            o[r * n + i] = (m[0] * x + m[2] * z) + m[1] * y + 0.0;
+        }
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&left_buffer);
+    PyBuffer_Release(&cos_buffer);
+    PyBuffer_Release(&sin_buffer);
+    PyBuffer_Release(&xyz);
+    PyBuffer_Release(&out);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"select", py_select, METH_VARARGS, "The greedy edge and flat selection of every sub-region (see the file)."},
     {"nearest_in_segments", py_nearest_in_segments, METH_VARARGS, "The nearest point of every window segment."},
     {"nearest_in_windows", py_nearest_in_windows, METH_VARARGS, "The window search of a ring-ordered cloud."},
     {"sweep_rows", py_sweep_rows, METH_VARARGS, "SweepStartFrame.rows in one pass."},
     {"sweep_frame", py_sweep_frame, METH_VARARGS, "SweepStartFrame's products and start points in one pass."},
+    {"euler_rotate", py_euler_rotate, METH_VARARGS, "rotate_by_euler after its sines and cosines."},
     {NULL, NULL, 0, NULL},
 };
 
