@@ -201,3 +201,29 @@ def test_native_imu_rotation_equals_rotate_by_euler(data):
     reference = imu_rotate(left, roll, pitch, yaw, points, native=False)
     assert native.shape == reference.shape == (n, 3)
     np.testing.assert_array_equal(native.view(np.int64), reference.view(np.int64))
+
+
+@pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
+@settings(max_examples=300, deadline=None)
+@given(st.data())
+def test_native_imu_attitude_equals_numpy(data):
+    """ImuBuffer.attitude's C interpolation against the NumPy bracketing and interpolation, bit for bit: repeated
+    stamps, yaw across +-pi, times before, between, on and beyond the samples (carried on), NaN."""
+    from lego_loam_py.core.imu.buffer import ImuBuffer
+
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    buffer = ImuBuffer(200)
+    m = int(rng.integers(1, 12))
+    stamps = 100.0 + np.sort(np.round(rng.random(m) * 0.1, int(rng.integers(1, 4))))  # (ties when rounded)
+    rows = rng.normal(0.0, 1.0, (m, 13))
+    rows[:, 0] = stamps
+    rows[:, 3] = rng.uniform(-np.pi, np.pi, m)
+    rows[rng.random(m) < 0.2, 1] = 0.0
+    buffer._rows.extend(tuple(row) for row in rows.tolist())
+    times = 100.0 + rng.uniform(-0.02, 0.2, int(rng.integers(0, 30)))
+    exact = rng.random(len(times)) < 0.2
+    times[exact] = stamps[rng.integers(0, m, int(exact.sum()))]
+    times[rng.random(len(times)) < 0.05] = np.nan
+    native = np.array(buffer.attitude(times))
+    reference = np.array(buffer.attitude(times, native=False))
+    np.testing.assert_array_equal(native.view(np.int64), reference.view(np.int64))

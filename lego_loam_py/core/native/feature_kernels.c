@@ -452,6 +452,65 @@ done:
     return result;
 }
 
+/* NumPy's sort order for searchsorted: a < b, and NaN after every number. */
+static inline int numpy_less(double a, double b) { return a < b || (b != b && a == a); }
+
+static PyObject *py_imu_lerp(PyObject *self, PyObject *args) {
+    Py_buffer table, times_buffer, out;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*w*", &table, &times_buffer, &out)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    Py_ssize_t m = table.len / (13 * (Py_ssize_t)sizeof(double));
+    Py_ssize_t n = times_buffer.len / (Py_ssize_t)sizeof(double);
+    if (m < 1 || table.len != m * 13 * (Py_ssize_t)sizeof(double) ||
+        times_buffer.len != n * (Py_ssize_t)sizeof(double) || out.len != n * 3 * (Py_ssize_t)sizeof(double)) {
+        PyErr_SetString(PyExc_ValueError, "imu_lerp: inconsistent buffer sizes");
+        goto done;
+    }
+    const double *rows = table.buf, *times = times_buffer.buf;
+    double *o = out.buf;
+    const double pi = 3.141592653589793, two_pi = 2 * 3.141592653589793;
+    const double newest = rows[13 * (m - 1)];
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        const double t = times[i];
+        Py_ssize_t low = 0, high = m; /* searchsorted(side='left') */
+        while (low < high) {
+            Py_ssize_t middle = low + (high - low) / 2;
+            if (numpy_less(rows[13 * middle], t)) {
+                low = middle + 1;
+            } else {
+                high = middle;
+            }
+        }
+        Py_ssize_t front = low > m - 1 ? m - 1 : low;
+        Py_ssize_t back = front - 1 > 0 ? front - 1 : 0;
+        const double *rb = rows + 13 * back, *rf = rows + 13 * front;
+        const double span = rf[0] - rb[0];
+        double ratio = span > 0 ? (t - rb[0]) / span : 1.0;
+        if (ratio == ratio) { /* clip to [0, 1] as NumPy does: NaN stays NaN, -0.0 stays -0.0 */
+            ratio = 0.0 > ratio ? 0.0 : ratio;
+            ratio = ratio > 1.0 ? 1.0 : ratio;
+        }
+        if (t >= newest) {
+            ratio = 1.0;
+        }
+        o[3 * i] = rb[1] + (rf[1] - rb[1]) * ratio;
+        o[3 * i + 1] = rb[2] + (rf[2] - rb[2]) * ratio;
+        const double jump = rf[3] - rb[3];
+        const double unwrapped = rb[3] + (jump > pi ? two_pi : (jump < -pi ? -two_pi : 0.0));
+        o[3 * i + 2] = unwrapped + (rf[3] - unwrapped) * ratio;
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&table);
+    PyBuffer_Release(&times_buffer);
+    PyBuffer_Release(&out);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"select", py_select, METH_VARARGS, "The greedy edge and flat selection of every sub-region (see the file)."},
     {"nearest_in_segments", py_nearest_in_segments, METH_VARARGS, "The nearest point of every window segment."},
@@ -459,6 +518,7 @@ static PyMethodDef methods[] = {
     {"sweep_rows", py_sweep_rows, METH_VARARGS, "SweepStartFrame.rows in one pass."},
     {"sweep_frame", py_sweep_frame, METH_VARARGS, "SweepStartFrame's products and start points in one pass."},
     {"euler_rotate", py_euler_rotate, METH_VARARGS, "rotate_by_euler after its sines and cosines."},
+    {"imu_lerp", py_imu_lerp, METH_VARARGS, "The IMU attitude interpolated at given times."},
     {NULL, NULL, 0, NULL},
 };
 
