@@ -28,6 +28,7 @@ z forward) for world vectors; ``angle`` integrates the raw gyro in lidar axes (x
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -223,6 +224,7 @@ class ImuBuffer:
         # One row per sample: time, roll, pitch, yaw, velocity (3), shift (3), angle (3).
         self._rows: deque[tuple[float, ...]] = deque(maxlen=self.capacity)
         self._arrays: np.ndarray | None = None
+        self._appended = 0  # rows appended since _arrays was built
         self._behind: list[float] = []  # stamps of the samples rejected in a row as older than the newest
         self.rejected: dict[str, int] = {}
         self.accepted = 0  # samples taken since the buffer was made (a clear keeps the count)
@@ -233,8 +235,15 @@ class ImuBuffer:
         return len(self._rows)
 
     def _table(self) -> np.ndarray:
-        if self._arrays is None:
+        if self._arrays is None or self._appended >= len(self._rows):
             self._arrays = np.array(self._rows, dtype=float).reshape(-1, 13)
+        elif self._appended:
+            # Only the rows appended since (a scan's worth of samples, not the whole buffer, each scan): the rows
+            # still kept are the newest of the old table, the same values.
+            kept = len(self._rows) - self._appended
+            new = list(itertools.islice(self._rows, kept, None))
+            self._arrays = np.concatenate((self._arrays[len(self._arrays) - kept :], np.array(new, dtype=float)))
+        self._appended = 0
         return self._arrays
 
     @property
@@ -277,6 +286,7 @@ class ImuBuffer:
         """Forget every sample (the rejection and reset counters are kept)."""
         self._rows.clear()
         self._arrays = None
+        self._appended = 0
         self._behind = []
         self._last_rate = None
         if self.gyro is not None:
@@ -379,7 +389,7 @@ class ImuBuffer:
             shift = last[7:10] if last is not None else (0.0, 0.0, 0.0)
             angle = last[10:13] if last is not None else (0.0, 0.0, 0.0)
         self._rows.append((stamp, *attitude, *velocity, *shift, *angle))
-        self._arrays = None
+        self._appended += 1
         self.accepted += 1
         return None
 
