@@ -123,7 +123,7 @@ def test_native_whole_window_search_equals_numpy(data):
     from lego_loam_py.core.params import Params
 
     rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
-    last = LastCloud(_cloud(rng, int(rng.integers(1, 80))), 16)
+    last = LastCloud(_cloud(rng, int(rng.integers(1, 300))), 16)
     queries = _cloud(rng, int(rng.integers(0, 20)))  # (the KD-tree refuses NaN queries)
     queries[:, :3] += rng.normal(0.0, 0.3, (len(queries), 3)).astype(np.float32) * (rng.random() < 0.5)
     params = Params().replace(
