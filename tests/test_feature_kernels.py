@@ -151,7 +151,8 @@ def test_native_sweep_rows_equal_numpy(data):
     xyz = rng.normal(0.0, 10.0, (3, n))
     s = 1.0 + rng.random(n)
     theta = rng.normal(0.0, 0.1, 6) * (rng.random(6) < 0.8)
-    frame = SweepStartFrame(xyz, s, theta, SweepTrig(s) if rng.random() < 0.5 else None)
+    # (a frame made in NumPy gives the C rows its products stacked; one made in C, its own block)
+    frame = SweepStartFrame(xyz, s, theta, SweepTrig(s) if rng.random() < 0.5 else None, native=rng.random() < 0.5)
     coeff = rng.normal(0.0, 1.0, (n, 3, 3) if rng.random() < 0.5 else (n, 3))
     active = [int(k) for k in rng.choice(6, int(rng.integers(1, 7)), replace=False)]
     native = frame.rows(coeff, active)

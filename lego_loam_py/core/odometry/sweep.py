@@ -32,7 +32,7 @@ from lego_loam_py.core.frames import (
 from lego_loam_py.core.parity.libm import atan2f
 from lego_loam_py.core.projection.cloud_info import CloudInfo
 
-try:  # SweepStartFrame.rows in C (native/feature_kernels.c); optional, the NumPy version gives the same
+try:  # SweepStartFrame's products and rows in C (native/feature_kernels.c); optional, NumPy gives the same
     from lego_loam_py.core import _feature_kernels
 except ImportError:
     _feature_kernels = None
