@@ -114,7 +114,7 @@ def test_the_window_search_keeps_the_first_tie_forward_and_the_last_backward():
 
 
 @pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=150, deadline=None)
 @given(st.data())
 def test_native_whole_window_search_equals_numpy(data):
     """The one-pass search of a ring-ordered cloud (windows, segments and nearest points in C) against the NumPy
@@ -228,3 +228,28 @@ def test_native_imu_attitude_equals_numpy(data):
     native = np.array(buffer.attitude(times))
     reference = np.array(buffer.attitude(times, native=False))
     np.testing.assert_array_equal(native.view(np.int64), reference.view(np.int64))
+
+
+@pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
+@settings(max_examples=150, deadline=None)
+@given(st.data())
+def test_native_occlusion_marks_equal_numpy(data):
+    """features.occluded_mask in C against its NumPy version: ranges with jumps, ties, zeros and NaN, columns with
+    gaps, any half window (0: the first neighbour wraps), thresholds and scan length."""
+    from lego_loam_py.core.params import Params
+
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    n = int(rng.integers(0, 60))
+    ranges = (rng.choice([1.0, 5.0, 20.0], n) + rng.normal(0.0, 0.5, n) * (rng.random(n) < 0.7)).astype(np.float32)
+    ranges[rng.random(n) < 0.05] = np.nan
+    ranges[rng.random(n) < 0.05] = 0.0
+    columns = np.cumsum(rng.choice([1, 1, 1, 2, 15], n)) - rng.integers(0, 3)
+    params = Params().replace(
+        feature_association__smoothness_half_window=int(rng.integers(0, 7)),
+        feature_association__occlusion_column_gap=int(rng.choice([1, 10, 100])),
+        feature_association__occlusion_depth_jump=float(rng.choice([0.1, 0.3, 3.0])),
+        feature_association__parallel_beam_ratio=float(rng.choice([0.0, 0.02, 0.5])),
+    )
+    native = features.occluded_mask(ranges, columns, params)
+    reference = features.occluded_mask(ranges, columns, params, native=False)
+    np.testing.assert_array_equal(native, reference)

@@ -1,8 +1,9 @@
 /*
  * featureAssociation's inner loops that NumPy can only express with many small calls or not at all, in C with
- * the same float32 arithmetic as the NumPy code they replace (built with -ffp-contract=off: no fused
- * multiply-adds). lego_loam_py/core/features.py and correspondences.py keep the NumPy/Python versions as the
- * fallback when this extension is not built, and the tests compare the two.
+ * the same float32 and float64 arithmetic as the NumPy code they replace, operation by operation (built with
+ * -ffp-contract=off: no fused multiply-adds). The modules that call them (core/odometry/features.py,
+ * correspondences.py, sweep.py, core/imu/buffer.py) keep the NumPy/Python versions as the fallback when this
+ * extension is not built, and tests/test_feature_kernels.py compares the two bit for bit.
  *
  * select(edges, edge_bounds, edge_start, edge_stop, flats, flat_bounds, flat_start, flat_stop, taken,
  *        edge_num, less_edge_num, surf_num, sharp, less_sharp, less_sharp_region, flat)
@@ -28,6 +29,34 @@
  *   segments of LastCloud.segments (only the kinds whose bit is set in kinds: bit k for kind k), and the
  *   nearest point of each as nearest_in_segments finds it, without building the index arrays. Writes index
  *   (int64, n x 4) and best (float32, n x 4) as nearest_in_segments does.
+ *
+ * sweep_rows(per_point, coeff, active, out)
+ *   SweepStartFrame.rows in one pass: per_point (13, n) float64 holds cx, sx, cy, sy, cz, sz, s, qx, qy, qz, ux,
+ *   uy, vz of the frame, coeff (n, m, 3) float64 the m coefficient vectors of each point, active (k,) int64 the
+ *   parameters (0-5); writes out (k, n * m) float64, the rows column by column.
+ *
+ * sweep_frame(xyz, s, t, cx, cy, cz, sx, sy, sz, block, start)
+ *   SweepStartFrame's partial products and start points in one pass: xyz (3, n), s (n,), t (3,) the translation
+ *   and the six (n,) cosines and sines, all float64; writes block (14, n) float64 = cx, sx, cy, sy, cz, sz, s, qx,
+ *   qy, qz, ux, uy, vz, vy (its first 13 rows are sweep_rows' per_point) and start (n, 3) float32.
+ *
+ * euler_rotate(left, cosines, sines, xyz, out)
+ *   core.frames.rotate_by_euler after its sines and cosines: left (3, 3), cosines and sines (3, n) of the angles
+ *   (rx, ry, rz), all float64, xyz (n, c >= 3) float32 points; writes out (3, n) float64, the rows of
+ *   (left @ Ry Rx Rz) @ p in rotate_by_euler's order (the entries of Ry Rx Rz, left @ them summed j = 0, 1, 2,
+ *   then (x + z) + y + 0.0).
+ *
+ * imu_lerp(table, times, out)
+ *   ImuBuffer._bracket and _lerp_attitude (without the carrying on beyond the newest sample) in one pass: table
+ *   (m >= 1, 13) float64 the buffer's rows (time, roll, pitch, yaw, ...), times (n,) float64; writes out (n, 3)
+ *   float64 roll, pitch, yaw. NumPy's semantics throughout: searchsorted's order puts NaN last, clip keeps NaN
+ *   and -0.0, the yaw unwrapped as the where()s do.
+ *
+ * occluded(ranges, columns, half_window, column_gap, depth_jump, parallel_ratio, picked)
+ *   features.occluded_mask in one pass: ranges (n,) float32, columns (n,) int64; marks picked (n,) bool (zeroed
+ *   by the caller) where the NumPy version does, with its dtypes (differences of float32 ranges in float64
+ *   against the float32 depth_jump; the parallel-beam differences in float32 against parallel_ratio * range in
+ *   float64).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -566,6 +595,52 @@ done:
     return result;
 }
 
+static PyObject *py_occluded(PyObject *self, PyObject *args) {
+    Py_buffer ranges, columns, picked;
+    long long half_window;
+    double column_gap, ratio;
+    float jump;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*Ldfdw*", &ranges, &columns, &half_window, &column_gap, &jump, &ratio, &picked)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    Py_ssize_t n = ranges.len / (Py_ssize_t)sizeof(float);
+    if (ranges.len != n * (Py_ssize_t)sizeof(float) || columns.len != n * 8 || picked.len != n || half_window < 0) {
+        PyErr_SetString(PyExc_ValueError, "occluded: inconsistent buffer sizes");
+        goto done;
+    }
+    const float *r = ranges.buf;
+    const int64_t *col = columns.buf;
+    uint8_t *out = picked.buf;
+    const int64_t w = half_window;
+    for (int64_t i = w; i < (int64_t)n - w - 1; ++i) {
+        const float d1 = r[i], d2 = r[i + 1];
+        int64_t gap = col[i + 1] - col[i];
+        gap = gap < 0 ? -gap : gap;
+        if ((double)gap < column_gap) {
+            if ((double)d1 - (double)d2 > (double)jump) { /* i is the far side: mark i - w .. i */
+                memset(out + i - w, 1, (size_t)(w + 1));
+            } else if ((double)d2 - (double)d1 > (double)jump) { /* mark i + 1 .. i + 1 + w */
+                memset(out + i + 1, 1, (size_t)(w + 1));
+            }
+        }
+        const float before = r[i >= 1 ? i - 1 : i - 1 + (int64_t)n]; /* (i - 1 wraps when w = 0, as indexing) */
+        const float diff1 = fabsf(before - d1), diff2 = fabsf(d2 - d1);
+        const double limit = ratio * (double)d1;
+        if ((double)diff1 > limit && (double)diff2 > limit) {
+            out[i] = 1;
+        }
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&ranges);
+    PyBuffer_Release(&columns);
+    PyBuffer_Release(&picked);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"select", py_select, METH_VARARGS, "The greedy edge and flat selection of every sub-region (see the file)."},
     {"nearest_in_segments", py_nearest_in_segments, METH_VARARGS, "The nearest point of every window segment."},
@@ -574,6 +649,7 @@ static PyMethodDef methods[] = {
     {"sweep_frame", py_sweep_frame, METH_VARARGS, "SweepStartFrame's products and start points in one pass."},
     {"euler_rotate", py_euler_rotate, METH_VARARGS, "rotate_by_euler after its sines and cosines."},
     {"imu_lerp", py_imu_lerp, METH_VARARGS, "The IMU attitude interpolated at given times."},
+    {"occluded", py_occluded, METH_VARARGS, "features.occluded_mask in one pass."},
     {NULL, NULL, 0, NULL},
 };
 
