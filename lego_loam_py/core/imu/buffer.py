@@ -39,7 +39,7 @@ from lego_loam_py.core.frames import ImuMounting, euler_to_matrices, rotate_by_e
 from lego_loam_py.core.imu.gyro import GyroAttitude
 from lego_loam_py.core.validation import MAX_ACCELERATION, MAX_ANGULAR_VELOCITY, MAX_SPEED
 
-try:  # imu_rotate's products in C (native/feature_kernels.c); optional, core.frames.rotate_by_euler gives the same
+try:  # imu_rotate's products and the attitudes in C (native/feature_kernels.c); optional, NumPy gives the same
     from lego_loam_py.core import _feature_kernels
 except ImportError:
     _feature_kernels = None
@@ -194,8 +194,8 @@ class ImuBuffer:
     """Bounded ring of processed IMU samples (``capacity`` = the original's imuQueLength).
 
     Samples are processed with scalar math (a 200 Hz IMU feeds two nodes: per-sample numpy or scipy calls
-    would cost more than the algorithm) and kept as rows; the arrays the queries use are built once per
-    change, when a scan asks for them.
+    would cost more than the algorithm) and kept as rows; the arrays the queries use are extended by the rows
+    added since, when a scan asks for them.
     """
 
     def __init__(
