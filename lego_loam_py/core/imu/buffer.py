@@ -128,7 +128,7 @@ def imu_rotate(
     tests compare the two)."""
     if (
         native
-        and _feature_kernels is not None
+        and hasattr(_feature_kernels, 'euler_rotate')
         and isinstance(xyz, np.ndarray)
         and xyz.dtype == np.float32
         and xyz.ndim == 2
@@ -459,7 +459,7 @@ class ImuBuffer:
         bracketing and interpolation in C when the extension is built (one pass instead of some thirty NumPy calls,
         several times a scan); ``native=False`` runs the NumPy version (the tests compare the two)."""
         times = np.atleast_1d(np.asarray(times, dtype=float))
-        if native and _feature_kernels is not None and times.ndim == 1 and len(self._rows):
+        if native and hasattr(_feature_kernels, 'imu_lerp') and times.ndim == 1 and len(self._rows):
             rpy = np.empty((len(times), 3))
             _feature_kernels.imu_lerp(self._table(), np.ascontiguousarray(times), rpy)
             self._carry_on(rpy, times)

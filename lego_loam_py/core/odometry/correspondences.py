@@ -230,7 +230,7 @@ def _window_search(
     limit = fa.nearest_feature_search_sq_dist
     if (
         native
-        and _feature_kernels is not None
+        and hasattr(_feature_kernels, 'nearest_in_windows')  # (None, or an extension built before it: NumPy)
         and last.ring_ordered
         and last.xyz_rows.dtype == _F32
         and points_start.dtype == _F32

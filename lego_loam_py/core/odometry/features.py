@@ -103,7 +103,7 @@ def occluded_mask(ranges: np.ndarray, columns: np.ndarray, params: Params, nativ
     n = len(r)
     picked = np.zeros(n, dtype=bool)
     w = fa.smoothness_half_window
-    if native and _feature_kernels is not None and w >= 0:
+    if native and hasattr(_feature_kernels, 'occluded') and w >= 0:
         _feature_kernels.occluded(
             np.ascontiguousarray(r),
             np.ascontiguousarray(columns, dtype=np.int64),

@@ -162,7 +162,7 @@ class SweepStartFrame:
             cosines, sines = trig.of(transform)
         self._factors = {}
         self._block = self._start = None
-        if native and _feature_kernels is not None and xyz.dtype == np.float64 and s.dtype == np.float64:
+        if native and hasattr(_feature_kernels, 'sweep_frame') and xyz.dtype == np.float64 and s.dtype == np.float64:
             self._block = np.empty((14, len(s)))
             self._start = np.empty((len(s), 3), dtype=_F32)
             _feature_kernels.sweep_frame(
@@ -223,7 +223,7 @@ class SweepStartFrame:
         ``native=False`` runs the NumPy version (the tests compare the two).
         """
         batched = coeff.ndim == 3
-        if native and _feature_kernels is not None and coeff.dtype == np.float64:
+        if native and hasattr(_feature_kernels, 'sweep_rows') and coeff.dtype == np.float64:
             per_point = (
                 self._block[:13]
                 if self._block is not None
