@@ -111,3 +111,145 @@ def test_the_window_search_keeps_the_first_tie_forward_and_the_last_backward():
         )
         assert index.tolist() == [[2, -1, 0, -1]]
         assert best.tolist() == [[1.0, np.inf, 1.0, np.inf]]
+
+
+@pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
+@settings(max_examples=150, deadline=None)
+@given(st.data())
+def test_native_whole_window_search_equals_numpy(data):
+    """The one-pass search of a ring-ordered cloud (windows, segments and nearest points in C) against the NumPy
+    windows, segments and nearest points, for both correspondence kinds, any forward bound and window."""
+    from lego_loam_py.core.odometry.correspondences import _OTHER, _SAME, LastCloud, _window_search
+    from lego_loam_py.core.params import Params
+
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    last = LastCloud(_cloud(rng, int(rng.integers(1, 300))), 16)
+    queries = _cloud(rng, int(rng.integers(0, 20)))  # (the KD-tree refuses NaN queries)
+    queries[:, :3] += rng.normal(0.0, 0.3, (len(queries), 3)).astype(np.float32) * (rng.random() < 0.5)
+    params = Params().replace(
+        feature_association__nearest_feature_search_sq_dist=float(rng.choice([0.5, 2.0, 25.0])),
+        feature_association__ring_search_window=float(rng.choice([0.5, 1.0, 2.5, 4.0])),
+    )
+    bound = int(rng.integers(0, len(last.points) + 3))
+    kinds = [_SAME + _OTHER, _OTHER][int(rng.integers(0, 2))]
+    native = _window_search(queries, last, params, bound, kinds)
+    reference = _window_search(queries, last, params, bound, kinds, native=False)
+    for a, b in zip(native, reference):
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
+@settings(max_examples=200, deadline=None)
+@given(st.data())
+def test_native_sweep_rows_equal_numpy(data):
+    """SweepStartFrame.rows in C against its NumPy expressions, bit for bit: one or three coefficient vectors per
+    point, any active parameters, with and without remembered sines and cosines."""
+    from lego_loam_py.core.odometry.sweep import SweepStartFrame, SweepTrig
+
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    n = int(rng.integers(0, 40))
+    xyz = rng.normal(0.0, 10.0, (3, n))
+    s = 1.0 + rng.random(n)
+    theta = rng.normal(0.0, 0.1, 6) * (rng.random(6) < 0.8)
+    # (a frame made in NumPy gives the C rows its products stacked; one made in C, its own block)
+    frame = SweepStartFrame(xyz, s, theta, SweepTrig(s) if rng.random() < 0.5 else None, native=rng.random() < 0.5)
+    coeff = rng.normal(0.0, 1.0, (n, 3, 3) if rng.random() < 0.5 else (n, 3))
+    active = [int(k) for k in rng.choice(6, int(rng.integers(1, 7)), replace=False)]
+    native = frame.rows(coeff, active)
+    reference = frame.rows(coeff, active, native=False)
+    assert native.shape == reference.shape and (native.strides == reference.strides or not n)
+    np.testing.assert_array_equal(native.view(np.int64), reference.view(np.int64))
+
+
+@pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
+@settings(max_examples=200, deadline=None)
+@given(st.data())
+def test_native_sweep_frame_equals_numpy(data):
+    """SweepStartFrame's products and start points in C against its NumPy expressions, bit for bit (signed zeros
+    too), with and without remembered sines and cosines."""
+    from lego_loam_py.core.odometry.sweep import SweepStartFrame, SweepTrig
+
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    n = int(rng.integers(0, 40))
+    xyz = rng.normal(0.0, 10.0, (3, n)) * (rng.random((3, n)) < 0.9)
+    s = rng.random(n) * (rng.random(n) < 0.9) + (rng.random() < 0.5)
+    theta = rng.normal(0.0, 0.1, 6) * (rng.random(6) < 0.8) * rng.choice([1.0, -1.0])
+    trig = SweepTrig(s) if rng.random() < 0.5 else None
+    native = SweepStartFrame(xyz, s, theta, trig)
+    reference = SweepStartFrame(xyz, s, theta, trig, native=False)
+    for name in ('cx', 'sx', 'cy', 'sy', 'cz', 'sz', 'qx', 'qy', 'qz', 'ux', 'uy', 'vy', 'vz'):
+        np.testing.assert_array_equal(getattr(native, name).view(np.int64), getattr(reference, name).view(np.int64))
+    np.testing.assert_array_equal(native.xyz().view(np.int32), reference.xyz().view(np.int32))
+
+
+@pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
+@settings(max_examples=200, deadline=None)
+@given(st.data())
+def test_native_imu_rotation_equals_rotate_by_euler(data):
+    """imu_rotate's C products against core.frames.rotate_by_euler, bit for bit (signed zeros too): float32 points
+    of three or four columns, zero angles and coordinates among them, any left rotation."""
+    from scipy.spatial.transform import Rotation
+
+    from lego_loam_py.core.imu.buffer import imu_rotate
+
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    n = int(rng.integers(0, 40))
+    roll, pitch, yaw = (rng.normal(0.0, 1.0, n) * (rng.random(n) < 0.8) for _ in range(3))
+    points = (rng.normal(0.0, 10.0, (n, int(rng.integers(3, 5)))) * (rng.random((n, 1)) < 0.9)).astype(np.float32)
+    left = np.eye(3) if rng.random() < 0.3 else Rotation.from_rotvec(rng.normal(0.0, 1.0, 3)).as_matrix()
+    left = left.T if rng.random() < 0.5 else left
+    native = imu_rotate(left, roll, pitch, yaw, points)
+    reference = imu_rotate(left, roll, pitch, yaw, points, native=False)
+    assert native.shape == reference.shape == (n, 3)
+    np.testing.assert_array_equal(native.view(np.int64), reference.view(np.int64))
+
+
+@pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
+@settings(max_examples=300, deadline=None)
+@given(st.data())
+def test_native_imu_attitude_equals_numpy(data):
+    """ImuBuffer.attitude's C interpolation against the NumPy bracketing and interpolation, bit for bit: repeated
+    stamps, yaw across +-pi, times before, between, on and beyond the samples (carried on), NaN."""
+    from lego_loam_py.core.imu.buffer import ImuBuffer
+
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    buffer = ImuBuffer(200)
+    m = int(rng.integers(1, 12))
+    stamps = 100.0 + np.sort(np.round(rng.random(m) * 0.1, int(rng.integers(1, 4))))  # (ties when rounded)
+    rows = rng.normal(0.0, 1.0, (m, 13))
+    rows[:, 0] = stamps
+    rows[:, 3] = rng.uniform(-np.pi, np.pi, m)
+    rows[rng.random(m) < 0.2, 1] = 0.0
+    buffer._rows.extend(tuple(row) for row in rows.tolist())
+    times = 100.0 + rng.uniform(-0.02, 0.2, int(rng.integers(0, 30)))
+    exact = rng.random(len(times)) < 0.2
+    times[exact] = stamps[rng.integers(0, m, int(exact.sum()))]
+    times[rng.random(len(times)) < 0.05] = np.nan
+    native = np.array(buffer.attitude(times))
+    reference = np.array(buffer.attitude(times, native=False))
+    np.testing.assert_array_equal(native.view(np.int64), reference.view(np.int64))
+
+
+@pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
+@settings(max_examples=150, deadline=None)
+@given(st.data())
+def test_native_occlusion_marks_equal_numpy(data):
+    """features.occluded_mask in C against its NumPy version: ranges with jumps, ties, zeros and NaN, columns with
+    gaps, any half window (0: the first neighbour wraps), thresholds and scan length."""
+    from lego_loam_py.core.params import Params
+
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    n = int(rng.integers(0, 60))
+    ranges = (rng.choice([1.0, 5.0, 20.0], n) + rng.normal(0.0, 0.5, n) * (rng.random(n) < 0.7)).astype(np.float32)
+    ranges[rng.random(n) < 0.05] = np.nan
+    ranges[rng.random(n) < 0.05] = 0.0
+    columns = np.cumsum(rng.choice([1, 1, 1, 2, 15], n)) - rng.integers(0, 3)
+    params = Params().replace(
+        feature_association__smoothness_half_window=int(rng.integers(0, 7)),
+        feature_association__occlusion_column_gap=int(rng.choice([1, 10, 100])),
+        feature_association__occlusion_depth_jump=float(rng.choice([0.1, 0.3, 3.0])),
+        feature_association__parallel_beam_ratio=float(rng.choice([0.0, 0.02, 0.5])),
+    )
+    native = features.occluded_mask(ranges, columns, params)
+    reference = features.occluded_mask(ranges, columns, params, native=False)
+    np.testing.assert_array_equal(native, reference)

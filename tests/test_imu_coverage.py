@@ -41,6 +41,23 @@ def test_the_coverage_of_a_sweep_says_why_it_fails():
     assert gappy.coverage(0.6, 0.7) is None
 
 
+def test_the_table_built_from_the_appended_rows_only_is_the_whole_buffer_built_anew():
+    """The arrays are extended by the rows appended since they were built (the oldest dropped past the capacity,
+    a clear or a restart in between): the same as building them from every row."""
+    rng = np.random.default_rng(3)
+    imu, t = ImuBuffer(capacity=25), 0.0
+    for burst in [0, 1, 3, 10, 24, 25, 30, 2, 0, 7]:
+        for _ in range(burst):
+            t += 0.005
+            half = 0.25 * t
+            imu.add(t, (0.0, 0.0, math.sin(half), math.cos(half)), tuple(rng.normal(0, 0.1, 3)), (0.0, 0.0, 9.81))
+        if burst == 2:
+            imu.clear()
+        table = imu._table()
+        assert table.shape == (len(imu), 13)
+        np.testing.assert_array_equal(table, np.array(imu._rows, dtype=float).reshape(-1, 13))
+
+
 def test_the_attitude_beyond_the_newest_sample_goes_on_at_its_last_rate():
     imu = _yawing_buffer(np.arange(0.0, 1.0, 0.005), yaw_rate=0.5)
     newest = 0.995

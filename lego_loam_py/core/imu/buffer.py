@@ -28,6 +28,7 @@ z forward) for world vectors; ``angle`` integrates the raw gyro in lidar axes (x
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -37,6 +38,11 @@ import numpy as np
 from lego_loam_py.core.frames import ImuMounting, euler_to_matrices, rotate_by_euler
 from lego_loam_py.core.imu.gyro import GyroAttitude
 from lego_loam_py.core.validation import MAX_ACCELERATION, MAX_ANGULAR_VELOCITY, MAX_SPEED
+
+try:  # imu_rotate's products and the attitudes in C (native/feature_kernels.c); optional, NumPy gives the same
+    from lego_loam_py.core import _feature_kernels
+except ImportError:
+    _feature_kernels = None
 
 __all__ = [
     'ImuBuffer',
@@ -112,9 +118,30 @@ def imu_world_rotation(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> 
     return euler_to_matrices(pitch, yaw, roll)
 
 
-def imu_rotate(left: np.ndarray, roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+def imu_rotate(
+    left: np.ndarray, roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray, xyz: np.ndarray, native: bool = True
+) -> np.ndarray:
     """(n, 3) float64 ``left @ imu_world_rotation(roll, pitch, yaw)[n] @ xyz[n]``, without the (n, 3, 3)
-    attitudes (:func:`~lego_loam_py.core.frames.rotate_by_euler`)."""
+    attitudes (:func:`~lego_loam_py.core.frames.rotate_by_euler`). For float32 points (the features, every scan)
+    the products after the sines and cosines run in C when the extension is built, the same operations in one
+    pass instead of some twenty NumPy calls over (3, 3, n) arrays; ``native=False``: always rotate_by_euler (the
+    tests compare the two)."""
+    if (
+        native
+        and hasattr(_feature_kernels, 'euler_rotate')
+        and isinstance(xyz, np.ndarray)
+        and xyz.dtype == np.float32
+        and xyz.ndim == 2
+        and xyz.shape[1] >= 3
+        and xyz.flags.c_contiguous
+    ):
+        angles = np.array([np.asarray(a, dtype=float).reshape(-1) for a in (pitch, yaw, roll)])  # as rotate_by_euler
+        if angles.shape[1] == len(xyz):
+            out = np.empty(angles.shape)
+            _feature_kernels.euler_rotate(
+                np.ascontiguousarray(left, dtype=np.float64), np.cos(angles), np.sin(angles), xyz, out
+            )
+            return out.T
     return rotate_by_euler(left, pitch, yaw, roll, xyz)
 
 
@@ -167,8 +194,8 @@ class ImuBuffer:
     """Bounded ring of processed IMU samples (``capacity`` = the original's imuQueLength).
 
     Samples are processed with scalar math (a 200 Hz IMU feeds two nodes: per-sample numpy or scipy calls
-    would cost more than the algorithm) and kept as rows; the arrays the queries use are built once per
-    change, when a scan asks for them.
+    would cost more than the algorithm) and kept as rows; the arrays the queries use are extended by the rows
+    added since, when a scan asks for them.
     """
 
     def __init__(
@@ -197,6 +224,7 @@ class ImuBuffer:
         # One row per sample: time, roll, pitch, yaw, velocity (3), shift (3), angle (3).
         self._rows: deque[tuple[float, ...]] = deque(maxlen=self.capacity)
         self._arrays: np.ndarray | None = None
+        self._appended = 0  # rows appended since _arrays was built
         self._behind: list[float] = []  # stamps of the samples rejected in a row as older than the newest
         self.rejected: dict[str, int] = {}
         self.accepted = 0  # samples taken since the buffer was made (a clear keeps the count)
@@ -207,8 +235,15 @@ class ImuBuffer:
         return len(self._rows)
 
     def _table(self) -> np.ndarray:
-        if self._arrays is None:
+        if self._arrays is None or self._appended >= len(self._rows):
             self._arrays = np.array(self._rows, dtype=float).reshape(-1, 13)
+        elif self._appended:
+            # Only the rows appended since (a scan's worth of samples, not the whole buffer, each scan): the rows
+            # still kept are the newest of the old table, the same values.
+            kept = len(self._rows) - self._appended
+            new = list(itertools.islice(self._rows, kept, None))
+            self._arrays = np.concatenate((self._arrays[len(self._arrays) - kept :], np.array(new, dtype=float)))
+        self._appended = 0
         return self._arrays
 
     @property
@@ -251,6 +286,7 @@ class ImuBuffer:
         """Forget every sample (the rejection and reset counters are kept)."""
         self._rows.clear()
         self._arrays = None
+        self._appended = 0
         self._behind = []
         self._last_rate = None
         if self.gyro is not None:
@@ -353,7 +389,7 @@ class ImuBuffer:
             shift = last[7:10] if last is not None else (0.0, 0.0, 0.0)
             angle = last[10:13] if last is not None else (0.0, 0.0, 0.0)
         self._rows.append((stamp, *attitude, *velocity, *shift, *angle))
-        self._arrays = None
+        self._appended += 1
         self.accepted += 1
         return None
 
@@ -418,10 +454,17 @@ class ImuBuffer:
             angle=lerp(self._angle),
         )
 
-    def attitude(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(roll, pitch, yaw) of :meth:`interpolate`, without the other quantities (deskewing needs only these)."""
+    def attitude(self, times: np.ndarray, native: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(roll, pitch, yaw) of :meth:`interpolate`, without the other quantities (deskewing needs only these). The
+        bracketing and interpolation in C when the extension is built (one pass instead of some thirty NumPy calls,
+        several times a scan); ``native=False`` runs the NumPy version (the tests compare the two)."""
         times = np.atleast_1d(np.asarray(times, dtype=float))
-        rpy = self._lerp_attitude(*self._bracket(times), times)
+        if native and hasattr(_feature_kernels, 'imu_lerp') and times.ndim == 1 and len(self._rows):
+            rpy = np.empty((len(times), 3))
+            _feature_kernels.imu_lerp(self._table(), np.ascontiguousarray(times), rpy)
+            self._carry_on(rpy, times)
+        else:
+            rpy = self._lerp_attitude(*self._bracket(times), times)
         return rpy[:, 0], rpy[:, 1], rpy[:, 2]
 
     def _bracket(self, times: np.ndarray):
@@ -449,11 +492,17 @@ class ImuBuffer:
         jump = yaw_front - yaw_back
         unwrapped_back = yaw_back + np.where(jump > np.pi, 2 * np.pi, np.where(jump < -np.pi, -2 * np.pi, 0.0))
         rpy[:, 2] = unwrapped_back + (yaw_front - unwrapped_back) * ratio
-        if times is not None:  # (float stamps near 1.7e9 s land up to a microsecond past an equal sample's)
-            ahead = np.minimum(times - self._time[-1], MAX_REACH)
-            if np.any(ahead > STAMP_ROUNDING):
-                rpy += np.where(ahead > STAMP_ROUNDING, ahead, 0.0)[:, None] * self._newest_rate()[None, :]
+        if times is not None:
+            self._carry_on(rpy, times)
         return rpy
+
+    def _carry_on(self, rpy: np.ndarray, times: np.ndarray) -> None:
+        """Carry the attitudes ``rpy`` (n, 3) at ``times`` beyond the newest sample on at the last rate (at most
+        :data:`MAX_REACH`), in place."""
+        # (float stamps near 1.7e9 s land up to a microsecond past an equal sample's)
+        ahead = np.minimum(times - self._time[-1], MAX_REACH)
+        if np.any(ahead > STAMP_ROUNDING):
+            rpy += np.where(ahead > STAMP_ROUNDING, ahead, 0.0)[:, None] * self._newest_rate()[None, :]
 
     def _newest_rate(self) -> np.ndarray:
         """(3,) roll, pitch, yaw rates [rad/s] over the newest :data:`RATE_BASELINE` s of samples (0 with one)."""

@@ -1,8 +1,9 @@
 /*
  * featureAssociation's inner loops that NumPy can only express with many small calls or not at all, in C with
- * the same float32 arithmetic as the NumPy code they replace (built with -ffp-contract=off: no fused
- * multiply-adds). lego_loam_py/core/features.py and correspondences.py keep the NumPy/Python versions as the
- * fallback when this extension is not built, and the tests compare the two.
+ * the same float32 and float64 arithmetic as the NumPy code they replace, operation by operation (built with
+ * -ffp-contract=off: no fused multiply-adds). The modules that call them (core/odometry/features.py,
+ * correspondences.py, sweep.py, core/imu/buffer.py) keep the NumPy/Python versions as the fallback when this
+ * extension is not built, and tests/test_feature_kernels.py compares the two bit for bit.
  *
  * select(edges, edge_bounds, edge_start, edge_stop, flats, flat_bounds, flat_start, flat_stop, taken,
  *        edge_num, less_edge_num, surf_num, sharp, less_sharp, less_sharp_region, flat)
@@ -21,12 +22,51 @@
  *   segment (kinds 2 and 3) and the last of a backward one (kinds 0 and 1), as the original's scans meet
  *   them. Writes index (int64, -1: none) and best (float32, inf: none) for every segment; only distances
  *   below limit count.
+ *
+ * nearest_in_windows(xyz_rows, rings, query, closest, ring_window, forward_bound, kinds, limit, index, best)
+ *   The whole window search of a last cloud whose rings (int64, one per point) ascend, for each query (n, 3)
+ *   float32 and its nearest point closest (int64): the index windows of LastCloud.window, cut into the four
+ *   segments of LastCloud.segments (only the kinds whose bit is set in kinds: bit k for kind k), and the
+ *   nearest point of each as nearest_in_segments finds it, without building the index arrays. Writes index
+ *   (int64, n x 4) and best (float32, n x 4) as nearest_in_segments does.
+ *
+ * sweep_rows(per_point, coeff, active, out)
+ *   SweepStartFrame.rows in one pass: per_point (13, n) float64 holds cx, sx, cy, sy, cz, sz, s, qx, qy, qz, ux,
+ *   uy, vz of the frame, coeff (n, m, 3) float64 the m coefficient vectors of each point, active (k,) int64 the
+ *   parameters (0-5); writes out (k, n * m) float64, the rows column by column.
+ *
+ * sweep_frame(xyz, s, t, cx, cy, cz, sx, sy, sz, block, start)
+ *   SweepStartFrame's partial products and start points in one pass: xyz (3, n), s (n,), t (3,) the translation
+ *   and the six (n,) cosines and sines, all float64; writes block (14, n) float64 = cx, sx, cy, sy, cz, sz, s, qx,
+ *   qy, qz, ux, uy, vz, vy (its first 13 rows are sweep_rows' per_point) and start (n, 3) float32.
+ *
+ * euler_rotate(left, cosines, sines, xyz, out)
+ *   core.frames.rotate_by_euler after its sines and cosines: left (3, 3), cosines and sines (3, n) of the angles
+ *   (rx, ry, rz), all float64, xyz (n, c >= 3) float32 points; writes out (3, n) float64, the rows of
+ *   (left @ Ry Rx Rz) @ p in rotate_by_euler's order (the entries of Ry Rx Rz, left @ them summed j = 0, 1, 2,
+ *   then (x + z) + y + 0.0).
+ *
+ * imu_lerp(table, times, out)
+ *   ImuBuffer._bracket and _lerp_attitude (without the carrying on beyond the newest sample) in one pass: table
+ *   (m >= 1, 13) float64 the buffer's rows (time, roll, pitch, yaw, ...), times (n,) float64; writes out (n, 3)
+ *   float64 roll, pitch, yaw. NumPy's semantics throughout: searchsorted's order puts NaN last, clip keeps NaN
+ *   and -0.0, the yaw unwrapped as the where()s do.
+ *
+ * occluded(ranges, columns, half_window, column_gap, depth_jump, parallel_ratio, picked)
+ *   features.occluded_mask in one pass: ranges (n,) float32, columns (n,) int64; marks picked (n,) bool (zeroed
+ *   by the caller) where the NumPy version does, with its dtypes (differences of float32 ranges in float64
+ *   against the float32 depth_jump; the parallel-beam differences in float32 against parallel_ratio * range in
+ *   float64).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <stdint.h>
 #include <math.h>
 #include <string.h>
+
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
 
 #define N_BUFFERS 13
 
@@ -165,9 +205,451 @@ done:
     return result;
 }
 
+/* Squared distance of point j to p, (dx^2 + dy^2) + dz^2 in float32. */
+static inline float squared_distance(const float *x, const float *y, const float *z, const float *p, int64_t j) {
+    float dx = x[j] - p[0], dy = y[j] - p[1], dz = z[j] - p[2];
+    float d = dx * dx + dy * dy;
+    return d + dz * dz;
+}
+
+/*
+ * The nearest point of [start, stop) to p as the original's scan keeps it: the smallest squared distance
+ * (squared_distance), at the first index that has it (the last one in a backward segment); chosen -1 and INFINITY
+ * when none is below infinity. The minimum is taken four distances at a time where SSE2 is there: the same float32
+ * operations per distance, and minps keeps d < best ? d : best as the scalar scan does (a NaN never wins; no
+ * distance is -0.0), so it is the same minimum; the index is then the first (last) that has it.
+ */
+static inline float segment_nearest(const float *x, const float *y, const float *z, const float *p, int64_t start,
+                                    int64_t stop, int backward, int64_t *chosen) {
+    float nearest = INFINITY;
+    int64_t j = start;
+#if defined(__SSE2__)
+    const __m128 px = _mm_set1_ps(p[0]), py = _mm_set1_ps(p[1]), pz = _mm_set1_ps(p[2]);
+    __m128 best = _mm_set1_ps(INFINITY);
+    for (; j + 4 <= stop; j += 4) {
+        __m128 dx = _mm_sub_ps(_mm_loadu_ps(x + j), px);
+        __m128 dy = _mm_sub_ps(_mm_loadu_ps(y + j), py);
+        __m128 dz = _mm_sub_ps(_mm_loadu_ps(z + j), pz);
+        __m128 d = _mm_add_ps(_mm_mul_ps(dx, dx), _mm_mul_ps(dy, dy));
+        d = _mm_add_ps(d, _mm_mul_ps(dz, dz));
+        best = _mm_min_ps(d, best);
+    }
+    float lanes[4];
+    _mm_storeu_ps(lanes, best);
+    for (int k = 0; k < 4; ++k) {
+        nearest = lanes[k] < nearest ? lanes[k] : nearest;
+    }
+#endif
+    for (; j < stop; ++j) {
+        float d = squared_distance(x, y, z, p, j);
+        nearest = d < nearest ? d : nearest;
+    }
+    *chosen = -1;
+    if (nearest < INFINITY) {
+        if (backward) {
+            for (j = stop - 1; j >= start; --j) {
+                if (squared_distance(x, y, z, p, j) == nearest) {
+                    *chosen = j;
+                    break;
+                }
+            }
+        } else {
+            for (j = start; j < stop; ++j) {
+                if (squared_distance(x, y, z, p, j) == nearest) {
+                    *chosen = j;
+                    break;
+                }
+            }
+        }
+    }
+    return nearest;
+}
+
+/* First index in [0, n) whose ring is >= value (strict: > value), n if none: NumPy's searchsorted, left (right). */
+static inline int64_t ring_bound(const int64_t *rings, int64_t n, int64_t value, int strict) {
+    int64_t low = 0, high = n;
+    while (low < high) {
+        int64_t middle = low + (high - low) / 2;
+        if (strict ? rings[middle] <= value : rings[middle] < value) {
+            low = middle + 1;
+        } else {
+            high = middle;
+        }
+    }
+    return low;
+}
+
+static PyObject *py_nearest_in_windows(PyObject *self, PyObject *args) {
+    Py_buffer rows, rings_buffer, query, closest_buffer, index, best;
+    long long ring_window, forward_bound;
+    int kinds;
+    float limit;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*LLifw*w*", &rows, &rings_buffer, &query, &closest_buffer, &ring_window,
+                          &forward_bound, &kinds, &limit, &index, &best)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    Py_ssize_t n_points = rows.len / (3 * (Py_ssize_t)sizeof(float));
+    Py_ssize_t n_queries = closest_buffer.len / 8;
+    const float *x = rows.buf, *y = x + n_points, *z = y + n_points, *q = query.buf;
+    const int64_t *rings = rings_buffer.buf, *closest = closest_buffer.buf;
+    int64_t *out_index = index.buf;
+    float *out_best = best.buf;
+    if (rows.len != 3 * n_points * (Py_ssize_t)sizeof(float) || rings_buffer.len != n_points * 8 ||
+        query.len != n_queries * 3 * (Py_ssize_t)sizeof(float) || index.len != n_queries * 4 * 8 ||
+        best.len != n_queries * 4 * (Py_ssize_t)sizeof(float)) {
+        PyErr_SetString(PyExc_ValueError, "nearest_in_windows: inconsistent buffer sizes");
+        goto done;
+    }
+    for (Py_ssize_t i = 0; i < n_queries; ++i) {
+        int64_t c = closest[i];
+        if (c < 0 || c >= n_points) {
+            PyErr_SetString(PyExc_IndexError, "nearest_in_windows: nearest point outside the cloud");
+            goto done;
+        }
+        int64_t ring = rings[c];
+        /* LastCloud.window: forward [c + 1, hi), backward (lo, c - 1]. */
+        int64_t hi = ring_bound(rings, n_points, ring + ring_window, 1);
+        int64_t lo = ring_bound(rings, n_points, ring - ring_window, 0);
+        lo = (lo < c ? lo : c) - 1;
+        hi = hi < forward_bound ? hi : forward_bound;
+        hi = hi > c + 1 ? hi : c + 1;
+        /* LastCloud.segments: the cuts between other rings and the nearest point's own, clipped to the windows. */
+        int64_t backward_cut = ring_bound(rings, n_points, ring, 0);
+        backward_cut = backward_cut > lo + 1 ? backward_cut : lo + 1;
+        backward_cut = backward_cut < c ? backward_cut : c;
+        int64_t forward_cut = ring_bound(rings, n_points, ring, 1);
+        forward_cut = forward_cut > c + 1 ? forward_cut : c + 1;
+        forward_cut = forward_cut < hi ? forward_cut : hi;
+        const int64_t starts[4] = {lo + 1, backward_cut, c + 1, forward_cut};
+        const int64_t stops[4] = {backward_cut, c, forward_cut, hi};
+        const float *p = q + 3 * i;
+        for (int kind = 0; kind < 4; ++kind) {
+            int64_t chosen = -1;
+            float nearest = INFINITY;
+            if (kinds & (1 << kind)) {
+                nearest = segment_nearest(x, y, z, p, starts[kind], stops[kind], kind < 2, &chosen);
+            }
+            if (!(nearest < limit)) {
+                chosen = -1;
+                nearest = INFINITY;
+            }
+            out_index[4 * i + kind] = chosen;
+            out_best[4 * i + kind] = nearest;
+        }
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&rows);
+    PyBuffer_Release(&rings_buffer);
+    PyBuffer_Release(&query);
+    PyBuffer_Release(&closest_buffer);
+    PyBuffer_Release(&index);
+    PyBuffer_Release(&best);
+    return result;
+}
+
+static PyObject *py_sweep_rows(PyObject *self, PyObject *args) {
+    Py_buffer per_point, coeff, active_buffer, out;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*y*w*", &per_point, &coeff, &active_buffer, &out)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    Py_ssize_t n = per_point.len / (13 * (Py_ssize_t)sizeof(double));
+    Py_ssize_t k = active_buffer.len / 8;
+    Py_ssize_t m = n > 0 ? coeff.len / (n * 3 * (Py_ssize_t)sizeof(double)) : 0;
+    const int64_t *active = active_buffer.buf;
+    if (per_point.len != n * 13 * (Py_ssize_t)sizeof(double) || coeff.len != n * m * 3 * (Py_ssize_t)sizeof(double) ||
+        out.len != k * n * m * (Py_ssize_t)sizeof(double)) {
+        PyErr_SetString(PyExc_ValueError, "sweep_rows: inconsistent buffer sizes");
+        goto done;
+    }
+    for (Py_ssize_t j = 0; j < k; ++j) {
+        if (active[j] < 0 || active[j] > 5) {
+            PyErr_SetString(PyExc_ValueError, "sweep_rows: parameters are 0 to 5");
+            goto done;
+        }
+    }
+    const double *v = per_point.buf, *a = coeff.buf;
+    double *o = out.buf;
+    const Py_ssize_t stride = n * m;
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        const double cx = v[i], sx = v[n + i], cy = v[2 * n + i], sy = v[3 * n + i], cz = v[4 * n + i];
+        const double sz = v[5 * n + i], s = v[6 * n + i], qx = v[7 * n + i], qy = v[8 * n + i], qz = v[9 * n + i];
+        const double ux = v[10 * n + i], uy = v[11 * n + i], vz = v[12 * n + i];
+        for (Py_ssize_t c = 0; c < m; ++c) {
+            const double *row = a + 3 * (i * m + c);
+            const double ax = row[0], ay = row[1], az = row[2];
+            /* coeff^T Ry, then coeff^T Ry Rx (see SweepStartFrame.rows). */
+            const double bx = ax * cy + az * sy, by = ay, bz = -ax * sy + az * cy;
+            const double cx_ = bx, cy_ = by * cx - bz * sx;
+            for (Py_ssize_t j = 0; j < k; ++j) {
+                double value, f1, f2;
+                switch (active[j]) {
+                    case 0:
+                        f1 = -sx * uy + cx * qz;
+                        f2 = -cx * uy - sx * qz;
+                        value = by * f1 + bz * f2;
+                        break;
+                    case 1:
+                        f1 = -sy * ux - cy * vz;
+                        f2 = cy * ux - sy * vz;
+                        value = ax * f1 + az * f2;
+                        break;
+                    case 2:
+                        f1 = -sz * qx + cz * qy;
+                        f2 = -cz * qx - sz * qy;
+                        value = cx_ * f1 + cy_ * f2;
+                        break;
+                    case 3:
+                        value = -(cx_ * cz - cy_ * sz);
+                        break;
+                    case 4:
+                        value = -(cx_ * sz + cy_ * cz);
+                        break;
+                    default:
+                        value = -(by * sx + bz * cx);
+                        break;
+                }
+                o[j * stride + i * m + c] = value * s;
+            }
+        }
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&per_point);
+    PyBuffer_Release(&coeff);
+    PyBuffer_Release(&active_buffer);
+    PyBuffer_Release(&out);
+    return result;
+}
+
+static PyObject *py_sweep_frame(PyObject *self, PyObject *args) {
+    Py_buffer b[11];
+    (void)self;
+    memset(b, 0, sizeof(b));
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*y*y*w*w*", &b[0], &b[1], &b[2], &b[3], &b[4], &b[5], &b[6], &b[7],
+                          &b[8], &b[9], &b[10])) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    Py_ssize_t n = b[1].len / (Py_ssize_t)sizeof(double);
+    Py_ssize_t bytes = n * (Py_ssize_t)sizeof(double);
+    int ok = b[0].len == 3 * bytes && b[2].len == 3 * (Py_ssize_t)sizeof(double) && b[9].len == 14 * bytes &&
+             b[10].len == n * 3 * (Py_ssize_t)sizeof(float);
+    for (int i = 3; i < 9; ++i) {
+        ok = ok && b[i].len == bytes;
+    }
+    if (!ok) {
+        PyErr_SetString(PyExc_ValueError, "sweep_frame: inconsistent buffer sizes");
+        goto done;
+    }
+    const double *x = b[0].buf, *y = x + n, *z = y + n, *s = b[1].buf, *t = b[2].buf;
+    const double *cx = b[3].buf, *cy = b[4].buf, *cz = b[5].buf, *sx = b[6].buf, *sy = b[7].buf, *sz = b[8].buf;
+    double *o = b[9].buf;
+    float *start = b[10].buf;
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        const double qx = x[i] - t[0] * s[i], qy = y[i] - t[1] * s[i], qz = z[i] - t[2] * s[i];
+        const double ux = cz[i] * qx + sz[i] * qy, uy = -sz[i] * qx + cz[i] * qy;
+        const double vy = cx[i] * uy + sx[i] * qz, vz = -sx[i] * uy + cx[i] * qz;
+        o[i] = cx[i];
+        o[n + i] = sx[i];
+        o[2 * n + i] = cy[i];
+        o[3 * n + i] = sy[i];
+        o[4 * n + i] = cz[i];
+        o[5 * n + i] = sz[i];
+        o[6 * n + i] = s[i];
+        o[7 * n + i] = qx;
+        o[8 * n + i] = qy;
+        o[9 * n + i] = qz;
+        o[10 * n + i] = ux;
+        o[11 * n + i] = uy;
+        o[12 * n + i] = vz;
+        o[13 * n + i] = vy;
+        start[3 * i] = (float)(cy[i] * ux - sy[i] * vz);
+        start[3 * i + 1] = (float)vy;
+        start[3 * i + 2] = (float)(sy[i] * ux + cy[i] * vz);
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    for (int i = 0; i < 11; ++i) {
+        if (b[i].obj != NULL) {
+            PyBuffer_Release(&b[i]);
+        }
+    }
+    return result;
+}
+
+static PyObject *py_euler_rotate(PyObject *self, PyObject *args) {
+    Py_buffer left_buffer, cos_buffer, sin_buffer, xyz, out;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*w*", &left_buffer, &cos_buffer, &sin_buffer, &xyz, &out)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    Py_ssize_t n = cos_buffer.len / (3 * (Py_ssize_t)sizeof(double));
+    Py_ssize_t columns = n > 0 ? xyz.len / (n * (Py_ssize_t)sizeof(float)) : 3;
+    if (left_buffer.len != 9 * (Py_ssize_t)sizeof(double) || cos_buffer.len != n * 3 * (Py_ssize_t)sizeof(double) ||
+        sin_buffer.len != cos_buffer.len || columns < 3 || xyz.len != n * columns * (Py_ssize_t)sizeof(float) ||
+        out.len != cos_buffer.len) {
+        PyErr_SetString(PyExc_ValueError, "euler_rotate: inconsistent buffer sizes");
+        goto done;
+    }
+    const double *l = left_buffer.buf, *c = cos_buffer.buf, *sn = sin_buffer.buf;
+    const float *p = xyz.buf;
+    double *o = out.buf;
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        const double cx = c[i], cy = c[n + i], cz = c[2 * n + i], sx = sn[i], sy = sn[n + i], sz = sn[2 * n + i];
+        const double sy_sx = sy * sx, cy_sx = cy * sx;
+        double e[3][3];
+        e[0][0] = cy * cz + sy_sx * sz;
+        e[0][1] = -cy * sz + sy_sx * cz;
+        e[0][2] = sy * cx;
+        e[1][0] = cx * sz;
+        e[1][1] = cx * cz;
+        e[1][2] = -sx;
+        e[2][0] = -sy * cz + cy_sx * sz;
+        e[2][1] = sy * sz + cy_sx * cz;
+        e[2][2] = cy * cx;
+        const double x = (double)p[columns * i], y = (double)p[columns * i + 1], z = (double)p[columns * i + 2];
+        for (int r = 0; r < 3; ++r) {
+            double m[3];
+            for (int k = 0; k < 3; ++k) {
+                m[k] = l[3 * r] * e[0][k] + l[3 * r + 1] * e[1][k] + l[3 * r + 2] * e[2][k];
+            }
+            o[r * n + i] = (m[0] * x + m[2] * z) + m[1] * y + 0.0;
+        }
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&left_buffer);
+    PyBuffer_Release(&cos_buffer);
+    PyBuffer_Release(&sin_buffer);
+    PyBuffer_Release(&xyz);
+    PyBuffer_Release(&out);
+    return result;
+}
+
+/* NumPy's sort order for searchsorted: a < b, and NaN after every number. */
+static inline int numpy_less(double a, double b) { return a < b || (b != b && a == a); }
+
+static PyObject *py_imu_lerp(PyObject *self, PyObject *args) {
+    Py_buffer table, times_buffer, out;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*w*", &table, &times_buffer, &out)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    Py_ssize_t m = table.len / (13 * (Py_ssize_t)sizeof(double));
+    Py_ssize_t n = times_buffer.len / (Py_ssize_t)sizeof(double);
+    if (m < 1 || table.len != m * 13 * (Py_ssize_t)sizeof(double) ||
+        times_buffer.len != n * (Py_ssize_t)sizeof(double) || out.len != n * 3 * (Py_ssize_t)sizeof(double)) {
+        PyErr_SetString(PyExc_ValueError, "imu_lerp: inconsistent buffer sizes");
+        goto done;
+    }
+    const double *rows = table.buf, *times = times_buffer.buf;
+    double *o = out.buf;
+    const double pi = 3.141592653589793, two_pi = 2 * 3.141592653589793;
+    const double newest = rows[13 * (m - 1)];
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        const double t = times[i];
+        Py_ssize_t low = 0, high = m; /* searchsorted(side='left') */
+        while (low < high) {
+            Py_ssize_t middle = low + (high - low) / 2;
+            if (numpy_less(rows[13 * middle], t)) {
+                low = middle + 1;
+            } else {
+                high = middle;
+            }
+        }
+        Py_ssize_t front = low > m - 1 ? m - 1 : low;
+        Py_ssize_t back = front - 1 > 0 ? front - 1 : 0;
+        const double *rb = rows + 13 * back, *rf = rows + 13 * front;
+        const double span = rf[0] - rb[0];
+        double ratio = span > 0 ? (t - rb[0]) / span : 1.0;
+        if (ratio == ratio) { /* clip to [0, 1] as NumPy does: NaN stays NaN, -0.0 stays -0.0 */
+            ratio = 0.0 > ratio ? 0.0 : ratio;
+            ratio = ratio > 1.0 ? 1.0 : ratio;
+        }
+        if (t >= newest) {
+            ratio = 1.0;
+        }
+        o[3 * i] = rb[1] + (rf[1] - rb[1]) * ratio;
+        o[3 * i + 1] = rb[2] + (rf[2] - rb[2]) * ratio;
+        const double jump = rf[3] - rb[3];
+        const double unwrapped = rb[3] + (jump > pi ? two_pi : (jump < -pi ? -two_pi : 0.0));
+        o[3 * i + 2] = unwrapped + (rf[3] - unwrapped) * ratio;
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&table);
+    PyBuffer_Release(&times_buffer);
+    PyBuffer_Release(&out);
+    return result;
+}
+
+static PyObject *py_occluded(PyObject *self, PyObject *args) {
+    Py_buffer ranges, columns, picked;
+    long long half_window;
+    double column_gap, ratio;
+    float jump;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*Ldfdw*", &ranges, &columns, &half_window, &column_gap, &jump, &ratio, &picked)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    Py_ssize_t n = ranges.len / (Py_ssize_t)sizeof(float);
+    if (ranges.len != n * (Py_ssize_t)sizeof(float) || columns.len != n * 8 || picked.len != n || half_window < 0) {
+        PyErr_SetString(PyExc_ValueError, "occluded: inconsistent buffer sizes");
+        goto done;
+    }
+    const float *r = ranges.buf;
+    const int64_t *col = columns.buf;
+    uint8_t *out = picked.buf;
+    const int64_t w = half_window;
+    for (int64_t i = w; i < (int64_t)n - w - 1; ++i) {
+        const float d1 = r[i], d2 = r[i + 1];
+        int64_t gap = col[i + 1] - col[i];
+        gap = gap < 0 ? -gap : gap;
+        if ((double)gap < column_gap) {
+            if ((double)d1 - (double)d2 > (double)jump) { /* i is the far side: mark i - w .. i */
+                memset(out + i - w, 1, (size_t)(w + 1));
+            } else if ((double)d2 - (double)d1 > (double)jump) { /* mark i + 1 .. i + 1 + w */
+                memset(out + i + 1, 1, (size_t)(w + 1));
+            }
+        }
+        const float before = r[i >= 1 ? i - 1 : i - 1 + (int64_t)n]; /* (i - 1 wraps when w = 0, as indexing) */
+        const float diff1 = fabsf(before - d1), diff2 = fabsf(d2 - d1);
+        const double limit = ratio * (double)d1;
+        if ((double)diff1 > limit && (double)diff2 > limit) {
+            out[i] = 1;
+        }
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&ranges);
+    PyBuffer_Release(&columns);
+    PyBuffer_Release(&picked);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"select", py_select, METH_VARARGS, "The greedy edge and flat selection of every sub-region (see the file)."},
     {"nearest_in_segments", py_nearest_in_segments, METH_VARARGS, "The nearest point of every window segment."},
+    {"nearest_in_windows", py_nearest_in_windows, METH_VARARGS, "The window search of a ring-ordered cloud."},
+    {"sweep_rows", py_sweep_rows, METH_VARARGS, "SweepStartFrame.rows in one pass."},
+    {"sweep_frame", py_sweep_frame, METH_VARARGS, "SweepStartFrame's products and start points in one pass."},
+    {"euler_rotate", py_euler_rotate, METH_VARARGS, "rotate_by_euler after its sines and cosines."},
+    {"imu_lerp", py_imu_lerp, METH_VARARGS, "The IMU attitude interpolated at given times."},
+    {"occluded", py_occluded, METH_VARARGS, "features.occluded_mask in one pass."},
     {NULL, NULL, 0, NULL},
 };
 

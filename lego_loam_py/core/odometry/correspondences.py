@@ -215,16 +215,46 @@ def _pick(index: np.ndarray, best: np.ndarray, backward: int, forward: int) -> n
     return np.where(best[:, backward] < best[:, forward], index[:, backward], index[:, forward])
 
 
-def _nearest_and_windows(points_start: np.ndarray, last: LastCloud, params: Params, forward_bound: int):
-    """The search both correspondence kinds start with: the queries whose nearest point in the last cloud lies
-    within the gate (indices ``q``), that point and its ring, and the original's index windows around it."""
+def _window_search(
+    points_start: np.ndarray, last: LastCloud, params: Params, forward_bound: int, kinds: list[int], native: bool = True
+):
+    """The search both correspondence kinds make: the queries whose nearest point in the last cloud lies within the
+    gate (indices ``q``), that point, and per query the nearest point of each window segment of ``kinds`` with its
+    squared distance (:func:`_nearest_in_segments`). A ring-ordered cloud is searched in C in one pass when the
+    extension is built (the index arrays of the windows are never built: per-call costs dominate the small scans);
+    ``native=False`` runs the NumPy version (the tests compare the two)."""
     fa = params.feature_association
     dist, nearest = last.tree.query(points_start[:, :3].astype(np.float64), k=1)
     q = np.flatnonzero(dist.astype(np.float64) ** 2 < fa.nearest_feature_search_sq_dist)
     closest = nearest[q]
+    limit = fa.nearest_feature_search_sq_dist
+    if (
+        native
+        and hasattr(_feature_kernels, 'nearest_in_windows')  # (None, or an extension built before it: NumPy)
+        and last.ring_ordered
+        and last.xyz_rows.dtype == _F32
+        and points_start.dtype == _F32
+    ):
+        index = np.empty((len(q), 4), dtype=np.int64)
+        best = np.empty((len(q), 4), dtype=_F32)
+        _feature_kernels.nearest_in_windows(
+            last.xyz_rows,
+            last.rings,
+            np.ascontiguousarray(points_start[q, :3]),
+            np.ascontiguousarray(closest, dtype=np.int64),
+            int(math.floor(fa.ring_search_window)),
+            int(forward_bound),
+            sum(1 << kind for kind in kinds),
+            limit,
+            index,
+            best,
+        )
+        return q, closest, index, best
     scan = last.rings[closest]
     hi, lo = last.window(closest, scan, fa.ring_search_window, forward_bound)
-    return q, closest, scan, hi, lo
+    position, lengths = last.segments(closest, scan, hi, lo, kinds)
+    index, best = _nearest_in_segments(points_start[q], last, position, lengths, limit, native)
+    return q, closest, index, best
 
 
 def find_surf_correspondences(
@@ -236,11 +266,7 @@ def find_surf_correspondences(
     index2, index3 = index1.copy(), index1.copy()
     if n == 0 or last.tree is None:
         return SurfCorrespondences(index1, index2, index3)
-    q, closest, scan, hi, lo = _nearest_and_windows(points_start, last, params, forward_bound)
-    position, lengths = last.segments(closest, scan, hi, lo, _SAME + _OTHER)
-    index, best = _nearest_in_segments(
-        points_start[q], last, position, lengths, params.feature_association.nearest_feature_search_sq_dist
-    )
+    q, closest, index, best = _window_search(points_start, last, params, forward_bound, _SAME + _OTHER)
     index1[q] = closest
     index2[q] = _pick(index, best, _BACK_SAME, _FORWARD_SAME)
     index3[q] = _pick(index, best, _BACK_OTHER, _FORWARD_OTHER)
@@ -256,11 +282,7 @@ def find_corner_correspondences(
     index2 = index1.copy()
     if n == 0 or last.tree is None:
         return CornerCorrespondences(index1, index2)
-    q, closest, scan, hi, lo = _nearest_and_windows(points_start, last, params, forward_bound)
-    position, lengths = last.segments(closest, scan, hi, lo, _OTHER)
-    index, best = _nearest_in_segments(
-        points_start[q], last, position, lengths, params.feature_association.nearest_feature_search_sq_dist
-    )
+    q, closest, index, best = _window_search(points_start, last, params, forward_bound, _OTHER)
     index1[q] = closest
     index2[q] = _pick(index, best, _BACK_OTHER, _FORWARD_OTHER)
     return CornerCorrespondences(index1, index2)

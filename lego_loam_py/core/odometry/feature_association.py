@@ -473,18 +473,17 @@ class FeatureAssociation:
         next sweep start): the IMU rotation (when there is one) and ``s`` times the translation, else the
         original's interpolation of the six-vector. The intensity becomes the ring."""
         ring = np.trunc(cloud[:, 3]).astype(np.float64)
-        s = 10.0 * (cloud[:, 3].astype(np.float64) - ring)
         out = np.empty_like(cloud)
         out[:, 3] = ring.astype(_F32)
-        if attitude is not None and index is not None:
+        if attitude is None:
+            out[:, :3] = transform_to_start(cloud, motion_to_theta(motion))[:, :3]
+            return out
+        s = 10.0 * (cloud[:, 3].astype(np.float64) - ring)  # (the IMU's deskewing only)
+        if index is not None:
             rotated = rotate_at_points(self.imu, attitude.r_start.T, attitude, index, cloud, self._period)
-        elif attitude is not None:  # voxel centroids (less-flat): attitude at each point's own time
+        else:  # voxel centroids (less-flat): attitude at each point's own time
             times = attitude.t_start + s * self.params.sensor.scan_period
             rotated = imu_rotate(attitude.r_start.T, *self.imu.attitude(times), cloud)
-        else:
-            theta = motion_to_theta(motion)
-            out[:, :3] = transform_to_start(cloud, theta)[:, :3]
-            return out
         out[:, :3] = (rotated + s[:, None] * motion[:3, 3][None, :]).astype(_F32)
         return out
 

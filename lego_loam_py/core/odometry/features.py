@@ -94,13 +94,26 @@ def smoothness(ranges: np.ndarray, half_window: int = 5) -> np.ndarray:
     return out
 
 
-def occluded_mask(ranges: np.ndarray, columns: np.ndarray, params: Params) -> np.ndarray:
-    """Points excluded from selection: the near side of occlusion boundaries and parallel beams."""
+def occluded_mask(ranges: np.ndarray, columns: np.ndarray, params: Params, native: bool = True) -> np.ndarray:
+    """Points excluded from selection: the near side of occlusion boundaries and parallel beams. In C when the
+    extension is built (one pass instead of some thirty NumPy calls over the scan); ``native=False`` runs the NumPy
+    version (the tests compare the two)."""
     fa = params.feature_association
     r = np.asarray(ranges, dtype=_F32)
     n = len(r)
     picked = np.zeros(n, dtype=bool)
     w = fa.smoothness_half_window
+    if native and hasattr(_feature_kernels, 'occluded') and w >= 0:
+        _feature_kernels.occluded(
+            np.ascontiguousarray(r),
+            np.ascontiguousarray(columns, dtype=np.int64),
+            int(w),
+            float(fa.occlusion_column_gap),
+            float(fa.occlusion_depth_jump),
+            float(fa.parallel_beam_ratio),
+            picked,
+        )
+        return picked
     i = np.arange(w, n - w - 1)
     if len(i) == 0:
         return picked

@@ -51,7 +51,13 @@ from lego_loam_py.core.odometry.correspondences import (
     find_corner_correspondences,
     find_surf_correspondences,
 )
-from lego_loam_py.core.odometry.sweep import SweepStartFrame, plane_jacobian_rows, relative_time_of, transform_to_start
+from lego_loam_py.core.odometry.sweep import (
+    SweepStartFrame,
+    SweepTrig,
+    plane_jacobian_rows,
+    relative_time_of,
+    transform_to_start,
+)
 from lego_loam_py.core.params.types import OdometryModel, Params
 
 __all__ = ['LaserOdometry', 'OriginalOdometry', 'SweepStartOdometry', 'make_laser_odometry', 'OdometryStats']
@@ -134,6 +140,7 @@ class _Term(NamedTuple):
     second: np.ndarray
     coefficients: np.ndarray
     wall: bool = False
+    trig: SweepTrig | None = None  # the sines and cosines of ``s``, remembered across the block's evaluations
 
     @property
     def points(self) -> int:
@@ -166,6 +173,7 @@ class LaserOdometry:
         # Weight of a prior holding the sweep rotation at zero [m^2/rad^2] (0: none): with an IMU the
         # registration only estimates the rotation the IMU missed, see FeatureAssociation.
         self.rotation_prior = 0.0
+        self._prepared_points: dict = {}  # (sweep-start model, see _prepared)
 
     def set_last(self, corner: np.ndarray, surf: np.ndarray) -> None:
         """New 'last' clouds; KD-trees are rebuilt only when they are big enough, as in the original."""
@@ -325,6 +333,7 @@ class SweepStartOdometry(LaserOdometry):
         """
         fa = self.params.feature_association
         information, prior = np.zeros((6, 6)), np.zeros((6, 6))
+        self._prepared_points = {}  # id -> (points, what _prepared makes of them), for this registration
         for stage in self._stages(sharp, flat, wall):
             kind, active = stage.kind, stage.active
             iterations, first, last_residual = 0, True, None
@@ -404,7 +413,7 @@ class SweepStartOdometry(LaserOdometry):
             if last_evaluation[0] == key:
                 frames, values = last_evaluation[1], last_evaluation[2]
             else:
-                frames = [SweepStartFrame(term.xyz, term.s, theta) for term in terms]
+                frames = [SweepStartFrame(term.xyz, term.s, theta, term.trig) for term in terms]
                 parts = [term.values(frame) for term, frame in zip(terms, frames)]
                 if prior_parameters:
                     parts.append(math.sqrt(self.rotation_prior) * np.asarray(theta)[prior_parameters])
@@ -450,7 +459,10 @@ class SweepStartOdometry(LaserOdometry):
         converges there instead of stepping back and forth across it.
         """
         fa = self.params.feature_association
-        start = transform_to_start(points, self.transform_cur)
+        xyz, s, trig = self._prepared(points)
+        start = np.empty((len(points), 4), dtype=_F32)  # transform_to_start, with what the stage keeps
+        start[:, :3] = SweepStartFrame(xyz, s, self.transform_cur, trig).xyz()
+        start[:, 3] = points[:, 3]
         # The planes and lines depend only on the last cloud: fixed for the whole block.
         if kind == 'wall':
             usable, normal, offset = self._wall_planes(start, last)
@@ -485,7 +497,7 @@ class SweepStartOdometry(LaserOdometry):
         keep = (weight > fa.min_weight) & finite
         if not keep.any():
             return None
-        selected = points[usable[keep]]
+        chosen = usable[keep]
         first, second = (x[keep] for x in anchors)
         weight = weight[keep]
         if kind != 'corner':
@@ -493,16 +505,29 @@ class SweepStartOdometry(LaserOdometry):
         else:
             # Rows of the projector I - u u^T, weighted: the coefficients of the three residual components.
             coefficients = (np.eye(3)[None, :, :] - second[:, :, None] * second[:, None, :]) * weight[:, None, None]
+        s = s[chosen]
         return _Term(
             'surf' if kind == 'wall' else kind,
-            selected[:, :3].T.astype(np.float64, order='C'),
-            relative_time_of(selected[:, 3]).astype(np.float64),
+            xyz.take(chosen, axis=1),  # (the stage's float64 coordinates and times: the same values)
+            s,
             weight,
             first,
             second,
             coefficients,
             kind == 'wall',
+            SweepTrig(s),
         )
+
+    def _prepared(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, SweepTrig]:
+        """(xyz (3, n) float64, relative times s (n,) float64, their :class:`SweepTrig`) of a stage's points, as
+        :meth:`SweepStartFrame.of` makes them: made once per registration, not once per block (the points are
+        the same, and the angles the stage holds fixed keep their sines and cosines)."""
+        known = self._prepared_points.get(id(points))
+        if known is None or known[0] is not points:
+            s = relative_time_of(points[:, 3]).astype(np.float64)
+            known = points, points[:, :3].T.astype(np.float64, order='C'), s, SweepTrig(s)
+            self._prepared_points[id(points)] = known
+        return known[1:]
 
     def _wall_planes(self, start: np.ndarray, last: LastCloud):
         """(indices of the wall points whose nearest points in the last cloud form a plane, its unit normals,

@@ -32,6 +32,11 @@ from lego_loam_py.core.frames import (
 from lego_loam_py.core.parity.libm import atan2f
 from lego_loam_py.core.projection.cloud_info import CloudInfo
 
+try:  # SweepStartFrame's products and rows in C (native/feature_kernels.c); optional, NumPy gives the same
+    from lego_loam_py.core import _feature_kernels
+except ImportError:
+    _feature_kernels = None
+
 __all__ = [
     'sweep_rotation',
     'sweep_angles',
@@ -40,6 +45,7 @@ __all__ = [
     'relative_time_from_azimuth',
     'relative_time',
     'SweepStartFrame',
+    'SweepTrig',
     'transform_to_start',
     'transform_to_end',
     'start_jacobian',
@@ -110,6 +116,28 @@ def relative_time(points_lidar: np.ndarray, info: CloudInfo) -> np.ndarray:
     return ((final - _F32(start)) / _F32(info.orientation_diff)).astype(_F32)
 
 
+class SweepTrig:
+    """``cos(s θ_k)`` and ``sin(s θ_k)`` of fixed relative times ``s`` (n,) float64, remembered per angle (by its
+    bits): a registration stage moves three of the six parameters, so the sines and cosines of the angles it
+    holds fixed are the same at every evaluation, and those it moves repeat between a step's trial and the next
+    iteration. The same products and the same elementwise functions as :class:`SweepStartFrame` computes."""
+
+    def __init__(self, s: np.ndarray):
+        self.s = s
+        self._known: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+
+    def of(self, transform: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """(cosines, sines) of the three angles of ``transform`` (float64), each a list of three (n,) arrays."""
+        keys = list(enumerate(transform[:3].view(np.int64).tolist()))
+        missing = [k for k, key in enumerate(keys) if key not in self._known]
+        if missing:  # all missing angles in one call each (small arrays: per-call cost dominates)
+            angles = np.multiply.outer(transform[missing], self.s)
+            for k, cosine, sine in zip(missing, np.cos(angles), np.sin(angles)):
+                self._known[keys[k]] = cosine, sine
+        pairs = [self._known[key] for key in keys]
+        return [pair[0] for pair in pairs], [pair[1] for pair in pairs]
+
+
 class SweepStartFrame:
     """``R(sθ)^T (p - s t)`` of fixed points at one ``θ`` and its Jacobian rows, sharing the per-point sines,
     cosines and partial products (the Gauss-Newton loop evaluates both at every step).
@@ -118,19 +146,42 @@ class SweepStartFrame:
     ``q = p - s t``, the start point is ``Ry v``.
     """
 
-    def __init__(self, xyz: np.ndarray, s: np.ndarray, transform: np.ndarray):
-        """``xyz`` (3, n) float64, ``s`` (n,) float64."""
+    def __init__(
+        self, xyz: np.ndarray, s: np.ndarray, transform: np.ndarray, trig: SweepTrig | None = None, native: bool = True
+    ):
+        """``xyz`` (3, n) float64, ``s`` (n,) float64; ``trig``: the sines and cosines of these ``s`` remembered
+        (:class:`SweepTrig`). The products and start points in C when the extension is built (one pass instead of
+        some twenty NumPy calls); ``native=False`` runs the NumPy version (the tests compare the two)."""
         transform = np.asarray(transform, dtype=np.float64)
         self.s = s
-        # The three angles (and the three coordinates) in one call each: small arrays, per-call cost dominates.
-        angles = np.multiply.outer(transform[:3], s)
-        self.cx, self.cy, self.cz = np.cos(angles)
-        self.sx, self.sy, self.sz = np.sin(angles)
+        if trig is None:
+            # The three angles (and the three coordinates) in one call each: small arrays, per-call cost dominates.
+            angles = np.multiply.outer(transform[:3], s)
+            cosines, sines = np.cos(angles), np.sin(angles)
+        else:
+            cosines, sines = trig.of(transform)
+        self._factors = {}
+        self._block = self._start = None
+        if native and hasattr(_feature_kernels, 'sweep_frame') and xyz.dtype == np.float64 and s.dtype == np.float64:
+            self._block = np.empty((14, len(s)))
+            self._start = np.empty((len(s), 3), dtype=_F32)
+            _feature_kernels.sweep_frame(
+                np.ascontiguousarray(xyz),
+                np.ascontiguousarray(s),
+                np.ascontiguousarray(transform[3:6]),
+                *(np.ascontiguousarray(v) for v in (*cosines, *sines)),
+                self._block,
+                self._start,
+            )
+            (self.cx, self.sx, self.cy, self.sy, self.cz, self.sz, _, self.qx, self.qy, self.qz) = self._block[:10]
+            self.ux, self.uy, self.vz, self.vy = self._block[10:]
+            return
+        self.cx, self.cy, self.cz = cosines
+        self.sx, self.sy, self.sz = sines
         self.qx, self.qy, self.qz = xyz - np.multiply.outer(transform[3:], s)
         cx, sx, cz, sz = self.cx, self.sx, self.cz, self.sz
         self.ux, self.uy = cz * self.qx + sz * self.qy, -sz * self.qx + cz * self.qy  # uz = qz
         self.vy, self.vz = cx * self.uy + sx * self.qz, -sx * self.uy + cx * self.qz  # vx = ux
-        self._factors = {}
 
     @classmethod
     def of(cls, points: np.ndarray, transform: np.ndarray) -> SweepStartFrame:
@@ -139,7 +190,9 @@ class SweepStartFrame:
         return cls(xyz, relative_time_of(points[:, 3]).astype(np.float64), transform)
 
     def xyz(self) -> np.ndarray:
-        """(n, 3) float32 start points."""
+        """(n, 3) float32 start points (made with the frame in C: not to be written to)."""
+        if self._start is not None:
+            return self._start
         out = np.empty((len(self.s), 3), dtype=_F32)
         out[:, 0] = self.cy * self.ux - self.sy * self.vz
         out[:, 1] = self.vy
@@ -159,15 +212,30 @@ class SweepStartFrame:
             self._factors[column] = value
         return self._factors[column]
 
-    def rows(self, coeff: np.ndarray, active: list[int]) -> np.ndarray:
+    def rows(self, coeff: np.ndarray, active: list[int], native: bool = True) -> np.ndarray:
         """``coeff · d/dθ_active [R(sθ)^T (p - s t)]``: (n, len(active)) for ``coeff`` (n, 3) float64, or for
         m coefficient vectors per point, ``coeff`` (n, m, 3), (n * m, len(active)) point by point (all m
         in the same calls).
 
         The rotation derivatives are ``s Ry Rx dRz q``, ``s Ry dRx u`` and ``s dRy v``; the translation ones
         ``-s R^T e_k``, dotted with ``coeff``: ``-s (Rz^T Rx^T Ry^T coeff)_k``. No per-point 3x3 matrices.
+        In C when the extension is built (the same expressions in one pass instead of some forty NumPy calls);
+        ``native=False`` runs the NumPy version (the tests compare the two).
         """
         batched = coeff.ndim == 3
+        if native and hasattr(_feature_kernels, 'sweep_rows') and coeff.dtype == np.float64:
+            per_point = (
+                self._block[:13]
+                if self._block is not None
+                else np.array(
+                    (self.cx, self.sx, self.cy, self.sy, self.cz, self.sz, self.s)
+                    + (self.qx, self.qy, self.qz, self.ux, self.uy, self.vz),
+                    dtype=np.float64,
+                )
+            )
+            out = np.empty((len(active), coeff.size // 3))
+            _feature_kernels.sweep_rows(per_point, np.ascontiguousarray(coeff), np.asarray(active, dtype=np.int64), out)
+            return out.T  # (column by column, as the NumPy version returns them)
 
         def per_point(value):
             return value[:, None] if batched else value
