@@ -92,7 +92,9 @@ def test_calibration_and_table_errors_name_the_file_and_the_problem(tmp_path):
 def test_the_segmentation_uses_each_pair_of_rows_own_angle():
     uneven = Segmentation(Params().replace(sensor__preset='HDL-64E'))
     spacing = np.radians(np.diff(HDL64E_NOMINAL_ELEVATIONS))
-    assert uneven._sin_alpha[1].shape == (63,) and np.allclose(uneven._sin_alpha[1], np.sin(spacing), rtol=1e-6)
+    # One angle per pair of rows, as a column broadcast along the image's columns.
+    assert uneven._sin_alpha[1].shape == (63, 1)
+    assert np.allclose(uneven._sin_alpha[1][:, 0], np.sin(spacing), rtol=1e-6)
     uniform = Segmentation(Params().replace(sensor__preset='HDL-64E', sensor__beam_elevations=[]))
     assert np.ndim(uniform._sin_alpha[1]) == 0
 
