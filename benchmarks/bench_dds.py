@@ -44,12 +44,13 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from lego_loam_py.core.params import parse_overrides, write_params_file  # noqa: E402
+from lego_loam_py.orchestration import NODES as PIPELINE_NODES  # noqa: E402
 from lego_loam_py.testing.domains import DomainLease  # noqa: E402
 from lego_loam_py.testing.measure import rss_mb  # noqa: E402
 from lego_loam_py.testing.nodes import spin_in_background  # noqa: E402
 
 BIN = Path(sys.executable).parent
-NODES = ('imageProjection', 'featureAssociation', 'mapOptimization', 'transformFusion')
+NODES = tuple(PIPELINE_NODES)  # the four executables, in pipeline order
 # The C++ original on the same kind of recording (the measurement: 200-scan VLP-16 + IMU campus, 1x).
 CPP_MS_PER_SCAN = {'imageProjection': 4.3, 'featureAssociation': 7.5, 'mapOptimization': 16.2, 'transformFusion': 1.2}
 

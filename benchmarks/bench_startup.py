@@ -45,16 +45,11 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from lego_loam_py.orchestration import NODES as MODULES  # noqa: E402
 from lego_loam_py.testing.domains import DomainLease  # noqa: E402
 
 BIN = Path(sys.executable).parent
-NODES = ('imageProjection', 'featureAssociation', 'mapOptimization', 'transformFusion')
-MODULES = {
-    'imageProjection': 'lego_loam_py.ros.image_projection_node',
-    'featureAssociation': 'lego_loam_py.ros.feature_association_node',
-    'mapOptimization': 'lego_loam_py.ros.map_optimization_node',
-    'transformFusion': 'lego_loam_py.ros.transform_fusion_node',
-}
+NODES = tuple(MODULES)  # the four executables, in pipeline order (MODULES: each one's module)
 # The floor: a bare rclpy node (rclpy and two message packages imported, one subscription, one publisher), spinning.
 FLOOR = 'bareRclpyNode'
 _FLOOR_SCRIPT = textwrap.dedent(

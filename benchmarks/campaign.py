@@ -43,6 +43,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from lego_loam_py.formats import pcd_is_complete  # noqa: E402
+from lego_loam_py.orchestration import NODES as PIPELINE_NODES  # noqa: E402
 from lego_loam_py.testing.domains import DomainLease  # noqa: E402
 from lego_loam_py.testing.malformed import MUTATORS  # noqa: E402
 from lego_loam_py.testing.measure import rss_mb  # noqa: E402
@@ -51,7 +52,7 @@ from lego_loam_py.testing.nodes import spin_in_background  # noqa: E402
 
 BIN = Path(sys.executable).parent
 BAG = REPO / 'bags' / 'campus_8s'
-NODES = ('imageProjection', 'featureAssociation', 'mapOptimization', 'transformFusion')
+NODES = tuple(PIPELINE_NODES)  # the four executables, in pipeline order
 OUTPUT = {
     'imageProjection': '/segmented_cloud',
     'featureAssociation': '/laser_odom_to_init',
