@@ -40,6 +40,13 @@ EXT_MODULES = [
         libraries=['m'],
         optional=True,
     ),
+    # imageProjection's segment labelling in C (segmentation.py uses SciPy's connected components without it).
+    Extension(
+        f'{PACKAGE}.core._projection_kernels',
+        [f'{PACKAGE}/core/native/projection_kernels.c'],
+        extra_compile_args=['-O2'],
+        optional=True,
+    ),
 ]
 
 CONSOLE_SCRIPTS = [

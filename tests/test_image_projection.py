@@ -190,8 +190,15 @@ def random_range_image(rng: np.random.Generator, n: int, h: int):
     return image.astype(np.float32), empty, ground & ~empty
 
 
+@pytest.mark.parametrize('native', [True, False], ids=['c_components', 'scipy_components'])
 @pytest.mark.parametrize('seed', range(100))
-def test_segmentation_equals_plain_bfs_on_random_images(seed):
+def test_segmentation_equals_plain_bfs_on_random_images(seed, native, monkeypatch):
+    from lego_loam_py.core.projection import segmentation
+
+    if native and segmentation._projection_kernels is None:
+        pytest.skip('the C extension is not built here')
+    if not native:
+        monkeypatch.setattr(segmentation, '_projection_kernels', None)
     rng = np.random.default_rng(seed)
     h = 1800 if seed < 3 else int(rng.choice([40, 60, 90]))
     params = PARAMS.replace(sensor__horizon_scan=h, sensor__ang_res_x=360.0 / h) if h != 1800 else PARAMS

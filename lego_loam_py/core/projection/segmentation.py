@@ -18,11 +18,36 @@ from lego_loam_py.core.params.types import Params
 from lego_loam_py.core.parity.atan2f_decisions import atan2f_exceeds
 from lego_loam_py.core.parity.libm import cosf, sinf
 
-__all__ = ['Segmentation', 'OUTLIER_LABEL', 'NO_LABEL']
+try:  # the components in C (native/projection_kernels.c); optional: SciPy's give the same labels
+    from lego_loam_py.core import _projection_kernels
+except ImportError:
+    _projection_kernels = None
+
+__all__ = ['Segmentation', 'OUTLIER_LABEL', 'NO_LABEL', 'run_components']
 
 OUTLIER_LABEL = 999999  # the original's label of points in clusters that are too small
 NO_LABEL = -1  # ground or empty pixel (labelMat == -1)
 _F32 = np.float32
+
+
+def run_components(runs: int, lower: np.ndarray, upper: np.ndarray, native: bool = True) -> tuple[int, np.ndarray]:
+    """(count, component of each run) of the undirected graph of ``runs`` nodes whose edges join ``lower[k]`` and
+    ``upper[k]`` (``lower`` ascending). Only which runs share a component matters to the labels: the C kernel
+    numbers the components by their lowest run, SciPy by its own search. ``native=False``, or without the
+    extension: SciPy's (whose import costs 0.1-0.2 s of a process's CPU; the tests compare the two)."""
+    if native and _projection_kernels is not None:
+        component = np.empty(runs, dtype=np.int64)
+        count = _projection_kernels.components(
+            runs, np.ascontiguousarray(lower, dtype=np.int64), np.ascontiguousarray(upper, dtype=np.int64), component
+        )
+        return count, component
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    indptr = np.zeros(runs + 1, dtype=np.int32)
+    np.cumsum(np.bincount(lower, minlength=runs), out=indptr[1:])
+    graph = csr_matrix((np.ones(len(upper)), upper, indptr), shape=(runs, runs))
+    return connected_components(graph, directed=False)
 
 
 class Segmentation:
@@ -88,13 +113,7 @@ class Segmentation:
         repeat = np.zeros(len(lower), dtype=bool)
         repeat[1:] = (lower[1:] == lower[:-1]) & (upper[1:] == upper[:-1])
         lower, upper = lower[~repeat], upper[~repeat]
-        indptr = np.zeros(runs + 1, dtype=np.int32)
-        np.cumsum(np.bincount(lower, minlength=runs), out=indptr[1:])
-        from scipy.sparse import csr_matrix  # (0.1-0.2 s to import: at the first scan, not at start-up)
-        from scipy.sparse.csgraph import connected_components
-
-        graph = csr_matrix((np.ones(len(upper)), upper, indptr), shape=(runs, runs))
-        count, component_of_run = connected_components(graph, directed=False)
+        count, component_of_run = run_components(runs, lower, upper)
 
         size = np.bincount(component_of_run, weights=run_length, minlength=count)
         # The BFS seed is the component's first pixel in row-major order: the lowest pixel of one of its runs.

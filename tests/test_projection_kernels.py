@@ -1,0 +1,65 @@
+"""imageProjection's C kernel (native/projection_kernels.c): the segments' connected components, by hand and
+against SciPy's, which it replaces."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from lego_loam_py.core.projection import segmentation
+from lego_loam_py.core.projection.segmentation import run_components
+
+needs_kernel = pytest.mark.skipif(segmentation._projection_kernels is None, reason='the C extension is not built here')
+
+
+def _partition(component: np.ndarray) -> set[frozenset[int]]:
+    """The sets of nodes sharing a component: what the labels depend on, whatever the numbering."""
+    groups: dict[int, set[int]] = {}
+    for node, label in enumerate(component.tolist()):
+        groups.setdefault(label, set()).add(node)
+    return {frozenset(group) for group in groups.values()}
+
+
+@needs_kernel
+def test_components_by_hand_are_numbered_by_their_lowest_node():
+    # 7 nodes; edges 1-4, 4-6 and 2-5 (listed by their lower end); 0 and 3 alone.
+    count, component = run_components(7, np.array([1, 2, 4]), np.array([4, 5, 6]))
+    assert count == 4
+    assert component.tolist() == [0, 1, 2, 3, 1, 2, 1]
+
+
+@needs_kernel
+def test_a_chain_linked_from_its_top_end_first_still_has_its_lowest_node_as_root():
+    # Edges joined highest first: every union links two roots the other way round from the last one.
+    lower = np.array([0, 1, 2, 3, 4])
+    upper = np.array([5, 5, 4, 4, 5])
+    count, component = run_components(6, lower, upper)
+    assert count == 1 and component.tolist() == [0] * 6
+
+
+@needs_kernel
+def test_an_edge_beyond_the_nodes_is_refused():
+    with pytest.raises(ValueError, match='outside'):
+        run_components(3, np.array([0]), np.array([3]))
+
+
+@needs_kernel
+@settings(max_examples=200, deadline=None)
+@given(
+    st.integers(min_value=1, max_value=60).flatmap(
+        lambda n: st.tuples(
+            st.just(n), st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, n - 1)), max_size=3 * n)
+        )
+    )
+)
+def test_the_kernel_finds_scipys_components(graph):
+    nodes, edges = graph
+    edges = sorted(edges)  # (the segmentation's edges come by ascending lower end)
+    lower = np.array([a for a, _ in edges], dtype=np.int64)
+    upper = np.array([b for _, b in edges], dtype=np.int64)
+    count, component = run_components(nodes, lower, upper)
+    scipy_count, scipy_component = run_components(nodes, lower, upper, native=False)
+    assert count == scipy_count
+    assert _partition(component) == _partition(np.asarray(scipy_component))
+    firsts = [int(np.flatnonzero(component == label)[0]) for label in range(count)]
+    assert firsts == sorted(firsts)  # numbered in the order of their lowest nodes
