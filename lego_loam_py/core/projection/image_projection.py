@@ -27,7 +27,7 @@ from lego_loam_py.core.projection.range_image import (
     RangeImageProjection,
     prepare_input,
 )
-from lego_loam_py.core.projection.segmentation import NO_LABEL, OUTLIER_LABEL, Segmentation
+from lego_loam_py.core.projection.segmentation import NO_LABEL, OUTLIER_LABEL, SEGMENTATION_IMPORTS, Segmentation
 
 # The projection's input and the label values are part of this module's API (the node and the tests use them).
 __all__ = [
@@ -65,7 +65,7 @@ class ImageProjection:
     """The imageProjection algorithm for one sensor configuration; :meth:`process` handles one scan."""
 
     # Imported by the first scan, not with this module (a node imports them ahead, once it is ready).
-    DEFERRED_IMPORTS = ('scipy.sparse.csgraph',)
+    DEFERRED_IMPORTS = SEGMENTATION_IMPORTS
 
     def __init__(self, params: Params):
         self.params = params

@@ -22,8 +22,10 @@ try:  # the components in C (native/projection_kernels.c); optional: SciPy's giv
     from lego_loam_py.core import _projection_kernels
 except ImportError:
     _projection_kernels = None
+# What the first scan imports: SciPy's connected components, without the C kernel.
+SEGMENTATION_IMPORTS = ('scipy.sparse.csgraph',) if _projection_kernels is None else ()
 
-__all__ = ['Segmentation', 'OUTLIER_LABEL', 'NO_LABEL', 'run_components']
+__all__ = ['Segmentation', 'OUTLIER_LABEL', 'NO_LABEL', 'SEGMENTATION_IMPORTS', 'run_components']
 
 OUTLIER_LABEL = 999999  # the original's label of points in clusters that are too small
 NO_LABEL = -1  # ground or empty pixel (labelMat == -1)
