@@ -204,6 +204,9 @@ fi
 # ---------------------------------------------------------------------------------- lego_loam_py
 say "installing lego_loam_py (editable)"
 run "${PIP[@]}" install --no-deps --no-build-isolation -e "$ROOT"
+# The bytecode caches a regular install writes (pip's editable install does not): where PYTHONDONTWRITEBYTECODE is
+# set, as in many container images, a node would otherwise compile every module it imports at each start.
+run "$VPY" -m compileall -q "$ROOT/lego_loam_py"
 
 # What colcon's --symlink-install would do: the data files of setup.py (ament index marker, package.xml,
 # config, launch) linked into the venv prefix, and every console script linked as lib/<package>/<exe>,

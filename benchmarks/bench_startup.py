@@ -19,6 +19,9 @@ Per node and run:
   ready (``LegoLoamNode.import_deferred``: the modules its core uses from the first scan on) shows here, as do the
   first ``/diagnostics`` messages (one a second).
 
+The package's bytecode caches are written first, as an install has them (``benchmarks.common.compile_bytecode``:
+without them a node compiles every module it imports at each start).
+
 Runs alternate between nodes (the machine is shared: load drifts); medians are printed with every run's value.
 ``--floor`` adds a bare rclpy node (rclpy and two message packages, one subscription, one publisher): what no
 node can go below. ``--source DIR`` puts another checkout first on ``PYTHONPATH`` (the venv's scripts then import
@@ -45,6 +48,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from benchmarks.common import compile_bytecode  # noqa: E402
 from lego_loam_py.orchestration import NODES as MODULES  # noqa: E402
 from lego_loam_py.testing.domains import DomainLease  # noqa: E402
 
@@ -305,6 +309,7 @@ def main(argv: list[str] | None = None) -> int:
 
     names = [*args.nodes, *([FLOOR] if args.floor else [])]
     results: dict[str, list[dict]] = {name: [] for name in names}
+    compile_bytecode(args.source or REPO)
     with tempfile.TemporaryDirectory(prefix='bench_startup_') as tmp, DomainLease() as domain:
         params = Path(tmp) / 'params.yaml'
         params.write_text(

@@ -2,10 +2,28 @@
 
 from __future__ import annotations
 
+import compileall
+import os
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
+
+
+def compile_bytecode(*trees: Path | str | None) -> list[Path]:
+    """Write the bytecode caches (``__pycache__``) of the ``lego_loam_py`` package of each checkout given, and of
+    every one on ``PYTHONPATH``, as ``pip install`` and ``colcon build`` do for an installed package: start-up is
+    measured as a user pays it, not with the compilation of every module. (A shell with
+    ``PYTHONDONTWRITEBYTECODE=1``, as this project's development machine has, never writes them itself, and a
+    node then compiles its hundred modules at every start: 0.03-0.06 s of its CPU.) Returns the packages compiled."""
+    done = []
+    for tree in [*trees, *os.environ.get('PYTHONPATH', '').split(os.pathsep)]:
+        package = Path(tree) / 'lego_loam_py' if tree else None
+        if package is not None and package.is_dir() and package not in done:
+            compileall.compile_dir(str(package), quiet=1)
+            done.append(package)
+    return done
 
 
 def time_ms(function: Callable[[], object], repeat: int = 200, warmup: int = 10) -> np.ndarray:
