@@ -40,6 +40,14 @@ EXT_MODULES = [
         libraries=['m'],
         optional=True,
     ),
+    # The voxel filter in one pass (core/voxel.py runs its NumPy version without it).
+    Extension(
+        f'{PACKAGE}.core._voxel_kernels',
+        [f'{PACKAGE}/core/native/voxel_kernels.c'],
+        extra_compile_args=['-O2', '-fno-fast-math', '-ffp-contract=off'],
+        libraries=['m'],
+        optional=True,
+    ),
     # imageProjection's segment labelling in C (segmentation.py uses SciPy's connected components without it).
     Extension(
         f'{PACKAGE}.core._projection_kernels',

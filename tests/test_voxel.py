@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from lego_loam_py.core import voxel
 from lego_loam_py.core.voxel import VoxelAccumulator, voxel_downsample, voxel_downsample_groups
 
 
@@ -99,3 +101,51 @@ def test_accumulator_equals_one_filter_of_the_union_through_adds_and_removes(see
     rebuilt = VoxelAccumulator(leaf)
     rebuilt.rebuild(clouds)
     assert np.allclose(rebuilt.centroids(), union.centroids(), atol=1e-5)
+
+
+# ---------------------------------------------------------------- the C kernel (native/voxel_kernels.c)
+
+needs_kernel = pytest.mark.skipif(voxel._voxel_kernels is None, reason='the C extension is not built here')
+
+
+@pytest.mark.parametrize('native', [True, False], ids=['c_kernel', 'numpy'])
+def test_a_voxels_sum_is_its_first_point_plus_the_sum_of_the_others(native):
+    """np.add.reduceat's order, which the kernel keeps: 1 + (2^-24 + 2^-24) = 1 + 2^-23, where adding in turn
+    would round 1 + 2^-24 back to 1 twice."""
+    if native and voxel._voxel_kernels is None:
+        pytest.skip('the C extension is not built here')
+    tiny = np.float32(2.0**-24)
+    points = np.array([[1.0, 0.0, 0.0], [tiny, 0.0, 0.0], [tiny, 0.0, 0.0]], np.float32)
+    out, counts = voxel_downsample(points, 100.0, return_counts=True, native=native)
+    assert counts.tolist() == [3]
+    assert out[0, 0] == np.float32(np.float32(1.0 + 2.0**-23) / np.float32(3.0))
+    assert np.float32(np.float32(1.0) + tiny) + tiny == np.float32(1.0)  # (in turn, it would be 1 / 3)
+
+
+@needs_kernel
+@settings(max_examples=300, deadline=None)
+@given(
+    st.integers(1, 400),
+    st.integers(3, 6),
+    st.integers(0, 2**31 - 1),
+    st.sampled_from([0.05, 0.2, 0.4, 1.0, 50.0]),
+    st.integers(1, 40),
+)
+def test_the_kernel_equals_numpy_bit_for_bit(n, columns, seed, leaf, groups_count):
+    """Sparse and crowded voxels (up to hundreds of points: NumPy's pairwise sums), signed zeros, NaN in the
+    other columns and points beyond the grid's range: the same bits, the same order, the same counts."""
+    rng = np.random.default_rng(seed)
+    points = (rng.standard_normal((n, columns)) * 10.0 ** rng.uniform(-1, 2, (n, 1))).astype(np.float32)
+    points[rng.random(n) < 0.2, :3] = -0.0
+    points[rng.random(n) < 0.05, 3:] = np.nan
+    points[rng.random(n) < 0.05, 0] = np.inf
+    groups = rng.integers(0, groups_count, n)
+    for a, b in (
+        (voxel_downsample_groups(points, groups, leaf), voxel_downsample_groups(points, groups, leaf, native=False)),
+        (voxel_downsample(points, leaf), voxel_downsample(points, leaf, native=False)),
+    ):
+        assert a.shape == b.shape and a.dtype == b.dtype == np.float32
+        assert np.array_equal(a.view(np.uint32), b.view(np.uint32))
+    _, counts = voxel_downsample(points, leaf, return_counts=True)
+    _, numpy_counts = voxel_downsample(points, leaf, return_counts=True, native=False)
+    assert np.array_equal(counts, numpy_counts)

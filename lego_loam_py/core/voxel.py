@@ -14,6 +14,11 @@ from __future__ import annotations
 
 import numpy as np
 
+try:  # the filter in one pass (native/voxel_kernels.c); optional: the NumPy code below gives the same values
+    from lego_loam_py.core import _voxel_kernels
+except ImportError:
+    _voxel_kernels = None
+
 __all__ = ['VoxelAccumulator', 'voxel_downsample', 'voxel_downsample_groups', 'voxel_indices']
 
 
@@ -28,11 +33,12 @@ def voxel_indices(xyz: np.ndarray, leaf_size: float) -> np.ndarray:
     return ijk[:, 0] + ijk[:, 1] * div[0] + ijk[:, 2] * div[0] * div[1]
 
 
-def voxel_downsample(points: np.ndarray, leaf_size: float, return_counts: bool = False):
+def voxel_downsample(points: np.ndarray, leaf_size: float, return_counts: bool = False, native: bool = True):
     """Voxel centroids of (N, k) points whose first three columns are x, y, z [m].
 
     Every column is averaged per voxel (float32 accumulation, like PCL). Returns an (M, k) float32 array
-    ordered by voxel index, and with ``return_counts`` also the number of points in each voxel.
+    ordered by voxel index, and with ``return_counts`` also the number of points in each voxel. In one pass in C
+    where the extension is built (the same values; ``native=False``: the NumPy version, which the tests compare).
     """
     if leaf_size <= 0:
         raise ValueError(f'voxel leaf size must be positive, got {leaf_size}')
@@ -45,6 +51,9 @@ def voxel_downsample(points: np.ndarray, leaf_size: float, return_counts: bool =
     if len(points) == 0:
         empty = np.zeros((0, points.shape[1]), dtype=np.float32)
         return (empty, np.zeros(0, dtype=np.int64)) if return_counts else empty
+    if native and _voxel_kernels is not None:
+        centroids, counts = _voxel_groups(points, np.zeros(1, dtype=np.int64), leaf_size)
+        return (centroids, counts) if return_counts else centroids
     index = voxel_indices(points[:, :3], leaf_size)
     order = np.argsort(index, kind='stable')
     sorted_index = index[order]
@@ -55,11 +64,14 @@ def voxel_downsample(points: np.ndarray, leaf_size: float, return_counts: bool =
     return (centroids, counts) if return_counts else centroids
 
 
-def voxel_downsample_groups(points: np.ndarray, groups: np.ndarray, leaf_size: float) -> np.ndarray:
+def voxel_downsample_groups(
+    points: np.ndarray, groups: np.ndarray, leaf_size: float, native: bool = True
+) -> np.ndarray:
     """``voxel_downsample`` of each group of points on its own grid (anchored at the group's bounding box),
     concatenated in increasing group order: what a filter per ring gives, in one sort instead of one per ring.
 
-    ``points`` (N, k) with x, y, z first; ``groups`` (N,) non-negative integers.
+    ``points`` (N, k) with x, y, z first; ``groups`` (N,) non-negative integers. ``native=False``: the NumPy
+    version even where the C kernel is built (the tests compare the two).
     """
     if leaf_size <= 0:
         raise ValueError(f'voxel leaf size must be positive, got {leaf_size}')
@@ -74,6 +86,8 @@ def voxel_downsample_groups(points: np.ndarray, groups: np.ndarray, leaf_size: f
         by_group = np.argsort(groups, kind='stable')
         points, groups = points[by_group], groups[by_group]
     group_starts = np.flatnonzero(np.concatenate(([True], groups[1:] != groups[:-1])))
+    if native and _voxel_kernels is not None:
+        return _voxel_groups(points, group_starts, leaf_size)[0]
     group_sizes = np.diff(np.append(group_starts, len(groups)))  # per-group values reach the points by repeat
     inverse = np.float32(1.0) / np.float32(leaf_size)
     # floor(min(p) / leaf) == min(floor(p / leaf)): the product and floor are monotonic in float32 too.
@@ -95,6 +109,19 @@ def voxel_downsample_groups(points: np.ndarray, groups: np.ndarray, leaf_size: f
     counts = np.diff(np.append(starts, len(sorted_index)))
     sums = np.add.reduceat(points[order], starts, axis=0)
     return (sums / counts[:, None].astype(np.float32)).astype(np.float32)
+
+
+def _voxel_groups(points: np.ndarray, group_starts: np.ndarray, leaf_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """(centroids, counts) of finite float32 points whose groups start at ``group_starts`` (int64, from 0), by
+    the C kernel: voxel_downsample_groups' values and order (native/voxel_kernels.c)."""
+    points = np.ascontiguousarray(points, dtype=np.float32)
+    out = np.empty_like(points)
+    counts = np.empty(len(points), dtype=np.int64)
+    inverse = np.float32(1.0) / np.float32(leaf_size)
+    m = _voxel_kernels.voxel_groups(
+        points, points.shape[1], np.ascontiguousarray(group_starts, dtype=np.int64), float(inverse), out, counts
+    )
+    return out[:m].copy(), counts[:m].copy()
 
 
 _KEY_BITS = 21
