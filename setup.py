@@ -48,11 +48,13 @@ EXT_MODULES = [
         libraries=['m'],
         optional=True,
     ),
-    # imageProjection's segment labelling in C (segmentation.py uses SciPy's connected components without it).
+    # imageProjection's segment labelling and ground walk in C (segmentation.py uses SciPy's connected components
+    # and ground.py NumPy without it).
     Extension(
         f'{PACKAGE}.core._projection_kernels',
         [f'{PACKAGE}/core/native/projection_kernels.c'],
-        extra_compile_args=['-O2'],
+        extra_compile_args=['-O2', '-fno-fast-math', '-ffp-contract=off'],
+        libraries=['m'],
         optional=True,
     ),
 ]

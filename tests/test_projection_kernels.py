@@ -88,3 +88,57 @@ def test_image_projection_runs_a_scan_without_importing_scipy():
     )
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == '[]', out.stdout + out.stderr
+
+
+def _ground_scene(seed: int, columns: int):
+    """A range image's lowest rows over rolling ground with raised objects, empty pixels and noise: the planes,
+    row steps, filled mask and pair-test ground that GroundRemoval._refine_ground takes."""
+    from lego_loam_py.core.params import Params
+
+    rng = np.random.default_rng(seed)
+    params = Params().replace(sensor__horizon_scan=columns, sensor__ang_res_x=360.0 / columns)
+    top = params.sensor.ground_scan_ind + 2
+    azimuth = np.linspace(-np.pi, np.pi, columns, endpoint=False)
+    reach = np.linspace(3.0, 25.0, top)[:, None] * (1.0 + 0.05 * rng.random((top, columns)))
+    x, y = reach * np.cos(azimuth), reach * np.sin(azimuth)
+    z = -1.7 + 0.3 * np.sin(x / 7.0) + rng.normal(0.0, 0.03, (top, columns))
+    raised = rng.random((top, columns)) < 0.1
+    z = np.where(raised, z + rng.uniform(0.2, 1.5, (top, columns)), z)
+    planes = tuple(a.astype(np.float32) for a in (x, y, z))
+    steps = tuple(a[1:] - a[:-1] for a in planes)
+    n = params.sensor.n_scan
+    filled = np.zeros((n, columns), dtype=bool)
+    filled[:top] = rng.random((top, columns)) > 0.1
+    ground = np.zeros((n, columns), dtype=bool)
+    ground[: top - 1] = filled[: top - 1] & (rng.random((top - 1, columns)) > 0.2)
+    return params, planes, steps, filled, ground
+
+
+@needs_kernel
+@pytest.mark.parametrize('seed', range(20))
+def test_the_ground_walk_in_c_keeps_what_numpys_keeps(seed):
+    from lego_loam_py.core.projection.ground import GroundRemoval
+
+    params, planes, steps, filled, ground = _ground_scene(seed, 360 if seed % 2 else 1800)
+    removal = GroundRemoval(params)
+    native = removal._refine_ground(planes, steps, filled, ground)
+    numpy = removal._refine_ground(planes, steps, filled, ground, native=False)
+    assert native.shape == numpy.shape and np.array_equal(native, numpy)
+    assert 0 < np.count_nonzero(native) < np.count_nonzero(ground)  # (the walk kept some and dropped some)
+
+
+@needs_kernel
+def test_the_ground_walk_by_hand():
+    """One column of three candidates, 1 m apart: the first, on the plane, seeds it; the second rises 0.5 m, within
+    tan(20 deg) x 1 m + 0.15 m = 0.51 m of it (kept); the third rises 1 m over the second (dropped)."""
+    from lego_loam_py.core import _projection_kernels
+    from lego_loam_py.core.projection import segmentation  # noqa: F401  (the kernel module is loaded)
+
+    points = np.zeros((3, 3, 1))
+    points[0, :, 0] = [5.0, 6.0, 7.0]  # x [m]
+    points[2, :, 0] = [0.0, 0.5, 1.5]  # z [m]
+    ground = np.ones((3, 1), dtype=bool)
+    far = np.ones((3, 1), dtype=bool)
+    on_plane = np.array([[True], [False], [False]])
+    _projection_kernels.ground_walk(points, 3, 1, ground, far, on_plane, float(np.tan(np.radians(20.0))), 0.15)
+    assert ground[:, 0].tolist() == [True, True, False]

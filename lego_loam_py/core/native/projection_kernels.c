@@ -9,10 +9,19 @@
  *   component numbered 0, 1, ... in the order of the components' lowest nodes. Writes component (nodes,) int64
  *   and returns the number of components. Runs without the GIL (the offline runner projects on a thread of its
  *   own beside featureAssociation).
+ *
+ * ground_walk(points, ground, far, on_plane, slope, tolerance)
+ *   GroundRemoval._refine_ground's walk up the columns (core/projection/ground.py), column by column instead of
+ *   row by row, with its float64 operations in its order (built with -ffp-contract=off): points (3, top, h)
+ *   float64; ground, far and on_plane (top, h) bool (ground rewritten in place). In each column, from the lowest
+ *   row up, a ground candidate is kept when the column has no kept point yet and it is on the plane, or when
+ *   |z - z_last| <= hypot(x - x_last, y - y_last) * slope + tolerance and it is on the plane or far; a kept point
+ *   becomes the column's last. Runs without the GIL.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <stdint.h>
+#include <math.h>
 #include <stdlib.h>
 
 static inline int64_t find_root(int64_t *parent, int64_t node) {
@@ -74,8 +83,63 @@ done:
     return result;
 }
 
+static PyObject *py_ground_walk(PyObject *self, PyObject *args) {
+    Py_buffer points, ground, far, on_plane;
+    Py_ssize_t top, columns;
+    double slope, tolerance;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*nnw*y*y*dd", &points, &top, &columns, &ground, &far, &on_plane, &slope, &tolerance)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    const Py_ssize_t cells = top * columns;
+    if (top < 0 || columns < 0 || points.len != 3 * cells * 8 || ground.len != cells || far.len != cells ||
+        on_plane.len != cells) {
+        PyErr_SetString(PyExc_ValueError, "ground_walk: inconsistent buffer sizes");
+        goto done;
+    }
+    const double *x = points.buf, *y = x + cells, *z = y + cells;
+    uint8_t *keep = ground.buf;
+    const uint8_t *is_far = far.buf, *planar = on_plane.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t c = 0; c < columns; ++c) {
+        int seeded = 0;
+        double last_x = 0.0, last_y = 0.0, last_z = 0.0;
+        for (Py_ssize_t r = 0; r < top; ++r) {
+            const Py_ssize_t i = r * columns + c;
+            if (!keep[i]) continue;
+            int accepted;
+            if (!seeded) {
+                accepted = planar[i] != 0;
+            } else {
+                double step = hypot(x[i] - last_x, y[i] - last_y);
+                step *= slope;
+                step += tolerance;
+                accepted = (is_far[i] || planar[i]) && fabs(z[i] - last_z) <= step;
+            }
+            keep[i] = (uint8_t)accepted;
+            if (accepted) {
+                last_x = x[i];
+                last_y = y[i];
+                last_z = z[i];
+                seeded = 1;
+            }
+        }
+    }
+    Py_END_ALLOW_THREADS
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&points);
+    PyBuffer_Release(&ground);
+    PyBuffer_Release(&far);
+    PyBuffer_Release(&on_plane);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"components", py_components, METH_VARARGS, "Connected components of an undirected graph (see the file)."},
+    {"ground_walk", py_ground_walk, METH_VARARGS, "GroundRemoval's walk up the columns (see the file)."},
     {NULL, NULL, 0, NULL},
 };
 

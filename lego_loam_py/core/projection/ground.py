@@ -17,6 +17,11 @@ from lego_loam_py.core.params.types import Params
 from lego_loam_py.core.parity.atan2f_decisions import atan2f_exceeds, first_float32_where
 from lego_loam_py.core.parity.libm import float_degrees
 
+try:  # the ground walk in C (native/projection_kernels.c); optional: the NumPy loop gives the same result
+    from lego_loam_py.core import _projection_kernels
+except ImportError:
+    _projection_kernels = None
+
 __all__ = ['GroundRemoval', 'float32_hypot']
 
 _F32 = np.float32
@@ -103,7 +108,9 @@ class GroundRemoval:
         off = float_degrees(angle) - self._mount_angle
         return (off >= -self._slope_threshold).astype(np.int8) + (off > self._slope_threshold)
 
-    def _refine_ground(self, planes: tuple, steps: tuple, f: np.ndarray, ground: np.ndarray) -> np.ndarray:
+    def _refine_ground(
+        self, planes: tuple, steps: tuple, f: np.ndarray, ground: np.ndarray, native: bool = True
+    ) -> np.ndarray:
         """Remove from the original's ground what a pair test over a 2-degree gap cannot see.
 
         * A pixel that forms a vertical pair with the pixel above or below it (height step > ratio x horizontal
@@ -161,8 +168,13 @@ class GroundRemoval:
         far = np.ones(top * self.horizon_scan, dtype=bool)
         far[pixels] = ~near
         on_plane, far = on_plane.reshape(top, -1), far.reshape(top, -1)
-        # The walk up the columns: a loop over the few ground rows, vectorised over the columns.
         slope = math.tan(math.radians(ip.ground_chain_slope))
+        if native and _projection_kernels is not None:  # the same walk in C, column by column
+            _projection_kernels.ground_walk(
+                points, top, self.horizon_scan, ground[:top], far, on_plane, slope, ip.ground_chain_tolerance
+            )
+            return ground
+        # The walk up the columns: a loop over the few ground rows, vectorised over the columns.
         last = np.full((3, self.horizon_scan), np.nan)  # each column's last ground point
         seeded = np.zeros(self.horizon_scan, dtype=bool)
         # (Few calls a row, into buffers: on 2083-column rows a numpy call's own cost is a large part.)
