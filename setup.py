@@ -22,41 +22,25 @@ DATA_FILES = [
     (f'share/{PACKAGE}/launch', _files('launch/*.launch.py')),
 ]
 
-# Optional C helpers: libm's atan2f on arrays, for bit-exact range-image columns (lego_loam_py/core/parity/libm.py
-# falls back to NumPy when it cannot be built).
+
+def _native(module: str, source: str) -> Extension:
+    """An optional C extension ``lego_loam_py.core.<module>`` from ``core/native/<source>``: IEEE arithmetic as
+    written (no fast math, no fused multiply-adds), since the kernels reproduce NumPy's and libm's results bit for
+    bit. Each module that uses one keeps its NumPy version for when it cannot be built."""
+    return Extension(
+        f'{PACKAGE}.core.{module}',
+        [f'{PACKAGE}/core/native/{source}'],
+        extra_compile_args=['-O2', '-fno-fast-math', '-ffp-contract=off'],
+        libraries=['m'],
+        optional=True,
+    )
+
+
 EXT_MODULES = [
-    Extension(
-        f'{PACKAGE}.core._libm_compat',
-        [f'{PACKAGE}/core/native/libm_compat.c'],
-        libraries=['m'],
-        extra_compile_args=['-O2', '-fno-fast-math'],
-        optional=True,
-    ),
-    # featureAssociation's inner loops in C (features.py and correspondences.py run NumPy/Python without it).
-    Extension(
-        f'{PACKAGE}.core._feature_kernels',
-        [f'{PACKAGE}/core/native/feature_kernels.c'],
-        extra_compile_args=['-O2', '-fno-fast-math', '-ffp-contract=off'],
-        libraries=['m'],
-        optional=True,
-    ),
-    # The voxel filter in one pass (core/voxel.py runs its NumPy version without it).
-    Extension(
-        f'{PACKAGE}.core._voxel_kernels',
-        [f'{PACKAGE}/core/native/voxel_kernels.c'],
-        extra_compile_args=['-O2', '-fno-fast-math', '-ffp-contract=off'],
-        libraries=['m'],
-        optional=True,
-    ),
-    # imageProjection's segment labelling and ground walk in C (segmentation.py uses SciPy's connected components
-    # and ground.py NumPy without it).
-    Extension(
-        f'{PACKAGE}.core._projection_kernels',
-        [f'{PACKAGE}/core/native/projection_kernels.c'],
-        extra_compile_args=['-O2', '-fno-fast-math', '-ffp-contract=off'],
-        libraries=['m'],
-        optional=True,
-    ),
+    _native('_libm_compat', 'libm_compat.c'),  # libm's atan2f on arrays: bit-exact range-image columns (parity/libm.py)
+    _native('_feature_kernels', 'feature_kernels.c'),  # featureAssociation's inner loops (odometry/, imu/buffer.py)
+    _native('_voxel_kernels', 'voxel_kernels.c'),  # the voxel filter in one pass (voxel.py)
+    _native('_projection_kernels', 'projection_kernels.c'),  # segment components, ground walk (projection/)
 ]
 
 CONSOLE_SCRIPTS = [
