@@ -149,3 +149,17 @@ def test_the_kernel_equals_numpy_bit_for_bit(n, columns, seed, leaf, groups_coun
     _, counts = voxel_downsample(points, leaf, return_counts=True)
     _, numpy_counts = voxel_downsample(points, leaf, return_counts=True, native=False)
     assert np.array_equal(counts, numpy_counts)
+
+
+@needs_kernel
+def test_a_grid_too_large_for_the_kernels_sort_keys_is_filtered_by_numpy():
+    """Points 400 km apart on a 1 cm grid: some 10^19 cells, beyond the kernel's 63-bit keys. The kernel declines
+    (returns -1) and the NumPy code filters them, the same as asking for it (its own order: its voxel index
+    overflows int64 there too)."""
+    points = np.array([[-2e5, -2e5, -50.0, 1.0], [2e5, 2e5, 50.0, 2.0], [2e5, 2e5, 50.0, 4.0]], np.float32)
+    out, counts = np.empty_like(points), np.empty(3, dtype=np.int64)
+    inverse = float(np.float32(1.0) / np.float32(0.01))
+    assert voxel._voxel_kernels.voxel_groups(points, 4, np.zeros(1, dtype=np.int64), inverse, out, counts) == -1
+    a, a_counts = voxel_downsample(points, 0.01, return_counts=True)
+    b, b_counts = voxel_downsample(points, 0.01, return_counts=True, native=False)
+    assert np.array_equal(a, b) and np.array_equal(a_counts, b_counts) and sorted(a_counts.tolist()) == [1, 2]

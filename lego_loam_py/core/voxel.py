@@ -51,9 +51,9 @@ def voxel_downsample(points: np.ndarray, leaf_size: float, return_counts: bool =
     if len(points) == 0:
         empty = np.zeros((0, points.shape[1]), dtype=np.float32)
         return (empty, np.zeros(0, dtype=np.int64)) if return_counts else empty
-    if native and _voxel_kernels is not None:
-        centroids, counts = _voxel_groups(points, np.zeros(1, dtype=np.int64), leaf_size)
-        return (centroids, counts) if return_counts else centroids
+    filtered = _voxel_groups(points, np.zeros(1, dtype=np.int64), leaf_size) if native else None
+    if filtered is not None:
+        return filtered if return_counts else filtered[0]
     index = voxel_indices(points[:, :3], leaf_size)
     order = np.argsort(index, kind='stable')
     sorted_index = index[order]
@@ -86,8 +86,9 @@ def voxel_downsample_groups(
         by_group = np.argsort(groups, kind='stable')
         points, groups = points[by_group], groups[by_group]
     group_starts = np.flatnonzero(np.concatenate(([True], groups[1:] != groups[:-1])))
-    if native and _voxel_kernels is not None:
-        return _voxel_groups(points, group_starts, leaf_size)[0]
+    filtered = _voxel_groups(points, group_starts, leaf_size) if native else None
+    if filtered is not None:
+        return filtered[0]
     group_sizes = np.diff(np.append(group_starts, len(groups)))  # per-group values reach the points by repeat
     inverse = np.float32(1.0) / np.float32(leaf_size)
     # floor(min(p) / leaf) == min(floor(p / leaf)): the product and floor are monotonic in float32 too.
@@ -111,9 +112,14 @@ def voxel_downsample_groups(
     return (sums / counts[:, None].astype(np.float32)).astype(np.float32)
 
 
-def _voxel_groups(points: np.ndarray, group_starts: np.ndarray, leaf_size: float) -> tuple[np.ndarray, np.ndarray]:
+def _voxel_groups(
+    points: np.ndarray, group_starts: np.ndarray, leaf_size: float
+) -> tuple[np.ndarray, np.ndarray] | None:
     """(centroids, counts) of finite float32 points whose groups start at ``group_starts`` (int64, from 0), by
-    the C kernel: voxel_downsample_groups' values and order (native/voxel_kernels.c)."""
+    the C kernel: voxel_downsample_groups' values and order (native/voxel_kernels.c); None without the extension,
+    or for a grid too large for its sort keys (the NumPy code then filters)."""
+    if _voxel_kernels is None:
+        return None
     points = np.ascontiguousarray(points, dtype=np.float32)
     out = np.empty_like(points)
     counts = np.empty(len(points), dtype=np.int64)
@@ -121,7 +127,7 @@ def _voxel_groups(points: np.ndarray, group_starts: np.ndarray, leaf_size: float
     m = _voxel_kernels.voxel_groups(
         points, points.shape[1], np.ascontiguousarray(group_starts, dtype=np.int64), float(inverse), out, counts
     )
-    return out[:m].copy(), counts[:m].copy()
+    return (out[:m].copy(), counts[:m].copy()) if m >= 0 else None
 
 
 _KEY_BITS = 21

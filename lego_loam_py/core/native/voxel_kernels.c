@@ -11,25 +11,15 @@
  *   columns. The sums are those of np.add.reduceat over the cell's points in their input order: the first point
  *   plus NumPy's pairwise sum of the others (below 8 values a plain sum from -0.0; up to 128, eight interleaved
  *   partial sums combined as ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7)) and the rest added; beyond, the
- *   two halves split at a multiple of 8). Writes out (m, k) float32 and counts (m,) int64; returns m. Runs
- *   without the GIL.
+ *   two halves split at a multiple of 8). Writes out (m, k) float32 and counts (m,) int64; returns m, or -1
+ *   (nothing usable written) for a group whose cells and points cannot be packed into one 63-bit sort key (a
+ *   grid of some 10^18 cells: the caller then filters with NumPy). Runs without the GIL.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
-
-typedef struct {
-    int64_t cell;
-    int64_t row;
-} Keyed;
-
-static int by_cell_then_row(const void *a, const void *b) {
-    const Keyed *x = a, *y = b;
-    if (x->cell != y->cell) return x->cell < y->cell ? -1 : 1;
-    return x->row < y->row ? -1 : (x->row > y->row);
-}
 
 /* floorf, inline: exact, as floor is; its zero may lose the sign, which no use of it here sees (cells are
    differences of floors, converted to integers). */
@@ -123,11 +113,10 @@ static PyObject *py_voxel_groups(PyObject *self, PyObject *args) {
     int failed = 0;
     int64_t m = 0;
     Py_BEGIN_ALLOW_THREADS
-    Keyed *keyed = malloc(sizeof(Keyed) * (size_t)(n > 0 ? n : 1));
     float *scaled = malloc(sizeof(float) * 3 * (size_t)(n > 0 ? n : 1));
     float *column = malloc(sizeof(float) * (size_t)(n > 0 ? n : 1));
-    uint64_t *packed = malloc(sizeof(uint64_t) * (size_t)(n > 0 ? n : 1));
-    if (keyed == NULL || scaled == NULL || column == NULL || packed == NULL) {
+    uint64_t *key = malloc(sizeof(uint64_t) * (size_t)(n > 0 ? n : 1));
+    if (scaled == NULL || column == NULL || key == NULL) {
         failed = 1;
     }
     for (Py_ssize_t g = 0; g < groups && !failed; ++g) {
@@ -147,37 +136,34 @@ static PyObject *py_voxel_groups(PyObject *self, PyObject *args) {
         }
         const int64_t span0 = (int64_t)(high[0] - low[0]) + 1, span1 = (int64_t)(high[1] - low[1]) + 1;
         const int64_t span2 = (int64_t)(high[2] - low[2]) + 1, size = stop - first;
+        /* Each point's key: its cell number above the bits of its place in the group. Keys are distinct, and
+           their order is the cells' with ties in input order, as NumPy's stable argsort gives. */
+        int bits = 0;
+        while (bits < 62 && ((int64_t)1 << bits) < size) ++bits;
+        if ((double)span0 * (double)span1 * (double)span2 * (double)((int64_t)1 << bits) >= 9.0e18) {
+            failed = 3;
+            break;
+        }
+        const uint64_t place = ((uint64_t)1 << bits) - 1;
+        uint64_t *group_key = key + first;
         for (int64_t i = first; i < stop; ++i) {
             const int64_t x = (int64_t)(scaled[3 * i] - low[0]), y = (int64_t)(scaled[3 * i + 1] - low[1]);
             const int64_t z = (int64_t)(scaled[3 * i + 2] - low[2]);
-            keyed[i].cell = x + y * span0 + z * (span0 * span1);
-            keyed[i].row = i;
+            group_key[i - first] = ((uint64_t)(x + y * span0 + z * (span0 * span1)) << bits) | (uint64_t)(i - first);
         }
-        /* (cell, row) packed into one key when it fits: the same order, sorted several times faster */
-        int bits = 0;
-        while (bits < 62 && ((int64_t)1 << bits) < size) ++bits;
-        const double cells = (double)span0 * (double)span1 * (double)span2;
-        if (cells * (double)((int64_t)1 << bits) < 9.0e18) {
-            const uint64_t low_bits = ((uint64_t)1 << bits) - 1;
-            for (int64_t i = first; i < stop; ++i) {
-                packed[i - first] = ((uint64_t)keyed[i].cell << bits) | (uint64_t)(i - first);
-            }
-            sort_keys(packed, size);
-            for (int64_t i = 0; i < size; ++i) {
-                keyed[first + i].cell = (int64_t)(packed[i] >> bits);
-                keyed[first + i].row = first + (int64_t)(packed[i] & low_bits);
-            }
-        } else {
-            qsort(keyed + first, (size_t)size, sizeof(Keyed), by_cell_then_row);
-        }
-        for (int64_t r = first; r < stop;) {
+        sort_keys(group_key, size);
+        for (int64_t r = 0; r < size;) {
+            const uint64_t cell = group_key[r] >> bits;
             int64_t e = r + 1;
-            while (e < stop && keyed[e].cell == keyed[r].cell) ++e;
+            while (e < size && group_key[e] >> bits == cell) ++e;
             const int64_t c = e - r;
+            const float *head = p + (first + (int64_t)(group_key[r] & place)) * k;
             for (Py_ssize_t j = 0; j < k; ++j) {
-                float sum = p[keyed[r].row * k + j];
+                float sum = head[j];
                 if (c > 1) {
-                    for (int64_t q = r + 1; q < e; ++q) column[q - r - 1] = p[keyed[q].row * k + j];
+                    for (int64_t q = r + 1; q < e; ++q) {
+                        column[q - r - 1] = p[(first + (int64_t)(group_key[q] & place)) * k + j];
+                    }
                     sum += pairwise_sum(column, c - 1);
                 }
                 o[m * k + j] = sum / (float)c;
@@ -187,10 +173,9 @@ static PyObject *py_voxel_groups(PyObject *self, PyObject *args) {
             r = e;
         }
     }
-    free(keyed);
     free(scaled);
     free(column);
-    free(packed);
+    free(key);
     Py_END_ALLOW_THREADS
     if (failed == 1) {
         PyErr_NoMemory();
@@ -200,7 +185,7 @@ static PyObject *py_voxel_groups(PyObject *self, PyObject *args) {
         PyErr_SetString(PyExc_ValueError, "voxel_groups: group starts must ascend from 0 within the points");
         goto done;
     }
-    result = PyLong_FromLongLong(m);
+    result = PyLong_FromLongLong(failed == 3 ? -1 : m);
 done:
     PyBuffer_Release(&points);
     PyBuffer_Release(&starts);
