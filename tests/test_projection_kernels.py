@@ -131,14 +131,12 @@ def test_the_ground_walk_in_c_keeps_what_numpys_keeps(seed):
 def test_the_ground_walk_by_hand():
     """One column of three candidates, 1 m apart: the first, on the plane, seeds it; the second rises 0.5 m, within
     tan(20 deg) x 1 m + 0.15 m = 0.51 m of it (kept); the third rises 1 m over the second (dropped)."""
-    from lego_loam_py.core import _projection_kernels
-    from lego_loam_py.core.projection import segmentation  # noqa: F401  (the kernel module is loaded)
-
-    points = np.zeros((3, 3, 1))
-    points[0, :, 0] = [5.0, 6.0, 7.0]  # x [m]
-    points[2, :, 0] = [0.0, 0.5, 1.5]  # z [m]
+    x = np.array([[5.0], [6.0], [7.0]], np.float32)  # [m], rows bottom up
+    y = np.zeros((3, 1), np.float32)
+    z = np.array([[0.0], [0.5], [1.5]], np.float32)
     ground = np.ones((3, 1), dtype=bool)
     far = np.ones((3, 1), dtype=bool)
     on_plane = np.array([[True], [False], [False]])
-    _projection_kernels.ground_walk(points, 3, 1, ground, far, on_plane, float(np.tan(np.radians(20.0))), 0.15)
+    slope = float(np.tan(np.radians(20.0)))
+    segmentation._projection_kernels.ground_walk(x, y, z, 3, 1, ground, far, on_plane, slope, 0.15)
     assert ground[:, 0].tolist() == [True, True, False]

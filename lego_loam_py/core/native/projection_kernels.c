@@ -10,13 +10,13 @@
  *   and returns the number of components. Runs without the GIL (the offline runner projects on a thread of its
  *   own beside featureAssociation).
  *
- * ground_walk(points, ground, far, on_plane, slope, tolerance)
+ * ground_walk(x, y, z, top, columns, ground, far, on_plane, slope, tolerance)
  *   GroundRemoval._refine_ground's walk up the columns (core/projection/ground.py), column by column instead of
- *   row by row, with its float64 operations in its order (built with -ffp-contract=off): points (3, top, h)
- *   float64; ground, far and on_plane (top, h) bool (ground rewritten in place). In each column, from the lowest
- *   row up, a ground candidate is kept when the column has no kept point yet and it is on the plane, or when
- *   |z - z_last| <= hypot(x - x_last, y - y_last) * slope + tolerance and it is on the plane or far; a kept point
- *   becomes the column's last. Runs without the GIL.
+ *   row by row, with its float64 operations in its order (built with -ffp-contract=off): x, y, z (top, columns)
+ *   float32 coordinates, taken as float64 (exactly); ground, far and on_plane (top, columns) bool (ground rewritten
+ *   in place). In each column, from the lowest row up, a ground candidate is kept when the column has no kept
+ *   point yet and it is on the plane, or when |z - z_last| <= hypot(x - x_last, y - y_last) * slope + tolerance
+ *   and it is on the plane or far; a kept point becomes the column's last. Runs without the GIL.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -84,21 +84,22 @@ done:
 }
 
 static PyObject *py_ground_walk(PyObject *self, PyObject *args) {
-    Py_buffer points, ground, far, on_plane;
+    Py_buffer xs, ys, zs, ground, far, on_plane;
     Py_ssize_t top, columns;
     double slope, tolerance;
     (void)self;
-    if (!PyArg_ParseTuple(args, "y*nnw*y*y*dd", &points, &top, &columns, &ground, &far, &on_plane, &slope, &tolerance)) {
+    if (!PyArg_ParseTuple(args, "y*y*y*nnw*y*y*dd", &xs, &ys, &zs, &top, &columns, &ground, &far, &on_plane, &slope,
+                          &tolerance)) {
         return NULL;
     }
     PyObject *result = NULL;
-    const Py_ssize_t cells = top * columns;
-    if (top < 0 || columns < 0 || points.len != 3 * cells * 8 || ground.len != cells || far.len != cells ||
-        on_plane.len != cells) {
+    const Py_ssize_t cells = top * columns, bytes = cells * (Py_ssize_t)sizeof(float);
+    if (top < 0 || columns < 0 || xs.len != bytes || ys.len != bytes || zs.len != bytes || ground.len != cells ||
+        far.len != cells || on_plane.len != cells) {
         PyErr_SetString(PyExc_ValueError, "ground_walk: inconsistent buffer sizes");
         goto done;
     }
-    const double *x = points.buf, *y = x + cells, *z = y + cells;
+    const float *x = xs.buf, *y = ys.buf, *z = zs.buf;
     uint8_t *keep = ground.buf;
     const uint8_t *is_far = far.buf, *planar = on_plane.buf;
     Py_BEGIN_ALLOW_THREADS
@@ -108,20 +109,21 @@ static PyObject *py_ground_walk(PyObject *self, PyObject *args) {
         for (Py_ssize_t r = 0; r < top; ++r) {
             const Py_ssize_t i = r * columns + c;
             if (!keep[i]) continue;
+            const double px = x[i], py = y[i], pz = z[i];
             int accepted;
             if (!seeded) {
                 accepted = planar[i] != 0;
             } else {
-                double step = hypot(x[i] - last_x, y[i] - last_y);
+                double step = hypot(px - last_x, py - last_y);
                 step *= slope;
                 step += tolerance;
-                accepted = (is_far[i] || planar[i]) && fabs(z[i] - last_z) <= step;
+                accepted = (is_far[i] || planar[i]) && fabs(pz - last_z) <= step;
             }
             keep[i] = (uint8_t)accepted;
             if (accepted) {
-                last_x = x[i];
-                last_y = y[i];
-                last_z = z[i];
+                last_x = px;
+                last_y = py;
+                last_z = pz;
                 seeded = 1;
             }
         }
@@ -130,7 +132,9 @@ static PyObject *py_ground_walk(PyObject *self, PyObject *args) {
     result = Py_None;
     Py_INCREF(result);
 done:
-    PyBuffer_Release(&points);
+    PyBuffer_Release(&xs);
+    PyBuffer_Release(&ys);
+    PyBuffer_Release(&zs);
     PyBuffer_Release(&ground);
     PyBuffer_Release(&far);
     PyBuffer_Release(&on_plane);

@@ -141,11 +141,8 @@ class GroundRemoval:
         pixels = np.flatnonzero(ground)
         if len(pixels) < 10:
             return ground
-        # Ground lies in rows < top only: the planes hold every candidate.
-        points = np.empty((3,) + x.shape)  # float64 (3, top, H): the planes as one array, for the walk below
-        points[0], points[1], points[2] = x, y, z
-        x, y, z = points
-        ground_x, ground_y, ground_z = (plane.reshape(-1)[pixels] for plane in (x, y, z))
+        # Ground lies in rows < top only: the planes hold every candidate (float32 values, exact in float64).
+        ground_x, ground_y, ground_z = (plane.reshape(-1)[pixels].astype(np.float64) for plane in (x, y, z))
         reach = np.hypot(ground_x, ground_y)
         tolerance = np.maximum(ip.ground_plane_tolerance, ip.ground_plane_tolerance_ratio * reach)
         near = reach <= ip.ground_plane_radius
@@ -171,10 +168,12 @@ class GroundRemoval:
         slope = math.tan(math.radians(ip.ground_chain_slope))
         if native and _projection_kernels is not None:  # the same walk in C, column by column
             _projection_kernels.ground_walk(
-                points, top, self.horizon_scan, ground[:top], far, on_plane, slope, ip.ground_chain_tolerance
+                x, y, z, top, self.horizon_scan, ground[:top], far, on_plane, slope, ip.ground_chain_tolerance
             )
             return ground
         # The walk up the columns: a loop over the few ground rows, vectorised over the columns.
+        points = np.empty((3,) + x.shape)  # float64 (3, top, H): the planes as one array
+        points[0], points[1], points[2] = x, y, z
         last = np.full((3, self.horizon_scan), np.nan)  # each column's last ground point
         seeded = np.zeros(self.horizon_scan, dtype=bool)
         # (Few calls a row, into buffers: on 2083-column rows a numpy call's own cost is a large part.)
