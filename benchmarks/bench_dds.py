@@ -1,7 +1,7 @@
 """What the four nodes cost over DDS, as a user pays it: whole-process CPU per scan, idle CPU, memory, scans out.
 
     .venv/bin/python benchmarks/bench_dds.py [--rates 1 2] [--pinned 1 2] [--repeat 3] [--seconds 20] [--idle 10]
-                                             [--clock 40] [--profile] [--out DIR]
+                                             [--clock 40] [--profile] [--floor] [--out DIR]
 
 The recording is a simulated 20 s campus drive with IMU (VLP-16, 200 scans; ``--bag`` for another one, with ``-p
 key:=value`` for the nodes' parameters, e.g. a real HDL-64E drive: ``lego_loam_py convert`` a KITTI folder, then ``--bag
@@ -23,6 +23,9 @@ with the four nodes pinned to core 0 (``taskset``) and the player, the recorder 
 core 1. ``--repeat`` runs each configuration several times and reports the median of each figure (a shared
 machine varies by 10-20 % from run to run). The JSON also splits each node's CPU by thread (the Python main
 thread, Fast DDS's dds.* threads) and gives its system time; ``--profile`` samples every node with py-spy.
+``--floor`` follows each run with the same run of computation-free stand-ins of the four nodes
+(``benchmarks/floor_node.py``: the same subscriptions, executor and sim time, publishing the bytes the nodes published
+in a recorded run), so each node's figure sits beside what rclpy and DDS alone cost for its messages.
 Results are printed as a table and written to ``DIR/bench_dds.json``.
 """
 
@@ -32,6 +35,7 @@ import argparse
 import json
 import os
 import platform
+import shutil
 import signal
 import subprocess
 import sys
@@ -45,6 +49,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from benchmarks.common import compile_bytecode  # noqa: E402
+from benchmarks.floor_node import CAPTURE_TOPICS  # noqa: E402
 from lego_loam_py.core.params import parse_overrides, write_params_file  # noqa: E402
 from lego_loam_py.orchestration import NODES as PIPELINE_NODES  # noqa: E402
 from lego_loam_py.testing.domains import DomainLease  # noqa: E402
@@ -52,6 +57,7 @@ from lego_loam_py.testing.measure import rss_mb  # noqa: E402
 from lego_loam_py.testing.nodes import spin_in_background  # noqa: E402
 
 BIN = Path(sys.executable).parent
+FLOOR_NODE = REPO / 'benchmarks' / 'floor_node.py'
 NODES = tuple(PIPELINE_NODES)  # the four executables, in pipeline order
 # The C++ original on the same kind of recording (the issue's measurement: 200-scan VLP-16 + IMU campus, 1x).
 CPP_MS_PER_SCAN = {'imageProjection': 4.3, 'featureAssociation': 7.5, 'mapOptimization': 16.2, 'transformFusion': 1.2}
@@ -97,8 +103,14 @@ def run_configuration(
     clock_hz: float = 40.0,
     run: int = 0,
     overrides: dict | None = None,
+    capture: Path | None = None,
+    floor: Path | None = None,
 ) -> dict:
-    """Start the nodes, measure idle, play the bag at ``rate``, measure; returns the row."""
+    """Start the nodes, measure idle, play the bag at ``rate``, measure; returns the row.
+
+    ``capture``: also record what the nodes publish into that bag (for ``floor`` runs); ``floor``: start the
+    computation-free stand-ins of ``benchmarks/floor_node.py`` instead of the nodes, publishing what that capture
+    holds."""
     import rclpy
     from nav_msgs.msg import Odometry
     from rclpy.context import Context
@@ -110,7 +122,7 @@ def run_configuration(
 
     with BagReader(bag) as reader:
         scans = reader.topic_counts()['/velodyne_points']
-    label = f'{"pinned to 1 core, " if pinned else ""}{rate:g}x'
+    label = f'{"floor: " if floor else ""}{"pinned to 1 core, " if pinned else ""}{rate:g}x'
     folder = out / (label.replace(' ', '_').replace(',', '') + (f'_run{run}' if run else ''))
     (folder / 'logs').mkdir(parents=True, exist_ok=True)
     params = folder / 'params.yaml'
@@ -129,9 +141,10 @@ def run_configuration(
         )
         procs = {}
         for name in NODES:
+            command = [str(BIN / name)] if floor is None else [sys.executable, str(FLOOR_NODE), name, str(floor)]
             with open(folder / 'logs' / f'{name}.log', 'w') as log:
                 procs[name] = subprocess.Popen(
-                    [*taskset, str(BIN / name), '--ros-args', '--params-file', str(params)],
+                    [*taskset, *command, '--ros-args', '--params-file', str(params)],
                     stdout=log,
                     stderr=log,
                     env=env,
@@ -180,6 +193,17 @@ def run_configuration(
             start = {name: cpu_seconds(p.pid) for name, p in procs.items()}
             start_threads = {name: thread_cpu_seconds(p.pid) for name, p in procs.items()}
             start_system = {name: cpu_seconds(p.pid, system_only=True) for name, p in procs.items()}
+            recorder = None
+            if capture is not None:
+                recorder = subprocess.Popen(
+                    [str(BIN / 'lego_loam_py'), 'record', '-q', '-o', str(capture), *CAPTURE_TOPICS],
+                    env=env,
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                    start_new_session=True,
+                )
+                _wait_for_subscribers(node, CAPTURE_TOPICS)
+                time.sleep(1.0)  # (the publishers match the recorder's subscriptions)
             played = time.monotonic()
             player = subprocess.run(
                 [
@@ -210,6 +234,9 @@ def run_configuration(
             end_threads = {name: thread_cpu_seconds(p.pid) for name, p in procs.items()}
             end_system = {name: cpu_seconds(p.pid, system_only=True) for name, p in procs.items()}
             sampling.clear()
+            if recorder is not None:
+                os.killpg(recorder.pid, signal.SIGINT)
+                recorder.wait(timeout=60)
             for profiler in profilers:
                 profiler.send_signal(signal.SIGINT)
                 profiler.wait(timeout=60)
@@ -329,6 +356,13 @@ def profile_summary(path: Path, top: int = 15) -> str:
     return '\n'.join(lines)
 
 
+def _wait_for_subscribers(node, topics, timeout: float = 30.0) -> None:
+    """Until every topic has a subscriber (the recorder's), or ``timeout`` [s]."""
+    deadline = time.monotonic() + timeout
+    while not all(node.count_subscribers(t) for t in topics) and time.monotonic() < deadline:
+        time.sleep(0.1)
+
+
 def median_row(runs: list[dict]) -> dict:
     """One row of several runs of a configuration: the median of every figure, and the runs' totals."""
     if len(runs) == 1:
@@ -414,6 +448,27 @@ def print_table(rows: list[dict]) -> None:
         )
 
 
+def print_floor(rows: list[dict]) -> None:
+    """Each node's CPU per scan while playing beside its floor (the stand-in's: rclpy and DDS for the same messages)
+    and the difference, the node's own work."""
+    print('\n| configuration | node | node | floor | own work | C++ | 1.5x C++ minus floor |')
+    print('|---|---|---|---|---|---|---|')
+    floors = {r['configuration'].removeprefix('floor: '): r for r in rows if r['configuration'].startswith('floor')}
+    for row in rows:
+        floor = floors.get(row['configuration'])
+        if floor is None:
+            continue
+        for k, name in enumerate(row['nodes']):
+            real, base = row['nodes'][name]['cpu_ms_per_scan'], floor['nodes'][name]['cpu_ms_per_scan']
+            cpp = CPP_MS_PER_SCAN[name]
+            print(
+                f'| {row["configuration"] if k == 0 else ""} | {name} | {real} | {base} | {real - base:.1f} | {cpp} | '
+                f'{1.5 * cpp - base:.1f} |'
+            )
+        real, base = row['total_cpu_ms_per_scan'], floor['total_cpu_ms_per_scan']
+        print(f'| | **total** | {real} | {base} | {real - base:.1f} | {sum(CPP_MS_PER_SCAN.values()):.1f} | |')
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--bag', default=None, help='recording (default: simulated campus drive with IMU)')
@@ -446,31 +501,44 @@ def main(argv=None) -> int:
         action='store_true',
         help='sample every node with py-spy while playing (adds CPU on the other core)',
     )
+    parser.add_argument(
+        '--floor',
+        action='store_true',
+        help='after each run, the same run with computation-free stand-ins of the nodes (benchmarks/floor_node.py) '
+        'publishing what the nodes published: what rclpy alone costs for the same messages',
+    )
     args = parser.parse_args(argv)
     compile_bytecode(REPO)  # (and any checkout on PYTHONPATH, which the nodes then import: see its docstring)
     bag = Path(args.bag) if args.bag else default_bag(args.seconds)
     out = Path(args.out)
     rows = []
     load = os.getloadavg()
+    overrides = parse_overrides(args.param)
+    capture = None
+    if args.floor:  # one run of the real nodes, recorded, for the stand-ins to publish
+        capture = out / 'capture'
+        shutil.rmtree(capture, ignore_errors=True)
+        rate = (args.rates or args.pinned)[0]
+        run_configuration(bag, out / 'capture_run', rate, False, 1.0, False, args.clock, 0, overrides, capture=capture)
     for pinned, rates in ((False, args.rates), (True, args.pinned)):
         for rate in rates:
-            runs = []
+            runs, floors = [], []
             for run in range(args.repeat):
+                number = run + 1 if args.repeat > 1 else 0
                 runs.append(
-                    run_configuration(
-                        bag,
-                        out,
-                        rate,
-                        pinned,
-                        args.idle,
-                        args.profile,
-                        args.clock,
-                        run + 1 if args.repeat > 1 else 0,
-                        parse_overrides(args.param),
-                    )
+                    run_configuration(bag, out, rate, pinned, args.idle, args.profile, args.clock, number, overrides)
                 )
                 print(json.dumps(runs[-1]), flush=True)
+                if capture is not None:
+                    floors.append(
+                        run_configuration(
+                            bag, out, rate, pinned, args.idle, False, args.clock, number, overrides, floor=capture
+                        )
+                    )
+                    print(json.dumps(floors[-1]), flush=True)
             rows.append(median_row(runs))
+            if floors:
+                rows.append(median_row(floors))
     summary = dict(
         bag=str(bag),
         machine=f'{platform.processor() or platform.machine()}, {os.cpu_count()} cores',
@@ -480,6 +548,8 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     (out / 'bench_dds.json').write_text(json.dumps(summary, indent=2))
     print_table(rows)
+    if args.floor:
+        print_floor(rows)
     if args.profile:
         for path in sorted(out.glob('*/profile/*.txt')):
             print(profile_summary(path))
