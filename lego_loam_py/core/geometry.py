@@ -18,6 +18,7 @@ __all__ = [
     'line_offsets',
     'cross_rows',
     'line_coefficients',
+    'affine_fit',
 ]
 
 _F32 = np.float32
@@ -164,3 +165,30 @@ def line_coefficients(p: np.ndarray, a: np.ndarray, b: np.ndarray):
 
 
 # ----------------------------------------------------------------------------------------- the solver
+
+
+# Below this 1 - (correlation of u and v)², the two are too nearly dependent for the closed form: lstsq decides.
+_AFFINE_MIN_INDEPENDENCE = 1e-10
+
+
+def affine_fit(u: np.ndarray, v: np.ndarray, z: np.ndarray) -> tuple[float, float, float]:
+    """Least-squares ``(c_u, c_v, c_0)`` of ``z ≈ c_u u + c_v v + c_0`` over float64 samples (n >= 3; units of z
+    per unit of u and v, and of z).
+
+    Solved on the centred samples by Cramer's rule on the 2x2 normal equations: the same solution as
+    ``np.linalg.lstsq`` of ``[u, v, 1]`` to within a few units of the last place on well-spread samples (centring
+    keeps the system's condition that of the samples' spread, not of their distance from the origin), in a tenth
+    of its time on thousands of samples. Nearly collinear ``u`` and ``v`` go to lstsq (its minimum-norm answer).
+    """
+    mean_u, mean_v, mean_z = u.mean(), v.mean(), z.mean()
+    du, dv, dz = u - mean_u, v - mean_v, z - mean_z
+    suu, svv, suv = float(du @ du), float(dv @ dv), float(du @ dv)
+    determinant = suu * svv - suv * suv
+    if not determinant > _AFFINE_MIN_INDEPENDENCE * suu * svv:
+        design = np.stack([u, v, np.ones(len(u))], axis=1)
+        c_u, c_v, c_0 = np.linalg.lstsq(design, z, rcond=None)[0]
+        return float(c_u), float(c_v), float(c_0)
+    suz, svz = float(du @ dz), float(dv @ dz)
+    c_u = (suz * svv - svz * suv) / determinant
+    c_v = (svz * suu - suz * suv) / determinant
+    return c_u, c_v, float(mean_z) - c_u * float(mean_u) - c_v * float(mean_v)

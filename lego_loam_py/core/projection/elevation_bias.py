@@ -22,6 +22,7 @@ import math
 
 import numpy as np
 
+from lego_loam_py.core.geometry import affine_fit
 from lego_loam_py.core.projection.ground import float32_hypot
 
 __all__ = ['ElevationBias', 'apply_elevation_offset', 'ground_cone_deg', 'elevation_note']
@@ -65,15 +66,16 @@ def ground_cone_deg(ground_xyz: np.ndarray) -> float | None:
         or np.count_nonzero(keep) < MIN_GROUND_POINTS
     ):
         return None  # (a slope and a cone are told apart only by ground on both sides)
-    design = np.stack([np.ones(np.count_nonzero(keep)), x[keep], rho[keep]], axis=1)
-    target = z[keep]
-    weight = np.ones(len(target))
+    x, rho, z = x[keep], rho[keep], z[keep]
+    used = np.ones(len(z), dtype=bool)
     for _ in range(4):  # trimmed: points beyond three robust deviations of the fit are left out
-        solution = np.linalg.lstsq(design * weight[:, None], target * weight, rcond=None)[0]
-        residual = np.abs(target - design @ solution)
+        if np.count_nonzero(used) < 3:
+            break
+        slope, cone, height = affine_fit(x[used], rho[used], z[used])
+        residual = np.abs(z - (slope * x + cone * rho + height))
         scale = 1.5 * float(np.median(residual)) + 1e-3
-        weight = (residual < 3.0 * scale).astype(np.float64)
-    return -math.degrees(math.atan(float(solution[2])))
+        used = residual < 3.0 * scale
+    return -math.degrees(math.atan(cone))
 
 
 class ElevationBias:

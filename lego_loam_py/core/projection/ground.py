@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 
+from lego_loam_py.core.geometry import affine_fit
 from lego_loam_py.core.params.types import Params
 from lego_loam_py.core.parity.atan2f_decisions import atan2f_exceeds, first_float32_where
 from lego_loam_py.core.parity.libm import float_degrees
@@ -148,14 +149,12 @@ class GroundRemoval:
         near = reach <= ip.ground_plane_radius
         fit_near = near.sum() >= 10
         keep = near if fit_near else np.ones(len(pixels), dtype=bool)
-        design = np.empty((len(pixels), 3))
-        design[:, 0], design[:, 1], design[:, 2] = ground_x, ground_y, 1.0
         for _ in range(3):
             if keep.sum() < 3:
                 break
-            # np.compress: the same rows as design[keep], several times faster on a 2-D array.
-            coef, *_ = np.linalg.lstsq(np.compress(keep, design, axis=0), ground_z[keep], rcond=None)
-            fits = np.abs(ground_z - design @ coef) <= tolerance  # (of the last plane fitted, after the loop)
+            slope_x, slope_y, height = affine_fit(ground_x[keep], ground_y[keep], ground_z[keep])
+            # (of the last plane fitted, after the loop)
+            fits = np.abs(ground_z - (slope_x * ground_x + slope_y * ground_y + height)) <= tolerance
             refit = fits & (near if fit_near else True)
             if np.array_equal(refit, keep):
                 break  # the same points give the same plane again: the remaining rounds change nothing
