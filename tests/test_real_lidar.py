@@ -16,6 +16,7 @@ from lego_loam_py.core.params.timing import pose_delay
 from lego_loam_py.core.projection.elevation_bias import (
     MIN_SCANS,
     ElevationBias,
+    _median,
     apply_elevation_offset,
     ground_cone_deg,
 )
@@ -166,6 +167,16 @@ def test_the_ground_cone_of_a_known_elevation_error_is_measured_and_corrected():
     apply_elevation_offset(corrected, 0.2)
     assert abs(ground_cone_deg(corrected)) < 0.01
     assert ground_cone_deg(ground[:50]) is None
+
+
+def test_the_trimmed_fits_median_is_numpys():
+    rng = np.random.default_rng(4)
+    for n in [1, 2, 3, 4, 5, *rng.integers(6, 4000, 300)]:
+        residual = np.abs(rng.normal(0.0, 0.1, int(n)))
+        ties = rng.integers(0, 4, int(n)).astype(np.float64)  # (repeated values: the middle two may be equal)
+        for values in (residual, ties):
+            assert _median(values) == float(np.median(values))
+    assert _median(np.array([1.0, 2.0])) == 1.5
 
 
 def test_the_correction_is_taken_only_once_scans_agree_and_never_for_a_rolling_ground():
