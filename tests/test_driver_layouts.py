@@ -255,6 +255,8 @@ def test_rings_counted_from_the_top_are_turned_round_and_others_are_not(sweeps):
     assert not rings_count_down(ring, xyz, 16) and rings_count_down(15 - ring, xyz, 16)
     # Within n_scan rows: a 16-beam cloud read into a 32-row image keeps its rows when counted upwards.
     assert not rings_count_down(ring, xyz, 32) and rings_count_down(31 - ring, xyz, 32)
+    # Rings beyond the image are left out of the vote: the eight lowest beams in an 8-row image still tell.
+    assert not rings_count_down(ring, xyz, 8) and rings_count_down(7 - ring, xyz, 8)
     # One ring only, or none in the image: nothing to tell.
     assert not rings_count_down(np.full(len(ring), 3), xyz, 16) and not rings_count_down(ring + 40, xyz, 16)
     flipped = points.copy()

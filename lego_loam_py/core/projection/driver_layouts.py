@@ -142,11 +142,15 @@ def rings_count_down(ring: np.ndarray, xyz: np.ndarray, n_scan: int) -> bool:
     """Whether ring numbers count from the top beam: the mean elevation of the rings' points falls with the ring
     number over at least 3/4 of the steps between populated rings within ``n_scan`` (a sample of the points)."""
     step = max(1, len(ring) // _RING_SAMPLE)
-    rings, points = ring[::step], xyz[::step]
+    rings = ring[::step]
     inside = (rings >= 0) & (rings < n_scan)
-    rings, points = rings[inside], points[inside].astype(np.float64)
-    horizontal = np.hypot(points[:, 0], points[:, 1])
-    slope = points[:, 2] / np.maximum(horizontal, 1e-6)  # tan(elevation), monotone in it
+    every = bool(inside.all())  # (as a driver's rings are: the columns are then taken without a selection)
+    if not every:
+        rings = rings[inside]
+    # Column by column: a boolean selection of the strided (n, 3) rows, or its float64 copy, costs several times more.
+    x, y, z = (xyz[::step, axis] if every else xyz[::step, axis][inside] for axis in range(3))
+    horizontal = np.hypot(x.astype(np.float64), y.astype(np.float64))
+    slope = z.astype(np.float64) / np.maximum(horizontal, 1e-6)  # tan(elevation), monotone in it
     count = np.bincount(rings, minlength=n_scan)
     populated = np.flatnonzero(count)
     if len(populated) < 2:
