@@ -432,7 +432,7 @@ def covariance_fields(covariance: np.ndarray | None) -> list[float]:
     and positive definite; None: 36 zeros (unknown)."""
     if covariance is None:
         return [0.0] * 36
-    return [float(v) for v in bounded_covariance(covariance).reshape(-1)]
+    return bounded_covariance(covariance).reshape(-1).tolist()
 
 
 def odometry_covariance(msg: Odometry) -> np.ndarray | None:

@@ -182,7 +182,7 @@ class TransformFusionNode(LegoLoamNode):
             self.core.reset()
             self.state_reset(problem, 'map correction reset (the next mapping result restores it)')
             mapped = self.core.integrate(odometry, covariance, stamp_ns)
-        self.order.processed(stamp_to_ns(msg.header.stamp))
+        self.order.processed(stamp_ns)
         header = make_header(msg.header.stamp, CAMERA_INIT_FRAME)
         integrated, transform = serialized_odometry(
             mapped, header, CAMERA_FRAME, pose_covariance=self.core.covariance if covariance is not None else None

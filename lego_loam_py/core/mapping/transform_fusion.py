@@ -26,9 +26,14 @@ from lego_loam_py.core.validation import MAX_POSITION, vector_problem
 __all__ = ['TransformFusion']
 
 
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array.flags.writeable = False
+    return array
+
+
 class TransformFusion:
     def __init__(self, max_correction_age_ns: int | None = None):
-        self.correction = np.eye(4)  # T_aft · T_bef^-1
+        self.correction = _frozen(np.eye(4))  # T_aft · T_bef^-1 (replaced, never changed in place: see health_problem)
         self.mapped_steps = 0
         self.max_correction_age_ns = max_correction_age_ns
         self.correction_stamp_ns: int | None = None  # of the mapping step the correction comes from
@@ -37,6 +42,7 @@ class TransformFusion:
         # mapped pose, its covariance, the odometry pose it came from and that one's covariance.
         self._odometry: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self._mapped: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._checked: tuple[np.ndarray, str | None] | None = None  # (the correction, its health_problem)
 
     # (Mapping lags the odometry by a few scans, at most a few seconds when loop closure holds it up.)
     HISTORY = 400
@@ -46,7 +52,7 @@ class TransformFusion:
     ) -> None:
         """A mapping result of the scan stamped ``stamp_ns``: the optimised pose ``aft`` of the odometry pose
         ``bef`` (4x4 each), ``aft``'s covariance (6x6, camera_init) if known."""
-        self.correction = aft @ invert_pose(bef)
+        self.correction = _frozen(aft @ invert_pose(bef))
         self.mapped_steps += 1
         self.correction_stamp_ns = stamp_ns
         bef_covariance = self._odometry_covariance(stamp_ns)
@@ -57,6 +63,9 @@ class TransformFusion:
         """The covariance of the odometry pose stamped ``stamp_ns`` (the nearest stamp kept), or None."""
         if stamp_ns is None or not self._odometry:
             return None
+        exact = self._odometry.get(stamp_ns)  # (the usual case: the mapping step of a scan fused here)
+        if exact is not None:
+            return exact[1]
         nearest = min(self._odometry, key=lambda stamp: abs(stamp - stamp_ns))
         return self._odometry[nearest][1]
 
@@ -94,7 +103,11 @@ class TransformFusion:
 
     def health_problem(self) -> str | None:
         """Why the map correction is poisoned (non-finite, absurd, or not a rigid transform), or None."""
+        checked = self._checked
+        if checked is not None and checked[0] is self.correction:  # (asked for every scan; set once per mapping step)
+            return checked[1]
         problem = vector_problem('the map correction', self.correction, MAX_POSITION, 'm')
         if problem is None and np.abs(self.correction[:3, :3] @ self.correction[:3, :3].T - np.eye(3)).max() > 1e-3:
             problem = 'the map correction is not a rigid transform'
+        self._checked = (self.correction, problem)
         return problem
