@@ -11,9 +11,9 @@ from lego_loam_py.core.projection.laser_order import (
     _DEG_PER_RAD,
     MIN_STEP_DEG,
     _laser_starts,
-    _median,
     _median_is_not_negative,
     _mod,
+    median,
 )
 
 
@@ -67,7 +67,7 @@ def test_median_and_its_sign_equal_numpy_median():
         if trial % 37 == 0:
             values[rng.integers(0, n)] = np.nan
         with np.errstate(invalid='ignore'):
-            assert _bits(_median(values)) == _bits(np.median(values))
+            assert _bits(median(values)) == _bits(np.median(values))
             assert _median_is_not_negative(values) == (float(np.median(values)) >= 0.0)
     for pair in ([-1e-300, 1e-300], [-5e-324, 5e-324], [-5e-324, 0.0], [-5e-324, -0.0], [-2.0, 1.0], [-1.0, 2.0]):
         for values in (np.array(pair), np.array(pair * 3000)):  # the middle pair straddles zero

@@ -16,11 +16,10 @@ from lego_loam_py.core.params.timing import pose_delay
 from lego_loam_py.core.projection.elevation_bias import (
     MIN_SCANS,
     ElevationBias,
-    _median,
     apply_elevation_offset,
     ground_cone_deg,
 )
-from lego_loam_py.core.projection.laser_order import rows_from_laser_order
+from lego_loam_py.core.projection.laser_order import median, rows_from_laser_order
 from lego_loam_py.evaluation import evaluate
 from lego_loam_py.inputs import open_source
 from lego_loam_py.offline import run_source
@@ -175,8 +174,8 @@ def test_the_trimmed_fits_median_is_numpys():
         residual = np.abs(rng.normal(0.0, 0.1, int(n)))
         ties = rng.integers(0, 4, int(n)).astype(np.float64)  # (repeated values: the middle two may be equal)
         for values in (residual, ties):
-            assert _median(values) == float(np.median(values))
-    assert _median(np.array([1.0, 2.0])) == 1.5
+            assert median(values) == float(np.median(values))
+    assert median(np.array([1.0, 2.0])) == 1.5
 
 
 def test_the_correction_is_taken_only_once_scans_agree_and_never_for_a_rolling_ground():

@@ -24,6 +24,7 @@ import numpy as np
 
 from lego_loam_py.core.geometry import affine_fit
 from lego_loam_py.core.projection.ground import float32_hypot
+from lego_loam_py.core.projection.laser_order import median
 
 __all__ = ['ElevationBias', 'apply_elevation_offset', 'ground_cone_deg', 'elevation_note']
 
@@ -53,16 +54,6 @@ def elevation_note(offset_deg: float, stamp_ns: int) -> str:
     )
 
 
-def _median(values: np.ndarray) -> float:
-    """np.median of finite float64 values (the same number: the middle one, or the mean of the middle two), without
-    its NaN check and general-axis handling, which cost more than the selection on a few thousand values."""
-    half = len(values) // 2
-    if len(values) % 2:
-        return float(np.partition(values, half)[half])
-    middle = np.partition(values, (half - 1, half))
-    return (float(middle[half - 1]) + float(middle[half])) / 2.0
-
-
 def ground_cone_deg(ground_xyz: np.ndarray) -> float | None:
     """The elevation error [deg] the ground points ahead and behind say (positive: the beams read low), or None
     when there are too few of them."""
@@ -83,7 +74,7 @@ def ground_cone_deg(ground_xyz: np.ndarray) -> float | None:
             break
         slope, cone, height = affine_fit(x[used], rho[used], z[used])
         residual = np.abs(z - (slope * x + cone * rho + height))
-        scale = 1.5 * _median(residual) + 1e-3
+        scale = 1.5 * median(residual) + 1e-3
         used = residual < 3.0 * scale
     return -math.degrees(math.atan(cone))
 

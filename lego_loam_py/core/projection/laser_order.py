@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-__all__ = ['rows_from_laser_order', 'MIN_STEP_DEG']
+__all__ = ['rows_from_laser_order', 'MIN_STEP_DEG', 'median']
 
 TWO_PI = 2.0 * math.pi
 _DEG_PER_RAD = 180.0 / math.pi  # np.degrees multiplies by this constant (in a scalar loop: a product is ~6x faster)
@@ -61,27 +61,34 @@ def _mod(values: np.ndarray, period: float, bounds: tuple[float, float] | None =
     return out
 
 
-def _median(values: np.ndarray) -> float:
-    """``float(np.median(values))`` bit for bit for a 1-D float64 array, several times faster on long ones.
+def median(values: np.ndarray) -> float:
+    """``float(np.median(values))`` bit for bit for a 1-D float64 array, several times faster (np.median's NaN check
+    and general-axis handling cost more than the selection on a few thousand values).
 
-    The middle order statistics are picked out of the values between two bounds taken from a sorted sample, which
-    hold them in all but rare cases (then, as for NaN, np.median itself); np.median's mean of the two middle
-    values of an even count is taken the same way, with np.mean of the two in order.
+    The middle order statistics are picked by ``np.partition``; on long arrays out of the values between two bounds
+    taken from a sorted sample, which hold them in all but rare cases (then, as for NaN, np.median itself).
+    np.median's mean of the two middle values of an even count is taken the same way, with np.mean of the two in
+    order.
     """
     n = len(values)
-    if n < 4096:
+    if n == 0:
         return float(np.median(values))
-    sample = np.sort(values[:: n // 1024])
     upper_mid = n // 2  # the (n // 2)-th smallest value; with an even count also the one before it
     ranks = [upper_mid - 1, upper_mid] if n % 2 == 0 else [upper_mid]
-    at = upper_mid * len(sample) // n
-    low = sample[max(at - 64, 0)]
-    high = sample[min(at + 64, len(sample) - 1)]
-    below = np.count_nonzero(values < low)
-    band = values[(values >= low) & (values <= high)]
-    above = np.count_nonzero(values > high)
-    if below + len(band) + above != n or ranks[0] < below or ranks[-1] >= below + len(band):
-        return float(np.median(values))  # NaN, or the middle is outside the band
+    if n < 4096:
+        if np.isnan(values).any():
+            return float(np.median(values))
+        below, band = 0, values
+    else:
+        sample = np.sort(values[:: n // 1024])
+        at = upper_mid * len(sample) // n
+        low = sample[max(at - 64, 0)]
+        high = sample[min(at + 64, len(sample) - 1)]
+        below = np.count_nonzero(values < low)
+        band = values[(values >= low) & (values <= high)]
+        above = np.count_nonzero(values > high)
+        if below + len(band) + above != n or ranks[0] < below or ranks[-1] >= below + len(band):
+            return float(np.median(values))  # NaN, or the middle is outside the band
     local = [r - below for r in ranks]
     middle = np.partition(band, local)[local]
     if not middle.all():
@@ -160,7 +167,7 @@ def rows_from_laser_order(x: np.ndarray, y: np.ndarray, z: np.ndarray, n_scan: i
     turned = _mod(direction * azimuth, TWO_PI) * _DEG_PER_RAD  # [deg]; np.mod's zeros are +0.0
     turned_low, turned_high = float(turned.min()), float(turned.max())
     counts = np.bincount((turned[starts] // _CUT_BIN_DEG).astype(np.int64), minlength=int(360 / _CUT_BIN_DEG) + 1)
-    spacing = math.degrees(_median(np.abs(step)))
+    spacing = math.degrees(median(np.abs(step)))
     begins = None
     for peak in np.argsort(counts)[::-1][:_CUT_CANDIDATES]:
         if counts[peak] == 0:
