@@ -13,8 +13,9 @@ localizes in the map bundle saved in DIR instead of building a map (``map_optimi
 summary says when the first fix came and how much of the run was localized.
 
 The pipeline is :class:`lego_loam_py.core.pipeline.Pipeline`, the one-scan call, in a loop over the recording.
-mapOptimization runs on its worker thread beside imageProjection and featureAssociation (see :func:`run_source`);
-the result is identical to a sequential run, and its ms per mapping step are the worker's CPU time.
+The recording is read and projected in one child process, featureAssociation runs in another and the mapping in
+this one (lego_loam_py.front_end_process), or mapOptimization on a worker thread (see :func:`run_source`); the
+result is identical to a sequential run, and the ms per mapping step are CPU time.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from lego_loam_py.allocator import keep_heap_pages
 from lego_loam_py.core.params import Params, SensorParams, load_params, parse_overrides
 from lego_loam_py.core.pipeline import Pipeline, RunResult
 from lego_loam_py.core.pipeline_events import PipelineListener
+from lego_loam_py.front_end_process import can_split, run_split
 from lego_loam_py.inputs import SOURCE_KINDS, ImuSample, Scan, Source, open_source
 from lego_loam_py.inputs.sidecars import recording_source
 from lego_loam_py.outputs import TRAJECTORY_FORMATS, result_lines, write_outputs
@@ -62,6 +64,7 @@ def run_bag(
     progress: bool = True,
     mapping: bool = True,
     mapping_thread: bool = True,
+    front_end_process: bool = True,
     listener: PipelineListener | None = None,
 ) -> RunResult:
     """Run the pipeline over a bag and return what it produced (``mapping=False``: odometry only); the topics
@@ -76,6 +79,7 @@ def run_bag(
             progress=progress,
             mapping=mapping,
             mapping_thread=mapping_thread,
+            front_end_process=front_end_process,
             listener=listener,
         )
 
@@ -88,22 +92,30 @@ def run_source(
     progress: bool = True,
     mapping: bool = True,
     mapping_thread: bool = True,
+    front_end_process: bool = True,
     listener: PipelineListener | None = None,
 ) -> RunResult:
     """Run the pipeline over a recording (any :class:`~lego_loam_py.inputs.Source`) and return what it produced.
 
-    ``mapping_thread``: mapOptimization runs on a worker thread, overlapping the next scans' imageProjection
-    and featureAssociation (it spends most of its time in numpy and scipy, which release the GIL), and, for
-    range images of at least PROJECTION_THREAD_PIXELS, each scan's imageProjection on another, from the moment
-    it is read, overlapping the featureAssociation of the scan before it. The result is the same as without
-    them: the mapping worker takes the mapping inputs and IMU samples in recording order, transformFusion applies
-    each mapping result before the scans that follow it, as the sequential run does, and the projection of a
-    scan depends on the scans before it only.
+    ``mapping_thread``: use the second core. With ``front_end_process`` (and no listener, on a platform that
+    forks) imageProjection and featureAssociation run in a child process that reads the recording, mapOptimization
+    and transformFusion in this one (lego_loam_py.front_end_process). Otherwise mapOptimization runs on a worker
+    thread, overlapping the next scans' imageProjection and featureAssociation where numpy and scipy release the
+    GIL. Either way, for range images of at least PROJECTION_THREAD_PIXELS, each scan's imageProjection runs on a
+    thread of its own from the moment the scan is read, overlapping the featureAssociation of the scan before it.
+    The result is the same as without them: mapOptimization takes the mapping inputs and IMU samples in recording
+    order, transformFusion applies each mapping result before the scans that follow it, as the sequential run
+    does, and the projection of a scan depends on the scans before it only.
     ``listener`` receives the pipeline's events (a viewer, see core.pipeline_events).
     """
     projection_thread = mapping_thread and params.sensor.n_scan * params.sensor.horizon_scan >= PROJECTION_THREAD_PIXELS
+    split = mapping_thread and front_end_process and listener is None and can_split()
     pipeline = Pipeline(
-        params, mapping=mapping, mapping_thread=mapping_thread, projection_thread=projection_thread, listener=listener
+        params,
+        mapping=mapping,
+        mapping_thread=mapping_thread and not split,
+        projection_thread=projection_thread,
+        listener=listener,
     )
     pipeline.mo.map_source = recording_source(source.path)  # (noted in the map bundle it saves)
     result = pipeline.record
@@ -123,49 +135,60 @@ def run_source(
                 dynamic_ncols=True,
                 mininterval=0.5,
             )
-        first_ns = None
-        scans_read = 0
-        # Items whose turn has not come: each scan's projection starts as it is read, and overlaps the
-        # featureAssociation of the scan before it; everything else keeps the recording's order.
-        waiting: deque = deque()
-
-        def take(item, projected) -> None:
-            if isinstance(item, ImuSample):
-                pipeline.add_imu(item.sample)
-                return
-            if isinstance(item, Scan):
-                pipeline.process_scan(item.points, item.stamp_ns, projected)
-            else:  # UnreadableScan
-                pipeline.skip_scan(item.stamp_ns, item.reason)
-            if bar is not None:
-                bar.update(1)
-
+        update = bar.update if bar is not None else (lambda: None)
+        items = items_in_turn(source, pipeline, max_scans)
         try:
-            for item in source.items():
-                is_scan = not isinstance(item, ImuSample)
-                if is_scan and max_scans is not None and scans_read >= max_scans:
-                    # The data processed ends here: the real-time factor is about that part of the recording.
-                    result.bag_duration = (item.received_ns - first_ns) * 1e-9 if first_ns is not None else 0.0
-                    break
-                first_ns = item.received_ns if first_ns is None else first_ns
-                if not is_scan:
-                    waiting.append((item, None))
-                    continue
-                scans_read += 1
-                projected = pipeline.project(item.points) if isinstance(item, Scan) else None
-                while waiting:
-                    take(*waiting.popleft())
-                waiting.append((item, projected))
-            while waiting:
-                take(*waiting.popleft())
+            if split:
+                cut = run_split(pipeline, items, update)
+            else:
+                cut = None
+                for item, projected in items:
+                    if item is None:
+                        cut = projected
+                    elif isinstance(item, ImuSample):
+                        pipeline.add_imu(item.sample)
+                    else:
+                        if isinstance(item, Scan):
+                            pipeline.process_scan(item.points, item.stamp_ns, projected)
+                        else:  # UnreadableScan
+                            pipeline.skip_scan(item.stamp_ns, item.reason)
+                        update()
         finally:
             if bar is not None:
                 bar.close()
+        if cut is not None:  # (the data processed ends there: the real-time factor is about that part)
+            result.bag_duration = cut
         pipeline.finish()
     finally:
         pipeline.close()
     result.wall_time = time.perf_counter() - start
     return result
+
+
+def items_in_turn(source: Source, pipeline: Pipeline, max_scans: int | None):
+    """The recording's items in the order the pipeline takes them, as (item, projected) pairs: each scan's
+    projection starts as it is read (:meth:`Pipeline.project`, a future; None for an unreadable scan) and overlaps
+    the featureAssociation of the scan before it, everything else keeps the recording's order. When ``max_scans``
+    cuts the recording short the last pair is (None, seconds of recording read)."""
+    first_ns = None
+    scans_read = 0
+    waiting: deque = deque()  # items whose turn has not come
+    for item in source.items():
+        is_scan = not isinstance(item, ImuSample)
+        if is_scan and max_scans is not None and scans_read >= max_scans:
+            yield from waiting
+            yield None, (item.received_ns - first_ns) * 1e-9 if first_ns is not None else 0.0
+            return
+        first_ns = item.received_ns if first_ns is None else first_ns
+        if not is_scan:
+            waiting.append((item, None))
+            continue
+        scans_read += 1
+        projected = pipeline.project(item.points) if isinstance(item, Scan) else None
+        yield from waiting
+        waiting.clear()
+        waiting.append((item, projected))
+    yield from waiting
 
 
 def loop_closures_of(result: RunResult, params: Params) -> LoopClosures | None:

@@ -70,7 +70,7 @@ def test_mapping_thread_gives_the_sequential_result(monkeypatch, projection_thre
     monkeypatch.setattr(
         offline, 'Pipeline', lambda *a, **k: started.append(k['projection_thread']) or Pipeline(*a, **k)
     )
-    threaded = run_bag(BAG, Params(), progress=False, max_scans=40, mapping_thread=True)
+    threaded = run_bag(BAG, Params(), progress=False, max_scans=40, mapping_thread=True, front_end_process=False)
     assert started == [projection_thread]
     sequential = run_bag(BAG, Params(), progress=False, max_scans=40, mapping_thread=False)
     assert threaded.counts == sequential.counts and threaded.counts['mapping_steps'] >= 5

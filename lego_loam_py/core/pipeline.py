@@ -7,7 +7,11 @@ transformFusion, and mapOptimization on the mapping inputs, in the order a repla
     record = pipeline.finish()                    # every pose, count and timing
 
 The offline mode (``lego_loam_py run``) is this call in a loop over a bag; the ROS nodes run the same cores,
-one per process. With ``map_optimization.mode: localization`` mapOptimization's core is
+one per process. The call is also in two halves, for a front end in another process
+(lego_loam_py.front_end_process): :meth:`Pipeline.front_step` (imageProjection's result through
+featureAssociation, into a :class:`FrontStep` of plain values) and :meth:`Pipeline.apply` (that step into the
+run: counts, warnings, transformFusion and mapOptimization); ``process_scan`` is the one after the other.
+With ``map_optimization.mode: localization`` mapOptimization's core is
 :class:`~lego_loam_py.core.localization.localizer.Localization` in the saved map of ``map_optimization.map_path``, and
 transformFusion publishes only while its map correction is recent (see :class:`TransformFusion`).
 mapOptimization may run on a worker thread (``mapping_thread``): it then overlaps the next scans'
@@ -57,7 +61,7 @@ from lego_loam_py.core.projection.elevation_bias import elevation_note
 from lego_loam_py.core.projection.image_projection import ImageProjection, InputError, prepare_input
 from lego_loam_py.core.trajectory import Trajectory
 
-__all__ = ['Pipeline', 'ScanOutput', 'RunResult', 'pose_time_offset_ns']
+__all__ = ['Pipeline', 'FrontStep', 'ScanOutput', 'RunResult', 'pose_time_offset_ns']
 
 # featureAssociation hears of mapOptimization's pose of a scan (/aft_mapped_to_init, for its IMU check) before the
 # first scan stamped this much later [ns]: a fixed lag, so that a run does not depend on the mapping thread's pace.
@@ -197,19 +201,37 @@ class Pipeline:
             listener=listener,
         )
         self._next_loop_check: int | None = None
+        self._uncovered: dict[str, int] = {}  # scans whose sweep the IMU could not cover, by why (for the warnings)
 
     def add_imu(self, sample: tuple) -> None:
         """One IMU sample (``core.imu.imu_sample``: time [s], quaternion, angular velocity, acceleration)."""
-        if self.fa.add_imu(*sample) is not None:
+        self.apply_imu(sample, self.front_imu(sample))
+
+    def front_imu(self, sample: tuple) -> bool:
+        """featureAssociation's part of :meth:`add_imu`: whether it rejected the sample."""
+        return self.fa.add_imu(*sample) is not None
+
+    def apply_imu(self, sample: tuple, rejected: bool) -> None:
+        """The rest of :meth:`add_imu`: the sample counted if rejected, and kept for mapOptimization."""
+        if rejected:
             self.record.count('imu_rejected')
         self._back_end.add_imu(sample)
 
+    def mapping_results(self) -> list[tuple[int, np.ndarray | None]]:
+        """(stamp, mapped pose six-vector; None for a step that gave none) of every mapping step finished and not
+        given before, in the order of their scans: what :meth:`front_step` needs of them, for a front end that runs
+        elsewhere."""
+        return self._back_end.finished_steps()
+
     def skip_scan(self, stamp_ns: int, reason: str) -> ScanOutput:
         """A scan the caller could not even decode: counted and warned about like any dropped scan."""
-        self.record.count(SCANS_IN)
-        output = self._dropped(stamp_ns, reason)
-        self._after_scan(stamp_ns)
-        return output
+        return self.apply(self.skipped(stamp_ns, reason))
+
+    def skipped(self, stamp_ns: int, reason: str) -> FrontStep:
+        """The front end's part of :meth:`skip_scan`."""
+        return FrontStep(
+            stamp_ns, counts=[SCANS_IN, SCANS_DROPPED], notices=[_dropped_note(stamp_ns, reason)], dropped=reason
+        )
 
     def project(self, points: np.ndarray) -> Future:
         """Start imageProjection on a cloud (on the projection worker, if there is one): a future of (its
@@ -234,10 +256,38 @@ class Pipeline:
         """One cloud (structured array with x, y, z, intensity and optionally ring / time) stamped
         ``stamp_ns`` [ns]: its odometry now, its fused pose and mapping as their results come (see
         :meth:`finish`). ``projected``: what :meth:`project` returned for this cloud, if it was started ahead."""
-        self.record.count(SCANS_IN)
-        output = self._one_scan(projected if projected is not None else self.project(points), stamp_ns)
-        self._after_scan(stamp_ns)
-        return output
+        projected = projected if projected is not None else self.project(points)
+        return self.apply(self.front_step(projected, stamp_ns, self._back_end.mapped_before))
+
+    def apply(self, step: FrontStep) -> ScanOutput:
+        """Take what the front end made of a scan (:meth:`front_step`, :meth:`skipped`) into the run: its counts,
+        timings and warnings, its odometry pose to transformFusion, its mapping inputs to mapOptimization."""
+        record = self.record
+        for name in step.counts:
+            record.count(name)
+        for note in step.notices:
+            if isinstance(note, str):
+                self._warn(note)
+            else:
+                self._back_end.imu_alignment('featureAssociation', note)
+        for stage, ms in step.timings_ms.items():
+            record.time(stage, ms)
+        if self._listener is not None and step.event is not None:  # (before the fusion, whose event follows)
+            self._listener(step.event)
+        if step.odometry is not None:
+            pose, pose_covariance, motion_covariance = step.odometry
+            record.stamps.append(step.stamp_ns)
+            record.odometry.append(pose)
+            record.odometry_covariance.append(pose_covariance)
+            record.motion_covariance.append(motion_covariance)
+            self._back_end.fuse(step.stamp_ns, pose, pose_covariance)
+        if step.map_inputs is not None:
+            *inputs, odometry_covariance = step.map_inputs
+            self._back_end.map(step.stamp_ns, *inputs, odometry_covariance=odometry_covariance)
+        self._after_scan(step.stamp_ns)
+        if step.dropped is not None:
+            return ScanOutput(step.stamp_ns, dropped=step.dropped)
+        return ScanOutput(step.stamp_ns, None if step.odometry is None else step.odometry[0], imu_used=step.imu_used)
 
     def _after_scan(self, stamp_ns: int) -> None:
         if self.record.first_scan_ns is None:
@@ -272,75 +322,91 @@ class Pipeline:
             self._projector.shutdown(wait=True, cancel_futures=True)
         self._back_end.close()
 
-    def _dropped(self, stamp_ns: int, reason: str) -> ScanOutput:
-        self.record.count(SCANS_DROPPED)
-        self._warn(f'scan at {stamp_ns * 1e-9:.3f} s dropped: {reason}')
-        return ScanOutput(stamp_ns, dropped=reason)
-
-    def _one_scan(self, projected: Future, stamp: int) -> ScanOutput:
-        record = self.record
+    def front_step(
+        self, projected: Future, stamp: int, mapped_before: Callable[[int], list[tuple[int, np.ndarray]]]
+    ) -> FrontStep:
+        """featureAssociation on a projected scan (:meth:`project`): what the run takes of it (:meth:`apply`).
+        ``mapped_before(stamp)`` gives the mapping steps of scans stamped up to ``stamp`` not given before, as
+        (stamp, mapped pose six-vector), for featureAssociation's IMU check."""
+        step = FrontStep(stamp, counts=[SCANS_IN])
         try:
             segmentation, projection_ms = projected.result()
         except (CloudLayoutError, InputError) as exc:
-            return self._dropped(stamp, str(exc))
+            step.counts.append(SCANS_DROPPED)
+            step.notices.append(_dropped_note(stamp, str(exc)))
+            step.dropped = str(exc)
+            return step
         t1 = time.perf_counter()
-        record.time('imageProjection', projection_ms)
+        step.timings_ms['imageProjection'] = projection_ms
         if 'elevation_offset_found' in segmentation.stats:
-            self._warn(elevation_note(segmentation.stats['elevation_offset_found'], stamp))
-        for mapped_stamp, pose6 in self._back_end.mapped_before(stamp - MAPPED_POSE_LAG_NS):
+            step.notices.append(elevation_note(segmentation.stats['elevation_offset_found'], stamp))
+        for mapped_stamp, pose6 in mapped_before(stamp - MAPPED_POSE_LAG_NS):
             event = self.fa.add_mapped_pose(mapped_stamp, pose6_to_matrix(pose6))  # (featureAssociation's IMU check)
             if event is not None:
-                self._back_end.imu_alignment('featureAssociation', event)
+                step.notices.append(event)
         features = self.fa.process(ScanInput.from_segmentation(stamp, segmentation))
         t2 = time.perf_counter()
-        record.time('featureAssociation', (t2 - t1) * 1e3)
+        step.timings_ms['featureAssociation'] = (t2 - t1) * 1e3
         heal = self._fa_guard.after_step(self.fa.health_problem())
         if heal is not None:  # the guard of the node's (core.guard): start the odometry again, keep the pose
             self.fa.restart()
-            record.count(STATE_RESETS)
-            record.count(SCANS_DROPPED)
-            self._warn(f'scan at {stamp * 1e-9:.3f} s: {heal}: odometry restarted')
-            return ScanOutput(stamp, dropped=f'{heal}: odometry restarted')
-        record.count(SCANS_PROCESSED)
+            step.counts += [STATE_RESETS, SCANS_DROPPED]
+            step.notices.append(f'scan at {stamp * 1e-9:.3f} s: {heal}: odometry restarted')
+            step.dropped = f'{heal}: odometry restarted'
+            return step
+        step.counts.append(SCANS_PROCESSED)
+        step.imu_used = features.imu_used
         if features.imu_used:
-            record.count(SCANS_WITH_IMU)
+            step.counts.append(SCANS_WITH_IMU)
         if features.imu_uncovered is not None:
             counter = uncovered_counter(features.imu_uncovered)
-            record.count(counter)
-            if warn_uncovered(record.counts[counter]):
-                self._warn(
+            step.counts.append(counter)
+            self._uncovered[counter] = self._uncovered.get(counter, 0) + 1
+            if warn_uncovered(self._uncovered[counter]):
+                step.notices.append(
                     uncovered_warning(
-                        features.imu_uncovered, record.counts[counter], stamp, self.params.imu.time_offset
+                        features.imu_uncovered, self._uncovered[counter], stamp, self.params.imu.time_offset
                     )
                 )
         if features.imu_alignment is not None:
-            self._back_end.imu_alignment('featureAssociation', features.imu_alignment)
-        if self._listener is not None:  # (before the fusion, whose event follows)
-            self._listener(
-                ScanProcessed(
-                    stamp,
-                    segmentation,
-                    features,
-                    None if features.initialized else features.pose,
-                    {'imageProjection': projection_ms, 'featureAssociation': (t2 - t1) * 1e3},
-                )
-            )
-        if not features.initialized:
-            record.stamps.append(stamp)
-            record.odometry.append(features.pose)
-            record.odometry_covariance.append(features.pose_covariance)
-            record.motion_covariance.append(features.motion_covariance)
-            self._back_end.fuse(stamp, features.pose, features.pose_covariance)
+            step.notices.append(features.imu_alignment)
+        pose = None if features.initialized else features.pose
+        if self._listener is not None:
+            step.event = ScanProcessed(stamp, segmentation, features, pose, dict(step.timings_ms))
+        if pose is not None:
+            step.odometry = (pose, features.pose_covariance, features.motion_covariance)
         if features.corner_last is not None and features.outlier_last is not None:
-            self._back_end.map(
-                stamp,
+            step.map_inputs = (
                 features.transform_sum,
                 features.corner_last,
                 features.surf_last,
                 features.outlier_last,
-                odometry_covariance=None if features.initialized else features.pose_covariance,
+                None if features.initialized else features.pose_covariance,
             )
-        return ScanOutput(stamp, None if features.initialized else features.pose, imu_used=features.imu_used)
+        return step
+
+
+def _dropped_note(stamp_ns: int, reason: str) -> str:
+    return f'scan at {stamp_ns * 1e-9:.3f} s dropped: {reason}'
+
+
+@dataclass
+class FrontStep:
+    """What imageProjection and featureAssociation made of one scan, for :meth:`Pipeline.apply`: plain values
+    (a listener's event aside), so that it can be made in another process."""
+
+    stamp_ns: int
+    counts: list[str] = field(default_factory=list)  # counters to add one to
+    # In order: warnings (str) and featureAssociation's IMU-check decisions (core.imu.monitor.AlignmentEvent).
+    notices: list = field(default_factory=list)
+    timings_ms: dict[str, float] = field(default_factory=dict)  # stage -> [ms]
+    dropped: str | None = None  # why the scan was dropped
+    imu_used: bool = False
+    # (4x4 /laser_odom_to_init in camera_init, its 6x6 covariance, the sweep motion's) unless the scan initialised
+    odometry: tuple | None = None
+    # (transform_sum, corner_last, surf_last, outlier_last, odometry covariance or None) for mapOptimization
+    map_inputs: tuple | None = None
+    event: ScanProcessed | None = None  # for a listener (not made without one)
 
 
 @dataclass(frozen=True)
@@ -456,6 +522,15 @@ class _BackEnd:
             step = self._unheard.popleft().future.result()[0]
             if step is not None:
                 out.append((step.stamp_ns, step.transform_aft))
+        return out
+
+    def finished_steps(self) -> list[tuple[int, np.ndarray | None]]:
+        """(stamp, mapped pose six-vector or None) of the finished mapping steps not asked for before, in order."""
+        out = []
+        while self._unheard and self._unheard[0].future.done():
+            mapped = self._unheard.popleft()
+            step = mapped.future.result()[0]
+            out.append((mapped.stamp_ns, None if step is None else step.transform_aft))
         return out
 
     def loop_closure(self) -> None:

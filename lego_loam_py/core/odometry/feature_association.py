@@ -167,14 +167,23 @@ class FeatureAssociation:
         self._first_features = None
         self._resumed = False  # restarted after a poisoned state: the first scan keeps transform_sum as it is
         self.scans = 0
+        self._imu_given = False  # (see takes_mapped_poses)
+
+    @property
+    def takes_mapped_poses(self) -> bool:
+        """Whether :meth:`add_mapped_pose` can change anything: only once an IMU sample was given (since the start or
+        the last reset). Both its users, the IMU check and the gyro-bias agreement, take a mapped pose only beside
+        the IMU's state at that scan, which only a scan the IMU covered has; a pose without one only ends the
+        check's pair, as having none does. A front end in another process need not wait for the poses before."""
+        return self._imu_given
 
     def reset(self, keep_imu: bool = False) -> None:
         """Forget everything (a bag restarted or time jumped back); ``keep_imu``: but the IMU samples and what
         its check found (they follow their own timeline)."""
-        imu, check, agreement = self.imu, self.imu_check, self.imu_agreement
+        imu, check, agreement, imu_given = self.imu, self.imu_check, self.imu_agreement, self._imu_given
         self.__init__(self.params, self.odometry.fix_scan_bound)
         if keep_imu:
-            self.imu, self.imu_check, self.imu_agreement = imu, check, agreement
+            self.imu, self.imu_check, self.imu_agreement, self._imu_given = imu, check, agreement, imu_given
 
     def health_problem(self) -> str | None:
         """Why the odometry state is poisoned (non-finite or beyond what a sensor can produce), or None.
@@ -576,6 +585,7 @@ class FeatureAssociation:
 
     def add_imu(self, stamp_s: float, orientation_xyzw, angular_velocity, linear_acceleration) -> str | None:
         """Feed one IMU sample (REP-103 body axes); returns the rejection reason or None."""
+        self._imu_given = True
         return self.imu.add(stamp_s, orientation_xyzw, angular_velocity, linear_acceleration)
 
     def _initial_guess(self, imu: ImuSweep | None) -> None:
