@@ -148,7 +148,10 @@ def add_parameter_arguments(parser: argparse.ArgumentParser, params_file_help: s
     )
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The command line's parser; with ``command``, only that command's module is imported and given its arguments
+    (the others keep their help line; '' for none): each module brings its own dependencies (rclpy, scipy,
+    matplotlib, ...), half a second of start-up for all of them."""
     parser = argparse.ArgumentParser(
         prog='lego_loam_py',
         description='LeGO-LOAM for ROS 2 in Python: tools around the four nodes.',
@@ -158,10 +161,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('--version', action='version', version=f'lego_loam_py {__version__}')
     commands = parser.add_subparsers(dest='command', metavar='COMMAND', required=True)
     for name, module_name, summary, description in COMMANDS:
-        module = importlib.import_module(module_name)
         sub = commands.add_parser(name, help=summary, description=description)
-        module.add_arguments(sub)
-        sub.set_defaults(handler=module.main)
+        if command is None or name == command:
+            module = importlib.import_module(module_name)
+            module.add_arguments(sub)
+            sub.set_defaults(handler=module.main)
     return parser
 
 
@@ -181,7 +185,11 @@ def run_command(handler, args: argparse.Namespace) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     ours, ros_args = _split_ros_args(argv)
-    args = build_parser().parse_args(ours)
+    # (the command is the first word: the program's own options, --help and --version, take no value; without a
+    # known one, argparse's help or error needs no command's module)
+    command = next((word for word in ours if not word.startswith('-')), None)
+    known = command in {name for name, *_ in COMMANDS}
+    args = build_parser(command if known else '').parse_args(ours)
     args.ros_args = ['lego_loam_py', *ros_args]
     code = run_command(args.handler, args)
     if 'lego_loam_py.ros.runtime' in sys.modules and sys.modules['lego_loam_py.ros.runtime'].stuck_teardowns():

@@ -379,6 +379,30 @@ def test_the_command_line_turns_errors_into_one_line_and_an_exit_code(capsys):
         raise AssertionError('an unexpected exception was swallowed')
 
 
+def test_a_command_imports_only_its_own_module():
+    """``lego_loam_py run ...`` parses with the offline module alone (not the player's rclpy, the simulator's or the
+    viewer's dependencies); ``lego_loam_py --help`` with none; build_parser() still gives every command its
+    arguments and handler."""
+    from lego_loam_py.cli import COMMANDS, build_parser
+
+    check = (
+        'import sys; from lego_loam_py.cli import COMMANDS, main, build_parser;'
+        'args = build_parser("run").parse_args(["run", "some.bag", "--no-imu"]);'
+        'modules = [module for _, module, *_ in COMMANDS if module in sys.modules];'
+        'print(args.handler.__module__, args.no_imu, modules, "rclpy" in sys.modules)'
+    )
+    done = subprocess.run([sys.executable, '-c', check], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ['lego_loam_py.offline', 'True', "['lego_loam_py.offline']", 'False']
+    help_only = 'import sys; from lego_loam_py.cli import COMMANDS, build_parser; build_parser(""); '
+    help_only += 'print([module for _, module, *_ in COMMANDS if module in sys.modules])'
+    done = subprocess.run([sys.executable, '-c', help_only], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.strip() == '[]', done.stderr
+    commands = build_parser()._subparsers._group_actions[0].choices
+    assert set(commands) == {name for name, *_ in COMMANDS}
+    assert all(parser.get_default('handler') is not None for parser in commands.values())
+
+
 PACKAGE_DIR = REPO / 'lego_loam_py'
 RUNNERS = ('offline', 'demo', 'launch')  # the modules of `lego_loam_py run`, `demo` and `launch`
 
