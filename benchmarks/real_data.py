@@ -371,7 +371,7 @@ def main() -> None:
     from lego_loam_py.evaluation import path_length
 
     # The drive's length: the whole reference (each system's matched part is in its figures).
-    reference_path_m = path_length(ground_truth[1]) if ground_truth is not None else float('nan')
+    reference_path_m = path_length(ground_truth.poses) if ground_truth is not None else float('nan')
     row = markdown_row(name, reference_path_m, medians['lego_loam_py'], medians['kiss_icp'])
     results = {
         'recording': str(recording),

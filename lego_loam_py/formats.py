@@ -247,17 +247,54 @@ def write_pcd_atomic(path: str | Path, points: np.ndarray) -> Path:
 
 
 def read_pcd(path: str | Path) -> np.ndarray:
-    """(N, 3) or (N, 4) float32 points of a PCD file (intensity when present)."""
+    """(N, 3) or (N, 4) float32 points of a PCD file (intensity when present). The layout
+    :func:`write_pcd_atomic` writes is read directly; any other (ASCII, compressed, organised, more fields) by
+    open3d."""
+    ours = _read_own_pcd(Path(path))
+    if ours is not None:
+        return ours
     import open3d as o3d
 
     cloud = o3d.t.io.read_point_cloud(str(path))
-    if 'positions' not in cloud.point:  # an empty cloud (as write_pcd_atomic writes one)
+    if 'positions' not in cloud.point:  # an empty cloud
         fields = Path(path).read_bytes()[:512].split(b'\nFIELDS ', 1)[-1].split(b'\n', 1)[0].split()
         return np.zeros((0, 4 if b'intensity' in fields else 3), np.float32)
     xyz = cloud.point['positions'].numpy().astype(np.float32)
     if 'intensity' in cloud.point:
         return np.concatenate([xyz, cloud.point['intensity'].numpy().reshape(-1, 1).astype(np.float32)], axis=1)
     return xyz
+
+
+def _read_own_pcd(path: Path) -> np.ndarray | None:
+    """The points of a PCD in exactly the layout write_pcd_atomic writes (float32 x y z [intensity], one row,
+    binary, the body as long as the header says), else None."""
+    data = path.read_bytes()
+    end = data.find(b'\nDATA binary\n')
+    if not data.startswith(b'# .PCD v0.7') or end < 0:
+        return None
+    header = dict(line.split(' ', 1) for line in data[:end].decode('ascii', 'replace').splitlines()[1:] if ' ' in line)
+    for fields in (['x', 'y', 'z'], ['x', 'y', 'z', 'intensity']):
+        n = len(fields)
+        expected = {
+            'VERSION': '0.7',
+            'FIELDS': ' '.join(fields),
+            'SIZE': ' '.join(['4'] * n),
+            'TYPE': ' '.join(['F'] * n),
+            'COUNT': ' '.join(['1'] * n),
+            'HEIGHT': '1',
+            'VIEWPOINT': '0 0 0 1 0 0 0',
+        }
+        if all(header.get(key) == value for key, value in expected.items()) and set(header) == {
+            *expected,
+            'WIDTH',
+            'POINTS',
+        }:
+            points = header['POINTS']
+            body = data[end + len(b'\nDATA binary\n') :]
+            if points.isdigit() and header['WIDTH'] == points and len(body) == int(points) * 4 * n:
+                return np.frombuffer(body, dtype='<f4').reshape(-1, n).astype(np.float32)
+            return None
+    return None
 
 
 def kitti_pose_lines(poses: np.ndarray) -> str:

@@ -352,10 +352,11 @@ def test_transform_cloud_is_the_world_convention():
 
 def test_the_pcd_writer_writes_the_bytes_open3d_writes_and_reads(tmp_path):
     """write_pcd_atomic writes binary PCD itself (no 0.8 s open3d import for a fixed header): the same bytes as
-    open3d's own writer, for x y z and x y z intensity, NaN and infinity included, and read back exactly."""
+    open3d's own writer, for x y z and x y z intensity, NaN and infinity included; read_pcd reads that layout back
+    exactly by itself, and leaves every other to open3d."""
     import open3d as o3d
 
-    from lego_loam_py.formats import read_pcd, write_pcd_atomic
+    from lego_loam_py.formats import _read_own_pcd, read_pcd, write_pcd_atomic
 
     rng = np.random.default_rng(5)
     for columns in (3, 4, 5):
@@ -368,7 +369,15 @@ def test_the_pcd_writer_writes_the_bytes_open3d_writes_and_reads(tmp_path):
         assert o3d.t.io.write_point_cloud(str(tmp_path / f'open3d{columns}.pcd'), cloud, write_ascii=False)
         assert ours.read_bytes() == (tmp_path / f'open3d{columns}.pcd').read_bytes()
         expected = points[:, : min(columns, 4)]
-        assert np.array_equal(read_pcd(ours), expected, equal_nan=True)
+        assert np.array_equal(read_pcd(ours), expected, equal_nan=True)  # (read without open3d)
+        read_by_open3d = o3d.t.io.read_point_cloud(str(ours)).point['positions'].numpy()
+        assert np.array_equal(read_by_open3d, expected[:, :3], equal_nan=True)
+        # Any other layout is open3d's to read: ASCII here, and a body shorter than its header says.
+        assert o3d.t.io.write_point_cloud(str(tmp_path / f'ascii{columns}.pcd'), cloud, write_ascii=True)
+        assert np.allclose(read_pcd(tmp_path / f'ascii{columns}.pcd'), expected, rtol=1e-6, equal_nan=True)
+        cut = tmp_path / f'cut{columns}.pcd'
+        cut.write_bytes(ours.read_bytes()[:-4])
+        assert _read_own_pcd(cut) is None and _read_own_pcd(ours) is not None
     as_float64 = write_pcd_atomic(tmp_path / 'float64.pcd', rng.normal(size=(10, 3)))
     assert read_pcd(as_float64).dtype == np.float32 and read_pcd(as_float64).shape == (10, 3)
 
