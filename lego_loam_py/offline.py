@@ -97,12 +97,13 @@ def run_source(
 ) -> RunResult:
     """Run the pipeline over a recording (any :class:`~lego_loam_py.inputs.Source`) and return what it produced.
 
-    ``mapping_thread``: use the second core. With ``front_end_process`` (and no listener, on a platform that
-    forks) imageProjection and featureAssociation run in a child process that reads the recording, mapOptimization
-    and transformFusion in this one (lego_loam_py.front_end_process). Otherwise mapOptimization runs on a worker
-    thread, overlapping the next scans' imageProjection and featureAssociation where numpy and scipy release the
-    GIL. Either way, for range images of at least PROJECTION_THREAD_PIXELS, each scan's imageProjection runs on a
-    thread of its own from the moment the scan is read, overlapping the featureAssociation of the scan before it.
+    ``mapping_thread``: use the other cores. With ``front_end_process`` (and no listener, on a platform that
+    forks) the recording is read and projected (imageProjection) in one child process, featureAssociation runs in
+    another, mapOptimization and transformFusion in this one (lego_loam_py.front_end_process). Otherwise
+    mapOptimization runs on a worker thread, overlapping the next scans' imageProjection and featureAssociation
+    where numpy and scipy release the GIL. Either way, for range images of at least PROJECTION_THREAD_PIXELS, each
+    scan's imageProjection runs on a thread of its own from the moment the scan is read, overlapping what comes
+    before it in its process (the reading; in one process, the featureAssociation of the scan before it).
     The result is the same as without them: mapOptimization takes the mapping inputs and IMU samples in recording
     order, transformFusion applies each mapping result before the scans that follow it, as the sequential run
     does, and the projection of a scan depends on the scans before it only.
