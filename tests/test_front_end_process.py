@@ -142,3 +142,25 @@ def test_a_scan_dropped_in_a_front_end_process_is_warned_about_and_counted(monke
     result = run_bag(BAG, Params(), progress=False, max_scans=10)
     assert calls == [1] and result.counts['scans_dropped'] == 1 and result.counts['scans_processed'] == 9
     assert 'dropped: no usable point' in capsys.readouterr().err
+
+
+def test_a_recording_that_fails_while_the_reader_reads_it_is_one_error_line(monkeypatch, tmp_path, capsys):
+    """The reader process reads the recording: a SourceError there (a bag cut off mid-way) reaches the command line
+    as the same one-line error and exit code as without the child processes."""
+    from lego_loam_py.cli import main
+    from lego_loam_py.inputs.rosbag import BagSource
+    from lego_loam_py.inputs.source import SourceError
+
+    calls = _split_runs(monkeypatch)
+    real = BagSource.items
+
+    def breaking(self):
+        for number, item in enumerate(real(self)):
+            if number == 60:
+                raise SourceError(f'{self.path}: the bag ends inside a message')
+            yield item
+
+    monkeypatch.setattr(BagSource, 'items', breaking)
+    code = main(['run', str(BAG), '--no-progress', '-o', str(tmp_path / 'out')])
+    assert calls == [1] and code == 1 and not multiprocessing.active_children()
+    assert capsys.readouterr().err.strip().splitlines()[-1] == f'error: {BAG}: the bag ends inside a message'
