@@ -217,6 +217,9 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     return np.array(stamps, dtype=np.int64), poses
 
 
+_OWN_HEADER_MAX = 512  # [bytes] more than write_pcd_atomic's header ever takes
+
+
 def write_pcd_atomic(path: str | Path, points: np.ndarray) -> Path:
     """Write (N, 3) or (N, 4: x, y, z, intensity) points as a binary PCD atomically: float32 fields, one unorganised
     row, the layout PCL, open3d and CloudCompare read (:func:`read_pcd` reads it with open3d). Written here, not by
@@ -267,13 +270,15 @@ def read_pcd(path: str | Path) -> np.ndarray:
 
 def _read_own_pcd(path: Path) -> np.ndarray | None:
     """The points of a PCD in exactly the layout write_pcd_atomic writes (float32 x y z [intensity], one row,
-    binary, the body as long as the header says), else None."""
-    data = path.read_bytes()
-    end = data.find(b'\nDATA binary\n')
-    if not data.startswith(b'# .PCD v0.7') or end < 0:
-        return None
-    header = dict(line.split(' ', 1) for line in data[:end].decode('ascii', 'replace').splitlines()[1:] if ' ' in line)
-    for fields in (['x', 'y', 'z'], ['x', 'y', 'z', 'intensity']):
+    binary, the body as long as the header says), else None (having read only its header)."""
+    with open(path, 'rb') as file:
+        head = file.read(_OWN_HEADER_MAX)
+        end = head.find(b'\nDATA binary\n')
+        if not head.startswith(b'# .PCD v0.7') or end < 0:
+            return None
+        lines = head[:end].decode('ascii', 'replace').splitlines()[1:]
+        header = dict(line.split(' ', 1) for line in lines if ' ' in line)
+        fields = header.get('FIELDS', '').split()
         n = len(fields)
         expected = {
             'VERSION': '0.7',
@@ -281,20 +286,20 @@ def _read_own_pcd(path: Path) -> np.ndarray | None:
             'SIZE': ' '.join(['4'] * n),
             'TYPE': ' '.join(['F'] * n),
             'COUNT': ' '.join(['1'] * n),
+            'WIDTH': header.get('POINTS', ''),
             'HEIGHT': '1',
             'VIEWPOINT': '0 0 0 1 0 0 0',
+            'POINTS': header.get('POINTS', ''),
         }
-        if all(header.get(key) == value for key, value in expected.items()) and set(header) == {
-            *expected,
-            'WIDTH',
-            'POINTS',
-        }:
-            points = header['POINTS']
-            body = data[end + len(b'\nDATA binary\n') :]
-            if points.isdigit() and header['WIDTH'] == points and len(body) == int(points) * 4 * n:
-                return np.frombuffer(body, dtype='<f4').reshape(-1, n).astype(np.float32)
+        if fields not in (['x', 'y', 'z'], ['x', 'y', 'z', 'intensity']) or header != expected:
             return None
-    return None
+        if not expected['POINTS'].isdigit():
+            return None
+        file.seek(end + len(b'\nDATA binary\n'))
+        body = file.read()
+    if len(body) != int(expected['POINTS']) * 4 * n:
+        return None
+    return np.frombuffer(body, dtype='<f4').reshape(-1, n).astype(np.float32)
 
 
 def kitti_pose_lines(poses: np.ndarray) -> str:

@@ -54,7 +54,8 @@ _NOT_SENT = (
     'range_image',
     'ground_mask',
     'label_image',
-)  # (and pixel_point)
+)
+_EMPTY = {name: np.empty(0, np.float32) for name in _NOT_SENT} | {'pixel_point': None}  # (their stand-ins)
 _JOIN_S = 5.0
 READER_NICENESS = 10
 # A pipe's capacity [bytes] between two stages: a VLP-16 scan's projection is about 0.3 MB, its featureAssociation
@@ -90,12 +91,12 @@ def run_split(pipeline: Pipeline, items: ItemsInTurn, on_scan: Callable[[], None
     # Each process keeps only its own ends open: a pipe ends (EOFError, BrokenPipeError) only when every copy of
     # the other end is closed, and a process that died must end its pipes for the others to learn of it.
     stages = [
-        (_reader, 'lego_loam_py reader', (projected_out,)),
-        (_odometry, 'lego_loam_py odometry', (projected_in, steps_out, poses_in)),
+        ('lego_loam_py reader', _reader, (pipeline, items, projected_out)),
+        ('lego_loam_py odometry', _odometry, (pipeline, projected_in, steps_out, poses_in)),
     ]
     children = [
-        context.Process(target=_in_child, args=(stage, pipeline, items, ends, own), name=name, daemon=True)
-        for stage, name, own in stages
+        context.Process(target=_in_child, args=(ends, stage, *args), name=name, daemon=True)
+        for name, stage, args in stages
     ]
     for child in children:
         child.start()
@@ -156,16 +157,14 @@ def _receive(connection, children) -> tuple:
         raise FrontEndProcessError(f'a front-end process ended before the recording did (exit codes {codes})') from None
 
 
-def _in_child(stage, pipeline: Pipeline, items: ItemsInTurn, ends: tuple, own: tuple) -> None:
+def _in_child(ends: tuple, stage: Callable, *args) -> None:
+    """A child's start: ``stage(*args)`` with every pipe end not among ``args`` closed."""
     # Ctrl-C is the parent's to handle: it closes its pipes, and the children end when they find them closed.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     for end in ends:
-        if end not in own:
+        if not any(end is arg for arg in args):
             end.close()
-    if stage is _reader:
-        _reader(pipeline, items, *own)
-    else:
-        _odometry(pipeline, *own)
+    stage(*args)
 
 
 def _reader(pipeline: Pipeline, items: ItemsInTurn, out) -> None:
@@ -272,6 +271,3 @@ def _sendable(exc: BaseException) -> BaseException:
         return exc
     except Exception:  # noqa: BLE001 (any failure to pickle means: send the text instead)
         return FrontEndProcessError(f'a front-end process failed:\n{text}')
-
-
-_EMPTY = {name: np.empty(0, np.float32) for name in _NOT_SENT} | {'pixel_point': None}
