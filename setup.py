@@ -41,6 +41,7 @@ EXT_MODULES = [
     _native('_feature_kernels', 'feature_kernels.c'),  # featureAssociation's inner loops (odometry/, imu/buffer.py)
     _native('_voxel_kernels', 'voxel_kernels.c'),  # the voxel filter in one pass (voxel.py)
     _native('_projection_kernels', 'projection_kernels.c'),  # segment components, ground walk (projection/)
+    _native('_geometry_kernels', 'geometry_kernels.c'),  # plane fits through neighbourhoods (geometry.py)
 ]
 
 CONSOLE_SCRIPTS = [

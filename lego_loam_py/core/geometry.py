@@ -8,12 +8,18 @@ import math
 
 import numpy as np
 
+try:  # the plane fits in one pass (native/geometry_kernels.c); optional: fit_planes gives the same values
+    from lego_loam_py.core import _geometry_kernels
+except ImportError:
+    _geometry_kernels = None
+
 __all__ = [
     'plane_through',
     'plane_distance',
     'plane_coefficients',
     'nearest_within',
     'fit_planes',
+    'fit_planes_at',
     'principal_spreads',
     'line_offsets',
     'cross_rows',
@@ -102,6 +108,50 @@ def fit_planes(neighbours: np.ndarray, max_residual: float, min_aspect: float = 
         along, across = _principal_spreads(-b[solvable] / k, *(m[solvable] / k for m in (xx, yy, zz, xy, xz, yz)))
         valid &= across >= min_aspect * along
     return solvable[valid], normal[valid], offset[valid]
+
+
+def fit_planes_at(
+    points: np.ndarray, index: np.ndarray, max_residual: float, min_aspect: float = 0.0, native: bool = True
+):
+    """:func:`fit_planes` of the neighbourhoods ``points[index, :3]`` ((n, >= 3) points [m], (m, k) indices into
+    them), the same values bit for bit: in one C pass over the neighbours (``native/geometry_kernels.c``) when
+    it is built and the points are float32, without the (m, k, 3) float64 copy; else by :func:`fit_planes`."""
+    index = np.asarray(index)
+    if not (
+        native
+        and _geometry_kernels is not None
+        and points.dtype == _F32
+        and points.ndim == 2
+        and points.shape[1] >= 3
+        and index.ndim == 2
+        and len(index)
+    ):
+        return fit_planes(points[index, :3].astype(np.float64), max_residual, min_aspect)
+    m, k = index.shape
+    normal, offset = np.empty((m, 3)), np.empty(m)
+    moments, status = np.empty((m, 9)), np.empty(m, dtype=np.uint8)
+    _geometry_kernels.plane_fits(
+        np.ascontiguousarray(points),
+        points.shape[1],
+        np.ascontiguousarray(index, dtype=np.int64),
+        k,
+        float(max_residual),
+        normal,
+        offset,
+        moments,
+        status,
+    )
+    undecided = np.flatnonzero(status == 2)
+    if len(undecided):  # a distance within 1e-9 m of the bound: NumPy's own sum decides, as in fit_planes
+        near = points[index[undecided], :3].astype(np.float64)
+        residuals = np.abs(np.einsum('mki,mi->mk', near, normal[undecided]) + offset[undecided, None])
+        status[undecided] = (residuals <= max_residual).all(axis=1)
+    rows = np.flatnonzero(status)
+    if min_aspect > 0.0:  # (element by element: the same values on these rows as on all solvable ones)
+        xx, yy, zz, xy, xz, yz = (moments[rows, i] / k for i in range(6))
+        along, across = _principal_spreads(moments[rows, 6:] / k, xx, yy, zz, xy, xz, yz)
+        rows = rows[across >= min_aspect * along]
+    return rows, normal[rows], offset[rows]
 
 
 def principal_spreads(neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -32,7 +32,7 @@ from lego_loam_py.core.frames import (
     transform_points,
 )
 from lego_loam_py.core.gauss_newton import DegeneracyProjection, residual_information
-from lego_loam_py.core.geometry import fit_planes, line_coefficients, nearest_within
+from lego_loam_py.core.geometry import fit_planes_at, line_coefficients, nearest_within
 from lego_loam_py.core.params.types import Params
 
 if TYPE_CHECKING:
@@ -99,8 +99,8 @@ def plane_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: n
     mo = params.map_optimization
     if len(points_world) == 0 or tree is None:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 4))
-    used, neighbours = _neighbourhoods(points_world, tree, map_points, mo)
-    planar, normal, offset = fit_planes(neighbours, mo.plane_max_residual, mo.plane_min_aspect)
+    used, index = nearest_within(tree, points_world[:, :3], mo.knn, mo.knn_max_sq_dist)
+    planar, normal, offset = fit_planes_at(map_points, index, mo.plane_max_residual, mo.plane_min_aspect)
     used = used[planar]
     p = points_world[used, :3].astype(np.float64)
     dist = np.einsum('mi,mi->m', p, normal) + offset

@@ -35,7 +35,7 @@ import numpy as np
 
 from lego_loam_py.core.gauss_newton import DegeneracyProjection, residual_information
 from lego_loam_py.core.geometry import (
-    fit_planes,
+    fit_planes_at,
     line_coefficients,
     line_offsets,
     nearest_within,
@@ -541,7 +541,7 @@ class SweepStartOdometry(LaserOdometry):
         rings = last.rings[index]
         spanning = (rings != rings[:, :1]).any(axis=1)
         near, index = near[spanning], index[spanning]
-        planar, normal, offset = fit_planes(last.points[index, :3].astype(np.float64), mo.plane_max_residual)
+        planar, normal, offset = fit_planes_at(last.points, index, mo.plane_max_residual)
         return near[planar], normal, offset
 
     def _shorten(self, x: np.ndarray, active: list[int], residual, reference: float, halvings: int = 4) -> np.ndarray:
