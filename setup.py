@@ -64,7 +64,7 @@ if __name__ == '__main__':
         data_files=DATA_FILES,
         ext_modules=EXT_MODULES,
         # ROS dependencies (rclpy, messages) come from ROS itself and are declared in package.xml.
-        install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'rosbags', 'tqdm'],
+        install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml', 'rosbags', 'tqdm', 'threadpoolctl'],
         zip_safe=True,
         entry_points={'console_scripts': CONSOLE_SCRIPTS},
     )

@@ -27,6 +27,7 @@ from collections import deque
 from pathlib import Path
 
 from lego_loam_py.allocator import keep_heap_pages
+from lego_loam_py.blas import blas_threads_for_run
 from lego_loam_py.core.params import Params, SensorParams, load_params, parse_overrides
 from lego_loam_py.core.pipeline import Pipeline, RunResult
 from lego_loam_py.core.pipeline_events import PipelineListener
@@ -119,51 +120,54 @@ def run_source(
         listener=listener,
     )
     pipeline.mo.map_source = recording_source(source.path)  # (noted in the map bundle it saves)
-    result = pipeline.record
-    start = time.perf_counter()
-    try:
-        result.bag_duration = source.duration_s
-        bar = None
-        if progress:
-            from tqdm import tqdm
-
-            total = source.scan_count()
-            bar = tqdm(
-                total=None if total is None else min(total, max_scans or total),
-                unit='scan',
-                desc='run',
-                file=sys.stderr,
-                dynamic_ncols=True,
-                mininterval=0.5,
-            )
-        update = bar.update if bar is not None else (lambda: None)
-        items = items_in_turn(source, pipeline, max_scans)
+    stage_imports = (*pipeline.ip.DEFERRED_IMPORTS, *pipeline.fa.DEFERRED_IMPORTS, *pipeline.mo.DEFERRED_IMPORTS)
+    # (A script that imported NumPy first has a BLAS thread per core; scipy brings another BLAS.)
+    with blas_threads_for_run(stage_imports):
+        result = pipeline.record
+        start = time.perf_counter()
         try:
-            if split:
-                cut = run_split(pipeline, items, update)
-            else:
-                cut = None
-                for item, projected in items:
-                    if item is None:
-                        cut = projected
-                    elif isinstance(item, ImuSample):
-                        pipeline.add_imu(item.sample)
-                    else:
-                        if isinstance(item, Scan):
-                            pipeline.process_scan(item.points, item.stamp_ns, projected)
-                        else:  # UnreadableScan
-                            pipeline.skip_scan(item.stamp_ns, item.reason)
-                        update()
+            result.bag_duration = source.duration_s
+            bar = None
+            if progress:
+                from tqdm import tqdm
+
+                total = source.scan_count()
+                bar = tqdm(
+                    total=None if total is None else min(total, max_scans or total),
+                    unit='scan',
+                    desc='run',
+                    file=sys.stderr,
+                    dynamic_ncols=True,
+                    mininterval=0.5,
+                )
+            update = bar.update if bar is not None else (lambda: None)
+            items = items_in_turn(source, pipeline, max_scans)
+            try:
+                if split:
+                    cut = run_split(pipeline, items, update)
+                else:
+                    cut = None
+                    for item, projected in items:
+                        if item is None:
+                            cut = projected
+                        elif isinstance(item, ImuSample):
+                            pipeline.add_imu(item.sample)
+                        else:
+                            if isinstance(item, Scan):
+                                pipeline.process_scan(item.points, item.stamp_ns, projected)
+                            else:  # UnreadableScan
+                                pipeline.skip_scan(item.stamp_ns, item.reason)
+                            update()
+            finally:
+                if bar is not None:
+                    bar.close()
+            if cut is not None:  # (the data processed ends there: the real-time factor is about that part)
+                result.bag_duration = cut
+            pipeline.finish()
         finally:
-            if bar is not None:
-                bar.close()
-        if cut is not None:  # (the data processed ends there: the real-time factor is about that part)
-            result.bag_duration = cut
-        pipeline.finish()
-    finally:
-        pipeline.close()
-    result.wall_time = time.perf_counter() - start
-    return result
+            pipeline.close()
+        result.wall_time = time.perf_counter() - start
+        return result
 
 
 def items_in_turn(source: Source, pipeline: Pipeline, max_scans: int | None):

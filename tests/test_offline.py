@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -98,6 +99,40 @@ def test_a_bag_without_the_cloud_topic_fails_clearly(tmp_path):
     )
     assert done.returncode == 1
     assert 'no /no_such_points topic' in done.stderr and 'Traceback' not in done.stderr
+
+
+_NUMPY_FIRST = """
+import json, sys
+import numpy  # before lego_loam_py, as a script or a notebook does: OpenBLAS starts its thread per core
+from threadpoolctl import threadpool_info
+from lego_loam_py.core.params import Params
+from lego_loam_py.core.pipeline import Pipeline
+from lego_loam_py.offline import run_bag
+
+def blas_threads():
+    return [pool['num_threads'] for pool in threadpool_info() if pool['user_api'] == 'blas']
+
+during = []
+finish = Pipeline.finish
+Pipeline.finish = lambda self: (during.append(blas_threads()), finish(self))[1]
+before = blas_threads()
+run_bag(sys.argv[1], Params(), max_scans=3, progress=False, front_end_process=False)
+print(json.dumps({'before': before, 'during': during[0], 'after': blas_threads()}))
+"""
+
+
+def test_a_run_started_by_a_script_that_imported_numpy_first_uses_one_blas_thread():
+    """Without OPENBLAS_NUM_THREADS, NumPy imported before the package keeps a BLAS thread per core, which spin
+    in each process of the run (KITTI at 1.9x real time instead of 3.0x): the run limits them to one while it
+    lasts and gives the caller its own setting back."""
+    env = {k: v for k, v in os.environ.items() if k != 'OPENBLAS_NUM_THREADS'}
+    done = subprocess.run(
+        [sys.executable, '-c', _NUMPY_FIRST, str(BAG)], capture_output=True, text=True, timeout=300, env=env
+    )
+    assert done.returncode == 0, done.stderr
+    threads = json.loads(done.stdout.strip().splitlines()[-1])
+    assert threads['during'] and set(threads['during']) == {1}
+    assert set(threads['after']) == set(threads['before'])  # (scipy's BLAS, loaded by the run, as NumPy's)
 
 
 def _first_scans(target: Path, scans: int) -> Path:
