@@ -120,7 +120,8 @@ def run_source(
         listener=listener,
     )
     pipeline.mo.map_source = recording_source(source.path)  # (noted in the map bundle it saves)
-    stage_imports = (*pipeline.ip.DEFERRED_IMPORTS, *pipeline.fa.DEFERRED_IMPORTS, *pipeline.mo.DEFERRED_IMPORTS)
+    stages = (pipeline.ip, pipeline.fa, pipeline.mo)  # (mo: the mapping, or the localization in a saved map)
+    stage_imports = tuple(module for stage in stages for module in getattr(stage, 'DEFERRED_IMPORTS', ()))
     # (A script that imported NumPy first has a BLAS thread per core; scipy brings another BLAS.)
     with blas_threads_for_run(stage_imports):
         result = pipeline.record
