@@ -1,15 +1,16 @@
-"""The closed-form affine least squares the ground fits use (core.geometry.affine_fit) against NumPy's lstsq, and
-the plane fits through neighbourhoods in C (fit_planes_at, native/geometry_kernels.c) against their NumPy version."""
+"""The closed-form affine least squares the ground fits use (core.geometry.affine_fit) against NumPy's lstsq; the
+plane fits through neighbourhoods in C (fit_planes_at, native/geometry_kernels.c) against their NumPy version, and
+the grid search for neighbours (GridNeighbours) against cKDTree."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from lego_loam_py.core import geometry
-from lego_loam_py.core.geometry import affine_fit, fit_planes, fit_planes_at
+from lego_loam_py.core.geometry import GridNeighbours, affine_fit, fit_planes, fit_planes_at, nearest_within
 
 
 def test_an_exact_plane_gives_its_coefficients():
@@ -139,3 +140,96 @@ def test_an_index_out_of_range_is_an_error_not_a_read_beyond_the_points():
             np.empty(9),
             np.empty(1, np.uint8),
         )
+
+
+# ---------------------------------------------------- the neighbour search on a grid (GridNeighbours)
+
+
+def _kd_tree_answer(points, queries, k, max_sq_dist):
+    from scipy.spatial import cKDTree
+
+    return nearest_within(
+        cKDTree(points[:, :3].astype(np.float64), balanced_tree=False), queries[:, :3], k, max_sq_dist
+    )
+
+
+def test_a_lattice_gives_the_neighbours_one_counts_by_hand():
+    """Points every 0.5 m on a 5 x 5 x 1 lattice; a query 0.1 m above (1, 1, 0) has that point first, then its four
+    neighbours 0.5 m away in the plane (equal distances: in the kd-tree's order); a query 3 m away has none within
+    1 m; the fifth neighbour exactly 1 m away fails the gate, which is strict (d^2 < max)."""
+    grid_xy = np.stack(np.meshgrid(np.arange(5) * 0.5, np.arange(5) * 0.5, indexing='ij'), -1).reshape(-1, 2)
+    points = np.concatenate([grid_xy, np.zeros((25, 1)), np.ones((25, 1))], axis=1).astype(np.float32)
+    queries = np.array([[1.0, 1.0, 0.1], [1.0, 1.0, 3.0], [0.0, 0.0, 0.0]], np.float32)
+    neighbours = GridNeighbours(points, 1.0)
+    used, index = neighbours.nearest_within(queries, 5, 1.0)
+    assert used.tolist() == [0]
+    assert index[0, 0] == 12 and sorted(index[0, 1:].tolist()) == [7, 11, 13, 17]
+    # From the corner (0, 0): 0, then 0.5 m (two), 0.707 m, then 1 m (two): the fifth at exactly 1 m is not < 1.
+    assert neighbours.nearest_within(queries[2:], 5, 1.0)[0].tolist() == []
+    assert neighbours.nearest_within(queries[2:], 4, 1.0)[0].tolist() == [0]
+    # The same without equal distances (which go to the kd-tree): four points nearer, the fifth exactly 1 m away.
+    lone = np.array([[0.1, 0, 0], [0, 0.2, 0], [0, 0, 0.3], [-0.4, 0, 0], [1, 0, 0], [0, 1.5, 0]], np.float32)
+    alone = GridNeighbours(lone, 1.0)
+    assert alone.nearest_within(queries[2:], 5, 1.0)[0].tolist() == []
+    assert alone.nearest_within(queries[2:], 4, 1.0)[1].tolist() == [[0, 1, 2, 3]]
+    assert alone._tree is None
+    for k in (4, 5):
+        expected = _kd_tree_answer(points, queries, k, 1.0)
+        got = neighbours.nearest_within(queries, k, 1.0)
+        assert np.array_equal(got[0], expected[0]) and np.array_equal(got[1], expected[1])
+
+
+@needs_kernel
+@settings(max_examples=150, deadline=None)
+@given(
+    st.integers(0, 2**31 - 1),
+    st.integers(1, 3000),
+    st.sampled_from([0.3, 3.0, 30.0]),
+    st.sampled_from([2, 5, 8]),
+    st.sampled_from([1.0, 0.25, 4.0]),
+    st.booleans(),
+)
+def test_the_grid_answers_as_the_kd_tree_bit_for_bit(seed, n, spread, k, max_sq_dist, duplicates):
+    """Sparse and crowded maps far from the origin, with repeated points (equal distances, which the kd-tree's own
+    order decides) or without: the same rows, the same neighbours in the same order."""
+    assume(spread < 30.0 or max_sq_dist > 0.25)  # (otherwise mostly wider than MAX_CELLS: the kd-tree itself)
+    rng = np.random.default_rng(seed)
+    points = rng.standard_normal((n, 4)) * spread + np.append(rng.uniform(-500, 500, 3), 0.0)
+    if duplicates:
+        points[rng.integers(0, n, n // 4 + 1)] = points[rng.integers(0, n, n // 4 + 1)]
+    points = points.astype(np.float32)
+    queries = (points[rng.integers(0, n, 400), :3] + rng.standard_normal((400, 3)) * spread * 0.2).astype(np.float32)
+    neighbours = GridNeighbours(points, max_sq_dist)  # (maps over MAX_CELLS cells wide: the kd-tree)
+    used, index = neighbours.nearest_within(queries, k, max_sq_dist)
+    expected_used, expected_index = _kd_tree_answer(points, queries, k, max_sq_dist)
+    assert np.array_equal(used, expected_used) and np.array_equal(index, expected_index)
+
+
+@needs_kernel
+def test_equal_distances_are_left_to_the_kd_tree_and_everything_else_is_not():
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-5, 5, (2000, 3)).astype(np.float32)
+    queries = points[:50] + np.float32(0.01)
+    neighbours = GridNeighbours(points, 1.0)
+    neighbours.nearest_within(queries, 5, 1.0)
+    assert neighbours._tree is None  # (no two candidates at the same distance: no kd-tree built)
+    twice = np.concatenate([points, points[:50]])  # each of the first 50 points twice
+    neighbours = GridNeighbours(twice, 1.0)
+    used, index = neighbours.nearest_within(queries, 5, 1.0)
+    assert neighbours._tree is not None
+    expected = _kd_tree_answer(twice, queries, 5, 1.0)
+    assert np.array_equal(used, expected[0]) and np.array_equal(index, expected[1])
+
+
+@pytest.mark.parametrize('far', [np.nan, 1e9, np.inf], ids=['not_a_number', 'a_point_a_million_km_out', 'infinite'])
+def test_points_the_grid_cannot_hold_are_searched_by_the_kd_tree(far):
+    rng = np.random.default_rng(9)
+    points = rng.uniform(-20, 20, (500, 4)).astype(np.float32)
+    points[7, 0] = far
+    queries = rng.uniform(-20, 20, (200, 3)).astype(np.float32)
+    neighbours = GridNeighbours(points, 4.0)
+    assert neighbours._grid is None
+    if np.isfinite(far):
+        used, index = neighbours.nearest_within(queries, 3, 4.0)
+        expected = _kd_tree_answer(points, queries, 3, 4.0)
+        assert np.array_equal(used, expected[0]) and np.array_equal(index, expected[1])

@@ -7,9 +7,9 @@ import math
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 
 from lego_loam_py.core.frames import matrix_to_quaternion, pose6_to_matrix, transform_cloud, transform_points
+from lego_loam_py.core.geometry import GridNeighbours
 from lego_loam_py.core.mapping.map_optimization import MapOptimization
 from lego_loam_py.core.mapping.scan_to_map import edge_correspondences, map_jacobian_rows, plane_correspondences
 from lego_loam_py.core.odometry.feature_association import FeatureAssociation, ScanInput
@@ -27,12 +27,17 @@ def cloud(points) -> np.ndarray:
     return np.concatenate([points, np.zeros((len(points), 1), np.float32)], axis=1)
 
 
+def search(points: np.ndarray) -> GridNeighbours:
+    """The scan-to-map search in a map of ``points``."""
+    return GridNeighbours(points, PARAMS.map_optimization.knn_max_sq_dist)
+
+
 def test_edge_fit_by_hand():
     """Map points on the vertical line x = 1, z = 2 (camera axes): a query 0.3 m off it gets distance 0.3 and
     the unit gradient pointing away from the line."""
     line = cloud([[1.0, y, 2.0] for y in np.linspace(-0.4, 0.4, 9)])
     query = cloud([[1.3, 0.05, 2.0]])
-    index, coeff = edge_correspondences(query, cKDTree(line[:, :3]), line, PARAMS)
+    index, coeff = edge_correspondences(query, search(line), line, PARAMS)
     assert list(index) == [0]
     weight = 1 - 0.9 * 0.3
     assert coeff[0, 3] == pytest.approx(weight * 0.3, rel=1e-4)
@@ -40,14 +45,14 @@ def test_edge_fit_by_hand():
     # A square grid of points on a plane is not a line: rejected by the eigenvalue test.
     grid = np.stack(np.meshgrid(np.linspace(-0.3, 0.3, 7), np.linspace(-0.3, 0.3, 7)), -1).reshape(-1, 2)
     plane = cloud(np.column_stack([1.0 + grid[:, 0], grid[:, 1], np.full(len(grid), 2.0)]))
-    assert len(edge_correspondences(cloud([[1.0, 0.0, 2.1]]), cKDTree(plane[:, :3]), plane, PARAMS)[0]) == 0
+    assert len(edge_correspondences(cloud([[1.0, 0.0, 2.1]]), search(plane), plane, PARAMS)[0]) == 0
 
 
 def test_plane_fit_by_hand():
     rng = np.random.default_rng(1)
     floor = cloud(np.column_stack([rng.uniform(-0.5, 0.5, 50), np.full(50, -1.5), rng.uniform(4, 5, 50)]))
     query = cloud([[0.0, -1.2, 4.5]])
-    index, coeff = plane_correspondences(query, cKDTree(floor[:, :3]), floor, PARAMS)
+    index, coeff = plane_correspondences(query, search(floor), floor, PARAMS)
     assert list(index) == [0]
     distance = coeff[0, 3] / (1 - 0.9 * 0.3 / math.sqrt(np.linalg.norm([0, -1.2, 4.5])))
     assert abs(distance) == pytest.approx(0.3, rel=1e-3)
@@ -56,7 +61,7 @@ def test_plane_fit_by_hand():
     grid = np.stack(np.meshgrid(np.arange(-3, 4) * 0.3, np.arange(-3, 4) * 0.3), -1).reshape(-1, 2)
     level = np.where((np.round(grid[:, 0] / 0.3) + np.round(grid[:, 1] / 0.3)) % 2 == 0, -1.5, -1.0)
     bumpy = cloud(np.column_stack([grid[:, 0], level, 4.5 + grid[:, 1]]))
-    assert len(plane_correspondences(cloud([[0.0, -1.25, 4.5]]), cKDTree(bumpy[:, :3]), bumpy, PARAMS)[0]) == 0
+    assert len(plane_correspondences(cloud([[0.0, -1.25, 4.5]]), search(bumpy), bumpy, PARAMS)[0]) == 0
 
 
 def test_a_plane_needs_neighbours_that_span_one_not_a_ring_of_points_along_a_line():

@@ -18,6 +18,7 @@ __all__ = [
     'plane_distance',
     'plane_coefficients',
     'nearest_within',
+    'GridNeighbours',
     'fit_planes',
     'fit_planes_at',
     'principal_spreads',
@@ -60,10 +61,91 @@ def nearest_within(tree, points: np.ndarray, k: int, max_sq_dist: float):
     ``sqrt(max_sq_dist)`` [m], those neighbours' indices (m, k)). The tree search stops at the gate, which
     spares most of the walk for points far from the tree's cloud; the neighbours of the points that pass are
     the exact k nearest."""
-    bound = math.sqrt(max_sq_dist) * (1.0 + 1e-9)
-    distance, index = tree.query(points, k=k, distance_upper_bound=bound)
+    distance, index = tree.query(points, k=k, distance_upper_bound=_search_bound(max_sq_dist))
     used = np.flatnonzero(distance[:, -1] ** 2 < max_sq_dist)
     return used, index[used]
+
+
+class GridNeighbours:
+    """The points (n, >= 3) float32 [m] of a map, for many :func:`nearest_within` searches within one radius
+    (``sqrt(max_sq_dist)``): sorted by cubic cell of that side (``native/geometry_kernels.c``, a counting sort, a
+    fraction of a kd-tree's build) and searched over the 27 cells around each query, the candidates of three cells
+    side by side in memory. The answers are cKDTree's, bit for bit: the same squared distances by the same
+    operations, the same neighbours, nearest first. Two candidates at exactly the same distance, whose order the
+    kd-tree decides by its walk, are left to a cKDTree built then, as is everything without the extension, other
+    float types, or points spread over more than MAX_CELLS cells. ``query`` is that cKDTree's.
+    """
+
+    MAX_CELLS = 1 << 23  # (32 MiB of cell starts: a map some 200 x 200 x 200 search radii across)
+
+    def __init__(self, points: np.ndarray, max_sq_dist: float):
+        self.points = points
+        self.max_sq_dist = float(max_sq_dist)
+        self._tree = None
+        self._grid = None
+        n = len(points)
+        if not (
+            _geometry_kernels is not None
+            and n
+            and points.dtype == _F32
+            and points.ndim == 2
+            and points.shape[1] >= 3
+            and points.flags.c_contiguous
+        ):
+            return
+        cell = _search_bound(self.max_sq_dist) * (1.0 + 1e-6)  # (a cell must span the search radius)
+        extent = _geometry_kernels.grid_extent(points, points.shape[1], cell)
+        if extent is None:
+            return
+        low, high = extent
+        size = tuple(h - lo + 1 for lo, h in zip(low, high))
+        if size[0] * size[1] * size[2] > self.MAX_CELLS:
+            return
+        starts = np.empty(size[0] * size[1] * size[2] + 1, np.int32)
+        sorted_xyz, sorted_rows = np.empty((n, 3)), np.empty(n, np.int64)
+        _geometry_kernels.grid_fill(
+            points, points.shape[1], cell, low, size, starts, sorted_xyz, sorted_rows, np.empty(n, np.int64)
+        )
+        self._grid = (cell, low, size, starts, sorted_xyz, sorted_rows)
+
+    @property
+    def tree(self):
+        """The cKDTree of the points' float64 coordinates (built when first asked for)."""
+        if self._tree is None:
+            from scipy.spatial import cKDTree
+
+            self._tree = cKDTree(self.points[:, :3].astype(np.float64), balanced_tree=False)
+        return self._tree
+
+    def query(self, *args, **kwargs):
+        """cKDTree.query on the points."""
+        return self.tree.query(*args, **kwargs)
+
+    def nearest_within(self, queries: np.ndarray, k: int, max_sq_dist: float) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`nearest_within` of the (m, >= 3) ``queries`` [m] in these points (on the grid when built for this
+        ``max_sq_dist``)."""
+        on_grid = self._grid is not None and max_sq_dist == self.max_sq_dist
+        if not on_grid or queries.dtype != _F32 or queries.ndim != 2 or not 1 < k <= 64:
+            return nearest_within(self.tree, queries[:, :3], k, max_sq_dist)
+        queries = np.ascontiguousarray(queries)
+        status, index = np.empty(len(queries), np.uint8), np.empty((len(queries), k), np.int64)
+        bound = _search_bound(self.max_sq_dist)
+        _geometry_kernels.grid_nearest(
+            *self._grid, queries, queries.shape[1], k, bound * bound, self.max_sq_dist, status, index
+        )
+        tied = np.flatnonzero(status == 2)
+        if len(tied):  # equal distances: the kd-tree's order
+            near, tied_index = nearest_within(self.tree, queries[tied, :3], k, self.max_sq_dist)
+            status[tied] = 0
+            status[tied[near]] = 1
+            index[tied[near]] = tied_index
+        used = np.flatnonzero(status)
+        return used, index[used]
+
+
+def _search_bound(max_sq_dist: float) -> float:
+    """The radius [m] a search for neighbours within ``sqrt(max_sq_dist)`` stops at (see nearest_within)."""
+    return math.sqrt(max_sq_dist) * (1.0 + 1e-9)
 
 
 def fit_planes(neighbours: np.ndarray, max_residual: float, min_aspect: float = 0.0):

@@ -79,7 +79,7 @@ class LocalMap:
     centre: np.ndarray  # (3,) where it was cut
     corner: np.ndarray  # (n, 4) float32
     surf: np.ndarray
-    trees: tuple  # (corner, surface) cKDTree, as scan_to_map.map_trees
+    trees: tuple  # (corner, surface) searches, as scan_to_map.map_trees
 
 
 class PriorMap:
@@ -140,7 +140,8 @@ class PriorMap:
         surf = self.surface_map[
             np.einsum('ij,ij->i', self._surface_xz - centre, self._surface_xz - centre) <= LOCAL_RADIUS**2
         ]
-        self._local = LocalMap(np.asarray(position, dtype=np.float64).copy(), corner, surf, map_trees(corner, surf))
+        trees = map_trees(corner, surf, self.params.map_optimization.knn_max_sq_dist)
+        self._local = LocalMap(np.asarray(position, dtype=np.float64).copy(), corner, surf, trees)
         return self._local
 
     def region(self, position_lidar: np.ndarray, leaf: float) -> np.ndarray:

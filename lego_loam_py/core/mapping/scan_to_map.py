@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -32,11 +31,8 @@ from lego_loam_py.core.frames import (
     transform_points,
 )
 from lego_loam_py.core.gauss_newton import DegeneracyProjection, residual_information
-from lego_loam_py.core.geometry import fit_planes_at, line_coefficients, nearest_within
+from lego_loam_py.core.geometry import GridNeighbours, fit_planes_at, line_coefficients
 from lego_loam_py.core.params.types import Params
-
-if TYPE_CHECKING:
-    from scipy.spatial import cKDTree
 
 __all__ = [
     'map_jacobian_rows',
@@ -66,14 +62,14 @@ def map_jacobian_rows(points: np.ndarray, coeff: np.ndarray, pose6: np.ndarray) 
     return rows
 
 
-def _neighbourhoods(points_world: np.ndarray, tree: cKDTree, map_points: np.ndarray, mo):
+def _neighbourhoods(points_world: np.ndarray, tree: GridNeighbours, map_points: np.ndarray, mo):
     """(indices of the points whose ``knn`` nearest map points all lie within the gate, those neighbours
     (m, k, 3) float64), see :func:`~lego_loam_py.core.geometry.nearest_within`."""
-    used, index = nearest_within(tree, points_world[:, :3], mo.knn, mo.knn_max_sq_dist)
+    used, index = tree.nearest_within(points_world, mo.knn, mo.knn_max_sq_dist)
     return used, map_points[index, :3].astype(np.float64)
 
 
-def edge_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: np.ndarray, params: Params):
+def edge_correspondences(points_world: np.ndarray, tree: GridNeighbours, map_points: np.ndarray, params: Params):
     """Point-to-line coefficients: (index of used points, coeff (m, 4) = s·gradient, s·distance)."""
     mo = params.map_optimization
     if len(points_world) == 0 or tree is None:
@@ -94,12 +90,12 @@ def edge_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: np
     return used[keep], coeff
 
 
-def plane_correspondences(points_world: np.ndarray, tree: cKDTree, map_points: np.ndarray, params: Params):
+def plane_correspondences(points_world: np.ndarray, tree: GridNeighbours, map_points: np.ndarray, params: Params):
     """Point-to-plane coefficients: (index of used points, coeff (m, 4) = s·normal, s·distance)."""
     mo = params.map_optimization
     if len(points_world) == 0 or tree is None:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 4))
-    used, index = nearest_within(tree, points_world[:, :3], mo.knn, mo.knn_max_sq_dist)
+    used, index = tree.nearest_within(points_world, mo.knn, mo.knn_max_sq_dist)
     planar, normal, offset = fit_planes_at(map_points, index, mo.plane_max_residual, mo.plane_min_aspect)
     used = used[planar]
     p = points_world[used, :3].astype(np.float64)
@@ -141,14 +137,12 @@ def registration_information(rows: np.ndarray, residuals: np.ndarray, corners: i
     return out
 
 
-def map_trees(corner_map: np.ndarray, surf_map: np.ndarray) -> tuple[cKDTree, cKDTree]:
-    """The KD-trees :func:`register_scan_to_map` searches in a corner and a surface map."""
-    from scipy.spatial import cKDTree
-
-    return (
-        cKDTree(corner_map[:, :3].astype(np.float64), balanced_tree=False),
-        cKDTree(surf_map[:, :3].astype(np.float64), balanced_tree=False),
-    )
+def map_trees(
+    corner_map: np.ndarray, surf_map: np.ndarray, max_sq_dist: float
+) -> tuple[GridNeighbours, GridNeighbours]:
+    """The neighbour searches :func:`register_scan_to_map` makes in a corner and a surface map, within
+    ``sqrt(max_sq_dist)`` [m] (``map_optimization.knn_max_sq_dist``); each also answers cKDTree's ``query``."""
+    return GridNeighbours(corner_map, max_sq_dist), GridNeighbours(surf_map, max_sq_dist)
 
 
 def register_scan_to_map(
@@ -159,7 +153,7 @@ def register_scan_to_map(
     initial: np.ndarray,
     params: Params,
     degeneracy: DegeneracyProjection,
-    trees: tuple[cKDTree, cKDTree] | None = None,
+    trees: tuple[GridNeighbours, GridNeighbours] | None = None,
 ) -> tuple[np.ndarray, RegistrationCounts]:
     """Scan-to-map Gauss-Newton from ``initial`` (pose six-vector): (the optimised pose, what it did).
 
@@ -170,7 +164,7 @@ def register_scan_to_map(
     mo = params.map_optimization
     counts = RegistrationCounts()
     pose = np.asarray(initial, dtype=float).copy()
-    corner_tree, surf_tree = map_trees(corner_map, surf_map) if trees is None else trees
+    corner_tree, surf_tree = map_trees(corner_map, surf_map, mo.knn_max_sq_dist) if trees is None else trees
     for iteration in range(mo.max_iterations):
         counts.iterations = iteration + 1
         world = pose6_to_matrix(pose)

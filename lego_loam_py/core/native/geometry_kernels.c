@@ -1,7 +1,8 @@
 /*
  * The plane fits of core/geometry.py (scan-to-map and scan-to-scan registration) in one pass over the
  * neighbourhoods, in C. geometry.fit_planes_at keeps its NumPy version as the fallback when this extension is not
- * built, and tests/test_geometry.py compares the two bit for bit.
+ * built, and tests/test_geometry.py compares the two bit for bit. Also the scan-to-map registration's search for
+ * neighbours, on a grid of cubic cells (geometry.GridNeighbours), with cKDTree's answers.
  *
  * plane_fits(points, columns, index, k, max_residual, normals, offsets, moments, status)
  *   points (n, columns >= 3) float32, C-contiguous; index (m, k) int64, every value in [0, n): the neighbours of
@@ -16,6 +17,22 @@
  *   within 1e-9 m of max_residual: NumPy's einsum sums the three products of that distance in an order of its
  *   SIMD build, so the caller decides those few with NumPy itself. Returns None; raises IndexError for an index
  *   out of range (nothing usable written). Runs without the GIL.
+ *
+ * grid_extent(points, columns, cell) -> ((i0, j0, k0), (i1, j1, k1)) or None
+ *   The lowest and highest cubic cell of side `cell` [m] of the points (n, columns >= 3) float32, a cell being
+ *   floor(coordinate / cell) per axis in float64; None when a coordinate is not finite or absurdly far.
+ * grid_fill(points, columns, cell, low, size, starts, sorted_xyz, sorted_rows, cell_of)
+ *   Sorts the points by cell (counting sort, stable) over the cells from `low` (i0, j0, k0) of `size` (ni, nj, nk),
+ *   numbered ((i * nj) + j) * nk + k: starts (cells + 1,) int32, sorted_xyz (n, 3) float64 (the coordinates,
+ *   exactly), sorted_rows (n,) int64 (each one's row); cell_of (n,) int64 is scratch.
+ * grid_nearest(cell, low, size, starts, sorted_xyz, sorted_rows, queries, query_columns, k, search_sq, gate_sq,
+ *              status, index)
+ *   For each query (m, query_columns >= 3) float32 its k nearest points over the 27 cells around its own (a cell
+ *   must span the search radius), by the squared distance cKDTree computes, ((dx^2 + dy^2) + dz^2) in float64.
+ *   status (m,) uint8: 1 when k points lie within search_sq and the k-th one's distance, sqrt(d2), squared is below
+ *   gate_sq (geometry.nearest_within's test), their rows in index (m, k) int64, nearest first; 0 otherwise; 2 when
+ *   it would be 1 but two of the k + 1 nearest lie at exactly the same distance (an order cKDTree decides by its
+ *   own walk: the caller asks it). All three run without the GIL.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -145,8 +162,236 @@ done:
     return result;
 }
 
+#define GRID_MAX_INDEX 1e15 /* cell indices beyond this (far points, NaN): no grid */
+#define MAX_K 64
+
+/* The grid: cells of side `cell` numbered ((i * nj) + j) * nk + k from the lowest cell (i0, j0, k0) of the points;
+   the points sorted by cell, their float64 coordinates in sorted_xyz (3 per point) and their rows in sorted_rows;
+   cell c holds sorted positions [starts[c], starts[c + 1]). */
+typedef struct {
+    double cell;
+    int64_t i0, j0, k0, ni, nj, nk;
+    const int32_t *starts;
+    const double *sorted_xyz;
+    const int64_t *sorted_rows;
+} Grid;
+
+static inline void cell_index(double x, double y, double z, double cell, double *out) {
+    out[0] = floor(x / cell);
+    out[1] = floor(y / cell);
+    out[2] = floor(z / cell);
+}
+
+/* The lowest and highest cell of the points: 1, or 0 when a coordinate is not finite or the cells are absurd. */
+static int extent(const float *points, Py_ssize_t columns, Py_ssize_t n, double cell, int64_t *low, int64_t *high) {
+    double lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        const float *p = points + i * columns;
+        double c[3];
+        cell_index((double)p[0], (double)p[1], (double)p[2], cell, c);
+        for (int a = 0; a < 3; ++a) {
+            if (!(fabs(c[a]) < GRID_MAX_INDEX)) return 0;
+            if (c[a] < lo[a]) lo[a] = c[a];
+            if (c[a] > hi[a]) hi[a] = c[a];
+        }
+    }
+    for (int a = 0; a < 3; ++a) {
+        low[a] = (int64_t)lo[a];
+        high[a] = (int64_t)hi[a];
+    }
+    return 1;
+}
+
+static void fill(const float *points, Py_ssize_t columns, Py_ssize_t n, double cell, const int64_t *low,
+                 const int64_t *size, int32_t *starts, double *sorted_xyz, int64_t *sorted_rows, int64_t *cell_of) {
+    const int64_t cells = size[0] * size[1] * size[2];
+    for (int64_t c = 0; c <= cells; ++c) starts[c] = 0;
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        const float *p = points + i * columns;
+        double c[3];
+        cell_index((double)p[0], (double)p[1], (double)p[2], cell, c);
+        const int64_t number =
+            (((int64_t)c[0] - low[0]) * size[1] + ((int64_t)c[1] - low[1])) * size[2] + ((int64_t)c[2] - low[2]);
+        cell_of[i] = number;
+        starts[number + 1] += 1;
+    }
+    for (int64_t c = 0; c < cells; ++c) starts[c + 1] += starts[c];
+    for (Py_ssize_t i = 0; i < n; ++i) { /* (starts[c] advances as cell c fills; shifted back below) */
+        const int64_t at = starts[cell_of[i]]++;
+        const float *p = points + i * columns;
+        sorted_xyz[3 * at] = (double)p[0];
+        sorted_xyz[3 * at + 1] = (double)p[1];
+        sorted_xyz[3 * at + 2] = (double)p[2];
+        sorted_rows[at] = (int64_t)i;
+    }
+    for (int64_t c = cells; c > 0; --c) starts[c] = starts[c - 1];
+    starts[0] = 0;
+}
+
+static void nearest(const Grid *grid, const float *queries, Py_ssize_t query_columns, Py_ssize_t m, Py_ssize_t k,
+                    double search_sq, double gate_sq, uint8_t *status, int64_t *index) {
+    double best[MAX_K + 1];
+    int64_t which[MAX_K + 1];
+    for (Py_ssize_t row = 0; row < m; ++row) {
+        const float *q = queries + row * query_columns;
+        const double qx = (double)q[0], qy = (double)q[1], qz = (double)q[2];
+        double c[3];
+        status[row] = 0;
+        cell_index(qx, qy, qz, grid->cell, c);
+        if (!(fabs(c[0]) < GRID_MAX_INDEX && fabs(c[1]) < GRID_MAX_INDEX && fabs(c[2]) < GRID_MAX_INDEX)) continue;
+        const int64_t qi = (int64_t)c[0] - grid->i0, qj = (int64_t)c[1] - grid->j0, qk = (int64_t)c[2] - grid->k0;
+        const int64_t k_low = qk - 1 < 0 ? 0 : qk - 1, k_high = qk + 1 >= grid->nk ? grid->nk - 1 : qk + 1;
+        if (k_low > k_high) continue;
+        Py_ssize_t found = 0; /* the k + 1 nearest so far, ascending */
+        for (int64_t i = qi - 1; i <= qi + 1; ++i) {
+            if (i < 0 || i >= grid->ni) continue;
+            for (int64_t j = qj - 1; j <= qj + 1; ++j) {
+                if (j < 0 || j >= grid->nj) continue;
+                const int64_t column = (i * grid->nj + j) * grid->nk;
+                const int64_t end = grid->starts[column + k_high + 1];
+                for (int64_t at = grid->starts[column + k_low]; at < end; ++at) {
+                    const double *p = grid->sorted_xyz + 3 * at;
+                    const double dx = p[0] - qx, dy = p[1] - qy, dz = p[2] - qz;
+                    double d2 = dx * dx;
+                    d2 += dy * dy;
+                    d2 += dz * dz;
+                    if (!(d2 <= search_sq)) continue;
+                    if (found == k + 1 && !(d2 < best[k])) continue;
+                    Py_ssize_t slot = found < k + 1 ? found++ : k;
+                    while (slot > 0 && best[slot - 1] > d2) {
+                        best[slot] = best[slot - 1];
+                        which[slot] = which[slot - 1];
+                        --slot;
+                    }
+                    best[slot] = d2;
+                    which[slot] = grid->sorted_rows[at];
+                }
+            }
+        }
+        if (found < k) continue;
+        const double kth = sqrt(best[k - 1]);
+        if (!(kth * kth < gate_sq)) continue;
+        uint8_t decided = 1;
+        for (Py_ssize_t j = 0; j + 1 < found; ++j) {
+            if (best[j] == best[j + 1]) decided = 2;
+        }
+        status[row] = decided;
+        for (Py_ssize_t j = 0; j < k; ++j) index[row * k + j] = which[j];
+    }
+}
+
+static PyObject *py_grid_extent(PyObject *self, PyObject *args) {
+    Py_buffer points;
+    Py_ssize_t columns;
+    double cell;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*nd", &points, &columns, &cell)) return NULL;
+    PyObject *result = NULL;
+    if (columns < 3 || points.len % (columns * (Py_ssize_t)sizeof(float)) != 0 || !(cell > 0.0)) {
+        PyErr_SetString(PyExc_ValueError, "grid_extent: points must be (n, columns >= 3) float32, cell > 0");
+        goto done;
+    }
+    const Py_ssize_t n = points.len / (columns * (Py_ssize_t)sizeof(float));
+    int64_t low[3] = {0, 0, 0}, high[3] = {-1, -1, -1};
+    int ok = 1;
+    Py_BEGIN_ALLOW_THREADS
+    if (n > 0) ok = extent((const float *)points.buf, columns, n, cell, low, high);
+    Py_END_ALLOW_THREADS
+    if (ok) {
+        result = Py_BuildValue("(LLL)(LLL)", (long long)low[0], (long long)low[1], (long long)low[2],
+                               (long long)high[0], (long long)high[1], (long long)high[2]);
+    } else {
+        result = Py_None;
+        Py_INCREF(result);
+    }
+done:
+    PyBuffer_Release(&points);
+    return result;
+}
+
+static PyObject *py_grid_fill(PyObject *self, PyObject *args) {
+    Py_buffer points, starts, sorted_xyz, sorted_rows, cell_of;
+    Py_ssize_t columns;
+    double cell;
+    long long low[3], size[3];
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*nd(LLL)(LLL)w*w*w*w*", &points, &columns, &cell, &low[0], &low[1], &low[2],
+                          &size[0], &size[1], &size[2], &starts, &sorted_xyz, &sorted_rows, &cell_of)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    const Py_ssize_t n = columns >= 3 ? points.len / (columns * (Py_ssize_t)sizeof(float)) : 0;
+    const long long cells = size[0] * size[1] * size[2];
+    if (columns < 3 || points.len != n * columns * (Py_ssize_t)sizeof(float) || !(cell > 0.0) || size[0] < 1 ||
+        size[1] < 1 || size[2] < 1 || n >= INT32_MAX || starts.len != (cells + 1) * (Py_ssize_t)sizeof(int32_t) ||
+        sorted_xyz.len != 3 * n * (Py_ssize_t)sizeof(double) || sorted_rows.len != n * (Py_ssize_t)sizeof(int64_t) ||
+        cell_of.len != n * (Py_ssize_t)sizeof(int64_t)) {
+        PyErr_SetString(PyExc_ValueError, "grid_fill: inconsistent buffers (see geometry_kernels.c)");
+        goto done;
+    }
+    const int64_t lo[3] = {low[0], low[1], low[2]}, sz[3] = {size[0], size[1], size[2]};
+    Py_BEGIN_ALLOW_THREADS
+    fill((const float *)points.buf, columns, n, cell, lo, sz, (int32_t *)starts.buf, (double *)sorted_xyz.buf,
+         (int64_t *)sorted_rows.buf, (int64_t *)cell_of.buf);
+    Py_END_ALLOW_THREADS
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&points);
+    PyBuffer_Release(&starts);
+    PyBuffer_Release(&sorted_xyz);
+    PyBuffer_Release(&sorted_rows);
+    PyBuffer_Release(&cell_of);
+    return result;
+}
+
+static PyObject *py_grid_nearest(PyObject *self, PyObject *args) {
+    Py_buffer starts, sorted_xyz, sorted_rows, queries, status, index;
+    Py_ssize_t query_columns, k;
+    double cell, search_sq, gate_sq;
+    long long low[3], size[3];
+    (void)self;
+    if (!PyArg_ParseTuple(args, "d(LLL)(LLL)y*y*y*y*nnddw*w*", &cell, &low[0], &low[1], &low[2], &size[0], &size[1],
+                          &size[2], &starts, &sorted_xyz, &sorted_rows, &queries, &query_columns, &k, &search_sq,
+                          &gate_sq, &status, &index)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    const Py_ssize_t n = sorted_rows.len / (Py_ssize_t)sizeof(int64_t);
+    const Py_ssize_t m = query_columns >= 3 ? queries.len / (query_columns * (Py_ssize_t)sizeof(float)) : 0;
+    const long long cells = size[0] * size[1] * size[2];
+    if (query_columns < 3 || k < 1 || k > MAX_K || !(cell > 0.0) || size[0] < 1 || size[1] < 1 || size[2] < 1 ||
+        starts.len != (cells + 1) * (Py_ssize_t)sizeof(int32_t) ||
+        sorted_xyz.len != 3 * n * (Py_ssize_t)sizeof(double) ||
+        ((const int32_t *)starts.buf)[cells] != n ||
+        queries.len != m * query_columns * (Py_ssize_t)sizeof(float) || status.len != m ||
+        index.len != m * k * (Py_ssize_t)sizeof(int64_t)) {
+        PyErr_SetString(PyExc_ValueError, "grid_nearest: inconsistent buffers (see geometry_kernels.c)");
+        goto done;
+    }
+    const Grid grid = {cell, low[0], low[1], low[2], size[0], size[1], size[2], (const int32_t *)starts.buf,
+                       (const double *)sorted_xyz.buf, (const int64_t *)sorted_rows.buf};
+    Py_BEGIN_ALLOW_THREADS
+    nearest(&grid, (const float *)queries.buf, query_columns, m, k, search_sq, gate_sq, (uint8_t *)status.buf,
+            (int64_t *)index.buf);
+    Py_END_ALLOW_THREADS
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&starts);
+    PyBuffer_Release(&sorted_xyz);
+    PyBuffer_Release(&sorted_rows);
+    PyBuffer_Release(&queries);
+    PyBuffer_Release(&status);
+    PyBuffer_Release(&index);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"plane_fits", py_plane_fits, METH_VARARGS, "Least-squares planes through neighbourhoods (see the file)."},
+    {"grid_extent", py_grid_extent, METH_VARARGS, "The cells a point set spans (see the file)."},
+    {"grid_fill", py_grid_fill, METH_VARARGS, "Sorts points by cell (see the file)."},
+    {"grid_nearest", py_grid_nearest, METH_VARARGS, "k nearest points of each query (see the file)."},
     {NULL, NULL, 0, NULL},
 };
 
