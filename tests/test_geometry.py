@@ -233,3 +233,48 @@ def test_points_the_grid_cannot_hold_are_searched_by_the_kd_tree(far):
         used, index = neighbours.nearest_within(queries, 3, 4.0)
         expected = _kd_tree_answer(points, queries, 3, 4.0)
         assert np.array_equal(used, expected[0]) and np.array_equal(index, expected[1])
+
+
+def _kd_tree_nearest(points, queries, max_sq_dist, **layout):
+    from scipy.spatial import cKDTree
+
+    distance, nearest = cKDTree(points[:, :3].astype(np.float64), **layout).query(queries.astype(np.float64), k=1)
+    near = np.flatnonzero(distance.astype(np.float64) ** 2 < max_sq_dist)
+    return near, nearest[near]
+
+
+def test_the_nearest_point_is_found_beyond_the_first_cells_and_not_beyond_the_gate():
+    """Cells of 1 m, a gate of 5 m: a point 3.5 m from the query is found after four shells of cells, although the
+    query's own cell and its neighbours hold nothing; one 5 m away fails the gate (strictly below 25 m^2); a nearer
+    point one cell over is taken before a farther one in the query's own cell."""
+    points = np.array([[3.5, 0.0, 0.0], [30.0, 5.0, 0.0], [11.1, 0.0, 0.0], [12.05, 0.0, 0.0]], np.float32)
+    queries = np.array([[0.0, 0.0, 0.0], [30.0, 0.0, 0.0], [11.95, 0.0, 0.0]], np.float32)
+    search = GridNeighbours(points, 25.0, 1.0)
+    near, index = search.nearest_one(queries)
+    assert near.tolist() == [0, 2] and index.tolist() == [0, 3]
+    assert search._tree is None  # (all on the grid)
+
+
+@needs_kernel
+@settings(max_examples=150, deadline=None)
+@given(
+    st.integers(0, 2**31 - 1),
+    st.integers(1, 3000),
+    st.sampled_from([0.3, 3.0, 30.0]),
+    st.sampled_from([0.5, 1.0, 2.0]),
+    st.sampled_from([25.0, 1.0]),
+    st.booleans(),
+)
+def test_the_nearest_point_on_the_grid_is_the_kd_trees_bit_for_bit(seed, n, spread, cell, max_sq_dist, duplicates):
+    """Any cell size, sparse and crowded clouds, queries near and far, repeated points (equal distances: the kd-tree
+    of the given layout decides, as featureAssociation's always did)."""
+    rng = np.random.default_rng(seed)
+    points = rng.standard_normal((n, 4)) * spread + np.append(rng.uniform(-100, 100, 3), 0.0)
+    if duplicates:
+        points[rng.integers(0, n, n // 4 + 1)] = points[rng.integers(0, n, n // 4 + 1)]
+    points = points.astype(np.float32)
+    queries = (points[rng.integers(0, n, 400), :3] + rng.standard_normal((400, 3)) * spread).astype(np.float32)
+    layout = {'leafsize': 32, 'balanced_tree': False, 'compact_nodes': False}
+    near, index = GridNeighbours(points, max_sq_dist, cell, **layout).nearest_one(queries)
+    expected_near, expected_index = _kd_tree_nearest(points, queries, max_sq_dist, **layout)
+    assert np.array_equal(near, expected_near) and np.array_equal(index, expected_index)

@@ -78,9 +78,13 @@ class GridNeighbours:
 
     MAX_CELLS = 1 << 23  # (32 MiB of cell starts: a map some 200 x 200 x 200 search radii across)
 
-    def __init__(self, points: np.ndarray, max_sq_dist: float):
+    def __init__(self, points: np.ndarray, max_sq_dist: float, cell: float | None = None, **tree_options):
+        """``cell`` [m]: the cells' side; by default the search radius, which :meth:`nearest_within` needs (with
+        smaller cells it asks the kd-tree); :meth:`nearest_one` takes any. ``tree_options``: the cKDTree's (its
+        layout picks between points at exactly the same distance); by default ``balanced_tree=False``."""
         self.points = points
         self.max_sq_dist = float(max_sq_dist)
+        self._tree_options = tree_options or {'balanced_tree': False}
         self._tree = None
         self._grid = None
         n = len(points)
@@ -93,7 +97,8 @@ class GridNeighbours:
             and points.flags.c_contiguous
         ):
             return
-        cell = _search_bound(self.max_sq_dist) * (1.0 + 1e-6)  # (a cell must span the search radius)
+        if cell is None:
+            cell = _search_bound(self.max_sq_dist) * (1.0 + 1e-6)  # (a cell spanning the search radius)
         extent = _geometry_kernels.grid_extent(points, points.shape[1], cell)
         if extent is None:
             return
@@ -114,7 +119,7 @@ class GridNeighbours:
         if self._tree is None:
             from scipy.spatial import cKDTree
 
-            self._tree = cKDTree(self.points[:, :3].astype(np.float64), balanced_tree=False)
+            self._tree = cKDTree(self.points[:, :3].astype(np.float64), **self._tree_options)
         return self._tree
 
     def query(self, *args, **kwargs):
@@ -124,7 +129,11 @@ class GridNeighbours:
     def nearest_within(self, queries: np.ndarray, k: int, max_sq_dist: float) -> tuple[np.ndarray, np.ndarray]:
         """:func:`nearest_within` of the (m, >= 3) ``queries`` [m] in these points (on the grid when built for this
         ``max_sq_dist``)."""
-        on_grid = self._grid is not None and max_sq_dist == self.max_sq_dist
+        on_grid = (
+            self._grid is not None
+            and max_sq_dist == self.max_sq_dist
+            and self._grid[0] >= _search_bound(max_sq_dist)  # (27 cells hold the search radius)
+        )
         if not on_grid or queries.dtype != _F32 or queries.ndim != 2 or not 1 < k <= 64:
             return nearest_within(self.tree, queries[:, :3], k, max_sq_dist)
         queries = np.ascontiguousarray(queries)
@@ -141,6 +150,27 @@ class GridNeighbours:
             index[tied[near]] = tied_index
         used = np.flatnonzero(status)
         return used, index[used]
+
+    def nearest_one(self, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(indices of the (m, >= 3) ``queries`` [m] whose nearest point, as cKDTree's ``query(k=1)`` finds it,
+        lies closer than ``sqrt(max_sq_dist)`` (its distance squared, as there), that point's row (int64))."""
+        if self._grid is None or queries.dtype != _F32 or queries.ndim != 2:
+            distance, nearest = self.tree.query(queries[:, :3].astype(np.float64), k=1)
+            near = np.flatnonzero(distance.astype(np.float64) ** 2 < self.max_sq_dist)
+            return near, nearest[near]
+        queries = np.ascontiguousarray(queries)
+        status, index = np.empty(len(queries), np.uint8), np.empty(len(queries), np.int64)
+        max_shell = math.ceil(_search_bound(self.max_sq_dist) / self._grid[0]) + 1
+        _geometry_kernels.grid_nearest_one(
+            *self._grid, queries, queries.shape[1], max_shell, self.max_sq_dist, status, index
+        )
+        tied = np.flatnonzero(status == 2)
+        if len(tied):  # two at the nearest distance: the kd-tree's choice
+            distance, nearest = self.tree.query(queries[tied, :3].astype(np.float64), k=1)
+            status[tied] = distance.astype(np.float64) ** 2 < self.max_sq_dist
+            index[tied] = nearest
+        near = np.flatnonzero(status)
+        return near, index[near]
 
 
 def _search_bound(max_sq_dist: float) -> float:

@@ -32,7 +32,14 @@
  *   status (m,) uint8: 1 when k points lie within search_sq and the k-th one's distance, sqrt(d2), squared is below
  *   gate_sq (geometry.nearest_within's test), their rows in index (m, k) int64, nearest first; 0 otherwise; 2 when
  *   it would be 1 but two of the k + 1 nearest lie at exactly the same distance (an order cKDTree decides by its
- *   own walk: the caller asks it). All three run without the GIL.
+ *   own walk: the caller asks it).
+ * grid_nearest_one(cell, low, size, starts, sorted_xyz, sorted_rows, queries, query_columns, max_shell, gate_sq,
+ *                  status, index)
+ *   For each query its nearest point, searched shell by shell of cells around its own (shell s: the cells s away
+ *   along some axis) until the nearest found is closer than s cells, up to max_shell (at least the gate's radius
+ *   in cells): status 1 when its distance, sqrt(d2), squared is below gate_sq, its row in index (m,) int64; 0
+ *   otherwise; 2 when two points lie at exactly that nearest distance (the caller asks cKDTree). All four run
+ *   without the GIL.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -387,11 +394,121 @@ done:
     return result;
 }
 
+/* The sorted positions [begin, end) of cells (i, j, k_low..k_high) of the grid, clipped to it; 0 when none. */
+static inline int column_run(const Grid *grid, int64_t i, int64_t j, int64_t k_low, int64_t k_high, int64_t *begin,
+                             int64_t *end) {
+    if (i < 0 || i >= grid->ni || j < 0 || j >= grid->nj) return 0;
+    if (k_low < 0) k_low = 0;
+    if (k_high >= grid->nk) k_high = grid->nk - 1;
+    if (k_low > k_high) return 0;
+    const int64_t column = (i * grid->nj + j) * grid->nk;
+    *begin = grid->starts[column + k_low];
+    *end = grid->starts[column + k_high + 1];
+    return *begin < *end;
+}
+
+static void nearest_one(const Grid *grid, const float *queries, Py_ssize_t query_columns, Py_ssize_t m,
+                        int64_t max_shell, double gate_sq, uint8_t *status, int64_t *index) {
+    for (Py_ssize_t row = 0; row < m; ++row) {
+        const float *q = queries + row * query_columns;
+        const double qx = (double)q[0], qy = (double)q[1], qz = (double)q[2];
+        double c[3];
+        status[row] = 0;
+        cell_index(qx, qy, qz, grid->cell, c);
+        if (!(fabs(c[0]) < GRID_MAX_INDEX && fabs(c[1]) < GRID_MAX_INDEX && fabs(c[2]) < GRID_MAX_INDEX)) continue;
+        const int64_t qi = (int64_t)c[0] - grid->i0, qj = (int64_t)c[1] - grid->j0, qk = (int64_t)c[2] - grid->k0;
+        double best = INFINITY, second = INFINITY;
+        int64_t which = -1;
+        for (int64_t shell = 0; shell <= max_shell; ++shell) {
+            for (int64_t di = -shell; di <= shell; ++di) {
+                for (int64_t dj = -shell; dj <= shell; ++dj) {
+                    /* on the shell's side faces the whole column of it; inside them its top and bottom cells */
+                    const int side = (di == -shell || di == shell || dj == -shell || dj == shell);
+                    for (int part = 0; part < (side || shell == 0 ? 1 : 2); ++part) {
+                        int64_t k_low, k_high, begin, end;
+                        if (side) {
+                            k_low = qk - shell;
+                            k_high = qk + shell;
+                        } else {
+                            k_low = k_high = part == 0 ? qk - shell : qk + shell;
+                        }
+                        if (!column_run(grid, qi + di, qj + dj, k_low, k_high, &begin, &end)) continue;
+                        for (int64_t at = begin; at < end; ++at) {
+                            const double *p = grid->sorted_xyz + 3 * at;
+                            const double dx = p[0] - qx, dy = p[1] - qy, dz = p[2] - qz;
+                            double d2 = dx * dx;
+                            d2 += dy * dy;
+                            d2 += dz * dz;
+                            if (d2 < best) {
+                                second = best;
+                                best = d2;
+                                which = grid->sorted_rows[at];
+                            } else if (d2 < second) {
+                                second = d2;
+                            }
+                        }
+                    }
+                }
+            }
+            /* Every point outside shells 0..s lies at least s cells from the query (less a rounding margin). */
+            const double reach = (double)shell * grid->cell * (1.0 - 1e-9) - 1e-9;
+            if (which >= 0 && sqrt(best) < reach) break;
+        }
+        if (which < 0) continue;
+        const double nearest = sqrt(best);
+        if (!(nearest * nearest < gate_sq)) continue;
+        status[row] = second == best ? 2 : 1;
+        index[row] = which;
+    }
+}
+
+static PyObject *py_grid_nearest_one(PyObject *self, PyObject *args) {
+    Py_buffer starts, sorted_xyz, sorted_rows, queries, status, index;
+    Py_ssize_t query_columns, max_shell;
+    double cell, gate_sq;
+    long long low[3], size[3];
+    (void)self;
+    if (!PyArg_ParseTuple(args, "d(LLL)(LLL)y*y*y*y*nndw*w*", &cell, &low[0], &low[1], &low[2], &size[0], &size[1],
+                          &size[2], &starts, &sorted_xyz, &sorted_rows, &queries, &query_columns, &max_shell,
+                          &gate_sq, &status, &index)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    const Py_ssize_t n = sorted_rows.len / (Py_ssize_t)sizeof(int64_t);
+    const Py_ssize_t m = query_columns >= 3 ? queries.len / (query_columns * (Py_ssize_t)sizeof(float)) : 0;
+    const long long cells = size[0] * size[1] * size[2];
+    if (query_columns < 3 || max_shell < 0 || !(cell > 0.0) || size[0] < 1 || size[1] < 1 || size[2] < 1 ||
+        starts.len != (cells + 1) * (Py_ssize_t)sizeof(int32_t) ||
+        sorted_xyz.len != 3 * n * (Py_ssize_t)sizeof(double) || ((const int32_t *)starts.buf)[cells] != n ||
+        queries.len != m * query_columns * (Py_ssize_t)sizeof(float) || status.len != m ||
+        index.len != m * (Py_ssize_t)sizeof(int64_t)) {
+        PyErr_SetString(PyExc_ValueError, "grid_nearest_one: inconsistent buffers (see geometry_kernels.c)");
+        goto done;
+    }
+    const Grid grid = {cell, low[0], low[1], low[2], size[0], size[1], size[2], (const int32_t *)starts.buf,
+                       (const double *)sorted_xyz.buf, (const int64_t *)sorted_rows.buf};
+    Py_BEGIN_ALLOW_THREADS
+    nearest_one(&grid, (const float *)queries.buf, query_columns, m, max_shell, gate_sq, (uint8_t *)status.buf,
+                (int64_t *)index.buf);
+    Py_END_ALLOW_THREADS
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&starts);
+    PyBuffer_Release(&sorted_xyz);
+    PyBuffer_Release(&sorted_rows);
+    PyBuffer_Release(&queries);
+    PyBuffer_Release(&status);
+    PyBuffer_Release(&index);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"plane_fits", py_plane_fits, METH_VARARGS, "Least-squares planes through neighbourhoods (see the file)."},
     {"grid_extent", py_grid_extent, METH_VARARGS, "The cells a point set spans (see the file)."},
     {"grid_fill", py_grid_fill, METH_VARARGS, "Sorts points by cell (see the file)."},
     {"grid_nearest", py_grid_nearest, METH_VARARGS, "k nearest points of each query (see the file)."},
+    {"grid_nearest_one", py_grid_nearest_one, METH_VARARGS, "The nearest point of each query (see the file)."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lego_loam_py.core.geometry import GridNeighbours
 from lego_loam_py.core.indexing import ragged, ranges
 from lego_loam_py.core.odometry.sweep import ring_of
 from lego_loam_py.core.params.types import Params
@@ -31,6 +32,11 @@ __all__ = [
 ]
 
 _F32 = np.float32
+# [m] sides of the nearest-point search's cells, the smallest whose grid over the cloud has at most CELLS_PER_POINT
+# cells a point: a feature's nearest point mostly lies within a metre, but a sparse cloud's wide, empty grid would
+# cost more to lay out than its queries save.
+NEAREST_CELLS = (1.0, 2.0, 4.0)
+CELLS_PER_POINT = 64
 
 
 @dataclass
@@ -79,12 +85,21 @@ def _prev_below(rings: np.ndarray, n_rings: int) -> np.ndarray:
     return out
 
 
+def _nearest_cell(points: np.ndarray) -> float:
+    """The side [m] of the nearest-point search's cells for a cloud (see NEAREST_CELLS)."""
+    span = points[:, :3].max(axis=0).astype(np.float64) - points[:, :3].min(axis=0)
+    for cell in NEAREST_CELLS:
+        if np.prod(span / cell + 2.0) <= CELLS_PER_POINT * len(points):
+            return cell
+    return NEAREST_CELLS[-1]
+
+
 class LastCloud:
-    """A 'last' feature cloud with its KD-tree and ring look-ups."""
+    """A 'last' feature cloud with its nearest-point search and ring look-ups."""
 
-    def __init__(self, points: np.ndarray, n_rings: int):
-        from scipy.spatial import cKDTree
-
+    def __init__(self, points: np.ndarray, n_rings: int, max_sq_dist: float = 25.0):
+        """``max_sq_dist`` [m^2]: the gate of the nearest-point search (feature_association.
+        nearest_feature_search_sq_dist)."""
         self.points = points
         self.n_rings = n_rings
         self.rings = ring_of(points[:, 3])
@@ -93,16 +108,23 @@ class LastCloud:
         self.ring_ordered = bool(np.all(self.rings[1:] >= self.rings[:-1]))
         # (3, n): one contiguous row per coordinate, the window search gathers all three in one call.
         self.xyz_rows = np.ascontiguousarray(points[:, :3].T)
-        # Sliding-midpoint splits (balanced_tree=False) build in about half the time of median splits and query
-        # as fast; leaves of 32 points without the compaction pass build faster still (each tree is queried only
-        # a few hundred times): 2.4 % fewer instructions per scan. The nearest neighbour is the same; only
-        # between exactly equidistant points (none in the recordings) may the tree's layout pick the other one.
-        self.tree = (
-            cKDTree(points[:, :3].astype(np.float64), leafsize=32, balanced_tree=False, compact_nodes=False)
+        # The nearest point on a grid (NEAREST_CELLS) (geometry.GridNeighbours), cKDTree's answer bit for bit.
+        # Its tree, asked between points at exactly the same distance, has the layout the search had before:
+        # sliding-midpoint splits (balanced_tree=False) and leaves of 32 points without the compaction pass, the
+        # fastest to build for the few hundred queries each got; the layout picks between equidistant points.
+        self.search = (
+            GridNeighbours(
+                points, max_sq_dist, _nearest_cell(points), leafsize=32, balanced_tree=False, compact_nodes=False
+            )
             if len(points)
             else None
         )
         self._tables = None
+
+    @property
+    def tree(self):
+        """The cloud's cKDTree (built when first asked for), None for an empty cloud."""
+        return None if self.search is None else self.search.tree
 
     def _window_tables(self):
         if self._tables is None:
@@ -224,10 +246,13 @@ def _window_search(
     extension is built (the index arrays of the windows are never built: per-call costs dominate the small scans);
     ``native=False`` runs the NumPy version (the tests compare the two)."""
     fa = params.feature_association
-    dist, nearest = last.tree.query(points_start[:, :3].astype(np.float64), k=1)
-    q = np.flatnonzero(dist.astype(np.float64) ** 2 < fa.nearest_feature_search_sq_dist)
-    closest = nearest[q]
     limit = fa.nearest_feature_search_sq_dist
+    if limit == last.search.max_sq_dist:
+        q, closest = last.search.nearest_one(points_start)
+    else:  # (a cloud kept from before the gate changed)
+        dist, nearest = last.tree.query(points_start[:, :3].astype(np.float64), k=1)
+        q = np.flatnonzero(dist.astype(np.float64) ** 2 < limit)
+        closest = nearest[q]
     if (
         native
         and hasattr(_feature_kernels, 'nearest_in_windows')  # (None, or an extension built before it: NumPy)
@@ -264,7 +289,7 @@ def find_surf_correspondences(
     n = len(points_start)
     index1 = np.full(n, -1, dtype=np.int64)
     index2, index3 = index1.copy(), index1.copy()
-    if n == 0 or last.tree is None:
+    if n == 0 or last.search is None:
         return SurfCorrespondences(index1, index2, index3)
     q, closest, index, best = _window_search(points_start, last, params, forward_bound, _SAME + _OTHER)
     index1[q] = closest
@@ -280,7 +305,7 @@ def find_corner_correspondences(
     n = len(points_start)
     index1 = np.full(n, -1, dtype=np.int64)
     index2 = index1.copy()
-    if n == 0 or last.tree is None:
+    if n == 0 or last.search is None:
         return CornerCorrespondences(index1, index2)
     q, closest, index, best = _window_search(points_start, last, params, forward_bound, _OTHER)
     index1[q] = closest

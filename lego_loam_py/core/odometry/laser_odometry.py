@@ -183,8 +183,9 @@ class LaserOdometry:
         if self.last_corner is None or (
             len(corner) > fa.min_last_corner_points and len(surf) > fa.min_last_surf_points
         ):
-            self.last_corner = LastCloud(corner, n_rings)
-            self.last_surf = LastCloud(surf, n_rings)
+            gate = fa.nearest_feature_search_sq_dist
+            self.last_corner = LastCloud(corner, n_rings, gate)
+            self.last_surf = LastCloud(surf, n_rings, gate)
 
     def register(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints = None) -> OdometryStats:
         """Refine ``transform_cur`` from the sweep's sharp and flat points (camera axes, ring + 0.1 s). Wall
@@ -533,7 +534,7 @@ class SweepStartOdometry(LaserOdometry):
         """(indices of the wall points whose nearest points in the last cloud form a plane, its unit normals,
         offsets) with the mapping's neighbourhood and planarity settings."""
         mo = self.params.map_optimization
-        if last.tree is None or not len(start):
+        if last.search is None or not len(start):
             return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
         near, index = nearest_within(last.tree, start[:, :3].astype(np.float64), mo.knn, mo.knn_max_sq_dist)
         # Neighbours all on one ring lie on a curve, about which the fitted plane may turn freely (ceilings
