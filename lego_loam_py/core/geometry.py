@@ -1,5 +1,6 @@
 """Point-to-plane and point-to-line geometry shared by the odometry and the mapping (docs/original.md §6.2
-step 7, §6.3), in float32 where the original computes in float.
+step 7, §6.3), in float32 where the original computes in float, and the searches for the nearest points both make
+(:class:`GridNeighbours`).
 """
 
 from __future__ import annotations

@@ -235,33 +235,58 @@ static void fill(const float *points, Py_ssize_t columns, Py_ssize_t n, double c
     starts[0] = 0;
 }
 
+/* The sorted positions [begin, end) of cells (i, j, k_low..k_high) of the grid, clipped to it; 0 when none. */
+static inline int column_run(const Grid *grid, int64_t i, int64_t j, int64_t k_low, int64_t k_high, int64_t *begin,
+                             int64_t *end) {
+    if (i < 0 || i >= grid->ni || j < 0 || j >= grid->nj) return 0;
+    if (k_low < 0) k_low = 0;
+    if (k_high >= grid->nk) k_high = grid->nk - 1;
+    if (k_low > k_high) return 0;
+    const int64_t column = (i * grid->nj + j) * grid->nk;
+    *begin = grid->starts[column + k_low];
+    *end = grid->starts[column + k_high + 1];
+    return *begin < *end;
+}
+
+/* The squared distance cKDTree computes, ((dx^2 + dy^2) + dz^2) in float64 (built without fused multiply-adds). */
+static inline double squared_distance(const double *p, const double *q) {
+    const double dx = p[0] - q[0], dy = p[1] - q[1], dz = p[2] - q[2];
+    double d2 = dx * dx;
+    d2 += dy * dy;
+    d2 += dz * dz;
+    return d2;
+}
+
+/* A query's coordinates (float64) and its cell relative to the grid's lowest; 0 when not finite or absurdly far. */
+static inline int query_cell(const Grid *grid, const float *q, double *xyz, int64_t *ijk) {
+    double c[3];
+    xyz[0] = (double)q[0];
+    xyz[1] = (double)q[1];
+    xyz[2] = (double)q[2];
+    cell_index(xyz[0], xyz[1], xyz[2], grid->cell, c);
+    if (!(fabs(c[0]) < GRID_MAX_INDEX && fabs(c[1]) < GRID_MAX_INDEX && fabs(c[2]) < GRID_MAX_INDEX)) return 0;
+    ijk[0] = (int64_t)c[0] - grid->i0;
+    ijk[1] = (int64_t)c[1] - grid->j0;
+    ijk[2] = (int64_t)c[2] - grid->k0;
+    return 1;
+}
+
 static void nearest(const Grid *grid, const float *queries, Py_ssize_t query_columns, Py_ssize_t m, Py_ssize_t k,
                     double search_sq, double gate_sq, uint8_t *status, int64_t *index) {
     double best[MAX_K + 1];
     int64_t which[MAX_K + 1];
     for (Py_ssize_t row = 0; row < m; ++row) {
-        const float *q = queries + row * query_columns;
-        const double qx = (double)q[0], qy = (double)q[1], qz = (double)q[2];
-        double c[3];
+        double q[3];
+        int64_t cell[3];
         status[row] = 0;
-        cell_index(qx, qy, qz, grid->cell, c);
-        if (!(fabs(c[0]) < GRID_MAX_INDEX && fabs(c[1]) < GRID_MAX_INDEX && fabs(c[2]) < GRID_MAX_INDEX)) continue;
-        const int64_t qi = (int64_t)c[0] - grid->i0, qj = (int64_t)c[1] - grid->j0, qk = (int64_t)c[2] - grid->k0;
-        const int64_t k_low = qk - 1 < 0 ? 0 : qk - 1, k_high = qk + 1 >= grid->nk ? grid->nk - 1 : qk + 1;
-        if (k_low > k_high) continue;
+        if (!query_cell(grid, queries + row * query_columns, q, cell)) continue;
         Py_ssize_t found = 0; /* the k + 1 nearest so far, ascending */
-        for (int64_t i = qi - 1; i <= qi + 1; ++i) {
-            if (i < 0 || i >= grid->ni) continue;
-            for (int64_t j = qj - 1; j <= qj + 1; ++j) {
-                if (j < 0 || j >= grid->nj) continue;
-                const int64_t column = (i * grid->nj + j) * grid->nk;
-                const int64_t end = grid->starts[column + k_high + 1];
-                for (int64_t at = grid->starts[column + k_low]; at < end; ++at) {
-                    const double *p = grid->sorted_xyz + 3 * at;
-                    const double dx = p[0] - qx, dy = p[1] - qy, dz = p[2] - qz;
-                    double d2 = dx * dx;
-                    d2 += dy * dy;
-                    d2 += dz * dz;
+        for (int64_t i = cell[0] - 1; i <= cell[0] + 1; ++i) {
+            for (int64_t j = cell[1] - 1; j <= cell[1] + 1; ++j) {
+                int64_t begin, end;
+                if (!column_run(grid, i, j, cell[2] - 1, cell[2] + 1, &begin, &end)) continue;
+                for (int64_t at = begin; at < end; ++at) {
+                    const double d2 = squared_distance(grid->sorted_xyz + 3 * at, q);
                     if (!(d2 <= search_sq)) continue;
                     if (found == k + 1 && !(d2 < best[k])) continue;
                     Py_ssize_t slot = found < k + 1 ? found++ : k;
@@ -352,71 +377,79 @@ done:
     return result;
 }
 
+/* The grid of grid_fill's buffers, checked against each other; 0 (a ValueError set) when they disagree. */
+static int grid_view(Grid *grid, double cell, const long long *low, const long long *size, const Py_buffer *starts,
+                     const Py_buffer *sorted_xyz, const Py_buffer *sorted_rows, const char *caller) {
+    const Py_ssize_t n = sorted_rows->len / (Py_ssize_t)sizeof(int64_t);
+    const long long cells = size[0] * size[1] * size[2];
+    if (!(cell > 0.0) || size[0] < 1 || size[1] < 1 || size[2] < 1 ||
+        starts->len != (cells + 1) * (Py_ssize_t)sizeof(int32_t) ||
+        sorted_xyz->len != 3 * n * (Py_ssize_t)sizeof(double) || ((const int32_t *)starts->buf)[cells] != n) {
+        PyErr_Format(PyExc_ValueError, "%s: the grid's buffers disagree (see geometry_kernels.c)", caller);
+        return 0;
+    }
+    *grid = (Grid){cell, low[0], low[1], low[2], size[0], size[1], size[2], (const int32_t *)starts->buf,
+                   (const double *)sorted_xyz->buf, (const int64_t *)sorted_rows->buf};
+    return 1;
+}
+
+/* The number of queries (m, columns >= 3) float32 in `queries`, with `per_query` int64 in index and one uint8 in
+   status each; -1 (a ValueError set) when the buffers disagree. */
+static Py_ssize_t query_count(const Py_buffer *queries, Py_ssize_t columns, const Py_buffer *status,
+                              const Py_buffer *index, Py_ssize_t per_query, const char *caller) {
+    const Py_ssize_t m = columns >= 3 ? queries->len / (columns * (Py_ssize_t)sizeof(float)) : 0;
+    if (columns < 3 || queries->len != m * columns * (Py_ssize_t)sizeof(float) || status->len != m ||
+        index->len != m * per_query * (Py_ssize_t)sizeof(int64_t)) {
+        PyErr_Format(PyExc_ValueError, "%s: queries, status and index disagree (see geometry_kernels.c)", caller);
+        return -1;
+    }
+    return m;
+}
+
+static void release(Py_buffer *buffers, int count) {
+    for (int i = 0; i < count; ++i) PyBuffer_Release(&buffers[i]);
+}
+
+/* (the buffers of grid_nearest and grid_nearest_one, in their order) */
+enum { STARTS, SORTED_XYZ, SORTED_ROWS, QUERIES, STATUS, INDEX, BUFFERS };
+
 static PyObject *py_grid_nearest(PyObject *self, PyObject *args) {
-    Py_buffer starts, sorted_xyz, sorted_rows, queries, status, index;
+    Py_buffer b[BUFFERS];
     Py_ssize_t query_columns, k;
     double cell, search_sq, gate_sq;
     long long low[3], size[3];
     (void)self;
     if (!PyArg_ParseTuple(args, "d(LLL)(LLL)y*y*y*y*nnddw*w*", &cell, &low[0], &low[1], &low[2], &size[0], &size[1],
-                          &size[2], &starts, &sorted_xyz, &sorted_rows, &queries, &query_columns, &k, &search_sq,
-                          &gate_sq, &status, &index)) {
+                          &size[2], &b[STARTS], &b[SORTED_XYZ], &b[SORTED_ROWS], &b[QUERIES], &query_columns, &k,
+                          &search_sq, &gate_sq, &b[STATUS], &b[INDEX])) {
         return NULL;
     }
-    PyObject *result = NULL;
-    const Py_ssize_t n = sorted_rows.len / (Py_ssize_t)sizeof(int64_t);
-    const Py_ssize_t m = query_columns >= 3 ? queries.len / (query_columns * (Py_ssize_t)sizeof(float)) : 0;
-    const long long cells = size[0] * size[1] * size[2];
-    if (query_columns < 3 || k < 1 || k > MAX_K || !(cell > 0.0) || size[0] < 1 || size[1] < 1 || size[2] < 1 ||
-        starts.len != (cells + 1) * (Py_ssize_t)sizeof(int32_t) ||
-        sorted_xyz.len != 3 * n * (Py_ssize_t)sizeof(double) ||
-        ((const int32_t *)starts.buf)[cells] != n ||
-        queries.len != m * query_columns * (Py_ssize_t)sizeof(float) || status.len != m ||
-        index.len != m * k * (Py_ssize_t)sizeof(int64_t)) {
-        PyErr_SetString(PyExc_ValueError, "grid_nearest: inconsistent buffers (see geometry_kernels.c)");
-        goto done;
+    Grid grid;
+    Py_ssize_t m = -1;
+    if (k < 1 || k > MAX_K) {
+        PyErr_SetString(PyExc_ValueError, "grid_nearest: k must lie in [1, 64]");
+    } else if (grid_view(&grid, cell, low, size, &b[STARTS], &b[SORTED_XYZ], &b[SORTED_ROWS], "grid_nearest")) {
+        m = query_count(&b[QUERIES], query_columns, &b[STATUS], &b[INDEX], k, "grid_nearest");
     }
-    const Grid grid = {cell, low[0], low[1], low[2], size[0], size[1], size[2], (const int32_t *)starts.buf,
-                       (const double *)sorted_xyz.buf, (const int64_t *)sorted_rows.buf};
-    Py_BEGIN_ALLOW_THREADS
-    nearest(&grid, (const float *)queries.buf, query_columns, m, k, search_sq, gate_sq, (uint8_t *)status.buf,
-            (int64_t *)index.buf);
-    Py_END_ALLOW_THREADS
-    result = Py_None;
-    Py_INCREF(result);
-done:
-    PyBuffer_Release(&starts);
-    PyBuffer_Release(&sorted_xyz);
-    PyBuffer_Release(&sorted_rows);
-    PyBuffer_Release(&queries);
-    PyBuffer_Release(&status);
-    PyBuffer_Release(&index);
-    return result;
-}
-
-/* The sorted positions [begin, end) of cells (i, j, k_low..k_high) of the grid, clipped to it; 0 when none. */
-static inline int column_run(const Grid *grid, int64_t i, int64_t j, int64_t k_low, int64_t k_high, int64_t *begin,
-                             int64_t *end) {
-    if (i < 0 || i >= grid->ni || j < 0 || j >= grid->nj) return 0;
-    if (k_low < 0) k_low = 0;
-    if (k_high >= grid->nk) k_high = grid->nk - 1;
-    if (k_low > k_high) return 0;
-    const int64_t column = (i * grid->nj + j) * grid->nk;
-    *begin = grid->starts[column + k_low];
-    *end = grid->starts[column + k_high + 1];
-    return *begin < *end;
+    if (m >= 0) {
+        Py_BEGIN_ALLOW_THREADS
+        nearest(&grid, (const float *)b[QUERIES].buf, query_columns, m, k, search_sq, gate_sq,
+                (uint8_t *)b[STATUS].buf, (int64_t *)b[INDEX].buf);
+        Py_END_ALLOW_THREADS
+    }
+    release(b, BUFFERS);
+    if (m < 0) return NULL;
+    Py_RETURN_NONE;
 }
 
 static void nearest_one(const Grid *grid, const float *queries, Py_ssize_t query_columns, Py_ssize_t m,
                         int64_t max_shell, double gate_sq, uint8_t *status, int64_t *index) {
     for (Py_ssize_t row = 0; row < m; ++row) {
-        const float *q = queries + row * query_columns;
-        const double qx = (double)q[0], qy = (double)q[1], qz = (double)q[2];
-        double c[3];
+        double q[3];
+        int64_t cell[3];
         status[row] = 0;
-        cell_index(qx, qy, qz, grid->cell, c);
-        if (!(fabs(c[0]) < GRID_MAX_INDEX && fabs(c[1]) < GRID_MAX_INDEX && fabs(c[2]) < GRID_MAX_INDEX)) continue;
-        const int64_t qi = (int64_t)c[0] - grid->i0, qj = (int64_t)c[1] - grid->j0, qk = (int64_t)c[2] - grid->k0;
+        if (!query_cell(grid, queries + row * query_columns, q, cell)) continue;
+        const int64_t qi = cell[0], qj = cell[1], qk = cell[2];
         double best = INFINITY, second = INFINITY;
         int64_t which = -1;
         for (int64_t shell = 0; shell <= max_shell; ++shell) {
@@ -434,11 +467,7 @@ static void nearest_one(const Grid *grid, const float *queries, Py_ssize_t query
                         }
                         if (!column_run(grid, qi + di, qj + dj, k_low, k_high, &begin, &end)) continue;
                         for (int64_t at = begin; at < end; ++at) {
-                            const double *p = grid->sorted_xyz + 3 * at;
-                            const double dx = p[0] - qx, dy = p[1] - qy, dz = p[2] - qz;
-                            double d2 = dx * dx;
-                            d2 += dy * dy;
-                            d2 += dz * dz;
+                            const double d2 = squared_distance(grid->sorted_xyz + 3 * at, q);
                             if (d2 < best) {
                                 second = best;
                                 best = d2;
@@ -463,44 +492,32 @@ static void nearest_one(const Grid *grid, const float *queries, Py_ssize_t query
 }
 
 static PyObject *py_grid_nearest_one(PyObject *self, PyObject *args) {
-    Py_buffer starts, sorted_xyz, sorted_rows, queries, status, index;
+    Py_buffer b[BUFFERS];
     Py_ssize_t query_columns, max_shell;
     double cell, gate_sq;
     long long low[3], size[3];
     (void)self;
     if (!PyArg_ParseTuple(args, "d(LLL)(LLL)y*y*y*y*nndw*w*", &cell, &low[0], &low[1], &low[2], &size[0], &size[1],
-                          &size[2], &starts, &sorted_xyz, &sorted_rows, &queries, &query_columns, &max_shell,
-                          &gate_sq, &status, &index)) {
+                          &size[2], &b[STARTS], &b[SORTED_XYZ], &b[SORTED_ROWS], &b[QUERIES], &query_columns,
+                          &max_shell, &gate_sq, &b[STATUS], &b[INDEX])) {
         return NULL;
     }
-    PyObject *result = NULL;
-    const Py_ssize_t n = sorted_rows.len / (Py_ssize_t)sizeof(int64_t);
-    const Py_ssize_t m = query_columns >= 3 ? queries.len / (query_columns * (Py_ssize_t)sizeof(float)) : 0;
-    const long long cells = size[0] * size[1] * size[2];
-    if (query_columns < 3 || max_shell < 0 || !(cell > 0.0) || size[0] < 1 || size[1] < 1 || size[2] < 1 ||
-        starts.len != (cells + 1) * (Py_ssize_t)sizeof(int32_t) ||
-        sorted_xyz.len != 3 * n * (Py_ssize_t)sizeof(double) || ((const int32_t *)starts.buf)[cells] != n ||
-        queries.len != m * query_columns * (Py_ssize_t)sizeof(float) || status.len != m ||
-        index.len != m * (Py_ssize_t)sizeof(int64_t)) {
-        PyErr_SetString(PyExc_ValueError, "grid_nearest_one: inconsistent buffers (see geometry_kernels.c)");
-        goto done;
+    Grid grid;
+    Py_ssize_t m = -1;
+    if (max_shell < 0) {
+        PyErr_SetString(PyExc_ValueError, "grid_nearest_one: max_shell must not be negative");
+    } else if (grid_view(&grid, cell, low, size, &b[STARTS], &b[SORTED_XYZ], &b[SORTED_ROWS], "grid_nearest_one")) {
+        m = query_count(&b[QUERIES], query_columns, &b[STATUS], &b[INDEX], 1, "grid_nearest_one");
     }
-    const Grid grid = {cell, low[0], low[1], low[2], size[0], size[1], size[2], (const int32_t *)starts.buf,
-                       (const double *)sorted_xyz.buf, (const int64_t *)sorted_rows.buf};
-    Py_BEGIN_ALLOW_THREADS
-    nearest_one(&grid, (const float *)queries.buf, query_columns, m, max_shell, gate_sq, (uint8_t *)status.buf,
-                (int64_t *)index.buf);
-    Py_END_ALLOW_THREADS
-    result = Py_None;
-    Py_INCREF(result);
-done:
-    PyBuffer_Release(&starts);
-    PyBuffer_Release(&sorted_xyz);
-    PyBuffer_Release(&sorted_rows);
-    PyBuffer_Release(&queries);
-    PyBuffer_Release(&status);
-    PyBuffer_Release(&index);
-    return result;
+    if (m >= 0) {
+        Py_BEGIN_ALLOW_THREADS
+        nearest_one(&grid, (const float *)b[QUERIES].buf, query_columns, m, max_shell, gate_sq,
+                    (uint8_t *)b[STATUS].buf, (int64_t *)b[INDEX].buf);
+        Py_END_ALLOW_THREADS
+    }
+    release(b, BUFFERS);
+    if (m < 0) return NULL;
+    Py_RETURN_NONE;
 }
 
 static PyMethodDef methods[] = {
