@@ -97,7 +97,7 @@ def _nearest_cell(points: np.ndarray) -> float:
 class LastCloud:
     """A 'last' feature cloud with its nearest-point search and ring look-ups."""
 
-    def __init__(self, points: np.ndarray, n_rings: int, max_sq_dist: float = 25.0):
+    def __init__(self, points: np.ndarray, n_rings: int, max_sq_dist: float):
         """``max_sq_dist`` [m^2]: the gate of the nearest-point search (feature_association.
         nearest_feature_search_sq_dist)."""
         self.points = points
