@@ -10,7 +10,14 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from lego_loam_py.core import geometry
-from lego_loam_py.core.geometry import GridNeighbours, affine_fit, fit_planes, fit_planes_at, nearest_within
+from lego_loam_py.core.geometry import (
+    GridNeighbours,
+    affine_fit,
+    fit_planes,
+    fit_planes_at,
+    nearest_within,
+    pairs_within,
+)
 
 
 def test_an_exact_plane_gives_its_coefficients():
@@ -278,3 +285,44 @@ def test_the_nearest_point_on_the_grid_is_the_kd_trees_bit_for_bit(seed, n, spre
     near, index = GridNeighbours(points, max_sq_dist, cell, **layout).nearest_one(queries)
     expected_near, expected_index = _kd_tree_nearest(points, queries, max_sq_dist, **layout)
     assert np.array_equal(near, expected_near) and np.array_equal(index, expected_index)
+
+
+# ------------------------------------------------------- pairs of 2D points within a radius (pairs_within)
+
+
+def test_pairs_on_a_lattice_include_those_exactly_at_the_radius():
+    """Points every 0.5 m on a line and one 0.3 m off it: within 0.5 m, each neighbour on the line (exactly 0.5 m:
+    included, as cKDTree.query_pairs includes it) and the point off the line with the one beside it."""
+    xy = np.array([[0.0, 0.0], [0.5, 0.0], [1.0, 0.0], [0.5, 0.3]])
+    first, second = pairs_within(xy, 0.5)
+    assert sorted(zip(first.tolist(), second.tolist())) == [(0, 1), (1, 2), (1, 3)]
+    assert first.dtype == second.dtype == np.int64
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    st.integers(0, 2**31 - 1),
+    st.integers(0, 2000),
+    st.sampled_from([0.25, 0.7, 2.0]),
+    st.sampled_from([0.05, 1.0, 5.0]),
+    st.booleans(),
+)
+def test_the_pairs_are_the_kd_trees_set(seed, n, radius, spread, lattice):
+    """Sparse and crowded points, on a lattice (distances exactly at the radius) or not: the same pairs as
+    cKDTree.query_pairs, each once with i < j."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-50, 50, (n, 2)) * spread
+    if lattice:
+        xy = np.round(xy * 4) / 4
+    first, second = pairs_within(xy, radius)
+    expected = cKDTree(xy).query_pairs(radius) if n else set()
+    got = list(zip(first.tolist(), second.tolist()))
+    assert len(got) == len(set(got)) and set(got) == expected and all(i < j for i, j in got)
+
+
+def test_points_the_grid_cannot_hold_are_paired_by_the_kd_tree():
+    xy = np.array([[0.0, 0.0], [0.3, 0.0], [1e18, 0.0], [1e18, 0.2]])
+    first, second = pairs_within(xy, 0.5)
+    assert sorted(zip(first.tolist(), second.tolist())) == [(0, 1), (2, 3)]

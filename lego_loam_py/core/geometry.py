@@ -20,6 +20,7 @@ __all__ = [
     'plane_coefficients',
     'nearest_within',
     'GridNeighbours',
+    'pairs_within',
     'fit_planes',
     'fit_planes_at',
     'principal_spreads',
@@ -172,6 +173,29 @@ class GridNeighbours:
             index[tied] = nearest
         near = np.flatnonzero(status)
         return near, index[near]
+
+
+def pairs_within(xy: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs of the (n, 2) points ``xy`` [m] within ``radius`` [m] of each other, as ``cKDTree(xy).query_pairs``
+    finds them (the same set: dx^2 + dy^2 <= radius^2), each once as (i, j) with i < j: (first, second) int64. On a
+    grid of the radius in C (``native/geometry_kernels.c``), ordered by first; by cKDTree without the extension or
+    for points the grid cannot hold."""
+    xy = np.asarray(xy)
+    if _geometry_kernels is not None and xy.dtype == np.float64 and xy.ndim == 2 and xy.shape[1] == 2 and radius > 0:
+        xy = np.ascontiguousarray(xy)
+        capacity = 32 * len(xy) + 16
+        while True:
+            first, second = np.empty(capacity, np.int64), np.empty(capacity, np.int64)
+            count = _geometry_kernels.pairs_within(xy, float(radius), first, second)
+            if count < 0 or count <= capacity:
+                break
+            capacity = count  # (more pairs than room: once more with room for all)
+        if count >= 0:
+            return first[:count], second[:count]
+    from scipy.spatial import cKDTree
+
+    found = cKDTree(xy).query_pairs(radius, output_type='ndarray')
+    return found[:, 0].astype(np.int64), found[:, 1].astype(np.int64)
 
 
 def _search_bound(max_sq_dist: float) -> float:

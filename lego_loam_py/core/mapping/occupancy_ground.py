@@ -38,6 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lego_loam_py.core.geometry import pairs_within
+
 __all__ = ['KeyframeScan', 'classify_keyframe']
 
 
@@ -85,10 +87,7 @@ class _Neighbours:
 
     def __init__(self, xy: np.ndarray, radius: float):
         self.xy = xy
-        from scipy.spatial import cKDTree  # (imported when first used: 0.3 s of a node's start-up)
-
-        pairs = cKDTree(xy).query_pairs(radius, output_type='ndarray')
-        self.first, self.second = pairs[:, 0], pairs[:, 1]
+        self.first, self.second = pairs_within(xy, radius)
         self.distance = np.hypot(*(xy[self.first] - xy[self.second]).T)
 
     def cone(self, z: np.ndarray, slope: float, base: np.ndarray | None = None) -> np.ndarray:

@@ -40,11 +40,19 @@
  *   in cells): status 1 when its distance, sqrt(d2), squared is below gate_sq, its row in index (m,) int64; 0
  *   otherwise; 2 when two points lie at exactly that nearest distance (the caller asks cKDTree). All four run
  *   without the GIL.
+ *
+ * pairs_within(xy, radius, first, second) -> count
+ *   The pairs of points of xy (n, 2) float64 within `radius` [m] of each other, as cKDTree.query_pairs decides
+ *   (dx^2 + dy^2 <= radius^2), each once as (i, j) with i < j, ordered by i: written to first and second (int64,
+ *   of equal capacity) up to their capacity. Returns the number of pairs (the caller calls again with room for
+ *   all when it exceeds the capacity), or -1 for points the grid cannot hold (not finite, absurdly far, or more than
+ *   2^24 cells of the radius across): the caller then asks cKDTree. Runs without the GIL.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
 #include <stdint.h>
+#include <stdlib.h>
 
 #define UNDECIDED_M 1e-9 /* a residual this close to the bound [m] is decided by the caller */
 
@@ -520,12 +528,110 @@ static PyObject *py_grid_nearest_one(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
+#define PAIR_GRID_MAX_CELLS (1LL << 24)
+
+static Py_ssize_t pairs(const double *xy, Py_ssize_t n, double radius, int64_t *first, int64_t *second,
+                        Py_ssize_t capacity) {
+    if (n < 2) return 0;
+    const double cell = radius * (1.0 + 1e-6); /* (a cell spans the radius: pairs lie in neighbouring cells) */
+    double lo[2] = {INFINITY, INFINITY}, hi[2] = {-INFINITY, -INFINITY};
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        for (int a = 0; a < 2; ++a) {
+            const double c = floor(xy[2 * i + a] / cell);
+            if (!(fabs(c) < GRID_MAX_INDEX)) return -1;
+            if (c < lo[a]) lo[a] = c;
+            if (c > hi[a]) hi[a] = c;
+        }
+    }
+    const int64_t ni = (int64_t)(hi[0] - lo[0]) + 1, nj = (int64_t)(hi[1] - lo[1]) + 1;
+    if (ni > PAIR_GRID_MAX_CELLS / nj) return -1;
+    int64_t *starts = calloc((size_t)(ni * nj + 1), sizeof(int64_t));
+    int64_t *cell_of = malloc((size_t)n * sizeof(int64_t));
+    int64_t *sorted = malloc((size_t)n * sizeof(int64_t));
+    if (starts == NULL || cell_of == NULL || sorted == NULL) {
+        free(starts);
+        free(cell_of);
+        free(sorted);
+        return -2;
+    }
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        const int64_t ci = (int64_t)(floor(xy[2 * i] / cell) - lo[0]);
+        const int64_t cj = (int64_t)(floor(xy[2 * i + 1] / cell) - lo[1]);
+        cell_of[i] = ci * nj + cj;
+        starts[cell_of[i] + 1] += 1;
+    }
+    for (int64_t c = 0; c < ni * nj; ++c) starts[c + 1] += starts[c];
+    for (Py_ssize_t i = 0; i < n; ++i) sorted[starts[cell_of[i]]++] = (int64_t)i; /* (each cell in index order) */
+    for (int64_t c = ni * nj; c > 0; --c) starts[c] = starts[c - 1];
+    starts[0] = 0;
+    const double radius_sq = radius * radius;
+    Py_ssize_t count = 0;
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        const int64_t ci = cell_of[i] / nj, cj = cell_of[i] % nj;
+        const double x = xy[2 * i], y = xy[2 * i + 1];
+        for (int64_t a = ci - 1; a <= ci + 1; ++a) {
+            if (a < 0 || a >= ni) continue;
+            for (int64_t b = cj - 1; b <= cj + 1; ++b) {
+                if (b < 0 || b >= nj) continue;
+                const int64_t c = a * nj + b;
+                for (int64_t at = starts[c]; at < starts[c + 1]; ++at) {
+                    const int64_t j = sorted[at];
+                    if (j <= i) continue;
+                    const double dx = x - xy[2 * j], dy = y - xy[2 * j + 1];
+                    double d2 = dx * dx;
+                    d2 += dy * dy;
+                    if (!(d2 <= radius_sq)) continue;
+                    if (count < capacity) {
+                        first[count] = (int64_t)i;
+                        second[count] = j;
+                    }
+                    ++count;
+                }
+            }
+        }
+    }
+    free(starts);
+    free(cell_of);
+    free(sorted);
+    return count;
+}
+
+static PyObject *py_pairs_within(PyObject *self, PyObject *args) {
+    Py_buffer xy, first, second;
+    double radius;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*dw*w*", &xy, &radius, &first, &second)) return NULL;
+    PyObject *result = NULL;
+    const Py_ssize_t n = xy.len / (2 * (Py_ssize_t)sizeof(double));
+    const Py_ssize_t capacity = first.len / (Py_ssize_t)sizeof(int64_t);
+    if (xy.len != n * 2 * (Py_ssize_t)sizeof(double) || first.len != second.len ||
+        first.len != capacity * (Py_ssize_t)sizeof(int64_t) || !(radius > 0.0)) {
+        PyErr_SetString(PyExc_ValueError, "pairs_within: xy must be (n, 2) float64, first and second int64 alike");
+        goto done;
+    }
+    Py_ssize_t count;
+    Py_BEGIN_ALLOW_THREADS
+    count = pairs((const double *)xy.buf, n, radius, (int64_t *)first.buf, (int64_t *)second.buf, capacity);
+    Py_END_ALLOW_THREADS
+    if (count == -2) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    result = PyLong_FromSsize_t(count);
+done:
+    PyBuffer_Release(&xy);
+    PyBuffer_Release(&first);
+    PyBuffer_Release(&second);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"plane_fits", py_plane_fits, METH_VARARGS, "Least-squares planes through neighbourhoods (see the file)."},
     {"grid_extent", py_grid_extent, METH_VARARGS, "The cells a point set spans (see the file)."},
     {"grid_fill", py_grid_fill, METH_VARARGS, "Sorts points by cell (see the file)."},
     {"grid_nearest", py_grid_nearest, METH_VARARGS, "k nearest points of each query (see the file)."},
     {"grid_nearest_one", py_grid_nearest_one, METH_VARARGS, "The nearest point of each query (see the file)."},
+    {"pairs_within", py_pairs_within, METH_VARARGS, "The pairs of 2D points within a radius (see the file)."},
     {NULL, NULL, 0, NULL},
 };
 
