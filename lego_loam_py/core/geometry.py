@@ -236,9 +236,10 @@ def fit_planes(neighbours: np.ndarray, max_residual: float, min_aspect: float = 
         )
     neighbours, normal = neighbours[solvable], normal[solvable]
     norm = np.linalg.norm(normal, axis=1)
-    normal /= norm[:, None]
-    offset = 1.0 / norm
-    residuals = np.abs(np.einsum('mki,mi->mk', neighbours, normal) + offset[:, None])
+    with np.errstate(divide='ignore', invalid='ignore'):  # (a zero normal: NaN residuals, no plane)
+        normal /= norm[:, None]
+        offset = 1.0 / norm
+        residuals = np.abs(np.einsum('mki,mi->mk', neighbours, normal) + offset[:, None])
     valid = (residuals <= max_residual).all(axis=1)
     if min_aspect > 0.0:  # (from the sums above; solvable rows only)
         k = neighbours.shape[1]
