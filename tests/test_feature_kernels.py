@@ -86,7 +86,7 @@ def test_native_window_search_equals_numpy(data):
     from lego_loam_py.core.odometry.correspondences import LastCloud, _nearest_in_segments
 
     rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
-    last = LastCloud(_cloud(rng, int(rng.integers(1, 60))), 16, 25.0)
+    last = LastCloud(_cloud(rng, int(rng.integers(1, 60))), 16)
     queries = _cloud(rng, int(rng.integers(0, 12)), nan=True)[:, :3]
     lengths = rng.integers(0, 6, (len(queries), 4))
     position = rng.integers(0, len(last.points), int(lengths.sum()))
@@ -103,7 +103,7 @@ def test_the_window_search_keeps_the_first_tie_forward_and_the_last_backward():
     # Points 0 and 2 are 1 m from the query, point 1 is 2 m: a backward segment (kind 0) over [0, 1, 2] keeps 2,
     # a forward one (kind 2) keeps 0; a segment whose nearest point is beyond the limit keeps none.
     points = np.array([[1, 0, 0, 0], [2, 0, 0, 0], [-1, 0, 0, 0]], np.float32)
-    last = LastCloud(points, 16, 25.0)
+    last = LastCloud(points, 16)
     query = np.zeros((1, 3), np.float32)
     for native in (True, False):
         index, best = _nearest_in_segments(
@@ -127,8 +127,7 @@ def test_native_whole_window_search_equals_numpy(data):
         feature_association__nearest_feature_search_sq_dist=float(rng.choice([0.5, 2.0, 25.0])),
         feature_association__ring_search_window=float(rng.choice([0.5, 1.0, 2.5, 4.0])),
     )
-    gate = params.feature_association.nearest_feature_search_sq_dist
-    last = LastCloud(_cloud(rng, int(rng.integers(1, 300))), 16, gate)
+    last = LastCloud(_cloud(rng, int(rng.integers(1, 300))), 16)
     queries = _cloud(rng, int(rng.integers(0, 20)))  # (the KD-tree refuses NaN queries)
     queries[:, :3] += rng.normal(0.0, 0.3, (len(queries), 3)).astype(np.float32) * (rng.random() < 0.5)
     bound = int(rng.integers(0, len(last.points) + 3))

@@ -152,6 +152,15 @@ def test_an_index_out_of_range_is_an_error_not_a_read_beyond_the_points():
 # ---------------------------------------------------- the neighbour search on a grid (GridNeighbours)
 
 
+def _scattered_cloud(rng, n: int, spread: float, reach: float, repeats: bool) -> np.ndarray:
+    """(n, 4) float32 points spread normally by ``spread`` [m] about a centre within ``reach`` [m] of the origin; with
+    ``repeats`` a quarter of them copies of others (points at exactly the same distance from any query)."""
+    points = rng.standard_normal((n, 4)) * spread + np.append(rng.uniform(-reach, reach, 3), 0.0)
+    if repeats:
+        points[rng.integers(0, n, n // 4 + 1)] = points[rng.integers(0, n, n // 4 + 1)]
+    return points.astype(np.float32)
+
+
 def _kd_tree_answer(points, queries, k, max_sq_dist):
     from scipy.spatial import cKDTree
 
@@ -201,10 +210,7 @@ def test_the_grid_answers_as_the_kd_tree_bit_for_bit(seed, n, spread, k, max_sq_
     order decides) or without: the same rows, the same neighbours in the same order."""
     assume(spread < 30.0 or max_sq_dist > 0.25)  # (otherwise mostly wider than MAX_CELLS: the kd-tree itself)
     rng = np.random.default_rng(seed)
-    points = rng.standard_normal((n, 4)) * spread + np.append(rng.uniform(-500, 500, 3), 0.0)
-    if duplicates:
-        points[rng.integers(0, n, n // 4 + 1)] = points[rng.integers(0, n, n // 4 + 1)]
-    points = points.astype(np.float32)
+    points = _scattered_cloud(rng, n, spread, 500.0, duplicates)
     queries = (points[rng.integers(0, n, 400), :3] + rng.standard_normal((400, 3)) * spread * 0.2).astype(np.float32)
     neighbours = GridNeighbours(points, max_sq_dist)  # (maps over MAX_CELLS cells wide: the kd-tree)
     used, index = neighbours.nearest_within(queries, k, max_sq_dist)
@@ -256,8 +262,8 @@ def test_the_nearest_point_is_found_beyond_the_first_cells_and_not_beyond_the_ga
     point one cell over is taken before a farther one in the query's own cell."""
     points = np.array([[3.5, 0.0, 0.0], [30.0, 5.0, 0.0], [11.1, 0.0, 0.0], [12.05, 0.0, 0.0]], np.float32)
     queries = np.array([[0.0, 0.0, 0.0], [30.0, 0.0, 0.0], [11.95, 0.0, 0.0]], np.float32)
-    search = GridNeighbours(points, 25.0, 1.0)
-    near, index = search.nearest_one(queries)
+    search = GridNeighbours(points, cell=1.0)
+    near, index = search.nearest_one(queries, 25.0)
     assert near.tolist() == [0, 2] and index.tolist() == [0, 3]
     assert search._tree is None  # (all on the grid)
 
@@ -276,13 +282,10 @@ def test_the_nearest_point_on_the_grid_is_the_kd_trees_bit_for_bit(seed, n, spre
     """Any cell size, sparse and crowded clouds, queries near and far, repeated points (equal distances: the kd-tree
     of the given layout decides, as featureAssociation's always did)."""
     rng = np.random.default_rng(seed)
-    points = rng.standard_normal((n, 4)) * spread + np.append(rng.uniform(-100, 100, 3), 0.0)
-    if duplicates:
-        points[rng.integers(0, n, n // 4 + 1)] = points[rng.integers(0, n, n // 4 + 1)]
-    points = points.astype(np.float32)
+    points = _scattered_cloud(rng, n, spread, 100.0, duplicates)
     queries = (points[rng.integers(0, n, 400), :3] + rng.standard_normal((400, 3)) * spread).astype(np.float32)
     layout = {'leafsize': 32, 'balanced_tree': False, 'compact_nodes': False}
-    near, index = GridNeighbours(points, max_sq_dist, cell, **layout).nearest_one(queries)
+    near, index = GridNeighbours(points, cell=cell, **layout).nearest_one(queries, max_sq_dist)
     expected_near, expected_index = _kd_tree_nearest(points, queries, max_sq_dist, **layout)
     assert np.array_equal(near, expected_near) and np.array_equal(index, expected_index)
 

@@ -70,22 +70,25 @@ def nearest_within(tree, points: np.ndarray, k: int, max_sq_dist: float):
 
 class GridNeighbours:
     """The points (n, >= 3) float32 [m] of a map, for many :func:`nearest_within` searches within one radius
-    (``sqrt(max_sq_dist)``): sorted by cubic cell of that side (``native/geometry_kernels.c``, a counting sort, a
-    fraction of a kd-tree's build) and searched over the 27 cells around each query, the candidates of three cells
-    side by side in memory. The answers are cKDTree's, bit for bit: the same squared distances by the same
-    operations, the same neighbours, nearest first. Two candidates at exactly the same distance, whose order the
-    kd-tree decides by its walk, are left to a cKDTree built then, as is everything without the extension, other
-    float types, or points spread over more than MAX_CELLS cells. ``query`` is that cKDTree's.
+    (``sqrt(max_sq_dist)``) and nearest-point searches: sorted by cubic cell of that side, or of ``cell``
+    (``native/geometry_kernels.c``, a counting sort, a fraction of a kd-tree's build), and searched over the 27 cells
+    around each query, the candidates of three cells side by side in memory (the nearest point: shell by shell of
+    cells outwards). The answers are cKDTree's, bit for bit: the same squared distances by the same operations, the
+    same neighbours, nearest first. Two candidates at exactly the same distance, whose order the kd-tree decides by
+    its walk, are left to a cKDTree built then, as is everything without the extension, other float types, or
+    points spread over more than MAX_CELLS cells. ``query`` is that cKDTree's.
     """
 
     MAX_CELLS = 1 << 23  # (32 MiB of cell starts: a map some 200 x 200 x 200 search radii across)
 
-    def __init__(self, points: np.ndarray, max_sq_dist: float, cell: float | None = None, **tree_options):
-        """``cell`` [m]: the cells' side; by default the search radius, which :meth:`nearest_within` needs (with
-        smaller cells it asks the kd-tree); :meth:`nearest_one` takes any. ``tree_options``: the cKDTree's (its
-        layout picks between points at exactly the same distance); by default ``balanced_tree=False``."""
+    def __init__(self, points: np.ndarray, max_sq_dist: float | None = None, cell: float | None = None, **tree_options):
+        """``cell`` [m]: the cells' side; by default the radius of ``max_sq_dist`` [m^2], which
+        :meth:`nearest_within` needs (with smaller cells it asks the kd-tree); :meth:`nearest_one` takes any.
+        ``tree_options``: the cKDTree's (its layout picks between points at exactly the same distance); by default
+        ``balanced_tree=False``."""
+        if cell is None and max_sq_dist is None:
+            raise ValueError('GridNeighbours needs a cell size or the squared radius it spans')
         self.points = points
-        self.max_sq_dist = float(max_sq_dist)
         self._tree_options = tree_options or {'balanced_tree': False}
         self._tree = None
         self._grid = None
@@ -100,7 +103,7 @@ class GridNeighbours:
         ):
             return
         if cell is None:
-            cell = _search_bound(self.max_sq_dist) * (1.0 + 1e-6)  # (a cell spanning the search radius)
+            cell = _search_bound(max_sq_dist) * (1.0 + 1e-6)  # (a cell spanning the search radius)
         extent = _geometry_kernels.grid_extent(points, points.shape[1], cell)
         if extent is None:
             return
@@ -129,47 +132,44 @@ class GridNeighbours:
         return self.tree.query(*args, **kwargs)
 
     def nearest_within(self, queries: np.ndarray, k: int, max_sq_dist: float) -> tuple[np.ndarray, np.ndarray]:
-        """:func:`nearest_within` of the (m, >= 3) ``queries`` [m] in these points (on the grid when built for this
-        ``max_sq_dist``)."""
-        on_grid = (
-            self._grid is not None
-            and max_sq_dist == self.max_sq_dist
-            and self._grid[0] >= _search_bound(max_sq_dist)  # (27 cells hold the search radius)
-        )
+        """:func:`nearest_within` of the (m, >= 3) ``queries`` [m] in these points (on the grid when its cells span
+        the radius)."""
+        on_grid = self._grid is not None and self._grid[0] >= _search_bound(max_sq_dist)  # (27 cells hold it)
         if not on_grid or queries.dtype != _F32 or queries.ndim != 2 or not 1 < k <= 64:
             return nearest_within(self.tree, queries[:, :3], k, max_sq_dist)
         queries = np.ascontiguousarray(queries)
         status, index = np.empty(len(queries), np.uint8), np.empty((len(queries), k), np.int64)
-        bound = _search_bound(self.max_sq_dist)
+        bound = _search_bound(max_sq_dist)
         _geometry_kernels.grid_nearest(
-            *self._grid, queries, queries.shape[1], k, bound * bound, self.max_sq_dist, status, index
+            *self._grid, queries, queries.shape[1], k, bound * bound, max_sq_dist, status, index
         )
         tied = np.flatnonzero(status == 2)
         if len(tied):  # equal distances: the kd-tree's order
-            near, tied_index = nearest_within(self.tree, queries[tied, :3], k, self.max_sq_dist)
+            near, tied_index = nearest_within(self.tree, queries[tied, :3], k, max_sq_dist)
             status[tied] = 0
             status[tied[near]] = 1
             index[tied[near]] = tied_index
         used = np.flatnonzero(status)
         return used, index[used]
 
-    def nearest_one(self, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def nearest_one(self, queries: np.ndarray, max_sq_dist: float) -> tuple[np.ndarray, np.ndarray]:
         """(indices of the (m, >= 3) ``queries`` [m] whose nearest point, as cKDTree's ``query(k=1)`` finds it,
-        lies closer than ``sqrt(max_sq_dist)`` (its distance squared, as there), that point's row (int64))."""
+        lies closer than ``sqrt(max_sq_dist)`` (its distance squared, as there), that point's row (int64)). The
+        shells of cells go out as far as the radius needs, for any cell size."""
         if self._grid is None or queries.dtype != _F32 or queries.ndim != 2:
             distance, nearest = self.tree.query(queries[:, :3].astype(np.float64), k=1)
-            near = np.flatnonzero(distance.astype(np.float64) ** 2 < self.max_sq_dist)
+            near = np.flatnonzero(distance.astype(np.float64) ** 2 < max_sq_dist)
             return near, nearest[near]
         queries = np.ascontiguousarray(queries)
         status, index = np.empty(len(queries), np.uint8), np.empty(len(queries), np.int64)
-        max_shell = math.ceil(_search_bound(self.max_sq_dist) / self._grid[0]) + 1
+        max_shell = math.ceil(_search_bound(max_sq_dist) / self._grid[0]) + 1
         _geometry_kernels.grid_nearest_one(
-            *self._grid, queries, queries.shape[1], max_shell, self.max_sq_dist, status, index
+            *self._grid, queries, queries.shape[1], max_shell, max_sq_dist, status, index
         )
         tied = np.flatnonzero(status == 2)
         if len(tied):  # two at the nearest distance: the kd-tree's choice
             distance, nearest = self.tree.query(queries[tied, :3].astype(np.float64), k=1)
-            status[tied] = distance.astype(np.float64) ** 2 < self.max_sq_dist
+            status[tied] = distance.astype(np.float64) ** 2 < max_sq_dist
             index[tied] = nearest
         near = np.flatnonzero(status)
         return near, index[near]

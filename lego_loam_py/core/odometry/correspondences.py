@@ -97,9 +97,7 @@ def _nearest_cell(points: np.ndarray) -> float:
 class LastCloud:
     """A 'last' feature cloud with its nearest-point search and ring look-ups."""
 
-    def __init__(self, points: np.ndarray, n_rings: int, max_sq_dist: float):
-        """``max_sq_dist`` [m^2]: the gate of the nearest-point search (feature_association.
-        nearest_feature_search_sq_dist)."""
+    def __init__(self, points: np.ndarray, n_rings: int):
         self.points = points
         self.n_rings = n_rings
         self.rings = ring_of(points[:, 3])
@@ -113,9 +111,7 @@ class LastCloud:
         # sliding-midpoint splits (balanced_tree=False) and leaves of 32 points without the compaction pass, the
         # fastest to build for the few hundred queries each got; the layout picks between equidistant points.
         self.search = (
-            GridNeighbours(
-                points, max_sq_dist, _nearest_cell(points), leafsize=32, balanced_tree=False, compact_nodes=False
-            )
+            GridNeighbours(points, cell=_nearest_cell(points), leafsize=32, balanced_tree=False, compact_nodes=False)
             if len(points)
             else None
         )
@@ -247,12 +243,7 @@ def _window_search(
     ``native=False`` runs the NumPy version (the tests compare the two)."""
     fa = params.feature_association
     limit = fa.nearest_feature_search_sq_dist
-    if limit == last.search.max_sq_dist:
-        q, closest = last.search.nearest_one(points_start)
-    else:  # (a cloud kept from before the gate changed)
-        dist, nearest = last.tree.query(points_start[:, :3].astype(np.float64), k=1)
-        q = np.flatnonzero(dist.astype(np.float64) ** 2 < limit)
-        closest = nearest[q]
+    q, closest = last.search.nearest_one(points_start, limit)
     if (
         native
         and hasattr(_feature_kernels, 'nearest_in_windows')  # (None, or an extension built before it: NumPy)

@@ -183,9 +183,8 @@ class LaserOdometry:
         if self.last_corner is None or (
             len(corner) > fa.min_last_corner_points and len(surf) > fa.min_last_surf_points
         ):
-            gate = fa.nearest_feature_search_sq_dist
-            self.last_corner = LastCloud(corner, n_rings, gate)
-            self.last_surf = LastCloud(surf, n_rings, gate)
+            self.last_corner = LastCloud(corner, n_rings)
+            self.last_surf = LastCloud(surf, n_rings)
 
     def register(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints = None) -> OdometryStats:
         """Refine ``transform_cur`` from the sweep's sharp and flat points (camera axes, ring + 0.1 s). Wall
