@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lego_loam_py.core.frames import matrix_to_quaternion, quaternion_to_matrix
+
 __all__ = [
     'write_tum_atomic',
     'read_tum',
@@ -162,12 +164,9 @@ def _process_exists(pid: int) -> bool:
 def tum_lines(stamps_ns: np.ndarray, poses: np.ndarray, position_digits: int = 6, rotation_digits: int = 9) -> str:
     """TUM text ``timestamp tx ty tz qx qy qz qw`` for (N,) ns stamps and (N, 4, 4) poses (quaternions with
     qw >= 0, so a pose has one spelling)."""
-    from scipy.spatial.transform import Rotation
-
     stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
     poses = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
-    quats = Rotation.from_matrix(poses[:, :3, :3]).as_quat() if len(poses) else np.zeros((0, 4))
-    quats[quats[:, 3] < 0] *= -1.0
+    quats = [matrix_to_quaternion(rotation) for rotation in poses[:, :3, :3]]
     p, r = position_digits, rotation_digits
     lines = [
         f'{_format_stamp(stamp)} {t[0]:.{p}f} {t[1]:.{p}f} {t[2]:.{p}f} '
@@ -197,8 +196,6 @@ def write_tum_atomic(path: str | Path, stamps_ns: np.ndarray, poses: np.ndarray)
 
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """(stamps [ns] int64 (N,), poses (N, 4, 4)) from a TUM file (comments and blank lines skipped)."""
-    from scipy.spatial.transform import Rotation
-
     stamps, rows = [], []
     for line in Path(path).read_text().splitlines():
         line = line.strip()
@@ -212,7 +209,7 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     values = np.array(rows, dtype=float).reshape(-1, 7)
     poses = np.tile(np.eye(4), (len(values), 1, 1))
     if len(values):
-        poses[:, :3, :3] = Rotation.from_quat(values[:, 3:]).as_matrix()
+        poses[:, :3, :3] = [quaternion_to_matrix(quaternion) for quaternion in values[:, 3:]]
         poses[:, :3, 3] = values[:, :3]
     return np.array(stamps, dtype=np.int64), poses
 

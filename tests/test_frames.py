@@ -186,6 +186,26 @@ def test_quaternion_and_matrix_conversions_are_scipys_bit_for_bit():
             assert _same_bits(F.matrix_to_rpy(m), Rotation.from_matrix(m).as_euler('xyz', degrees=True)), m
 
 
+def test_rotation_vector_conversions_are_scipys_bit_for_bit():
+    rng = np.random.default_rng(9)
+    # and small turns about both sides of the series' switch (1e-3 rad)
+    small = rng.normal(size=(1000, 4))
+    small[:, :3] *= rng.choice([1e-9, 1e-6, 1e-4, 4.9e-4, 5.1e-4, 1e-3], size=(1000, 1))
+    for q in _random_quaternions(rng, 3000) + list(small):
+        matrix = Rotation.from_quat(q).as_matrix()
+        expected = Rotation.from_matrix(matrix)
+        assert _same_bits(F.rotation_vector(matrix), expected.as_rotvec()), q
+        assert F.rotation_angle(matrix) == float(expected.magnitude()), q
+        vector = expected.as_rotvec() * rng.choice([1.0, 0.3, 1e-3, 1e-4])
+        assert _same_bits(F.vector_to_matrix(vector), Rotation.from_rotvec(vector).as_matrix()), vector
+    motion = F.make_pose(Rotation.from_rotvec([0.2, -0.1, 0.4]).as_matrix(), [1.0, 2.0, -0.5])
+    quarter = Rotation.from_rotvec([0.05, -0.025, 0.1]).as_matrix()
+    assert np.allclose(F.scaled_motion(motion, 0.25)[:3, :3], quarter, rtol=0.0, atol=1e-15)
+    assert np.array_equal(F.scaled_motion(motion, 0.25)[:3, 3], [0.25, 0.5, -0.125])
+    half = F.scaled_motion(motion, 0.5)
+    assert np.allclose(half[:3, :3] @ half[:3, :3], motion[:3, :3], rtol=0.0, atol=1e-12)
+
+
 def test_rpy_conversions_are_scipys_bit_for_bit_including_gimbal_lock():
     rng = np.random.default_rng(8)
     special = np.array([0.0, -0.0, 90.0, -90.0, 180.0, -180.0, 45.0, 1e-9])

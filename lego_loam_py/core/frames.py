@@ -96,6 +96,10 @@ __all__ = [
     'wrap_angle',
     'rpy_to_matrix',
     'matrix_to_rpy',
+    'rotation_vector',
+    'rotation_angle',
+    'vector_to_matrix',
+    'scaled_motion',
     'ImuMounting',
     'Rep105Frames',
     'body_twist',
@@ -225,10 +229,10 @@ def quaternion_to_matrix(quaternion: np.ndarray) -> np.ndarray:
     return _matrix_of_quaternion(*_normalised(*q.tolist(), raise_on_zero=True))
 
 
-def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
-    """3x3 rotation -> (x, y, z, w) with w >= 0."""
+def matrix_to_quaternion(rotation: np.ndarray, canonical: bool = True) -> np.ndarray:
+    """3x3 rotation -> (x, y, z, w), with w >= 0 when ``canonical`` (else the sign scipy's from_matrix picks)."""
     q = _quaternion_of_matrix(rotation)
-    return -q if q[3] < 0 else q
+    return -q if canonical and q[3] < 0 else q
 
 
 def euler_to_quaternion(rx: float, ry: float, rz: float) -> np.ndarray:
@@ -364,6 +368,50 @@ def matrix_to_rpy(rotation: np.ndarray) -> np.ndarray:
 # formulas are used; a node that needs scipy.spatial for its kd-trees imports it there. Same operations in the
 # same order as scipy's Cython (IEEE doubles, libm's sqrt, atan2 and hypot), checked against scipy on random and
 # edge-case inputs (tests/test_frames.py). Anything but a single rotation goes to scipy.
+
+
+def rotation_vector(rotation: np.ndarray) -> np.ndarray:
+    """3x3 rotation -> its rotation vector (axis times angle [rad], the angle within [0, pi]), as scipy's
+    ``Rotation.from_matrix(rotation).as_rotvec()``."""
+    x, y, z, w = _quaternion_of_matrix(rotation).tolist()
+    # scipy's canonical sign: w > 0, or the first non-zero of x, y, z positive for a half turn (w = 0)
+    if w < 0 or (w == 0 and (x < 0 or (x == 0 and (y < 0 or (y == 0 and z < 0))))):
+        x, y, z, w = -x, -y, -z, -w
+    angle = 2 * math.atan2(math.sqrt(x * x + y * y + z * z), w)
+    if angle <= 1e-3:  # (the series of angle / sin(angle / 2))
+        angle2 = angle * angle
+        scale = 2 + angle2 / 12 + 7 * angle2 * angle2 / 2880
+    else:
+        scale = angle / math.sin(angle / 2)
+    return np.array([scale * x, scale * y, scale * z])
+
+
+def rotation_angle(rotation: np.ndarray) -> float:
+    """The angle [rad] of a 3x3 rotation, within [0, pi], as scipy's ``Rotation.from_matrix(rotation).magnitude()``."""
+    x, y, z, w = _quaternion_of_matrix(rotation).tolist()
+    return 2 * math.atan2(math.sqrt(x * x + y * y + z * z), abs(w))
+
+
+def vector_to_matrix(rotation_vector: np.ndarray) -> np.ndarray:
+    """A rotation vector (axis times angle [rad]) -> 3x3 rotation, as scipy's
+    ``Rotation.from_rotvec(rotation_vector).as_matrix()``."""
+    x, y, z = (float(v) for v in np.asarray(rotation_vector, dtype=float).reshape(3))
+    angle = math.sqrt(x * x + y * y + z * z)
+    if angle <= 1e-3:  # (the series of sin(angle / 2) / angle)
+        angle2 = angle * angle
+        scale = 0.5 - angle2 / 48 + angle2 * angle2 / 3840
+    else:
+        scale = math.sin(angle / 2) / angle
+    return _matrix_of_quaternion(scale * x, scale * y, scale * z, math.cos(angle / 2))
+
+
+def scaled_motion(motion: np.ndarray, scale: float) -> np.ndarray:
+    """The 4x4 motion ``motion`` made ``scale`` times (its rotation vector and its translation scaled), as a
+    constant velocity would over ``scale`` times its duration."""
+    out = np.eye(4)
+    out[:3, :3] = vector_to_matrix(rotation_vector(motion[:3, :3]) * scale)
+    out[:3, 3] = np.asarray(motion[:3, 3], dtype=float) * scale
+    return out
 
 
 def _scipy_rotation():
@@ -612,7 +660,7 @@ def rotation_log(rotation: np.ndarray) -> np.ndarray:
     if angle < 1e-6:
         return 0.5 * axis  # sin(angle) ~ angle
     if angle > np.pi - 1e-4:  # (near a half turn the antisymmetric part vanishes)
-        return _scipy_rotation().from_matrix(r).as_rotvec()
+        return rotation_vector(r)
     return axis * (angle / (2.0 * np.sin(angle)))
 
 

@@ -25,6 +25,8 @@ from collections import deque
 
 import numpy as np
 
+from lego_loam_py.core.frames import rotation_vector
+
 __all__ = ['ImuAgreement', 'WINDOW', 'MIN_SPAN', 'FULL_TRUST']
 
 WINDOW = 30.0  # [s] of intervals the estimates come from
@@ -53,8 +55,6 @@ class ImuAgreement:
 
     def mapped(self, stamp_ns: int, rotation: np.ndarray) -> None:
         """mapOptimization's pose of the scan stamped ``stamp_ns`` (its rotation, 3x3, lidar axes)."""
-        from scipy.spatial.transform import Rotation
-
         state = self._states.pop(stamp_ns, None)
         if state is None:
             return
@@ -65,7 +65,7 @@ class ImuAgreement:
         length = time - previous[0]
         lidar_turn = previous[1].T @ rotation
         imu_turn = previous[2].T @ attitude
-        difference = Rotation.from_matrix(lidar_turn.T @ imu_turn).as_rotvec()
+        difference = rotation_vector(lidar_turn.T @ imu_turn)
         # What the gyro's whole bias turned over the interval: the difference, and what was taken off then.
         self._intervals.append((time, length, difference + 0.5 * (bias + previous[3]) * length))
         while self._intervals and self._intervals[0][0] < time - WINDOW:

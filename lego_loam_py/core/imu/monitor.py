@@ -45,7 +45,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lego_loam_py.core.frames import CAMERA_TO_LIDAR, LIDAR_TO_CAMERA, ImuMounting, euler_to_matrix, matrix_to_rpy
+from lego_loam_py.core.frames import (
+    CAMERA_TO_LIDAR,
+    LIDAR_TO_CAMERA,
+    ImuMounting,
+    euler_to_matrix,
+    matrix_to_quaternion,
+    matrix_to_rpy,
+    rotation_angle,
+    rotation_vector,
+    vector_to_matrix,
+)
 from lego_loam_py.core.imu.alignment import (
     AlignmentFit,
     fit_alignment,
@@ -115,7 +125,7 @@ class ImuAlignmentMonitor:
         self.who = who
         self.trusted = True
         self.first_stamp: float | None = None  # the first interval's start [s], for the time to a decision
-        self._intervals: deque[tuple] = deque()  # (start, end, lidar rotvec, IMU turn, rate start, rate end)
+        self._intervals: deque[tuple] = deque()  # (start, end, lidar rotvec, IMU turn quaternion, rate start, rate end)
         self._quick: deque[tuple] = deque()  # the same, for add_quick
         self._last_warning: float | None = None
         self._reason = ''
@@ -194,8 +204,6 @@ class ImuAlignmentMonitor:
     def _window(intervals: deque, seconds: float, interval: tuple) -> deque:
         """``intervals`` with ``interval`` (start, end, turns, rates) appended and those older than ``seconds``
         before its end dropped (all of them when time went back: a bag restarted)."""
-        from scipy.spatial.transform import Rotation
-
         start, end, lidar_turn, imu_turn, rate_start, rate_end = interval
         if intervals and start < intervals[-1][0]:
             intervals.clear()
@@ -203,8 +211,8 @@ class ImuAlignmentMonitor:
             (
                 start,
                 end,
-                Rotation.from_matrix(lidar_turn).as_rotvec(),
-                Rotation.from_matrix(imu_turn),
+                rotation_vector(lidar_turn),
+                matrix_to_quaternion(imu_turn, canonical=False),
                 np.asarray(rate_start, float),
                 np.asarray(rate_end, float),
             )
@@ -219,8 +227,6 @@ class ImuAlignmentMonitor:
         """The up direction the lidar sees (``reference``: the ground's normal, pointing to the lidar's side) and the
         IMU's, both unit vectors in lidar axes. An IMU whose up lies more than :data:`MAX_GROUND_TILT` from it is
         not trusted."""
-        from scipy.spatial.transform import Rotation
-
         if not self.enabled or not self.trusted:
             return None
         tilt = math.degrees(math.acos(float(np.clip(np.dot(up, imu_up), -1.0, 1.0))))
@@ -230,7 +236,7 @@ class ImuAlignmentMonitor:
         axis = np.cross(imu_up, up)
         norm = np.linalg.norm(axis)
         axis = axis / norm if norm > 1e-9 else np.array([1.0, 0.0, 0.0])
-        correction = Rotation.from_rotvec(axis * math.radians(tilt)).as_matrix()
+        correction = vector_to_matrix(axis * math.radians(tilt))
         suggestion = correction @ self.mounting.rotation
         self._reason = (
             f'its up direction is {tilt:.0f} deg from {reference} (mounted upside down or on its side?); '
@@ -250,7 +256,7 @@ class ImuAlignmentMonitor:
             return None
         starts = np.array([i[4] for i in window])
         ends = np.array([i[5] for i in window])
-        increments = Rotation.from_quat(np.array([i[3].as_quat() for i in window]))
+        increments = Rotation.from_quat(np.array([i[3] for i in window]))
         fit = fit_alignment(lidar, lambda offsets: shifted_increments(increments, starts, ends, offsets), OFFSETS)
         self.evaluations += 1
         self.last_fit = fit
@@ -410,8 +416,6 @@ class SweepImuCheck(_Check):
     def on_probation(self, sweep, previous) -> bool:
         """Whether a sweep (the IMU over it, a :class:`~lego_loam_py.core.imu.buffer.SweepAttitude`; ``previous`` the
         last one's, None for the first sweep: judged by its own turn) is registered without the IMU and compared."""
-        from scipy.spatial.transform import Rotation
-
         if not self.monitor.enabled or not self.trusted or self.monitor.probation_passed:
             return False
         turn, imu, end = None, self._buffer(), sweep.t_start + self._scan_period
@@ -421,7 +425,7 @@ class SweepImuCheck(_Check):
             at_start, at_end = imu_world_rotation(*imu.attitude(np.array([sweep.t_start, end])))
             turn = at_start.T @ at_end
         if self._probation_sweeps >= PROBATION_SWEEPS or (
-            turn is not None and math.degrees(Rotation.from_matrix(turn).magnitude()) < PROBATION_TURN_DEG
+            turn is not None and math.degrees(rotation_angle(turn)) < PROBATION_TURN_DEG
         ):
             return False
         self._probation_sweeps += 1

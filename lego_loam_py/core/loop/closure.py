@@ -33,6 +33,7 @@ from lego_loam_py.core.frames import (
     invert_pose,
     lidar_pose_to_camera,
     pose6_to_matrix,
+    rotation_vector,
     transform_cloud,
     transform_points,
 )
@@ -46,9 +47,7 @@ __all__ = ['LoopCandidate', 'LoopResult', 'LoopCloser', 'find_loop_candidate', '
 
 def rotation_angle_deg(pose: np.ndarray) -> float:
     """Angle [deg] of the rotation of a 4x4 pose."""
-    from scipy.spatial.transform import Rotation
-
-    return float(np.degrees(np.linalg.norm(Rotation.from_matrix(pose[:3, :3]).as_rotvec())))
+    return float(np.degrees(np.linalg.norm(rotation_vector(pose[:3, :3]))))
 
 
 @dataclass

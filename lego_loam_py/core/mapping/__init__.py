@@ -56,7 +56,6 @@ _EXPORTS = {
     'OdometryContinuity': 'odometry_continuity',
     'OdometryJump': 'odometry_continuity',
     'anchored_transform_bef': 'odometry_continuity',
-    'scaled_motion': 'odometry_continuity',
     'PoseGraph': 'pose_graph',
     'RegistrationCounts': 'scan_to_map',
     'edge_correspondences': 'scan_to_map',

@@ -15,13 +15,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lego_loam_py.core.frames import invert_pose, matrix_to_pose6, pose6_to_matrix
+from lego_loam_py.core.frames import invert_pose, matrix_to_pose6, pose6_to_matrix, scaled_motion
 
 __all__ = [
     'OdometryJump',
     'OdometryContinuity',
     'anchored_transform_bef',
-    'scaled_motion',
     'JUMP_M',
     'JUMP_M_PER_S',
     'JUMP_RAD',
@@ -39,16 +38,6 @@ MAX_EXTRAPOLATION_S = 10.0  # over a longer gap the vehicle is assumed to have s
 def _angle(rotation: np.ndarray) -> float:
     """Angle of a 3x3 rotation [rad]."""
     return float(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0)))
-
-
-def scaled_motion(motion: np.ndarray, scale: float) -> np.ndarray:
-    """The 4x4 motion ``motion`` repeated ``scale`` times (rotation vector and translation scaled)."""
-    from scipy.spatial.transform import Rotation
-
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(motion[:3, :3]).as_rotvec() * scale).as_matrix()
-    out[:3, 3] = motion[:3, 3] * scale
-    return out
 
 
 @dataclass(frozen=True)

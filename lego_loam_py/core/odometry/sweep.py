@@ -28,6 +28,7 @@ from lego_loam_py.core.frames import (
     rot_x,
     rot_y,
     rot_z,
+    scaled_motion,
 )
 from lego_loam_py.core.parity.libm import atan2f
 from lego_loam_py.core.projection.cloud_info import CloudInfo
@@ -391,12 +392,7 @@ class StampInstant:
         fraction = self.position * share
         if fraction == 1.0:
             return np.array(motion, dtype=float)
-        from scipy.spatial.transform import Rotation
-
-        out = np.eye(4)
-        out[:3, :3] = Rotation.from_rotvec(fraction * Rotation.from_matrix(motion[:3, :3]).as_rotvec()).as_matrix()
-        out[:3, 3] = fraction * np.asarray(motion[:3, 3], dtype=float)
-        return out
+        return scaled_motion(motion, fraction)
 
     def share(self, stamp_ns: int) -> float:
         """The part of the motion registered at the scan stamped ``stamp_ns`` that one sweep makes."""
