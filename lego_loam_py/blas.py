@@ -9,7 +9,7 @@ the same results bit for bit (trajectories and maps checked) with less CPU.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 
 __all__ = ['one_blas_thread', 'blas_threads_for_run']
@@ -22,23 +22,18 @@ def one_blas_thread() -> None:
 
 
 @contextmanager
-def blas_threads_for_run(modules: Iterable[str] = ()) -> Iterator[None]:
+def blas_threads_for_run() -> Iterator[None]:
     """One BLAS thread for the length of a run in a process whose NumPy was imported before :func:`one_blas_thread`
     could act: a script or a notebook that imported NumPy first and then calls ``run_bag``. OpenBLAS keeps its
     thread per core there, and in each of the offline run's three processes those threads spin between the small
-    products on the cores the other processes need (KITTI ran at 1.9x real time instead of 3.0x). ``modules``: what
-    the run imports (scipy loads a BLAS of its own), imported first so that the limit covers their libraries too.
+    products on the cores the other processes need (KITTI ran at 1.9x real time instead of 3.0x). The limit covers
+    the BLAS libraries loaded when it is entered: import what the run uses first (scipy loads a BLAS of its own).
     The limits are lifted afterwards, for the caller's own work. Nothing is changed when OPENBLAS_NUM_THREADS is
     set: the user's choice, or this package's made before NumPy's import (the CLI, the nodes)."""
     if 'OPENBLAS_NUM_THREADS' in os.environ:
         yield
         return
-    import importlib
-
     from threadpoolctl import threadpool_limits
-
-    for module in modules:
-        importlib.import_module(module)
 
     with threadpool_limits(limits=1, user_api='blas'):
         yield

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import fcntl
-import importlib
 import multiprocessing
 import os
 import pickle
@@ -78,9 +77,8 @@ def run_split(pipeline: Pipeline, items: ItemsInTurn, on_scan: Callable[[], None
     """Run the recording's ``items`` through ``pipeline``, the front end in forked children; ``on_scan()`` after
     each scan applied. Returns the seconds of recording read when the items were cut short, else None.
     ``pipeline`` must have no mapping thread (its mapping runs here, between the scans) and no listener (whose
-    events hold whole clouds). ``items`` is read in the reader process only."""
-    for module in (*pipeline.ip.DEFERRED_IMPORTS, *pipeline.fa.DEFERRED_IMPORTS):  # (once, for all three)
-        importlib.import_module(module)
+    events hold whole clouds). ``items`` is read in the reader process only. What the stages import on first use
+    is best imported before (run_source does): once here, not in each child."""
     context = multiprocessing.get_context('fork')
     projected_in, projected_out = context.Pipe(duplex=False)
     steps_in, steps_out = context.Pipe(duplex=False)

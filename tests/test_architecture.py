@@ -275,6 +275,34 @@ def test_no_node_imports_kd_trees_open3d_or_gtsam_at_start_up():
         assert result.returncode == 0 and result.stdout.strip() == '[]', (node, result.stdout, result.stderr)
 
 
+# A lidar-only run of the committed bag, every stage in this process; prints the heavy modules it loaded.
+_LIDAR_ONLY_RUN = """
+import sys
+from lego_loam_py.core.params import Params
+from lego_loam_py.offline import run_bag
+
+result = run_bag(sys.argv[1], Params(), imu_topic='', max_scans=40, progress=False, front_end_process=False,
+                 mapping_thread=False)
+assert len(result.mapped) >= 10, len(result.mapped)
+print([m for m in sys.argv[2:] if m in sys.modules])
+"""
+
+
+def test_the_scans_of_a_lidar_only_run_need_no_kd_tree_library():
+    """The neighbour searches are grids and the rotations core.frames': scipy.spatial (0.4 s of CPU to import) is
+    left to what needs it (a search's rare tie, a loop closure, the IMU's checks), so a node without an IMU never
+    loads it. gtsam does come: the pose graph."""
+    bag = CORE.parents[1] / 'bags' / 'campus_8s'
+    done = subprocess.run(
+        [sys.executable, '-c', _LIDAR_ONLY_RUN, str(bag), 'scipy.spatial', 'open3d', 'gtsam'],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip().splitlines()[-1] == "['gtsam']"
+
+
 REPO = CORE.parents[1]
 
 
