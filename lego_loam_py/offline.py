@@ -123,10 +123,8 @@ def run_source(
     pipeline.mo.map_source = recording_source(source.path)  # (noted in the map bundle it saves)
     stages = (pipeline.ip, pipeline.fa, pipeline.mo)  # (mo: the mapping, or the localization in a saved map)
     # What the stages import where they first use it, imported now, as a node does once it is ready: before the
-    # clock starts, before the front end forks, before the BLAS limit (scipy brings a BLAS of its own). A bag
-    # without an IMU topic, or read with --no-imu, leaves out what only the IMU's checks use.
-    lists = ('DEFERRED_IMPORTS', 'IMU_IMPORTS') if getattr(source, 'imu_topic', True) else ('DEFERRED_IMPORTS',)
-    for module in dict.fromkeys(module for stage in stages for name in lists for module in getattr(stage, name, ())):
+    # clock starts, before the front end forks, before the BLAS limit (a library may bring a BLAS of its own).
+    for module in dict.fromkeys(module for stage in stages for module in getattr(stage, 'DEFERRED_IMPORTS', ())):
         importlib.import_module(module)
     with blas_threads_for_run():  # (a script that imported NumPy first has a BLAS thread per core)
         result = pipeline.record

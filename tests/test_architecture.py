@@ -11,6 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 CORE = Path(__file__).resolve().parents[1] / 'lego_loam_py' / 'core'
 ROS_MODULES = (
     'rclpy',
@@ -275,26 +277,38 @@ def test_no_node_imports_kd_trees_open3d_or_gtsam_at_start_up():
         assert result.returncode == 0 and result.stdout.strip() == '[]', (node, result.stdout, result.stderr)
 
 
-# A lidar-only run of the committed bag, every stage in this process; prints the heavy modules it loaded.
-_LIDAR_ONLY_RUN = """
+# A run of the committed bag, every stage in this process, then the IMU check's fit on made-up turns; prints the
+# heavy modules loaded by then.
+_RUN_AND_FIT = """
 import sys
+import numpy as np
+from lego_loam_py.core.imu.alignment import fit_alignment, shifted_increments
 from lego_loam_py.core.params import Params
 from lego_loam_py.offline import run_bag
 
-result = run_bag(sys.argv[1], Params(), imu_topic='', max_scans=40, progress=False, front_end_process=False,
+imu_topic = sys.argv[2] or None
+result = run_bag(sys.argv[1], Params(), imu_topic=imu_topic, max_scans=40, progress=False, front_end_process=False,
                  mapping_thread=False)
 assert len(result.mapped) >= 10, len(result.mapped)
-print([m for m in sys.argv[2:] if m in sys.modules])
+rng = np.random.default_rng(0)
+turns = rng.normal(size=(20, 3)) * 0.05
+quaternions = np.concatenate([np.sin(0.5 * turns), np.ones((20, 1))], axis=1)
+quaternions /= np.linalg.norm(quaternions, axis=1)[:, None]
+rates = rng.normal(size=(20, 3))
+fit = fit_alignment(turns, lambda offsets: shifted_increments(quaternions, rates, rates, offsets))
+assert fit.angle_deg == fit.angle_deg and fit.rotation_significance >= 0.0
+print([m for m in sys.argv[3:] if m in sys.modules])
 """
 
 
-def test_the_scans_of_a_lidar_only_run_need_no_kd_tree_library():
+@pytest.mark.parametrize('imu_topic', ['', '/imu/data'])
+def test_the_scans_and_the_imu_check_need_no_kd_tree_library(imu_topic):
     """The neighbour searches are grids and the rotations core.frames': scipy.spatial (0.4 s of CPU to import) is
-    left to what needs it (a search's rare tie, a loop closure, the IMU's checks), so a node without an IMU never
-    loads it. gtsam does come: the pose graph."""
+    left to what needs it (a search's rare tie, a loop closure, the calibration), so a node never loads it for its
+    scans or its IMU. gtsam does come: the pose graph."""
     bag = CORE.parents[1] / 'bags' / 'campus_8s'
     done = subprocess.run(
-        [sys.executable, '-c', _LIDAR_ONLY_RUN, str(bag), 'scipy.spatial', 'open3d', 'gtsam'],
+        [sys.executable, '-c', _RUN_AND_FIT, str(bag), imu_topic, 'scipy.spatial', 'open3d', 'gtsam'],
         capture_output=True,
         text=True,
         timeout=300,

@@ -206,6 +206,25 @@ def test_rotation_vector_conversions_are_scipys_bit_for_bit():
     assert np.allclose(half[:3, :3] @ half[:3, :3], motion[:3, :3], rtol=0.0, atol=1e-12)
 
 
+def test_rotation_stacks_are_scipys_to_a_few_ulps():
+    rng = np.random.default_rng(10)
+    n = 5000
+    # every scale, the small-angle series and both sides of a half turn
+    vectors = rng.normal(size=(n, 3)) * rng.choice([1e-6, 1e-3, 0.01, 0.5, 3.0], size=(n, 1))
+    vectors[:10] = np.eye(3)[rng.integers(0, 3, 10)] * np.pi * rng.choice([-1.0, 1.0], size=(10, 1))
+    quaternions = F.vectors_to_quaternions(vectors)
+    assert np.allclose(quaternions, Rotation.from_rotvec(vectors).as_quat(), rtol=0.0, atol=1e-15)
+    others = Rotation.from_rotvec(vectors[::-1] * 0.7).as_quat()
+    products = F.quaternion_products(quaternions, others)
+    expected = (Rotation.from_quat(quaternions) * Rotation.from_quat(others)).as_quat()
+    assert np.allclose(products, expected, rtol=0.0, atol=1e-15)
+    back = F.quaternions_to_vectors(products)
+    assert np.allclose(back, Rotation.from_quat(products).as_rotvec(), rtol=0.0, atol=5e-15)
+    # broadcasting, as the IMU check composes (m, 1, 4) shifts with (1, n, 4) increments
+    grid = F.quaternion_products(quaternions[:3, None], others[None, :4])
+    assert grid.shape == (3, 4, 4) and np.allclose(grid[2, 1], F.quaternion_products(quaternions[2], others[1]))
+
+
 def test_rpy_conversions_are_scipys_bit_for_bit_including_gimbal_lock():
     rng = np.random.default_rng(8)
     special = np.array([0.0, -0.0, 90.0, -90.0, 180.0, -180.0, 45.0, 1e-9])

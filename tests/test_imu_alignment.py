@@ -91,11 +91,27 @@ def test_first_order_shift_matches_the_exact_one_for_small_offsets():
     start, end = np.arange(1.0, 8.0, 0.1), np.arange(1.1, 8.1, 0.1)
     exact = track.increments(start, end, [0.02])[0]
     first_order = shifted_increments(
-        Rotation.from_rotvec(track.increments(start, end, [0.0])[0]), wobbly_rates(start), wobbly_rates(end), [0.02]
+        Rotation.from_rotvec(track.increments(start, end, [0.0])[0]).as_quat(),
+        wobbly_rates(start),
+        wobbly_rates(end),
+        [0.02],
     )[0]
     # The neglected term is the angular acceleration times offset^2 / 2: below 1e-4 rad here.
     unshifted = track.increments(start, end, [0.0])[0]
     assert np.abs(first_order - exact).max() < 1e-4 and np.abs(exact - unshifted).max() > 5e-4
+
+
+def test_shifted_increments_compose_as_scipys_rotations():
+    rng = np.random.default_rng(4)
+    increments = Rotation.from_rotvec(rng.normal(size=(30, 3)) * 0.05)
+    rate_start, rate_end = rng.normal(size=(30, 3)), rng.normal(size=(30, 3))
+    offsets = np.array([-0.04, 0.0, 0.012])
+    shifted = shifted_increments(increments.as_quat(), rate_start, rate_end, offsets)
+    for k, offset in enumerate(offsets):
+        expected = (
+            Rotation.from_rotvec(-offset * rate_start) * increments * Rotation.from_rotvec(offset * rate_end)
+        ).as_rotvec()
+        assert np.allclose(shifted[k], expected, rtol=0.0, atol=1e-15)
 
 
 def test_fit_finds_the_mounting_and_the_clock_offset():

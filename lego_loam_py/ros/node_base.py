@@ -6,7 +6,6 @@ import inspect
 import json
 import os
 import re
-import sys
 import threading
 import time
 import traceback
@@ -84,7 +83,6 @@ class LegoLoamNode(Node):
         self._last_problem = ''  # the latest warning or error: the watchdog's reason
         self._inputs_without_output = 0
         self.guard = StepGuard(self.params.reliability.reset_after_failures)  # (core.guard: the policy)
-        self._imu_imports_asked = False  # (the core's IMU_IMPORTS, imported ahead with the first IMU sample)
         self._imu_disagreement: str | None = None  # why the IMU is not used (its check found it misaligned)
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', qos.reliable(10))
         # Wall time: with use_sim_time and no /clock the ROS clock stands still, and so would the diagnostics.
@@ -140,18 +138,13 @@ class LegoLoamNode(Node):
         return super().get_clock()
 
     # ------------------------------------------------------------------------------------------ warm-up
-    def import_deferred(self, attribute: str = 'DEFERRED_IMPORTS') -> threading.Thread | None:
-        """Import on a thread of its own what the core imports only where it first uses it (the modules its
-        ``attribute`` lists, e.g. gtsam for the pose graph: 0.1 s of CPU, scipy.spatial 0.4 s). Called once the node
-        is ready (:func:`~lego_loam_py.ros.runtime.run_node`, ``DEFERRED_IMPORTS``: what its first input needs), so
-        that the node answers sooner and the import is done while it waits for its first input, which then finds
-        it in place (a scan arriving meanwhile waits for it, as it would have waited for its own import); and with
-        the first IMU sample (``IMU_IMPORTS``: what the IMU's checks need, never imported by a node without one)."""
-        modules = tuple(
-            module
-            for module in getattr(getattr(self, 'core', None), attribute, ())
-            if module not in sys.modules  # (each list is asked for once; another may have brought it)
-        )
+    def import_deferred(self) -> threading.Thread | None:
+        """Import on a thread of its own what the core imports only where it first uses it (its
+        ``DEFERRED_IMPORTS``, e.g. gtsam for the pose graph: 0.1 s of CPU). Called once the node is ready
+        (:func:`~lego_loam_py.ros.runtime.run_node`), so that the node answers sooner and the import is done while
+        it waits for its first input, which then finds it in place (a scan arriving meanwhile waits for it, as it
+        would have waited for its own import)."""
+        modules = tuple(getattr(getattr(self, 'core', None), 'DEFERRED_IMPORTS', ()))
         if not modules:
             return None
 
@@ -264,9 +257,6 @@ class LegoLoamNode(Node):
             reason = add(*sample)
         except (ValueError, TypeError, AttributeError) as exc:
             reason = f'unreadable message ({exc})'
-        if not self._imu_imports_asked:
-            self._imu_imports_asked = True
-            self.import_deferred('IMU_IMPORTS')
         if reason is not None:
             self.count('imu_dropped')
             self.warn('imu', f'IMU message dropped: {reason}')

@@ -25,14 +25,16 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from lego_loam_py.core.frames import matrix_to_rpy
-
-if TYPE_CHECKING:
-    from scipy.spatial.transform import Rotation
+from lego_loam_py.core.frames import (
+    matrix_to_rpy,
+    quaternion_products,
+    quaternions_to_vectors,
+    rotation_vector,
+    vectors_to_quaternions,
+)
 
 __all__ = [
     'AlignmentFit',
@@ -61,19 +63,20 @@ def best_rotation(lidar: np.ndarray, imu: np.ndarray) -> np.ndarray:
 
 
 def shifted_increments(
-    increments: Rotation, rate_start: np.ndarray, rate_end: np.ndarray, offsets: np.ndarray
+    increments: np.ndarray, rate_start: np.ndarray, rate_end: np.ndarray, offsets: np.ndarray
 ) -> np.ndarray:
-    """(m, n, 3) rotation vectors of n IMU increments moved each of m ``offsets`` [s] later at both ends, to first
-    order in the offset: ``exp(-w_a offset) dR exp(w_b offset)`` with the body rates (n, 3) [rad/s] at the
-    interval's ends (enough for the online check; the calibration shifts exactly)."""
-    from scipy.spatial.transform import Rotation
-
+    """(m, n, 3) rotation vectors of n IMU increments (unit quaternions x, y, z, w, (n, 4)) moved each of m
+    ``offsets`` [s] later at both ends, to first order in the offset: ``exp(-w_a offset) dR exp(w_b offset)`` with
+    the body rates (n, 3) [rad/s] at the interval's ends (enough for the online check; the calibration shifts
+    exactly). In NumPy (core.frames' stacks), so that a node's IMU check needs no scipy.spatial."""
     offsets = np.atleast_1d(np.asarray(offsets, dtype=float))
+    increments = np.asarray(increments, dtype=float)
     m, n = len(offsets), len(increments)
-    start = Rotation.from_rotvec((-offsets[:, None, None] * rate_start[None]).reshape(-1, 3))
-    end = Rotation.from_rotvec((offsets[:, None, None] * rate_end[None]).reshape(-1, 3))
-    tiled = Rotation.from_quat(np.tile(increments.as_quat(), (m, 1)))
-    return (start * tiled * end).as_rotvec().reshape(m, n, 3)
+    start = vectors_to_quaternions(-offsets[:, None, None] * rate_start[None])
+    end = vectors_to_quaternions(offsets[:, None, None] * rate_end[None])
+    return quaternions_to_vectors(quaternion_products(quaternion_products(start, increments[None]), end)).reshape(
+        m, n, 3
+    )
 
 
 class OrientationTrack:
@@ -149,9 +152,7 @@ class AlignmentFit:
     @property
     def angle_deg(self) -> float:
         """How far the fitted rotation is from the configured mounting [deg]."""
-        from scipy.spatial.transform import Rotation
-
-        return float(np.degrees(np.linalg.norm(Rotation.from_matrix(self.rotation).as_rotvec())))
+        return float(np.degrees(np.linalg.norm(rotation_vector(self.rotation))))
 
     @property
     def rpy_deg(self) -> np.ndarray:
@@ -160,9 +161,7 @@ class AlignmentFit:
     @property
     def rotation_significance(self) -> float:
         """How many standard deviations the fitted rotation lies from none (Mahalanobis distance)."""
-        from scipy.spatial.transform import Rotation
-
-        vector = Rotation.from_matrix(self.rotation).as_rotvec()
+        vector = rotation_vector(self.rotation)
         try:
             return float(math.sqrt(max(0.0, vector @ np.linalg.solve(self.rotation_covariance, vector))))
         except np.linalg.LinAlgError:
@@ -261,8 +260,6 @@ def _skew(v: np.ndarray) -> np.ndarray:
 def nearest_right_angle_rotation(rotation: np.ndarray, tolerance_deg: float = 10.0) -> np.ndarray | None:
     """The rotation among the 24 that map axes onto axes (IMUs are mostly mounted so) within ``tolerance_deg``
     of ``rotation``, or None."""
-    from scipy.spatial.transform import Rotation
-
     rounded = np.round(np.asarray(rotation))
     if (
         not (np.abs(rounded).sum(axis=0) == 1).all()
@@ -270,5 +267,5 @@ def nearest_right_angle_rotation(rotation: np.ndarray, tolerance_deg: float = 10
         or np.linalg.det(rounded) < 0.5
     ):
         return None
-    angle = np.degrees(np.linalg.norm(Rotation.from_matrix(rounded.T @ rotation).as_rotvec()))
+    angle = np.degrees(np.linalg.norm(rotation_vector(rounded.T @ rotation)))
     return rounded if angle <= tolerance_deg else None

@@ -249,14 +249,12 @@ class ImuAlignmentMonitor:
     def _fit(self, window: deque, min_turn: float = MIN_TURN_DEG) -> AlignmentFit | None:
         """The rotation and offset best explaining the window (None: it turned less than ``min_turn`` degrees in
         all, too little to tell anything)."""
-        from scipy.spatial.transform import Rotation
-
         lidar = np.array([i[2] for i in window])
         if np.degrees(np.linalg.norm(lidar, axis=1).sum()) < min_turn:
             return None
         starts = np.array([i[4] for i in window])
         ends = np.array([i[5] for i in window])
-        increments = Rotation.from_quat(np.array([i[3] for i in window]))
+        increments = np.array([i[3] for i in window])
         fit = fit_alignment(lidar, lambda offsets: shifted_increments(increments, starts, ends, offsets), OFFSETS)
         self.evaluations += 1
         self.last_fit = fit

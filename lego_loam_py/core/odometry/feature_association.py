@@ -134,11 +134,9 @@ class FeatureAssociationResult:
 class FeatureAssociation:
     """The featureAssociation algorithm; feed scans (and IMU samples) in time order."""
 
-    # Imported where first used, not with this module; a node imports them ahead: DEFERRED_IMPORTS once it is
-    # ready (the scans need none: their neighbour searches are grids, their rotations core.frames), IMU_IMPORTS
-    # once IMU samples arrive (the IMU check fits rotations with scipy's Rotation).
+    # Imported by the first scan, not with this module (a node imports them ahead, once it is ready): none, the
+    # neighbour searches are grids and the rotations core.frames', with an IMU too.
     DEFERRED_IMPORTS = ()
-    IMU_IMPORTS = ('scipy.spatial',)
 
     def __init__(self, params: Params, fix_scan_bound: bool = False):
         self.params = params
