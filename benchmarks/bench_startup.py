@@ -15,9 +15,10 @@ Per node and run:
 * **wall** [s]: from the process's start (``Popen``) to the answer;
 * **CPU** [s]: user + system time of the node's process (all its threads, from ``/proc/<pid>/stat``, 10 ms ticks)
   at the answer;
-* **CPU settled** [s]: the same ``--settle`` seconds later, with no data flowing: what a node imports after it is
-  ready (``LegoLoamNode.import_deferred``: the modules its core uses from the first scan on) shows here, as do the
-  first ``/diagnostics`` messages (one a second).
+* **CPU settled** [s]: the same ``--settle`` seconds later, with no data flowing: the first ``/diagnostics``
+  messages (one a second) and anything else a waiting node does. What a core imports for its first scan
+  (``LegoLoamNode.import_deferred``: gtsam for mapOptimization, 0.1 s of CPU) comes with the node's first input,
+  and so in neither figure.
 
 The package's bytecode caches are written first, as an install has them (``benchmarks.common.compile_bytecode``:
 without them a node compiles every module it imports at each start).

@@ -122,7 +122,7 @@ def run_source(
     )
     pipeline.mo.map_source = recording_source(source.path)  # (noted in the map bundle it saves)
     stages = (pipeline.ip, pipeline.fa, pipeline.mo)  # (mo: the mapping, or the localization in a saved map)
-    # What the stages import where they first use it, imported now, as a node does once it is ready: before the
+    # What the stages import where they first use it, imported now, as a node does with its first input: before the
     # clock starts, before the front end forks, before the BLAS limit (a library may bring a BLAS of its own).
     for module in dict.fromkeys(module for stage in stages for module in getattr(stage, 'DEFERRED_IMPORTS', ())):
         importlib.import_module(module)

@@ -264,7 +264,7 @@ def test_importing_the_core_loads_no_ros_module():
 
 
 # What no node loads before it is ready (benchmarks/bench_startup.py: 0.1-1 s of CPU each); a node imports them
-# where they are used, or on a thread once it is ready (LegoLoamNode.import_deferred).
+# where they are used, or on a thread with their first input (LegoLoamNode.import_deferred).
 HEAVY_AT_START = ('scipy.spatial', 'scipy.sparse', 'open3d', 'gtsam')
 
 

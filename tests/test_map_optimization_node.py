@@ -185,3 +185,37 @@ def test_the_grid_is_redrawn_from_the_corrected_poses_after_a_loop_closure(conte
     assert len(redrawn_cells & before_cells) < 0.5 * len(redrawn_cells)
     assert abs(redrawn.counts()['free'] - fresh.counts()['free']) <= 0.01 * fresh.counts()['free']
     node.destroy_node()
+
+
+_FIRST_INPUT = """
+import json, sys
+import rclpy
+from sensor_msgs.msg import PointCloud2
+
+from lego_loam_py.ros.map_optimization_node import MapOptimizationNode
+
+rclpy.init()
+node = MapOptimizationNode()
+waiting = 'gtsam' in sys.modules
+subscription = next(s for s in node.subscriptions if s.topic_name == '/laser_cloud_corner_last')
+subscription.callback(PointCloud2())  # the first input (an empty cloud: dropped with a warning, as any bad input)
+thread = node.deferred_imports
+thread.join(60)
+subscription.callback(PointCloud2())
+print(json.dumps({'waiting': waiting, 'after': 'gtsam' in sys.modules, 'same': node.deferred_imports is thread}))
+node.destroy_node()
+rclpy.shutdown()
+"""
+
+
+def test_the_pose_graph_library_is_imported_with_the_first_input_not_at_start_up(ros_domain):
+    """gtsam (0.1 s of CPU to import) is loaded on a thread when the first message arrives, once: a node waiting
+    for data has not paid for it (benchmarks/bench_startup.py)."""
+    import json
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, '-c', _FIRST_INPUT], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    seen = json.loads(done.stdout.strip().splitlines()[-1])
+    assert seen == {'waiting': False, 'after': True, 'same': True}

@@ -83,6 +83,8 @@ class LegoLoamNode(Node):
         self._last_problem = ''  # the latest warning or error: the watchdog's reason
         self._inputs_without_output = 0
         self.guard = StepGuard(self.params.reliability.reset_after_failures)  # (core.guard: the policy)
+        # The thread of import_deferred (None: not started yet; False: nothing to import)
+        self.deferred_imports: threading.Thread | bool | None = None
         self._imu_disagreement: str | None = None  # why the IMU is not used (its check found it misaligned)
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', qos.reliable(10))
         # Wall time: with use_sim_time and no /clock the ROS clock stands still, and so would the diagnostics.
@@ -140,11 +142,14 @@ class LegoLoamNode(Node):
     # ------------------------------------------------------------------------------------------ warm-up
     def import_deferred(self) -> threading.Thread | None:
         """Import on a thread of its own what the core imports only where it first uses it (its
-        ``DEFERRED_IMPORTS``, e.g. gtsam for the pose graph: 0.1 s of CPU). Called once the node is ready
-        (:func:`~lego_loam_py.ros.runtime.run_node`), so that the node answers sooner and the import is done while
-        it waits for its first input, which then finds it in place (a scan arriving meanwhile waits for it, as it
-        would have waited for its own import)."""
+        ``DEFERRED_IMPORTS``, e.g. gtsam for the pose graph: 0.1 s of CPU), once: called with the node's first
+        input (a message on any of its subscriptions), so that a node waiting for data has not paid for it and the
+        import overlaps what comes before the first use (a callback reaching it meanwhile waits for it, as it would
+        have waited for its own import). The thread, or None when there is nothing to import."""
+        if self.deferred_imports is not None:
+            return None
         modules = tuple(getattr(getattr(self, 'core', None), 'DEFERRED_IMPORTS', ()))
+        self.deferred_imports = False
         if not modules:
             return None
 
@@ -157,7 +162,7 @@ class LegoLoamNode(Node):
                 except Exception:  # (the first use imports it again, and reports what fails there)
                     pass
 
-        thread = threading.Thread(target=run, name='deferred imports', daemon=True)
+        thread = self.deferred_imports = threading.Thread(target=run, name='deferred imports', daemon=True)
         thread.start()
         return thread
 
@@ -169,6 +174,8 @@ class LegoLoamNode(Node):
 
         def counted(*args):
             self.counters[key] = self.counters.get(key, 0) + 1
+            if self.deferred_imports is None:  # (the first input)
+                self.import_deferred()
             return callback(*args)
 
         counted.__signature__ = inspect.signature(callback)

@@ -149,9 +149,6 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
             code = exc.exit_code
             return code
         executor.add_node(node)
-        import_deferred = getattr(node, 'import_deferred', None)
-        if import_deferred is not None:  # (LegoLoamNode: what its core imports on first use, imported now)
-            import_deferred()
         try:
             while not stop.is_set() and rclpy.ok():
                 try:

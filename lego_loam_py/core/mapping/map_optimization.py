@@ -105,8 +105,8 @@ class MapOptimization:
     """The mapOptimization algorithm; :meth:`process` is called with each synchronised input set."""
 
     builds_map = True  # (a core.mapping.mapper.Mapper with keyframes, loops and a map to save)
-    # Imported by the first mapping step, not with this module (a node imports them ahead, once it is ready). The
-    # map's neighbour searches are grids: scipy.spatial comes only with a search's rare tie or a loop closure.
+    # Imported by the first mapping step, not with this module (a node imports them ahead with its first input).
+    # The map's neighbour searches are grids: scipy.spatial comes only with a search's rare tie or a loop closure.
     DEFERRED_IMPORTS = ('gtsam',)
 
     def __init__(self, params: Params):

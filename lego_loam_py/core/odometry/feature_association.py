@@ -134,7 +134,7 @@ class FeatureAssociationResult:
 class FeatureAssociation:
     """The featureAssociation algorithm; feed scans (and IMU samples) in time order."""
 
-    # Imported by the first scan, not with this module (a node imports them ahead, once it is ready): none, the
+    # Imported by the first scan, not with this module (a node imports them ahead with its first input): none, the
     # neighbour searches are grids and the rotations core.frames', with an IMU too.
     DEFERRED_IMPORTS = ()
 

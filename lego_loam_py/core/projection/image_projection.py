@@ -64,7 +64,7 @@ class SegmentationResult:
 class ImageProjection:
     """The imageProjection algorithm for one sensor configuration; :meth:`process` handles one scan."""
 
-    # Imported by the first scan, not with this module (a node imports them ahead, once it is ready).
+    # Imported by the first scan, not with this module (a node imports them ahead with its first input).
     DEFERRED_IMPORTS = SEGMENTATION_IMPORTS
 
     def __init__(self, params: Params):
