@@ -33,6 +33,7 @@ files.
 from __future__ import annotations
 
 import array
+import functools
 import math
 import threading
 from dataclasses import dataclass, field
@@ -175,7 +176,6 @@ class OccupancyGrid:
 
     def __init__(self, params: OccupancyGridParams | None = None):
         self.params = params or OccupancyGridParams()
-        self._disk = _disk(self.params)
         self._scans: dict[object, KeyframeScan] = {}
         self.keyframes_added = 0
         self.classified = 0  # keyframes classified (cache misses), for the record
@@ -183,6 +183,11 @@ class OccupancyGrid:
         self.version = 0
         self.lock = threading.RLock()
         self._clear()
+
+    @functools.cached_property
+    def _disk(self) -> _Disk:
+        """The ray-casting disk, made with the first keyframe (10 ms: not a node's start-up)."""
+        return _disk(self.params)
 
     def _clear(self) -> None:
         self._log_odds = np.zeros((0, 0), np.float32)
