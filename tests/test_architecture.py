@@ -268,23 +268,15 @@ def test_importing_the_core_loads_no_ros_module():
 HEAVY_AT_START = ('scipy.spatial', 'scipy.sparse', 'open3d', 'gtsam')
 
 
-def test_a_node_loads_message_type_support_without_the_message_code_generator():
-    """rosidl_generator_py imports its code generator (lark, empy) with the type support unless told it is absent
-    (lego_loam_py.ros does): 30 ms of CPU at every node's start."""
-    code = (
-        'import sys\nimport lego_loam_py.ros.transform_fusion_node\n'
-        'from rcl_interfaces.msg import ParameterEvent\n'
-        'ParameterEvent.__class__.__import_type_support__()\n'
-        "print(ParameterEvent.__class__._TYPE_SUPPORT is not None, [m for m in ('lark', 'em') if m in sys.modules])\n"
-    )
-    result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120)
-    assert result.returncode == 0 and result.stdout.strip() == 'True []', (result.stdout, result.stderr)
-
-
-def test_no_node_imports_kd_trees_open3d_or_gtsam_at_start_up():
+def test_no_node_imports_kd_trees_open3d_gtsam_or_the_message_code_generator_at_start_up():
+    """Nor rosidl's code generator (lark, empy), which rosidl_generator_py imports with the first message type
+    support unless told it is absent (lego_loam_py.ros does): 30 ms of CPU at every node's start."""
     for node in ('image_projection_node', 'feature_association_node', 'map_optimization_node', 'transform_fusion_node'):
         code = (
-            f'import sys\nimport lego_loam_py.ros.{node}\nprint([m for m in {HEAVY_AT_START!r} if m in sys.modules])\n'
+            f'import sys\nimport lego_loam_py.ros.{node}\n'
+            'from rcl_interfaces.msg import ParameterEvent\n'
+            'ParameterEvent.__class__.__import_type_support__()\n'
+            f'print([m for m in {HEAVY_AT_START + ("lark", "em")!r} if m in sys.modules])\n'
         )
         result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120)
         assert result.returncode == 0 and result.stdout.strip() == '[]', (node, result.stdout, result.stderr)
