@@ -41,6 +41,17 @@ SCANS = 80
 ATE_BOUND_M = 0.065
 MIN_INTEGRATED_FRACTION = 0.95
 SCAN_TIMEOUT_S = 10.0  # per scan in lockstep: only a lost scan (or a hung node) waits this long
+# The pipeline's own links: topic -> the nodes that take it (the publisher: tests.support.topics.ALWAYS).
+PIPELINE_LINKS = {
+    '/segmented_cloud': ('featureAssociation',),
+    '/segmented_cloud_info': ('featureAssociation',),
+    '/outlier_cloud': ('featureAssociation',),
+    '/laser_odom_to_init': ('mapOptimization', 'transformFusion'),
+    '/laser_cloud_corner_last': ('mapOptimization',),
+    '/laser_cloud_surf_last': ('mapOptimization',),
+    '/outlier_cloud_last': ('mapOptimization',),
+    '/aft_mapped_to_init': ('transformFusion',),
+}
 
 
 def _alive(pid: int) -> bool:
@@ -57,6 +68,25 @@ def _started_pids(output: str) -> dict[str, int]:
 
 def _logs(directory: Path) -> str:
     return '\n'.join(f'--- {p.name}\n{p.read_text()[-3000:]}' for p in sorted(directory.glob('*.log')))
+
+
+def _endpoints(node, topic: str) -> tuple[set[str], set[str]]:
+    """(publishing, subscribing) node names of ``topic`` as ``node``'s graph knows them."""
+    return (
+        {info.node_name for info in node.get_publishers_info_by_topic(topic)},
+        {info.node_name for info in node.get_subscriptions_info_by_topic(topic)},
+    )
+
+
+def _linked(node) -> bool:
+    """Whether ``node``'s graph holds every pipeline link (publisher and takers) and /integrated_to_init from
+    transformFusion to ``node``."""
+    for topic, takers in PIPELINE_LINKS.items():
+        publishing, subscribing = _endpoints(node, topic)
+        if ALWAYS[topic][0] not in publishing or not set(takers) <= subscribing:
+            return False
+    publishing, subscribing = _endpoints(node, '/integrated_to_init')
+    return 'transformFusion' in publishing and node.get_name() in subscribing
 
 
 def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp_path, rclpy_context, processes):
@@ -143,6 +173,10 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
     try:
         head = read_until(launcher, 'ready after', timeout=90)
         assert spin(lambda: all(p.get_subscription_count() for p in publishers.values()), 30)
+        # Every link between the nodes, and /integrated_to_init to this process, discovered before the first scan:
+        # a reliable volatile message sent before its reader matched is not delivered, and the first scans of a
+        # busy machine's start came out of nothing downstream (two 10 s waits in lockstep).
+        assert spin(lambda: _linked(node), 30), {t: _endpoints(node, t) for t in PIPELINE_LINKS}
         # Lockstep: /clock, the IMU samples recorded before the cloud, the cloud, its /integrated_to_init.
         pending_imu, waited_out = [], []
         for message in reader.messages(topics=list(publishers)):
