@@ -28,7 +28,8 @@ Runs alternate between nodes (the machine is shared: load drifts); medians are p
 node can go below. ``--source DIR`` puts another checkout first on ``PYTHONPATH`` (the venv's scripts then import
 that tree: a before/after comparison with one venv). ``--profile`` also starts each node once under ``python -X
 importtime`` with cProfile, up to the end of its construction, and prints where start-up goes: the phases, the
-imports grouped by package, and the costliest calls after the imports.
+imports grouped by package, and the costliest calls after the imports; then, as a phase of its own, what the node
+imports with its first input (its core's ``DEFERRED_IMPORTS``).
 """
 
 from __future__ import annotations
@@ -221,13 +222,23 @@ _PROFILE_CHILD = textwrap.dedent(
     profile.disable()
     text = io.StringIO()
     pstats.Stats(profile, stream=text).sort_stats('cumulative').print_stats(30)
+    print(FIRST_INPUT, file=sys.stderr, flush=True)  # (the import times below are not the start-up's)
+    cpu3b, wall3b = time.process_time(), time.monotonic()
+    thread = node.import_deferred() if hasattr(node, 'import_deferred') else None
+    if thread is not None:
+        thread.join()
+    cpu4, wall4 = time.process_time(), time.monotonic()
     node.destroy_node()
     rclpy.try_shutdown()
     print(json.dumps({'phases': {'imports': [cpu1 - cpu0, wall1 - wall0], 'rclpy.init': [cpu2 - cpu1, wall2 - wall1],
-                                 'node construction, first spin': [cpu3 - cpu2, wall3 - wall2]},
+                                 'node construction, first spin': [cpu3 - cpu2, wall3 - wall2],
+                                 'imports with the first input': [cpu4 - cpu3b, wall4 - wall3b]},
                       'before_main_cpu_s': cpu0, 'profile': text.getvalue()}))
     """
 )
+# Printed by the profiled child between its start-up and what its first input imports (LegoLoamNode.import_deferred).
+_FIRST_INPUT_MARK = '--- first input'
+_PROFILE_CHILD = _PROFILE_CHILD.replace('FIRST_INPUT', repr(_FIRST_INPUT_MARK))
 
 _CLASSES = {
     'imageProjection': 'ImageProjectionNode',
@@ -251,7 +262,8 @@ def profile_node(name: str, env: dict, params: Path, top: int = 12) -> str:
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     by_package: dict[str, float] = {}
     biggest: list[tuple[float, str]] = []
-    for line in proc.stderr.splitlines():
+    start_up = proc.stderr.split(_FIRST_INPUT_MARK)[0]
+    for line in start_up.splitlines():
         if not line.startswith('import time:') or 'self [us]' in line:
             continue
         _, self_us, cumulative_us, module = (part.strip() for part in line.replace('import time:', '|').split('|'))
