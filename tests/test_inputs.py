@@ -163,12 +163,30 @@ def test_point_files_keep_every_field(tmp_path):
         [(1, 2, 3, 200), (4, 5, 6, 7)], dtype=[('x', '>f4'), ('y', '>f4'), ('z', '>f4'), ('intensity', 'u1')]
     )
     (tmp_path / 'd.ply').write_bytes(header.format('binary_big_endian 1.0').encode() + body.tobytes())
-    for name in ('c.ply', 'd.ply'):
+    little = body.astype([('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('intensity', 'u1')])
+    (tmp_path / 'f.ply').write_bytes(header.format('binary_little_endian 1.0').encode() + little.tobytes())
+    for name in ('c.ply', 'd.ply', 'f.ply'):
         cloud = read_ply_points(tmp_path / name)
         assert cloud['z'].tolist() == [3, 6] and cloud['intensity'].tolist() == [200, 7], name
+        assert cloud.dtype['x'] == np.dtype('<f4') and cloud.flags.writeable, name
+    (tmp_path / 'g.ply').write_bytes(header.format('binary_little_endian 1.0').encode() + little.tobytes()[:-3])
+    with pytest.raises(SourceError, match='g.ply: truncated: 2 vertices'):
+        read_ply_points(tmp_path / 'g.ply')
     (tmp_path / 'e.pcd').write_bytes(ascii_pcd.replace('DATA ascii', 'DATA binary').split('1.5')[0].encode() + b'\0')
     with pytest.raises(SourceError, match='e.pcd: truncated'):
         read_pcd_points(tmp_path / 'e.pcd')
+    # Binary records after a header of odd length (misaligned in the file) come back exact, aligned and writable.
+    binary = ascii_pcd.replace('DATA ascii\n1.5 2 3 4\n-1 0 0.25 9\n', 'DATA binary\n').replace(
+        'VERSION .7', 'VERSION 0.7 '
+    )
+    records = np.array(
+        [(1.5, 2, 3, 4), (-1, 0, 0.25, 9)], dtype=[('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('ring', '<u2')]
+    )
+    (tmp_path / 'h.pcd').write_bytes(binary.encode() + records.tobytes())
+    cloud = read_pcd_points(tmp_path / 'h.pcd')
+    assert (
+        len(binary) % 2 == 1 and cloud.tobytes() == records.tobytes() and cloud.flags.aligned and cloud.flags.writeable
+    )
 
 
 def test_a_velodyne_pcap_runs_without_a_convert_step_and_decodes_as_convert_does(shared_data, tmp_path):

@@ -13,6 +13,7 @@ decoded with numpy, without a loop over points.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -72,7 +73,10 @@ def read_points(path: str | Path) -> np.ndarray:
     return reader(path)
 
 
-def _header_lines(data: bytes, path: Path, end_marker: bytes, limit: int = 65536) -> tuple[list[str], int]:
+_HEADER_LIMIT = 65536  # [bytes] a header's end must come before this
+
+
+def _header_lines(data: bytes, path: Path, end_marker: bytes, limit: int = _HEADER_LIMIT) -> tuple[list[str], int]:
     """The text lines of a header up to and including the line starting with ``end_marker``, and the offset of
     the data after it."""
     offset = 0
@@ -89,11 +93,46 @@ def _header_lines(data: bytes, path: Path, end_marker: bytes, limit: int = 65536
     raise SourceError(f'{path}: no complete header (no {end_marker.decode()} line)')
 
 
+def _records(handle, path: Path, offset: int, dtype: np.dtype, count: int, what: str) -> np.ndarray:
+    """``count`` records of ``dtype`` stored from byte ``offset`` of the open file ``handle``, read straight into a
+    new aligned array: after a header of any length they lie misaligned in the file's bytes, where NumPy copies
+    them field by field (1.6 ms of a 2 MB KITTI scan, against 0.5 ms for the whole read here)."""
+    size = os.fstat(handle.fileno()).st_size
+    if size - offset < count * dtype.itemsize:
+        raise SourceError(
+            f'{path}: truncated: {count} {what} of {dtype.itemsize} bytes need {count * dtype.itemsize} bytes, '
+            f'the file has {size - offset}'
+        )
+    out = np.empty(count, dtype=dtype)
+    target = out.view(np.uint8)
+    handle.seek(offset)
+    if handle.readinto(target) != target.nbytes:
+        raise SourceError(f'{path}: the file shrank while it was read')
+    return out
+
+
 def read_pcd_points(path: str | Path) -> np.ndarray:
     """The points of a PCD file with all its fields (see the module docstring)."""
     path = Path(path)
-    data = path.read_bytes()
-    lines, offset = _header_lines(data, path, b'DATA')
+    with open(path, 'rb') as handle:
+        head = handle.read(_HEADER_LIMIT)
+        lines, offset = _header_lines(head, path, b'DATA')
+        layout, dtype, points = _pcd_layout(lines, path)
+        if layout == 'binary':
+            return _records(handle, path, offset, dtype, points, 'points')
+        data = head + handle.read()
+    if layout == 'ascii':
+        table = np.loadtxt(data[offset:].decode('ascii').splitlines(), dtype=np.float64, ndmin=2)
+        if table.shape[0] != points:
+            raise SourceError(f'{path}: the header says {points} points, the file holds {table.shape[0]}')
+        return _from_columns(table, dtype, path)
+    if layout == 'binary_compressed':
+        return _read_with_open3d(path)
+    raise SourceError(f"{path}: unknown PCD DATA layout '{layout}'")
+
+
+def _pcd_layout(lines: list[str], path: Path) -> tuple[str, np.dtype, int]:
+    """(DATA layout, record dtype, point count) of a PCD header's lines."""
     header = {}
     for line in lines:
         if line and not line.startswith('#'):
@@ -119,22 +158,7 @@ def read_pcd_points(path: str | Path) -> np.ndarray:
         raise SourceError(f'{path}: not a PCD header this reader understands ({exc})') from None
     if not (len(names) == len(sizes) == len(kinds) == len(counts)):
         raise SourceError(f'{path}: FIELDS, SIZE, TYPE and COUNT of the header differ in length')
-    layout = header['DATA'][0].lower()
-    if layout == 'binary':
-        if len(data) - offset < points * dtype.itemsize:
-            raise SourceError(
-                f'{path}: truncated: {points} points of {dtype.itemsize} bytes need '
-                f'{points * dtype.itemsize} bytes, the file has {len(data) - offset}'
-            )
-        return np.frombuffer(data, dtype=dtype, count=points, offset=offset).copy()
-    if layout == 'ascii':
-        table = np.loadtxt(data[offset:].decode('ascii').splitlines(), dtype=np.float64, ndmin=2)
-        if table.shape[0] != points:
-            raise SourceError(f'{path}: the header says {points} points, the file holds {table.shape[0]}')
-        return _from_columns(table, dtype, path)
-    if layout == 'binary_compressed':
-        return _read_with_open3d(path)
-    raise SourceError(f"{path}: unknown PCD DATA layout '{layout}'")
+    return header['DATA'][0].lower(), dtype, points
 
 
 def _from_columns(table: np.ndarray, dtype: np.dtype, path: Path) -> np.ndarray:
@@ -170,10 +194,24 @@ def _read_with_open3d(path: Path) -> np.ndarray:
 def read_ply_points(path: str | Path) -> np.ndarray:
     """The vertex properties of a PLY file as a structured array."""
     path = Path(path)
-    data = path.read_bytes()
-    if not data.startswith(b'ply'):
-        raise SourceError(f"{path}: not a PLY file (it does not start with 'ply')")
-    lines, offset = _header_lines(data, path, b'end_header')
+    with open(path, 'rb') as handle:
+        head = handle.read(_HEADER_LIMIT)
+        if not head.startswith(b'ply'):
+            raise SourceError(f"{path}: not a PLY file (it does not start with 'ply')")
+        lines, offset = _header_lines(head, path, b'end_header')
+        layout, dtype, vertices = _ply_layout(lines, path)
+        if layout != 'ascii':
+            points = _records(handle, path, offset, dtype, vertices, 'vertices')
+            return points if layout == 'binary_little_endian' else points.astype(dtype.newbyteorder('<'))
+        data = head + handle.read()
+    rows = data[offset:].decode('ascii').splitlines()[:vertices]
+    table = np.loadtxt(rows, dtype=np.float64, ndmin=2) if vertices else np.zeros((0, len(dtype)))
+    return _from_columns(table, dtype, path)
+
+
+def _ply_layout(lines: list[str], path: Path) -> tuple[str, np.dtype, int]:
+    """(format, vertex dtype, vertex count) of a PLY header's lines (the dtype in the file's byte order; for an
+    ascii file the native one)."""
     layout, element, vertices, properties = None, None, 0, []
     for line in lines:
         words = line.split()
@@ -196,20 +234,11 @@ def read_ply_points(path: str | Path) -> np.ndarray:
     if not properties:
         raise SourceError(f'{path}: no vertex properties in the header')
     if layout == 'ascii':
-        rows = data[offset:].decode('ascii').splitlines()[:vertices]
-        table = np.loadtxt(rows, dtype=np.float64, ndmin=2) if vertices else np.zeros((0, len(properties)))
-        return _from_columns(table, np.dtype(properties), path)
+        return layout, np.dtype(properties), vertices
     order = {'binary_little_endian': '<', 'binary_big_endian': '>'}.get(layout)
     if order is None:
         raise SourceError(f"{path}: unknown PLY format '{layout}'")
-    dtype = np.dtype([(name, order + kind) for name, kind in properties])
-    if len(data) - offset < vertices * dtype.itemsize:
-        raise SourceError(
-            f'{path}: truncated: {vertices} vertices need {vertices * dtype.itemsize} bytes, '
-            f'the file has {len(data) - offset}'
-        )
-    points = np.frombuffer(data, dtype=dtype, count=vertices, offset=offset)
-    return points.astype(dtype.newbyteorder('<'))
+    return layout, np.dtype([(name, order + kind) for name, kind in properties]), vertices
 
 
 def read_bin_points(path: str | Path) -> np.ndarray:
