@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from lego_loam_py.ros.conversions import serialized_stamp_ns
-from lego_loam_py.testing.nodes import Diagnostics, read_until, release
+from lego_loam_py.testing.nodes import Diagnostics, links_matched, read_until, release
 from tests.support.topics import ALWAYS, GATED, TF_DYNAMIC, TF_STATIC, message_class
 
 REPO = Path(__file__).resolve().parents[1]
@@ -41,17 +41,6 @@ SCANS = 80
 ATE_BOUND_M = 0.065
 MIN_INTEGRATED_FRACTION = 0.95
 SCAN_TIMEOUT_S = 10.0  # per scan in lockstep: only a lost scan (or a hung node) waits this long
-# The pipeline's own links: topic -> the nodes that take it (the publisher: tests.support.topics.ALWAYS).
-PIPELINE_LINKS = {
-    '/segmented_cloud': ('featureAssociation',),
-    '/segmented_cloud_info': ('featureAssociation',),
-    '/outlier_cloud': ('featureAssociation',),
-    '/laser_odom_to_init': ('mapOptimization', 'transformFusion'),
-    '/laser_cloud_corner_last': ('mapOptimization',),
-    '/laser_cloud_surf_last': ('mapOptimization',),
-    '/outlier_cloud_last': ('mapOptimization',),
-    '/aft_mapped_to_init': ('transformFusion',),
-}
 
 
 def _alive(pid: int) -> bool:
@@ -68,25 +57,6 @@ def _started_pids(output: str) -> dict[str, int]:
 
 def _logs(directory: Path) -> str:
     return '\n'.join(f'--- {p.name}\n{p.read_text()[-3000:]}' for p in sorted(directory.glob('*.log')))
-
-
-def _endpoints(node, topic: str) -> tuple[set[str], set[str]]:
-    """(publishing, subscribing) node names of ``topic`` as ``node``'s graph knows them."""
-    return (
-        {info.node_name for info in node.get_publishers_info_by_topic(topic)},
-        {info.node_name for info in node.get_subscriptions_info_by_topic(topic)},
-    )
-
-
-def _linked(node) -> bool:
-    """Whether ``node``'s graph holds every pipeline link (publisher and takers) and /integrated_to_init from
-    transformFusion to ``node``."""
-    for topic, takers in PIPELINE_LINKS.items():
-        publishing, subscribing = _endpoints(node, topic)
-        if ALWAYS[topic][0] not in publishing or not set(takers) <= subscribing:
-            return False
-    publishing, subscribing = _endpoints(node, '/integrated_to_init')
-    return 'transformFusion' in publishing and node.get_name() in subscribing
 
 
 def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp_path, rclpy_context, processes):
@@ -135,7 +105,7 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
                 raw=True,
             )
     integrated = []
-    node.create_subscription(
+    integrated_subscription = node.create_subscription(
         message_class('nav_msgs/msg/Odometry'), '/integrated_to_init', integrated.append, qos.reliable(100)
     )
     tf_pairs, static_pairs = set(), set()
@@ -173,10 +143,22 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
     try:
         head = read_until(launcher, 'ready after', timeout=90)
         assert spin(lambda: all(p.get_subscription_count() for p in publishers.values()), 30)
-        # Every link between the nodes, and /integrated_to_init to this process, discovered before the first scan:
-        # a reliable volatile message sent before its reader matched is not delivered, and the first scans of a
-        # busy machine's start came out of nothing downstream (two 10 s waits in lockstep).
-        assert spin(lambda: _linked(node), 30), {t: _endpoints(node, t) for t in PIPELINE_LINKS}
+        # Every link matched at both ends before the first scan, as the nodes report it on /diagnostics: a message
+        # sent on a link one end has not matched yet is lost, and this process's view of the graph does not tell
+        # (a fresh clone's start lost its second and third scans so: two 10 s waits in lockstep).
+        ip, fa, mo, tf = NODES
+        links = [
+            (publishers['/velodyne_points'], '/velodyne_points', [ip]),
+            *[(ip, topic, [fa]) for topic in ('/segmented_cloud', '/segmented_cloud_info', '/outlier_cloud')],
+            *[
+                (fa, topic, [mo])
+                for topic in ('/laser_cloud_corner_last', '/laser_cloud_surf_last', '/outlier_cloud_last')
+            ],
+            (fa, '/laser_odom_to_init', [mo, tf]),
+            (mo, '/aft_mapped_to_init', [tf]),
+            (tf, '/integrated_to_init', [integrated_subscription]),
+        ]
+        assert spin(lambda: links_matched(diagnostics, links), 60), diagnostics.latest
         # Lockstep: /clock, the IMU samples recorded before the cloud, the cloud, its /integrated_to_init.
         pending_imu, waited_out = [], []
         for message in reader.messages(topics=list(publishers)):
@@ -251,7 +233,11 @@ def test_pipeline_over_dds_publishes_every_topic_and_tracks_the_ground_truth(tmp
 
     # /integrated_to_init for (almost) every scan; the first one only initialises the odometry.
     assert len(integrated) >= MIN_INTEGRATED_FRACTION * SCANS, f'{len(integrated)} of {SCANS} scans'
-    assert len(waited_out) <= 1, f'no output within {SCAN_TIMEOUT_S} s for the scans stamped {waited_out}'
+    assert len(waited_out) <= 1, (
+        f'no output within {SCAN_TIMEOUT_S} s for the scans stamped {waited_out}; '
+        f'/integrated_to_init stamps {[stamp_to_ns(m.header.stamp) for m in integrated[:5]]}...; counters '
+        f'{ {name: stats[name]["counters"] for name in NODES} }\n{_logs(logs)}'
+    )
     stamps = np.array([stamp_to_ns(m.header.stamp) for m in integrated])
     assert (np.diff(stamps) > 0).all()
 
