@@ -157,7 +157,7 @@ class _Disk:
     count: int = 0
 
 
-def _disk(params: OccupancyGridParams) -> _Disk:
+def _make_disk(params: OccupancyGridParams) -> _Disk:
     reach = int(math.ceil(params.max_range / params.resolution))
     offsets = np.arange(-reach, reach + 1, dtype=np.float64) * params.resolution
     dy, dx = np.meshgrid(offsets, offsets, indexing='ij')
@@ -187,7 +187,7 @@ class OccupancyGrid:
     @functools.cached_property
     def _disk(self) -> _Disk:
         """The ray-casting disk, made with the first keyframe (10 ms: not a node's start-up)."""
-        return _disk(self.params)
+        return _make_disk(self.params)
 
     def _clear(self) -> None:
         self._log_odds = np.zeros((0, 0), np.float32)
