@@ -279,33 +279,56 @@ static inline int query_cell(const Grid *grid, const float *q, double *xyz, int6
     return 1;
 }
 
+/* The 3 x 3 columns of cells around a query's: its own first, then the 4 beside it and the 4 at its corners, so
+   that the nearest points come early and most later ones are passed over at one comparison. */
+static const int8_t COLUMNS[9][2] = {{0, 0}, {-1, 0}, {1, 0}, {0, -1}, {0, 1}, {-1, -1}, {-1, 1}, {1, -1}, {1, 1}};
+
+/* Each query's k nearest points within the search radius (the cells span it, so the 3 x 3 x 3 cells around the
+   query's hold them), ascending. The result does not depend on the order the cells are visited in: a point joins
+   the k + 1 nearest so far only when strictly nearer than the last of them, and equal distances among the k + 1
+   are reported (status 2) for the caller to settle. A column is passed over once k + 1 are found and its
+   horizontal distance from the query (less a margin far above rounding: a point's cell comes from a rounded
+   division) is no shorter than the (k + 1)-th. */
 static void nearest(const Grid *grid, const float *queries, Py_ssize_t query_columns, Py_ssize_t m, Py_ssize_t k,
                     double search_sq, double gate_sq, uint8_t *status, int64_t *index) {
     double best[MAX_K + 1];
     int64_t which[MAX_K + 1];
+    /* d2 <= search_sq as d2 < admit: one comparison admits a point while fewer than k + 1 are found */
+    const double admit = nextafter(search_sq, INFINITY);
+    const int64_t origin[2] = {grid->i0, grid->j0};
     for (Py_ssize_t row = 0; row < m; ++row) {
         double q[3];
         int64_t cell[3];
         status[row] = 0;
         if (!query_cell(grid, queries + row * query_columns, q, cell)) continue;
+        double gap_sq[2][3]; /* [axis][offset + 1]: squared distance from the query to that column's side [m^2] */
+        for (int a = 0; a < 2; ++a) {
+            const double face = (double)(cell[a] + origin[a]) * grid->cell; /* the query's cell's lower side */
+            const double margin = 1e-9 * (fabs(q[a]) + grid->cell);
+            const double below = q[a] - face - margin, above = face + grid->cell - q[a] - margin;
+            gap_sq[a][0] = below > 0.0 ? below * below : 0.0;
+            gap_sq[a][1] = 0.0;
+            gap_sq[a][2] = above > 0.0 ? above * above : 0.0;
+        }
         Py_ssize_t found = 0; /* the k + 1 nearest so far, ascending */
-        for (int64_t i = cell[0] - 1; i <= cell[0] + 1; ++i) {
-            for (int64_t j = cell[1] - 1; j <= cell[1] + 1; ++j) {
-                int64_t begin, end;
-                if (!column_run(grid, i, j, cell[2] - 1, cell[2] + 1, &begin, &end)) continue;
-                for (int64_t at = begin; at < end; ++at) {
-                    const double d2 = squared_distance(grid->sorted_xyz + 3 * at, q);
-                    if (!(d2 <= search_sq)) continue;
-                    if (found == k + 1 && !(d2 < best[k])) continue;
-                    Py_ssize_t slot = found < k + 1 ? found++ : k;
-                    while (slot > 0 && best[slot - 1] > d2) {
-                        best[slot] = best[slot - 1];
-                        which[slot] = which[slot - 1];
-                        --slot;
-                    }
-                    best[slot] = d2;
-                    which[slot] = grid->sorted_rows[at];
+        double bound = admit;  /* a point is taken when nearer than this */
+        for (int c = 0; c < 9; ++c) {
+            const int di = COLUMNS[c][0], dj = COLUMNS[c][1];
+            if (found == k + 1 && (gap_sq[0][di + 1] + gap_sq[1][dj + 1]) * (1.0 - 1e-9) >= bound) continue;
+            int64_t begin, end;
+            if (!column_run(grid, cell[0] + di, cell[1] + dj, cell[2] - 1, cell[2] + 1, &begin, &end)) continue;
+            for (int64_t at = begin; at < end; ++at) {
+                const double d2 = squared_distance(grid->sorted_xyz + 3 * at, q);
+                if (!(d2 < bound)) continue;
+                Py_ssize_t slot = found < k + 1 ? found++ : k;
+                while (slot > 0 && best[slot - 1] > d2) {
+                    best[slot] = best[slot - 1];
+                    which[slot] = which[slot - 1];
+                    --slot;
                 }
+                best[slot] = d2;
+                which[slot] = grid->sorted_rows[at];
+                if (found == k + 1) bound = best[k];
             }
         }
         if (found < k) continue;
