@@ -140,3 +140,36 @@ def test_the_ground_walk_by_hand():
     slope = float(np.tan(np.radians(20.0)))
     segmentation._projection_kernels.ground_walk(x, y, z, 3, 1, ground, far, on_plane, slope, 0.15)
     assert ground[:, 0].tolist() == [True, True, False]
+
+
+@needs_kernel
+@pytest.mark.parametrize('slope_deg', [20.0, 45.0, 0.0])
+def test_the_ground_walk_decides_rises_at_the_threshold_as_hypot_does(slope_deg):
+    """Second candidates set to rise within a few float32 steps of tan(slope) x hypot(dx, dy) + tolerance above a
+    seeded first one: the kernel's shortcut for the horizontal gap leaves these to libm's hypot, so every column
+    keeps or drops its second point as NumPy's float64 hypot decides."""
+    rng = np.random.default_rng(int(slope_deg))
+    columns, tolerance = 4000, 0.15
+    slope = float(np.tan(np.radians(slope_deg)))
+    x0 = rng.uniform(-30.0, 30.0, columns).astype(np.float32)
+    y0 = rng.uniform(-30.0, 30.0, columns).astype(np.float32)
+    z0 = rng.uniform(-2.0, 0.0, columns).astype(np.float32)
+    x1 = (x0 + rng.uniform(-2.0, 2.0, columns)).astype(np.float32)
+    y1 = (y0 + rng.uniform(-2.0, 2.0, columns)).astype(np.float32)
+    gap = np.hypot(x1.astype(np.float64) - x0, y1.astype(np.float64) - y0)
+    rise = (gap * slope + tolerance).astype(np.float32)
+    z1 = (z0 + rise).astype(np.float32)
+    for _ in range(3):  # (a float32 step or two either way of the threshold, at random)
+        z1 = np.where(rng.random(columns) < 0.5, np.nextafter(z1, np.float32(np.inf)), z1)
+        z1 = np.where(rng.random(columns) < 0.5, np.nextafter(z1, np.float32(-np.inf)), z1)
+    z1 = np.where(rng.random(columns) < 0.5, z0 - (z1 - z0), z1)  # (falls as well as rises)
+    x, y, z = (np.stack([a, b]) for a, b in ((x0, x1), (y0, y1), (z0, z1)))
+    ground = np.ones((2, columns), dtype=bool)
+    on_plane = np.array([[True] * columns, [False] * columns])
+    far = np.ones((2, columns), dtype=bool)
+    segmentation._projection_kernels.ground_walk(x, y, z, 2, columns, ground, far, on_plane, slope, tolerance)
+    dx, dy, dz = (b.astype(np.float64) - a for a, b in ((x0, x1), (y0, y1), (z0, z1)))
+    expected = np.abs(dz) <= np.hypot(dx, dy) * slope + tolerance
+    assert ground[0].all()
+    assert np.array_equal(ground[1], expected)
+    assert 0.2 < expected.mean() < 0.8  # (both sides of the threshold are tested)

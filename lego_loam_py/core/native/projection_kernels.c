@@ -83,6 +83,24 @@ done:
     return result;
 }
 
+/* |dz| <= hypot(dx, dy) * slope + tolerance, with libm's hypot, whose call costs several times the rest: the
+   horizontal gap is first taken as sqrt(dx * dx + dy * dy), within 2 ulps of hypot's for finite float32 steps (the
+   squares and their sum are exact to half an ulp each and cannot overflow or underflow in float64); hypot is called
+   only when that leaves the comparison within a margin far above those ulps, or the gap is not finite. */
+static inline int rises_within(double dx, double dy, double dz, double slope, double tolerance) {
+    const double rise = fabs(dz);
+    double gap = sqrt(dx * dx + dy * dy);
+    if (isfinite(gap) && slope >= 0.0) {
+        double step = gap * slope;
+        step += tolerance;
+        if (fabs(rise - step) > 1e-12 * (fabs(step) + rise)) return rise <= step;
+    }
+    gap = hypot(dx, dy);
+    gap *= slope;
+    gap += tolerance;
+    return rise <= gap;
+}
+
 static PyObject *py_ground_walk(PyObject *self, PyObject *args) {
     Py_buffer xs, ys, zs, ground, far, on_plane;
     Py_ssize_t top, columns;
@@ -114,10 +132,8 @@ static PyObject *py_ground_walk(PyObject *self, PyObject *args) {
             if (!seeded) {
                 accepted = planar[i] != 0;
             } else {
-                double step = hypot(px - last_x, py - last_y);
-                step *= slope;
-                step += tolerance;
-                accepted = (is_far[i] || planar[i]) && fabs(pz - last_z) <= step;
+                accepted = (is_far[i] || planar[i]) && rises_within(px - last_x, py - last_y, pz - last_z, slope,
+                                                                     tolerance);
             }
             keep[i] = (uint8_t)accepted;
             if (accepted) {
