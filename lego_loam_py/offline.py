@@ -424,6 +424,7 @@ def main(args: argparse.Namespace) -> int:
         in_saved_map=localized,
         ground_truth=ground_truth,
         trajectory_format=args.trajectory_format,
+        parallel=view is None,  # (a viewer's threads may still be sending: no fork)
     )
     if summary.loop_closures is not None and summary.loop_closures.accepted and len(stamps) >= 3:
         write_optimized_trajectory(out, ground_truth, result, summary)

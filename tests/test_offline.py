@@ -50,6 +50,9 @@ def test_run_writes_trajectories_maps_png_and_an_accurate_summary(tmp_path):
     global_map = read_pcd(out / 'map' / 'global_map.pcd')
     assert len(global_map) > 1000 and np.isfinite(global_map).all()
     assert (out / 'trajectory.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
+    # (drawn, and the map measured against the simulated scene, in forked children: their results reach the summary)
+    assert summary['png'] == str(out / 'trajectory.png')
+    assert summary['map_to_scene']['points'] == len(global_map) and summary['map_to_scene']['median_m'] < 0.1
     # The 2D occupancy grid for nav2 beside the map (map_server files), listed in the summary.
     from lego_loam_py.core.mapping import read_occupancy_files
 
@@ -274,3 +277,49 @@ def test_lidar_only_through_a_150_deg_per_s_turn_on_the_spot():
     stamps, poses = result.trajectory(axes='map', which='odometry')
     position, rotation = _errors_from_the_first_pose(bag, stamps, poses)
     assert position.max() < 3.0 and rotation.max() < 30.0, (position.max(), rotation.max())
+
+
+# ------------------------------------------------------------- outputs made in forked children (outputs.ForkedCall)
+
+
+def _write_marker(path: Path, parent: int, fail_in_child: bool = False) -> Path:
+    """Write which process made ``path`` (its pid); fail in a child process when asked."""
+    if fail_in_child and os.getpid() != parent:
+        raise RuntimeError('failed in the child')
+    path.write_text(str(os.getpid()))
+    return path
+
+
+@pytest.mark.parametrize('parallel', [True, False])
+def test_a_forked_call_gives_the_functions_value_made_in_a_child_only_when_parallel(tmp_path, parallel):
+    from lego_loam_py.outputs import ForkedCall
+
+    parent, path = os.getpid(), tmp_path / 'made_by'
+    call = ForkedCall(lambda: (_write_marker(path, parent), np.arange(100_000)), parallel)
+    made, values = call.result()  # (a value far larger than a pipe holds: read before the child is waited for)
+    assert made == path and np.array_equal(values, np.arange(100_000))
+    assert (int(path.read_text()) != parent) == parallel
+    call.close()  # (nothing left to wait for)
+
+
+def test_a_forked_call_whose_child_fails_is_made_here_and_its_error_would_show_here(tmp_path, capfd):
+    from lego_loam_py.outputs import ForkedCall
+
+    parent, path = os.getpid(), tmp_path / 'made_by'
+    call = ForkedCall(lambda: _write_marker(path, parent, fail_in_child=True), True)
+    assert call.result() == path and int(path.read_text()) == parent
+    assert 'failed in the child' in capfd.readouterr().err  # (the child's traceback, on stderr)
+    failing = ForkedCall(lambda: 1 / 0, True)
+    with pytest.raises(ZeroDivisionError):
+        failing.result()
+
+
+def test_a_forked_call_left_on_an_error_leaves_no_child_behind(tmp_path):
+    from lego_loam_py.outputs import ForkedCall
+
+    call = ForkedCall(lambda: sum(range(10_000)), True)
+    child = call._pid
+    assert child is not None
+    call.close()
+    with pytest.raises(ChildProcessError):  # (reaped: no zombie, no process)
+        os.waitpid(child, os.WNOHANG)

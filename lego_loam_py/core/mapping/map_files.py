@@ -22,7 +22,13 @@ from lego_loam_py.core.mapping.occupancy_files import write_occupancy_files
 from lego_loam_py.core.mapping.occupancy_grid import TernaryGrid
 from lego_loam_py.formats import write_pcd_atomic, write_tum_atomic
 
-__all__ = ['write_map_files']
+__all__ = ['write_map_files', 'in_map_axes']
+
+
+def in_map_axes(cloud: np.ndarray) -> np.ndarray:
+    """A map cloud (N, 3+) in camera axes, as MapOptimization.maps gives it, in REP-103 ``map`` axes with its other
+    columns kept: the points its PCD file holds."""
+    return np.concatenate([camera_to_lidar(cloud[:, :3]), cloud[:, 3:]], axis=1)
 
 
 def write_map_files(
@@ -44,8 +50,7 @@ def write_map_files(
         ('corner_map', maps['corner']),
         ('surface_map', maps['surface']),
     ):
-        in_map = np.concatenate([camera_to_lidar(cloud[:, :3]), cloud[:, 3:]], axis=1)
-        written[name] = write_pcd_atomic(directory / f'{name}.pcd', in_map)
+        written[name] = write_pcd_atomic(directory / f'{name}.pcd', in_map_axes(cloud))
     trajectory = np.concatenate([lidar_matrices[:, :3, 3], np.arange(len(poses))[:, None]], axis=1)
     written['trajectory'] = write_pcd_atomic(directory / 'trajectory.pcd', trajectory.astype(np.float32))
     written['trajectory_tum'] = write_tum_atomic(directory / 'trajectory.tum', stamps, lidar_matrices)

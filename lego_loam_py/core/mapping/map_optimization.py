@@ -552,19 +552,22 @@ class MapOptimization:
                 for kf in self.keyframes
             ]
 
-    def save(self, directory: str | Path, grid: OccupancyGrid | None = None) -> dict[str, Path]:
+    def save(
+        self, directory: str | Path, grid: OccupancyGrid | None = None, maps: dict[str, np.ndarray] | None = None
+    ) -> dict[str, Path]:
         """Write the maps (PCD, REP-103 ``map`` axes), the keyframe trajectory (PCD, TUM), the map bundle that
         localization loads and, with ``occupancy_grid.enabled``, the occupancy grid (nav2 map_server files), each
         atomically (see :mod:`lego_loam_py.core.mapping.map_files`). ``grid``: a
         :class:`~lego_loam_py.core.mapping.occupancy_grid.OccupancyGrid` kept up to date meanwhile (the node's),
         brought to the saved keyframes; without it the grid is drawn from them here. A grid that cannot be made
         (a pose it refuses, more than ``occupancy_grid.max_cells``) leaves the rest of the save as it is and says why
-        in :attr:`occupancy_problem` (None after a save with its grid)."""
+        in :attr:`occupancy_problem` (None after a save with its grid). ``maps``: :meth:`maps` as it stands, when the
+        caller made it already."""
         from lego_loam_py.core.mapping.map_bundle import MapBundle
         from lego_loam_py.core.mapping.map_files import write_map_files
         from lego_loam_py.core.mapping.occupancy_grid import OccupancyGrid
 
-        maps = self.maps()
+        maps = self.maps() if maps is None else maps
         with self.lock:  # (one consistent set of keyframes and factors)
             keyframes = self.keyframes_now()
             bundle = MapBundle.of(
