@@ -39,7 +39,6 @@ SOURCE_KINDS = ('rosbag', 'kitti', 'scans', 'pcap')
 def guess_kind(path: str | Path) -> str:
     """The kind of recording at ``path`` (see the module docstring); SourceError when none fits."""
     from lego_loam_py.inputs.kitti import is_kitti_sequence
-    from lego_loam_py.inputs.pcap import is_pcap
 
     path = Path(path).expanduser()
     if not path.exists():
@@ -50,6 +49,8 @@ def guess_kind(path: str | Path) -> str:
         return 'kitti'
     if path.is_dir():
         return 'scans'
+    from lego_loam_py.inputs.pcap import is_pcap  # (with the bag converter it imports: only for a file)
+
     if path.suffix in ('.pcap', '.cap') or is_pcap(path):
         return 'pcap'
     raise SourceError(
