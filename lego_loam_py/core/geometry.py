@@ -9,6 +9,8 @@ import math
 
 import numpy as np
 
+from lego_loam_py.core.indexing import select_rows
+
 try:  # the plane fits in one pass (native/geometry_kernels.c); optional: fit_planes gives the same values
     from lego_loam_py.core import _geometry_kernels
 except ImportError:
@@ -150,7 +152,7 @@ class GridNeighbours:
             status[tied[near]] = 1
             index[tied[near]] = tied_index
         used = np.flatnonzero(status)
-        return used, index[used]
+        return used, select_rows(index, used)
 
     def nearest_one(self, queries: np.ndarray, max_sq_dist: float) -> tuple[np.ndarray, np.ndarray]:
         """(indices of the (m, >= 3) ``queries`` [m] whose nearest point, as cKDTree's ``query(k=1)`` finds it,
@@ -287,9 +289,9 @@ def fit_planes_at(
     rows = np.flatnonzero(status)
     if min_aspect > 0.0:  # (element by element: the same values on these rows as on all solvable ones)
         xx, yy, zz, xy, xz, yz = (moments[rows, i] / k for i in range(6))
-        along, across = _principal_spreads(moments[rows, 6:] / k, xx, yy, zz, xy, xz, yz)
+        along, across = _principal_spreads(select_rows(moments, rows)[:, 6:] / k, xx, yy, zz, xy, xz, yz)
         rows = rows[across >= min_aspect * along]
-    return rows, normal[rows], offset[rows]
+    return rows, select_rows(normal, rows), offset[rows]
 
 
 def principal_spreads(neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

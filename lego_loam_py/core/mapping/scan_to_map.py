@@ -32,6 +32,7 @@ from lego_loam_py.core.frames import (
 )
 from lego_loam_py.core.gauss_newton import DegeneracyProjection, residual_information
 from lego_loam_py.core.geometry import GridNeighbours, fit_planes_at, line_coefficients
+from lego_loam_py.core.indexing import select_rows
 from lego_loam_py.core.params.types import Params
 
 __all__ = [
@@ -66,7 +67,7 @@ def _neighbourhoods(points_world: np.ndarray, tree: GridNeighbours, map_points: 
     """(indices of the points whose ``knn`` nearest map points all lie within the gate, those neighbours
     (m, k, 3) float64), see :func:`~lego_loam_py.core.geometry.nearest_within`."""
     used, index = tree.nearest_within(points_world, mo.knn, mo.knn_max_sq_dist)
-    return used, map_points[index, :3].astype(np.float64)
+    return used, select_rows(map_points, index)[..., :3].astype(np.float64)
 
 
 def edge_correspondences(points_world: np.ndarray, tree: GridNeighbours, map_points: np.ndarray, params: Params):
@@ -83,10 +84,12 @@ def edge_correspondences(points_world: np.ndarray, tree: GridNeighbours, map_poi
     used, centroid, direction = used[is_line], centroid[is_line], vectors[is_line, :, 2]
     a = centroid + mo.line_half_length * direction
     b = centroid - mo.line_half_length * direction
-    gradient, dist = line_coefficients(points_world[used], a.astype(_F32), b.astype(_F32))
+    gradient, dist = line_coefficients(select_rows(points_world, used), a.astype(_F32), b.astype(_F32))
     weight = 1.0 - mo.weight_gain * np.abs(dist.astype(np.float64))
     keep = (weight > mo.min_weight) & np.isfinite(dist) & np.isfinite(gradient).all(axis=1)
-    coeff = np.concatenate([gradient[keep] * weight[keep, None], (weight[keep] * dist[keep])[:, None]], axis=1)
+    coeff = np.concatenate(
+        [select_rows(gradient, keep) * weight[keep, None], (weight[keep] * dist[keep])[:, None]], axis=1
+    )
     return used[keep], coeff
 
 
@@ -98,11 +101,13 @@ def plane_correspondences(points_world: np.ndarray, tree: GridNeighbours, map_po
     used, index = tree.nearest_within(points_world, mo.knn, mo.knn_max_sq_dist)
     planar, normal, offset = fit_planes_at(map_points, index, mo.plane_max_residual, mo.plane_min_aspect)
     used = used[planar]
-    p = points_world[used, :3].astype(np.float64)
+    p = select_rows(points_world, used)[:, :3].astype(np.float64)
     dist = np.einsum('mi,mi->m', p, normal) + offset
     weight = 1.0 - mo.weight_gain * np.abs(dist) / np.sqrt(np.linalg.norm(p, axis=1))
     keep = weight > mo.min_weight
-    coeff = np.concatenate([normal[keep] * weight[keep, None], (weight[keep] * dist[keep])[:, None]], axis=1)
+    coeff = np.concatenate(
+        [select_rows(normal, keep) * weight[keep, None], (weight[keep] * dist[keep])[:, None]], axis=1
+    )
     return used[keep], coeff
 
 
@@ -172,7 +177,7 @@ def register_scan_to_map(
         surf_world = transform_points(world, surf_ds[:, :3].astype(np.float64)).astype(_F32)
         ci, cc = edge_correspondences(corner_world, corner_tree, corner_map, params)
         si, sc = plane_correspondences(surf_world, surf_tree, surf_map, params)
-        points = np.concatenate([corner_ds[ci], surf_ds[si]])
+        points = np.concatenate([select_rows(corner_ds, ci), select_rows(surf_ds, si)])
         coeff = np.concatenate([cc, sc])
         counts.correspondences = len(coeff)
         if len(coeff) < mo.min_correspondences:

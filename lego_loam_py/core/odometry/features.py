@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lego_loam_py.core.indexing import ragged
+from lego_loam_py.core.indexing import ragged, select_rows
 from lego_loam_py.core.params.types import Params
 from lego_loam_py.core.projection.cloud_info import CloudInfo
 from lego_loam_py.core.voxel import voxel_downsample_groups
@@ -226,16 +226,16 @@ class FeatureExtractor:
         kept = edge_region[position] > region_of
         if kept.any():
             less_flat = voxel_downsample_groups(
-                points[position[kept]], region_ring[region_of[kept]], fa.less_flat_leaf_size
+                select_rows(points, position[kept]), region_ring[region_of[kept]], fa.less_flat_leaf_size
             )
         else:
             less_flat = np.zeros((0, 4), _F32)
         # Wall points cost a pass over every region: selected only if a stage asks for them (corridors).
         select_walls = functools.partial(_wall_points, ascending, region_of_sorted, curvature, ground, taken, fa)
         return ScanFeatures(
-            sharp=points[sharp_index],
-            less_sharp=points[less_sharp_index],
-            flat=points[flat_index],
+            sharp=select_rows(points, sharp_index),
+            less_sharp=select_rows(points, less_sharp_index),
+            flat=select_rows(points, flat_index),
             less_flat=less_flat,
             sharp_index=sharp_index,
             less_sharp_index=less_sharp_index,

@@ -44,6 +44,7 @@ from lego_loam_py.core.geometry import (
     plane_through,
 )
 from lego_loam_py.core.imu.agreement import FULL_TRUST
+from lego_loam_py.core.indexing import select_rows
 from lego_loam_py.core.odometry.correspondences import (
     CornerCorrespondences,
     LastCloud,
@@ -466,7 +467,7 @@ class SweepStartOdometry(LaserOdometry):
         # The planes and lines depend only on the last cloud: fixed for the whole block.
         if kind == 'wall':
             usable, normal, offset = self._wall_planes(start, last)
-            p_start = start[usable]
+            p_start = select_rows(start, usable)
             distance = plane_distance(normal, offset, p_start[:, :3].astype(np.float64))
             scale = np.sqrt(np.sqrt((p_start[:, :3].astype(np.float64) ** 2).sum(axis=1)))
             finite = np.isfinite(distance) & (distance != 0)
@@ -475,9 +476,9 @@ class SweepStartOdometry(LaserOdometry):
             match = find_surf_correspondences(start, last, self.params, bound)
             usable = np.flatnonzero((match.index2 >= 0) & (match.index3 >= 0))
             normal, offset = plane_through(
-                last.points[match.index1[usable]], last.points[match.index2[usable]], last.points[match.index3[usable]]
+                *(select_rows(last.points, index[usable]) for index in (match.index1, match.index2, match.index3))
             )
-            p_start = start[usable]
+            p_start = select_rows(start, usable)
             distance = plane_distance(normal, offset, p_start).astype(np.float64)
             scale = np.sqrt(np.sqrt((p_start[:, :3].astype(np.float64) ** 2).sum(axis=1)))
             finite = np.isfinite(distance) & np.isfinite(normal).all(axis=1) & (distance != 0)
@@ -485,8 +486,8 @@ class SweepStartOdometry(LaserOdometry):
         else:
             match = find_corner_correspondences(start, last, self.params, bound)
             usable = np.flatnonzero(match.index2 >= 0)
-            a = last.points[match.index1[usable], :3].astype(np.float64)
-            b = last.points[match.index2[usable], :3].astype(np.float64)
+            a = select_rows(last.points, match.index1[usable])[:, :3].astype(np.float64)
+            b = select_rows(last.points, match.index2[usable])[:, :3].astype(np.float64)
             with np.errstate(invalid='ignore', divide='ignore'):
                 along = (a - b) / np.linalg.norm(a - b, axis=1)[:, None]
             distance = np.linalg.norm(line_offsets(start[usable, :3].astype(np.float64), a, along), axis=1)
@@ -498,7 +499,7 @@ class SweepStartOdometry(LaserOdometry):
         if not keep.any():
             return None
         chosen = usable[keep]
-        first, second = (x[keep] for x in anchors)
+        first, second = (select_rows(x, keep) for x in anchors)
         weight = weight[keep]
         if kind != 'corner':
             coefficients = first.astype(np.float64) * weight[:, None]  # the weighted normal
