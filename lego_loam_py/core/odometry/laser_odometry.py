@@ -42,6 +42,7 @@ from lego_loam_py.core.geometry import (
     plane_coefficients,
     plane_distance,
     plane_through,
+    squared_lengths,
 )
 from lego_loam_py.core.imu.agreement import FULL_TRUST
 from lego_loam_py.core.indexing import select_rows
@@ -284,7 +285,7 @@ class OriginalOdometry(LaserOdometry):
         normal, distance = plane_coefficients(
             p_start, last[match.index1[usable]], last[match.index2[usable]], last[match.index3[usable]]
         )
-        norm = np.sqrt(np.sqrt((p_start[:, :3].astype(np.float64) ** 2).sum(axis=1)))
+        norm = np.sqrt(np.sqrt(squared_lengths(p_start)))
         weight = self._weights(distance, norm, iteration)
         ok = (weight > fa.min_weight) & (distance != 0) & np.isfinite(distance)
         coeff = np.concatenate([normal[ok] * weight[ok, None], (weight[ok] * distance[ok])[:, None]], axis=1)
@@ -469,7 +470,7 @@ class SweepStartOdometry(LaserOdometry):
             usable, normal, offset = self._wall_planes(start, last)
             p_start = select_rows(start, usable)
             distance = plane_distance(normal, offset, p_start[:, :3].astype(np.float64))
-            scale = np.sqrt(np.sqrt((p_start[:, :3].astype(np.float64) ** 2).sum(axis=1)))
+            scale = np.sqrt(np.sqrt(squared_lengths(p_start)))
             finite = np.isfinite(distance) & (distance != 0)
             anchors = (normal, offset)
         elif kind == 'surf':
@@ -480,7 +481,7 @@ class SweepStartOdometry(LaserOdometry):
             )
             p_start = select_rows(start, usable)
             distance = plane_distance(normal, offset, p_start).astype(np.float64)
-            scale = np.sqrt(np.sqrt((p_start[:, :3].astype(np.float64) ** 2).sum(axis=1)))
+            scale = np.sqrt(np.sqrt(squared_lengths(p_start)))
             finite = np.isfinite(distance) & np.isfinite(normal).all(axis=1) & (distance != 0)
             anchors = (normal, offset)
         else:
