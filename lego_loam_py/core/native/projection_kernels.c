@@ -84,16 +84,17 @@ done:
 }
 
 /* |dz| <= hypot(dx, dy) * slope + tolerance, with libm's hypot, whose call costs several times the rest: the
-   horizontal gap is first taken as sqrt(dx * dx + dy * dy), within 2 ulps of hypot's for finite float32 steps (the
-   squares and their sum are exact to half an ulp each and cannot overflow or underflow in float64); hypot is called
-   only when that leaves the comparison within a margin far above those ulps, or the gap is not finite. */
+   horizontal gap is first taken as sqrt(dx * dx + dy * dy), within 3 ulps of hypot's for steps between float32
+   coordinates (the squares and their sum are rounded once each and cannot overflow or underflow in float64); hypot
+   is called only when that leaves the comparison within a margin far above those ulps, or the gap is not finite. */
 static inline int rises_within(double dx, double dy, double dz, double slope, double tolerance) {
     const double rise = fabs(dz);
     double gap = sqrt(dx * dx + dy * dy);
     if (isfinite(gap) && slope >= 0.0) {
         double step = gap * slope;
+        const double scale = step + fabs(tolerance) + rise; /* (bounds every term the comparison adds) */
         step += tolerance;
-        if (fabs(rise - step) > 1e-12 * (fabs(step) + rise)) return rise <= step;
+        if (fabs(rise - step) > 1e-12 * scale) return rise <= step;
     }
     gap = hypot(dx, dy);
     gap *= slope;

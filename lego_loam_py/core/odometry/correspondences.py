@@ -88,7 +88,8 @@ def _prev_below(rings: np.ndarray, n_rings: int) -> np.ndarray:
 def _nearest_cell(points: np.ndarray) -> float:
     """The side [m] of the nearest-point search's cells for a cloud (see NEAREST_CELLS)."""
     # (column by column: NumPy reduces an (n, 3) array over its first axis some 20 times slower)
-    high, low = (np.array([reduce(points[:, axis]) for axis in range(3)]) for reduce in (np.max, np.min))
+    high = np.array([points[:, axis].max() for axis in range(3)])
+    low = np.array([points[:, axis].min() for axis in range(3)])
     span = high.astype(np.float64) - low
     for cell in NEAREST_CELLS:
         if np.prod(span / cell + 2.0) <= CELLS_PER_POINT * len(points):
