@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lego_loam_py.core.geometry import GridNeighbours
-from lego_loam_py.core.indexing import ragged, ranges
+from lego_loam_py.core.indexing import ragged, ranges, select_rows
 from lego_loam_py.core.odometry.sweep import ring_of
 from lego_loam_py.core.params.types import Params
 
@@ -259,7 +259,7 @@ def _window_search(
         _feature_kernels.nearest_in_windows(
             last.xyz_rows,
             last.rings,
-            np.ascontiguousarray(points_start[q, :3]),
+            np.ascontiguousarray(select_rows(points_start, q)[:, :3]),
             np.ascontiguousarray(closest, dtype=np.int64),
             int(math.floor(fa.ring_search_window)),
             int(forward_bound),

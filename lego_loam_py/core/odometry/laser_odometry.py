@@ -491,7 +491,8 @@ class SweepStartOdometry(LaserOdometry):
             b = select_rows(last.points, match.index2[usable])[:, :3].astype(np.float64)
             with np.errstate(invalid='ignore', divide='ignore'):
                 along = (a - b) / np.linalg.norm(a - b, axis=1)[:, None]
-            distance = np.linalg.norm(line_offsets(start[usable, :3].astype(np.float64), a, along), axis=1)
+            p_start = select_rows(start, usable)[:, :3].astype(np.float64)
+            distance = np.linalg.norm(line_offsets(p_start, a, along), axis=1)
             scale = np.ones(len(distance))
             finite = np.isfinite(distance) & np.isfinite(along).all(axis=1)
             anchors = (a, along)
