@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from lego_loam_py.core.params import Params
+from lego_loam_py.core.parity import libm
 from lego_loam_py.core.parity.atan2f_decisions import Atan2fSteps, atan2f_exceeds, first_float32_where
 from lego_loam_py.core.parity.libm import atan2f
 from lego_loam_py.core.projection.range_image import RangeImageProjection
@@ -53,13 +54,19 @@ def test_comparisons_with_fixed_angles_equal_libm():
     assert np.array_equal(ours, angle > F32(3.0))
 
 
-@pytest.mark.parametrize('preset', ['VLP-16', 'OS1-64'])
-def test_azimuth_steps_equal_the_columns_of_libm_angles(preset):
-    projection = RangeImageProjection(Params().replace(sensor__preset=preset))
+def column_thresholds(projection: RangeImageProjection) -> tuple[np.ndarray, np.ndarray]:
+    """(the float32 azimuths where the range-image columns begin, the columns of -pi and pi)."""
     column_of_angle = projection._column_of_azimuth  # the original's column (before wrapping) of atan2f(x, y)
     ends = column_of_angle(np.array([-math.pi, math.pi], dtype=F32))
     levels = np.arange(int(ends[0]) - 1, int(ends[1]) - 1, -1)
-    thresholds = first_float32_where(lambda a: column_of_angle(a) <= levels, -math.pi, math.pi, len(levels))
+    return first_float32_where(lambda a: column_of_angle(a) <= levels, -math.pi, math.pi, len(levels)), ends
+
+
+@pytest.mark.parametrize('preset', ['VLP-16', 'OS1-64'])
+def test_azimuth_steps_equal_the_columns_of_libm_angles(preset):
+    projection = RangeImageProjection(Params().replace(sensor__preset=preset))
+    column_of_angle = projection._column_of_azimuth
+    thresholds, ends = column_thresholds(projection)
     assert np.all(np.diff(thresholds) > 0) and len(thresholds) == projection.horizon_scan
     steps = Atan2fSteps(thresholds)
     rng = np.random.default_rng(2)
@@ -73,6 +80,30 @@ def test_azimuth_steps_equal_the_columns_of_libm_angles(preset):
     assert np.array_equal((int(ends[0]) - count)[confirmed], libm_column[confirmed])
     assert confirmed[40000:60000].mean() > 0.97  # (the angles anywhere: few need libm)
     assert np.array_equal(projection._columns(x_coord, y_coord), libm_column)
+    native = steps.count(x_coord, y_coord)
+    assert np.array_equal(native[0], steps.count(x_coord, y_coord, native=False)[0])
+
+
+@pytest.mark.skipif(not hasattr(libm._libm_compat, 'atan2f_steps'), reason='the C extension is not built here')
+def test_azimuth_steps_in_c_equal_numpys_passes_on_every_kind_of_coordinate():
+    projection = RangeImageProjection(Params().replace(sensor__preset='HDL-64E'))
+    steps = projection._azimuth_steps
+    thresholds = column_thresholds(projection)[0]
+    rng = np.random.default_rng(4)
+    for trial in range(12):
+        y, x = rng.normal(0.0, 20.0, (2, 30001)).astype(F32)  # (an odd length: a partial block at the end)
+        y[rng.integers(0, len(y), 300)] = 0.0  # on the axes and at the origin
+        x[rng.integers(0, len(x), 300)] = -0.0
+        if trial % 3 == 0:  # overflowing cross products and lengths, NaN
+            y[:40], x[40:80], y[80:90], x[90:95] = F32(3e38), F32(-3e38), np.nan, np.nan
+        if trial % 4 == 1:  # within a few ulp of the column boundaries
+            x, y = points_near(thresholds, rng, 30001)
+        with np.errstate(over='ignore', invalid='ignore'):
+            ours, expected = steps.count(y, x), steps.count(y, x, native=False)
+        assert np.array_equal(ours[0], expected[0]) and np.array_equal(ours[1], expected[1])
+        assert ours[0].dtype == np.int64 and ours[1].dtype == bool
+    empty = steps.count(np.zeros(0, F32), np.zeros(0, F32))
+    assert len(empty[0]) == 0 and len(empty[1]) == 0
 
 
 def test_first_float32_where_finds_the_first_float_and_reports_none():

@@ -5,10 +5,17 @@
  * range-image column boundary (about 4 % of the points of a real VLP-16 scan) to the neighbouring column.
  *
  *   atan2f(y, x, out): out[i] = atan2f(y[i], x[i]) for contiguous float32 buffers of equal length.
+ *
+ *   atan2f_steps(y, x, guess, low_cos, low_sin, high_cos, high_sin, scale, step, confirmed): the passes of
+ *   parity.atan2f_decisions.Atan2fSteps.count in one, each float32 operation the one NumPy does there, in its
+ *   order (built with -ffp-contract=off): the guessed step of each element from its pseudo-angle's bin in guess
+ *   (int64), confirmed where the two cross products with the step's edge directions (float32 tables indexed by
+ *   step) clear their rounding bound. y, x float32; step int64 and confirmed uint8 (bool), all of one length.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
+#include <stdint.h>
 
 static PyObject *py_atan2f(PyObject *self, PyObject *args) {
     Py_buffer y, x, out;
@@ -37,8 +44,81 @@ done:
     return result;
 }
 
+
+static PyObject *py_atan2f_steps(PyObject *self, PyObject *args) {
+    Py_buffer y, x, guess, low_cos, low_sin, high_cos, high_sin, step, confirmed;
+    float scale;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*fw*w*", &y, &x, &guess, &low_cos, &low_sin, &high_cos, &high_sin,
+                          &scale, &step, &confirmed)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    const Py_ssize_t n = y.len / (Py_ssize_t)sizeof(float), bins = guess.len / 8;
+    const Py_ssize_t steps = low_cos.len / (Py_ssize_t)sizeof(float);
+    if (y.len != n * (Py_ssize_t)sizeof(float) || x.len != y.len || step.len != n * 8 || confirmed.len != n ||
+        bins < 1 || guess.len != bins * 8 || low_cos.len != steps * (Py_ssize_t)sizeof(float) ||
+        low_sin.len != low_cos.len || high_cos.len != low_cos.len || high_sin.len != low_cos.len) {
+        PyErr_SetString(PyExc_ValueError, "atan2f_steps: inconsistent buffer sizes");
+        goto done;
+    }
+    const int64_t *table = guess.buf;
+    for (Py_ssize_t b = 0; b < bins; ++b) {
+        if (table[b] < 0 || table[b] >= steps) {
+            PyErr_SetString(PyExc_ValueError, "atan2f_steps: a guess outside the steps' tables");
+            goto done;
+        }
+    }
+    const float *yp = y.buf, *xp = x.buf, *lc = low_cos.buf, *ls = low_sin.buf, *hc = high_cos.buf,
+                *hs = high_sin.buf;
+    int64_t *out = step.buf;
+    uint8_t *sure = confirmed.buf;
+    const float last = (float)(bins - 1), unit = 0x1p-21f, tiny = 0x1p-120f;
+    Py_BEGIN_ALLOW_THREADS
+    /* In blocks, two passes each: the bins (vectorised: no load depends on an earlier one; through int32, which SSE2
+       converts four floats at a time to, not int64), then the guesses and their checks. */
+    enum { BLOCK = 2048 };
+    int32_t bin[BLOCK];
+    for (Py_ssize_t start = 0; start < n; start += BLOCK) {
+        const Py_ssize_t size = n - start < BLOCK ? n - start : BLOCK;
+        const float *yb = yp + start, *xb = xp + start;
+        for (Py_ssize_t i = 0; i < size; ++i) {
+            float position = yb[i] / (fabsf(xb[i]) + fabsf(yb[i])); /* in [-1, 1]; NaN at the origin */
+            position = position + 1.0f;
+            position = copysignf(position, xb[i]);
+            position = position + 2.0f;
+            position = position * scale;
+            position = position <= last ? position : last; /* np.fmin: the top end, and NaN, into the last bin */
+            bin[i] = (int32_t)position;
+        }
+        for (Py_ssize_t i = 0; i < size; ++i) {
+            const float yi = yb[i], xi = xb[i];
+            const int64_t k = table[bin[i]];
+            const float bound = (fabsf(xi) + fabsf(yi)) * unit + tiny;
+            const float below = yi * lc[k] - xi * ls[k], above = yi * hc[k] - xi * hs[k];
+            out[start + i] = k;
+            sure[start + i] = (uint8_t)((below > bound) & (above < -bound));
+        }
+    }
+    Py_END_ALLOW_THREADS
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&y);
+    PyBuffer_Release(&x);
+    PyBuffer_Release(&guess);
+    PyBuffer_Release(&low_cos);
+    PyBuffer_Release(&low_sin);
+    PyBuffer_Release(&high_cos);
+    PyBuffer_Release(&high_sin);
+    PyBuffer_Release(&step);
+    PyBuffer_Release(&confirmed);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"atan2f", py_atan2f, METH_VARARGS, "atan2f(y, x, out): element-wise libm atan2f on float32 buffers."},
+    {"atan2f_steps", py_atan2f_steps, METH_VARARGS, "Atan2fSteps.count's passes in one (see the file)."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -23,6 +23,7 @@ import math
 
 import numpy as np
 
+from lego_loam_py.core.parity import libm
 from lego_loam_py.core.parity.libm import atan2f
 
 __all__ = ['decide_on_atan2f', 'atan2f_exceeds', 'Atan2fSteps', 'first_float32_where']
@@ -150,11 +151,33 @@ class Atan2fSteps:
         position = (np.arange(bins) + 0.5) / self._scale - 2.0
         pseudo = np.abs(position) - 1.0  # y / (|x| + |y|) at the centres
         across = np.where(position < 0, -1.0, 1.0) * (1.0 - np.abs(pseudo))
-        self._guess = np.searchsorted(t.astype(np.float64), np.arctan2(pseudo, across), side='right').astype(np.intp)
+        self._guess = np.searchsorted(t.astype(np.float64), np.arctan2(pseudo, across), side='right').astype(np.int64)
 
-    def count(self, y: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def count(self, y: np.ndarray, x: np.ndarray, native: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """(number of thresholds that libm's atan2f(y, x) reaches, where that number is confirmed) for finite
-        float32 arrays; unconfirmed elements hold a guess."""
+        float32 arrays; unconfirmed elements hold a guess. In one C pass when the extension is built and the arrays
+        are contiguous (the same values); ``native=False``: NumPy's passes (the tests compare the two)."""
+        kernels = libm._libm_compat
+        if (
+            native
+            and hasattr(kernels, 'atan2f_steps')
+            and all(isinstance(a, np.ndarray) and a.dtype == _F32 and a.flags.c_contiguous for a in (y, x))
+            and y.shape == x.shape
+        ):
+            step, confirmed = np.empty(y.shape, dtype=np.int64), np.empty(y.shape, dtype=bool)
+            kernels.atan2f_steps(
+                y.reshape(-1),
+                x.reshape(-1),
+                self._guess,
+                self._low_cos,
+                self._low_sin,
+                self._high_cos,
+                self._high_sin,
+                self._scale,
+                step.reshape(-1),
+                confirmed.reshape(-1),
+            )
+            return step, confirmed
         with np.errstate(invalid='ignore', divide='ignore', over='ignore'):
             length = np.abs(x)
             length += np.abs(y)  # |x| + |y|
