@@ -13,8 +13,12 @@ from lego_loam_py.core.projection.laser_order import (
     _laser_starts,
     _median_is_not_negative,
     _mod,
+    _projection_kernels,
     median,
+    rows_from_laser_order,
 )
+
+needs_kernels = pytest.mark.skipif(_projection_kernels is None, reason='the C extension is not built here')
 
 
 def _bits(value) -> bytes:
@@ -113,3 +117,65 @@ def test_laser_starts_from_the_fast_range_equal_those_from_hypot():
         expected_top_first, expected = _starts_with_hypot(x, y, z)
         assert top_first == expected_top_first and np.array_equal(starts, expected)
         assert _laser_starts(x64, y64, z64, False)[1].tolist() == expected.tolist()
+        if _projection_kernels is not None:  # the steps taken in C: the same decisions, the same fallback
+            in_c = _laser_starts(x64, y64, z64, True, _projection_kernels)
+            assert in_c[0] == expected_top_first and np.array_equal(in_c[1], expected)
+            assert np.array_equal(_laser_starts(x64, y64, z64, False, _projection_kernels)[1], expected)
+
+
+@needs_kernels
+def test_the_median_of_magnitudes_in_c_equals_numpys_or_leaves_it_to_numpy():
+    rng = np.random.default_rng(11)
+    for trial in range(400):
+        n = int(rng.choice([1, 2, 3, 7, 4095, 4096, 4097, 9000, 50001]))
+        kind = trial % 7
+        if kind == 0:
+            values = rng.normal(0.0, 1.0, n)
+        elif kind == 1:
+            values = np.round(rng.normal(0.0, 0.01, n), 3)  # many ties
+        elif kind == 2:
+            values = np.sort(rng.normal(0.0, 1.0, n))  # sorted: the strided sample is one-sided
+        elif kind == 3:  # periodic with the sample's stride: the sample sees one value only
+            values = np.tile(rng.normal(0.0, 1.0, 7), n // 7 + 1)[:n]
+            values[:: max(1, n // 512)] = 0.5
+        elif kind == 4:
+            values = rng.choice([-0.0, 0.0, 1.0, -1.0, 5e-324, -5e-324], n)  # zeros in the middle
+        elif kind == 5:
+            values = np.concatenate([np.full(n // 2, 1e-3), rng.uniform(5.0, 6.0, n - n // 2)])  # a gap at the middle
+        else:
+            values = rng.standard_cauchy(n)
+        if trial % 29 == 0:
+            values[rng.integers(0, n)] = np.nan
+        answer = _projection_kernels.abs_median(values)
+        with np.errstate(invalid='ignore'):
+            expected = np.median(np.abs(values))
+        if answer is None:  # NaN, or a zero among the middle values (np.median chooses its sign)
+            middle = np.sort(np.abs(values))[[(n - 1) // 2, n // 2]]
+            assert np.isnan(expected) or not middle.all()
+        else:
+            assert _bits(answer) == _bits(expected)
+    assert _projection_kernels.abs_median(np.zeros(0)) is None
+
+
+@needs_kernels
+@pytest.mark.parametrize('top_first', [True, False])
+def test_rows_of_a_cloud_stored_laser_by_laser_are_the_same_in_c_and_in_numpy(top_first):
+    rng = np.random.default_rng(13 + top_first)
+    lasers, per_turn = 32, 1500
+    elevation = np.repeat(np.linspace(0.05, -0.5, lasers)[:: 1 if top_first else -1], per_turn)
+    azimuth = np.tile(np.linspace(0.3, 0.3 + 2.0 * math.pi, per_turn, endpoint=False), lasers)
+    for trial in range(8):
+        kept = rng.random(len(azimuth)) > 0.1  # (gaps where nothing returned)
+        rho = rng.uniform(2.0, 60.0, kept.sum())
+        x = (rho * np.cos(azimuth[kept] * (1 if trial % 2 else -1))).astype(np.float32)
+        y = (rho * np.sin(azimuth[kept] * (1 if trial % 2 else -1))).astype(np.float32)
+        z = (rho * np.tan(elevation[kept] + rng.normal(0.0, 2e-4, kept.sum()))).astype(np.float32)
+        if trial == 3:
+            z[100] = np.nan  # (every NaN path: NumPy's median, its remainder)
+        if trial == 5:  # steps at the threshold itself
+            z[1::2] = rho[1::2] * np.tan(np.arctan2(z[::2], rho[::2])[: len(z[1::2])] - math.radians(MIN_STEP_DEG))
+        rows = rows_from_laser_order(x, y, z, 64)
+        expected = rows_from_laser_order(x, y, z, 64, native=False)
+        assert (rows is None and expected is None) or np.array_equal(rows, expected)
+        if trial not in (3, 5):
+            assert rows is not None and len(np.unique(rows)) == lasers

@@ -124,6 +124,19 @@ def test_a_cloud_stored_laser_by_laser_gives_every_point_its_laser(hdl64e_sweep,
     kept = ring >= 20
     rows = rows_from_laser_order(xyz[kept, 0], xyz[kept, 1], xyz[kept, 2], 64)
     assert np.mean(rows == ring[kept]) > 0.999
+    assert np.array_equal(rows, rows_from_laser_order(xyz[kept, 0], xyz[kept, 1], xyz[kept, 2], 64, native=False))
+
+
+def test_the_laser_order_of_real_kitti_scans_is_the_same_in_c_and_in_numpy(shared_data):
+    from lego_loam_py.inputs.point_files import read_pcd_points
+
+    folder = shared_data / 'real' / 'kitti_raw_0001_hdl64e'
+    for path in sorted(folder.glob('*.pcd'))[::27]:
+        points = read_pcd_points(path)
+        x, y, z = (np.ascontiguousarray(points[axis], dtype=np.float32) for axis in 'xyz')
+        rows = rows_from_laser_order(x, y, z, 64)
+        assert rows is not None and rows.max() == 63
+        assert np.array_equal(rows, rows_from_laser_order(x, y, z, 64, native=False))
 
 
 def test_a_cloud_in_firing_order_or_with_too_many_turns_is_not_taken_for_one_stored_laser_by_laser(hdl64e_sweep):

@@ -17,12 +17,29 @@
  *   in place). In each column, from the lowest row up, a ground candidate is kept when the column has no kept
  *   point yet and it is on the plane, or when |z - z_last| <= hypot(x - x_last, y - y_last) * slope + tolerance
  *   and it is on the plane or far; a kept point becomes the column's last. Runs without the GIL.
+ *
+ * The laser order's passes over a cloud's points (core/projection/laser_order.py, which keeps their NumPy versions
+ * for when this extension is not built; tests/test_laser_order.py compares the two), float64 throughout, each
+ * operation the one NumPy does in its order. A kernel that meets a value NumPy's fast path would not take (NaN, a
+ * value outside the fast range of the remainder) returns its "not here" answer and the caller takes NumPy's path:
+ * abs_median(values) -> float or None
+ *   np.median(np.abs(values)); None for NaN and for a zero middle value (whose sign is np.median's choice).
+ * restarts(turned, cut, half_spacing, begins) -> count
+ *   with from_cut[i] = mod((turned[i] - cut) + half_spacing, 360) (the caller checked the range), the indices i
+ *   where from_cut[i] - from_cut[i - 1] < -RESTART_DEG, written to begins (int64); returns how many.
+ * elevation_steps(elevation, bound, falling, decided, starts) -> count or -1
+ *   the indices i + 1 where elevation[i + 1] - elevation[i] < bound (falling) or > bound (rising), written to
+ *   starts; with decided > 0, -1 as soon as a difference lies within decided of the bound (or is NaN).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <stdint.h>
 #include <math.h>
 #include <stdlib.h>
+#include <string.h>
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
 
 static inline int64_t find_root(int64_t *parent, int64_t node) {
     while (parent[node] != node) {
@@ -158,9 +175,199 @@ done:
     return result;
 }
 
+
+/* The laser order's kernels (see the top of the file). */
+/* Rearranges a[0..n) so that a[k] holds the value of rank k, no greater value before it and no smaller one after
+   (Wirth's selection: partitions around the value at k until the part holding k is that value alone). */
+static double select_rank(double *a, Py_ssize_t n, Py_ssize_t k) {
+    Py_ssize_t low = 0, high = n - 1;
+    while (low < high) {
+        const double pivot = a[k];
+        Py_ssize_t i = low, j = high;
+        do {
+            while (a[i] < pivot) ++i;
+            while (pivot < a[j]) --j;
+            if (i <= j) {
+                const double t = a[i];
+                a[i] = a[j];
+                a[j] = t;
+                ++i;
+                --j;
+            }
+        } while (i <= j);
+        if (j < k) low = i;
+        if (k < i) high = j;
+    }
+    return a[k];
+}
+
+static int compare_doubles(const void *p, const void *q) {
+    const double a = *(const double *)p, b = *(const double *)q;
+    return (a > b) - (a < b);
+}
+
+/* The value of rank k (and, with below_too, the one of rank k - 1) of the n values v (no NaN): the ranks are
+   first looked for among the values between two bounds taken from a sorted sample, which hold them unless the
+   values are spread unevenly; else among all. The answer is the same either way: order statistics are values. */
+static int ranked(const double *v, Py_ssize_t n, Py_ssize_t k, int below_too, double *at_k, double *before_k) {
+    enum { SAMPLE = 512, MARGIN = 24 };
+    double *work = malloc((size_t)n * sizeof(double));
+    if (work == NULL) return 0;
+    Py_ssize_t count = 0, offset = 0;
+    if (n >= 8 * SAMPLE) {
+        double sample[SAMPLE];
+        const Py_ssize_t stride = n / SAMPLE;
+        for (int s = 0; s < SAMPLE; ++s) sample[s] = v[s * stride];
+        qsort(sample, SAMPLE, sizeof(double), compare_doubles);
+        const Py_ssize_t at = k * SAMPLE / n;
+        const double low = sample[at - MARGIN < 0 ? 0 : at - MARGIN];
+        const double high = sample[at + MARGIN >= SAMPLE ? SAMPLE - 1 : at + MARGIN];
+        Py_ssize_t below = 0;
+        for (Py_ssize_t i = 0; i < n; ++i) {
+            const double x = v[i];
+            below += x < low;
+            work[count] = x;
+            count += (x >= low) & (x <= high);
+        }
+        if (k - below_too >= below && k < below + count) offset = below;
+        else count = 0; /* the ranks lie outside the band: all the values */
+    }
+    if (count == 0) {
+        memcpy(work, v, (size_t)n * sizeof(double));
+        count = n;
+        offset = 0;
+    }
+    const Py_ssize_t local = k - offset;
+    *at_k = select_rank(work, count, local);
+    if (below_too) {
+        double best = work[0];
+        for (Py_ssize_t i = 1; i < local; ++i)
+            if (work[i] > best) best = work[i];
+        *before_k = best;
+    }
+    free(work);
+    return 1;
+}
+
+static PyObject *py_abs_median(PyObject *self, PyObject *args) {
+    Py_buffer values;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*", &values)) return NULL;
+    PyObject *result = NULL;
+    const Py_ssize_t n = values.len / 8;
+    if (values.len != n * 8) {
+        PyErr_SetString(PyExc_ValueError, "abs_median: the values are not float64");
+        goto done;
+    }
+    double *magnitude = n ? malloc((size_t)n * sizeof(double)) : NULL;
+    int usable = n > 0 && magnitude != NULL;
+    for (Py_ssize_t i = 0; usable && i < n; ++i) {
+        magnitude[i] = fabs(((const double *)values.buf)[i]);
+        if (isnan(magnitude[i])) usable = 0;
+    }
+    const Py_ssize_t k = n / 2;
+    const int even = n % 2 == 0;
+    double at_k = 0.0, before_k = 0.0;
+    if (usable) usable = ranked(magnitude, n, k, even, &at_k, &before_k);
+    free(magnitude);
+    if (usable && at_k != 0.0 && (!even || before_k != 0.0)) {
+        result = PyFloat_FromDouble(even ? (before_k + at_k) / 2.0 : at_k);
+    } else {
+        result = Py_None;
+        Py_INCREF(result);
+    }
+done:
+    PyBuffer_Release(&values);
+    return result;
+}
+
+static PyObject *py_restarts(PyObject *self, PyObject *args) {
+    Py_buffer turned, begins;
+    double cut, half_spacing, restart;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*dddw*", &turned, &cut, &half_spacing, &restart, &begins)) return NULL;
+    PyObject *result = NULL;
+    const Py_ssize_t n = turned.len / 8;
+    if (turned.len != n * 8 || begins.len < (n > 0 ? n - 1 : 0) * 8) {
+        PyErr_SetString(PyExc_ValueError, "restarts: inconsistent buffer sizes");
+        goto done;
+    }
+    const double *t = turned.buf;
+    int64_t *out = begins.buf, count = 0;
+    /* In blocks, two passes each: the angles from the cut (vectorised), then where they fall back (rarely: the
+       branch is predicted). laser_order._mod with its bounds given: the values changed in place, no +0.0. */
+    enum { BLOCK = 2048 };
+    double from_cut[BLOCK + 1];
+    from_cut[BLOCK] = 0.0; /* (not compared: the first point has none before it) */
+    for (Py_ssize_t start = 0; start < n; start += BLOCK) {
+        const Py_ssize_t size = n - start < BLOCK ? n - start : BLOCK;
+        const double *tb = t + start;
+        from_cut[0] = from_cut[BLOCK]; /* the last angle of the block before */
+        for (Py_ssize_t i = 0; i < size; ++i) {
+            const double angle = (tb[i] - cut) + half_spacing;
+            const double up = angle < 0.0 ? angle + 360.0 : angle;
+            from_cut[i + 1] = angle >= 360.0 ? angle - 360.0 : up;
+        }
+        Py_ssize_t i = start == 0 ? 1 : 0;
+#if defined(__SSE2__)
+        /* Four differences at a time tell whether any falls back (the same subtractions and comparisons). */
+        const __m128d limit = _mm_set1_pd(-restart);
+        for (; i + 4 <= size; i += 4) {
+            const __m128d early = _mm_sub_pd(_mm_loadu_pd(from_cut + i + 1), _mm_loadu_pd(from_cut + i));
+            const __m128d late = _mm_sub_pd(_mm_loadu_pd(from_cut + i + 3), _mm_loadu_pd(from_cut + i + 2));
+            if (_mm_movemask_pd(_mm_or_pd(_mm_cmplt_pd(early, limit), _mm_cmplt_pd(late, limit)))) {
+                for (int j = 0; j < 4; ++j)
+                    if (from_cut[i + j + 1] - from_cut[i + j] < -restart) out[count++] = start + i + j;
+            }
+        }
+#endif
+        for (; i < size; ++i) {
+            if (from_cut[i + 1] - from_cut[i] < -restart) out[count++] = start + i;
+        }
+        from_cut[BLOCK] = from_cut[size];
+    }
+    result = PyLong_FromLongLong(count);
+done:
+    PyBuffer_Release(&turned);
+    PyBuffer_Release(&begins);
+    return result;
+}
+
+static PyObject *py_elevation_steps(PyObject *self, PyObject *args) {
+    Py_buffer elevation, starts;
+    double bound, decided;
+    int falling;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*dpdw*", &elevation, &bound, &falling, &decided, &starts)) return NULL;
+    PyObject *result = NULL;
+    const Py_ssize_t n = elevation.len / 8;
+    if (elevation.len != n * 8 || starts.len < (n > 0 ? n - 1 : 0) * 8) {
+        PyErr_SetString(PyExc_ValueError, "elevation_steps: inconsistent buffer sizes");
+        goto done;
+    }
+    const double *e = elevation.buf;
+    int64_t *out = starts.buf, count = 0;
+    for (Py_ssize_t i = 0; i + 1 < n; ++i) {
+        const double rise = e[i + 1] - e[i];
+        if (decided > 0.0 && !(fabs(rise - bound) > decided)) {
+            count = -1;
+            break;
+        }
+        if (falling ? rise < bound : rise > bound) out[count++] = i + 1;
+    }
+    result = PyLong_FromLongLong(count);
+done:
+    PyBuffer_Release(&elevation);
+    PyBuffer_Release(&starts);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"components", py_components, METH_VARARGS, "Connected components of an undirected graph (see the file)."},
     {"ground_walk", py_ground_walk, METH_VARARGS, "GroundRemoval's walk up the columns (see the file)."},
+    {"abs_median", py_abs_median, METH_VARARGS, "np.median of absolute values (see the file)."},
+    {"restarts", py_restarts, METH_VARARGS, "Where the angle from the cut falls back (see the file)."},
+    {"elevation_steps", py_elevation_steps, METH_VARARGS, "Where the elevation steps by a bound (see the file)."},
     {NULL, NULL, 0, NULL},
 };
 

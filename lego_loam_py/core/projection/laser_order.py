@@ -23,6 +23,11 @@ import math
 
 import numpy as np
 
+try:  # the passes over the points in C (native/projection_kernels.c); NumPy's where it is not built
+    from lego_loam_py.core import _projection_kernels
+except ImportError:  # pragma: no cover
+    _projection_kernels = None
+
 __all__ = ['rows_from_laser_order', 'MIN_STEP_DEG', 'median']
 
 TWO_PI = 2.0 * math.pi
@@ -111,7 +116,7 @@ def _median_is_not_negative(values: np.ndarray) -> bool:
     return float(np.mean(pair)) >= 0.0
 
 
-def _laser_starts(x: np.ndarray, y: np.ndarray, z: np.ndarray, single: bool) -> tuple[bool, np.ndarray]:
+def _laser_starts(x: np.ndarray, y: np.ndarray, z: np.ndarray, single: bool, kernels=None) -> tuple[bool, np.ndarray]:
     """(whether the order runs from the top laser down, indices where the elevation steps to the next laser)
     from float64 coordinates [m]: the elevation is arctan2(z, hypot(x, y)), the step a difference of two.
 
@@ -122,6 +127,7 @@ def _laser_starts(x: np.ndarray, y: np.ndarray, z: np.ndarray, single: bool) -> 
     is at most 1 / (2 range)), plus a few ulps of its own at either range. The elevations agree to within 1e-14
     rad, their differences to within 3e-14. Every decision taken at least _DECIDED_RAD (1e-9 rad) from its
     threshold is therefore the same with np.hypot; otherwise (or with NaN) all is recomputed with np.hypot.
+    ``kernels``: the C module to take the steps with (the same decisions), or None for NumPy.
     """
     threshold = math.radians(MIN_STEP_DEG)
     head = max(1, len(x) // 20)
@@ -135,8 +141,15 @@ def _laser_starts(x: np.ndarray, y: np.ndarray, z: np.ndarray, single: bool) -> 
         first, last = float(np.median(elevation[:head])), float(np.median(elevation[-head:]))
         top_first = first > last
         # The elevation rises (falls, from the top laser down) by more than a step where the next laser begins.
-        rise = np.diff(elevation)
         bound = -threshold if top_first else threshold
+        if kernels is not None:
+            if exact or abs(first - last) > _DECIDED_RAD:
+                starts = np.empty(max(len(elevation) - 1, 0), dtype=np.int64)
+                count = kernels.elevation_steps(elevation, bound, top_first, 0.0 if exact else _DECIDED_RAD, starts)
+                if count >= 0:
+                    return top_first, starts[:count]
+            continue  # a decision too close to call (or NaN): the exact elevations
+        rise = np.diff(elevation)
         if not exact:
             rise -= bound
             np.abs(rise, out=rise)
@@ -147,19 +160,24 @@ def _laser_starts(x: np.ndarray, y: np.ndarray, z: np.ndarray, single: bool) -> 
     raise AssertionError('unreachable')  # (the exact pass always returns)
 
 
-def rows_from_laser_order(x: np.ndarray, y: np.ndarray, z: np.ndarray, n_scan: int) -> np.ndarray | None:
+def rows_from_laser_order(
+    x: np.ndarray, y: np.ndarray, z: np.ndarray, n_scan: int, native: bool = True
+) -> np.ndarray | None:
     """int64 row of every point (sensor-frame coordinates [m], in the cloud's order) when the cloud is stored
-    laser by laser with at most ``n_scan`` lasers; None when it is not (e.g. in firing order)."""
+    laser by laser with at most ``n_scan`` lasers; None when it is not (e.g. in firing order). The passes over the
+    points run in C when the extension is built (the same values: the arctangents stay NumPy's); ``native=False``
+    runs NumPy's alone (the tests compare the two)."""
     if len(x) < 4 * n_scan or n_scan < 2:
         return None
     single = all(np.asarray(c).dtype == np.float32 for c in (x, y, z))
     # float64 copies made once: the ufuncs' own casting (dtype=np.float64) feeds the same loops in buffers, slower.
     x, y, z = (np.asarray(c, dtype=np.float64) for c in (x, y, z))
+    kernels = _projection_kernels if native else None
     azimuth = np.arctan2(y, x)
     step = np.diff(azimuth)
     step = _mod(step + math.pi, TWO_PI) - math.pi
     direction = 1.0 if _median_is_not_negative(step) else -1.0  # the way the order turns
-    top_first, starts = _laser_starts(x, y, z, single)
+    top_first, starts = _laser_starts(x, y, z, single, kernels)
     if len(starts) < n_scan // 4:
         return None
     # The cut: an azimuth (in the order's sense of turning) at which lasers begin; of the few most common ones,
@@ -167,7 +185,8 @@ def rows_from_laser_order(x: np.ndarray, y: np.ndarray, z: np.ndarray, n_scan: i
     turned = _mod(direction * azimuth, TWO_PI) * _DEG_PER_RAD  # [deg]; np.mod's zeros are +0.0
     turned_low, turned_high = float(turned.min()), float(turned.max())
     counts = np.bincount((turned[starts] // _CUT_BIN_DEG).astype(np.int64), minlength=int(360 / _CUT_BIN_DEG) + 1)
-    spacing = math.degrees(median(np.abs(step)))
+    spacing = kernels.abs_median(step) if kernels is not None else None
+    spacing = math.degrees(median(np.abs(step)) if spacing is None else spacing)
     begins = None
     for peak in np.argsort(counts)[::-1][:_CUT_CANDIDATES]:
         if counts[peak] == 0:
@@ -178,12 +197,16 @@ def rows_from_laser_order(x: np.ndarray, y: np.ndarray, z: np.ndarray, n_scan: i
         # Half a point spacing before it, so that a laser's first point (at the cut or just after) falls after it.
         # Rounding is monotone: the ends of turned, shifted by the same operations, bound every value (none is
         # -0.0: u - cut is +0.0 where they are equal, and turned holds no -0.0).
-        from_cut = turned - cut
-        from_cut += 0.5 * spacing
         bounds = ((turned_low - cut) + 0.5 * spacing, (turned_high - cut) + 0.5 * spacing)
-        from_cut = _mod(from_cut, 360.0, bounds)
-        # Along a laser the angle from the cut only grows; it falls back where the next laser begins.
-        candidate = np.flatnonzero(np.diff(from_cut) < -_RESTART_DEG) + 1
+        if kernels is not None and -360.0 <= bounds[0] and bounds[1] < 720.0:  # (_mod's fast range)
+            candidate = np.empty(max(len(turned) - 1, 0), dtype=np.int64)
+            candidate = candidate[: kernels.restarts(turned, cut, 0.5 * spacing, _RESTART_DEG, candidate)]
+        else:
+            from_cut = turned - cut
+            from_cut += 0.5 * spacing
+            from_cut = _mod(from_cut, 360.0, bounds)
+            # Along a laser the angle from the cut only grows; it falls back where the next laser begins.
+            candidate = np.flatnonzero(np.diff(from_cut) < -_RESTART_DEG) + 1
         if begins is None or len(candidate) < len(begins):
             begins = candidate
     if begins is None:
