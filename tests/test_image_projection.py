@@ -426,6 +426,36 @@ def test_64_beam_cloud_without_ring_and_other_presets():
         assert result.stats['projected'] > 0
 
 
+@pytest.mark.parametrize('preset', ['VLP-16', 'HDL-64E'])
+def test_the_range_image_in_c_equals_numpys_pixel_for_pixel(preset):
+    """Points outside the image, too close, at the same pixel (the last one wins), with and without a time."""
+    from dataclasses import fields, replace
+
+    from lego_loam_py.core.projection import range_image
+
+    if range_image._projection_kernels is None:
+        pytest.skip('the C extension is not built here')
+    params = PARAMS.replace(sensor__preset=preset)
+    projection = range_image.RangeImageProjection(params)
+    rng = np.random.default_rng(5)
+    n = 40000
+    cloud = velodyne_points(rng.normal(size=(n, 3)) * [15, 15, 2], ring=rng.integers(0, params.sensor.n_scan + 4, n))
+    cloud['time'] = rng.uniform(0.0, 0.1, n)
+    cloud[: n // 10] = cloud[n // 10 : n // 5]  # duplicates: the same pixel twice
+    cloud['x'][rng.integers(0, n, 500)] *= 1e-3  # too close
+    data = prepare_input(cloud, params)
+    for case in (data, replace(data, time=None)):
+        ours, expected = projection.project(case), projection.project(case, native=False)
+        for field in fields(ours):
+            mine, theirs = getattr(ours, field.name), getattr(expected, field.name)
+            if isinstance(mine, np.ndarray):
+                assert mine.dtype == theirs.dtype and mine.tobytes() == theirs.tobytes(), field.name
+            else:
+                assert mine == theirs, field.name
+        assert ours.stats['dropped_outside'] > 0 and ours.stats['dropped_close'] > 0 and ours.stats['overwritten'] > 0
+        assert (ours.time is None) == (case.time is None)
+
+
 def test_empty_and_fieldless_clouds_raise_clear_errors():
     with pytest.raises(InputError, match='no valid point'):
         run(np.zeros(0, dtype=VELODYNE_POINT_DTYPE))

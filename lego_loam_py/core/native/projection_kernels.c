@@ -18,6 +18,16 @@
  *   point yet and it is on the plane, or when |z - z_last| <= hypot(x - x_last, y - y_last) * slope + tolerance
  *   and it is on the plane or far; a kept point becomes the column's last. Runs without the GIL.
  *
+ * range_image(x, y, z, row, col, min_range, n_scan, columns, pixel_intensity, time, winner, range, full_info, full,
+ *             pixel_time) -> (outside, close, kept)
+ *   RangeImageProjection.project's pass (core/projection/range_image.py): each point's float32 range
+ *   sqrtf(x * x + y * y + z * z); the points with a row and column (int64, -1 outside the image) and a range of at
+ *   least min_range go to their pixel, the last one of a pixel (the largest index) winning. Writes per pixel
+ *   (n_scan * columns, row-major) the winner (int64, -1 empty), its range (FLT_MAX empty), its x y z range (full_info)
+ *   and x y z pixel_intensity (full) (NaN NaN NaN -1 empty), and with a time per point (float32; an empty buffer
+ *   for none) its time (0 empty). Returns the points outside the image, those in it too close (or NaN), and those
+ *   placed. Runs without the GIL.
+ *
  * The laser order's passes over a cloud's points (core/projection/laser_order.py, which keeps their NumPy versions
  * for when this extension is not built; tests/test_laser_order.py compares the two), float64 throughout, each
  * operation the one NumPy does in its order. A kernel that meets a value NumPy's fast path would not take (NaN, a
@@ -34,6 +44,7 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <stdint.h>
+#include <float.h>
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
@@ -175,6 +186,94 @@ done:
     return result;
 }
 
+
+static PyObject *py_range_image(PyObject *self, PyObject *args) {
+    Py_buffer xs, ys, zs, rows, cols, intensity, times, winners, ranges, infos, fulls, pixel_times;
+    float min_range;
+    Py_ssize_t n_scan, columns;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*fnny*y*w*w*w*w*w*", &xs, &ys, &zs, &rows, &cols, &min_range, &n_scan,
+                          &columns, &intensity, &times, &winners, &ranges, &infos, &fulls, &pixel_times)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    const Py_ssize_t n = xs.len / (Py_ssize_t)sizeof(float), pixels = n_scan * columns;
+    const Py_ssize_t f = (Py_ssize_t)sizeof(float);
+    const int timed = times.len > 0;
+    if (n_scan < 0 || columns < 0 || xs.len != n * f || ys.len != xs.len || zs.len != xs.len || rows.len != n * 8 ||
+        cols.len != n * 8 || intensity.len != pixels * f || winners.len != pixels * 8 || ranges.len != pixels * f ||
+        infos.len != 4 * pixels * f || fulls.len != infos.len || (timed && times.len != n * f) ||
+        pixel_times.len != (timed ? pixels * f : 0)) {
+        PyErr_SetString(PyExc_ValueError, "range_image: inconsistent buffer sizes");
+        goto done;
+    }
+    const float *x = xs.buf, *y = ys.buf, *z = zs.buf, *pixel_intensity = intensity.buf, *time = times.buf;
+    const int64_t *row = rows.buf, *col = cols.buf;
+    int64_t *winner = winners.buf;
+    float *range = ranges.buf, *info = infos.buf, *full = fulls.buf, *pixel_time = pixel_times.buf;
+    long long outside = 0, close = 0, kept = 0;
+    int bad = 0;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t p = 0; p < pixels; ++p) winner[p] = -1;
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        if (row[i] < 0 || col[i] < 0) {
+            ++outside;
+            continue;
+        }
+        if (row[i] >= n_scan || col[i] >= columns) {
+            bad = 1;
+            break;
+        }
+        const float r = sqrtf(x[i] * x[i] + y[i] * y[i] + z[i] * z[i]);
+        if (!(r >= min_range)) {
+            ++close;
+            continue;
+        }
+        ++kept;
+        winner[row[i] * columns + col[i]] = i;
+    }
+    if (!bad) {
+        for (Py_ssize_t p = 0; p < pixels; ++p) {
+            const int64_t w = winner[p];
+            float *cell = info + 4 * p, *shown = full + 4 * p;
+            if (w >= 0) {
+                const float r = sqrtf(x[w] * x[w] + y[w] * y[w] + z[w] * z[w]);
+                cell[0] = shown[0] = x[w];
+                cell[1] = shown[1] = y[w];
+                cell[2] = shown[2] = z[w];
+                cell[3] = r;
+                shown[3] = pixel_intensity[p];
+                range[p] = r;
+                if (timed) pixel_time[p] = time[w];
+            } else {
+                cell[0] = cell[1] = cell[2] = shown[0] = shown[1] = shown[2] = NAN;
+                cell[3] = shown[3] = -1.0f; /* an empty pixel's intensity is -1 in both clouds */
+                range[p] = FLT_MAX;
+                if (timed) pixel_time[p] = 0.0f;
+            }
+        }
+    }
+    Py_END_ALLOW_THREADS
+    if (bad) {
+        PyErr_SetString(PyExc_IndexError, "range_image: a row or column beyond the image");
+        goto done;
+    }
+    result = Py_BuildValue("(LLL)", outside, close, kept);
+done:
+    PyBuffer_Release(&xs);
+    PyBuffer_Release(&ys);
+    PyBuffer_Release(&zs);
+    PyBuffer_Release(&rows);
+    PyBuffer_Release(&cols);
+    PyBuffer_Release(&intensity);
+    PyBuffer_Release(&times);
+    PyBuffer_Release(&winners);
+    PyBuffer_Release(&ranges);
+    PyBuffer_Release(&infos);
+    PyBuffer_Release(&fulls);
+    PyBuffer_Release(&pixel_times);
+    return result;
+}
 
 /* The laser order's kernels (see the top of the file). */
 /* Rearranges a[0..n) so that a[k] holds the value of rank k, no greater value before it and no smaller one after
@@ -365,6 +464,7 @@ done:
 static PyMethodDef methods[] = {
     {"components", py_components, METH_VARARGS, "Connected components of an undirected graph (see the file)."},
     {"ground_walk", py_ground_walk, METH_VARARGS, "GroundRemoval's walk up the columns (see the file)."},
+    {"range_image", py_range_image, METH_VARARGS, "The range image's pixels of a scan's points (see the file)."},
     {"abs_median", py_abs_median, METH_VARARGS, "np.median of absolute values (see the file)."},
     {"restarts", py_restarts, METH_VARARGS, "Where the angle from the cut falls back (see the file)."},
     {"elevation_steps", py_elevation_steps, METH_VARARGS, "Where the elevation steps by a bound (see the file)."},

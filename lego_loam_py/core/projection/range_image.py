@@ -20,6 +20,11 @@ from lego_loam_py.core.parity.atan2f_decisions import Atan2fSteps, decide_on_ata
 from lego_loam_py.core.parity.libm import atan2f, float_degrees, round_half_away
 from lego_loam_py.core.projection.driver_layouts import read_cloud
 from lego_loam_py.core.projection.laser_order import rows_from_laser_order
+
+try:  # the pixels of a scan in one C pass (native/projection_kernels.c); NumPy's where it is not built
+    from lego_loam_py.core import _projection_kernels
+except ImportError:  # pragma: no cover
+    _projection_kernels = None
 from lego_loam_py.errors import LegoLoamError
 
 __all__ = ['InputError', 'ProjectionInput', 'prepare_input', 'RangeImage', 'RangeImageProjection']
@@ -163,14 +168,51 @@ class RangeImageProjection:
         value /= np.float64(self._ang_res_x)
         return (self.horizon_scan // 2) - round_half_away(value)
 
-    def project(self, data: ProjectionInput) -> RangeImage:
-        """The range image of one scan's valid points (at least one)."""
+    def project(self, data: ProjectionInput, native: bool = True) -> RangeImage:
+        """The range image of one scan's valid points (at least one). The pixels in one C pass when the extension
+        is built (the same values); ``native=False``: NumPy's passes (the tests compare the two)."""
         n, h = self.n_scan, self.horizon_scan
         xyz = data.xyz
         # Contiguous copies: every pass over a strided column of xyz costs about twice as much.
         x, y, z = (np.ascontiguousarray(xyz[:, axis]) for axis in range(3))
         start, end, diff = self.orientation(xyz)
         row, col = self.rows_and_columns(data.ring, x, y, z)
+        if native and _projection_kernels is not None and x.dtype == _F32:
+            winner_of_pixel, range_image = np.empty(n * h, dtype=np.int64), np.empty(n * h, dtype=_F32)
+            full_info, full = np.empty((n * h, 4), dtype=_F32), np.empty((n * h, 4), dtype=_F32)
+            time = np.empty(0, _F32) if data.time is None else np.ascontiguousarray(data.time, dtype=_F32)
+            time_image = None if data.time is None else np.empty(n * h, dtype=_F32)
+            outside, close, kept = _projection_kernels.range_image(
+                x,
+                y,
+                z,
+                np.ascontiguousarray(row, dtype=np.int64),
+                np.ascontiguousarray(col, dtype=np.int64),
+                self._min_range,
+                n,
+                h,
+                self._pixel_intensity,
+                time,
+                winner_of_pixel,
+                range_image,
+                full_info,
+                full,
+                np.empty(0, _F32) if time_image is None else time_image,
+            )
+            filled = winner_of_pixel >= 0
+            overwritten = kept - int(np.count_nonzero(filled))
+            return RangeImage(
+                full_cloud=full,
+                full_info_cloud=full_info,
+                range=range_image,
+                filled=filled,
+                point_of_pixel=winner_of_pixel,
+                time=time_image,
+                start_orientation=start,
+                end_orientation=end,
+                orientation_diff=diff,
+                stats=dict(dropped_outside=outside, dropped_close=close, overwritten=overwritten),
+            )
         rng = np.sqrt(x * x + y * y + z * z)  # float32, as sqrt(x*x + y*y + z*z) on floats
         keep = (row >= 0) & (col >= 0) & (rng >= self._min_range)
         pixel_of_point = (col + row * h)[keep]
