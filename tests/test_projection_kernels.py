@@ -115,6 +115,53 @@ def _ground_scene(seed: int, columns: int):
 
 
 @needs_kernel
+@pytest.mark.parametrize('seed', range(6))
+def test_the_vertical_pairs_in_c_are_numpys(seed):
+    """Walls on the ground: pixels right above each other (a vertical pair) and near it, NaN steps."""
+    from lego_loam_py.core.projection.ground import GroundRemoval
+
+    params, (x, y, z), _, filled, ground = _ground_scene(seed, 1800)
+    rng = np.random.default_rng(seed)
+    wall = rng.random(x.shape) < 0.2  # this pixel's point goes on the one below it, higher (or nearly so)
+    wall[0] = False
+    below = np.roll(wall, -1, axis=0)
+    lean = rng.choice([0.0, 1e-3, 0.03, 0.2], size=x.shape).astype(np.float32)
+    x = np.where(wall, np.roll(x, 1, axis=0) * (1 + lean), x).astype(np.float32)
+    y = np.where(wall, np.roll(y, 1, axis=0) * (1 + lean), y).astype(np.float32)
+    z = np.where(wall, np.roll(z, 1, axis=0) + rng.uniform(0.0, 0.5, x.shape), z).astype(np.float32)
+    x[rng.random(x.shape) < 0.01] = np.nan
+    planes = (x, y, z)
+    steps = tuple(a[1:] - a[:-1] for a in planes)
+    removal = GroundRemoval(params)
+    native = removal._refine_ground(planes, steps, filled, ground)
+    numpy = removal._refine_ground(planes, steps, filled, ground, native=False)
+    assert np.array_equal(native, numpy)
+    assert np.count_nonzero(ground[: len(x)] & (wall | below) & ~native[: len(x)]) > 100  # (walls taken out)
+
+
+@needs_kernel
+def test_a_vertical_pair_by_hand_and_at_its_bounds():
+    """Pairs of a pixel at 20 m and one above it: 1 m further out and 3 m higher is not vertical (the gap is
+    exactly 0.05 x 20 m in float32); 0.9 m further and 3 m higher is; 0.9 m further and 1.6 m higher is not."""
+    from lego_loam_py.core.params import Params
+    from lego_loam_py.core.projection.ground import GroundRemoval
+
+    params = Params().replace(sensor__horizon_scan=3, sensor__ang_res_x=120.0)
+    removal = GroundRemoval(params)
+    x = np.array([[20.0, 20.0, 20.0], [21.0, 20.9, 20.9]], dtype=np.float32)
+    y = np.zeros_like(x)
+    z = np.array([[-1.7, -1.7, -1.7], [1.3, 1.3, -0.1]], dtype=np.float32)
+    planes = (x, y, z)
+    steps = tuple(a[1:] - a[:-1] for a in planes)
+    filled = np.zeros((params.sensor.n_scan, 3), dtype=bool)
+    filled[:2] = True
+    ground = filled.copy()
+    for native in (True, False):
+        kept = removal._refine_ground(planes, steps, filled, ground, native=native)
+        assert kept[:2].tolist() == [[True, False, True], [True, False, True]]
+
+
+@needs_kernel
 @pytest.mark.parametrize('seed', range(20))
 def test_the_ground_walk_in_c_keeps_what_numpys_keeps(seed):
     from lego_loam_py.core.projection.ground import GroundRemoval

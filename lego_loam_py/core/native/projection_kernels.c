@@ -18,6 +18,13 @@
  *   point yet and it is on the plane, or when |z - z_last| <= hypot(x - x_last, y - y_last) * slope + tolerance
  *   and it is on the plane or far; a kept point becomes the column's last. Runs without the GIL.
  *
+ * vertical_pairs(dx, dy, dz, x, y, filled, rows, columns, ratio, max_gap, ground)
+ *   GroundRemoval._refine_ground's vertical pairs: the pixel (r, c) and the one above it, both filled (uint8), are
+ *   a vertical pair where |dz| > ratio * gap and gap < max_gap * reach (float32), gap and reach the float32 hypot
+ *   of (dx, dy) and of (x, y) as ground.float32_hypot takes them, (float) sqrt((double) a * a + (double) b * b);
+ *   dx, dy, dz (rows - 1, columns) the steps to the row above, x, y and filled (at least rows, columns). Both
+ *   pixels of a vertical pair are taken out of ground (rows, columns, uint8, in place).
+ *
  * range_image(x, y, z, row, col, min_range, n_scan, columns, pixel_intensity, time, winner, range, full_info, full,
  *             pixel_time) -> (outside, close, kept)
  *   RangeImageProjection.project's pass (core/projection/range_image.py): each point's float32 range
@@ -186,6 +193,52 @@ done:
     return result;
 }
 
+
+static inline float hypot_of_floats(float a, float b) {
+    return (float)sqrt((double)a * a + (double)b * b);
+}
+
+static PyObject *py_vertical_pairs(PyObject *self, PyObject *args) {
+    Py_buffer dxs, dys, dzs, xs, ys, filled, grounds;
+    Py_ssize_t rows, columns;
+    float ratio, max_gap;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*nnffw*", &dxs, &dys, &dzs, &xs, &ys, &filled, &rows, &columns, &ratio,
+                          &max_gap, &grounds)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    const Py_ssize_t f = (Py_ssize_t)sizeof(float), pairs = (rows - 1) * columns, cells = rows * columns;
+    if (rows < 1 || columns < 0 || dxs.len != pairs * f || dys.len != dxs.len || dzs.len != dxs.len ||
+        xs.len < pairs * f || ys.len < pairs * f || filled.len < cells || grounds.len != cells) {
+        PyErr_SetString(PyExc_ValueError, "vertical_pairs: inconsistent buffer sizes");
+        goto done;
+    }
+    const float *dx = dxs.buf, *dy = dys.buf, *dz = dzs.buf, *x = xs.buf, *y = ys.buf;
+    const uint8_t *full = filled.buf;
+    uint8_t *ground = grounds.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; i < pairs; ++i) {
+        if (!(full[i] && full[i + columns])) continue;
+        const float gap = hypot_of_floats(dx[i], dy[i]), rise = fabsf(dz[i]);
+        if (rise > ratio * gap && gap < max_gap * hypot_of_floats(x[i], y[i])) {
+            ground[i] = 0;
+            ground[i + columns] = 0;
+        }
+    }
+    Py_END_ALLOW_THREADS
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&dxs);
+    PyBuffer_Release(&dys);
+    PyBuffer_Release(&dzs);
+    PyBuffer_Release(&xs);
+    PyBuffer_Release(&ys);
+    PyBuffer_Release(&filled);
+    PyBuffer_Release(&grounds);
+    return result;
+}
 
 static PyObject *py_range_image(PyObject *self, PyObject *args) {
     Py_buffer xs, ys, zs, rows, cols, intensity, times, winners, ranges, infos, fulls, pixel_times;
@@ -464,6 +517,7 @@ done:
 static PyMethodDef methods[] = {
     {"components", py_components, METH_VARARGS, "Connected components of an undirected graph (see the file)."},
     {"ground_walk", py_ground_walk, METH_VARARGS, "GroundRemoval's walk up the columns (see the file)."},
+    {"vertical_pairs", py_vertical_pairs, METH_VARARGS, "The ground's vertical pairs (see the file)."},
     {"range_image", py_range_image, METH_VARARGS, "The range image's pixels of a scan's points (see the file)."},
     {"abs_median", py_abs_median, METH_VARARGS, "np.median of absolute values (see the file)."},
     {"restarts", py_restarts, METH_VARARGS, "Where the angle from the cut falls back (see the file)."},

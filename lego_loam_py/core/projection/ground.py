@@ -130,15 +130,21 @@ class GroundRemoval:
         x, y, z = planes  # float32 (top, H) [m]: the rows that can hold ground and the one above them
         dx, dy, dz = steps  # float32 (top - 1, H) [m]: each row's step to the row above
         top = len(x)
-        both = f[: top - 1] & f[1:top]
-        with np.errstate(invalid='ignore'):
-            gap = float32_hypot(dx, dy)  # (np.hypot's values; NaN and inf only compare false below, either way)
-            rise = np.abs(dz)
-            reach = float32_hypot(x[:-1], y[:-1])
-            vertical = both & (rise > ip.ground_vertical_ratio * gap) & (gap < ip.ground_vertical_gap * reach)
         ground = ground.copy()
-        ground[: top - 1] &= ~vertical
-        ground[1:top] &= ~vertical
+        if native and _projection_kernels is not None:  # the same tests in C, pair by pair
+            _projection_kernels.vertical_pairs(
+                dx, dy, dz, x, y, f, top, self.horizon_scan, _F32(ip.ground_vertical_ratio),
+                _F32(ip.ground_vertical_gap), ground[:top],
+            )  # fmt: skip
+        else:
+            both = f[: top - 1] & f[1:top]
+            with np.errstate(invalid='ignore'):
+                gap = float32_hypot(dx, dy)  # (np.hypot's values; NaN and inf only compare false below, either way)
+                rise = np.abs(dz)
+                reach = float32_hypot(x[:-1], y[:-1])
+                vertical = both & (rise > ip.ground_vertical_ratio * gap) & (gap < ip.ground_vertical_gap * reach)
+            ground[: top - 1] &= ~vertical
+            ground[1:top] &= ~vertical
         pixels = np.flatnonzero(ground)
         if len(pixels) < 10:
             return ground
