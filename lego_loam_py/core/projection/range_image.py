@@ -171,60 +171,44 @@ class RangeImageProjection:
     def project(self, data: ProjectionInput, native: bool = True) -> RangeImage:
         """The range image of one scan's valid points (at least one). The pixels in one C pass when the extension
         is built (the same values); ``native=False``: NumPy's passes (the tests compare the two)."""
-        n, h = self.n_scan, self.horizon_scan
         xyz = data.xyz
         # Contiguous copies: every pass over a strided column of xyz costs about twice as much.
         x, y, z = (np.ascontiguousarray(xyz[:, axis]) for axis in range(3))
         start, end, diff = self.orientation(xyz)
         row, col = self.rows_and_columns(data.ring, x, y, z)
-        if native and _projection_kernels is not None and x.dtype == _F32:
-            winner_of_pixel, range_image = np.empty(n * h, dtype=np.int64), np.empty(n * h, dtype=_F32)
-            full_info, full = np.empty((n * h, 4), dtype=_F32), np.empty((n * h, 4), dtype=_F32)
-            time = np.empty(0, _F32) if data.time is None else np.ascontiguousarray(data.time, dtype=_F32)
-            time_image = None if data.time is None else np.empty(n * h, dtype=_F32)
-            outside, close, kept = _projection_kernels.range_image(
-                x,
-                y,
-                z,
-                np.ascontiguousarray(row, dtype=np.int64),
-                np.ascontiguousarray(col, dtype=np.int64),
-                self._min_range,
-                n,
-                h,
-                self._pixel_intensity,
-                time,
-                winner_of_pixel,
-                range_image,
-                full_info,
-                full,
-                np.empty(0, _F32) if time_image is None else time_image,
-            )
-            filled = winner_of_pixel >= 0
-            overwritten = kept - int(np.count_nonzero(filled))
-            return RangeImage(
-                full_cloud=full,
-                full_info_cloud=full_info,
-                range=range_image,
-                filled=filled,
-                point_of_pixel=winner_of_pixel,
-                time=time_image,
-                start_orientation=start,
-                end_orientation=end,
-                orientation_diff=diff,
-                stats=dict(dropped_outside=outside, dropped_close=close, overwritten=overwritten),
-            )
+        time = None if data.time is None else np.ascontiguousarray(data.time, dtype=_F32)
+        pixels = self._pixels_in_c if native and _projection_kernels is not None else self._pixels
+        full, full_info, range_image, winner_of_pixel, time_image, stats = pixels(x, y, z, row, col, time)
+        return RangeImage(
+            full_cloud=full,
+            full_info_cloud=full_info,
+            range=range_image,
+            filled=winner_of_pixel >= 0,
+            point_of_pixel=winner_of_pixel,
+            time=time_image,
+            start_orientation=start,
+            end_orientation=end,
+            orientation_diff=diff,
+            stats=stats,
+        )
+
+    def _pixels(self, x, y, z, row, col, time) -> tuple:
+        """(full cloud, full info cloud, range image, winner of each pixel, pixel times or None, stats) of the
+        points x, y, z (float32) at their row and column (int64, -1 outside), with their times (float32) or
+        None: the fields of :class:`RangeImage`."""
+        h = self.horizon_scan
         rng = np.sqrt(x * x + y * y + z * z)  # float32, as sqrt(x*x + y*y + z*z) on floats
         keep = (row >= 0) & (col >= 0) & (rng >= self._min_range)
         pixel_of_point = (col + row * h)[keep]
         kept = np.flatnonzero(keep)
         # Later points overwrite earlier ones in the same pixel: the largest point index wins.
-        winner_of_pixel = np.full(n * h, -1, dtype=np.int64)
+        winner_of_pixel = np.full(self.n_scan * h, -1, dtype=np.int64)
         np.maximum.at(winner_of_pixel, pixel_of_point, kept)
         filled = winner_of_pixel >= 0
 
         # Every per-pixel image is one row gather from a per-point table whose extra last row (index -1)
         # holds the empty pixel's values; np.take is ~10x faster than fancy indexing on 2-D rows.
-        table = np.empty((len(xyz) + 1, 4), dtype=_F32)
+        table = np.empty((len(x) + 1, 4), dtype=_F32)
         for axis, values in enumerate((x, y, z)):  # column by column: ~3x faster than one (n, 3) -> (n, 4) copy
             table[:-1, axis] = values
         table[:-1, 3] = rng
@@ -233,23 +217,38 @@ class RangeImageProjection:
         range_image = np.take(np.append(rng, np.finfo(np.float32).max), winner_of_pixel)  # FLT_MAX where empty
         full = full_info.copy()
         np.copyto(full[:, 3], self._pixel_intensity, where=filled)
-        time_image = None
-        if data.time is not None:
-            time_image = np.append(data.time.astype(_F32, copy=False), _F32(0.0))[winner_of_pixel]
+        time_image = None if time is None else np.append(time, _F32(0.0))[winner_of_pixel]
         stats = dict(
             dropped_outside=int(np.count_nonzero((row < 0) | (col < 0))),
             dropped_close=int(np.count_nonzero((row >= 0) & (col >= 0) & ~keep)),
             overwritten=int(len(kept) - np.count_nonzero(filled)),
         )
-        return RangeImage(
-            full_cloud=full,
-            full_info_cloud=full_info,
-            range=range_image,
-            filled=filled,
-            point_of_pixel=winner_of_pixel,
-            time=time_image,
-            start_orientation=start,
-            end_orientation=end,
-            orientation_diff=diff,
-            stats=stats,
+        return full, full_info, range_image, winner_of_pixel, time_image, stats
+
+    def _pixels_in_c(self, x, y, z, row, col, time) -> tuple:
+        """:meth:`_pixels` in one C pass (native/projection_kernels.c), the same values."""
+        pixels = self.n_scan * self.horizon_scan
+        winner_of_pixel, range_image = np.empty(pixels, dtype=np.int64), np.empty(pixels, dtype=_F32)
+        full_info, full = np.empty((pixels, 4), dtype=_F32), np.empty((pixels, 4), dtype=_F32)
+        time_image = None if time is None else np.empty(pixels, dtype=_F32)
+        no_time = np.empty(0, _F32)
+        outside, close, kept = _projection_kernels.range_image(
+            x,
+            y,
+            z,
+            np.ascontiguousarray(row, dtype=np.int64),
+            np.ascontiguousarray(col, dtype=np.int64),
+            self._min_range,
+            self.n_scan,
+            self.horizon_scan,
+            self._pixel_intensity,
+            no_time if time is None else time,
+            winner_of_pixel,
+            range_image,
+            full_info,
+            full,
+            no_time if time_image is None else time_image,
         )
+        overwritten = kept - int(np.count_nonzero(winner_of_pixel >= 0))
+        stats = dict(dropped_outside=outside, dropped_close=close, overwritten=overwritten)
+        return full, full_info, range_image, winner_of_pixel, time_image, stats
