@@ -190,7 +190,7 @@ def random_range_image(rng: np.random.Generator, n: int, h: int):
     return image.astype(np.float32), empty, ground & ~empty
 
 
-@pytest.mark.parametrize('native', [True, False], ids=['c_components', 'scipy_components'])
+@pytest.mark.parametrize('native', [True, False], ids=['c_search', 'numpy_components'])
 @pytest.mark.parametrize('seed', range(100))
 def test_segmentation_equals_plain_bfs_on_random_images(seed, native, monkeypatch):
     from lego_loam_py.core.projection import segmentation

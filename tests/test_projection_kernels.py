@@ -1,68 +1,62 @@
-"""imageProjection's C kernel (native/projection_kernels.c): the segments' connected components, by hand and
-against SciPy's, which it replaces."""
+"""imageProjection's C kernels (native/projection_kernels.c) against their NumPy versions: the segmentation's
+breadth-first search, the ground's vertical pairs and walk."""
+
+import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
+from lego_loam_py.core.params import Params
 from lego_loam_py.core.projection import segmentation
-from lego_loam_py.core.projection.segmentation import run_components
+from lego_loam_py.core.projection.segmentation import Segmentation, run_components
 
 needs_kernel = pytest.mark.skipif(segmentation._projection_kernels is None, reason='the C extension is not built here')
 
 
-def _partition(component: np.ndarray) -> set[frozenset[int]]:
-    """The sets of nodes sharing a component: what the labels depend on, whatever the numbering."""
-    groups: dict[int, set[int]] = {}
-    for node, label in enumerate(component.tolist()):
-        groups.setdefault(label, set()).add(node)
-    return {frozenset(group) for group in groups.values()}
-
-
-@needs_kernel
-def test_components_by_hand_are_numbered_by_their_lowest_node():
+def test_run_components_by_hand():
     # 7 nodes; edges 1-4, 4-6 and 2-5 (listed by their lower end); 0 and 3 alone.
     count, component = run_components(7, np.array([1, 2, 4]), np.array([4, 5, 6]))
-    assert count == 4
-    assert component.tolist() == [0, 1, 2, 3, 1, 2, 1]
+    groups = {frozenset(np.flatnonzero(component == label).tolist()) for label in range(count)}
+    assert groups == {frozenset({0}), frozenset({1, 4, 6}), frozenset({2, 5}), frozenset({3})}
+
+
+def _scene(rng: np.random.Generator, rows: int, columns: int):
+    """(ranges (rows * columns,) float32 with FLT_MAX where empty, filled, ground) of blocky surfaces at random
+    depths with slopes, noise, holes, a few NaN ranges and ground in the lowest rows."""
+    blocks = rng.uniform(2.0, 60.0, size=(rows // 2 + 1, columns // 5 + 1))
+    image = np.kron(blocks, np.ones((2, 5)))[:rows, :columns]
+    image *= 1.0 + rng.normal(0.0, rng.choice([0.0, 0.0005, 0.003]), size=image.shape)
+    image += np.linspace(0.0, rng.uniform(0.0, 8.0), columns)[None, :]
+    filled = rng.random(image.shape) > rng.uniform(0.0, 0.4)
+    ground = np.zeros(image.shape, dtype=bool)
+    ground[: rng.integers(0, rows // 2)] = rng.random((1, columns)) < 0.7
+    ranges = np.where(filled, image, np.finfo(np.float32).max).astype(np.float32)
+    ranges[rng.random(image.shape) < 0.002] = np.nan
+    return ranges.reshape(-1), filled.reshape(-1), (ground & filled).reshape(-1)
 
 
 @needs_kernel
-def test_a_chain_linked_from_its_top_end_first_still_has_its_lowest_node_as_root():
-    # Edges joined highest first: every union links two roots the other way round from the last one.
-    lower = np.array([0, 1, 2, 3, 4])
-    upper = np.array([5, 5, 4, 4, 5])
-    count, component = run_components(6, lower, upper)
-    assert count == 1 and component.tolist() == [0] * 6
-
-
-@needs_kernel
-def test_an_edge_beyond_the_nodes_is_refused():
-    with pytest.raises(ValueError, match='outside'):
-        run_components(3, np.array([0]), np.array([3]))
-
-
-@needs_kernel
-@settings(max_examples=200, deadline=None)
-@given(
-    st.integers(min_value=1, max_value=60).flatmap(
-        lambda n: st.tuples(
-            st.just(n), st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, n - 1)), max_size=3 * n)
-        )
-    )
+@pytest.mark.parametrize(
+    'preset, theta_deg',
+    [('VLP-16', 60.0), ('HDL-64E', 60.0), ('VLP-32C', 60.0), ('OS1-128', 45.0), ('VLP-16', 0.02), ('OS1-32', 10.0)],
 )
-def test_the_kernel_finds_scipys_components(graph):
-    nodes, edges = graph
-    edges = sorted(edges)  # (the segmentation's edges come by ascending lower end)
-    lower = np.array([a for a, _ in edges], dtype=np.int64)
-    upper = np.array([b for _, b in edges], dtype=np.int64)
-    count, component = run_components(nodes, lower, upper)
-    scipy_count, scipy_component = run_components(nodes, lower, upper, native=False)
-    assert count == scipy_count
-    assert _partition(component) == _partition(np.asarray(scipy_component))
-    firsts = [int(np.flatnonzero(component == label)[0]) for label in range(count)]
-    assert firsts == sorted(firsts)  # numbered in the order of their lowest nodes
+def test_the_breadth_first_segmentation_in_c_labels_as_numpy_does(preset, theta_deg):
+    """Presets with even rows and with beam tables (an angle per pair of rows), theta such that the cross products
+    decide, and one (0.02 deg) so near the end of beta's range that every pair takes libm's angle."""
+    params = Params().replace(sensor__preset=preset, image_projection__segment_theta=math.radians(theta_deg))
+    s = params.sensor
+    columns = int(np.random.default_rng(0).choice([90, s.horizon_scan]))
+    params = params.replace(sensor__horizon_scan=columns, sensor__ang_res_x=360.0 / columns)
+    labeller = Segmentation(params)
+    assert (len(labeller._directions) == 0) == (theta_deg < 0.1)
+    kinds = set()
+    for seed in range(4):
+        ranges, filled, ground = _scene(np.random.default_rng(seed), s.n_scan, columns)
+        ours = labeller.labels(ranges, filled, ground)
+        expected = labeller.labels(ranges, filled, ground, native=False)
+        assert ours.dtype == expected.dtype and np.array_equal(ours, expected)
+        kinds |= {'segment' if 0 < label < segmentation.OUTLIER_LABEL else label for label in np.unique(ours).tolist()}
+    assert kinds == {'segment', segmentation.OUTLIER_LABEL, segmentation.NO_LABEL}
 
 
 @needs_kernel

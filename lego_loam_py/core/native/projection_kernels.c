@@ -1,14 +1,8 @@
 /*
- * imageProjection's loops that NumPy cannot express, in C. The module that calls them
- * (core/projection/segmentation.py) keeps its SciPy version as the fallback when this extension is not built, and
- * tests/test_segmentation.py compares the two.
- *
- * components(nodes, lower, upper, component) -> count
- *   The connected components of an undirected graph of `nodes` nodes whose edges join lower[k] and upper[k]
- *   (int64 arrays of equal length, every index in [0, nodes)): union-find with path halving, then each node's
- *   component numbered 0, 1, ... in the order of the components' lowest nodes. Writes component (nodes,) int64
- *   and returns the number of components. Runs without the GIL (the offline runner projects on a thread of its
- *   own beside featureAssociation).
+ * imageProjection's loops, in C: those NumPy cannot express, and passes fused where NumPy would make many. Each
+ * module that calls one keeps its NumPy version for when this extension is not built, and the tests compare the
+ * two (tests/test_projection_kernels.py, test_image_projection.py, test_laser_order.py). The kernels that run on
+ * the offline runner's projection thread release the GIL.
  *
  * ground_walk(x, y, z, top, columns, ground, far, on_plane, slope, tolerance)
  *   GroundRemoval._refine_ground's walk up the columns (core/projection/ground.py), column by column instead of
@@ -17,6 +11,20 @@
  *   in place). In each column, from the lowest row up, a ground candidate is kept when the column has no kept
  *   point yet and it is on the plane, or when |z - z_last| <= hypot(x - x_last, y - y_last) * slope + tolerance
  *   and it is on the plane or far; a kept point becomes the column's last. Runs without the GIL.
+ *
+ * segment_labels(range, candidate, rows, columns, row_sin, row_cos, column_sin, column_cos, theta, directions,
+ *                min_cluster, valid_points, valid_lines, labels) -> segments
+ *   Segmentation.labels (core/projection/segmentation.py), the original's breadth-first segmentation: the
+ *   candidate pixels (uint8, non-ground and filled) of a (rows, columns) float32 range image joined to their
+ *   4-neighbours (columns wrap around) where beta > theta, beta = atan2f(d2 sin(alpha), d1 - d2 cos(alpha)), d1 and
+ *   d2 the larger and smaller range, alpha the angle between the two rows (row_sin / row_cos[r] for rows r and
+ *   r + 1) or columns. Each decision is parity.atan2f_exceeds's, the same float32 operations: the signs of the
+ *   cross products with the directions (cos, sin) just below and above theta in directions (float32 low_cos,
+ *   low_sin, high_cos, high_sin; empty: libm's atan2f throughout) beyond their rounding bound, else libm's angle.
+ *   A cluster is kept with at least min_cluster pixels, or valid_points over valid_lines rows (the rows of its
+ *   pixels other than the first); kept clusters are numbered 1, 2, ... in the row-major order of their first
+ *   pixel, the others labelled 999999, every other pixel -1 (labels, int32). Returns the number of clusters
+ *   kept. Runs without the GIL.
  *
  * vertical_pairs(dx, dy, dz, x, y, filled, rows, columns, ratio, max_gap, ground)
  *   GroundRemoval._refine_ground's vertical pairs: the pixel (r, c) and the one above it, both filled (uint8), are
@@ -58,65 +66,6 @@
 #if defined(__SSE2__)
 #include <emmintrin.h>
 #endif
-
-static inline int64_t find_root(int64_t *parent, int64_t node) {
-    while (parent[node] != node) {
-        parent[node] = parent[parent[node]];
-        node = parent[node];
-    }
-    return node;
-}
-
-static PyObject *py_components(PyObject *self, PyObject *args) {
-    Py_ssize_t nodes;
-    Py_buffer lower, upper, component;
-    (void)self;
-    if (!PyArg_ParseTuple(args, "ny*y*w*", &nodes, &lower, &upper, &component)) {
-        return NULL;
-    }
-    PyObject *result = NULL;
-    const Py_ssize_t edges = lower.len / 8;
-    if (nodes < 0 || lower.len != edges * 8 || upper.len != lower.len || component.len != nodes * 8) {
-        PyErr_SetString(PyExc_ValueError, "components: inconsistent buffer sizes");
-        goto done;
-    }
-    const int64_t *a = lower.buf, *b = upper.buf;
-    int64_t *parent = component.buf; /* the forest lives in the output until it is numbered */
-    int bad = 0;
-    int64_t count = 0;
-    Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t i = 0; i < nodes; ++i) parent[i] = i;
-    for (Py_ssize_t k = 0; k < edges; ++k) {
-        if (a[k] < 0 || a[k] >= nodes || b[k] < 0 || b[k] >= nodes) {
-            bad = 1;
-            break;
-        }
-        int64_t ra = find_root(parent, a[k]), rb = find_root(parent, b[k]);
-        if (ra != rb) {
-            if (ra < rb) parent[rb] = ra; /* the lower node is the root: a root is its component's lowest node */
-            else parent[ra] = rb;
-        }
-    }
-    if (!bad) {
-        /* Every node's parent is at most the node (a root is its set's lowest node, and path halving only moves
-           a node up to an ancestor): in node order, each parent is already numbered when its node comes. */
-        for (Py_ssize_t i = 0; i < nodes; ++i) {
-            const int64_t p = parent[i];
-            parent[i] = p == i ? count++ : parent[p];
-        }
-    }
-    Py_END_ALLOW_THREADS
-    if (bad) {
-        PyErr_SetString(PyExc_ValueError, "components: an edge names a node outside [0, nodes)");
-        goto done;
-    }
-    result = PyLong_FromLongLong(count);
-done:
-    PyBuffer_Release(&lower);
-    PyBuffer_Release(&upper);
-    PyBuffer_Release(&component);
-    return result;
-}
 
 /* |dz| <= hypot(dx, dy) * slope + tolerance, with libm's hypot, whose call costs several times the rest: the
    horizontal gap is first taken as sqrt(dx * dx + dy * dy), within 3 ulps of hypot's for steps between float32
@@ -193,6 +142,149 @@ done:
     return result;
 }
 
+
+/* Whether neighbours at ranges a[i] and b[i], sin_alpha and cos_alpha apart, join: beta > theta, decided as
+   parity.atan2f_exceeds decides it (see the top of the file), for count pairs into joined (0 or 1). The cross
+   products in a branch-free, vectorised pass (int32 lanes as wide as the floats', 2 where neither decides), then
+   libm's angle for the few left. A NaN range gives no join (NaN cross products decide "not above"), as there. */
+static void join_pairs(const float *a, const float *b, Py_ssize_t count, float sin_alpha, float cos_alpha, float theta,
+                       const float *directions, int all_libm, int32_t *decision, uint8_t *joined) {
+    if (!all_libm) {
+        const float low_cos = directions[0], low_sin = directions[1], high_cos = directions[2],
+                    high_sin = directions[3];
+        for (Py_ssize_t i = 0; i < count; ++i) {
+            const float larger = a[i] > b[i] ? a[i] : b[i], smaller = a[i] > b[i] ? b[i] : a[i];
+            const float y = smaller * sin_alpha, x = larger - smaller * cos_alpha;
+            const float bound = (fabsf(y) + fabsf(x)) * 0x1p-21f + 0x1p-120f;
+            const int32_t above = y * high_cos - x * high_sin > bound;
+            /* "not >= -bound" rather than "< -bound": NaN (no angle) is never above, as in libm. */
+            const int32_t not_above = !(y * low_cos - x * low_sin >= -bound);
+            decision[i] = above | ((above | not_above) ^ 1) << 1;
+        }
+    }
+    for (Py_ssize_t i = 0; i < count; ++i) {
+        if (all_libm || decision[i] == 2) {
+            const float larger = a[i] > b[i] ? a[i] : b[i], smaller = a[i] > b[i] ? b[i] : a[i];
+            joined[i] = atan2f(smaller * sin_alpha, larger - smaller * cos_alpha) > theta;
+        } else {
+            joined[i] = (uint8_t)decision[i];
+        }
+    }
+}
+
+static PyObject *py_segment_labels(PyObject *self, PyObject *args) {
+    Py_buffer ranges, candidates, row_sins, row_coses, direction_buffer, label_buffer;
+    Py_ssize_t rows, columns, min_cluster, valid_points, valid_lines;
+    float column_sin, column_cos, theta;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*nny*y*fffy*nnnw*", &ranges, &candidates, &rows, &columns, &row_sins, &row_coses,
+                          &column_sin, &column_cos, &theta, &direction_buffer, &min_cluster, &valid_points,
+                          &valid_lines, &label_buffer)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    const Py_ssize_t f = (Py_ssize_t)sizeof(float), pixels = rows * columns;
+    if (rows < 1 || columns < 1 || ranges.len != pixels * f || candidates.len != pixels ||
+        row_sins.len != (rows - 1) * f || row_coses.len != row_sins.len ||
+        (direction_buffer.len != 0 && direction_buffer.len != 4 * f) || label_buffer.len != pixels * 4) {
+        PyErr_SetString(PyExc_ValueError, "segment_labels: inconsistent buffer sizes");
+        goto done;
+    }
+    const float *range = ranges.buf, *row_sin = row_sins.buf, *row_cos = row_coses.buf;
+    const float *directions = direction_buffer.buf;
+    const int all_libm = direction_buffer.len == 0;
+    const uint8_t *candidate = candidates.buf;
+    int32_t *label = label_buffer.buf;
+    /* joined_up[p]: p and the pixel above it; joined_right[p]: p and the next column's (the last wraps), both
+       candidates. */
+    uint8_t *joined_up = malloc((size_t)pixels), *joined_right = malloc((size_t)pixels);
+    uint8_t *line_seen = malloc((size_t)rows);
+    int32_t *decision = malloc((size_t)columns * sizeof(int32_t));
+    Py_ssize_t *queue = malloc((size_t)pixels * sizeof(Py_ssize_t));
+    Py_ssize_t *queue_row = malloc((size_t)pixels * sizeof(Py_ssize_t)); /* (the row of each: no division) */
+    int64_t kept = 0;
+    if (!joined_up || !joined_right || !line_seen || !decision || !queue || !queue_row) {
+        free(joined_up);
+        free(joined_right);
+        free(line_seen);
+        free(decision);
+        free(queue);
+        free(queue_row);
+        PyErr_NoMemory();
+        goto done;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t r = 0; r < rows; ++r) {
+        const float *here = range + r * columns;
+        const Py_ssize_t first = r * columns;
+        join_pairs(here, here + 1, columns - 1, column_sin, column_cos, theta, directions, all_libm, decision,
+                   joined_right + first);
+        join_pairs(here + columns - 1, here, 1, column_sin, column_cos, theta, directions, all_libm, decision,
+                   joined_right + first + columns - 1); /* (the last column and the first) */
+        if (r + 1 < rows) {
+            join_pairs(here, here + columns, columns, row_sin[r], row_cos[r], theta, directions, all_libm, decision,
+                       joined_up + first);
+        } else {
+            memset(joined_up + first, 0, (size_t)columns);
+        }
+        for (Py_ssize_t c = 0; c < columns; ++c) {
+            const Py_ssize_t p = first + c;
+            joined_right[p] &= candidate[p] & candidate[c + 1 < columns ? p + 1 : first];
+            if (r + 1 < rows) joined_up[p] &= candidate[p] & candidate[p + columns];
+        }
+    }
+    for (Py_ssize_t p = 0; p < pixels; ++p) label[p] = candidate[p] ? 0 : -1;
+    int32_t number = 1;
+    for (Py_ssize_t seed = 0; seed < pixels; ++seed) {
+        if (label[seed] != 0) continue;
+        Py_ssize_t head = 0, tail = 0, lines = 0;
+        memset(line_seen, 0, (size_t)rows);
+        queue[tail] = seed;
+        queue_row[tail++] = seed / columns;
+        label[seed] = number;
+        while (head < tail) {
+            const Py_ssize_t p = queue[head], r = queue_row[head++], c = p - r * columns;
+            const Py_ssize_t left = c > 0 ? p - 1 : p + columns - 1, right = c + 1 < columns ? p + 1 : p - c;
+            const Py_ssize_t neighbour[4] = {r > 0 ? p - columns : -1, right, left, r + 1 < rows ? p + columns : -1};
+            const Py_ssize_t neighbour_row[4] = {r - 1, r, r, r + 1};
+            const uint8_t joined[4] = {r > 0 && joined_up[p - columns], joined_right[p], joined_right[left],
+                                       joined_up[p]};
+            for (int k = 0; k < 4; ++k) {
+                const Py_ssize_t q = neighbour[k];
+                if (!joined[k] || label[q] != 0) continue;
+                label[q] = number;
+                queue[tail] = q;
+                queue_row[tail++] = neighbour_row[k];
+                if (!line_seen[neighbour_row[k]]) {
+                    line_seen[neighbour_row[k]] = 1;
+                    ++lines;
+                }
+            }
+        }
+        if (tail >= min_cluster || (tail >= valid_points && lines >= valid_lines)) {
+            ++number;
+            ++kept;
+        } else {
+            for (Py_ssize_t k = 0; k < tail; ++k) label[queue[k]] = 999999;
+        }
+    }
+    Py_END_ALLOW_THREADS
+    free(joined_up);
+    free(joined_right);
+    free(line_seen);
+    free(decision);
+    free(queue);
+    free(queue_row);
+    result = PyLong_FromLongLong(kept);
+done:
+    PyBuffer_Release(&ranges);
+    PyBuffer_Release(&candidates);
+    PyBuffer_Release(&row_sins);
+    PyBuffer_Release(&row_coses);
+    PyBuffer_Release(&direction_buffer);
+    PyBuffer_Release(&label_buffer);
+    return result;
+}
 
 static inline float hypot_of_floats(float a, float b) {
     return (float)sqrt((double)a * a + (double)b * b);
@@ -515,8 +607,8 @@ done:
 }
 
 static PyMethodDef methods[] = {
-    {"components", py_components, METH_VARARGS, "Connected components of an undirected graph (see the file)."},
     {"ground_walk", py_ground_walk, METH_VARARGS, "GroundRemoval's walk up the columns (see the file)."},
+    {"segment_labels", py_segment_labels, METH_VARARGS, "The breadth-first segmentation (see the file)."},
     {"vertical_pairs", py_vertical_pairs, METH_VARARGS, "The ground's vertical pairs (see the file)."},
     {"range_image", py_range_image, METH_VARARGS, "The range image's pixels of a scan's points (see the file)."},
     {"abs_median", py_abs_median, METH_VARARGS, "np.median of absolute values (see the file)."},

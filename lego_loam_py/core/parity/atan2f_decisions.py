@@ -26,7 +26,7 @@ import numpy as np
 from lego_loam_py.core.parity import libm
 from lego_loam_py.core.parity.libm import atan2f
 
-__all__ = ['decide_on_atan2f', 'atan2f_exceeds', 'Atan2fSteps', 'first_float32_where']
+__all__ = ['decide_on_atan2f', 'atan2f_exceeds', 'exceeding_tests', 'Atan2fSteps', 'first_float32_where']
 
 _F32 = np.float32
 _HALF_TURN_SLACK = 2.0**-10  # [rad] tested angles stay this far inside a half turn
@@ -67,6 +67,18 @@ def _rounding_bound(y: np.ndarray, x: np.ndarray) -> np.ndarray:
     return bound
 
 
+def exceeding_tests(threshold: float, angle_range: tuple[float, float]) -> tuple[float, float] | None:
+    """The two angles [rad] just below and above the float32 ``threshold`` at which :func:`atan2f_exceeds` tests
+    the sign of a cross product, or None where ``angle_range`` puts one of them a half turn from an end of the
+    range (every element then takes libm's angle)."""
+    t = float(_F32(threshold))
+    test = (t - _margin(t), t + _margin(t))
+    low, high = angle_range
+    if any(max(abs(phi - low), abs(high - phi)) >= math.pi - _HALF_TURN_SLACK for phi in test):
+        return None
+    return test
+
+
 def atan2f_exceeds(y: np.ndarray, x: np.ndarray, thresholds, angle_range: tuple[float, float]) -> list[np.ndarray]:
     """``[atan2f(y, x) > t for t in thresholds]`` (libm's angle; False where y or x is NaN) for float32 arrays
     ``y``, ``x`` that are finite or NaN and float32 ``thresholds`` [rad].
@@ -79,9 +91,8 @@ def atan2f_exceeds(y: np.ndarray, x: np.ndarray, thresholds, angle_range: tuple[
     y = np.asarray(y, dtype=_F32)
     x = np.asarray(x, dtype=_F32)
     thresholds = [_F32(t) for t in thresholds]
-    tests = [(float(t) - _margin(float(t)), float(t) + _margin(float(t))) for t in thresholds]
-    low, high = angle_range
-    if any(max(abs(phi - low), abs(high - phi)) >= math.pi - _HALF_TURN_SLACK for test in tests for phi in test):
+    tests = [exceeding_tests(t, angle_range) for t in thresholds]
+    if any(test is None for test in tests):
         angle = atan2f(y, x)
         return [angle > t for t in thresholds]
     with np.errstate(invalid='ignore', over='ignore'):

@@ -1,11 +1,12 @@
 """imageProjection's segmentation (docs/original.md §6.1): the label of every range-image pixel.
 
-The breadth-first segmentation of the original is computed as connected components of the graph whose
-nodes are the non-ground, non-empty pixels and whose edges join 4-neighbours (columns wrap around) that
-satisfy the angle criterion β > segment_theta. The criterion is symmetric in the two pixels, so components
-equal the BFS's clusters; labels are numbered as the BFS numbers them (by the row-major index of each
-cluster's first pixel, invalid clusters consuming no number). The components are found on a smaller graph
-with the same connectivity: the vertically joined runs of each column are its nodes.
+The original's breadth-first segmentation runs in C when the extension is built (native/projection_kernels.c).
+Its NumPy version computes the clusters as connected components of the graph whose nodes are the non-ground,
+non-empty pixels and whose edges join 4-neighbours (columns wrap around) that satisfy the angle criterion
+β > segment_theta. The criterion is symmetric in the two pixels, so components equal the BFS's clusters; labels
+are numbered as the BFS numbers them (by the row-major index of each cluster's first pixel, invalid clusters
+consuming no number). The components are found on a smaller graph with the same connectivity: the vertically
+joined runs of each column are its nodes (SciPy's connected components).
 """
 
 from __future__ import annotations
@@ -15,10 +16,10 @@ import math
 import numpy as np
 
 from lego_loam_py.core.params.types import Params
-from lego_loam_py.core.parity.atan2f_decisions import atan2f_exceeds
+from lego_loam_py.core.parity.atan2f_decisions import atan2f_exceeds, exceeding_tests
 from lego_loam_py.core.parity.libm import cosf, sinf
 
-try:  # the components in C (native/projection_kernels.c); optional: SciPy's give the same labels
+try:  # the segmentation in C (native/projection_kernels.c); optional: the NumPy version gives the same labels
     from lego_loam_py.core import _projection_kernels
 except ImportError:
     _projection_kernels = None
@@ -32,17 +33,10 @@ NO_LABEL = -1  # ground or empty pixel (labelMat == -1)
 _F32 = np.float32
 
 
-def run_components(runs: int, lower: np.ndarray, upper: np.ndarray, native: bool = True) -> tuple[int, np.ndarray]:
+def run_components(runs: int, lower: np.ndarray, upper: np.ndarray) -> tuple[int, np.ndarray]:
     """(count, component of each run) of the undirected graph of ``runs`` nodes whose edges join ``lower[k]`` and
-    ``upper[k]`` (``lower`` ascending). Only which runs share a component matters to the labels: the C kernel
-    numbers the components by their lowest run, SciPy by its own search. ``native=False``, or without the
-    extension: SciPy's (whose import costs 0.1-0.2 s of a process's CPU; the tests compare the two)."""
-    if native and _projection_kernels is not None:
-        component = np.empty(runs, dtype=np.int64)
-        count = _projection_kernels.components(
-            runs, np.ascontiguousarray(lower, dtype=np.int64), np.ascontiguousarray(upper, dtype=np.int64), component
-        )
-        return count, component
+    ``upper[k]`` (``lower`` ascending): SciPy's connected components (only which runs share a component matters to
+    the labels, not its number)."""
     from scipy.sparse import csr_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -69,16 +63,50 @@ class Segmentation:
             self._sin_alpha = (self._sin_alpha[0], np.sin(rows_apart).astype(_F32)[:, None])
             self._cos_alpha = (self._cos_alpha[0], np.cos(rows_apart).astype(_F32)[:, None])
         self._theta = _F32(self._settings.segment_theta)
+        # The C kernel's view of the same constants: an angle per pair of rows, theta's tested directions.
+        self._row_sin, self._row_cos = (
+            np.ascontiguousarray(np.broadcast_to(v, (self.n_scan - 1, 1)).reshape(-1), dtype=_F32)
+            for v in (self._sin_alpha[1], self._cos_alpha[1])
+        )
+        tests = exceeding_tests(self._theta, (0.0, math.pi))  # (beta lies in [0, pi]: y >= 0)
+        self._directions = (
+            np.empty(0, _F32)
+            if tests is None
+            else np.array([f(phi) for phi in tests for f in (math.cos, math.sin)], dtype=_F32)
+        )
 
-    def labels(self, range_image: np.ndarray, filled: np.ndarray, ground: np.ndarray) -> np.ndarray:
+    def labels(
+        self, range_image: np.ndarray, filled: np.ndarray, ground: np.ndarray, native: bool = True
+    ) -> np.ndarray:
         """The original's labelMat as int32 (N_SCAN*H,): -1 ground or empty, 999999 pixels of clusters that
         are too small, 1, 2, ... valid segments numbered in the BFS's order.
 
         ``range_image`` is (N_SCAN*H,) float32 [m], ``filled`` marks non-empty pixels, ``ground`` the ground.
+        The BFS itself in C when the extension is built (native/projection_kernels.c, the same labels);
+        ``native=False``: the components of the joined runs, in NumPy (the tests compare the two).
         """
         n, h = self.n_scan, self.horizon_scan
         ip = self._settings
         candidate = filled & ~ground
+        if native and _projection_kernels is not None and range_image.dtype == _F32:
+            labels = np.empty(n * h, dtype=np.int32)
+            _projection_kernels.segment_labels(
+                np.ascontiguousarray(range_image),
+                np.ascontiguousarray(candidate),
+                n,
+                h,
+                self._row_sin,
+                self._row_cos,
+                self._sin_alpha[0],
+                self._cos_alpha[0],
+                self._theta,
+                self._directions,
+                ip.segment_min_cluster_size,
+                ip.segment_valid_point_num,
+                ip.segment_valid_line_num,
+                labels,
+            )
+            return labels
         if not candidate.any():
             return np.full(n * h, NO_LABEL, dtype=np.int32)
         # Work in column-major order, (h, n): a column's pixels bottom to top, then the next column.
