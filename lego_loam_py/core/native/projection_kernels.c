@@ -5,8 +5,8 @@
  * the offline runner's projection thread release the GIL.
  *
  * ground_walk(x, y, z, top, columns, ground, far, on_plane, slope, tolerance)
- *   GroundRemoval._refine_ground's walk up the columns (core/projection/ground.py), column by column instead of
- *   row by row, with its float64 operations in its order (built with -ffp-contract=off): x, y, z (top, columns)
+ *   GroundRemoval._refine_ground's walk up the columns (core/projection/ground.py), every column one row at a time
+ *   as there, with its float64 operations in its order (built with -ffp-contract=off): x, y, z (top, columns)
  *   float32 coordinates, taken as float64 (exactly); ground, far and on_plane (top, columns) bool (ground rewritten
  *   in place). In each column, from the lowest row up, a ground candidate is kept when the column has no kept
  *   point yet and it is on the plane, or when |z - z_last| <= hypot(x - x_last, y - y_last) * slope + tolerance
@@ -105,31 +105,42 @@ static PyObject *py_ground_walk(PyObject *self, PyObject *args) {
     const float *x = xs.buf, *y = ys.buf, *z = zs.buf;
     uint8_t *keep = ground.buf;
     const uint8_t *is_far = far.buf, *planar = on_plane.buf;
+    /* Row by row, each column's walk one step at a time: the columns' steps are independent of each other (they
+       overlap in the pipeline and read the rows in memory order), each column's in the order of its rows. */
+    double *last = malloc((size_t)(3 * columns + 1) * sizeof(double));
+    uint8_t *seeded = calloc((size_t)columns + 1, 1);
+    if (last == NULL || seeded == NULL) {
+        free(last);
+        free(seeded);
+        PyErr_NoMemory();
+        goto done;
+    }
     Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t c = 0; c < columns; ++c) {
-        int seeded = 0;
-        double last_x = 0.0, last_y = 0.0, last_z = 0.0;
-        for (Py_ssize_t r = 0; r < top; ++r) {
+    for (Py_ssize_t r = 0; r < top; ++r) {
+        for (Py_ssize_t c = 0; c < columns; ++c) {
             const Py_ssize_t i = r * columns + c;
             if (!keep[i]) continue;
             const double px = x[i], py = y[i], pz = z[i];
+            double *before = last + 3 * c;
             int accepted;
-            if (!seeded) {
+            if (!seeded[c]) {
                 accepted = planar[i] != 0;
             } else {
-                accepted = (is_far[i] || planar[i]) && rises_within(px - last_x, py - last_y, pz - last_z, slope,
-                                                                     tolerance);
+                accepted = (is_far[i] || planar[i]) &&
+                           rises_within(px - before[0], py - before[1], pz - before[2], slope, tolerance);
             }
             keep[i] = (uint8_t)accepted;
             if (accepted) {
-                last_x = px;
-                last_y = py;
-                last_z = pz;
-                seeded = 1;
+                before[0] = px;
+                before[1] = py;
+                before[2] = pz;
+                seeded[c] = 1;
             }
         }
     }
     Py_END_ALLOW_THREADS
+    free(last);
+    free(seeded);
     result = Py_None;
     Py_INCREF(result);
 done:
