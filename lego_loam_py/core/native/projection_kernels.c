@@ -49,9 +49,9 @@
  * value outside the fast range of the remainder) returns its "not here" answer and the caller takes NumPy's path:
  * abs_median(values) -> float or None
  *   np.median(np.abs(values)); None for NaN and for a zero middle value (whose sign is np.median's choice).
- * restarts(turned, cut, half_spacing, begins) -> count
+ * restarts(turned, cut, half_spacing, restart, begins) -> count
  *   with from_cut[i] = mod((turned[i] - cut) + half_spacing, 360) (the caller checked the range), the indices i
- *   where from_cut[i] - from_cut[i - 1] < -RESTART_DEG, written to begins (int64); returns how many.
+ *   where from_cut[i] - from_cut[i - 1] < -restart, written to begins (int64, n - 1 at most); returns how many.
  * elevation_steps(elevation, bound, falling, decided, starts) -> count or -1
  *   the indices i + 1 where elevation[i + 1] - elevation[i] < bound (falling) or > bound (rising), written to
  *   starts; with decided > 0, -1 as soon as a difference lies within decided of the bound (or is NaN).
@@ -431,8 +431,9 @@ done:
     return result;
 }
 
-/* The laser order's kernels (see the top of the file). */
-/* Rearranges a[0..n) so that a[k] holds the value of rank k, no greater value before it and no smaller one after
+/* The laser order's kernels (see the top of the file).
+
+   Rearranges a[0..n) so that a[k] holds the value of rank k, no greater value before it and no smaller one after
    (Wirth's selection: partitions around the value at k until the part holding k is that value alone). */
 static double select_rank(double *a, Py_ssize_t n, Py_ssize_t k) {
     Py_ssize_t low = 0, high = n - 1;
