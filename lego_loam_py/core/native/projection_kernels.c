@@ -537,17 +537,25 @@ done:
     return result;
 }
 
+/* The float64 values (n of them, set here) and the room for n - 1 int64 indices that restarts and elevation_steps take;
+   0 with a ValueError naming the kernel when the buffers do not fit. */
+static int steps_buffers(const Py_buffer *values, const Py_buffer *indices, const char *kernel, Py_ssize_t *n) {
+    *n = values->len / 8;
+    if (values->len != *n * 8 || indices->len < (*n > 0 ? *n - 1 : 0) * 8) {
+        PyErr_Format(PyExc_ValueError, "%s: inconsistent buffer sizes", kernel);
+        return 0;
+    }
+    return 1;
+}
+
 static PyObject *py_restarts(PyObject *self, PyObject *args) {
     Py_buffer turned, begins;
     double cut, half_spacing, restart;
     (void)self;
     if (!PyArg_ParseTuple(args, "y*dddw*", &turned, &cut, &half_spacing, &restart, &begins)) return NULL;
     PyObject *result = NULL;
-    const Py_ssize_t n = turned.len / 8;
-    if (turned.len != n * 8 || begins.len < (n > 0 ? n - 1 : 0) * 8) {
-        PyErr_SetString(PyExc_ValueError, "restarts: inconsistent buffer sizes");
-        goto done;
-    }
+    Py_ssize_t n;
+    if (!steps_buffers(&turned, &begins, "restarts", &n)) goto done;
     const double *t = turned.buf;
     int64_t *out = begins.buf, count = 0;
     /* In blocks, two passes each: the angles from the cut (vectorised), then where they fall back (rarely: the
@@ -596,11 +604,8 @@ static PyObject *py_elevation_steps(PyObject *self, PyObject *args) {
     (void)self;
     if (!PyArg_ParseTuple(args, "y*dpdw*", &elevation, &bound, &falling, &decided, &starts)) return NULL;
     PyObject *result = NULL;
-    const Py_ssize_t n = elevation.len / 8;
-    if (elevation.len != n * 8 || starts.len < (n > 0 ? n - 1 : 0) * 8) {
-        PyErr_SetString(PyExc_ValueError, "elevation_steps: inconsistent buffer sizes");
-        goto done;
-    }
+    Py_ssize_t n;
+    if (!steps_buffers(&elevation, &starts, "elevation_steps", &n)) goto done;
     const double *e = elevation.buf;
     int64_t *out = starts.buf, count = 0;
     for (Py_ssize_t i = 0; i + 1 < n; ++i) {
