@@ -34,14 +34,14 @@
  *   pixels of a vertical pair are taken out of ground (rows, columns, uint8, in place).
  *
  * range_image(x, y, z, row, col, min_range, n_scan, columns, pixel_intensity, time, winner, range, full_info, full,
- *             pixel_time) -> (outside, close, kept)
+ *             pixel_time) -> (outside, close, kept, filled)
  *   RangeImageProjection.project's pass (core/projection/range_image.py): each point's float32 range
  *   sqrtf(x * x + y * y + z * z); the points with a row and column (int64, -1 outside the image) and a range of at
  *   least min_range go to their pixel, the last one of a pixel (the largest index) winning. Writes per pixel
  *   (n_scan * columns, row-major) the winner (int64, -1 empty), its range (FLT_MAX empty), its x y z range (full_info)
  *   and x y z pixel_intensity (full) (NaN NaN NaN -1 empty), and with a time per point (float32; an empty buffer
- *   for none) its time (0 empty). Returns the points outside the image, those in it too close (or NaN), and those
- *   placed. Runs without the GIL.
+ *   for none) its time (0 empty). Returns the points outside the image, those in it too close (or NaN), those
+ *   placed, and the pixels filled. Runs without the GIL.
  *
  * The laser order's passes over a cloud's points (core/projection/laser_order.py, which keeps their NumPy versions
  * for when this extension is not built; tests/test_laser_order.py compares the two), float64 throughout, each
@@ -367,7 +367,7 @@ static PyObject *py_range_image(PyObject *self, PyObject *args) {
     const int64_t *row = rows.buf, *col = cols.buf;
     int64_t *winner = winners.buf;
     float *range = ranges.buf, *info = infos.buf, *full = fulls.buf, *pixel_time = pixel_times.buf;
-    long long outside = 0, close = 0, kept = 0;
+    long long outside = 0, close = 0, kept = 0, filled = 0;
     int bad = 0;
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t p = 0; p < pixels; ++p) winner[p] = -1;
@@ -393,6 +393,7 @@ static PyObject *py_range_image(PyObject *self, PyObject *args) {
             const int64_t w = winner[p];
             float *cell = info + 4 * p, *shown = full + 4 * p;
             if (w >= 0) {
+                ++filled;
                 const float r = sqrtf(x[w] * x[w] + y[w] * y[w] + z[w] * z[w]);
                 cell[0] = shown[0] = x[w];
                 cell[1] = shown[1] = y[w];
@@ -414,7 +415,7 @@ static PyObject *py_range_image(PyObject *self, PyObject *args) {
         PyErr_SetString(PyExc_IndexError, "range_image: a row or column beyond the image");
         goto done;
     }
-    result = Py_BuildValue("(LLL)", outside, close, kept);
+    result = Py_BuildValue("(LLLL)", outside, close, kept, filled);
 done:
     PyBuffer_Release(&xs);
     PyBuffer_Release(&ys);
@@ -462,14 +463,13 @@ static int compare_doubles(const void *p, const void *q) {
     return (a > b) - (a < b);
 }
 
-/* The value of rank k (and, with below_too, the one of rank k - 1) of the n values v (no NaN): the ranks are
-   first looked for among the values between two bounds taken from a sorted sample, which hold them unless the
-   values are spread unevenly; else among all. The answer is the same either way: order statistics are values. */
-static int ranked(const double *v, Py_ssize_t n, Py_ssize_t k, int below_too, double *at_k, double *before_k) {
+/* The value of rank k (and, with below_too, the one of rank k - 1) of the n values v (no NaN), rearranged in place:
+   the ranks are first looked for among the values between two bounds taken from a sorted sample (moved to the
+   front), which hold them unless the values are spread unevenly; else among all. The answer is the same either
+   way: order statistics are values. */
+static void ranked(double *v, Py_ssize_t n, Py_ssize_t k, int below_too, double *at_k, double *before_k) {
     enum { SAMPLE = 512, MARGIN = 24 };
-    double *work = malloc((size_t)n * sizeof(double));
-    if (work == NULL) return 0;
-    Py_ssize_t count = 0, offset = 0;
+    Py_ssize_t count = n, offset = 0;
     if (n >= 8 * SAMPLE) {
         double sample[SAMPLE];
         const Py_ssize_t stride = n / SAMPLE;
@@ -478,31 +478,29 @@ static int ranked(const double *v, Py_ssize_t n, Py_ssize_t k, int below_too, do
         const Py_ssize_t at = k * SAMPLE / n;
         const double low = sample[at - MARGIN < 0 ? 0 : at - MARGIN];
         const double high = sample[at + MARGIN >= SAMPLE ? SAMPLE - 1 : at + MARGIN];
-        Py_ssize_t below = 0;
+        Py_ssize_t below = 0, band = 0;
         for (Py_ssize_t i = 0; i < n; ++i) {
-            const double x = v[i];
-            below += x < low;
-            work[count] = x;
-            count += (x >= low) & (x <= high);
+            below += v[i] < low;
+            band += (v[i] >= low) & (v[i] <= high);
         }
-        if (k - below_too >= below && k < below + count) offset = below;
-        else count = 0; /* the ranks lie outside the band: all the values */
-    }
-    if (count == 0) {
-        memcpy(work, v, (size_t)n * sizeof(double));
-        count = n;
-        offset = 0;
+        if (k - below_too >= below && k < below + band) { /* the band holds the ranks: only it, at the front */
+            count = 0;
+            for (Py_ssize_t i = 0; i < n; ++i) {
+                const double x = v[i];
+                v[count] = x;
+                count += (x >= low) & (x <= high);
+            }
+            offset = below;
+        }
     }
     const Py_ssize_t local = k - offset;
-    *at_k = select_rank(work, count, local);
+    *at_k = select_rank(v, count, local);
     if (below_too) {
-        double best = work[0];
+        double best = v[0];
         for (Py_ssize_t i = 1; i < local; ++i)
-            if (work[i] > best) best = work[i];
+            if (v[i] > best) best = v[i];
         *before_k = best;
     }
-    free(work);
-    return 1;
 }
 
 static PyObject *py_abs_median(PyObject *self, PyObject *args) {
@@ -524,7 +522,7 @@ static PyObject *py_abs_median(PyObject *self, PyObject *args) {
     const Py_ssize_t k = n / 2;
     const int even = n % 2 == 0;
     double at_k = 0.0, before_k = 0.0;
-    if (usable) usable = ranked(magnitude, n, k, even, &at_k, &before_k);
+    if (usable) ranked(magnitude, n, k, even, &at_k, &before_k);
     free(magnitude);
     if (usable && at_k != 0.0 && (!even || before_k != 0.0)) {
         result = PyFloat_FromDouble(even ? (before_k + at_k) / 2.0 : at_k);

@@ -132,10 +132,9 @@ class GroundRemoval:
         top = len(x)
         ground = ground.copy()
         if native and _projection_kernels is not None:  # the same tests in C, pair by pair
-            _projection_kernels.vertical_pairs(
-                dx, dy, dz, x, y, f, top, self.horizon_scan, _F32(ip.ground_vertical_ratio),
-                _F32(ip.ground_vertical_gap), ground[:top],
-            )  # fmt: skip
+            ratio, max_gap = _F32(ip.ground_vertical_ratio), _F32(ip.ground_vertical_gap)
+            ground_rows = ground[:top]  # (rewritten in place)
+            _projection_kernels.vertical_pairs(dx, dy, dz, x, y, f, top, self.horizon_scan, ratio, max_gap, ground_rows)
         else:
             both = f[: top - 1] & f[1:top]
             with np.errstate(invalid='ignore'):

@@ -116,6 +116,12 @@ def _median_is_not_negative(values: np.ndarray) -> bool:
     return float(np.mean(pair)) >= 0.0
 
 
+def _abs_median(values: np.ndarray, kernels) -> float:
+    """``median(np.abs(values))`` (float64): by the C module ``kernels``, or NumPy for None, NaN and zero middles."""
+    found = kernels.abs_median(values) if kernels is not None else None
+    return median(np.abs(values)) if found is None else found
+
+
 def _laser_starts(x: np.ndarray, y: np.ndarray, z: np.ndarray, single: bool, kernels=None) -> tuple[bool, np.ndarray]:
     """(whether the order runs from the top laser down, indices where the elevation steps to the next laser)
     from float64 coordinates [m]: the elevation is arctan2(z, hypot(x, y)), the step a difference of two.
@@ -185,8 +191,7 @@ def rows_from_laser_order(
     turned = _mod(direction * azimuth, TWO_PI) * _DEG_PER_RAD  # [deg]; np.mod's zeros are +0.0
     turned_low, turned_high = float(turned.min()), float(turned.max())
     counts = np.bincount((turned[starts] // _CUT_BIN_DEG).astype(np.int64), minlength=int(360 / _CUT_BIN_DEG) + 1)
-    spacing = kernels.abs_median(step) if kernels is not None else None
-    spacing = math.degrees(median(np.abs(step)) if spacing is None else spacing)
+    spacing = math.degrees(_abs_median(step, kernels))
     begins = None
     for peak in np.argsort(counts)[::-1][:_CUT_CANDIDATES]:
         if counts[peak] == 0:

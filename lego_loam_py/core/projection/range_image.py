@@ -20,12 +20,12 @@ from lego_loam_py.core.parity.atan2f_decisions import Atan2fSteps, decide_on_ata
 from lego_loam_py.core.parity.libm import atan2f, float_degrees, round_half_away
 from lego_loam_py.core.projection.driver_layouts import read_cloud
 from lego_loam_py.core.projection.laser_order import rows_from_laser_order
+from lego_loam_py.errors import LegoLoamError
 
 try:  # the pixels of a scan in one C pass (native/projection_kernels.c); NumPy's where it is not built
     from lego_loam_py.core import _projection_kernels
 except ImportError:  # pragma: no cover
     _projection_kernels = None
-from lego_loam_py.errors import LegoLoamError
 
 __all__ = ['InputError', 'ProjectionInput', 'prepare_input', 'RangeImage', 'RangeImageProjection']
 
@@ -232,7 +232,7 @@ class RangeImageProjection:
         full_info, full = np.empty((pixels, 4), dtype=_F32), np.empty((pixels, 4), dtype=_F32)
         time_image = None if time is None else np.empty(pixels, dtype=_F32)
         no_time = np.empty(0, _F32)
-        outside, close, kept = _projection_kernels.range_image(
+        outside, close, kept, filled = _projection_kernels.range_image(
             x,
             y,
             z,
@@ -249,6 +249,5 @@ class RangeImageProjection:
             full,
             no_time if time_image is None else time_image,
         )
-        overwritten = kept - int(np.count_nonzero(winner_of_pixel >= 0))
-        stats = dict(dropped_outside=outside, dropped_close=close, overwritten=overwritten)
+        stats = dict(dropped_outside=outside, dropped_close=close, overwritten=kept - filled)
         return full, full_info, range_image, winner_of_pixel, time_image, stats
