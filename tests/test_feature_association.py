@@ -11,6 +11,8 @@ from lego_loam_py.core.frames import camera_pose_to_lidar, euler_to_quaternion, 
 from lego_loam_py.core.gauss_newton import DegeneracyProjection
 from lego_loam_py.core.geometry import line_coefficients, plane_coefficients
 from lego_loam_py.core.imu.buffer import ImuBuffer
+from lego_loam_py.core.indexing import ragged
+from lego_loam_py.core.odometry import features
 from lego_loam_py.core.odometry.feature_association import FeatureAssociation, ScanInput
 from lego_loam_py.core.odometry.features import FeatureExtractor, occluded_mask, smoothness
 from lego_loam_py.core.odometry.laser_odometry import OriginalOdometry, SweepStartOdometry, make_laser_odometry
@@ -449,6 +451,37 @@ def test_occlusion_marks_the_far_side():
     assert picked[4:10].all() and not picked[10:].any()
     picked = occluded_mask(r, np.arange(20) * 20, PARAMS)  # columns far apart: not an occlusion
     assert not picked.any()
+
+
+@pytest.mark.parametrize('seed', range(20))
+def test_candidates_are_visited_in_the_originals_order_with_ties(seed):
+    """Each region's candidates as the original visits them, written out region by region: its last point ep
+    first (edges) or last (flats), the others of [sp, ep) by curvature (a stable sort: equal curvatures in point
+    order), edges from the largest; positions below the smoothness window read point 0. Curvatures drawn from
+    a few values, so that ties are everywhere."""
+    rng = np.random.default_rng(seed)
+    n, w = 120, 5
+    curvature = rng.choice(np.array([0.0, 0.05, 0.5, 2.0], dtype=np.float32), n)
+    usable = rng.random(n) < 0.6
+    sp = np.array([0, 30, 31, 50, 90])
+    ep = np.array([29, 30, 49, 89, 119])  # (an empty region: sp == ep)
+    valid = sp < ep
+    sp, ep = sp[valid], ep[valid]
+    entry_region, entry = ragged(sp, ep)
+    entry[entry < w] = 0
+    for edges in (True, False):
+        got, bounds = features._visiting_order(
+            *features._by_curvature(entry_region, entry, curvature, usable), ep, usable, edges
+        )
+        expected, expected_bounds = [], [0]
+        for start, end in zip(sp, ep):
+            points = [k if k >= w else 0 for k in range(start, end)]
+            ordered = sorted(points, key=lambda k: curvature[k])  # (Python's sort is stable)
+            region = ([end] if edges else []) + (ordered[::-1] if edges else ordered) + ([] if edges else [end])
+            expected += [k for k in region if usable[k]]
+            expected_bounds.append(len(expected))
+        assert got.tolist() == expected
+        assert bounds.tolist() == expected_bounds
 
 
 def test_feature_counts_stay_within_the_originals_bounds(shared_data):

@@ -10,15 +10,15 @@ from lego_loam_py.core.odometry import features
 from lego_loam_py.core.odometry.features import greedy_selection
 
 
-def _select(native, edges, edge_bounds, edge_slices, flats, flat_bounds, flat_slices, taken, regions, *limits):
+def _select(native, edges, edge_bounds, flats, flat_bounds, jumps, half_window, taken, regions, *limits):
     taken = bytearray(taken)
     out = greedy_selection(
-        np.array(edges),
+        np.array(edges, dtype=np.int64),
         np.array(edge_bounds),
-        [np.array(a) for a in edge_slices],
-        np.array(flats),
+        np.array(flats, dtype=np.int64),
         np.array(flat_bounds),
-        [np.array(a) for a in flat_slices],
+        np.array(jumps),
+        half_window,
         taken,
         regions,
         *limits,
@@ -27,24 +27,41 @@ def _select(native, edges, edge_bounds, edge_slices, flats, flat_bounds, flat_sl
     return [a.tolist() for a in out], bytes(taken)
 
 
+def _native_or_skip(native):
+    if native and not hasattr(features._feature_kernels, 'select_features'):
+        pytest.skip('the C extension is not built here')
+
+
 @pytest.mark.parametrize('native', [False, True])
 def test_picks_suppress_their_neighbours_by_hand(native):
-    if native and features._feature_kernels is None:
-        pytest.skip('the C extension is not built here')
-    # 10 points, one region. Edge candidates by curvature: 5, 6, 2, 8; each pick marks [k - 1, k + 2).
-    # 5 is sharp and marks 4..6, so 6 is skipped; 2 is the second (less sharp, limit 2), marks 1..3; 8 exceeds
-    # the limit. Flats: 3 (taken by 2's mark), then 0 and 9: surf_num 1 stops after 0, without marking it.
-    edges, flats = [5, 6, 2, 8], [3, 0, 9]
-    edge_slices = ([k - 1 for k in edges], [k + 2 for k in edges])
-    flat_slices = ([max(k - 1, 0) for k in flats], [min(k + 2, 10) for k in flats])
+    _native_or_skip(native)
+    # 10 points, one region, no column jump inside: each pick marks [k - 1, k + 2) (half window 1). Edge
+    # candidates by curvature: 5, 6, 2, 8; 5 is sharp and marks 4..6, so 6 is skipped; 2 is the second (less
+    # sharp, limit 2), marks 1..3; 8 exceeds the limit. Flats: 3 (taken by 2's mark), then 0 and 9: surf_num 1
+    # stops after 0, without marking it.
     (sharp, less_sharp, flat, region), taken = _select(
-        native, edges, [0, 4], edge_slices, flats, [0, 3], flat_slices, bytes(10), 1, 1, 2, 1
+        native, [5, 6, 2, 8], [0, 4], [3, 0, 9], [0, 3], [0, 10], 1, bytes(10), 1, 1, 2, 1
     )
     assert sharp == [5] and less_sharp == [5, 2] and region == [0, 0] and flat == [0]
     assert taken == bytes([0, 1, 1, 1, 1, 1, 1, 0, 0, 0])
 
 
-@pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
+@pytest.mark.parametrize('native', [False, True])
+def test_suppression_stops_at_a_column_jump_by_hand(native):
+    _native_or_skip(native)
+    # 10 points, the column jumps between points 5 and 6 (jump at 6), half window 2. Edge 5 marks 3..5, not 6
+    # or 7, so 6 is the next pick and marks 6..8 (its backward walk stops at the jump). The phantom entry -1
+    # reads point 9, untaken: a flat pick whose slice is the Python slice [-3:0], empty.
+    (sharp, less_sharp, flat, region), taken = _select(
+        native, [5, 6], [0, 2], [-1, 2], [0, 2], [0, 6, 10], 2, bytes(10), 1, 2, 2, 2
+    )
+    assert sharp == [5, 6] and less_sharp == [5, 6] and region == [0, 0] and flat == [-1, 2]
+    assert taken == bytes([0, 0, 0, 1, 1, 1, 1, 1, 1, 0])
+
+
+@pytest.mark.skipif(
+    not hasattr(features._feature_kernels, 'select_features'), reason='the C extension is not built here'
+)
 @settings(max_examples=200, deadline=None)
 @given(st.data())
 def test_native_selection_equals_the_python_loop(data):
@@ -57,14 +74,14 @@ def test_native_selection_equals_the_python_loop(data):
     def candidates():
         counts = rng.integers(0, 12, regions)
         index = rng.integers(-1, n, int(counts.sum()))  # -1: the phantom entry, read as point n - 1
-        start = np.clip(np.where(index < 0, index + n, index) - rng.integers(0, 6, len(index)), 0, n)
-        stop = np.clip(np.where(index < 0, index + n, index) + rng.integers(1, 6, len(index)), 0, n)
-        return index, np.concatenate(([0], np.cumsum(counts))), (start, np.maximum(stop, start))
+        return index, np.concatenate(([0], np.cumsum(counts)))
 
-    edges, edge_bounds, edge_slices = candidates()
-    flats, flat_bounds, flat_slices = candidates()
+    edges, edge_bounds = candidates()
+    flats, flat_bounds = candidates()
+    inner = np.flatnonzero(rng.random(max(n - 1, 0)) < 0.1) + 1
+    jumps = np.concatenate(([0], inner, [n]))
     taken = (rng.random(n) < 0.2).astype(np.uint8).tobytes()
-    args = (edges, edge_bounds, edge_slices, flats, flat_bounds, flat_slices, taken, regions, *limits)
+    args = (edges, edge_bounds, flats, flat_bounds, jumps, int(rng.integers(0, 6)), taken, regions, *limits)
     assert _select(True, *args) == _select(False, *args)
 
 

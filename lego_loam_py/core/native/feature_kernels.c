@@ -5,15 +5,16 @@
  * correspondences.py, sweep.py, core/imu/buffer.py) keep the NumPy/Python versions as the fallback when this
  * extension is not built, and tests/test_feature_kernels.py compares the two bit for bit.
  *
- * select(edges, edge_bounds, edge_start, edge_stop, flats, flat_bounds, flat_start, flat_stop, taken,
- *        edge_num, less_edge_num, surf_num, sharp, less_sharp, less_sharp_region, flat)
- *     -> (number of sharp, less sharp, flat)
+ * select_features(edges, edge_bounds, flats, flat_bounds, jumps, half_window, taken, edge_num, less_edge_num,
+ *                 surf_num, sharp, less_sharp, less_sharp_region, flat) -> (number of sharp, less sharp, flat)
  *   The greedy part of the feature extraction, sequential by nature: in each sub-region the candidates are
- *   visited in curvature order and every pick suppresses its neighbours for the picks after it. Index arrays
- *   are contiguous int64; *_bounds hold regions + 1 entries (region r: [bounds[r], bounds[r + 1])); taken is
- *   a writable uint8 array of the n points (1: picked or suppressed); the four outputs are int64 arrays large
+ *   visited in curvature order and every pick suppresses its neighbours for the picks after it: up to
+ *   half_window points on each side, stopping at a column jump (jumps: sorted int64, 0 and n included, the j
+ *   where the column jumps between points j - 1 and j), the slice features._suppression_slices gives. Index
+ *   arrays are contiguous int64; *_bounds hold regions + 1 entries (region r: [bounds[r], bounds[r + 1])); taken
+ *   is a writable uint8 array of the n points (1: picked or suppressed); the four outputs are int64 arrays large
  *   enough for regions x the per-region limits. A negative candidate index reads point index + n, as Python
- *   indexing does; the slices [start, stop) are kept within [0, n].
+ *   indexing does, and its slice is normalised as a Python slice; every slice is kept within [0, n].
  *
  * nearest_in_segments(xyz_rows, query, position, lengths, limit, index, best)
  *   For each window segment (lengths: int64, 4 per query, back to back; position: the last cloud's point
@@ -68,7 +69,7 @@
 #include <emmintrin.h>
 #endif
 
-#define N_BUFFERS 13
+#define N_BUFFERS 10
 
 /* taken[start:stop] = 1, within the array whatever the slice says. */
 static inline void mark(uint8_t *taken, Py_ssize_t n, int64_t start, int64_t stop) {
@@ -77,28 +78,59 @@ static inline void mark(uint8_t *taken, Py_ssize_t n, int64_t start, int64_t sto
     if (stop > start) memset(taken + start, 1, (size_t)(stop - start));
 }
 
-static PyObject *py_select(PyObject *self, PyObject *args) {
+/* First entry of the sorted jumps[0, count) that is >= value (count if none). */
+static inline Py_ssize_t first_at_least(const int64_t *jumps, Py_ssize_t count, int64_t value) {
+    Py_ssize_t lo = 0, hi = count;
+    while (lo < hi) {
+        Py_ssize_t mid = lo + (hi - lo) / 2;
+        if (jumps[mid] < value) {
+            lo = mid + 1;
+        } else {
+            hi = mid;
+        }
+    }
+    return lo;
+}
+
+/* Marks the suppression slice of a pick at index (see the file comment; k = the point it reads, in [0, n)). */
+static void suppress(uint8_t *taken, Py_ssize_t n, const int64_t *jumps, Py_ssize_t n_jumps, int64_t half_window,
+                     int64_t index, int64_t k) {
+    Py_ssize_t ahead = first_at_least(jumps, n_jumps, k + 1 < n ? k + 1 : n);
+    Py_ssize_t behind = first_at_least(jumps, n_jumps, k + 1) - 1; /* the last jump <= k */
+    int64_t forward = (ahead < n_jumps ? jumps[ahead] : n) - k - 1;
+    int64_t backward = k - (behind >= 0 ? jumps[behind] : 0);
+    forward = forward < half_window ? forward : half_window;
+    backward = backward < half_window ? backward : half_window;
+    int64_t start = index - backward, stop = index + forward + 1;
+    if (index < 0) {
+        start = start < 0 ? start + n : start;
+        stop = stop < 0 ? stop + n : stop;
+        stop = stop < start ? start : stop;
+    }
+    mark(taken, n, start, stop);
+}
+
+static PyObject *py_select_features(PyObject *self, PyObject *args) {
     (void)self;
     Py_buffer b[N_BUFFERS];
-    long long edge_num, less_edge_num, surf_num;
+    long long half_window, edge_num, less_edge_num, surf_num;
     memset(b, 0, sizeof(b));
-    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*y*w*LLLw*w*w*w*", &b[0], &b[1], &b[2], &b[3], &b[4], &b[5], &b[6],
-                          &b[7], &b[8], &edge_num, &less_edge_num, &surf_num, &b[9], &b[10], &b[11], &b[12])) {
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*Lw*LLLw*w*w*w*", &b[0], &b[1], &b[2], &b[3], &b[4], &half_window, &b[5],
+                          &edge_num, &less_edge_num, &surf_num, &b[6], &b[7], &b[8], &b[9])) {
         return NULL;
     }
     PyObject *result = NULL;
-    const int64_t *edges = b[0].buf, *edge_bounds = b[1].buf, *edge_start = b[2].buf, *edge_stop = b[3].buf;
-    const int64_t *flats = b[4].buf, *flat_bounds = b[5].buf, *flat_start = b[6].buf, *flat_stop = b[7].buf;
-    uint8_t *taken = b[8].buf;
-    int64_t *sharp = b[9].buf, *less_sharp = b[10].buf, *less_region = b[11].buf, *flat = b[12].buf;
-    Py_ssize_t n = b[8].len;
+    const int64_t *edges = b[0].buf, *edge_bounds = b[1].buf, *flats = b[2].buf, *flat_bounds = b[3].buf;
+    const int64_t *jumps = b[4].buf;
+    uint8_t *taken = b[5].buf;
+    int64_t *sharp = b[6].buf, *less_sharp = b[7].buf, *less_region = b[8].buf, *flat = b[9].buf;
+    Py_ssize_t n = b[5].len, n_jumps = b[4].len / 8;
     Py_ssize_t regions = b[1].len / 8 - 1;
-    Py_ssize_t n_edges = b[0].len / 8, n_flats = b[4].len / 8;
-    if (regions < 0 || b[5].len != b[1].len || b[2].len != b[0].len || b[3].len != b[0].len ||
-        b[6].len != b[4].len || b[7].len != b[4].len || edge_bounds[regions] > n_edges ||
-        flat_bounds[regions] > n_flats || b[9].len / 8 < regions * edge_num ||
-        b[10].len / 8 < regions * less_edge_num || b[11].len != b[10].len || b[12].len / 8 < regions * surf_num) {
-        PyErr_SetString(PyExc_ValueError, "select: inconsistent buffer sizes");
+    Py_ssize_t n_edges = b[0].len / 8, n_flats = b[2].len / 8;
+    if (regions < 0 || b[3].len != b[1].len || edge_bounds[regions] > n_edges || flat_bounds[regions] > n_flats ||
+        b[6].len / 8 < regions * edge_num || b[7].len / 8 < regions * less_edge_num || b[8].len != b[7].len ||
+        b[9].len / 8 < regions * surf_num) {
+        PyErr_SetString(PyExc_ValueError, "select_features: inconsistent buffer sizes");
         goto done;
     }
     Py_ssize_t n_sharp = 0, n_less = 0, n_flat = 0;
@@ -117,7 +149,7 @@ static PyObject *py_select(PyObject *self, PyObject *args) {
             }
             less_sharp[n_less] = edges[i];
             less_region[n_less++] = region;
-            mark(taken, n, edge_start[i], edge_stop[i]);
+            suppress(taken, n, jumps, n_jumps, half_window, edges[i], k);
         }
         count = 0;
         for (int64_t i = flat_bounds[region]; i < flat_bounds[region + 1]; ++i) {
@@ -129,7 +161,7 @@ static PyObject *py_select(PyObject *self, PyObject *args) {
             if (++count >= surf_num) {
                 break;
             }
-            mark(taken, n, flat_start[i], flat_stop[i]);
+            suppress(taken, n, jumps, n_jumps, half_window, flats[i], k);
         }
     }
     result = Py_BuildValue("nnn", n_sharp, n_less, n_flat);
@@ -642,7 +674,8 @@ done:
 }
 
 static PyMethodDef methods[] = {
-    {"select", py_select, METH_VARARGS, "The greedy edge and flat selection of every sub-region (see the file)."},
+    {"select_features", py_select_features, METH_VARARGS,
+     "The greedy edge and flat selection of every sub-region (see the file)."},
     {"nearest_in_segments", py_nearest_in_segments, METH_VARARGS, "The nearest point of every window segment."},
     {"nearest_in_windows", py_nearest_in_windows, METH_VARARGS, "The window search of a ring-ordered cloud."},
     {"sweep_rows", py_sweep_rows, METH_VARARGS, "SweepStartFrame.rows in one pass."},

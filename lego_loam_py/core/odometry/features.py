@@ -173,42 +173,28 @@ class FeatureExtractor:
         sp, ep, region_ring = sp[valid], ep[valid], region_ring[valid]
         regions = len(sp)
 
-        # Per region, [sp, ep) sorted by curvature (stable). Positions below w were never written: a phantom
-        # entry for point 0, whose curvature was never computed either (0), so it is sorted as point 0.
-        region_of, position = ragged(sp, ep)
-        position[position < w] = 0
-        # One stable sort by (region, curvature): the curvature is a square, and the bits of a non-negative
-        # float32 order as the values do.
-        key = (region_of << 32) | curvature[position].view(np.uint32).astype(np.int64)
-        order = np.argsort(key, kind='stable')
-        ascending, region_of_sorted = position[order], region_of[order]
-        # Candidates in visiting order, each region in a slot of ep - sp + 1 entries: edges from the unsorted
-        # element ep, then the largest curvature down; flats from the smallest up, ep last.
-        length = ep - sp
-        slot = np.cumsum(length + 1) - (length + 1)
-        rank = np.arange(len(ascending)) - np.repeat(slot - np.arange(regions), length)  # rank within region
-        edge_order = np.empty(len(ascending) + regions, dtype=np.int64)
-        edge_order[slot] = ep
-        edge_order[np.repeat(slot + length, length) - rank] = ascending
-        flat_order = np.empty_like(edge_order)
-        flat_order[slot + length] = ep
-        flat_order[np.repeat(slot, length) + rank] = ascending
-        edge_list, edge_bounds = _candidates(edge_order, is_edge_candidate[edge_order], slot)
-        flat_list, flat_bounds = _candidates(flat_order, is_flat_candidate[flat_order], slot)
+        # Per region, the candidates of [sp, ep) sorted by curvature (stable): edges from the unsorted element ep, then
+        # the largest curvature down; flats from the smallest up, ep last. Positions below w were never written: a
+        # phantom entry for point 0, whose curvature was never computed either (0), so it is sorted as point 0.
+        entry_region, entry = ragged(sp, ep)
+        entry[entry < w] = 0
+        edge_list, edge_bounds = _visiting_order(
+            *_by_curvature(entry_region, entry, curvature, is_edge_candidate), ep, is_edge_candidate, True
+        )
+        flat_list, flat_bounds = _visiting_order(
+            *_by_curvature(entry_region, entry, curvature, is_flat_candidate), ep, is_flat_candidate, False
+        )
 
-        # The greedy selection is sequential (each pick suppresses its neighbours for the later ones), with
-        # every candidate's suppression slice prepared beforehand: in C when the extension is built.
-        jumps = _column_jumps(columns, fa.suppress_column_jump)
-        edge_slices = _suppression_slices(edge_list, jumps, fa.suppress_half_window)
-        flat_slices = _suppression_slices(flat_list, jumps, fa.suppress_half_window)
+        # The greedy selection is sequential (each pick suppresses its neighbours for the later ones, up to a
+        # column jump): in C when the extension is built.
         taken = bytearray(picked.tobytes())
         sharp_index, less_sharp_index, flat_index, less_sharp_region = greedy_selection(
             edge_list,
             edge_bounds,
-            edge_slices,
             flat_list,
             flat_bounds,
-            flat_slices,
+            _column_jumps(columns, fa.suppress_column_jump),
+            fa.suppress_half_window,
             taken,
             regions,
             fa.edge_feature_num,
@@ -231,7 +217,7 @@ class FeatureExtractor:
         else:
             less_flat = np.zeros((0, 4), _F32)
         # Wall points cost a pass over every region: selected only if a stage asks for them (corridors).
-        select_walls = functools.partial(_wall_points, ascending, region_of_sorted, curvature, ground, taken, fa)
+        select_walls = functools.partial(_wall_points, entry_region, entry, curvature, ground, taken, fa)
         return ScanFeatures(
             sharp=select_rows(points, sharp_index),
             less_sharp=select_rows(points, less_sharp_index),
@@ -245,31 +231,55 @@ class FeatureExtractor:
         )
 
 
+def _by_curvature(region_of: np.ndarray, position: np.ndarray, curvature: np.ndarray, usable: np.ndarray):
+    """(positions, regions) of the entries (``region_of``, ``position``: by region, ascending) whose point is
+    ``usable``, sorted by region, then curvature, ties in entry order: what a stable sort of all entries keeps of
+    them, in one sort of the few. The curvature is a square, and the bits of a non-negative float32 order as the
+    values do."""
+    chosen = usable[position]
+    region, position = region_of[chosen], position[chosen]
+    order = np.argsort((region << 32) | curvature[position].view(np.uint32).astype(np.int64), kind='stable')
+    return position[order], region[order]
+
+
+def _visiting_order(position: np.ndarray, region: np.ndarray, ep: np.ndarray, usable: np.ndarray, edges: bool):
+    """The candidates in the order the original visits them and, per region, where they start and end in that
+    list (region r: [bounds[r], bounds[r + 1])). ``position``, ``region``: the region's sorted candidates
+    (:func:`_by_curvature`); ``ep``: each region's last point, a candidate if ``usable``. Edges: ep first, then the
+    sorted ones from the end; flats: the sorted ones, then ep."""
+    regions = len(ep)
+    with_end = usable[ep]
+    count = np.bincount(region, minlength=regions)
+    bounds = np.concatenate(([0], np.cumsum(count + with_end)))
+    first = np.cumsum(count) - count  # each region's first entry in the sorted candidates
+    rank = np.arange(len(position)) - first[region]
+    out = np.empty(bounds[-1], dtype=np.int64)
+    start = bounds[:-1]
+    if edges:
+        out[start[with_end]] = ep[with_end]
+        out[(start + with_end + count - 1)[region] - rank] = position
+    else:
+        out[start[region] + rank] = position
+        out[(start + count)[with_end]] = ep[with_end]
+    return out, bounds
+
+
 def _wall_points(
-    ascending: np.ndarray, region: np.ndarray, curvature: np.ndarray, ground: np.ndarray, taken: bytearray, fa
+    region_of: np.ndarray, position: np.ndarray, curvature: np.ndarray, ground: np.ndarray, taken: bytearray, fa
 ) -> np.ndarray:
     """Up to ``wall_feature_num`` flattest non-ground points of each sub-region that no edge or flat pick
-    took or suppressed (``ascending``: positions sorted by region, then curvature; ``region``: their regions).
+    took or suppressed (``region_of``, ``position``: the regions' entries, as :func:`_by_curvature` takes them).
 
     In a corridor the floor is hardly seen; walls and ceiling then hold the odometry's plane stage (see
     :class:`~lego_loam_py.core.odometry.laser_odometry.SweepStartOdometry`)."""
-    if fa.wall_feature_num <= 0 or not len(ascending):
+    if fa.wall_feature_num <= 0 or not len(position):
         return np.zeros(0, np.int64)
     is_wall = (curvature < _F32(fa.surf_threshold)) & ~ground & ~np.frombuffer(taken, dtype=bool)
-    candidate = is_wall[ascending]
-    chosen = ascending[candidate]
-    chosen_region = region[candidate]
+    chosen, chosen_region = _by_curvature(region_of, position, curvature, is_wall)
     # Rank within the region: position in the candidate list minus the region's first candidate.
     first = np.flatnonzero(np.r_[True, chosen_region[1:] != chosen_region[:-1]])
     rank = np.arange(len(chosen)) - np.repeat(first, np.diff(np.r_[first, len(chosen)]))
     return np.unique(chosen[rank < fa.wall_feature_num])  # (the phantom point 0 may appear twice)
-
-
-def _candidates(order: np.ndarray, usable: np.ndarray, slot: np.ndarray):
-    """The usable entries of ``order`` and, per region (slots starting at ``slot``), where they start and end
-    in that list (region r: [bounds[r], bounds[r + 1]))."""
-    before = np.concatenate(([0], np.cumsum(usable)))
-    return order[usable], np.append(before[slot], before[-1])
 
 
 def _column_jumps(columns: np.ndarray, column_jump: int) -> np.ndarray:
@@ -298,10 +308,10 @@ def _suppression_slices(index: np.ndarray, jumps: np.ndarray, half_window: int):
 def greedy_selection(
     edges: np.ndarray,
     edge_bounds: np.ndarray,
-    edge_slices,
     flats: np.ndarray,
     flat_bounds: np.ndarray,
-    flat_slices,
+    jumps: np.ndarray,
+    half_window: int,
     taken: bytearray,
     regions: int,
     edge_num: int,
@@ -311,8 +321,9 @@ def greedy_selection(
 ):
     """The original's sequential picks, region by region: up to ``edge_num`` sharp and ``less_edge_num`` less
     sharp points from ``edges`` (largest curvature first), then up to ``surf_num`` flat points from ``flats``
-    (smallest first), skipping points already ``taken`` and marking each pick's suppression slice
-    (``*_slices``: start and stop arrays per candidate) in ``taken``, which is updated in place.
+    (smallest first), skipping points already ``taken`` and marking each pick's suppression slice in ``taken``,
+    which is updated in place: up to ``half_window`` points on each side, stopping at the column ``jumps``
+    (:func:`_column_jumps`, :func:`_suppression_slices`).
 
     ``*_bounds``: region r's candidates are entries [bounds[r], bounds[r + 1]). Returns the sharp, less sharp,
     flat point indices and the region of each less sharp point (int64 arrays). ``native=False`` runs the Python
@@ -320,21 +331,19 @@ def greedy_selection(
     edges, flats = np.ascontiguousarray(edges, np.int64), np.ascontiguousarray(flats, np.int64)
     edge_bounds = np.ascontiguousarray(edge_bounds, np.int64)
     flat_bounds = np.ascontiguousarray(flat_bounds, np.int64)
-    if native and _feature_kernels is not None:
+    jumps = np.ascontiguousarray(jumps, np.int64)
+    if native and hasattr(_feature_kernels, 'select_features'):  # (None, or an extension built before it)
         sharp = np.empty(regions * edge_num, np.int64)
         less_sharp = np.empty(regions * less_edge_num, np.int64)
         less_sharp_region = np.empty_like(less_sharp)
         flat = np.empty(regions * surf_num, np.int64)
-        slices = [np.ascontiguousarray(a, np.int64) for a in (*edge_slices, *flat_slices)]
-        n_sharp, n_less, n_flat = _feature_kernels.select(
+        n_sharp, n_less, n_flat = _feature_kernels.select_features(
             edges,
             edge_bounds,
-            slices[0],
-            slices[1],
             flats,
             flat_bounds,
-            slices[2],
-            slices[3],
+            jumps,
+            half_window,
             taken,
             edge_num,
             less_edge_num,
@@ -345,6 +354,8 @@ def greedy_selection(
             flat,
         )
         return sharp[:n_sharp], less_sharp[:n_less], flat[:n_flat], less_sharp_region[:n_less]
+    edge_slices = _suppression_slices(edges, jumps, half_window)
+    flat_slices = _suppression_slices(flats, jumps, half_window)
     edge_list, flat_list = edges.tolist(), flats.tolist()
     edge_bounds, flat_bounds = edge_bounds.tolist(), flat_bounds.tolist()
     edge_low, edge_high = (np.asarray(a).tolist() for a in edge_slices)
