@@ -331,3 +331,42 @@ def test_an_occupancy_grid_message_holds_the_grid_row_major_from_its_origin():
         (0.0, 0.0, math.sqrt(0.5), math.sqrt(0.5)), abs=1e-12
     )
     assert list(msg.data) == [100, 0, 0, 0, -1, -1, -1, -1, -1, -1, -1, 100]
+
+
+@pytest.mark.parametrize(
+    ('orientation', 'position', 'problem'),
+    [
+        ((0.0, 0.0, math.nan, 1.0), (0.0, 0.0, 0.0), 'not finite'),
+        ((0.0, 0.0, 0.0, 1.0), (math.inf, 0.0, 0.0), 'not finite'),
+        ((0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 'zero norm'),
+        ((0.0, 0.0, 0.0, 1.2), (0.0, 0.0, 0.0), 'not of unit length'),
+        ((1e200, 0.0, 0.0, 1e200), (0.0, 0.0, 0.0), 'not of unit length'),  # (no overflow on the way)
+        ((0.0, 0.0, 0.0, 1.0), (0.0, -2e9, 0.0), 'position beyond'),
+    ],
+)
+def test_odometry_poses_that_are_no_pose_are_refused(orientation, position, problem):
+    from nav_msgs.msg import Odometry
+
+    from lego_loam_py.ros.conversions import odometry_to_pose
+
+    msg = Odometry()
+    p = msg.pose.pose
+    p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = orientation
+    p.position.x, p.position.y, p.position.z = position
+    with pytest.raises(ValueError, match=problem):
+        odometry_to_pose(msg)
+
+
+def test_an_odometry_pose_is_its_quaternion_normalised_and_its_position():
+    from nav_msgs.msg import Odometry
+
+    from lego_loam_py.core.frames import make_pose, quaternion_to_matrix
+    from lego_loam_py.ros.conversions import odometry_to_pose
+
+    msg = Odometry()
+    p = msg.pose.pose
+    p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = 0.1, -0.2, 0.3, 0.95  # (norm 1.03)
+    p.position.x, p.position.y, p.position.z = 1.5, -2.0, 3.25
+    expected = make_pose(quaternion_to_matrix([0.1, -0.2, 0.3, 0.95]), [1.5, -2.0, 3.25])
+    assert np.array_equal(odometry_to_pose(msg), expected)
+    assert np.allclose(odometry_to_pose(msg)[:3, :3] @ odometry_to_pose(msg)[:3, :3].T, np.eye(3), atol=1e-12)

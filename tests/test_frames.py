@@ -178,6 +178,8 @@ def test_quaternion_and_matrix_conversions_are_scipys_bit_for_bit():
     for q in _random_quaternions(rng, 4000):
         matrix = Rotation.from_quat(q).as_matrix()
         assert _same_bits(F.quaternion_to_matrix(q), matrix), q
+        translation = rng.normal(size=3) * 100
+        assert _same_bits(F.quaternion_pose(q, translation), F.make_pose(matrix, translation)), q
         # exact rotations, nearly orthogonal ones (scipy's Markley step), perturbed ones (its SVD projection) and
         # ones about its tolerances (1e-12 off the diagonal of m m^T, 1e-5 on it) where the fast check defers to it
         for m in (matrix, *(matrix + rng.normal(size=(3, 3)) * s for s in (1e-14, 4e-13, 2e-12, 3e-6, 1e-4))):

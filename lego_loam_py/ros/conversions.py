@@ -12,6 +12,7 @@ serializes it again. Subscribers receive the same message either way.
 from __future__ import annotations
 
 import array
+import math
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -24,7 +25,7 @@ from sensor_msgs.msg import PointCloud2
 from sensor_msgs.msg import PointField as PointFieldMsg
 from std_msgs.msg import Header
 
-from lego_loam_py.core.frames import bounded_covariance, matrix_to_quaternion, quaternion_to_matrix
+from lego_loam_py.core.frames import bounded_covariance, matrix_to_quaternion, quaternion_pose
 from lego_loam_py.core.pointcloud import (
     CloudBuffer,
     PointField,
@@ -516,22 +517,18 @@ def odometry_to_pose(msg: Odometry) -> np.ndarray:
     than 10 %: garbage, not a rotation) and positions beyond ``MAX_POSITION``.
     """
     p = msg.pose.pose
-    q = np.array([p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w])
-    t = np.array([p.position.x, p.position.y, p.position.z])
-    if not (np.isfinite(q).all() and np.isfinite(t).all()):
+    q = [float(v) for v in (p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w)]
+    t = [float(v) for v in (p.position.x, p.position.y, p.position.z)]
+    if not all(math.isfinite(v) for v in (*q, *t)):
         raise ValueError('odometry pose is not finite')
-    scale = float(np.abs(q).max())
-    norm = scale * float(np.linalg.norm(q / scale)) if scale > 0 else 0.0  # no overflow for huge values
+    norm = math.hypot(*q)  # (no overflow for huge values)
     if norm < 1e-6:
         raise ValueError('odometry orientation quaternion has zero norm')
     if abs(norm - 1.0) > 0.1:
         raise ValueError(f'odometry orientation quaternion is not of unit length (norm {norm:.3g})')
-    if not (np.abs(t) <= MAX_POSITION).all():
+    if any(abs(v) > MAX_POSITION for v in t):
         raise ValueError(f'odometry position beyond {MAX_POSITION:g} m')
-    pose = np.eye(4)
-    pose[:3, :3] = quaternion_to_matrix(q)
-    pose[:3, 3] = t
-    return pose
+    return quaternion_pose(q, t)
 
 
 def odometry_to_transform(msg: Odometry) -> TransformStamped:
@@ -582,7 +579,6 @@ def transform_to_pose(transform: TransformStamped) -> np.ndarray:
     """4x4 pose of ``child_frame_id`` in ``header.frame_id`` carried by a TransformStamped (the inverse of
     :func:`pose_to_transform`)."""
     translation, rotation = transform.transform.translation, transform.transform.rotation
-    pose = np.eye(4)
-    pose[:3, :3] = quaternion_to_matrix([rotation.x, rotation.y, rotation.z, rotation.w])
-    pose[:3, 3] = (translation.x, translation.y, translation.z)
-    return pose
+    return quaternion_pose(
+        (rotation.x, rotation.y, rotation.z, rotation.w), (translation.x, translation.y, translation.z)
+    )
