@@ -1,12 +1,15 @@
 """featureAssociation's C kernels (native/feature_kernels.c): by hand, and against the NumPy/Python code they
 replace."""
 
+import math
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from lego_loam_py.core.odometry import features
+from lego_loam_py.core.odometry import features, sweep
 from lego_loam_py.core.odometry.features import greedy_selection
 
 
@@ -270,3 +273,37 @@ def test_native_occlusion_marks_equal_numpy(data):
     native = features.occluded_mask(ranges, columns, params)
     reference = features.occluded_mask(ranges, columns, params, native=False)
     np.testing.assert_array_equal(native, reference)
+
+
+@pytest.mark.skipif(not hasattr(sweep._libm_compat, 'azimuth_fraction'), reason='the C extension is not built here')
+@settings(max_examples=100, deadline=None)
+@given(st.data())
+def test_native_relative_times_from_azimuth_equal_numpys(data):
+    """Points in every direction, on the axes, at the origin (signed zeros), far away and not finite, against start
+    orientations anywhere in a turn and beyond, the modulo's sign cases included: every float32 bit alike."""
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    n = int(rng.integers(0, 400))
+    points = (rng.normal(size=(n, 4)) * rng.choice([1e-3, 1.0, 50.0, 1e30], size=(n, 1))).astype(np.float32)
+    special = np.array([0.0, -0.0, np.nan, np.inf, -np.inf, 1.0, -1.0], dtype=np.float32)
+    odd = rng.random((n, 2)) < 0.1
+    points[:, :2][odd] = rng.choice(special, size=int(odd.sum()))
+    start = float(data.draw(st.sampled_from([-math.pi, -math.pi / 2, 0.0, -0.0, math.pi, 4.0])))
+    start = start if rng.random() < 0.5 else float(rng.uniform(-4, 4))
+    diff = float(data.draw(st.sampled_from([2 * math.pi, math.pi, 3 * math.pi, 1e-9]))) * float(rng.uniform(0.9, 1.1))
+    info = SimpleNamespace(start_orientation=np.float32(start), orientation_diff=np.float32(diff))
+    with np.errstate(all='ignore'):
+        native = sweep.relative_time_from_azimuth(points, info)
+        expected = sweep.relative_time_from_azimuth(points, info, native=False)
+    assert native.dtype == expected.dtype == np.float32
+    assert native.tobytes() == expected.tobytes()
+
+
+def test_relative_times_from_azimuth_by_hand():
+    """A quarter turn clockwise from the start orientation (the azimuth is -atan2(y, x)) is a quarter of a sweep of
+    one turn; the start itself is 0; a point just before the start wraps to almost a whole turn."""
+    info = SimpleNamespace(start_orientation=np.float32(0.0), orientation_diff=np.float32(2 * math.pi))
+    points = np.array([[1, 0, 0, 0], [0, -1, 0, 0], [-1, 0, 0, 0], [1, 1e-3, 0, 0]], dtype=np.float32)
+    for native in (True, False):
+        got = sweep.relative_time_from_azimuth(points, info, native=native)
+        assert got[:3].tolist() == pytest.approx([0.0, 0.25, 0.5], abs=1e-6)
+        assert 0.999 < got[3] < 1.0

@@ -11,6 +11,11 @@
  *   order (built with -ffp-contract=off): the guessed step of each element from its pseudo-angle's bin in guess
  *   (int64), confirmed where the two cross products with the step's edge directions (float32 tables indexed by
  *   step) clear their rounding bound. y, x float32; step int64 and confirmed uint8 (bool), all of one length.
+ *
+ *   azimuth_fraction(points, columns, start, turn, diff, out): sweep.relative_time_from_azimuth in one pass, with
+ *   NumPy's operations and types: for each row of points (n x columns float32, x and y first), the float64
+ *   orientation -atan2f(y, x), minus start, modulo turn as np.mod takes it (fmod, moved into the sign of turn, a
+ *   zero given turn's sign), divided by diff and rounded to float32 into out (n float32).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -116,9 +121,52 @@ done:
     return result;
 }
 
+static PyObject *py_azimuth_fraction(PyObject *self, PyObject *args) {
+    Py_buffer points, out;
+    Py_ssize_t columns;
+    double start, turn, diff;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*ndddw*", &points, &columns, &start, &turn, &diff, &out)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    const Py_ssize_t n = out.len / (Py_ssize_t)sizeof(float);
+    if (columns < 2 || out.len != n * (Py_ssize_t)sizeof(float) ||
+        points.len != n * columns * (Py_ssize_t)sizeof(float)) {
+        PyErr_SetString(PyExc_ValueError, "azimuth_fraction: inconsistent buffer sizes");
+        goto done;
+    }
+    const float *p = points.buf;
+    float *o = out.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        const double orientation = -(double)atan2f(p[i * columns + 1], p[i * columns]);
+        const double angle = orientation - start;
+        double mod = fmod(angle, turn);
+        if (turn != 0.0) { /* (NumPy's remainder: a zero divisor leaves fmod's NaN) */
+            if (mod != 0.0) {
+                if ((turn < 0.0) != (mod < 0.0)) {
+                    mod += turn;
+                }
+            } else {
+                mod = copysign(0.0, turn);
+            }
+        }
+        o[i] = (float)(mod / diff);
+    }
+    Py_END_ALLOW_THREADS
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&points);
+    PyBuffer_Release(&out);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"atan2f", py_atan2f, METH_VARARGS, "atan2f(y, x, out): element-wise libm atan2f on float32 buffers."},
     {"atan2f_steps", py_atan2f_steps, METH_VARARGS, "Atan2fSteps.count's passes in one (see the file)."},
+    {"azimuth_fraction", py_azimuth_fraction, METH_VARARGS, "relative_time_from_azimuth in one pass (see the file)."},
     {NULL, NULL, 0, NULL},
 };
 
