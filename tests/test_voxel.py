@@ -163,3 +163,29 @@ def test_a_grid_too_large_for_the_kernels_sort_keys_is_filtered_by_numpy():
     a, a_counts = voxel_downsample(points, 0.01, return_counts=True)
     b, b_counts = voxel_downsample(points, 0.01, return_counts=True, native=False)
     assert np.array_equal(a, b) and np.array_equal(a_counts, b_counts) and sorted(a_counts.tolist()) == [1, 2]
+
+
+@needs_kernel
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([0.05, 0.2, 1.0]), st.integers(1, 6))
+def test_the_kernel_equals_numpy_on_rings_that_pass_a_voxel_twice(seed, leaf, rings):
+    """Points along paths, as a ring's are: runs of neighbours in one voxel, and paths that come back to voxels they
+    left (a ring closing, a wall seen twice), so that one voxel's points come from several runs: the same bits,
+    order and counts as NumPy's."""
+    rng = np.random.default_rng(seed)
+    parts = []
+    for ring in range(rings):
+        steps = rng.normal(scale=leaf / 4, size=(int(rng.integers(1, 300)), 3))
+        path = np.cumsum(steps, axis=0)
+        back = path[:: -int(rng.integers(1, 4))] + rng.normal(scale=leaf / 20, size=(1, 3))  # the way back
+        xyz = np.concatenate((path, back))
+        part = np.empty((len(xyz), 4), np.float32)
+        part[:, :3] = xyz
+        part[:, 3] = ring + rng.random(len(xyz))
+        parts.append(part)
+    points = np.concatenate(parts)
+    groups = np.repeat(np.arange(rings), [len(part) for part in parts])
+    a = voxel_downsample_groups(points, groups, leaf)
+    b = voxel_downsample_groups(points, groups, leaf, native=False)
+    assert a.shape == b.shape and np.array_equal(a.view(np.uint32), b.view(np.uint32))
+    assert len(a) < len(points)  # (voxels shared: the case this test is about)
