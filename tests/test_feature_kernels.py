@@ -158,6 +158,50 @@ def test_native_whole_window_search_equals_numpy(data):
         np.testing.assert_array_equal(a, b)
 
 
+def _ring_cloud(rng, rings: int) -> np.ndarray:
+    """Points along rings of 5-40 m as a lidar's last cloud holds them (rings ascending, each in azimuth order),
+    with exact copies of some points elsewhere in their ring, so that ties lie apart."""
+    parts = []
+    for ring in range(rings):
+        count = int(rng.integers(1, 120))
+        azimuth = np.sort(rng.uniform(-np.pi, np.pi, count))
+        radius = rng.uniform(5.0, 40.0) + rng.normal(0.0, 0.05, count)
+        part = np.zeros((count, 4), np.float32)
+        part[:, 0], part[:, 1] = radius * np.cos(azimuth), radius * np.sin(azimuth)
+        part[:, 2] = ring * 0.3 - 1.0
+        copies = rng.random(count) < 0.1
+        part[copies, :3] = part[rng.integers(0, count, int(copies.sum())), :3]
+        part[:, 3] = ring + 0.05
+        parts.append(part)
+    return np.concatenate(parts)
+
+
+@pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
+@settings(max_examples=150, deadline=None)
+@given(st.data())
+def test_native_window_search_on_rings_equals_numpy(data):
+    """Clouds spread like a lidar's (most points far from a query, beyond the search's limit), with exact ties far
+    apart in their ring and queries on points, beside them and far away: the same points and distances."""
+    from lego_loam_py.core.odometry.correspondences import _OTHER, _SAME, LastCloud, _window_search
+    from lego_loam_py.core.params import Params
+
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    params = Params().replace(
+        feature_association__nearest_feature_search_sq_dist=float(rng.choice([0.5, 2.0, 25.0])),
+        feature_association__ring_search_window=float(rng.choice([1.0, 2.5])),
+    )
+    last = LastCloud(_ring_cloud(rng, int(rng.integers(1, 12))), 16)
+    queries = last.points[rng.integers(0, len(last.points), int(rng.integers(1, 40)))].copy()
+    noise = rng.choice([0.0, 0.01, 0.5, 3.0], size=(len(queries), 1))
+    queries[:, :3] += (rng.normal(size=(len(queries), 3)) * noise).astype(np.float32)
+    bound = int(rng.integers(0, len(last.points) + 3))
+    kinds = [_SAME + _OTHER, _OTHER][int(rng.integers(0, 2))]
+    native = _window_search(queries, last, params, bound, kinds)
+    reference = _window_search(queries, last, params, bound, kinds, native=False)
+    for a, b in zip(native, reference):
+        np.testing.assert_array_equal(a, b)
+
+
 @pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
 @settings(max_examples=200, deadline=None)
 @given(st.data())
