@@ -139,17 +139,25 @@ def test_the_window_search_keeps_the_first_tie_forward_and_the_last_backward():
 def test_native_whole_window_search_equals_numpy(data):
     """The one-pass search of a ring-ordered cloud (windows, segments and nearest points in C) against the NumPy
     windows, segments and nearest points, for both correspondence kinds, any forward bound and window."""
-    from lego_loam_py.core.odometry.correspondences import _OTHER, _SAME, LastCloud, _window_search
-    from lego_loam_py.core.params import Params
+    from lego_loam_py.core.odometry.correspondences import LastCloud
 
     rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
-    params = Params().replace(
-        feature_association__nearest_feature_search_sq_dist=float(rng.choice([0.5, 2.0, 25.0])),
-        feature_association__ring_search_window=float(rng.choice([0.5, 1.0, 2.5, 4.0])),
-    )
     last = LastCloud(_cloud(rng, int(rng.integers(1, 300))), 16)
     queries = _cloud(rng, int(rng.integers(0, 20)))  # (the KD-tree refuses NaN queries)
     queries[:, :3] += rng.normal(0.0, 0.3, (len(queries), 3)).astype(np.float32) * (rng.random() < 0.5)
+    _assert_window_search_equals_numpy(rng, last, queries, windows=[0.5, 1.0, 2.5, 4.0])
+
+
+def _assert_window_search_equals_numpy(rng, last, queries, windows) -> None:
+    """The C window search of ``queries`` in the LastCloud ``last`` equals NumPy's, for a limit, a ring window (one
+    of ``windows``), a forward bound and the correspondence kinds drawn with ``rng``."""
+    from lego_loam_py.core.odometry.correspondences import _OTHER, _SAME, _window_search
+    from lego_loam_py.core.params import Params
+
+    params = Params().replace(
+        feature_association__nearest_feature_search_sq_dist=float(rng.choice([0.5, 2.0, 25.0])),
+        feature_association__ring_search_window=float(rng.choice(windows)),
+    )
     bound = int(rng.integers(0, len(last.points) + 3))
     kinds = [_SAME + _OTHER, _OTHER][int(rng.integers(0, 2))]
     native = _window_search(queries, last, params, bound, kinds)
@@ -182,24 +190,14 @@ def _ring_cloud(rng, rings: int) -> np.ndarray:
 def test_native_window_search_on_rings_equals_numpy(data):
     """Clouds spread like a lidar's (most points far from a query, beyond the search's limit), with exact ties far
     apart in their ring and queries on points, beside them and far away: the same points and distances."""
-    from lego_loam_py.core.odometry.correspondences import _OTHER, _SAME, LastCloud, _window_search
-    from lego_loam_py.core.params import Params
+    from lego_loam_py.core.odometry.correspondences import LastCloud
 
     rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
-    params = Params().replace(
-        feature_association__nearest_feature_search_sq_dist=float(rng.choice([0.5, 2.0, 25.0])),
-        feature_association__ring_search_window=float(rng.choice([1.0, 2.5])),
-    )
     last = LastCloud(_ring_cloud(rng, int(rng.integers(1, 12))), 16)
     queries = last.points[rng.integers(0, len(last.points), int(rng.integers(1, 40)))].copy()
     noise = rng.choice([0.0, 0.01, 0.5, 3.0], size=(len(queries), 1))
     queries[:, :3] += (rng.normal(size=(len(queries), 3)) * noise).astype(np.float32)
-    bound = int(rng.integers(0, len(last.points) + 3))
-    kinds = [_SAME + _OTHER, _OTHER][int(rng.integers(0, 2))]
-    native = _window_search(queries, last, params, bound, kinds)
-    reference = _window_search(queries, last, params, bound, kinds, native=False)
-    for a, b in zip(native, reference):
-        np.testing.assert_array_equal(a, b)
+    _assert_window_search_equals_numpy(rng, last, queries, windows=[1.0, 2.5])
 
 
 @pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
