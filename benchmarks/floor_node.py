@@ -42,7 +42,7 @@ WIRING = {
             ('/segmented_cloud', 'PointCloud2', 'reliable1', True),
             ('/segmented_cloud_info', 'CloudInfo', 'reliable1', True),
             ('/outlier_cloud', 'PointCloud2', 'reliable1', True),
-            ('/aft_mapped_to_init', 'Odometry', 'reliable5', False),
+            ('/aft_mapped_to_init', 'Odometry', 'reliable5', True),
         ],
         polled=[POLLED_CLOCK, (IMU, 'Imu', 'sensor200', True)],
         trigger='/outlier_cloud',
@@ -59,7 +59,7 @@ WIRING = {
             ('/laser_cloud_corner_last', 'PointCloud2', 'reliable2', True),
             ('/laser_cloud_surf_last', 'PointCloud2', 'reliable2', True),
             ('/outlier_cloud_last', 'PointCloud2', 'reliable2', True),
-            ('/laser_odom_to_init', 'Odometry', 'reliable5', False),
+            ('/laser_odom_to_init', 'Odometry', 'reliable5', True),
             (CLOCK, 'Clock', 'sensor1', False),  # (rclpy's time source: mapOptimization's timers run on ROS time)
         ],
         polled=[('/laser_odom_to_init', 'Odometry', 'reliable20', True), (IMU, 'Imu', 'sensor200', True)],
@@ -68,8 +68,8 @@ WIRING = {
     ),
     'transformFusion': dict(
         subscribe=[
-            ('/laser_odom_to_init', 'Odometry', 'reliable5', False),
-            ('/aft_mapped_to_init', 'Odometry', 'reliable5', False),
+            ('/laser_odom_to_init', 'Odometry', 'reliable5', True),
+            ('/aft_mapped_to_init', 'Odometry', 'reliable5', True),
         ],
         polled=[POLLED_CLOCK],
         trigger='/laser_odom_to_init',

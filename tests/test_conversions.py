@@ -4,6 +4,7 @@ written) and the TF of an odometry."""
 from __future__ import annotations
 
 import math
+import re
 import struct
 
 import numpy as np
@@ -370,3 +371,134 @@ def test_an_odometry_pose_is_its_quaternion_normalised_and_its_position():
     expected = make_pose(quaternion_to_matrix([0.1, -0.2, 0.3, 0.95]), [1.5, -2.0, 3.25])
     assert np.array_equal(odometry_to_pose(msg), expected)
     assert np.allclose(odometry_to_pose(msg)[:3, :3] @ odometry_to_pose(msg)[:3, :3].T, np.eye(3), atol=1e-12)
+
+
+def _odometry_numbers(msg) -> list[float]:
+    """The 85 numbers of an Odometry (or of what odometry_from_serialized reads), in the message's order."""
+    p, t = msg.pose.pose, msg.twist.twist
+    return [
+        *(p.position.x, p.position.y, p.position.z, p.orientation.x, p.orientation.y, p.orientation.z),
+        p.orientation.w,
+        *msg.pose.covariance,
+        *(t.linear.x, t.linear.y, t.linear.z, t.angular.x, t.angular.y, t.angular.z),
+        *msg.twist.covariance,
+    ]
+
+
+def test_serialized_odometry_read_by_hand():
+    """The XCDR1 layout of nav_msgs/Odometry, written by hand: the header, the child frame id aligned to 4, then 85
+    doubles aligned to 8 (pose, its covariance, twist, its covariance); either byte order."""
+    from lego_loam_py.ros.conversions import odometry_from_serialized
+
+    doubles = [float(k) for k in range(85)]
+    # frame id 'map' (4 with the NUL: ends at 16), child 'ab' (length at 16, 3 characters: ends at 23, doubles at 24)
+    body = struct.pack('<iII', 7, 250, 4) + b'map\x00' + struct.pack('<I', 3) + b'ab\x00' + b'\x00'
+    read = odometry_from_serialized(b'\x00\x01\x00\x00' + body + struct.pack('<85d', *doubles))
+    assert (read.header.stamp.sec, read.header.stamp.nanosec, read.header.frame_id) == (7, 250, 'map')
+    assert read.child_frame_id == 'ab'
+    assert _odometry_numbers(read) == doubles
+    assert read.pose.pose.orientation.w == 6.0 and read.twist.twist.angular.z == 48.0
+    # Big-endian, a frame id that needs padding before the child's length (2: ends at 14, length at 16) and a child
+    # whose doubles start right after it (length 8 with the NUL: ends at 28, doubles at 32).
+    body = struct.pack('>iII', -3, 0, 2) + b'a\x00' + b'\x00\x00' + struct.pack('>I', 8) + b'abcdefg\x00' + b'\x00' * 4
+    read = odometry_from_serialized(b'\x00\x00\x00\x00' + body + struct.pack('>85d', *doubles))
+    assert (read.header.stamp.sec, read.header.frame_id, read.child_frame_id) == (-3, 'a', 'abcdefg')
+    assert _odometry_numbers(read) == doubles
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    frame_id=st.text(alphabet='abcdefghijklmnopqrstuvwxyz_/0123456789', max_size=20),
+    child=st.text(alphabet='abcdefghijklmnopqrstuvwxyz_', max_size=20),
+    sec=st.integers(-(2**31), 2**31 - 1),
+    nanosec=st.integers(0, 999_999_999),
+    values=st.lists(st.floats(width=64), min_size=85, max_size=85),
+)
+def test_serialized_odometry_reads_as_the_message(frame_id, child, sec, nanosec, values):
+    """Whatever rclpy serializes, the bytes read as the message: header, child frame and all 85 numbers bit for bit
+    (NaN and infinities included), and the pose and covariance the nodes take of it are the same."""
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import serialize_message
+
+    from lego_loam_py.ros.conversions import odometry_covariance, odometry_from_serialized, odometry_to_pose
+
+    msg = Odometry()
+    msg.header.frame_id, msg.child_frame_id = frame_id, child
+    msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+    p, t = msg.pose.pose, msg.twist.twist
+    p.position.x, p.position.y, p.position.z = values[0:3]
+    p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = values[3:7]
+    msg.pose.covariance = values[7:43]
+    t.linear.x, t.linear.y, t.linear.z, t.angular.x, t.angular.y, t.angular.z = values[43:49]
+    msg.twist.covariance = values[49:85]
+    read = odometry_from_serialized(serialize_message(msg))
+    assert read.header == msg.header and read.child_frame_id == child
+    assert np.array_equal(np.array(_odometry_numbers(read)), np.array(_odometry_numbers(msg)), equal_nan=True)
+    assert np.array(_odometry_numbers(read)).tobytes() == np.array(_odometry_numbers(msg)).tobytes()
+    for convert in (odometry_to_pose, odometry_covariance):
+        try:
+            expected = convert(msg)
+        except ValueError as exc:
+            with pytest.raises(ValueError, match=re.escape(str(exc))):
+                convert(read)
+            continue
+        got = convert(read)
+        assert (got is None and expected is None) or got.tobytes() == expected.tobytes()
+
+
+@settings(max_examples=200, deadline=None)
+@given(data=st.binary(max_size=800))
+def test_serialized_odometry_garbage_is_a_value_error_or_an_odometry(data):
+    """Bytes that are no Odometry raise ValueError (never another error, never a read past the end)."""
+    from lego_loam_py.ros.conversions import odometry_from_serialized
+
+    try:
+        read = odometry_from_serialized(data)
+    except ValueError:
+        return
+    assert len(_odometry_numbers(read)) == 85
+
+
+def test_truncated_serialized_odometry_is_refused():
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import serialize_message
+
+    from lego_loam_py.ros.conversions import odometry_from_serialized
+
+    msg = Odometry()
+    msg.header.frame_id, msg.child_frame_id = 'camera_init', 'laser_odom'
+    data = serialize_message(msg)
+    odometry_from_serialized(data)
+    for cut in (0, 3, 15, 20, 30, 40, len(data) - 1):
+        with pytest.raises(ValueError):
+            odometry_from_serialized(data[:cut])
+
+
+def test_nodes_take_serialized_odometry_and_drop_unreadable_bytes(context):
+    """transformFusion's raw odometry subscriptions hand it bytes: a pose is fused and published from them, bytes
+    that are no Odometry are dropped with a warning and a counter, and the next message goes through."""
+    from rclpy.serialization import serialize_message
+
+    from lego_loam_py.ros.conversions import make_header, pose_to_odometry
+    from lego_loam_py.ros.transform_fusion_node import TransformFusionNode
+    from tests.support.inprocess import make_node
+
+    tf, rec = make_node(context, TransformFusionNode)
+
+    def odometry(stamp_ns: int, x: float) -> bytes:
+        pose = np.eye(4)
+        pose[0, 3] = x
+        return serialize_message(pose_to_odometry(pose, make_header(stamp_ns, 'camera_init'), 'laser_odom'))
+
+    tf.on_odometry(odometry(10**9, 0.5))
+    tf.on_odometry(b'\x00\x01\x00\x00garbage')
+    tf.on_mapped(b'\x00\x01\x00\x00' + b'\x00' * 30)
+    tf.on_odometry(odometry(10**9 + 10**8, 0.75))
+    out = rec.out('/integrated_to_init')
+    assert [m.header.stamp.nanosec for m in out] == [0, 100_000_000]
+    assert [m.pose.pose.position.x for m in out] == [0.5, 0.75]
+    assert tf.counters['odometry_dropped'] == 1 and tf.counters['mapped_dropped'] == 1
+    assert any('/laser_odom_to_init dropped' in text for _, text in rec.warnings)
+    assert any('/aft_mapped_to_init dropped' in text for _, text in rec.warnings)
+    assert not rec.errors
+    tf.destroy_node()

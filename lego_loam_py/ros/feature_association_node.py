@@ -82,7 +82,7 @@ class FeatureAssociationNode(LegoLoamNode):
                 Imu, self.params.sensor.imu_topic, qos.sensor_input(IMU_QUEUE_DEPTH), raw=True
             )
             if self.params.imu.alignment_check:  # mapOptimization's poses: the lidar's turn, for the IMU check
-                self.create_subscription(Odometry, '/aft_mapped_to_init', self.on_mapped, qos.reliable(5))
+                self.create_subscription(Odometry, '/aft_mapped_to_init', self.on_mapped, qos.reliable(5), raw=True)
         self.pub_odometry = self.create_publisher(Odometry, '/laser_odom_to_init', qos.reliable(5))
         self.tf = TransformBroadcaster(self)
         last = qos.reliable(2)
@@ -155,8 +155,11 @@ class FeatureAssociationNode(LegoLoamNode):
         """A sensor_msgs/Imu, or its serialized bytes (see :meth:`LegoLoamNode.take_imu`)."""
         self.take_imu(msg, self.core.add_imu)
 
-    def on_mapped(self, msg: Odometry) -> None:
-        """mapOptimization's pose of a scan: compared with the IMU's turn by the core's IMU check."""
+    def on_mapped(self, msg: Odometry | bytes) -> None:
+        """mapOptimization's pose of a scan (or its bytes): compared with the IMU's turn by the core's IMU check."""
+        ok, msg = self.take_odometry(msg, 'mapped_dropped', '/aft_mapped_to_init dropped', 'bad_mapped')
+        if not ok:
+            return
         try:
             pose = odometry_to_pose(msg)
         except ValueError as exc:

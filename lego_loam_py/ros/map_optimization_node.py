@@ -121,7 +121,7 @@ class MapOptimizationNode(LegoLoamNode):
             self.create_subscription(
                 PointCloud2, INPUT_TOPICS[name], lambda m, name=name: self.on_part(name, m), depth2, raw=True
             )
-        self.create_subscription(Odometry, '/laser_odom_to_init', self._on_odometry_message, qos.reliable(5))
+        self.create_subscription(Odometry, '/laser_odom_to_init', self._on_odometry_message, qos.reliable(5), raw=True)
         # The same topic again, serialized and polled, for the publisher of each message (the executor's callbacks
         # get no message info): a restarted featureAssociation is another publisher.
         self._odometry_senders = self.create_polled_subscription(
@@ -291,8 +291,11 @@ class MapOptimizationNode(LegoLoamNode):
         validation.check_cloud(INPUT_TOPICS[name], cloud)
         return cloud
 
-    def _on_odometry_message(self, msg: Odometry) -> None:
+    def _on_odometry_message(self, msg: Odometry | bytes) -> None:
         self.drain(self._odometry_senders, self._note_sender, with_info=True, count=False)
+        ok, msg = self.take_odometry(msg, 'inputs_dropped', 'mapping input dropped', 'bad_input')
+        if not ok:
+            return
         self.on_odometry(msg, {'publisher_gid': self._odometry_publisher.get(stamp_to_ns(msg.header.stamp))})
 
     def _note_sender(self, data: bytes, info) -> None:
@@ -306,8 +309,12 @@ class MapOptimizationNode(LegoLoamNode):
         while len(self._odometry_publisher) > 64:
             self._odometry_publisher.pop(next(iter(self._odometry_publisher)))
 
-    def on_odometry(self, msg: Odometry, info=None) -> None:
-        """/laser_odom_to_init; the publisher's id tells a restarted featureAssociation (a new odometry frame)."""
+    def on_odometry(self, msg: Odometry | bytes, info=None) -> None:
+        """/laser_odom_to_init (or its bytes); the publisher's id tells a restarted featureAssociation (a new
+        odometry frame)."""
+        ok, msg = self.take_odometry(msg, 'inputs_dropped', 'mapping input dropped', 'bad_input')
+        if not ok:
+            return
         ok, pose = self.take(lambda: odometry_to_pose(msg), 'inputs_dropped', 'mapping input dropped')
         if not ok:
             return

@@ -26,6 +26,7 @@ from lego_loam_py.ros.conversions import (
     cloud_from_serialized,
     imu_sample_from_serialized,
     ns_to_stamp,
+    odometry_from_serialized,
     serialized_stamp_ns,
     stamp_to_ns,
 )
@@ -254,6 +255,14 @@ class LegoLoamNode(Node):
         if not isinstance(msg, bytes):
             return True, msg
         return self.take(lambda: cloud_from_serialized(msg), dropped_counter, what, key, msg)
+
+    def take_odometry(self, msg, dropped_counter: str, what: str, key: str):
+        """``(True, odometry)`` for a nav_msgs/Odometry, or for its bytes as the nodes' raw subscriptions take them
+        (read by :func:`odometry_from_serialized`); ``(False, None)`` after counting ``dropped_counter`` and a
+        throttled warning for bytes that are no Odometry (see :meth:`take`)."""
+        if not isinstance(msg, (bytes, bytearray)):
+            return True, msg
+        return self.take(lambda: odometry_from_serialized(msg), dropped_counter, what, key)
 
     def take_imu(self, msg, add) -> None:
         """One IMU sample handed to ``add`` (an ImuBuffer's ``add``): ``msg`` is a sensor_msgs/Imu, or its bytes as

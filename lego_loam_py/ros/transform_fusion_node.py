@@ -67,8 +67,9 @@ class TransformFusionNode(LegoLoamNode):
         super().__init__('transformFusion', **kwargs)
         localizing = self.params.map_optimization.mode == 'localization'
         self.core = TransformFusion(int(self.params.localization.max_correction_age * 1e9) if localizing else None)
-        self.create_subscription(Odometry, '/laser_odom_to_init', self.on_odometry, qos.reliable(5))
-        self.create_subscription(Odometry, '/aft_mapped_to_init', self.on_mapped, qos.reliable(5))
+        # (serialized: read by odometry_from_serialized, without rclpy's message objects)
+        self.create_subscription(Odometry, '/laser_odom_to_init', self.on_odometry, qos.reliable(5), raw=True)
+        self.create_subscription(Odometry, '/aft_mapped_to_init', self.on_mapped, qos.reliable(5), raw=True)
         self.pub_integrated = self.create_publisher(Odometry, '/integrated_to_init', qos.reliable(5))
         self.tf = TransformBroadcaster(self)
         self.static_tf = StaticTransformBroadcaster(self)
@@ -96,7 +97,10 @@ class TransformFusionNode(LegoLoamNode):
         """Stamp of the last odometry message integrated [ns]."""
         return self.order.last_ns
 
-    def on_mapped(self, msg: Odometry) -> None:
+    def on_mapped(self, msg: Odometry | bytes) -> None:
+        ok, msg = self.take_odometry(msg, 'mapped_dropped', '/aft_mapped_to_init dropped', 'bad_mapped')
+        if not ok:
+            return
         stamp = stamp_to_ns(msg.header.stamp)
         last = self.order.newest_ns  # (an odometry message held after a gap counts: mapping may have used it)
         if (last is not None and stamp > last + MAPPED_AHEAD_NS) or (
@@ -127,8 +131,11 @@ class TransformFusionNode(LegoLoamNode):
         self.core.on_mapped(aft, bef, stamp, odometry_covariance(msg))
         self.count('mapped')
 
-    def on_odometry(self, msg: Odometry) -> None:
+    def on_odometry(self, msg: Odometry | bytes) -> None:
         self.count('odometry_in')
+        ok, msg = self.take_odometry(msg, 'odometry_dropped', '/laser_odom_to_init dropped', 'bad_odometry')
+        if not ok:
+            return
         decision = self.check_order(
             self.order,
             stamp_to_ns(msg.header.stamp),
