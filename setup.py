@@ -48,6 +48,8 @@ EXT_MODULES = [
     # segment components, ground walk, the laser order's passes (projection/)
     _native('_projection_kernels', 'projection_kernels.c', vectorised=True),
     _native('_geometry_kernels', 'geometry_kernels.c'),  # plane fits through neighbourhoods (geometry.py)
+    # the occupancy grid's disk update and coarse slope cone (mapping/occupancy_grid.py, occupancy_ground.py)
+    _native('_occupancy_kernels', 'occupancy_kernels.c', vectorised=True),
 ]
 
 CONSOLE_SCRIPTS = [

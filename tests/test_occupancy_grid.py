@@ -9,11 +9,14 @@ from __future__ import annotations
 
 import math
 import sys
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import lego_loam_py.core.mapping.occupancy_grid as grid_module
+import lego_loam_py.core.mapping.occupancy_ground as occupancy_ground
 from lego_loam_py.core.frames import lidar_to_camera
 from lego_loam_py.core.mapping import (
     FREE,
@@ -292,6 +295,179 @@ def test_bad_parameters_are_refused_with_their_names():
         2.0,
         30.0,
     )
+
+
+# ------------------------------------------------ the C kernels against NumPy (native/occupancy_kernels.c)
+
+needs_kernel = pytest.mark.skipif(grid_module._occupancy_kernels is None, reason='the C extension is not built here')
+
+
+def same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes()
+
+
+@pytest.fixture
+def kernel_calls(monkeypatch) -> Counter:
+    """How often each C kernel is called (a comparison of C with NumPy must reach C, not fall back to NumPy)."""
+    kernels, calls = grid_module._occupancy_kernels, Counter()
+
+    class Counting:
+        def __getattr__(self, name):
+            def counted(*args):
+                calls[name] += 1
+                return getattr(kernels, name)(*args)
+
+            return counted
+
+    for module in (grid_module, occupancy_ground):
+        monkeypatch.setattr(module, '_occupancy_kernels', Counting())
+    return calls
+
+
+def random_scene(rng: np.random.Generator) -> np.ndarray:
+    """(n, 3) lidar-frame points: ground rings on a random slope and a few boxes' faces standing on it, 0.2-3 m
+    tall, 3-25 m off (obstacles, ground and the shadows between)."""
+    slope = float(rng.uniform(-0.2, 0.2))
+    parts = [ground_rings(slope=slope)]
+    for _ in range(int(rng.integers(2, 8))):
+        centre = rng.uniform(3.0, 25.0) * np.array([math.cos(a := rng.uniform(0, 2 * math.pi)), math.sin(a)])
+        half = rng.uniform(0.2, 2.0, 2)
+        u, z = np.meshgrid(np.arange(-1.0, 1.0, 0.05), np.arange(0.0, rng.uniform(0.2, 3.0), 0.1))
+        for axis in (0, 1):
+            for side in (-1.0, 1.0):
+                face = np.zeros((u.size, 2))
+                face[:, axis] = side * half[axis]
+                face[:, 1 - axis] = u.ravel() * half[1 - axis]
+                xy = centre + face
+                parts.append(np.column_stack([xy, -HEIGHT + slope * xy[:, 0] + z.ravel()]))
+    return np.concatenate(parts)
+
+
+@needs_kernel
+@pytest.mark.parametrize('seed', range(4))
+def test_the_disk_update_in_c_is_numpys_bit_for_bit(seed, kernel_calls):
+    """One keyframe's update of its window of the grid (_update_window), in C and in NumPy, one after another on
+    the same arrays: random log-odds (some past the clamp's bounds, some at them, -0.0, NaN), random free ranges
+    (inf among them) and hits, windows flush with each edge of the arrays and inside: the same bits."""
+    rng = np.random.default_rng(seed)
+    params = OccupancyGridParams(
+        max_range=float(rng.uniform(1.0, 4.0)),
+        angular_resolution_deg=float(rng.choice([0.5, 3.0, 45.0])),
+        hit_log_odds=float(rng.uniform(0.1, 3.0)),
+        miss_log_odds=-float(rng.uniform(0.1, 3.0)),
+        min_log_odds=-float(rng.uniform(0.5, 3.0)),
+        max_log_odds=float(rng.uniform(0.5, 3.0)),
+    )
+    disk = grid_module._make_disk(params)
+    size = 2 * disk.reach + 1
+    height, width = size + int(rng.integers(0, 30)), size + int(rng.integers(0, 30))
+    log_odds = rng.uniform(-5.0, 5.0, (height, width)).astype(np.float32)
+    pick = rng.random(log_odds.shape)
+    log_odds[pick < 0.05] = np.float32(params.min_log_odds)
+    log_odds[pick > 0.95] = np.float32(params.max_log_odds)
+    log_odds[(pick > 0.5) & (pick < 0.52)] = -0.0
+    log_odds[(pick > 0.6) & (pick < 0.61)] = np.nan  # (never in a grid, but np.clip keeps it: so must C)
+    observed = rng.random(log_odds.shape) < 0.3
+    arrays = {native: (log_odds.copy(), observed.copy()) for native in (True, False)}
+    corners = [(0, 0), (width - size, height - size), (0, height - size), (width - size, 0)]
+    corners.append((int(rng.integers(0, width - size + 1)), int(rng.integers(0, height - size + 1))))
+    for corner in corners:
+        free_range = rng.uniform(-1.0, 1.2 * params.max_range, disk.count + 1).astype(np.float32)
+        free_range[rng.random(disk.count + 1) < 0.05] = np.inf
+        free_range[-1] = 0.0
+        hit = rng.random((size, size)) < 0.1
+        for native, (lo, seen) in arrays.items():
+            grid_module._update_window(lo, seen, corner, disk, free_range, hit, params, native)
+        assert same_bits(arrays[True][0], arrays[False][0]), corner
+        assert same_bits(arrays[True][1], arrays[False][1]), corner
+    lo = arrays[True][0]
+    assert (lo == np.float32(params.min_log_odds)).any() and (lo == np.float32(params.max_log_odds)).any()
+    assert kernel_calls['update_disk'] == len(corners)
+
+
+@needs_kernel
+def test_the_disk_update_in_c_refuses_a_window_outside_the_arrays_or_a_bin_past_the_ranges():
+    """A window reaching past the arrays is refused before anything is written; a bin outside the free ranges (the
+    sentinel bin without its entry, a negative bin) raises rather than read beyond them."""
+    params = OccupancyGridParams(max_range=1.0)
+    disk = grid_module._make_disk(params)
+    size = 2 * disk.reach + 1
+    log_odds, observed = np.zeros((size + 2, size + 2), np.float32), np.zeros((size + 2, size + 2), bool)
+    free_range = np.ones(disk.count + 1, np.float32)
+    rest = (np.zeros((size, size), bool), 0.85, -0.4, -2.0, 3.5)
+    kernel = grid_module._occupancy_kernels.update_disk
+    with pytest.raises(ValueError, match='outside the arrays'):
+        kernel(log_odds, observed, size + 2, 3, 0, size, disk.ranges, disk.bins, free_range, *rest)
+    assert not log_odds.any() and not observed.any()
+    negative = disk.bins.copy()
+    negative[size // 2, size // 2] = -1
+    for bins, ranges in ((disk.bins, free_range[:-1]), (negative, free_range)):
+        with pytest.raises(IndexError, match='free_range'):
+            kernel(log_odds, observed, size + 2, 1, 1, size, disk.ranges, bins, ranges, *rest)
+
+
+@needs_kernel
+def test_the_grid_drawn_with_c_is_numpys_bit_for_bit(kernel_calls):
+    """Keyframes added in turn to a grid drawn with the C kernels and to one drawn by NumPy alone
+    (OccupancyGrid(native=False)): the same classification, log-odds, observed cells and grid, bit for bit. The
+    wall seen twice from one place (log-odds large enough that cells reach both clamp bounds), then from places at
+    the edge of the grid so far (the arrays grow), then random scenes at random poses."""
+    rng = np.random.default_rng(3)
+    params = OccupancyGridParams(hit_log_odds=2.0, miss_log_odds=-1.5, min_log_odds=-2.0, max_log_odds=3.5)
+    poses = [(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)] * 2 + [(0.0, 0.5, 0.0, 0.0, 0.0, 31.0), (0.0, -2.0, 0.0, 35.0, 0.0, 0.0)]
+    keyframes = [keyframe(k, wall_scene(), pose) for k, pose in enumerate(poses)]
+    for k in range(len(keyframes), len(keyframes) + 6):
+        pose = (*rng.normal(0.0, 0.02, 1), rng.uniform(-math.pi, math.pi), *rng.normal(0.0, 0.02, 1))
+        keyframes.append(
+            keyframe(k, random_scene(rng), (*pose, *rng.uniform(-40.0, 40.0, 1), 0.0, rng.uniform(-40, 40)))
+        )
+    grids = {native: OccupancyGrid(params, native=native) for native in (True, False)}
+    shapes = set()
+    for kf in keyframes:
+        for grid in grids.values():
+            grid.add_keyframe(kf)
+        c, n = grids[True], grids[False]
+        assert same_bits(c._log_odds, n._log_odds) and same_bits(c._observed, n._observed), kf.index
+        assert np.array_equal(c._corner, n._corner)
+        shapes.add(c._log_odds.shape)
+    for key, scan in grids[True]._scans.items():
+        other = grids[False]._scans[key]
+        assert same_bits(scan.obstacles, other.obstacles) and same_bits(scan.ground, other.ground), key
+        assert scan.sensor_height == other.sensor_height
+    a, b = grids[True].ternary(), grids[False].ternary()
+    assert same_bits(a.cells, b.cells) and a.origin == b.origin
+    lo = grids[True]._log_odds
+    assert len(shapes) >= 3, 'the arrays grew as keyframes came at their edge'
+    assert (lo == np.float32(3.5)).any() and (lo == np.float32(-2.0)).any(), 'cells at both clamp bounds'
+    assert a.counts()['occupied'] > 500 and a.counts()['free'] > 10 * a.counts()['occupied']
+    assert kernel_calls['update_disk'] == kernel_calls['coarse_cone'] == len(keyframes)
+
+
+@needs_kernel
+@pytest.mark.parametrize('seed', range(6))
+def test_the_coarse_cone_in_c_is_numpys_bit_for_bit(seed, kernel_calls):
+    """_coarse_cone over random cells and heights (inf and -inf among them, NaN in some: np.minimum propagates it),
+    cells 0.2-1 m, slopes 0-2, radii of none, less than a cell, one cell and several: the same bits."""
+    rng = np.random.default_rng(seed)
+    span = int(rng.integers(1, 40))
+    cells = np.unique(rng.integers(-span, span + 1, (int(rng.integers(1, 600)), 2)), axis=0) + rng.integers(-99, 99, 2)
+    lowest = rng.normal(0.0, 5.0, len(cells))
+    lowest[rng.random(len(cells)) < 0.1] = np.inf
+    lowest[rng.random(len(cells)) < 0.02] = -np.inf
+    if seed % 3 == 2:
+        lowest[rng.random(len(cells)) < 0.02] = np.nan
+    for cell_size, slope, radius in (
+        (1.0, 0.5, 6.0),
+        (1.0, 0.5, 0.0),
+        (0.5, 0.0, 0.3),
+        (1.0, 2.0, 1.0),
+        (0.2, 0.7, 1.5),
+    ):
+        native = occupancy_ground._coarse_cone(cells, lowest, cell_size, slope, radius)
+        numpy = occupancy_ground._coarse_cone(cells, lowest, cell_size, slope, radius, native=False)
+        assert same_bits(native, numpy), (cell_size, slope, radius)
+        assert np.isinf(numpy).any() and np.isfinite(numpy).any()
+    assert kernel_calls['coarse_cone'] == 5
 
 
 # --------------------------------------------------------------------------------- files and the message

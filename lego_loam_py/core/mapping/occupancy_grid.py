@@ -44,6 +44,11 @@ from lego_loam_py.core.frames import MAP_FRAME, camera_pose_to_lidar, camera_to_
 from lego_loam_py.core.mapping.occupancy_ground import KeyframeScan, classify_keyframe
 from lego_loam_py.core.params.types import OccupancyGridParams
 
+try:  # the disk update in C (native/occupancy_kernels.c); optional, the NumPy version gives the same
+    from lego_loam_py.core import _occupancy_kernels
+except ImportError:
+    _occupancy_kernels = None
+
 __all__ = [
     'KeyframeScan',
     'TernaryGrid',
@@ -168,14 +173,70 @@ def _make_disk(params: OccupancyGridParams) -> _Disk:
     return _Disk(reach, ranges.astype(np.float32), bins, count)
 
 
+def _update_window(
+    log_odds: np.ndarray,
+    observed: np.ndarray,
+    corner: tuple[int, int],
+    disk: _Disk,
+    free_range: np.ndarray,
+    hit: np.ndarray,
+    params: OccupancyGridParams,
+    native: bool = True,
+) -> None:
+    """One keyframe's update, in place, of the disk's window of the grid's arrays ``log_odds`` (float32) and
+    ``observed`` (bool); ``corner``: the window's first (column, row) in them. ``free_range`` (disk.count + 1,)
+    float32 [m]: how far each azimuth bin is free (the last, 0: outside the disk); ``hit`` (the disk's shape) bool:
+    the obstacles' cells. Each cell of the window gets + hit_log_odds where hit, else + miss_log_odds where free
+    (nearer than its bin's free range), else + 0 (float32 sums), then np.clip's clamp (its bounds float32), and is
+    observed where hit or free. In C when the extension is built, the same values bit for bit; ``native=False``
+    runs the NumPy version (the tests compare the two)."""
+    p = params
+    x0, y0 = int(corner[0]), int(corner[1])
+    size = 2 * disk.reach + 1
+    if (
+        native
+        and _occupancy_kernels is not None
+        and log_odds.dtype == np.float32
+        and observed.dtype == np.bool_
+        and log_odds.ndim == 2
+        and observed.shape == log_odds.shape
+        and log_odds.flags.c_contiguous
+        and observed.flags.c_contiguous
+        and free_range.dtype == np.float32
+        and hit.dtype == np.bool_
+    ):
+        _occupancy_kernels.update_disk(
+            log_odds,
+            observed,
+            log_odds.shape[1],
+            x0,
+            y0,
+            size,
+            disk.ranges,
+            disk.bins,
+            np.ascontiguousarray(free_range),
+            np.ascontiguousarray(hit),
+            # (what NumPy makes of the Python floats next to float32 arrays: float32, rounded to nearest)
+            *(float(np.float32(v)) for v in (p.hit_log_odds, p.miss_log_odds, p.min_log_odds, p.max_log_odds)),
+        )
+        return
+    free = disk.ranges < free_range[disk.bins]
+    window = log_odds[y0 : y0 + size, x0 : x0 + size]
+    window += np.where(hit, np.float32(p.hit_log_odds), np.where(free, np.float32(p.miss_log_odds), np.float32(0.0)))
+    np.clip(window, p.min_log_odds, p.max_log_odds, out=window)
+    observed[y0 : y0 + size, x0 : x0 + size] |= hit | free
+
+
 class OccupancyGrid:
     """The map's occupancy grid, updated keyframe by keyframe and redrawn after the poses change.
 
     Thread safety: every public method takes :attr:`lock`, so one thread may update the grid while another
-    reads :meth:`ternary`; :attr:`version` changes with every change of the grid."""
+    reads :meth:`ternary`; :attr:`version` changes with every change of the grid. ``native=False``: NumPy only, no C
+    kernels (the same grid bit for bit; the tests compare the two)."""
 
-    def __init__(self, params: OccupancyGridParams | None = None):
+    def __init__(self, params: OccupancyGridParams | None = None, native: bool = True):
         self.params = params or OccupancyGridParams()
+        self.native = native
         self._scans: dict[object, KeyframeScan] = {}
         self.keyframes_added = 0
         self.classified = 0  # keyframes classified (cache misses), for the record
@@ -256,7 +317,7 @@ class OccupancyGrid:
         scan = None if key is None else self._scans.get(key)
         tilt = math.radians(self.params.reclassify_tilt_deg)
         if scan is None or float(np.dot(scan.up, up)) < math.cos(tilt):
-            scan = classify_keyframe(keyframe_points(keyframe), up, self.params)
+            scan = classify_keyframe(keyframe_points(keyframe), up, self.params, self.native)
             if key is not None:
                 self._scans[key] = scan
             self.classified += 1
@@ -332,17 +393,11 @@ class OccupancyGrid:
         centre = np.floor(sensor / p.resolution).astype(np.int64) - self._corner
         x0, y0 = centre - disk.reach
         size = 2 * disk.reach + 1
-        free = disk.ranges < free_range[disk.bins]
-        hit = np.zeros_like(free)
+        hit = np.zeros(disk.ranges.shape, bool)
         cells = np.floor(obstacles / p.resolution).astype(np.int64) - self._corner - (x0, y0)
         inside = ((cells >= 0) & (cells < size)).all(axis=1)
         hit[cells[inside, 1], cells[inside, 0]] = True
-        window = self._log_odds[y0 : y0 + size, x0 : x0 + size]
-        window += np.where(
-            hit, np.float32(p.hit_log_odds), np.where(free, np.float32(p.miss_log_odds), np.float32(0.0))
-        )
-        np.clip(window, p.min_log_odds, p.max_log_odds, out=window)
-        self._observed[y0 : y0 + size, x0 : x0 + size] |= hit | free
+        _update_window(self._log_odds, self._observed, (x0, y0), disk, free_range, hit, p, self.native)
         self.keyframes_added += 1
 
     # ----------------------------------------------------------------------------------------------- results

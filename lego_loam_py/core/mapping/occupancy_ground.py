@@ -33,12 +33,18 @@ obstacle: its allowance (0.5 x 2 m) lets the underside of a crown 2.5 m up into 
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from lego_loam_py.core.geometry import pairs_within
+
+try:  # the coarse cone in C (native/occupancy_kernels.c); optional, the NumPy version gives the same
+    from lego_loam_py.core import _occupancy_kernels
+except ImportError:
+    _occupancy_kernels = None
 
 __all__ = ['KeyframeScan', 'classify_keyframe']
 
@@ -126,26 +132,53 @@ class _Neighbours:
         return np.bincount(self.first[both], minlength=n) + np.bincount(self.second[both], minlength=n)
 
 
-def _coarse_cone(cells: np.ndarray, lowest: np.ndarray, cell: float, slope: float, radius: float) -> np.ndarray:
-    """Per cell (``cells`` (k, 2) lattice indices, ``lowest`` their lowest points): min over the cells within
-    ``radius`` of ``lowest + slope (distance + one cell diagonal)``, a bound of the cone wherever in the two cells
-    the points are."""
+@functools.lru_cache(maxsize=16)
+def _cone_offsets(cell: float, slope: float, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cell offsets (di, dj) (m,) int64 within ``radius`` [m] of a cell of edge ``cell`` [m], and what each adds
+    to the cone, ``slope (distance + one cell diagonal)`` [m] (m,) float64, in Python's floats (math.hypot: C's
+    hypot may round differently) and in the order both versions of :func:`_coarse_cone` take them. Read-only."""
+    reach = int(radius // cell)
+    di, dj, terms = [], [], []
+    for i in range(-reach, reach + 1):
+        for j in range(-reach, reach + 1):
+            distance = cell * math.hypot(i, j)
+            if distance <= radius:
+                di.append(i)
+                dj.append(j)
+                terms.append(slope * (distance + math.sqrt(2.0) * cell))
+    table = np.array(di, np.int64), np.array(dj, np.int64), np.array(terms, np.float64)
+    for column in table:
+        column.setflags(write=False)
+    return table
+
+
+def _coarse_cone(
+    cells: np.ndarray, lowest: np.ndarray, cell: float, slope: float, radius: float, native: bool = True
+) -> np.ndarray:
+    """Per cell (``cells`` (k, 2) lattice indices, ``lowest`` their lowest points [m]): min over the cells within
+    ``radius`` [m] of ``lowest + slope (distance + one cell diagonal)``, a bound of the cone wherever in the two cells
+    the points are (inf: none). In C when the extension is built, the same values bit for bit; ``native=False``
+    runs the NumPy version (the tests compare the two)."""
     corner = cells.min(axis=0)
     shape = tuple(cells.max(axis=0) - corner + 1)
     local = cells - corner
     grid = np.full(shape, np.inf)
     grid[local[:, 0], local[:, 1]] = lowest
+    di, dj, terms = _cone_offsets(float(cell), float(slope), float(radius))
+    # (A term of -0.0, from a slope of -0.0, could make +0.0 and -0.0 tie, which NumPy's SIMD and scalar minimum
+    # break differently: NumPy decides those.)
+    if native and _occupancy_kernels is not None and not np.signbit(terms).any():
+        bound = np.empty(len(local))
+        _occupancy_kernels.coarse_cone(grid, shape[1], di, dj, terms, np.ascontiguousarray(local, np.int64), bound)
+        return bound
     bound = np.full(shape, np.inf)
-    reach = int(radius // cell)
     n0, n1 = shape
-    for di in range(-reach, reach + 1):
-        for dj in range(-reach, reach + 1):
-            distance = cell * math.hypot(di, dj)
-            if distance > radius or abs(di) >= n0 or abs(dj) >= n1:
-                continue
-            target = bound[max(di, 0) : n0 + min(di, 0), max(dj, 0) : n1 + min(dj, 0)]
-            source = grid[max(-di, 0) : n0 + min(-di, 0), max(-dj, 0) : n1 + min(-dj, 0)]
-            np.minimum(target, source + slope * (distance + math.sqrt(2.0) * cell), out=target)
+    for i, j, term in zip(di.tolist(), dj.tolist(), terms.tolist()):
+        if abs(i) >= n0 or abs(j) >= n1:
+            continue
+        target = bound[max(i, 0) : n0 + min(i, 0), max(j, 0) : n1 + min(j, 0)]
+        source = grid[max(-i, 0) : n0 + min(-i, 0), max(-j, 0) : n1 + min(-j, 0)]
+        np.minimum(target, source + term, out=target)
     return bound[local[:, 0], local[:, 1]]
 
 
@@ -184,10 +217,10 @@ def _ground_plane(xy: np.ndarray, z: np.ndarray, radius: float) -> tuple[np.ndar
     return coefficients, float(np.sqrt(np.average(residual**2, weights=weight[keep])))
 
 
-def classify_keyframe(points: np.ndarray, up: np.ndarray, params) -> KeyframeScan:
+def classify_keyframe(points: np.ndarray, up: np.ndarray, params, native: bool = True) -> KeyframeScan:
     """Sort a keyframe's points ((n, 3) sensor frame, REP-103 lidar axes) into obstacles and ground hits (module
     docstring); ``up``: the map's up axis in the sensor frame; ``params``: an
-    :class:`~lego_loam_py.core.params.types.OccupancyGridParams`."""
+    :class:`~lego_loam_py.core.params.types.OccupancyGridParams`; ``native=False``: NumPy only (the same result)."""
     p = params
     points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
     axes = _level_axes(up)
@@ -206,7 +239,7 @@ def classify_keyframe(points: np.ndarray, up: np.ndarray, params) -> KeyframeSca
     neighbours = _Neighbours(xy[column_point], p.ground_search_radius)
     lower_bound = np.minimum(
         neighbours.cone(column_lowest, p.ground_max_slope)[column_of],
-        _coarse_cone(cells, cell_lowest, p.ground_cell, p.ground_max_slope, p.ground_far_radius)[cell_of],
+        _coarse_cone(cells, cell_lowest, p.ground_cell, p.ground_max_slope, p.ground_far_radius, native)[cell_of],
     )
     lowest_around = z - lower_bound <= p.ground_tolerance
     ground_hit = lowest_around.copy()
