@@ -601,3 +601,22 @@ def test_the_run_saves_the_grid_beside_the_map_and_it_loads_back(campus_map):
     redrawn = redrawn.ternary()
     assert np.array_equal(grid.cells, redrawn.cells) and grid.origin == pytest.approx(redrawn.origin, abs=1e-9)
     assert grid.counts()['occupied'] > 100
+
+
+def test_the_slope_cone_and_the_ground_carried_over_between_neighbouring_columns_by_hand():
+    """Three columns, (0, 0) and (3, 4) 5 m apart and (10, 0) alone within 6 m: the cone rises 0.5 m a metre from
+    each neighbour, the ground is carried along the gradient (0.1, 0.2) each way (+1.1 m from the first to the
+    second, -1.1 m back), a column outside the base lends nothing, and the count is of neighbours in the mask."""
+    xy = np.array([[0.0, 0.0], [3.0, 4.0], [10.0, 0.0]])
+    neighbours = occupancy_ground._Neighbours(xy, 6.0)
+    z = np.array([5.0, 1.0, 0.0])
+    assert neighbours.cone(z, 0.5).tolist() == [3.5, 1.0, 0.0]
+    assert neighbours.cone(z, 0.5, base=np.array([False, True, True])).tolist() == [3.5, 1.0, 0.0]
+    assert neighbours.cone(z, 0.5, base=np.array([True, False, True])).tolist() == [5.0, 7.5, 0.0]
+    gradient = np.array([0.1, 0.2])
+    ground = neighbours.ground_under(z, np.array([True, True, True]), gradient)
+    assert ground == pytest.approx([1.0 - 1.1, 1.0, 0.0], abs=1e-12)
+    ground = neighbours.ground_under(z, np.array([True, False, False]), gradient)
+    assert ground[0] == 5.0 and ground[1] == pytest.approx(6.1, abs=1e-12) and ground[2] == math.inf
+    assert neighbours.count(np.array([True, True, True])).tolist() == [1, 1, 0]
+    assert neighbours.count(np.array([True, False, True])).tolist() == [0, 0, 0]

@@ -94,13 +94,12 @@ class _Neighbours:
     def __init__(self, xy: np.ndarray, radius: float):
         self.xy = xy
         self.first, self.second = pairs_within(xy, radius)
-        # xy[first] - xy[second] (m, 2), gathered a coordinate at a time: a gather of (n, 2) rows costs several times
-        # more on the hundred thousand pairs of a 64-beam keyframe.
+        # xy[first] - xy[second], a coordinate at a time (m,) each: gathers and element-wise passes over (m, 2) rows
+        # cost several times more on the hundred thousand pairs of a 64-beam keyframe.
         x, y = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
-        self.offset = np.empty((len(self.first), 2))
-        np.subtract(x[self.first], x[self.second], out=self.offset[:, 0])
-        np.subtract(y[self.first], y[self.second], out=self.offset[:, 1])
-        self.distance = np.hypot(self.offset[:, 0], self.offset[:, 1])
+        self.dx = np.subtract(x[self.first], x[self.second])
+        self.dy = np.subtract(y[self.first], y[self.second])
+        self.distance = np.hypot(self.dx, self.dy)
 
     def cone(self, z: np.ndarray, slope: float, base: np.ndarray | None = None) -> np.ndarray:
         """Per point: min over the base points among its neighbours and itself (all without ``base``, a mask) of
@@ -117,12 +116,14 @@ class _Neighbours:
         along the ground plane's ``gradient`` (dz/dx, dz/dy), the lowest of them; inf where none."""
         bound = np.where(base, z, np.inf)
         for to, source, away in ((self.first, self.second, False), (self.second, self.first, True)):
-            take = base[source]
-            to, source = to[take], source[take]
-            offset = self.offset[take]  # xy[to] - xy[source]: the pair's offset, negated (exactly) from the second
+            take = np.flatnonzero(base[source])
+            to, source = to.take(take), source.take(take)
+            # xy[to] - xy[source]: the pair's offset (negated, exactly, from the second), as (k, 2) rows for the product
+            offset = np.empty((len(take), 2))
+            offset[:, 0], offset[:, 1] = self.dx.take(take), self.dy.take(take)
             if away:
                 np.negative(offset, out=offset)
-            np.minimum.at(bound, to, z[source] + offset @ gradient)
+            np.minimum.at(bound, to, z.take(source) + offset @ gradient)
         return bound
 
     def count(self, mask: np.ndarray) -> np.ndarray:
