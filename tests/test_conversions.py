@@ -502,3 +502,30 @@ def test_nodes_take_serialized_odometry_and_drop_unreadable_bytes(context):
     assert any('/aft_mapped_to_init dropped' in text for _, text in rec.warnings)
     assert not rec.errors
     tf.destroy_node()
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=st.binary(max_size=600), cut=st.integers(0, 400))
+def test_serialized_cloud_and_cloud_info_garbage_or_cut_short_is_a_value_error(data, cut):
+    """Bytes that are no PointCloud2 or CloudInfo, or a real one cut short anywhere, raise ValueError (never another
+    error, never a read past the end)."""
+    from rclpy.serialization import serialize_message
+
+    from lego_loam_py.ros.conversions import (
+        cloud_from_serialized,
+        cloud_info_from_serialized,
+        make_header,
+        xyzi_to_cloud_msg,
+    )
+
+    points = np.arange(40, dtype=np.float32).reshape(10, 4)
+    cloud = serialize_message(xyzi_to_cloud_msg(points, make_header(10**9, 'camera')))
+    for read, whole in ((cloud_from_serialized, cloud), (cloud_info_from_serialized, None)):
+        candidates = [b'\x00\x01\x00\x00' + data, data]
+        if whole is not None:
+            candidates.append(whole[: min(cut, len(whole) - 1)])
+        for candidate in candidates:
+            try:
+                read(candidate)
+            except ValueError:
+                pass

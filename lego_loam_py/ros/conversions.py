@@ -354,6 +354,9 @@ def cloud_info_from_msg(msg) -> CloudInfoData:
     )
 
 
+_STRUCT_CODES = {'u1': 'B', 'u4': 'I', 'i4': 'i', 'f4': 'f', 'f8': 'd'}  # numpy code -> struct's
+
+
 class _CdrReader:
     """Reads the fields of one XCDR1 message in order (the layout of :class:`_CdrWriter`, either byte order):
     arrays are views of the bytes, never copies. Bytes that end inside a field raise ValueError."""
@@ -368,24 +371,40 @@ class _CdrReader:
         """``count`` numbers of ``dtype`` (numpy code without byte order), or a sequence (its uint32 length
         first) when ``count`` is None."""
         item = np.dtype(self.order + dtype)
-        self.position = (self.position + item.alignment - 1) & ~(item.alignment - 1)
         if count is None:
-            count = int(self.array('u4', 1)[0])
-            self.position = (self.position + item.alignment - 1) & ~(item.alignment - 1)
-        end = self.position + count * item.itemsize
-        if end > len(self.body):
-            raise ValueError(
-                f'serialized {self.what} of {len(self.body) + 4} bytes ends inside its {count}-element field'
-            )
+            count = self.scalar('u4')
+        self.position = (self.position + item.alignment - 1) & ~(item.alignment - 1)
+        end = self._end(count * item.itemsize, count)
         values = np.frombuffer(self.body, dtype=item, count=count, offset=self.position)
         self.position = end
         return values
 
     def scalar(self, dtype: str):
-        return self.array(dtype, 1)[0].item()
+        """One number of ``dtype`` (numpy code: 'u1', 'u4', 'i4', 'f4', 'f8') as a Python int or float (struct reads
+        it: a message's few scalars cost more through NumPy than its arrays)."""
+        code = _STRUCT_CODES[dtype]
+        size = struct.calcsize(code)
+        self.position = (self.position + size - 1) & ~(size - 1)
+        end = self._end(size, 1)
+        (value,) = struct.unpack_from(self.order + code, self.body, self.position)
+        self.position = end
+        return value
 
     def string(self) -> str:
-        return self.array('u1').tobytes().rstrip(b'\x00').decode('utf-8', errors='replace')
+        length = self.scalar('u4')
+        end = self._end(length, length)
+        text = bytes(self.body[self.position : end])
+        self.position = end
+        return text.rstrip(b'\x00').decode('utf-8', errors='replace')
+
+    def _end(self, size: int, count: int) -> int:
+        """Where a field of ``size`` bytes from the current position ends; ValueError past the bytes."""
+        end = self.position + size
+        if end > len(self.body):
+            raise ValueError(
+                f'serialized {self.what} of {len(self.body) + 4} bytes ends inside its {count}-element field'
+            )
+        return end
 
     def stamp_ns(self) -> int:
         return self.scalar('i4') * 1_000_000_000 + self.scalar('u4')
