@@ -39,21 +39,24 @@ def matrix_of_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
 
 def rpy_of(matrix: np.ndarray) -> tuple[float, float, float]:
     """(roll, pitch, yaw) [rad] of an attitude (inverse of :func:`matrix_of_rpy`)."""
-    return (
-        math.atan2(matrix[2, 1], matrix[2, 2]),
-        math.asin(max(-1.0, min(1.0, -matrix[2, 0]))),
-        math.atan2(matrix[1, 0], matrix[0, 0]),
-    )
+    (m00, _, _), (m10, _, _), (m20, m21, m22) = np.asarray(matrix).tolist()
+    return math.atan2(m21, m22), math.asin(max(-1.0, min(1.0, -m20))), math.atan2(m10, m00)
+
+
+_IDENTITY = np.eye(3)
+_IDENTITY.flags.writeable = False
 
 
 def _exp(rotation_vector: np.ndarray) -> np.ndarray:
-    """Rodrigues: the rotation of a rotation vector [rad]."""
-    angle = float(np.linalg.norm(rotation_vector))
+    """Rodrigues: the rotation of a rotation vector [rad] ((3,) float64)."""
+    # (np.linalg.norm's own operations, sqrt of the vector's dot with itself, without its checks: 200 samples a
+    # second call this)
+    angle = math.sqrt(rotation_vector.dot(rotation_vector))
     if angle < 1e-12:
         return np.eye(3)
-    k = rotation_vector / angle
-    cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + math.sin(angle) * cross + (1.0 - math.cos(angle)) * (cross @ cross)
+    kx, ky, kz = (rotation_vector / angle).tolist()
+    cross = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
+    return _IDENTITY + math.sin(angle) * cross + (1.0 - math.cos(angle)) * (cross @ cross)
 
 
 class GyroAttitude:
