@@ -324,6 +324,33 @@ def test_validation_names_the_field_the_value_and_the_bound():
         )
 
 
+def test_a_state_cloud_or_vector_is_refused_for_any_bad_value_in_any_column():
+    """The guard's checks of what a node holds: a NaN or an infinity anywhere (any column of a cloud's x, y, z, the
+    last one too, float32 or float64) is 'not finite'; the largest magnitude, a negative one too, against the bound."""
+    from lego_loam_py.core.validation import InputRejected, check_cloud, cloud_problem, vector_problem
+
+    cloud = np.zeros((5, 4), np.float32)
+    cloud[:, 3] = [0.5, 1.5, 2.5, 3.5, 4.5]
+    assert cloud_problem('the cloud', cloud, 16.0) is None
+    for column in range(3):
+        for bad in (np.nan, np.inf, -np.inf):
+            poisoned = cloud.copy()
+            poisoned[4, column] = bad
+            assert cloud_problem('the cloud', poisoned) == 'the cloud points is not finite'
+            assert cloud_problem('the cloud', poisoned.astype(np.float64)) == 'the cloud points is not finite'
+            with pytest.raises(InputRejected, match='with NaN or inf'):
+                check_cloud('cloud', poisoned)
+    far = cloud.copy()
+    far[2, 1] = -2.5e4
+    assert cloud_problem('the cloud', far) == 'the cloud points reach 2.5e+04 m (bound 20000 m)'
+    with pytest.raises(InputRejected, match='cloud coordinate = 25000'):
+        check_cloud('cloud', far)
+    assert cloud_problem('the cloud', cloud, 4.0) == 'the cloud intensities reach 4.5 (bound 4)'
+    assert vector_problem('the pose', [1, -7, 3], 4.0, 'm') == 'the pose reach 7 m (bound 4 m)'
+    assert vector_problem('the pose', np.array([0.0, np.nan]), 4.0, 'm') == 'the pose is not finite'
+    assert vector_problem('the pose', np.zeros(0), 4.0, 'm') is None
+
+
 @pytest.mark.filterwarnings('ignore:invalid value encountered:RuntimeWarning')  # (the poisoned scan below)
 def test_feature_association_recovers_from_a_poisoned_state_and_keeps_its_pose(context, tmp_path):
     """The last line of defence: a state that got poisoned anyway (here by a scan handed to the core past the
