@@ -146,22 +146,12 @@ def odometry_from_serialized(data: bytes) -> SimpleNamespace | Odometry:
     A fifth of what rclpy's message objects cost (some dozen nested constructors per message); the numbers are the
     message's own, bit for bit. Other encodings are read through rclpy's deserializer; bytes too short for their
     layout raise ValueError."""
-    if len(data) < 16:
-        raise ValueError(f'serialized Odometry of {len(data)} bytes is too short')
-    order = _XCDR1.get(bytes(data[:2]))
-    if order is None:
+    if bytes(data[:2]) not in _XCDR1:
         return _deserialized(data, Odometry, 'Odometry')
-    sec, nanosec, frame_length = struct.unpack_from(order + 'iII', data, 4)
-    child_at = 4 + ((12 + frame_length + 3) & ~3)
-    if child_at + 4 > len(data):
-        raise ValueError(f'serialized Odometry of {len(data)} bytes ends inside its frame id ({frame_length} bytes)')
-    (child_length,) = struct.unpack_from(order + 'I', data, child_at)
-    start = 4 + ((child_at + child_length + 7) & ~7)  # (child_at counts the encapsulation)
-    if start + 8 * _ODOMETRY_DOUBLES > len(data):
-        raise ValueError(f'serialized Odometry of {len(data)} bytes is too short for its frame ids')
-    v = struct.unpack_from(order + f'{_ODOMETRY_DOUBLES}d', data, start)
-    frame_id = _text(data[16 : 16 + frame_length])
-    child_frame_id = _text(data[child_at + 4 : child_at + 4 + child_length])
+    read = _CdrReader(data, 'Odometry')
+    sec, nanosec = read.scalar('i4'), read.scalar('u4')
+    frame_id, child_frame_id = read.string(), read.string()
+    v = read.scalars('f8', _ODOMETRY_DOUBLES)
 
     def vector(x: float, y: float, z: float) -> SimpleNamespace:
         return SimpleNamespace(x=x, y=y, z=z)
@@ -177,11 +167,6 @@ def odometry_from_serialized(data: bytes) -> SimpleNamespace | Odometry:
             twist=SimpleNamespace(linear=vector(*v[43:46]), angular=vector(*v[46:49])), covariance=v[49:85]
         ),
     )
-
-
-def _text(data) -> str:
-    """A CDR string's characters (its NUL dropped), undecodable bytes replaced."""
-    return bytes(data).rstrip(b'\x00').decode('utf-8', errors='replace')
 
 
 def numpy_to_array(values: np.ndarray, typecode: str) -> array.array:
@@ -380,15 +365,19 @@ class _CdrReader:
         return values
 
     def scalar(self, dtype: str):
-        """One number of ``dtype`` (numpy code: 'u1', 'u4', 'i4', 'f4', 'f8') as a Python int or float (struct reads
-        it: a message's few scalars cost more through NumPy than its arrays)."""
+        """One number of ``dtype`` (numpy code: 'u1', 'u4', 'i4', 'f4', 'f8') as a Python int or float."""
+        return self.scalars(dtype, 1)[0]
+
+    def scalars(self, dtype: str, count: int) -> tuple:
+        """``count`` numbers of ``dtype`` as Python ints or floats (struct reads them: a message's few scalars cost
+        more through NumPy than its arrays)."""
         code = _STRUCT_CODES[dtype]
         size = struct.calcsize(code)
         self.position = (self.position + size - 1) & ~(size - 1)
-        end = self._end(size, 1)
-        (value,) = struct.unpack_from(self.order + code, self.body, self.position)
+        end = self._end(size * count, count)
+        values = struct.unpack_from(f'{self.order}{count}{code}', self.body, self.position)
         self.position = end
-        return value
+        return values
 
     def string(self) -> str:
         length = self.scalar('u4')
