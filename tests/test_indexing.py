@@ -34,3 +34,27 @@ def test_rows_outside_the_array_or_a_mask_of_another_length_are_refused():
         select_rows(array, np.array([10]))
     with pytest.raises(IndexError):
         select_rows(array, np.ones(9, bool))  # (np.compress alone would take the missing row as False)
+
+
+def test_columns_are_copied_as_the_block_assignment_and_astype_do():
+    """copy_columns and xyz_columns give exactly what ``out[:, :k] = source[:, columns]`` and
+    ``points[:, :3].astype(float64)`` give: the same values (float64 rounded to float32 as assignment rounds), the same
+    layout, any permutation of the columns, and no row."""
+    from lego_loam_py.core.indexing import copy_columns, xyz_columns
+
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(1000, 4)).astype(np.float32)
+    points[::7, 1] = np.nan
+    coordinates = xyz_columns(points)
+    expected = points[:, :3].astype(np.float64)
+    assert coordinates.tobytes() == expected.tobytes() and coordinates.strides == expected.strides
+    wide = rng.normal(size=(1000, 3)) * 1e3  # float64 into float32 columns
+    for columns in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        out, reference = np.full((1000, 4), 7.0, np.float32), np.full((1000, 4), 7.0, np.float32)
+        assert copy_columns(out, wide, columns) is out
+        reference[:, :3] = wide[:, list(columns)]
+        assert out.tobytes() == reference.tobytes()  # (the fourth column untouched)
+        copy_columns(out, points, columns)
+        reference[:, :3] = points[:, list(columns)]
+        assert np.array_equal(out, reference, equal_nan=True)
+    assert xyz_columns(points[:0]).shape == (0, 3)

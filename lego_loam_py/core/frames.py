@@ -59,8 +59,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from lego_loam_py.core.indexing import copy_columns, xyz_columns
+
 __all__ = [
     'MAP_FRAME',
+    'LIDAR_TO_CAMERA_COLUMNS',
+    'CAMERA_TO_LIDAR_COLUMNS',
     'CAMERA_INIT_FRAME',
     'CAMERA_FRAME',
     'BASE_LINK_FRAME',
@@ -135,14 +139,19 @@ LIDAR_TO_CAMERA = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
 CAMERA_TO_LIDAR = LIDAR_TO_CAMERA.T.copy()
 
 
+# The lidar-axes coordinate each camera axis takes (camera x = lidar y, y = z, z = x), and the reverse.
+LIDAR_TO_CAMERA_COLUMNS = (1, 2, 0)
+CAMERA_TO_LIDAR_COLUMNS = (2, 0, 1)
+
+
 def lidar_to_camera(points: np.ndarray) -> np.ndarray:
     """(..., 3) lidar-axes coordinates -> camera axes (a new array)."""
-    return np.asarray(points)[..., [1, 2, 0]]
+    return np.asarray(points)[..., list(LIDAR_TO_CAMERA_COLUMNS)]
 
 
 def camera_to_lidar(points: np.ndarray) -> np.ndarray:
     """(..., 3) camera-axes coordinates -> lidar axes (a new array)."""
-    return np.asarray(points)[..., [2, 0, 1]]
+    return np.asarray(points)[..., list(CAMERA_TO_LIDAR_COLUMNS)]
 
 
 def rot_x(angle: float) -> np.ndarray:
@@ -323,7 +332,7 @@ def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
 def transform_cloud(points: np.ndarray, pose6: np.ndarray) -> np.ndarray:
     """(n, 4) float32 points (camera axes, intensity kept) mapped with a world-convention pose six-vector."""
     out = np.empty_like(points, dtype=np.float32)
-    out[:, :3] = transform_points(pose6_to_matrix(pose6), points[:, :3].astype(np.float64))
+    copy_columns(out, transform_points(pose6_to_matrix(pose6), xyz_columns(points)))
     out[:, 3] = points[:, 3]
     return out
 

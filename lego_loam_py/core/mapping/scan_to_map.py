@@ -32,7 +32,7 @@ from lego_loam_py.core.frames import (
 )
 from lego_loam_py.core.gauss_newton import DegeneracyProjection, residual_information
 from lego_loam_py.core.geometry import GridNeighbours, fit_planes_at, line_coefficients
-from lego_loam_py.core.indexing import select_rows
+from lego_loam_py.core.indexing import select_rows, xyz_columns
 from lego_loam_py.core.params.types import Params
 
 __all__ = [
@@ -52,8 +52,8 @@ def map_jacobian_rows(points: np.ndarray, coeff: np.ndarray, pose6: np.ndarray) 
     """Rows ``coeff · d(R p + t)/d(rx, ry, rz, tx, ty, tz)`` with ``R = Ry(ry) Rx(rx) Rz(rz)``."""
     rx, ry, rz = (float(v) for v in pose6[:3])
     Ry, Rx, Rz = rot_y(ry), rot_x(rx), rot_z(rz)
-    p = points[:, :3].astype(np.float64)
-    c = coeff[:, :3].astype(np.float64)
+    p = xyz_columns(points)
+    c = xyz_columns(coeff)
     rows = np.empty((len(points), 6))
     for k, derivative in enumerate(
         (Ry @ Rx @ GENERATOR_X @ Rz, Ry @ GENERATOR_Y @ Rx @ Rz, Ry @ Rx @ Rz @ GENERATOR_Z)
@@ -101,7 +101,7 @@ def plane_correspondences(points_world: np.ndarray, tree: GridNeighbours, map_po
     used, index = tree.nearest_within(points_world, mo.knn, mo.knn_max_sq_dist)
     planar, normal, offset = fit_planes_at(map_points, index, mo.plane_max_residual, mo.plane_min_aspect)
     used = used[planar]
-    p = select_rows(points_world, used)[:, :3].astype(np.float64)
+    p = xyz_columns(select_rows(points_world, used))
     dist = np.einsum('mi,mi->m', p, normal) + offset
     weight = 1.0 - mo.weight_gain * np.abs(dist) / np.sqrt(np.linalg.norm(p, axis=1))
     keep = weight > mo.min_weight
@@ -173,8 +173,8 @@ def register_scan_to_map(
     for iteration in range(mo.max_iterations):
         counts.iterations = iteration + 1
         world = pose6_to_matrix(pose)
-        corner_world = transform_points(world, corner_ds[:, :3].astype(np.float64)).astype(_F32)
-        surf_world = transform_points(world, surf_ds[:, :3].astype(np.float64)).astype(_F32)
+        corner_world = transform_points(world, xyz_columns(corner_ds)).astype(_F32)
+        surf_world = transform_points(world, xyz_columns(surf_ds)).astype(_F32)
         ci, cc = edge_correspondences(corner_world, corner_tree, corner_map, params)
         si, sc = plane_correspondences(surf_world, surf_tree, surf_map, params)
         points = np.concatenate([select_rows(corner_ds, ci), select_rows(surf_ds, si)])

@@ -29,9 +29,9 @@ import numpy as np
 
 from lego_loam_py.core.frames import (
     CAMERA_TO_LIDAR,
+    LIDAR_TO_CAMERA_COLUMNS,
     euler_to_matrix,
     invert_pose,
-    lidar_to_camera,
     make_pose,
     matrix_to_euler,
     matrix_to_pose6,
@@ -47,6 +47,7 @@ from lego_loam_py.core.imu.buffer import (
 )
 from lego_loam_py.core.imu.monitor import SweepImuCheck
 from lego_loam_py.core.imu.sweep import deskew_with_imu, rotate_at_points, sweep_attitude
+from lego_loam_py.core.indexing import copy_columns
 from lego_loam_py.core.odometry.covariance import (
     OdometryCovariance,
     motion_covariance,
@@ -238,7 +239,7 @@ class FeatureAssociation:
         else:
             rel = relative_time_from_azimuth(seg, scan.info)
         out = np.empty((len(seg), 4), dtype=_F32)
-        out[:, :3] = lidar_to_camera(seg[:, :3])
+        copy_columns(out, seg, LIDAR_TO_CAMERA_COLUMNS)
         # int(intensity) + 0.1 * relTime, computed in double and stored as float as the original does. The
         # factor is 0.1 whatever the scan period, so that 10 * fraction is always the relative time.
         out[:, 3] = (np.trunc(seg[:, 3]).astype(np.float64) + 0.1 * rel.astype(np.float64)).astype(_F32)
@@ -465,7 +466,7 @@ class FeatureAssociation:
         (when used) and timed ``1 + s`` (the reference is the previous sweep's start)."""
         out = cloud.copy()
         if to_reference is not None:
-            out[:, :3] = rotate_at_points(self.imu, to_reference, attitude, index, cloud, self._period).astype(_F32)
+            copy_columns(out, rotate_at_points(self.imu, to_reference, attitude, index, cloud, self._period))
         ring = np.trunc(cloud[:, 3]).astype(np.float64)
         s = 10.0 * (cloud[:, 3].astype(np.float64) - ring)
         out[:, 3] = (ring + 0.1 * (1.0 + s)).astype(_F32)
@@ -486,7 +487,7 @@ class FeatureAssociation:
         out = np.empty_like(cloud)
         out[:, 3] = ring.astype(_F32)
         if attitude is None:
-            out[:, :3] = transform_to_start(cloud, motion_to_theta(motion))[:, :3]
+            copy_columns(out, transform_to_start(cloud, motion_to_theta(motion)))
             return out
         s = 10.0 * (cloud[:, 3].astype(np.float64) - ring)  # (the IMU's deskewing only)
         if index is not None:
@@ -494,13 +495,13 @@ class FeatureAssociation:
         else:  # voxel centroids (less-flat): attitude at each point's own time
             times = attitude.t_start + s * self.params.sensor.scan_period
             rotated = imu_rotate(attitude.r_start.T, *self.imu.attitude(times), cloud)
-        out[:, :3] = (rotated + s[:, None] * motion[:3, 3][None, :]).astype(_F32)
+        copy_columns(out, rotated + s[:, None] * motion[:3, 3][None, :])
         return out
 
     def _outlier_at_start(self, scan: ScanInput, motion: np.ndarray, attitude: SweepAttitude | None) -> np.ndarray:
         """The outlier cloud in camera axes, deskewed to the sweep start like the features."""
         outlier = np.empty_like(scan.outlier)
-        outlier[:, :3] = lidar_to_camera(scan.outlier[:, :3])
+        copy_columns(outlier, scan.outlier, LIDAR_TO_CAMERA_COLUMNS)
         if len(outlier) == 0:
             outlier[:, 3] = scan.outlier[:, 3]
             return outlier
@@ -568,7 +569,7 @@ class FeatureAssociation:
         surf_last = transform_to_end(features.less_flat, theta, correction, shift_end)
         self.odometry.set_last(corner_last, surf_last)
         outlier_last = np.empty_like(scan.outlier)  # the original does not deskew the outliers (quirk 8.9)
-        outlier_last[:, :3] = lidar_to_camera(scan.outlier[:, :3])
+        copy_columns(outlier_last, scan.outlier, LIDAR_TO_CAMERA_COLUMNS)
         outlier_last[:, 3] = scan.outlier[:, 3]
         timings['total'] = (time.perf_counter() - t0) * 1e3
         return self._finish(

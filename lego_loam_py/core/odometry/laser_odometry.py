@@ -45,7 +45,7 @@ from lego_loam_py.core.geometry import (
     squared_lengths,
 )
 from lego_loam_py.core.imu.agreement import FULL_TRUST
-from lego_loam_py.core.indexing import select_rows
+from lego_loam_py.core.indexing import copy_columns, select_rows, xyz_columns
 from lego_loam_py.core.odometry.correspondences import (
     CornerCorrespondences,
     LastCloud,
@@ -463,7 +463,7 @@ class SweepStartOdometry(LaserOdometry):
         fa = self.params.feature_association
         xyz, s, trig = self._prepared(points)
         start = np.empty((len(points), 4), dtype=_F32)  # transform_to_start, with what the stage keeps
-        start[:, :3] = SweepStartFrame(xyz, s, self.transform_cur, trig).xyz()
+        copy_columns(start, SweepStartFrame(xyz, s, self.transform_cur, trig).xyz())
         start[:, 3] = points[:, 3]
         # The planes and lines depend only on the last cloud: fixed for the whole block.
         if kind == 'wall':
@@ -487,11 +487,11 @@ class SweepStartOdometry(LaserOdometry):
         else:
             match = find_corner_correspondences(start, last, self.params, bound)
             usable = np.flatnonzero(match.index2 >= 0)
-            a = select_rows(last.points, match.index1[usable])[:, :3].astype(np.float64)
-            b = select_rows(last.points, match.index2[usable])[:, :3].astype(np.float64)
+            a = xyz_columns(select_rows(last.points, match.index1[usable]))
+            b = xyz_columns(select_rows(last.points, match.index2[usable]))
             with np.errstate(invalid='ignore', divide='ignore'):
                 along = (a - b) / np.linalg.norm(a - b, axis=1)[:, None]
-            p_start = select_rows(start, usable)[:, :3].astype(np.float64)
+            p_start = xyz_columns(select_rows(start, usable))
             distance = np.linalg.norm(line_offsets(p_start, a, along), axis=1)
             scale = np.ones(len(distance))
             finite = np.isfinite(distance) & np.isfinite(along).all(axis=1)

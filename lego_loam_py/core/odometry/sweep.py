@@ -30,6 +30,7 @@ from lego_loam_py.core.frames import (
     rot_z,
     scaled_motion,
 )
+from lego_loam_py.core.indexing import copy_columns, xyz_columns
 from lego_loam_py.core.parity.libm import atan2f
 from lego_loam_py.core.projection.cloud_info import CloudInfo
 
@@ -292,7 +293,7 @@ class SweepStartFrame:
 def transform_to_start(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
     """Map (n, 4) points (camera axes, intensity = ring + 0.1 s) to the sweep start: ``R(sθ)^T (p - s t)``."""
     out = np.empty((len(points), 4), dtype=_F32)
-    out[:, :3] = SweepStartFrame.of(points, transform).xyz()
+    copy_columns(out, SweepStartFrame.of(points, transform).xyz())
     out[:, 3] = points[:, 3]
     return out
 
@@ -308,12 +309,12 @@ def transform_to_end(
     attitude back, see :class:`FeatureAssociation`). The intensity becomes the ring (``int``)."""
     start = transform_to_start(points, transform)
     rotation = sweep_rotation(*transform[:3])
-    end = start[:, :3].astype(np.float64) @ rotation.T + np.asarray(transform[3:], dtype=np.float64)
+    end = xyz_columns(start) @ rotation.T + np.asarray(transform[3:], dtype=np.float64)
     if imu_correction is not None:
         shift = np.zeros(3) if imu_shift is None else np.asarray(imu_shift, dtype=np.float64)
         end = (end - shift) @ np.asarray(imu_correction).T
     out = np.empty((len(points), 4), dtype=_F32)
-    out[:, :3] = end
+    copy_columns(out, end)
     out[:, 3] = np.trunc(points[:, 3])
     return out
 
@@ -431,5 +432,5 @@ class StampInstant:
         """(n, 4) float32 points of the sweep-start frame in the frame at s0 (intensity kept)."""
         to_stamp = invert_pose(self.within(motion, share))
         out = points.copy()
-        out[:, :3] = (points[:, :3].astype(np.float64) @ to_stamp[:3, :3].T + to_stamp[:3, 3]).astype(_F32)
+        copy_columns(out, xyz_columns(points) @ to_stamp[:3, :3].T + to_stamp[:3, 3])
         return out
