@@ -13,6 +13,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
+# Garbage our own readers take: an XCDR1 encapsulation (either byte order), then anything. Bytes labelled XCDR2 go to
+# rclpy's deserializer, which can crash on garbage (test_only_cdr_encodings_reach_rclpys_deserializer).
+xcdr1_garbage = st.tuples(st.sampled_from([b'\x00\x00', b'\x00\x01']), st.binary(max_size=800)).map(
+    lambda t: t[0] + t[1]
+)
 
 
 def imu_message(frame_id: str, sec: int, nanosec: int, values):
@@ -64,7 +69,7 @@ def test_serialized_imu_equals_the_message(frame_id, sec, nanosec, values):
 
 
 @settings(max_examples=200, deadline=None)
-@given(data=st.binary(max_size=400))
+@given(data=xcdr1_garbage)
 def test_serialized_imu_garbage_is_a_value_error_or_a_sample(data):
     """Bytes that are no Imu raise ValueError (never another error, never a read past the end)."""
     from lego_loam_py.ros.conversions import imu_sample_from_serialized
@@ -447,7 +452,7 @@ def test_serialized_odometry_reads_as_the_message(frame_id, child, sec, nanosec,
 
 
 @settings(max_examples=200, deadline=None)
-@given(data=st.binary(max_size=800))
+@given(data=xcdr1_garbage)
 def test_serialized_odometry_garbage_is_a_value_error_or_an_odometry(data):
     """Bytes that are no Odometry raise ValueError (never another error, never a read past the end)."""
     from lego_loam_py.ros.conversions import odometry_from_serialized
@@ -505,7 +510,7 @@ def test_nodes_take_serialized_odometry_and_drop_unreadable_bytes(context):
 
 
 @settings(max_examples=300, deadline=None)
-@given(data=st.binary(max_size=600), cut=st.integers(0, 400))
+@given(data=xcdr1_garbage, cut=st.integers(0, 400))
 def test_serialized_cloud_and_cloud_info_garbage_or_cut_short_is_a_value_error(data, cut):
     """Bytes that are no PointCloud2 or CloudInfo, or a real one cut short anywhere, raise ValueError (never another
     error, never a read past the end)."""
@@ -521,7 +526,7 @@ def test_serialized_cloud_and_cloud_info_garbage_or_cut_short_is_a_value_error(d
     points = np.arange(40, dtype=np.float32).reshape(10, 4)
     cloud = serialize_message(xyzi_to_cloud_msg(points, make_header(10**9, 'camera')))
     for read, whole in ((cloud_from_serialized, cloud), (cloud_info_from_serialized, None)):
-        candidates = [b'\x00\x01\x00\x00' + data, data]
+        candidates = [data]
         if whole is not None:
             candidates.append(whole[: min(cut, len(whole) - 1)])
         for candidate in candidates:
@@ -529,3 +534,38 @@ def test_serialized_cloud_and_cloud_info_garbage_or_cut_short_is_a_value_error(d
                 read(candidate)
             except ValueError:
                 pass
+
+
+def test_only_cdr_encodings_reach_rclpys_deserializer(monkeypatch):
+    """Bytes in XCDR1 are read here; in XCDR2 (another serializer's output) by rclpy's deserializer; in any other
+    encapsulation, or too short to have one, they are refused with ValueError before rclpy sees them: its
+    deserializer reads garbage past the end and crashed the test process on random bytes labelled as parameter
+    lists."""
+    import rclpy.serialization
+
+    from lego_loam_py.ros import conversions
+
+    handed = []
+
+    def deserialize(data, message_type):
+        handed.append(bytes(data[:2]))
+        raise RuntimeError('not that message')
+
+    monkeypatch.setattr(rclpy.serialization, 'deserialize_message', deserialize)
+    readers = (
+        conversions.odometry_from_serialized,
+        conversions.imu_sample_from_serialized,
+        conversions.cloud_from_serialized,
+        conversions.cloud_info_from_serialized,
+    )
+    body = bytes(range(40))
+    for read in readers:
+        for head in (b'\x00\x02', b'\x00\x03', b'\x00\x04', b'\x00\x0c', b'\x12\x34', b'\x01\x07'):
+            with pytest.raises(ValueError, match='is no CDR encoding'):
+                read(head + body)
+        assert not handed, read
+        for head in (b'\x00\x06', b'\x00\x07', b'\x00\x0b'):
+            with pytest.raises(ValueError, match='not a serialized'):
+                read(head + body)
+        assert handed == [b'\x00\x06', b'\x00\x07', b'\x00\x0b'], read
+        handed.clear()

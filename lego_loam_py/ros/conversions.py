@@ -95,6 +95,7 @@ def make_header(stamp: Time | int, frame_id: str) -> Header:
 # covariance (9), angular velocity (3), its covariance (9), linear acceleration (3), its covariance (9).
 _IMU_DOUBLES = 37
 _XCDR1 = {b'\x00\x00': '>', b'\x00\x01': '<'}  # encapsulation id -> byte order
+_XCDR2 = frozenset(bytes((0, k)) for k in range(6, 12))  # plain, delimited, parameter list; big, little endian
 
 
 def serialized_stamp_ns(data: bytes) -> int | None:
@@ -110,21 +111,17 @@ def serialized_stamp_ns(data: bytes) -> int | None:
 def imu_sample_from_serialized(data: bytes) -> tuple[float, tuple, tuple, tuple]:
     """``ImuBuffer.add``'s arguments (see :func:`lego_loam_py.core.imu.buffer.imu_sample`) straight from the bytes of a
     sensor_msgs/Imu as a ``raw=True`` subscription takes them: about ten times cheaper than rclpy's message
-    objects (an IMU at 200 Hz costs a node more in messages than in their use). Other encodings are read
-    through rclpy's deserializer; a message too short for its layout raises ValueError."""
+    objects (an IMU at 200 Hz costs a node more in messages than in their use). XCDR2 is read through rclpy's
+    deserializer (:func:`_deserialized`); a message too short for its layout or in no CDR encoding raises ValueError."""
     if len(data) < 16:
         raise ValueError(f'serialized Imu of {len(data)} bytes is too short')
     order = _XCDR1.get(bytes(data[:2]))
     if order is None:
-        from rclpy.serialization import deserialize_message
         from sensor_msgs.msg import Imu
 
         from lego_loam_py.core.imu.buffer import imu_sample
 
-        try:
-            return imu_sample(deserialize_message(bytes(data), Imu))
-        except Exception as exc:  # rclpy raises its RMWError for bytes that are no Imu
-            raise ValueError(f'not a serialized Imu ({exc})') from None
+        return imu_sample(_deserialized(data, Imu, 'Imu'))
     sec, nanosec, name_length = struct.unpack_from(order + 'iII', data, 4)
     start = 4 + ((12 + name_length + 7) & ~7)  # (alignment counts from the end of the encapsulation)
     if start + 8 * _IMU_DOUBLES > len(data):
@@ -144,8 +141,8 @@ def odometry_from_serialized(data: bytes) -> SimpleNamespace | Odometry:
     own paths (``header`` a std_msgs/Header, ``child_frame_id``, ``pose.pose.position.x`` ..., ``pose.covariance`` and
     ``twist.covariance`` as 36 floats, ``twist.twist.linear.x`` ...): everything here that reads an Odometry reads it.
     A fifth of what rclpy's message objects cost (some dozen nested constructors per message); the numbers are the
-    message's own, bit for bit. Other encodings are read through rclpy's deserializer; bytes too short for their
-    layout raise ValueError."""
+    message's own, bit for bit. XCDR2 is read through rclpy's deserializer (:func:`_deserialized`); bytes too short
+    for their layout, or in no CDR encoding, raise ValueError."""
     if bytes(data[:2]) not in _XCDR1:
         return _deserialized(data, Odometry, 'Odometry')
     read = _CdrReader(data, 'Odometry')
@@ -400,7 +397,14 @@ class _CdrReader:
 
 
 def _deserialized(data: bytes, message_type, what: str):
-    """rclpy's reading of bytes in an encoding other than XCDR1 (ValueError when they are not that message)."""
+    """rclpy's reading of bytes in XCDR2, the other CDR encoding a middleware may send ROS messages in (ValueError when
+    they are not that message). Any other encapsulation is refused here: rclpy's deserializer reads garbage past its
+    end and can crash the process on it (random bytes labelled as parameter lists did, in a test), so only an
+    encoding a serializer can have produced reaches it."""
+    if bytes(data[:2]) not in _XCDR2:
+        raise ValueError(
+            f'not a serialized {what}: encapsulation {bytes(data[:2]).hex() or "missing"} is no CDR encoding'
+        )
     from rclpy.serialization import deserialize_message
 
     try:
@@ -413,8 +417,8 @@ def cloud_info_from_serialized(data: bytes, copy: bool = True) -> tuple[int, Clo
     """(header stamp [ns], the core's CloudInfo) straight from the bytes of a cloud_msgs/CloudInfo as a
     ``raw=True`` subscription takes them. rclpy's message holds the ground flags as a Python list of some
     20 000 bools, which costs featureAssociation more than the rest of the message; here every array is one
-    ``frombuffer`` (``copy=False``: views of ``data``, enough to check their lengths). Other encodings go
-    through rclpy's deserializer; bytes too short for the lengths they announce raise ValueError."""
+    ``frombuffer`` (``copy=False``: views of ``data``, enough to check their lengths). XCDR2 goes through rclpy's
+    deserializer (:func:`_deserialized`); bytes too short for the lengths they announce raise ValueError."""
     if bytes(data[:2]) not in _XCDR1:
         from cloud_msgs.msg import CloudInfo
 
@@ -461,7 +465,7 @@ class SerializedCloud:
 
 def cloud_from_serialized(data: bytes) -> SerializedCloud | PointCloud2:
     """A PointCloud2 from the bytes a ``raw=True`` subscription takes, without rclpy's copy of the data into a
-    Python message (half a millisecond for a VLP-16 scan); other encodings through rclpy's deserializer.
+    Python message (half a millisecond for a VLP-16 scan); XCDR2 through rclpy's deserializer (:func:`_deserialized`).
     Bytes too short for what they announce raise ValueError."""
     if bytes(data[:2]) not in _XCDR1:
         return _deserialized(data, PointCloud2, 'PointCloud2')
