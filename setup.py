@@ -58,6 +58,7 @@ CONSOLE_SCRIPTS = [
     f'featureAssociation = {PACKAGE}.ros.feature_association_node:main',
     f'mapOptimization = {PACKAGE}.ros.map_optimization_node:main',
     f'transformFusion = {PACKAGE}.ros.transform_fusion_node:main',
+    f'legoLoam = {PACKAGE}.ros.composed_node:main',
 ]
 
 if __name__ == '__main__':

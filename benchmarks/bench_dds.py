@@ -61,6 +61,9 @@ FLOOR_NODE = REPO / 'benchmarks' / 'floor_node.py'
 NODES = tuple(PIPELINE_NODES)  # the four executables, in pipeline order
 # The C++ original on the same kind of recording (the issue's measurement: 200-scan VLP-16 + IMU campus, 1x).
 CPP_MS_PER_SCAN = {'imageProjection': 4.3, 'featureAssociation': 7.5, 'mapOptimization': 16.2, 'transformFusion': 1.2}
+CPP_TOTAL_MS_PER_SCAN = sum(CPP_MS_PER_SCAN.values())
+COMPOSED = 'legoLoam'  # the four nodes in one process (lego_loam_py.ros.composed_node)
+CPP_MS_PER_SCAN[COMPOSED] = CPP_TOTAL_MS_PER_SCAN
 
 
 def cpu_seconds(pid: int, system_only: bool = False) -> float:
@@ -105,12 +108,13 @@ def run_configuration(
     overrides: dict | None = None,
     capture: Path | None = None,
     floor: Path | None = None,
+    composed: bool = False,
 ) -> dict:
     """Start the nodes, measure idle, play the bag at ``rate``, measure; returns the row.
 
     ``capture``: also record what the nodes publish into that bag (for ``floor`` runs); ``floor``: start the
     computation-free stand-ins of ``benchmarks/floor_node.py`` instead of the nodes, publishing what that capture
-    holds."""
+    holds. ``composed``: the one process of ``legoLoam`` instead of the four nodes' (its row's only node)."""
     import rclpy
     from nav_msgs.msg import Odometry
     from rclpy.context import Context
@@ -122,7 +126,9 @@ def run_configuration(
 
     with BagReader(bag) as reader:
         scans = reader.topic_counts()['/velodyne_points']
-    label = f'{"floor: " if floor else ""}{"pinned to 1 core, " if pinned else ""}{rate:g}x'
+    executables = (COMPOSED,) if composed else NODES
+    kind = 'floor: ' if floor else 'composed, ' if composed else ''
+    label = f'{kind}{"pinned to 1 core, " if pinned else ""}{rate:g}x'
     folder = out / (label.replace(' ', '_').replace(',', '') + (f'_run{run}' if run else ''))
     (folder / 'logs').mkdir(parents=True, exist_ok=True)
     params = folder / 'params.yaml'
@@ -140,7 +146,7 @@ def run_configuration(
             LEGO_LOAM_PY_STATS_DIR=str(folder / 'stats'),
         )
         procs = {}
-        for name in NODES:
+        for name in executables:
             command = [str(BIN / name)] if floor is None else [sys.executable, str(FLOOR_NODE), name, str(floor)]
             with open(folder / 'logs' / f'{name}.log', 'w') as log:
                 procs[name] = subprocess.Popen(
@@ -164,7 +170,7 @@ def run_configuration(
         executor.add_node(node)
         stop = threading.Event()
         spinner = spin_in_background(executor, stop)
-        peak = {name: 0.0 for name in NODES}
+        peak = {name: 0.0 for name in executables}
         sampling = threading.Event()
 
         def sample():
@@ -265,7 +271,7 @@ def run_configuration(
                 os.sched_setaffinity(0, set(range(os.cpu_count() or 1)))
     ate = _ate(bag, fused)
     nodes = {}
-    for name in NODES:
+    for name in executables:
         ms = 1000.0 * (end[name] - start[name]) / scans
         # As a user pays it, start-up included: the process's CPU before the idle window (start-up, discovery, the
         # settling seconds) and while playing; the idle window is this benchmark's own.
@@ -285,8 +291,17 @@ def run_configuration(
                 if seconds - start_threads[name].get(thread, 0.0) > 0
             },
         )
+    # Each node's own callbacks (its statistics, written at shutdown): in one process, each node's share.
+    callbacks = {}
+    for name in NODES:
+        try:
+            stats = json.loads((folder / 'stats' / f'{name}.json').read_text())
+            callbacks[name] = round(1000.0 * stats['callback_cpu_s'] / scans, 2)
+        except (OSError, KeyError, ValueError):
+            pass
     return dict(
         configuration=label,
+        callbacks_ms_per_scan=callbacks,
         rate=rate,
         pinned=pinned,
         scans=scans,
@@ -384,6 +399,10 @@ def median_row(runs: list[dict]) -> dict:
         values = [r[key] for r in runs if r[key] is not None]
         row[key] = round(float(np.median(values)), 3) if values else None
     row['fused'] = int(row['fused'])
+    row['callbacks_ms_per_scan'] = {
+        name: round(float(np.median([r['callbacks_ms_per_scan'].get(name, np.nan) for r in runs])), 2)
+        for name in runs[0]['callbacks_ms_per_scan']
+    }
     row['nodes'] = {}
     for name in runs[0]['nodes']:
         node = dict(runs[0]['nodes'][name])
@@ -436,12 +455,15 @@ def print_table(rows: list[dict]) -> None:
                 f'{fused if first else ""} | '
                 f'{(str(row["ate_rmse_m"]) + " m") if first else ""} |'
             )
-        cpp = sum(CPP_MS_PER_SCAN.values())
+        cpp = CPP_TOTAL_MS_PER_SCAN
         playing, with_startup = row['total_cpu_ms_per_scan'], row['total_cpu_ms_per_scan_with_startup']
         runs = startup_runs = ''
         if 'runs' in row:
             runs = f' (median of {row["runs"]} runs: {", ".join(str(t) for t in row["run_totals"])})'
             startup_runs = f' (runs: {", ".join(str(t) for t in row["run_totals_with_startup"])})'
+        if row.get('callbacks_ms_per_scan'):
+            shares = ', '.join(f'{name} {ms}' for name, ms in row['callbacks_ms_per_scan'].items())
+            print(f'| | in callbacks | {shares} | | | | | |')
         print(
             f"| | **total** | **{playing}** ({playing / cpp:.2f}x the C++'s {cpp:.1f}){runs} | "
             f'**{with_startup}**{startup_runs} | | | | |'
@@ -466,7 +488,7 @@ def print_floor(rows: list[dict]) -> None:
                 f'{1.5 * cpp - base:.1f} |'
             )
         real, base = row['total_cpu_ms_per_scan'], floor['total_cpu_ms_per_scan']
-        print(f'| | **total** | {real} | {base} | {real - base:.1f} | {sum(CPP_MS_PER_SCAN.values()):.1f} | |')
+        print(f'| | **total** | {real} | {base} | {real - base:.1f} | {CPP_TOTAL_MS_PER_SCAN:.1f} | |')
 
 
 def main(argv=None) -> int:
@@ -507,6 +529,12 @@ def main(argv=None) -> int:
         help='after each run, the same run with computation-free stand-ins of the nodes (benchmarks/floor_node.py) '
         'publishing what the nodes published: what rclpy alone costs for the same messages',
     )
+    parser.add_argument(
+        '--composed',
+        action='store_true',
+        help=f'also run every configuration with the four nodes in one process ({COMPOSED}, their messages to each '
+        'other in memory), after the four processes',
+    )
     args = parser.parse_args(argv)
     compile_bytecode(REPO)  # (and any checkout on PYTHONPATH, which the nodes then import: see its docstring)
     bag = Path(args.bag) if args.bag else default_bag(args.seconds)
@@ -539,6 +567,17 @@ def main(argv=None) -> int:
             rows.append(median_row(runs))
             if floors:
                 rows.append(median_row(floors))
+            if args.composed:
+                together = []
+                for run in range(args.repeat):
+                    number = run + 1 if args.repeat > 1 else 0
+                    together.append(
+                        run_configuration(
+                            bag, out, rate, pinned, args.idle, False, args.clock, number, overrides, composed=True
+                        )
+                    )
+                    print(json.dumps(together[-1]), flush=True)
+                rows.append(median_row(together))
     summary = dict(
         bag=str(bag),
         machine=f'{platform.processor() or platform.machine()}, {os.cpu_count()} cores',

@@ -11,6 +11,8 @@ Arguments (``name:=value``):
 * ``params_file``: ROS 2 parameter file for all four nodes;
 * ``use_sim_time`` (default true, as the original): follow /clock, e.g. from ``ros2 bag play --clock`` or
   ``lego_loam_py play``;
+* ``composed`` (default false): the four nodes in one process (``legoLoam``), their messages to each other in
+  memory: the same topics and results for less CPU;
 * ``rviz`` (default true): start rviz2 with ``rviz_config``;
 * ``bag`` (default empty): replay this bag (ROS 1 ``.bag`` or ROS 2) with ``lego_loam_py play`` at ``rate``
   once the nodes subscribed; when it ends and ``shutdown_after_bag`` is true, everything is shut down
@@ -21,7 +23,7 @@ Without ros2 launch (ROS 2 from PyPI wheels) the same is ``lego_loam_py launch``
 """
 
 from launch.actions import DeclareLaunchArgument, EmitEvent, GroupAction, LogInfo, RegisterEventHandler, TimerAction
-from launch.conditions import IfCondition
+from launch.conditions import IfCondition, UnlessCondition
 from launch.event_handlers import OnProcessExit
 from launch.events import Shutdown
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution, PythonExpression
@@ -34,6 +36,7 @@ from launch import LaunchDescription
 PACKAGE = 'lego_loam_py'
 # The four executables in pipeline order (the original spells the third one mapOptmization).
 NODES = ('imageProjection', 'featureAssociation', 'mapOptimization', 'transformFusion')
+COMPOSED = 'legoLoam'  # the four in one process
 
 
 def generate_launch_description() -> LaunchDescription:
@@ -54,6 +57,12 @@ def generate_launch_description() -> LaunchDescription:
             default_value='true',
             choices=['true', 'false'],
             description='follow /clock (bag replay) instead of the wall clock',
+        ),
+        DeclareLaunchArgument(
+            'composed',
+            default_value='false',
+            choices=['true', 'false'],
+            description='the four nodes in one process, their messages to each other in memory',
         ),
         DeclareLaunchArgument('rviz', default_value='true', choices=['true', 'false'], description='start rviz2'),
         DeclareLaunchArgument(
@@ -76,10 +85,28 @@ def generate_launch_description() -> LaunchDescription:
         ),
     ]
 
+    composed = LaunchConfiguration('composed')
     nodes = [
-        Node(package=PACKAGE, executable=name, name=name, output='screen', parameters=[params_file, sim_time])
+        Node(
+            package=PACKAGE,
+            executable=name,
+            name=name,
+            output='screen',
+            parameters=[params_file, sim_time],
+            condition=UnlessCondition(composed),
+        )
         for name in NODES
     ]
+    # (No name: it would rename each of the four nodes in the process.)
+    nodes.append(
+        Node(
+            package=PACKAGE,
+            executable=COMPOSED,
+            output='screen',
+            parameters=[params_file, sim_time],
+            condition=IfCondition(composed),
+        )
+    )
 
     rviz = Node(
         package='rviz2',

@@ -49,6 +49,8 @@ NODES = {
     'mapOptimization': 'lego_loam_py.ros.map_optimization_node',
     'transformFusion': 'lego_loam_py.ros.transform_fusion_node',
 }
+# The four nodes in one process (their messages to each other in memory: lego_loam_py.ros.composition).
+COMPOSED = ('legoLoam', 'lego_loam_py.ros.composed_node')
 # A topic each node publishes from start-up on: its publisher in the ROS graph means the node is up.
 READY_TOPICS = {
     'imageProjection': '/segmented_cloud_info',
@@ -69,6 +71,7 @@ class PipelineConfig:
     node; ``ros_args`` more ROS arguments for every node (remappings, …). Times are seconds."""
 
     nodes: Sequence[str] = tuple(NODES)
+    composed: bool = False  # the four nodes in one process (legoLoam) instead of four
     params_file: Path | None = None
     overrides: Sequence[str] = ()
     ros_args: Sequence[str] = ()
@@ -127,15 +130,12 @@ def _node_specs(config: PipelineConfig, use_sim_time: bool) -> list[ProcessSpec]
         ros_args += ['-p', 'use_sim_time:=true']
     ros_args += list(config.ros_args)
     env = {'LEGO_LOAM_PY_STATS_DIR': str(config.stats_dir)} if config.stats_dir is not None else {}
+    commands = {COMPOSED[0]: COMPOSED[1]} if config.composed else {name: NODES[name] for name in config.nodes}
     return [
         ProcessSpec(
-            name,
-            resolve_command(name, NODES[name]) + ros_args,
-            role='node',
-            env=dict(env),
-            stop_timeout=config.stop_timeout,
+            name, resolve_command(name, module) + ros_args, role='node', env=dict(env), stop_timeout=config.stop_timeout
         )
-        for name in config.nodes
+        for name, module in commands.items()
     ]
 
 
@@ -177,6 +177,10 @@ def run_pipeline(
     unknown = [n for n in config.nodes if n not in NODES]
     if unknown:
         raise UsageError(f'unknown node(s) {", ".join(unknown)} (choose from {", ".join(NODES)})')
+    if config.composed and list(config.nodes) != list(NODES):
+        raise UsageError(
+            f'the composed process runs all four nodes: {", ".join(config.nodes)} cannot be chosen with it'
+        )
     if config.rate <= 0:
         raise UsageError('the rate must be positive')
     if config.output == 'log' and config.log_dir is None:

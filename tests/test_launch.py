@@ -221,6 +221,36 @@ def test_ctrl_c_stops_every_node_cleanly(tmp_path, ros_domain, processes):
     assert 'Traceback' not in _logs(tmp_path)
 
 
+def test_composed_the_four_nodes_run_in_one_process_and_stop_cleanly(tmp_path, ros_domain, processes):
+    launcher = _start_launch(processes, tmp_path, '--composed')
+    head = read_until(launcher, 'ready after', timeout=90)
+    assert 'ready after' in head and 'imageProjection, featureAssociation, mapOptimization, transformFusion' in head
+    os.kill(launcher.pid, signal.SIGINT)
+    out, _ = launcher.communicate(timeout=60)
+    out = head + out
+    assert launcher.returncode == 0, out + _logs(tmp_path)
+    pids = started_pids(out)
+    assert set(pids) == {'legoLoam'}
+    assert f'legoLoam (pid {pids["legoLoam"]}): stopped, exit code 0' in out, out
+    for name in NODES:  # every node's shutdown hook ran, in the one process
+        assert (tmp_path / 'stats' / f'{name}.json').is_file(), name
+    assert 'handed over in memory: /aft_mapped_to_init, /laser_cloud_corner_last' in _logs(tmp_path)
+    assert not wait_gone(pids.values(), 2.0)
+    assert 'Traceback' not in _logs(tmp_path)
+
+
+def test_composed_runs_all_four_nodes_or_none(tmp_path):
+    result = subprocess.run(
+        [BIN / 'lego_loam_py', 'launch', '--composed', '--nodes', 'imageProjection'],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2
+    assert 'the composed process runs all four nodes' in result.stderr
+    assert 'started' not in result.stderr and 'Traceback' not in result.stderr
+
+
 def test_a_crashed_node_stops_the_run_with_a_failure(tmp_path, ros_domain, processes):
     launcher = _start_launch(processes, tmp_path, '--nodes', 'imageProjection', 'featureAssociation')
     head = read_until(launcher, 'ready after', timeout=90)
@@ -386,6 +416,13 @@ def test_launch_file_builds_the_four_nodes_rviz_and_the_player(stand_in_launch):
     for node in pipeline:
         assert node.kwargs['name'] == node.kwargs['executable']
         assert node.kwargs['parameters'] == [s['LaunchConfiguration']('params_file'), sim_time]
+        assert node.kwargs['condition'] == s['UnlessCondition'](s['LaunchConfiguration']('composed'))
+    # composed:=true: the four in one process instead, under their own names (a name would rename all four).
+    (composed,) = [n for n in nodes if n.kwargs['executable'] == 'legoLoam']
+    assert 'name' not in composed.kwargs
+    assert composed.kwargs['parameters'] == [s['LaunchConfiguration']('params_file'), sim_time]
+    assert composed.kwargs['condition'] == s['IfCondition'](s['LaunchConfiguration']('composed'))
+    assert arguments['composed']['default_value'] == 'false'
     (rviz,) = [n for n in nodes if n.kwargs['package'] == 'rviz2']
     assert rviz.kwargs['arguments'] == ['-d', s['LaunchConfiguration']('rviz_config')]
     assert rviz.kwargs['condition'] == s['IfCondition'](s['LaunchConfiguration']('rviz'))

@@ -22,6 +22,7 @@ from lego_loam_py.core.params import Params
 from lego_loam_py.core.pointcloud import CloudLayoutError
 from lego_loam_py.results import TimingStats
 from lego_loam_py.ros import qos
+from lego_loam_py.ros.composition import LocalLinks
 from lego_loam_py.ros.conversions import (
     cloud_from_serialized,
     imu_sample_from_serialized,
@@ -70,7 +71,9 @@ class LegoLoamNode(Node):
     # on ROS time needs every tick as it comes, and sets this False.
     POLL_CLOCK = True
 
-    def __init__(self, name: str, **kwargs):
+    def __init__(self, name: str, links: LocalLinks | None = None, **kwargs):
+        # The process's linked topics when it runs several nodes (ros.composition), else None.
+        self._links = links
         super().__init__(name, automatically_declare_parameters_from_overrides=True, **kwargs)
         self.params: Params = declare_params(self)
         self._warned: OrderedDict[str, tuple[float, int]] = OrderedDict()
@@ -79,6 +82,8 @@ class LegoLoamNode(Node):
         self.timings_ms: dict[str, deque] = {}
         self.measures: dict[str, deque] = {}
         self.counters: dict[str, int] = {}
+        # CPU time of this node's callbacks [s]: in a process of several nodes, each one's share.
+        self.callback_cpu_s = 0.0
         self._polled_node = None  # the companion node of create_polled_subscription
         self._release_pending = False  # a huge message was rejected: give its memory back
         self._last_problem = ''  # the latest warning or error: the watchdog's reason
@@ -180,9 +185,19 @@ class LegoLoamNode(Node):
             return callback(*args)
 
         counted.__signature__ = inspect.signature(callback)
-        return super().create_subscription(
-            msg_type, topic, self._guarded(counted, f'message on {topic}'), qos_profile, **kwargs
-        )
+        guarded = self._guarded(counted, f'message on {topic}')
+        subscription = super().create_subscription(msg_type, topic, guarded, qos_profile, **kwargs)
+        if self._links is not None:
+            self._links.add_subscription(self, subscription.topic_name, subscription, guarded, subscription.qos_profile)
+        return subscription
+
+    def create_publisher(self, msg_type, topic, qos_profile, **kwargs):
+        """rclpy's publisher; in a process of several nodes, one that hands its messages to the nodes here
+        (ros.composition)."""
+        publisher = super().create_publisher(msg_type, topic, qos_profile, **kwargs)
+        if self._links is None:
+            return publisher
+        return self._links.add_publisher(publisher.topic_name, publisher, publisher.qos_profile)
 
     def create_timer(self, timer_period_sec, callback, *args, **kwargs):
         return super().create_timer(timer_period_sec, self._guarded(callback, 'timer'), *args, **kwargs)
@@ -200,11 +215,16 @@ class LegoLoamNode(Node):
             if self._release_pending:  # (the message that asked for it is gone by now: the executor held it)
                 self._release_pending = False
                 release_memory()
+            started = time.thread_time()
             try:
                 return callback(*args)
             except Exception:
                 self.count('callback_errors')
                 self.error(f'callback:{what}', f'unexpected error while handling a {what}; it was skipped')
+            finally:
+                self.callback_cpu_s += time.thread_time() - started
+                if self._links is not None:  # what the callback published, for the nodes of this process
+                    self._links.deliver()
             return None
 
         try:
@@ -238,9 +258,12 @@ class LegoLoamNode(Node):
                 enable_rosout=False,
                 start_parameter_services=False,
             )
-        return self._polled_node.create_subscription(
+        subscription = self._polled_node.create_subscription(
             msg_type, self.resolve_topic_name(topic), lambda _: None, qos_profile, raw=raw
         )
+        if self._links is not None:
+            self._links.add_subscription(self, subscription.topic_name, subscription, None, subscription.qos_profile)
+        return subscription
 
     def destroy_node(self):
         if self._polled_node is not None:
@@ -287,13 +310,17 @@ class LegoLoamNode(Node):
         """
         if subscription is None:
             return 0
+        local = self._links.queues.get(id(subscription)) if self._links is not None else None
         taken = 0
         while taken < limit:
-            try:
-                with subscription.handle:
-                    message = subscription.handle.take_message(subscription.msg_type, subscription.raw)
-            except Exception:  # the subscription is being destroyed (shutdown)
-                break
+            if local is not None:
+                message = local.take()
+            else:
+                try:
+                    with subscription.handle:
+                        message = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+                except Exception:  # the subscription is being destroyed (shutdown)
+                    break
             if message is None:
                 break
             taken += 1
@@ -503,7 +530,13 @@ class LegoLoamNode(Node):
         """Counters and timing percentiles (ms) of this node, for tools and reports."""
         timings = {name: t.as_dict() for name, t in self.timing_stats().items()}
         measures = {name: TimingStats.of(values).as_dict() for name, values in self.measures.items() if values}
-        return dict(node=self.get_name(), counters=dict(self.counters), timings_ms=timings, measures=measures)
+        return dict(
+            node=self.get_name(),
+            counters=dict(self.counters),
+            timings_ms=timings,
+            measures=measures,
+            callback_cpu_s=round(self.callback_cpu_s, 4),
+        )
 
     def diagnostic_status(self) -> DiagnosticStatus:
         """This node's status for /diagnostics: level, a one-line message, counters and timings as key-values."""

@@ -22,7 +22,7 @@ from rclpy.signals import SignalHandlerOptions
 from lego_loam_py.allocator import keep_heap_pages
 from lego_loam_py.errors import LegoLoamError, UsageError
 
-__all__ = ['run_node', 'teardown_guard', 'finish_within', 'stuck_teardowns']
+__all__ = ['run_node', 'run_nodes', 'teardown_guard', 'finish_within', 'stuck_teardowns']
 
 TEARDOWN_TIMEOUT_S = 5.0
 
@@ -134,21 +134,40 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
 
     Returns the process exit code: 0 after a normal shutdown, 2 for invalid parameters.
     """
+    return run_nodes([factory], args, links=False)
+
+
+def run_nodes(factories: Sequence[Callable[..., Node]], args: Sequence[str] | None = None, links: bool = True) -> int:
+    """:func:`run_node` for several nodes in one process and one executor, created in the order given and shut down
+    in the reverse order. With ``links``, each factory is called with ``links=`` a
+    :class:`~lego_loam_py.ros.composition.LocalLinks`, and the topics from one of these nodes to another are
+    handed over in memory (see :mod:`lego_loam_py.ros.composition`)."""
     keep_heap_pages()  # freed scan-sized blocks stay in the heap instead of being faulted in again each scan
     rclpy.init(args=list(sys.argv if args is None else args), signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    node = None
+    nodes: list[Node] = []
     code = 0
     try:
         try:
             executor, spin_once = make_executor()
-            node = factory()
+            if links:
+                from lego_loam_py.ros.composition import LocalLinks
+
+                local = LocalLinks()
+                nodes.extend(factory(links=local) for factory in factories)
+                linked = local.link()
+                nodes[0].get_logger().info(
+                    f'{len(nodes)} nodes in this process; handed over in memory: {", ".join(linked) or "nothing"}'
+                )
+            else:
+                nodes.extend(factory() for factory in factories)
         except LegoLoamError as exc:  # an unknown LEGO_LOAM_PY_EXECUTOR, invalid parameters
             print(f'error: {exc}', file=sys.stderr)
             code = exc.exit_code
             return code
-        executor.add_node(node)
+        for node in nodes:
+            executor.add_node(node)
         try:
             while not stop.is_set() and rclpy.ok():
                 try:
@@ -158,7 +177,7 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
                 except Exception:
                     # Callbacks of LegoLoamNode are guarded; this is the last line of defence (an error in the
                     # executor or in taking a message): log it, keep serving, never spin hot on it.
-                    _log_executor_error(node)
+                    _log_executor_error(nodes[0])
                     time.sleep(0.01)
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
@@ -167,13 +186,19 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
         return code
     finally:
         try:
-            if node is not None:
+            for node in reversed(nodes):  # (each node saves what it has, whatever another one's hook did)
                 hook = getattr(node, 'on_shutdown', None)
-                if hook is not None:
-                    hook()
+                try:
+                    if hook is not None:
+                        hook()
+                except Exception:
+                    if len(nodes) == 1:
+                        raise
+                    traceback.print_exc()
         finally:
-            guard = teardown_guard(code, f'{node.get_name() if node is not None else "node"} shutdown')
-            if node is not None:
+            names = ', '.join(node.get_name() for node in nodes) or 'node'
+            guard = teardown_guard(code, f'{names} shutdown')
+            for node in reversed(nodes):
                 node.destroy_node()
             rclpy.try_shutdown()
             guard.cancel()
