@@ -3,7 +3,8 @@
     .venv/bin/python benchmarks/bench_startup.py [--runs 3] [--nodes imageProjection ...] [--floor] [--settle 2]
                                                  [--source DIR] [--profile] [--json FILE]
 
-Each node is started the way ``ros2 run lego_loam_py <node>`` starts it (its console script in the venv, a process
+Each node (or ``legoLoam``, the four in one process, ready when the last of them answers) is started the way
+``ros2 run lego_loam_py <node>`` starts it (its console script in the venv, a process
 of its own, on sim time as with a bag, ``ROS_DOMAIN_ID`` leased for this benchmark, discovery on loopback).
 **Ready** means the node answers: this process asks the node for a parameter (its ``get_parameters`` service) every
 50 ms from the moment it starts, and the node is ready when the first answer arrives. An answer needs everything a
@@ -56,6 +57,9 @@ from lego_loam_py.testing.domains import DomainLease  # noqa: E402
 
 BIN = Path(sys.executable).parent
 NODES = tuple(MODULES)  # the four executables, in pipeline order (MODULES: each one's module)
+# The four in one process (lego_loam_py.ros.composed_node): ready when the last one created answers.
+COMPOSED = 'legoLoam'
+ANSWERED_BY = {COMPOSED: NODES[-1]}
 # The floor: a bare rclpy node (rclpy and two message packages imported, one subscription, one publisher), spinning.
 FLOOR = 'bareRclpyNode'
 _FLOOR_SCRIPT = textwrap.dedent(
@@ -121,7 +125,7 @@ class Prober:
         """(monotonic time of the answer, the node's CPU then); raises if it never answers."""
         from rcl_interfaces.srv import GetParameters
 
-        client = self.node.create_client(GetParameters, f'/{name}/get_parameters')
+        client = self.node.create_client(GetParameters, f'/{ANSWERED_BY.get(name, name)}/get_parameters')
         answered = threading.Event()
         at: list[float] = []
 
@@ -312,7 +316,13 @@ def report(results: dict[str, list[dict]], settle: float, source: Path) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--runs', type=int, default=3)
-    parser.add_argument('--nodes', nargs='+', choices=NODES, default=list(NODES))
+    parser.add_argument(
+        '--nodes',
+        nargs='+',
+        choices=[*NODES, COMPOSED],
+        default=list(NODES),
+        help=f'the executables to start (default: the four nodes; {COMPOSED}: the four in one process)',
+    )
     parser.add_argument('--floor', action='store_true', help=f'also measure a bare rclpy node ({FLOOR})')
     parser.add_argument('--settle', type=float, default=2.0, help='seconds after ready for "CPU settled"')
     parser.add_argument('--source', type=Path, help='a checkout to import lego_loam_py from (PYTHONPATH)')
@@ -342,7 +352,8 @@ def main(argv: list[str] | None = None) -> int:
             print(report(results, args.settle, args.source or REPO))
         if args.profile:
             for name in args.nodes:
-                print(profile_node(name, env, params), flush=True)
+                if name in _CLASSES:  # (the composed process: its nodes' profiles are each node's)
+                    print(profile_node(name, env, params), flush=True)
     if args.json:
         args.json.write_text(json.dumps({'source': str(args.source or REPO), 'results': results}, indent=1))
     return 0
