@@ -48,6 +48,16 @@ def pipeline_links(clouds, features_in, mapped_in, integrated_in, composed: bool
     ]
 
 
+def xyzi_fields():
+    """x, y, z and intensity as float32, as a VLP-16 driver's first four fields."""
+    from sensor_msgs.msg import PointField
+
+    return [
+        PointField(name=name, offset=4 * k, datatype=PointField.FLOAT32, count=1)
+        for k, name in enumerate(('x', 'y', 'z', 'intensity'))
+    ]
+
+
 def odometry_rows(messages):
     return np.array(
         [
@@ -146,6 +156,15 @@ def test_mapping_and_fusion_over_dds_equal_the_original(shared_data, tmp_path, r
 
         # (Subscriptions made and taken out of DDS at start-up can linger a moment in this node's view of the graph.)
         assert spin_until(rclpy_context, node, lambda: subscribers() == expected, 10), subscribers()
+    # A broken cloud first (its data shorter than its layout says): dropped with a warning, and the scans after it
+    # go through as if it had never come, in one process as in four.
+    broken = PointCloud2()
+    broken.header.frame_id = 'velodyne'
+    broken.height, broken.width, broken.point_step, broken.row_step = 1, 1000, 16, 16000
+    broken.fields = xyzi_fields()
+    broken.data = bytes(64)
+    clouds.publish(broken)
+    assert spin_until(rclpy_context, node, lambda: diagnostics.counter('imageProjection', 'clouds_dropped') >= 1, 15)
     # One scan at a time, the next once the whole pipeline is done with the previous one: its fused pose is out
     # and, on the scans where the original ran a mapping step, that step's result too. Parity needs every scan
     # in the original's order of events; the depth-1 inputs ('latest wins') would let a loaded machine skip one.
