@@ -1,7 +1,7 @@
 """What the four nodes cost over DDS, as a user pays it: whole-process CPU per scan, idle CPU, memory, scans out.
 
     .venv/bin/python benchmarks/bench_dds.py [--rates 1 2] [--pinned 1 2] [--repeat 3] [--seconds 20] [--idle 10]
-                                             [--clock 40] [--profile] [--floor] [--out DIR]
+                                             [--clock 40] [--profile] [--floor] [--composed] [--out DIR]
 
 The recording is a simulated 20 s campus drive with IMU (VLP-16, 200 scans; ``--bag`` for another one, with ``-p
 key:=value`` for the nodes' parameters, e.g. a real HDL-64E drive: ``lego_loam_py convert`` a KITTI folder, then ``--bag
@@ -26,6 +26,9 @@ thread, Fast DDS's dds.* threads) and gives its system time; ``--profile`` sampl
 ``--floor`` follows each run with the same run of computation-free stand-ins of the four nodes
 (``benchmarks/floor_node.py``: the same subscriptions, executor and sim time, publishing the bytes the nodes published
 in a recorded run), so each node's figure sits beside what rclpy and DDS alone cost for its messages.
+``--composed`` follows each configuration's runs with the same runs of ``legoLoam``, the four nodes in one process
+(their messages to each other in memory). Each node's own callbacks (``callback_cpu_s`` of its statistics) are
+printed beside its process: in one process, each node's share.
 Results are printed as a table and written to ``DIR/bench_dds.json``.
 """
 

@@ -34,7 +34,7 @@ import numpy as np
 from lego_loam_py.core.guard import KEYFRAMES, MAPPING_STEPS, SCANS_DROPPED, SCANS_PROCESSED, SCANS_WITH_IMU
 from lego_loam_py.core.trajectory import Trajectory
 from lego_loam_py.errors import UsageError
-from lego_loam_py.orchestration import DEFAULT_RECORD_TOPICS, NODES, PipelineConfig, run_pipeline
+from lego_loam_py.orchestration import COMPOSED, DEFAULT_RECORD_TOPICS, NODES, PipelineConfig, run_pipeline
 from lego_loam_py.results import DemoSummary, LoopClosures, TimingStats
 from lego_loam_py.supervisor import Interrupts, package_file
 
@@ -197,6 +197,7 @@ def run_demo(
     ready_timeout: float = 60.0,
     viewer: bool = False,
     viewer_save: Path | None = None,
+    composed: bool = False,
 ) -> DemoResult:
     """Run the pipeline over DDS on ``bag`` and write the outputs into ``out_dir`` (see the module
     docstring). Raises ``BagError``, ``ParameterError`` or ``UsageError`` before starting anything when the
@@ -217,6 +218,7 @@ def run_demo(
     _clear_previous_outputs(out)
 
     config = PipelineConfig(
+        composed=composed,
         params_file=params_file,
         overrides=node_overrides,
         bag=Path(bag),
@@ -291,8 +293,10 @@ def format_demo_summary(summary: DemoSummary, out_dir: Path | None = None) -> st
     """The demo's report, as printed at the end of a run."""
     scans_in = summary.scans_in
     p = summary.processed
+    composed = any(process.name == COMPOSED[0] for process in summary.processes)
+    layout = 'the four nodes in one process' if composed else 'four nodes as separate processes'
     lines = [
-        f'LeGO-LOAM over DDS: {summary.bag} at {summary.rate:g}x, four nodes as separate processes'
+        f'LeGO-LOAM over DDS: {summary.bag} at {summary.rate:g}x, {layout}'
         + (' (INTERRUPTED)' if summary.interrupted else '')
     ]
     lines.append(
@@ -352,6 +356,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--no-progress', action='store_true', help='no progress bar while the bag plays')
     parser.add_argument('--viewer', action='store_true', help='show the run live in Rerun (lego_loam_py viewer)')
     parser.add_argument(
+        '--composed', action='store_true', help='the four nodes in one process (legoLoam) instead of four'
+    )
+    parser.add_argument(
         '--viewer-save',
         type=Path,
         default=None,
@@ -369,7 +376,7 @@ def main(args: argparse.Namespace) -> int:
     progress = not args.no_progress and sys.stderr.isatty()
     print(
         f'demo: {_display(bag)} at {args.rate:g}x through imageProjection, featureAssociation, mapOptimization and '
-        f'transformFusion (separate processes, DDS); logs in {out}/logs/',
+        f'transformFusion ({"one process" if args.composed else "separate processes, DDS"}); logs in {out}/logs/',
         file=sys.stderr,
         flush=True,
     )
@@ -385,6 +392,7 @@ def main(args: argparse.Namespace) -> int:
             hurry=interrupts.hurry,
             viewer=args.viewer,
             viewer_save=args.viewer_save,
+            composed=args.composed,
         )
     print(format_demo_summary(result.summary, result.out_dir))
     if result.summary.interrupted:

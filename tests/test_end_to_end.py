@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from lego_loam_py.ros.conversions import serialized_stamp_ns
 from lego_loam_py.testing.nodes import Diagnostics, links_matched, read_until, release
@@ -262,7 +263,8 @@ def _trim_bag(source: Path, target: Path, seconds: float) -> None:
     shutil.copy(source / 'scenario.yaml', target / 'scenario.yaml')
 
 
-def test_demo_writes_a_summary_trajectory_map_and_png(tmp_path, ros_domain):
+@pytest.mark.parametrize('composed', [False, True], ids=['four processes', 'one process'])
+def test_demo_writes_a_summary_trajectory_map_and_png(tmp_path, ros_domain, composed):
     from lego_loam_py.bag.io import BagReader
     from lego_loam_py.formats import read_pcd, read_tum
 
@@ -274,7 +276,7 @@ def test_demo_writes_a_summary_trajectory_map_and_png(tmp_path, ros_domain):
     out = tmp_path / 'demo'
     # (The timeout only guards against a hang: start-up and the map's evaluation take longer on a busy machine.)
     result = subprocess.run(
-        [BIN / 'lego_loam_py', 'demo', bag, '-o', out, '--rate', '0.5', '--no-progress'],
+        [BIN / 'lego_loam_py', 'demo', bag, '-o', out, '--rate', '0.5', '--no-progress', *(['--composed'] * composed)],
         capture_output=True,
         text=True,
         timeout=300,
@@ -284,6 +286,7 @@ def test_demo_writes_a_summary_trajectory_map_and_png(tmp_path, ros_domain):
     # The printed summary.
     text = result.stdout
     assert f'scans in {scans} (' in text
+    assert ('the four nodes in one process' if composed else 'four nodes as separate processes') in text
     assert re.search(r'processed: imageProjection \d+, featureAssociation \d+ .*transformFusion \d+', text), text
     assert re.search(r'/integrated_to_init for \d+ of \d+ scans', text) and 'dropped messages' in text
     for name in ('imageProjection', 'featureAssociation', 'mapOptimization', 'transformFusion'):
@@ -314,6 +317,8 @@ def test_demo_writes_a_summary_trajectory_map_and_png(tmp_path, ros_domain):
     assert png[:8] == b'\x89PNG\r\n\x1a\n' and len(png) > 20_000
     assert {p.stem for p in (out / 'stats').glob('*.json')} == set(NODES)
     assert (out / 'recording' / 'metadata.yaml').is_file()
+    processes = {p.stem for p in (out / 'logs').glob('*.log')} & {*NODES, 'legoLoam'}
+    assert processes == ({'legoLoam'} if composed else set(NODES))
 
 
 def test_demo_summary_accounts_for_every_scan():
