@@ -164,6 +164,18 @@ def test_a_node_serves_with_either_executor(rclpy_context, processes, executor):
     release(node)
 
 
+@pytest.mark.parametrize('executable', ['imageProjection', 'legoLoam'])
+def test_ros_arguments_rcl_cannot_parse_are_a_clear_error(executable):
+    result = subprocess.run(
+        [VENV_BIN / executable, '--ros-args', '-p', 'sensor.imu_topic:='], capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 2, result.stderr
+    assert "error: failed to initialize rcl: Couldn't parse parameter override rule: '-p sensor.imu_topic:='" in (
+        result.stderr
+    )
+    assert 'Traceback' not in result.stderr
+
+
 def test_an_unknown_executor_is_a_clear_error(processes):
     import os
 

@@ -143,7 +143,12 @@ def run_nodes(factories: Sequence[Callable[..., Node]], args: Sequence[str] | No
     :class:`~lego_loam_py.ros.composition.LocalLinks`, and the topics from one of these nodes to another are
     handed over in memory (see :mod:`lego_loam_py.ros.composition`)."""
     keep_heap_pages()  # freed scan-sized blocks stay in the heap instead of being faulted in again each scan
-    rclpy.init(args=list(sys.argv if args is None else args), signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        rclpy.init(args=list(sys.argv if args is None else args), signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as exc:  # rcl's RCLError: arguments it cannot parse (e.g. '-p name:=' without a value)
+        reason = str(exc).split(', at ')[0].replace('Error: error not set', '').strip().rstrip('.')
+        print(f'error: {reason} (an empty string is written name:="\'\'")', file=sys.stderr)
+        return UsageError.exit_code
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     nodes: list[Node] = []
