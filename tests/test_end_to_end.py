@@ -316,6 +316,8 @@ def test_demo_writes_a_summary_trajectory_map_and_png(tmp_path, ros_domain, comp
     png = (out / 'trajectory.png').read_bytes()
     assert png[:8] == b'\x89PNG\r\n\x1a\n' and len(png) > 20_000
     assert {p.stem for p in (out / 'stats').glob('*.json')} == set(NODES)
+    for path in (out / 'stats').glob('*.json'):  # no callback of any node failed
+        assert json.loads(path.read_text())['counters'].get('callback_errors', 0) == 0, path.stem
     assert (out / 'recording' / 'metadata.yaml').is_file()
     processes = {p.stem for p in (out / 'logs').glob('*.log')} & {*NODES, 'legoLoam'}
     assert processes == ({'legoLoam'} if composed else set(NODES))

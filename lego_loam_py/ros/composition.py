@@ -29,7 +29,8 @@ __all__ = ['LocalLinks', 'LinkedPublisher', 'LocalQueue']
 class LocalQueue:
     """The queue of a polled subscription of a linked topic: its QoS depth, the newest kept."""
 
-    def __init__(self, depth: int, sender: bytes):
+    def __init__(self, topic: str, depth: int, sender: bytes):
+        self.topic = topic  # (the subscription it stands for is destroyed: its name is kept here)
         self.messages: deque = deque(maxlen=max(1, depth))
         self.sender = sender
 
@@ -126,7 +127,7 @@ class LocalLinks:
             for sub in entry.subscriptions:
                 owner = sub.subscription  # taken out of DDS: its messages come from here now
                 if sub.callback is None:
-                    sub.queue = LocalQueue(sub.depth, entry.publishers[0].sender)
+                    sub.queue = LocalQueue(name, sub.depth, entry.publishers[0].sender)
                     self.queues[id(owner)] = sub.queue
                     sub.node._polled_node.destroy_subscription(owner)
                 else:

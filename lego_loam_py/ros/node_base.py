@@ -325,7 +325,7 @@ class LegoLoamNode(Node):
                 break
             taken += 1
             if count:
-                self.count(f'received {subscription.topic_name}')
+                self.count(f'received {subscription.topic_name if local is None else local.topic}')
             try:
                 callback(*(message if with_info else message[:1]))
             except Exception:
