@@ -54,6 +54,7 @@ sys.path.insert(0, str(REPO))
 from benchmarks.common import compile_bytecode  # noqa: E402
 from benchmarks.floor_node import CAPTURE_TOPICS  # noqa: E402
 from lego_loam_py.core.params import parse_overrides, write_params_file  # noqa: E402
+from lego_loam_py.orchestration import COMPOSED as COMPOSED_COMMAND  # noqa: E402
 from lego_loam_py.orchestration import NODES as PIPELINE_NODES  # noqa: E402
 from lego_loam_py.testing.domains import DomainLease  # noqa: E402
 from lego_loam_py.testing.measure import rss_mb  # noqa: E402
@@ -65,7 +66,7 @@ NODES = tuple(PIPELINE_NODES)  # the four executables, in pipeline order
 # The C++ original on the same kind of recording (the measurement: 200-scan VLP-16 + IMU campus, 1x).
 CPP_MS_PER_SCAN = {'imageProjection': 4.3, 'featureAssociation': 7.5, 'mapOptimization': 16.2, 'transformFusion': 1.2}
 CPP_TOTAL_MS_PER_SCAN = sum(CPP_MS_PER_SCAN.values())
-COMPOSED = 'legoLoam'  # the four nodes in one process (lego_loam_py.ros.composed_node)
+COMPOSED = COMPOSED_COMMAND[0]  # the four nodes in one process (lego_loam_py.ros.composed_node)
 CPP_MS_PER_SCAN[COMPOSED] = CPP_TOTAL_MS_PER_SCAN
 
 

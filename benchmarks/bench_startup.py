@@ -52,13 +52,14 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from benchmarks.common import compile_bytecode  # noqa: E402
+from lego_loam_py.orchestration import COMPOSED as COMPOSED_COMMAND  # noqa: E402
 from lego_loam_py.orchestration import NODES as MODULES  # noqa: E402
 from lego_loam_py.testing.domains import DomainLease  # noqa: E402
 
 BIN = Path(sys.executable).parent
 NODES = tuple(MODULES)  # the four executables, in pipeline order (MODULES: each one's module)
 # The four in one process (lego_loam_py.ros.composed_node): ready when the last one created answers.
-COMPOSED = 'legoLoam'
+COMPOSED = COMPOSED_COMMAND[0]
 ANSWERED_BY = {COMPOSED: NODES[-1]}
 # The floor: a bare rclpy node (rclpy and two message packages imported, one subscription, one publisher), spinning.
 FLOOR = 'bareRclpyNode'
