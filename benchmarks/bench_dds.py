@@ -1,7 +1,8 @@
 """What the four nodes cost over DDS, as a user pays it: whole-process CPU per scan, idle CPU, memory, scans out.
 
     .venv/bin/python benchmarks/bench_dds.py [--rates 1 2] [--pinned 1 2] [--repeat 3] [--seconds 20] [--idle 10]
-                                             [--clock 40] [--profile] [--floor] [--composed] [--out DIR]
+                                             [--clock 40] [--profile] [--floor] [--composed] [--as-original]
+                                             [--out DIR]
 
 The recording is a simulated 20 s campus drive with IMU (VLP-16, 200 scans; ``--bag`` for another one, with ``-p
 key:=value`` for the nodes' parameters, e.g. a real HDL-64E drive: ``lego_loam_py convert`` a KITTI folder, then ``--bag
@@ -29,6 +30,9 @@ in a recorded run), so each node's figure sits beside what rclpy and DDS alone c
 ``--composed`` follows each configuration's runs with the same runs of ``legoLoam``, the four nodes in one process
 (their messages to each other in memory). Each node's own callbacks (``callback_cpu_s`` of its statistics) are
 printed beside its process: in one process, each node's share.
+``--as-original`` runs the nodes with the C++ original's feature set, so that its figures compare work for work:
+loop closure off (the original's default) and no occupancy grid (the original has none). Without it the nodes run
+with this package's defaults, which do both.
 Results are printed as a table and written to ``DIR/bench_dds.json``.
 """
 
@@ -68,6 +72,9 @@ CPP_MS_PER_SCAN = {'imageProjection': 4.3, 'featureAssociation': 7.5, 'mapOptimi
 CPP_TOTAL_MS_PER_SCAN = sum(CPP_MS_PER_SCAN.values())
 COMPOSED = COMPOSED_COMMAND[0]  # the four nodes in one process (lego_loam_py.ros.composed_node)
 CPP_MS_PER_SCAN[COMPOSED] = CPP_TOTAL_MS_PER_SCAN
+# The work the original does by default, and no more (--as-original): loop closure off (its loopClosureEnableFlag),
+# no occupancy grid (it has none).
+AS_ORIGINAL = ('loop_closure.loop_closure_enable_flag:=false', 'occupancy_grid.enabled:=false')
 
 
 def cpu_seconds(pid: int, system_only: bool = False) -> float:
@@ -539,13 +546,19 @@ def main(argv=None) -> int:
         help=f'also run every configuration with the four nodes in one process ({COMPOSED}, their messages to each '
         'other in memory), after the four processes',
     )
+    parser.add_argument(
+        '--as-original',
+        action='store_true',
+        help="the C++ original's feature set, to compare work for work: " + ', '.join(AS_ORIGINAL),
+    )
     args = parser.parse_args(argv)
     compile_bytecode(REPO)  # (and any checkout on PYTHONPATH, which the nodes then import: see its docstring)
     bag = Path(args.bag) if args.bag else default_bag(args.seconds)
     out = Path(args.out)
     rows = []
     load = os.getloadavg()
-    overrides = parse_overrides(args.param)
+    parameters = [*AS_ORIGINAL, *args.param] if args.as_original else list(args.param)
+    overrides = parse_overrides(parameters)
     capture = None
     if args.floor:  # one run of the real nodes, recorded, for the stand-ins to publish
         capture = out / 'capture'
@@ -586,10 +599,13 @@ def main(argv=None) -> int:
         bag=str(bag),
         machine=f'{platform.processor() or platform.machine()}, {os.cpu_count()} cores',
         load_average_at_start=[round(x, 2) for x in load],
+        parameters=parameters,
         rows=rows,
     )
     out.mkdir(parents=True, exist_ok=True)
     (out / 'bench_dds.json').write_text(json.dumps(summary, indent=2))
+    if parameters:
+        print(f'\nparameters: {" ".join(parameters)}')
     print_table(rows)
     if args.floor:
         print_floor(rows)
