@@ -178,7 +178,8 @@ def test_the_kernel_equals_numpy_on_rings_that_pass_a_voxel_twice(seed, leaf, ri
         steps = rng.normal(scale=leaf / 4, size=(int(rng.integers(1, 300)), 3))
         path = np.cumsum(steps, axis=0)
         back = path[:: -int(rng.integers(1, 4))] + rng.normal(scale=leaf / 20, size=(1, 3))  # the way back
-        xyz = np.concatenate((path, back))
+        # ... ending where the path began, so that a voxel is shared however short the path came out.
+        xyz = np.concatenate((path, back, path[:1]))
         part = np.empty((len(xyz), 4), np.float32)
         part[:, :3] = xyz
         part[:, 3] = ring + rng.random(len(xyz))
