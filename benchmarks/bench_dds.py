@@ -31,8 +31,9 @@ in a recorded run), so each node's figure sits beside what rclpy and DDS alone c
 (their messages to each other in memory). Each node's own callbacks (``callback_cpu_s`` of its statistics) are
 printed beside its process: in one process, each node's share.
 ``--as-original`` runs the nodes with the C++ original's feature set, so that its figures compare work for work:
-loop closure off (the original's default) and no occupancy grid (the original has none). Without it the nodes run
-with this package's defaults, which do both.
+loop closure off (the original's default) and no occupancy grid (the original has none), this package's algorithms
+otherwise. Without it the nodes run with this package's defaults, which do both. (``config/original.yaml`` is
+another thing: it swaps in the original's algorithms too, for the parity tests.)
 Results are printed as a table and written to ``DIR/bench_dds.json``.
 """
 
@@ -549,7 +550,8 @@ def main(argv=None) -> int:
     parser.add_argument(
         '--as-original',
         action='store_true',
-        help="the C++ original's feature set, to compare work for work: " + ', '.join(AS_ORIGINAL),
+        help="the C++ original's feature set with this package's algorithms, to compare work for work: "
+        + ', '.join(AS_ORIGINAL),
     )
     args = parser.parse_args(argv)
     compile_bytecode(REPO)  # (and any checkout on PYTHONPATH, which the nodes then import: see its docstring)
