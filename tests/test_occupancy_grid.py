@@ -441,6 +441,8 @@ def test_the_grid_drawn_with_c_is_numpys_bit_for_bit(kernel_calls):
     assert (lo == np.float32(3.5)).any() and (lo == np.float32(-2.0)).any(), 'cells at both clamp bounds'
     assert a.counts()['occupied'] > 500 and a.counts()['free'] > 10 * a.counts()['occupied']
     assert kernel_calls['update_disk'] == kernel_calls['coarse_cone'] == len(keyframes)
+    assert kernel_calls['pair_offsets'] == kernel_calls['pairs_count'] == len(keyframes)
+    assert kernel_calls['pairs_min'] == 2 * len(keyframes)  # (the slope cone and the ground under each point)
 
 
 @needs_kernel
@@ -603,12 +605,17 @@ def test_the_run_saves_the_grid_beside_the_map_and_it_loads_back(campus_map):
     assert grid.counts()['occupied'] > 100
 
 
-def test_the_slope_cone_and_the_ground_carried_over_between_neighbouring_columns_by_hand():
+@pytest.mark.parametrize('native', [True, False])
+def test_the_slope_cone_and_the_ground_carried_over_between_neighbouring_columns_by_hand(native):
     """Three columns, (0, 0) and (3, 4) 5 m apart and (10, 0) alone within 6 m: the cone rises 0.5 m a metre from
     each neighbour, the ground is carried along the gradient (0.1, 0.2) each way (+1.1 m from the first to the
-    second, -1.1 m back), a column outside the base lends nothing, and the count is of neighbours in the mask."""
+    second, -1.1 m back), a column outside the base lends nothing, and the count is of neighbours in the mask. With
+    the C passes over the pairs and with NumPy's."""
+    if native and grid_module._occupancy_kernels is None:
+        pytest.skip('the C extension is not built here')
     xy = np.array([[0.0, 0.0], [3.0, 4.0], [10.0, 0.0]])
-    neighbours = occupancy_ground._Neighbours(xy, 6.0)
+    neighbours = occupancy_ground._Neighbours(xy, 6.0, native)
+    assert neighbours.native == native
     z = np.array([5.0, 1.0, 0.0])
     assert neighbours.cone(z, 0.5).tolist() == [3.5, 1.0, 0.0]
     assert neighbours.cone(z, 0.5, base=np.array([False, True, True])).tolist() == [3.5, 1.0, 0.0]
@@ -620,3 +627,42 @@ def test_the_slope_cone_and_the_ground_carried_over_between_neighbouring_columns
     assert ground[0] == 5.0 and ground[1] == pytest.approx(6.1, abs=1e-12) and ground[2] == math.inf
     assert neighbours.count(np.array([True, True, True])).tolist() == [1, 1, 0]
     assert neighbours.count(np.array([True, False, True])).tolist() == [0, 0, 0]
+
+
+@needs_kernel
+@pytest.mark.parametrize('seed', range(4))
+def test_the_passes_over_neighbouring_columns_in_c_are_numpys_bit_for_bit(seed, kernel_calls):
+    """_Neighbours over random columns (clustered, so that many pairs share points, duplicates among them): the
+    pairs' offsets and distances, the slope cone with and without a base, the ground carried along a gradient and
+    the counts in a mask, in C and in NumPy: the same bits. Heights with inf among them, as the cone's base gives."""
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(-30.0, 30.0, (int(rng.integers(3, 12)), 2))
+    xy = (centres[rng.integers(0, len(centres), 2000)] + rng.normal(0.0, 1.5, (2000, 2))).round(1)
+    z = rng.normal(0.0, 2.0, len(xy))
+    z[rng.random(len(z)) < 0.05] = np.inf
+    base = rng.random(len(xy)) < 0.6
+    gradient = rng.normal(0.0, 0.3, 2)
+    c, n = (occupancy_ground._Neighbours(xy, 1.2, native) for native in (True, False))
+    assert c.native and not n.native and len(c.first) > 10 * len(xy)
+    assert same_bits(c.offset, n.offset) and same_bits(c.distance, n.distance)
+    for slope in (0.0, 0.4, 1.7):
+        assert same_bits(c.cone(z, slope), n.cone(z, slope))
+        assert same_bits(c.cone(z, slope, base), n.cone(z, slope, base))
+    assert same_bits(c.ground_under(z, base, gradient), n.ground_under(z, base, gradient))
+    assert np.array_equal(c.count(base), n.count(base))
+    assert kernel_calls['pairs_min'] == 7 and kernel_calls['pairs_count'] == 1
+
+
+@needs_kernel
+def test_the_passes_over_pairs_refuse_a_pair_outside_the_points():
+    """A pair naming a point past the arrays (or before them) is an IndexError, not a read beyond them."""
+    kernels = occupancy_ground._occupancy_kernels
+    x, z = np.zeros(3), np.zeros(3)
+    for first, second in (([0, 3], [1, 2]), ([0, 1], [-1, 2])):
+        first, second = np.array(first, np.int64), np.array(second, np.int64)
+        with pytest.raises(IndexError, match='outside the points'):
+            kernels.pair_offsets(x, x, first, second, np.empty((2, 2)), np.empty(2))
+        with pytest.raises(IndexError, match='outside the points'):
+            kernels.pairs_min(np.zeros(3), first, second, z, np.zeros(2), -1.0, b'')
+        with pytest.raises(IndexError, match='outside the points'):
+            kernels.pairs_count(first, second, np.ones(3, bool), np.empty(3, np.int64))

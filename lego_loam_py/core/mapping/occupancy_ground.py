@@ -89,47 +89,64 @@ def _cells(xy: np.ndarray, z: np.ndarray, size: float) -> tuple[np.ndarray, np.n
 
 
 class _Neighbours:
-    """The pairs of points within a horizontal radius of each other, once: slope cones and counts over them."""
+    """The pairs of points within a horizontal radius of each other, once: slope cones and counts over them. The
+    passes over the pairs in C when the extension is built (``native``), the same values bit for bit."""
 
-    def __init__(self, xy: np.ndarray, radius: float):
+    def __init__(self, xy: np.ndarray, radius: float, native: bool = True):
         self.xy = xy
         self.first, self.second = pairs_within(xy, radius)
-        # xy[first] - xy[second], a coordinate at a time (m,) each: gathers and element-wise passes over (m, 2) rows
-        # cost several times more on the hundred thousand pairs of a 64-beam keyframe.
+        # xy[first] - xy[second] as (m, 2) rows (for the products with a gradient), and their lengths.
         x, y = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
-        self.dx = np.subtract(x[self.first], x[self.second])
-        self.dy = np.subtract(y[self.first], y[self.second])
-        self.distance = np.hypot(self.dx, self.dy)
+        self.native = native and _occupancy_kernels is not None and hasattr(_occupancy_kernels, 'pairs_min')
+        self.offset = np.empty((len(self.first), 2))
+        if self.native:
+            self.distance = np.empty(len(self.first))
+            _occupancy_kernels.pair_offsets(x, y, self.first, self.second, self.offset, self.distance)
+        else:
+            # a coordinate at a time: gathers and element-wise passes over (m, 2) rows cost several times more on
+            # the hundred thousand pairs of a 64-beam keyframe
+            self.offset[:, 0] = np.subtract(x[self.first], x[self.second])
+            self.offset[:, 1] = np.subtract(y[self.first], y[self.second])
+            self.distance = np.hypot(self.offset[:, 0], self.offset[:, 1])
+
+    def _minimum(self, bound: np.ndarray, z: np.ndarray, add: np.ndarray, backward_sign: float, base) -> None:
+        """In place: bound[first] = min(bound[first], z[second] + add) over the pairs whose second point is in
+        ``base`` (all without it), then bound[second] = min(bound[second], z[first] + backward_sign * add) over
+        those whose first point is."""
+        if self.native:
+            mask = b'' if base is None else np.ascontiguousarray(base, dtype=np.bool_)
+            _occupancy_kernels.pairs_min(
+                bound, self.first, self.second, np.ascontiguousarray(z), add, backward_sign, mask
+            )
+            return
+        for to, source, sign in ((self.first, self.second, 1.0), (self.second, self.first, backward_sign)):
+            take = slice(None) if base is None else np.flatnonzero(base[source])
+            np.minimum.at(bound, to[take], z[source[take]] + sign * add[take])
 
     def cone(self, z: np.ndarray, slope: float, base: np.ndarray | None = None) -> np.ndarray:
         """Per point: min over the base points among its neighbours and itself (all without ``base``, a mask) of
         ``z + slope x horizontal distance``; inf where none."""
         bound = z.copy() if base is None else np.where(base, z, np.inf)
-        rise = slope * self.distance
-        for to, source in ((self.first, self.second), (self.second, self.first)):
-            take = slice(None) if base is None else base[source]
-            np.minimum.at(bound, to[take], z[source[take]] + rise[take])
+        self._minimum(bound, z, slope * self.distance, 1.0, base)
         return bound
 
     def ground_under(self, z: np.ndarray, base: np.ndarray, gradient: np.ndarray) -> np.ndarray:
         """Per point: the ground under it from the base points among its neighbours and itself, each carried over
         along the ground plane's ``gradient`` (dz/dx, dz/dy), the lowest of them; inf where none."""
         bound = np.where(base, z, np.inf)
-        for to, source, away in ((self.first, self.second, False), (self.second, self.first, True)):
-            take = np.flatnonzero(base[source])
-            to, source = to.take(take), source.take(take)
-            # xy[to] - xy[source]: the pair's offset (negated, exactly, from the second), as (k, 2) rows for the product
-            offset = np.empty((len(take), 2))
-            offset[:, 0], offset[:, 1] = self.dx.take(take), self.dy.take(take)
-            if away:
-                np.negative(offset, out=offset)
-            np.minimum.at(bound, to, z.take(source) + offset @ gradient)
+        # The rise from the second point to the first; the other way round its negation (exactly: a product's
+        # rounding is symmetric), so one product (NumPy's, as BLAS makes it) serves both directions.
+        self._minimum(bound, z, self.offset @ gradient, -1.0, base)
         return bound
 
     def count(self, mask: np.ndarray) -> np.ndarray:
         """Per point: how many of its neighbours (itself not) are in ``mask``."""
-        both = mask[self.first] & mask[self.second]
         n = len(mask)
+        if self.native:
+            out = np.empty(n, np.int64)
+            _occupancy_kernels.pairs_count(self.first, self.second, np.ascontiguousarray(mask, dtype=np.bool_), out)
+            return out
+        both = mask[self.first] & mask[self.second]
         return np.bincount(self.first[both], minlength=n) + np.bincount(self.second[both], minlength=n)
 
 
@@ -237,7 +254,7 @@ def classify_keyframe(points: np.ndarray, up: np.ndarray, params, native: bool =
     # The slope cones between columns of points (the lowest point of each 0.2 m column stands for it): a wall's
     # points stack in a few columns, so this is several times fewer pairs than between the points.
     _, column_of, column_lowest, column_point = _cells(xy, z, COLUMN)
-    neighbours = _Neighbours(xy[column_point], p.ground_search_radius)
+    neighbours = _Neighbours(xy[column_point], p.ground_search_radius, native)
     lower_bound = np.minimum(
         neighbours.cone(column_lowest, p.ground_max_slope)[column_of],
         _coarse_cone(cells, cell_lowest, p.ground_cell, p.ground_max_slope, p.ground_far_radius, native)[cell_of],

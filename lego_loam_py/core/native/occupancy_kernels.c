@@ -21,6 +21,21 @@
  *   order from +inf, of grid[a - di, b - dj] + terms over the offsets whose cell lies in the grid, as a sequence of
  *   np.minimum (NaN propagates, the first one met kept; on equal values the earlier one kept), into out (k,)
  *   float64. Returns None; an IndexError for a cell outside the grid (nothing usable written). Runs without the GIL.
+ *
+ * pair_offsets(x, y, first, second, offsets, distance)
+ *   For the pairs (first[p], second[p]) (m,) int64 of points with coordinates x, y (n,) float64: offsets (m, 2)
+ *   float64 the differences (x[first] - x[second], y[first] - y[second]) and distance (m,) float64 their hypot (the
+ *   C library's, as np.hypot's float64 loop). Returns None; an IndexError for a pair outside the points (nothing
+ *   usable written). Runs without the GIL.
+ * pairs_min(bound, first, second, z, add, backward_sign, base)
+ *   The two np.minimum.at passes of a slope bound over the pairs, in place on bound (n,) float64: first, for each
+ *   pair in order whose second point is in base (n,) bool (every pair when base is empty), bound[first] =
+ *   minimum(bound[first], z[second] + add[p]); then, for each pair whose first point is in base, bound[second] =
+ *   minimum(bound[second], z[first] + backward_sign * add[p]), as np.minimum (NaN propagates, the earlier value on
+ *   a tie). Returns None; an IndexError for a pair outside the points (bound then partly updated). No GIL.
+ * pairs_count(first, second, mask, out)
+ *   out (n,) int64: how many pairs with both points in mask (n,) bool each point is in. Returns None; an
+ *   IndexError for a pair outside the points. Runs without the GIL.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -181,9 +196,155 @@ done:
     return result;
 }
 
+/* ---- the pairs of points within a radius (occupancy_ground._Neighbours) ---- */
+
+static int pairs_inside(const int64_t *first, const int64_t *second, Py_ssize_t m, Py_ssize_t n) {
+    for (Py_ssize_t p = 0; p < m; ++p) {
+        if (first[p] < 0 || first[p] >= n || second[p] < 0 || second[p] >= n) return 0;
+    }
+    return 1;
+}
+
+static PyObject *py_pair_offsets(PyObject *self, PyObject *args) {
+    Py_buffer x, y, first, second, offsets, distance;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*w*w*", &x, &y, &first, &second, &offsets, &distance)) return NULL;
+    PyObject *result = NULL;
+    const Py_ssize_t n = x.len / (Py_ssize_t)sizeof(double), m = first.len / (Py_ssize_t)sizeof(int64_t);
+    if (x.len != n * (Py_ssize_t)sizeof(double) || y.len != x.len || first.len != m * (Py_ssize_t)sizeof(int64_t) ||
+        second.len != first.len || offsets.len != 2 * m * (Py_ssize_t)sizeof(double) ||
+        distance.len != m * (Py_ssize_t)sizeof(double)) {
+        PyErr_SetString(PyExc_ValueError, "pair_offsets: inconsistent buffer sizes");
+        goto done;
+    }
+    const double *px = x.buf, *py = y.buf;
+    const int64_t *f = first.buf, *s = second.buf;
+    double *o = offsets.buf, *d = distance.buf;
+    int inside;
+    Py_BEGIN_ALLOW_THREADS
+    inside = pairs_inside(f, s, m, n);
+    if (inside) {
+        for (Py_ssize_t p = 0; p < m; ++p) {
+            const double dx = px[f[p]] - px[s[p]], dy = py[f[p]] - py[s[p]];
+            o[2 * p] = dx;
+            o[2 * p + 1] = dy;
+            d[p] = hypot(dx, dy);
+        }
+    }
+    Py_END_ALLOW_THREADS
+    if (!inside) {
+        PyErr_SetString(PyExc_IndexError, "pair_offsets: a pair is outside the points");
+        goto done;
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&x);
+    PyBuffer_Release(&y);
+    PyBuffer_Release(&first);
+    PyBuffer_Release(&second);
+    PyBuffer_Release(&offsets);
+    PyBuffer_Release(&distance);
+    return result;
+}
+
+/* np.minimum(bound, v): NaN propagates (the first met stays), the earlier value on a tie */
+static inline double minimum(double bound, double v) { return (isnan(bound) | (bound <= v)) ? bound : v; }
+
+static PyObject *py_pairs_min(PyObject *self, PyObject *args) {
+    Py_buffer bound, first, second, z, add, base;
+    double backward_sign;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "w*y*y*y*y*dy*", &bound, &first, &second, &z, &add, &backward_sign, &base)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    const Py_ssize_t n = bound.len / (Py_ssize_t)sizeof(double), m = first.len / (Py_ssize_t)sizeof(int64_t);
+    if (bound.len != n * (Py_ssize_t)sizeof(double) || z.len != bound.len ||
+        first.len != m * (Py_ssize_t)sizeof(int64_t) || second.len != first.len ||
+        add.len != m * (Py_ssize_t)sizeof(double) || (base.len != 0 && base.len != n)) {
+        PyErr_SetString(PyExc_ValueError, "pairs_min: inconsistent buffer sizes");
+        goto done;
+    }
+    double *b = bound.buf;
+    const double *zz = z.buf, *a = add.buf;
+    const int64_t *f = first.buf, *s = second.buf;
+    const uint8_t *in = base.len ? (const uint8_t *)base.buf : NULL;
+    int inside;
+    Py_BEGIN_ALLOW_THREADS
+    inside = pairs_inside(f, s, m, n);
+    if (inside) {
+        for (Py_ssize_t p = 0; p < m; ++p) {
+            if (in == NULL || in[s[p]]) b[f[p]] = minimum(b[f[p]], zz[s[p]] + a[p]);
+        }
+        for (Py_ssize_t p = 0; p < m; ++p) {
+            if (in == NULL || in[f[p]]) b[s[p]] = minimum(b[s[p]], zz[f[p]] + backward_sign * a[p]);
+        }
+    }
+    Py_END_ALLOW_THREADS
+    if (!inside) {
+        PyErr_SetString(PyExc_IndexError, "pairs_min: a pair is outside the points");
+        goto done;
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&bound);
+    PyBuffer_Release(&first);
+    PyBuffer_Release(&second);
+    PyBuffer_Release(&z);
+    PyBuffer_Release(&add);
+    PyBuffer_Release(&base);
+    return result;
+}
+
+static PyObject *py_pairs_count(PyObject *self, PyObject *args) {
+    Py_buffer first, second, mask, out;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*y*w*", &first, &second, &mask, &out)) return NULL;
+    PyObject *result = NULL;
+    const Py_ssize_t n = mask.len, m = first.len / (Py_ssize_t)sizeof(int64_t);
+    if (first.len != m * (Py_ssize_t)sizeof(int64_t) || second.len != first.len ||
+        out.len != n * (Py_ssize_t)sizeof(int64_t)) {
+        PyErr_SetString(PyExc_ValueError, "pairs_count: inconsistent buffer sizes");
+        goto done;
+    }
+    const int64_t *f = first.buf, *s = second.buf;
+    const uint8_t *in = mask.buf;
+    int64_t *count = out.buf;
+    int inside;
+    Py_BEGIN_ALLOW_THREADS
+    inside = pairs_inside(f, s, m, n);
+    if (inside) {
+        for (Py_ssize_t i = 0; i < n; ++i) count[i] = 0;
+        for (Py_ssize_t p = 0; p < m; ++p) {
+            if (in[f[p]] && in[s[p]]) {
+                count[f[p]] += 1;
+                count[s[p]] += 1;
+            }
+        }
+    }
+    Py_END_ALLOW_THREADS
+    if (!inside) {
+        PyErr_SetString(PyExc_IndexError, "pairs_count: a pair is outside the points");
+        goto done;
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&first);
+    PyBuffer_Release(&second);
+    PyBuffer_Release(&mask);
+    PyBuffer_Release(&out);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"update_disk", py_update_disk, METH_VARARGS, "One keyframe's hits and misses into the grid (see the file)."},
     {"coarse_cone", py_coarse_cone, METH_VARARGS, "The slope cone's bound over a grid of cells (see the file)."},
+    {"pair_offsets", py_pair_offsets, METH_VARARGS, "Offsets and distances of pairs of points (see the file)."},
+    {"pairs_min", py_pairs_min, METH_VARARGS, "A slope bound's minima over pairs of points (see the file)."},
+    {"pairs_count", py_pairs_count, METH_VARARGS, "Pairs within a mask, per point (see the file)."},
     {NULL, NULL, 0, NULL},
 };
 
