@@ -443,6 +443,7 @@ def test_the_grid_drawn_with_c_is_numpys_bit_for_bit(kernel_calls):
     assert kernel_calls['update_disk'] == kernel_calls['coarse_cone'] == len(keyframes)
     assert kernel_calls['pair_offsets'] == kernel_calls['pairs_count'] == len(keyframes)
     assert kernel_calls['pairs_min'] == 2 * len(keyframes)  # (the slope cone and the ground under each point)
+    assert kernel_calls['lowest_in_cells'] == 2 * len(keyframes)  # (the 1 m cells and the 0.2 m columns)
 
 
 @needs_kernel
@@ -666,3 +667,24 @@ def test_the_passes_over_pairs_refuse_a_pair_outside_the_points():
             kernels.pairs_min(np.zeros(3), first, second, z, np.zeros(2), -1.0, b'')
         with pytest.raises(IndexError, match='outside the points'):
             kernels.pairs_count(first, second, np.ones(3, bool), np.empty(3, np.int64))
+
+
+@needs_kernel
+@pytest.mark.parametrize('seed', range(4))
+def test_the_cells_and_their_lowest_points_in_c_are_numpys(seed, kernel_calls):
+    """_cells over random points (heights rounded so that a cell holds equal lowest heights, -0.0 beside 0.0,
+    points far apart and close): the same cells, order, lowest points (the first of equal ones) and heights in C
+    as NumPy's lexsort gives; a NaN height is left to NumPy."""
+    rng = np.random.default_rng(seed)
+    xy = np.concatenate([rng.normal(0.0, 3.0, (3000, 2)), rng.uniform(-80.0, 80.0, (500, 2))])
+    z = rng.normal(0.0, 1.0, len(xy)).round(1)
+    z[rng.random(len(z)) < 0.05] = -0.0
+    for size in (0.2, 1.0, 7.0):
+        native, numpy = occupancy_ground._cells(xy, z, size), occupancy_ground._cells(xy, z, size, native=False)
+        for a, b in zip(native, numpy):
+            assert same_bits(a, b), size
+        assert len(numpy[3]) < len(xy) and (np.bincount(numpy[1]) > 1).any()
+    assert kernel_calls['lowest_in_cells'] == 3
+    z[7] = np.nan
+    native, numpy = occupancy_ground._cells(xy, z, 1.0), occupancy_ground._cells(xy, z, 1.0, native=False)
+    assert all(same_bits(a, b) for a, b in zip(native, numpy))

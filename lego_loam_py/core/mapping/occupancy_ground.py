@@ -71,13 +71,22 @@ def _level_axes(up: np.ndarray) -> np.ndarray:
 COLUMN = 0.2  # [m] columns of points for the slope cones
 
 
-def _cells(xy: np.ndarray, z: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _cells(
+    xy: np.ndarray, z: np.ndarray, size: float, native: bool = True
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The square cells of edge ``size`` holding points: (lattice indices (k, 2), each point's cell (n,), each
-    cell's lowest height (k,), the index of that lowest point (k,))."""
+    cell's lowest height (k,), the index of that lowest point (k,)); cells in the order of their keys below, the
+    first of equal heights the lowest. ``native``: in C when the extension is built (the same values)."""
     lattice = np.floor(xy / size).astype(np.int64)
     low = lattice.min()
     span = int(lattice.max()) - int(low) + 1
     keys = (lattice[:, 0] - low) * span + (lattice[:, 1] - low)
+    if native and _occupancy_kernels is not None and hasattr(_occupancy_kernels, 'lowest_in_cells'):
+        cell_of, lowest = np.empty(len(z), np.int64), np.empty(len(z), np.int64)
+        count = _occupancy_kernels.lowest_in_cells(keys, np.ascontiguousarray(z, dtype=np.float64), cell_of, lowest)
+        if count >= 0:  # (else keys past 2^31 or a NaN height: NumPy's sort)
+            lowest_point = lowest[:count]
+            return lattice[lowest_point], cell_of, z[lowest_point], lowest_point
     order = np.lexsort((z, keys))  # by cell, then height: each cell's first is its lowest
     first = np.flatnonzero(np.concatenate([[True], keys[order][1:] != keys[order][:-1]]))
     starts = np.zeros(len(z), np.int64)
@@ -250,10 +259,10 @@ def classify_keyframe(points: np.ndarray, up: np.ndarray, params, native: bool =
     if not len(points):
         return KeyframeScan(axes[2].copy(), empty, empty, 0.0)
     xy, z = levelled[:, :2], levelled[:, 2]
-    cells, cell_of, cell_lowest, cell_point = _cells(xy, z, p.ground_cell)
+    cells, cell_of, cell_lowest, cell_point = _cells(xy, z, p.ground_cell, native)
     # The slope cones between columns of points (the lowest point of each 0.2 m column stands for it): a wall's
     # points stack in a few columns, so this is several times fewer pairs than between the points.
-    _, column_of, column_lowest, column_point = _cells(xy, z, COLUMN)
+    _, column_of, column_lowest, column_point = _cells(xy, z, COLUMN, native)
     neighbours = _Neighbours(xy[column_point], p.ground_search_radius, native)
     lower_bound = np.minimum(
         neighbours.cone(column_lowest, p.ground_max_slope)[column_of],

@@ -36,6 +36,13 @@
  * pairs_count(first, second, mask, out)
  *   out (n,) int64: how many pairs with both points in mask (n,) bool each point is in. Returns None; an
  *   IndexError for a pair outside the points. Runs without the GIL.
+ *
+ * lowest_in_cells(keys, z, cell_of, lowest) -> k
+ *   The cells of points keyed by keys (n,) int64 (a cell's number, 0 <= key < 2^31) with heights z (n,) float64,
+ *   as np.lexsort((z, keys)) orders them: the k distinct keys ascending; cell_of (n,) int64 each point's cell
+ *   among them; lowest (n,) int64, its first k the point of least height in each cell (the first of equal ones).
+ *   Returns k, or -1 (nothing usable written) for a key out of that range or a NaN height: the caller then sorts
+ *   with NumPy. A radix sort of the keys, stable. Runs without the GIL.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -339,12 +346,99 @@ done:
     return result;
 }
 
+#define RADIX_BITS 11
+
+/* Stable least-significant-digit radix sort of (key << 32 | row) by its key bits (`bits` of them); the result
+   in *sorted (one of the two buffers). */
+static void radix_by_key(uint64_t *a, uint64_t *b, Py_ssize_t n, int bits, uint64_t **sorted) {
+    const int passes = bits > 0 ? (bits + RADIX_BITS - 1) / RADIX_BITS : 0;
+    const int digit = passes ? (bits + passes - 1) / passes : 1;
+    const uint64_t mask = ((uint64_t)1 << digit) - 1;
+    Py_ssize_t count[(1 << RADIX_BITS) + 1];
+    for (int pass = 0; pass < passes; ++pass) {
+        const int shift = 32 + pass * digit;
+        for (uint64_t d = 0; d <= mask + 1; ++d) count[d] = 0;
+        for (Py_ssize_t i = 0; i < n; ++i) count[((a[i] >> shift) & mask) + 1] += 1;
+        for (uint64_t d = 0; d < mask; ++d) count[d + 1] += count[d];
+        for (Py_ssize_t i = 0; i < n; ++i) b[count[(a[i] >> shift) & mask]++] = a[i];
+        uint64_t *swap = a;
+        a = b;
+        b = swap;
+    }
+    *sorted = a;
+}
+
+static Py_ssize_t lowest_in_cells(const int64_t *keys, const double *z, Py_ssize_t n, int64_t *cell_of,
+                                  int64_t *lowest) {
+    int64_t largest = 0;
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        if (keys[i] < 0 || keys[i] >= ((int64_t)1 << 31) || isnan(z[i])) return -1;
+        if (keys[i] > largest) largest = keys[i];
+    }
+    uint64_t *a = malloc(sizeof(uint64_t) * (size_t)(n > 0 ? n : 1)), *b = malloc(sizeof(uint64_t) * (size_t)(n > 0 ? n : 1));
+    if (a == NULL || b == NULL) {
+        free(a);
+        free(b);
+        return -2;
+    }
+    for (Py_ssize_t i = 0; i < n; ++i) a[i] = ((uint64_t)keys[i] << 32) | (uint64_t)i;
+    int bits = 0;
+    while (bits < 31 && ((int64_t)1 << bits) <= largest) ++bits;
+    uint64_t *sorted;
+    radix_by_key(a, b, n, bits, &sorted);
+    Py_ssize_t k = 0;
+    for (Py_ssize_t r = 0; r < n;) {
+        const uint64_t key = sorted[r] >> 32;
+        int64_t best = (int64_t)(sorted[r] & 0xffffffffu);
+        Py_ssize_t e = r;
+        for (; e < n && sorted[e] >> 32 == key; ++e) {
+            const int64_t row = (int64_t)(sorted[e] & 0xffffffffu);
+            cell_of[row] = k;
+            if (z[row] < z[best]) best = row; /* (rows ascend within a cell: the first of equal heights stays) */
+        }
+        lowest[k++] = best;
+        r = e;
+    }
+    free(a);
+    free(b);
+    return k;
+}
+
+static PyObject *py_lowest_in_cells(PyObject *self, PyObject *args) {
+    Py_buffer keys, z, cell_of, lowest;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*w*w*", &keys, &z, &cell_of, &lowest)) return NULL;
+    PyObject *result = NULL;
+    const Py_ssize_t n = keys.len / (Py_ssize_t)sizeof(int64_t);
+    if (keys.len != n * (Py_ssize_t)sizeof(int64_t) || z.len != n * (Py_ssize_t)sizeof(double) ||
+        cell_of.len != keys.len || lowest.len != keys.len || n >= ((Py_ssize_t)1 << 32)) {
+        PyErr_SetString(PyExc_ValueError, "lowest_in_cells: inconsistent buffer sizes");
+        goto done;
+    }
+    Py_ssize_t k;
+    Py_BEGIN_ALLOW_THREADS
+    k = lowest_in_cells(keys.buf, z.buf, n, cell_of.buf, lowest.buf);
+    Py_END_ALLOW_THREADS
+    if (k == -2) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    result = PyLong_FromSsize_t(k);
+done:
+    PyBuffer_Release(&keys);
+    PyBuffer_Release(&z);
+    PyBuffer_Release(&cell_of);
+    PyBuffer_Release(&lowest);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"update_disk", py_update_disk, METH_VARARGS, "One keyframe's hits and misses into the grid (see the file)."},
     {"coarse_cone", py_coarse_cone, METH_VARARGS, "The slope cone's bound over a grid of cells (see the file)."},
     {"pair_offsets", py_pair_offsets, METH_VARARGS, "Offsets and distances of pairs of points (see the file)."},
     {"pairs_min", py_pairs_min, METH_VARARGS, "A slope bound's minima over pairs of points (see the file)."},
     {"pairs_count", py_pairs_count, METH_VARARGS, "Pairs within a mask, per point (see the file)."},
+    {"lowest_in_cells", py_lowest_in_cells, METH_VARARGS, "Cells of keyed points and their lowest (see the file)."},
     {NULL, NULL, 0, NULL},
 };
 
