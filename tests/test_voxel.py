@@ -152,6 +152,24 @@ def test_the_kernel_equals_numpy_bit_for_bit(n, columns, seed, leaf, groups_coun
 
 
 @needs_kernel
+@pytest.mark.parametrize('seed', range(3))
+def test_the_kernel_equals_numpy_on_groups_of_thousands(seed):
+    """Groups of thousands of points (the kernel sorts those by radix, short ones otherwise) over grids of a few
+    cells to some 10^12, with voxels of one point and of hundreds: the same bits, order and counts as NumPy's."""
+    rng = np.random.default_rng(seed)
+    sizes = rng.integers(200, 5000, 6)
+    parts = [(rng.standard_normal((size, 4)) * 10.0 ** rng.uniform(-1, 3)).astype(np.float32) for size in sizes]
+    points, groups = np.concatenate(parts), np.repeat(np.arange(len(parts)), sizes)
+    for leaf in (0.01, 0.2, 5.0):
+        a = voxel_downsample_groups(points, groups, leaf)
+        b = voxel_downsample_groups(points, groups, leaf, native=False)
+        assert a.shape == b.shape and np.array_equal(a.view(np.uint32), b.view(np.uint32)), leaf
+        (c, counts), (d, numpy_counts) = (voxel_downsample(points, leaf, return_counts=True, native=n) for n in (1, 0))
+        assert np.array_equal(c.view(np.uint32), d.view(np.uint32)) and np.array_equal(counts, numpy_counts)
+        assert 1 < len(a) < len(points) or leaf == 0.01
+
+
+@needs_kernel
 def test_a_grid_too_large_for_the_kernels_sort_keys_is_filtered_by_numpy():
     """Points 400 km apart on a 1 cm grid: some 10^19 cells, beyond the kernel's 63-bit keys. The kernel declines
     (returns -1) and the NumPy code filters them, the same as asking for it (its own order: its voxel index

@@ -66,6 +66,36 @@ static void sort_keys(uint64_t *a, int64_t n) {
     }
 }
 
+#define RADIX_BITS 10
+
+/* Ascending sort of distinct keys whose bits below `low_bits` ascend already where the bits above them tie (a
+   point's place in its group under its cell number): a stable least-significant-digit radix sort of the bits
+   from low_bits up to `high_bits`, for groups long enough to repay the counts (the same order as sort_keys). */
+static void sort_cells(uint64_t *a, uint64_t *scratch, int64_t n, int low_bits, int high_bits) {
+    if (n < 256 || high_bits <= low_bits) {
+        sort_keys(a, n);
+        return;
+    }
+    const int bits = high_bits - low_bits;
+    const int passes = (bits + RADIX_BITS - 1) / RADIX_BITS, digit = (bits + passes - 1) / passes;
+    const uint64_t mask = ((uint64_t)1 << digit) - 1;
+    int64_t count[(1 << RADIX_BITS) + 1];
+    uint64_t *from = a, *to = scratch;
+    for (int pass = 0; pass < passes; ++pass) {
+        const int shift = low_bits + pass * digit;
+        for (uint64_t d = 0; d <= mask + 1; ++d) count[d] = 0;
+        for (int64_t i = 0; i < n; ++i) count[((from[i] >> shift) & mask) + 1] += 1;
+        for (uint64_t d = 0; d < mask; ++d) count[d + 1] += count[d];
+        for (int64_t i = 0; i < n; ++i) to[count[(from[i] >> shift) & mask]++] = from[i];
+        uint64_t *swap = from;
+        from = to;
+        to = swap;
+    }
+    if (from != a) {
+        for (int64_t i = 0; i < n; ++i) a[i] = from[i];
+    }
+}
+
 /* NumPy's pairwise sum of float32 values (its reduction loop for float32 add). */
 static float pairwise_sum(const float *a, int64_t n) {
     if (n < 8) {
@@ -116,7 +146,8 @@ static PyObject *py_voxel_groups(PyObject *self, PyObject *args) {
     float *scaled = malloc(sizeof(float) * 3 * (size_t)(n > 0 ? n : 1));
     float *column = malloc(sizeof(float) * (size_t)(n > 0 ? n : 1));
     uint64_t *key = malloc(sizeof(uint64_t) * (size_t)(n > 0 ? n : 1));
-    if (scaled == NULL || column == NULL || key == NULL) {
+    uint64_t *scratch = malloc(sizeof(uint64_t) * (size_t)(n > 0 ? n : 1));
+    if (scaled == NULL || column == NULL || key == NULL || scratch == NULL) {
         failed = 1;
     }
     for (Py_ssize_t g = 0; g < groups && !failed; ++g) {
@@ -151,7 +182,9 @@ static PyObject *py_voxel_groups(PyObject *self, PyObject *args) {
             const int64_t z = (int64_t)(scaled[3 * i + 2] - low[2]);
             group_key[i - first] = ((uint64_t)(x + y * span0 + z * (span0 * span1)) << bits) | (uint64_t)(i - first);
         }
-        sort_keys(group_key, size);
+        int cell_bits = 0; /* (the highest cell number, span0 span1 span2 - 1, fits in these) */
+        while (cell_bits < 63 && ((uint64_t)1 << cell_bits) < (uint64_t)(span0 * span1 * span2)) ++cell_bits;
+        sort_cells(group_key, scratch, size, bits, bits + cell_bits);
         for (int64_t r = 0; r < size;) {
             const uint64_t cell = group_key[r] >> bits;
             int64_t e = r + 1;
@@ -176,6 +209,7 @@ static PyObject *py_voxel_groups(PyObject *self, PyObject *args) {
     free(scaled);
     free(column);
     free(key);
+    free(scratch);
     Py_END_ALLOW_THREADS
     if (failed == 1) {
         PyErr_NoMemory();
