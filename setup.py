@@ -23,17 +23,19 @@ DATA_FILES = [
 ]
 
 
-def _native(module: str, source: str, vectorised: bool = False) -> Extension:
+def _native(module: str, source: str, vectorised: bool = False, headers: tuple[str, ...] = ()) -> Extension:
     """An optional C extension ``lego_loam_py.core.<module>`` from ``core/native/<source>``: IEEE arithmetic as
     written (no fast math, no fused multiply-adds), since the kernels reproduce NumPy's and libm's results bit for
     bit. Each module that uses one keeps its NumPy version for when it cannot be built. ``vectorised``: loops over
     arrays also run several elements at a time (-O3; -fno-trapping-math lets a comparison choose between two
-    values without a branch: it changes no value, only the assumption that a floating-point operation may trap)."""
+    values without a branch: it changes no value, only the assumption that a floating-point operation may trap).
+    ``headers``: the ``core/native`` headers it includes (rebuilt when they change, shipped with the sources)."""
     # (-fno-fast-math turns trapping maths back on: the order matters.)
     optimise = ['-O3', '-fno-trapping-math'] if vectorised else ['-O2']
     return Extension(
         f'{PACKAGE}.core.{module}',
         [f'{PACKAGE}/core/native/{source}'],
+        depends=[f'{PACKAGE}/core/native/{header}' for header in headers],
         extra_compile_args=['-fno-fast-math', '-ffp-contract=off', *optimise],
         libraries=['m'],
         optional=True,
@@ -44,12 +46,12 @@ EXT_MODULES = [
     # libm's atan2f on arrays, and the range-image columns decided mostly without it (parity/)
     _native('_libm_compat', 'libm_compat.c', vectorised=True),
     _native('_feature_kernels', 'feature_kernels.c'),  # featureAssociation's inner loops (odometry/, imu/buffer.py)
-    _native('_voxel_kernels', 'voxel_kernels.c'),  # the voxel filter in one pass (voxel.py)
+    _native('_voxel_kernels', 'voxel_kernels.c', headers=('radix_sort.h',)),  # the voxel filter in one pass (voxel.py)
     # segment components, ground walk, the laser order's passes (projection/)
     _native('_projection_kernels', 'projection_kernels.c', vectorised=True),
     _native('_geometry_kernels', 'geometry_kernels.c'),  # plane fits through neighbourhoods (geometry.py)
-    # the occupancy grid's disk update and coarse slope cone (mapping/occupancy_grid.py, occupancy_ground.py)
-    _native('_occupancy_kernels', 'occupancy_kernels.c', vectorised=True),
+    # the occupancy grid's disk update and a keyframe's classification (mapping/occupancy_grid.py, occupancy_ground.py)
+    _native('_occupancy_kernels', 'occupancy_kernels.c', vectorised=True, headers=('radix_sort.h',)),
 ]
 
 CONSOLE_SCRIPTS = [

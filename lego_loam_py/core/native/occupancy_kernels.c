@@ -50,6 +50,8 @@
 #include <stdint.h>
 #include <stdlib.h>
 
+#include "radix_sort.h"
+
 /* np.clip's float loop: Min(Max(v, low), high), each keeping a NaN first operand. As selects, which the compiler
    makes without branches (a branch per cell mispredicts where cells reach the bounds). */
 static inline float clip(float v, float low, float high) {
@@ -346,28 +348,6 @@ done:
     return result;
 }
 
-#define RADIX_BITS 11
-
-/* Stable least-significant-digit radix sort of (key << 32 | row) by its key bits (`bits` of them); the result
-   in *sorted (one of the two buffers). */
-static void radix_by_key(uint64_t *a, uint64_t *b, Py_ssize_t n, int bits, uint64_t **sorted) {
-    const int passes = bits > 0 ? (bits + RADIX_BITS - 1) / RADIX_BITS : 0;
-    const int digit = passes ? (bits + passes - 1) / passes : 1;
-    const uint64_t mask = ((uint64_t)1 << digit) - 1;
-    Py_ssize_t count[(1 << RADIX_BITS) + 1];
-    for (int pass = 0; pass < passes; ++pass) {
-        const int shift = 32 + pass * digit;
-        for (uint64_t d = 0; d <= mask + 1; ++d) count[d] = 0;
-        for (Py_ssize_t i = 0; i < n; ++i) count[((a[i] >> shift) & mask) + 1] += 1;
-        for (uint64_t d = 0; d < mask; ++d) count[d + 1] += count[d];
-        for (Py_ssize_t i = 0; i < n; ++i) b[count[(a[i] >> shift) & mask]++] = a[i];
-        uint64_t *swap = a;
-        a = b;
-        b = swap;
-    }
-    *sorted = a;
-}
-
 static Py_ssize_t lowest_in_cells(const int64_t *keys, const double *z, Py_ssize_t n, int64_t *cell_of,
                                   int64_t *lowest) {
     int64_t largest = 0;
@@ -384,8 +364,7 @@ static Py_ssize_t lowest_in_cells(const int64_t *keys, const double *z, Py_ssize
     for (Py_ssize_t i = 0; i < n; ++i) a[i] = ((uint64_t)keys[i] << 32) | (uint64_t)i;
     int bits = 0;
     while (bits < 31 && ((int64_t)1 << bits) <= largest) ++bits;
-    uint64_t *sorted;
-    radix_by_key(a, b, n, bits, &sorted);
+    const uint64_t *sorted = radix_sort_bits(a, b, n, 32, 32 + bits);
     Py_ssize_t k = 0;
     for (Py_ssize_t r = 0; r < n;) {
         const uint64_t key = sorted[r] >> 32;

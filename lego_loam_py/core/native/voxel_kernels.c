@@ -20,6 +20,9 @@
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
+#include <string.h>
+
+#include "radix_sort.h"
 
 /* floorf, inline: exact, as floor is; its zero may lose the sign, which no use of it here sees (cells are
    differences of floors, converted to integers). */
@@ -66,34 +69,16 @@ static void sort_keys(uint64_t *a, int64_t n) {
     }
 }
 
-#define RADIX_BITS 10
-
 /* Ascending sort of distinct keys whose bits below `low_bits` ascend already where the bits above them tie (a
-   point's place in its group under its cell number): a stable least-significant-digit radix sort of the bits
-   from low_bits up to `high_bits`, for groups long enough to repay the counts (the same order as sort_keys). */
+   point's place in its group under its cell number): a radix sort of the bits from low_bits up to `high_bits`, for
+   groups long enough to repay its counts (the same order as sort_keys). */
 static void sort_cells(uint64_t *a, uint64_t *scratch, int64_t n, int low_bits, int high_bits) {
     if (n < 256 || high_bits <= low_bits) {
         sort_keys(a, n);
         return;
     }
-    const int bits = high_bits - low_bits;
-    const int passes = (bits + RADIX_BITS - 1) / RADIX_BITS, digit = (bits + passes - 1) / passes;
-    const uint64_t mask = ((uint64_t)1 << digit) - 1;
-    int64_t count[(1 << RADIX_BITS) + 1];
-    uint64_t *from = a, *to = scratch;
-    for (int pass = 0; pass < passes; ++pass) {
-        const int shift = low_bits + pass * digit;
-        for (uint64_t d = 0; d <= mask + 1; ++d) count[d] = 0;
-        for (int64_t i = 0; i < n; ++i) count[((from[i] >> shift) & mask) + 1] += 1;
-        for (uint64_t d = 0; d < mask; ++d) count[d + 1] += count[d];
-        for (int64_t i = 0; i < n; ++i) to[count[(from[i] >> shift) & mask]++] = from[i];
-        uint64_t *swap = from;
-        from = to;
-        to = swap;
-    }
-    if (from != a) {
-        for (int64_t i = 0; i < n; ++i) a[i] = from[i];
-    }
+    const uint64_t *sorted = radix_sort_bits(a, scratch, n, low_bits, high_bits);
+    if (sorted != a) memcpy(a, sorted, sizeof(uint64_t) * (size_t)n);
 }
 
 /* NumPy's pairwise sum of float32 values (its reduction loop for float32 add). */
