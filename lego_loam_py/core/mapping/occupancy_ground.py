@@ -144,7 +144,8 @@ class _Neighbours:
         along the ground plane's ``gradient`` (dz/dx, dz/dy), the lowest of them; inf where none."""
         bound = np.where(base, z, np.inf)
         # The rise from the second point to the first; the other way round its negation (exactly: a product's
-        # rounding is symmetric), so one product (NumPy's, as BLAS makes it) serves both directions.
+        # rounding is symmetric), so one product of all the pairs (NumPy's, as BLAS rounds it; a row's value does not
+        # depend on the rows beside it) serves both directions.
         self._minimum(bound, z, self.offset @ gradient, -1.0, base)
         return bound
 
