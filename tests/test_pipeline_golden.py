@@ -48,16 +48,6 @@ def pipeline_links(clouds, features_in, mapped_in, integrated_in, composed: bool
     ]
 
 
-def xyzi_fields():
-    """x, y, z and intensity as float32, as a VLP-16 driver's first four fields."""
-    from sensor_msgs.msg import PointField
-
-    return [
-        PointField(name=name, offset=4 * k, datatype=PointField.FLOAT32, count=1)
-        for k, name in enumerate(('x', 'y', 'z', 'intensity'))
-    ]
-
-
 def odometry_rows(messages):
     return np.array(
         [
@@ -99,7 +89,7 @@ def test_mapping_and_fusion_over_dds_equal_the_original(shared_data, tmp_path, r
 
     from lego_loam_py.formats import read_pcd, read_tum
     from lego_loam_py.ros import qos
-    from lego_loam_py.ros.conversions import stamp_to_ns
+    from lego_loam_py.ros.conversions import make_header, stamp_to_ns, xyzi_to_cloud_msg
 
     golden = np.load(shared_data / 'golden' / f'{GOLDEN_BAG}.npz')
     stamps = golden['stamps'].tolist()
@@ -158,11 +148,8 @@ def test_mapping_and_fusion_over_dds_equal_the_original(shared_data, tmp_path, r
         assert spin_until(rclpy_context, node, lambda: subscribers() == expected, 10), subscribers()
     # A broken cloud first (its data shorter than its layout says): dropped with a warning, and the scans after it
     # go through as if it had never come, in one process as in four.
-    broken = PointCloud2()
-    broken.header.frame_id = 'velodyne'
-    broken.height, broken.width, broken.point_step, broken.row_step = 1, 1000, 16, 16000
-    broken.fields = xyzi_fields()
-    broken.data = bytes(64)
+    broken = xyzi_to_cloud_msg(np.zeros((1000, 4), np.float32), make_header(0, 'velodyne'))
+    broken.data = broken.data[:64]
     clouds.publish(broken)
     assert spin_until(rclpy_context, node, lambda: diagnostics.counter('imageProjection', 'clouds_dropped') >= 1, 15)
     # One scan at a time, the next once the whole pipeline is done with the previous one: its fused pose is out
