@@ -62,9 +62,15 @@ from lego_loam_py.core.odometry.sweep import (
 )
 from lego_loam_py.core.params.types import OdometryModel, Params
 
+try:  # a block's Gauss-Newton iterations in one call (native/odometry_kernels.c); optional, the NumPy loop otherwise
+    from lego_loam_py.core import _odometry_kernels
+except ImportError:
+    _odometry_kernels = None
+
 __all__ = ['LaserOdometry', 'OriginalOdometry', 'SweepStartOdometry', 'make_laser_odometry', 'OdometryStats']
 
 _F32 = np.float32
+HALVINGS = 4  # a step is halved at most this many times before the sweep-start model gives it up
 
 
 @dataclass
@@ -309,6 +315,8 @@ class OriginalOdometry(LaserOdometry):
 class SweepStartOdometry(LaserOdometry):
     """The sweep-start model: full Gauss-Newton steps with the exact Jacobian, in blocks with backtracking."""
 
+    native = True  # a block's iterations in C when the extension is built (False: the NumPy loop; tests compare)
+
     def _register(self, sharp: np.ndarray, flat: np.ndarray, wall: WallPoints, stats: OdometryStats) -> OdometryStats:
         """Register from the constant-velocity guess (:meth:`_iterate`). Few sharp points matched at the end:
         lost (a turn too fast for the lidar alone left the guess, and then each next one, in a wrong minimum,
@@ -337,7 +345,7 @@ class SweepStartOdometry(LaserOdometry):
         information, prior = np.zeros((6, 6)), np.zeros((6, 6))
         self._prepared_points = {}  # id -> (points, what _prepared makes of them), for this registration
         for stage in self._stages(sharp, flat, wall):
-            kind, active = stage.kind, stage.active
+            kind = stage.kind
             iterations, first, last_residual = 0, True, None
             blocks = -(-fa.max_iterations // fa.reassociate_every)
             for block in range(blocks):
@@ -348,22 +356,9 @@ class SweepStartOdometry(LaserOdometry):
                     break
                 last_residual = residual
                 before = self.transform_cur.copy()
-                for _ in range(min(fa.reassociate_every, fa.max_iterations - iterations)):
-                    iterations += 1
-                    rows, values = residual(self.transform_cur, jacobian=True)
-                    setattr(stats, f'{kind}_correspondences', residual.points)
-                    if residual.points < fa.min_correspondences:
-                        break
-                    x = stage.degeneracy.step(rows, -values, first, fa.degeneracy_threshold)
-                    if first:
-                        setattr(stats, f'{kind}_condition', stage.degeneracy.smallest_eigenvalue)
-                        setattr(stats, f'{kind}_walls', residual.walls)
-                    first = False
-                    setattr(stats, f'{kind}_degenerate', stage.degeneracy.degenerate)
-                    x = self._shorten(x, active, residual, float(np.square(values).sum()))
-                    converged = not self._apply(x, active, stage.rotation_rows, stage.translation_rows)
-                    if converged:
-                        break
+                count = min(fa.reassociate_every, fa.max_iterations - iterations)
+                done, first = self._block(stage, residual, count, first, stats)
+                iterations += done
                 moved = self.transform_cur - before
                 if (
                     np.degrees(np.abs(moved[:3])).max() < fa.convergence_rotation
@@ -382,6 +377,41 @@ class SweepStartOdometry(LaserOdometry):
         largest = self.params.feature_association.imu_rotation_prior
         stats.prior_information = prior / (largest * FULL_TRUST**2) if prior.any() and largest > 0 else None
         return stats
+
+    def _block(self, stage: _Stage, residual, count: int, first: bool, stats: OdometryStats) -> tuple[int, bool]:
+        """Up to ``count`` Gauss-Newton iterations of one block (``residual``'s correspondences and weights) from
+        ``transform_cur``, which they update, in C when the extension is built (:meth:`_native_block`), else
+        :meth:`_numpy_block`: (iterations run, whether the stage's first iteration is still to come)."""
+        if count <= 0:
+            return 0, first
+        kind = stage.kind
+        setattr(stats, f'{kind}_correspondences', residual.points)
+        if residual.points < self.params.feature_association.min_correspondences:
+            return 1, first
+        if self.native and residual.block is not None:
+            done, smallest = residual.block(self.transform_cur, count, first, stage.degeneracy)
+        else:
+            done, smallest = self._numpy_block(stage, residual, count, first)
+        if first:
+            setattr(stats, f'{kind}_condition', smallest)
+            setattr(stats, f'{kind}_walls', residual.walls)
+        setattr(stats, f'{kind}_degenerate', stage.degeneracy.degenerate)
+        return done, False
+
+    def _numpy_block(self, stage: _Stage, residual, count: int, first: bool) -> tuple[int, float]:
+        """:meth:`_block`'s iterations in NumPy: (iterations run, the normal matrix's smallest eigenvalue on the
+        stage's first iteration, NaN when it is not among them)."""
+        fa = self.params.feature_association
+        done, finds_degeneracy = 0, first
+        for _ in range(count):
+            done += 1
+            rows, values = residual(self.transform_cur, jacobian=True)
+            x = stage.degeneracy.step(rows, -values, first, fa.degeneracy_threshold)
+            first = False
+            x = self._shorten(x, stage.active, residual, float(np.square(values).sum()))
+            if not self._apply(x, stage.active, stage.rotation_rows, stage.translation_rows):
+                break  # converged
+        return done, stage.degeneracy.smallest_eigenvalue if finds_degeneracy else math.nan
 
     def _residual_function(self, stage: _Stage, weighted: bool):
         """Associate the stage's points at the current estimate and return ``f(theta, jacobian)`` giving the weighted
@@ -446,7 +476,59 @@ class SweepStartOdometry(LaserOdometry):
         residual.points = sum(term.points for term in terms)
         residual.walls = any(term.wall for term in terms)
         residual.information = information
+        residual.block = self._native_block(terms, active)
         return residual
+
+    def _native_block(self, terms: list[_Term], active: list[int]):
+        """``block(theta, count, first, degeneracy) -> (iterations run, smallest eigenvalue)``: up to ``count``
+        iterations of a block (:meth:`_iterate`'s inner loop) in C, ``theta`` updated in place and ``degeneracy``
+        (its first iteration when ``first``) as the loop leaves them; None without the extension or for terms it
+        does not take (see native/odometry_kernels.c)."""
+        if _odometry_kernels is None:
+            return None
+        packed = []
+        for term in terms:
+            if term.kind == 'corner':
+                kind, first, second = 2, term.first, term.second
+                if first.dtype != np.float64 or second.dtype != np.float64:
+                    return None
+            elif term.first.dtype == term.second.dtype and term.first.dtype in (np.float32, np.float64):
+                kind, first, second = (0 if term.first.dtype == np.float32 else 1), term.first, term.second
+            else:
+                return None
+            arrays = (term.xyz, term.s, term.weight, first, second, term.coefficients)
+            if any(not a.flags.c_contiguous for a in arrays) or term.coefficients.dtype != np.float64:
+                return None
+            packed.append((kind, *arrays))
+        fa = self.params.feature_association
+        active_parameters = np.asarray(active, dtype=np.int64)
+
+        def block(theta: np.ndarray, count: int, first: bool, degeneracy: DegeneracyProjection):
+            estimate = np.array(theta, dtype=np.float64)  # (a contiguous copy, written back below)
+            projection = np.array(degeneracy.projection, dtype=np.float64)
+            degenerate = np.array([degeneracy.degenerate], dtype=np.uint8)
+            done, smallest = _odometry_kernels.sweep_block(
+                estimate,
+                active_parameters,
+                packed,
+                float(self.rotation_prior),
+                int(count),
+                int(bool(first)),
+                float(fa.degeneracy_threshold),
+                projection,
+                degenerate,
+                float(fa.convergence_rotation),
+                float(fa.convergence_translation),
+                HALVINGS,
+            )
+            theta[:] = estimate
+            if first:
+                degeneracy.projection = projection.reshape(3, 3)
+                degeneracy.smallest_eigenvalue = smallest
+            degeneracy.degenerate = bool(degenerate[0])
+            return done, smallest
+
+        return block
 
     def _term(self, kind: str, points: np.ndarray, last: LastCloud, weighted: bool, bound: int) -> _Term | None:
         """The usable correspondences of ``points`` at the current estimate, their fixed weights and residual
@@ -547,7 +629,9 @@ class SweepStartOdometry(LaserOdometry):
         planar, normal, offset = fit_planes_at(last.points, index, mo.plane_max_residual)
         return near[planar], normal, offset
 
-    def _shorten(self, x: np.ndarray, active: list[int], residual, reference: float, halvings: int = 4) -> np.ndarray:
+    def _shorten(
+        self, x: np.ndarray, active: list[int], residual, reference: float, halvings: int = HALVINGS
+    ) -> np.ndarray:
         """The largest of x, x/2, x/4, ... that does not increase the block's cost (``reference``, the cost at
         the current estimate) (0 if none)."""
         start = self.transform_cur.copy()
