@@ -293,6 +293,48 @@ def test_native_imu_attitude_equals_numpy(data):
 
 
 @pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
+@settings(max_examples=200, deadline=None)
+@given(st.data())
+def test_native_imu_samples_equal_python(data):
+    """ImuBuffer.add's common case in C against its Python code, bit for bit, on a stream of unit quaternions
+    (some not: rejected), rates and accelerations near and beyond the bounds, NaN, stamps out of order, far
+    back (a restart) and after gaps, with a time offset, the gyro's attitude (its bias changed on the way) or the
+    orientation field's; the same rows, reasons, counters and gyro state."""
+    from lego_loam_py.core.frames import ImuMounting
+    from lego_loam_py.core.imu.buffer import ImuBuffer
+
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    gyro, offset = bool(rng.random() < 0.7), float(rng.choice([0.0, 0.012]))
+    n = int(rng.integers(1, 60))
+    steps = rng.choice([0.005, 0.2, -0.003, -2.0, 0.0], n, p=[0.8, 0.05, 0.05, 0.05, 0.05])
+    stamps = 50.0 + np.cumsum(steps)
+    quaternions = rng.normal(0.0, 1.0, (n, 4))
+    quaternions /= np.linalg.norm(quaternions, axis=1)[:, None]
+    quaternions[rng.random(n) < 0.1] *= 1.5
+    quaternions[rng.random(n) < 0.05] = 0.0
+    rates = rng.normal(0.0, 1.0, (n, 3)) * rng.choice([1.0, 80.0], (n, 1), p=[0.9, 0.1])
+    accelerations = rng.normal(0.0, 5.0, (n, 3)) * rng.choice([1.0, 150.0], (n, 1), p=[0.9, 0.1])
+    accelerations[rng.random(n) < 0.03, 1] = np.nan
+    buffers = []
+    for native in (False, True):
+        buffer = ImuBuffer(64, 9.81, 0.1, ImuMounting(time_offset=offset), gyro_attitude=gyro)
+        buffer.native = native
+        reasons = []
+        for k in range(n):
+            if gyro and k == n // 2:
+                buffer.gyro.bias = np.array([0.002, -0.001, 0.003])
+            reasons.append(buffer.add(stamps[k], tuple(quaternions[k]), tuple(rates[k]), tuple(accelerations[k])))
+        buffers.append((buffer, reasons))
+    (python, python_reasons), (c, c_reasons) = buffers
+    assert c._native and not python._native
+    assert c_reasons == python_reasons
+    assert (c.accepted, c.resets, c.rejected) == (python.accepted, python.resets, python.rejected)
+    np.testing.assert_array_equal(np.array(list(c._rows)).view(np.int64), np.array(list(python._rows)).view(np.int64))
+    if gyro:
+        np.testing.assert_array_equal(c.gyro.state.view(np.int64), python.gyro.state.view(np.int64))
+
+
+@pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
 @settings(max_examples=150, deadline=None)
 @given(st.data())
 def test_native_occlusion_marks_equal_numpy(data):

@@ -230,9 +230,21 @@ class ImuBuffer:
         self.accepted = 0  # samples taken since the buffer was made (a clear keeps the count)
         # The attitude of the rows: the orientation field's, or integrated from the gyro (core.gyro_attitude).
         self.gyro = GyroAttitude() if gyro_attitude else None
+        self.native = True  # the common case of add() in C when the extension is built (tests compare)
 
     def __len__(self) -> int:
         return len(self._rows)
+
+    @property
+    def _native(self) -> bool:
+        """Whether :meth:`add` may take a sample in C (the extension is built; only a time offset to apply)."""
+        return (
+            self.native
+            and hasattr(_feature_kernels, 'imu_sample')  # (None, or an extension built before it)
+            and self._to_lidar is None
+            and self._orientation_to_lidar is None
+            and self._lever_arm is None
+        )
 
     def _table(self) -> np.ndarray:
         if self._arrays is None or self._appended >= len(self._rows):
@@ -297,7 +309,19 @@ class ImuBuffer:
         return reason
 
     def add(self, stamp: float, orientation_xyzw, angular_velocity, linear_acceleration) -> str | None:
-        """Process one sample; returns None when accepted, else why it was rejected."""
+        """Process one sample; returns None when accepted, else why it was rejected.
+
+        The common case (a sample taken, no rotation or lever arm to apply) runs in C when the extension is built
+        (:meth:`_add_native`), the same operations in one call; everything else here."""
+        if self._native:
+            row = self._add_native(stamp, orientation_xyzw, angular_velocity, linear_acceleration)
+            if row is not None:
+                self._rows.append(row)
+                self._appended += 1
+                self.accepted += 1
+                if self._behind:
+                    self._behind = []
+                return None
         try:
             qx, qy, qz, qw = (float(v) for v in orientation_xyzw)
             gx, gy, gz = (float(v) for v in angular_velocity)
@@ -392,6 +416,30 @@ class ImuBuffer:
         self._appended += 1
         self.accepted += 1
         return None
+
+    def _add_native(self, stamp, orientation_xyzw, angular_velocity, linear_acceleration) -> tuple | None:
+        """The row :meth:`add` makes of a sample it takes, from native/feature_kernels.c's ``imu_sample``; None for
+        any other sample (rejected, out of order, a restart), which :meth:`add` then handles itself."""
+        gyro = self.gyro
+        try:
+            return _feature_kernels.imu_sample(
+                stamp,
+                orientation_xyzw,
+                angular_velocity,
+                linear_acceleration,
+                self._rows[-1] if self._rows else None,
+                self._time_offset,
+                self.reset_after,
+                self.scan_period,
+                self.gravity,
+                QUATERNION_NORM_TOLERANCE,
+                MAX_ANGULAR_VELOCITY,
+                MAX_ACCELERATION,
+                None if gyro is None else gyro.state,
+                None if gyro is None else np.ascontiguousarray(gyro.bias, dtype=np.float64),
+            )
+        except (TypeError, ValueError, OverflowError):  # (not numbers: add says why)
+            return None
 
     def _at_lidar_origin(self, acceleration, rate, stamp: float, last) -> tuple[float, float, float]:
         """The specific force at the lidar origin from the one at the IMU's (lidar axes, m/s^2): without the

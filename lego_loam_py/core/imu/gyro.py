@@ -43,43 +43,57 @@ def rpy_of(matrix: np.ndarray) -> tuple[float, float, float]:
     return math.atan2(m21, m22), math.asin(max(-1.0, min(1.0, -m20))), math.atan2(m10, m00)
 
 
-_IDENTITY = np.eye(3)
-_IDENTITY.flags.writeable = False
+def _product(a: tuple, b: tuple) -> tuple:
+    """The 3x3 product of two row-major 9-tuples, each entry summed over k = 0, 1, 2 in that order."""
+    return tuple(
+        a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j] for i in range(3) for j in range(3)
+    )
 
 
-def _exp(rotation_vector: np.ndarray) -> np.ndarray:
-    """Rodrigues: the rotation of a rotation vector [rad] ((3,) float64)."""
-    # (np.linalg.norm's own operations, sqrt of the vector's dot with itself, without its checks: 200 samples a
-    # second call this)
-    angle = math.sqrt(rotation_vector.dot(rotation_vector))
+def _exp(vx: float, vy: float, vz: float) -> tuple:
+    """Rodrigues: the rotation (row-major 9-tuple) of a rotation vector [rad]."""
+    angle = math.sqrt(vx * vx + vy * vy + vz * vz)
     if angle < 1e-12:
-        return np.eye(3)
-    kx, ky, kz = (rotation_vector / angle).tolist()
-    cross = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
-    return _IDENTITY + math.sin(angle) * cross + (1.0 - math.cos(angle)) * (cross @ cross)
+        return (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    kx, ky, kz = vx / angle, vy / angle, vz / angle
+    cross = (0.0, -kz, ky, kz, 0.0, -kx, -ky, kx, 0.0)
+    square = _product(cross, cross)
+    sine, versine = math.sin(angle), 1.0 - math.cos(angle)
+    identity = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    return tuple(identity[i] + sine * cross[i] + versine * square[i] for i in range(9))
 
 
 class GyroAttitude:
-    """The integrated attitude of one IMU stream (see the module docstring)."""
+    """The integrated attitude of one IMU stream (see the module docstring).
+
+    Scalar arithmetic in a fixed order (no BLAS: the same result on every machine), on ``state``, which the C
+    kernel of :class:`~lego_loam_py.core.imu.buffer.ImuBuffer` updates the same way (native/feature_kernels.c).
+    """
 
     def __init__(self) -> None:
         self.bias = np.zeros(3)  # [rad/s] lidar axes, taken off every rate from the next sample on
-        self._attitude: np.ndarray | None = None
-        self._rate: np.ndarray | None = None
+        # The attitude (row-major 3x3), the last rate less the bias [rad/s], and 1.0 once started (0.0: start
+        # again from the next sample's orientation).
+        self.state = np.zeros(13)
 
     def restart(self) -> None:
         """Start again from the next sample's orientation (a gap, a cleared buffer)."""
-        self._attitude, self._rate = None, None
+        self.state[12] = 0.0
 
     def update(
         self, dt: float | None, rate: tuple[float, float, float], orientation: tuple[float, float, float]
     ) -> tuple[float, float, float]:
         """The attitude (roll, pitch, yaw) after a sample with angular ``rate`` [rad/s] (lidar axes) and the
         orientation field's (roll, pitch, yaw), ``dt`` [s] after the previous one (None: start from it)."""
-        rate = np.asarray(rate, dtype=float) - self.bias
-        if dt is None or self._attitude is None or self._rate is None:
-            self._attitude = matrix_of_rpy(*orientation)
+        bx, by, bz = self.bias.tolist()
+        rx, ry, rz = float(rate[0]) - bx, float(rate[1]) - by, float(rate[2]) - bz
+        state = self.state.tolist()
+        if dt is None or state[12] == 0.0:
+            attitude = tuple(matrix_of_rpy(*orientation).reshape(-1).tolist())
         else:
-            self._attitude = self._attitude @ _exp(0.5 * (self._rate + rate) * dt)
-        self._rate = rate
-        return rpy_of(self._attitude)
+            px, py, pz = state[9:12]
+            step = _exp(0.5 * (px + rx) * dt, 0.5 * (py + ry) * dt, 0.5 * (pz + rz) * dt)
+            attitude = _product(tuple(state[:9]), step)
+        self.state[:] = (*attitude, rx, ry, rz, 1.0)
+        m = attitude
+        return math.atan2(m[7], m[8]), math.asin(max(-1.0, min(1.0, -m[6]))), math.atan2(m[3], m[0])

@@ -53,6 +53,16 @@
  *   float64 roll, pitch, yaw. NumPy's semantics throughout: searchsorted's order puts NaN last, clip keeps NaN
  *   and -0.0, the yaw unwrapped as the where()s do.
  *
+ * imu_sample(stamp, orientation, rate, acceleration, last, time_offset, reset_after, scan_period, gravity,
+ *            quaternion_tolerance, max_rate, max_acceleration, gyro_state, gyro_bias)
+ *   ImuBuffer.add's common case, its row (a 13-tuple: time, roll, pitch, yaw, velocity, shift, angle) or None for
+ *   every other case, which the Python code then takes: a sample it would reject (non-finite, not a unit
+ *   quaternion, beyond the rate or acceleration bounds), one not newer than last (the previous row, a 13-tuple,
+ *   or None for the first sample) or far older (a restart). orientation (x, y, z, w), rate and acceleration are
+ *   sequences of numbers. gyro_state (13,) float64 (GyroAttitude.state, updated in place) and gyro_bias (3,)
+ *   float64, or None and None for the orientation field's attitude. The same operations as ImuBuffer.add and
+ *   GyroAttitude.update, in their order, with libm's functions (Python's math module calls the same ones).
+ *
  * occluded(ranges, columns, half_window, column_gap, depth_jump, parallel_ratio, picked)
  *   features.occluded_mask in one pass: ranges (n,) float32, columns (n,) int64; marks picked (n,) bool (zeroed
  *   by the caller) where the NumPy version does, with its dtypes (differences of float32 ranges in float64
@@ -673,6 +683,208 @@ done:
     return result;
 }
 
+/* out = a @ b for row-major 3x3 matrices, each entry summed over k = 0, 1, 2 in that order (gyro.py's _product). */
+static void product3(const double *a, const double *b, double *out) {
+    for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) {
+            out[3 * i + j] = a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j];
+        }
+    }
+}
+
+/* gyro.py's _exp: Rodrigues, the rotation of the rotation vector (vx, vy, vz). */
+static void rotation_of_vector(double vx, double vy, double vz, double *out) {
+    static const double identity[9] = {1, 0, 0, 0, 1, 0, 0, 0, 1};
+    const double angle = sqrt(vx * vx + vy * vy + vz * vz);
+    if (angle < 1e-12) {
+        memcpy(out, identity, sizeof(identity));
+        return;
+    }
+    const double kx = vx / angle, ky = vy / angle, kz = vz / angle;
+    const double cross[9] = {0.0, -kz, ky, kz, 0.0, -kx, -ky, kx, 0.0};
+    double square[9];
+    product3(cross, cross, square);
+    const double sine = sin(angle), versine = 1.0 - cos(angle);
+    for (int i = 0; i < 9; ++i) {
+        out[i] = identity[i] + sine * cross[i] + versine * square[i];
+    }
+}
+
+/* gyro.py's matrix_of_rpy: Rz(yaw) Ry(pitch) Rx(roll), row-major. */
+static void matrix_of_rpy(double roll, double pitch, double yaw, double *out) {
+    const double cr = cos(roll), sr = sin(roll), cp = cos(pitch), sp = sin(pitch), cy = cos(yaw), sy = sin(yaw);
+    out[0] = cy * cp;
+    out[1] = cy * sp * sr - sy * cr;
+    out[2] = cy * sp * cr + sy * sr;
+    out[3] = sy * cp;
+    out[4] = sy * sp * sr + cy * cr;
+    out[5] = sy * sp * cr - cy * sr;
+    out[6] = -sp;
+    out[7] = cp * sr;
+    out[8] = cp * cr;
+}
+
+static inline double clamp_unit(double value) { /* Python's max(-1.0, min(1.0, value)), NaN included */
+    const double low = value < 1.0 ? value : 1.0;
+    return low > -1.0 ? low : -1.0;
+}
+
+static int read_numbers(PyObject *sequence, double *out, Py_ssize_t count) {
+    PyObject *fast = PySequence_Fast(sequence, "a sequence of numbers");
+    if (fast == NULL) {
+        return -1;
+    }
+    int status = PySequence_Fast_GET_SIZE(fast) == count ? 0 : -1;
+    for (Py_ssize_t i = 0; i < count && status == 0; ++i) {
+        out[i] = PyFloat_AsDouble(PySequence_Fast_GET_ITEM(fast, i));
+        if (out[i] == -1.0 && PyErr_Occurred()) {
+            status = -1;
+        }
+    }
+    Py_DECREF(fast);
+    if (status < 0 && !PyErr_Occurred()) {
+        PyErr_SetString(PyExc_ValueError, "imu_sample: a sequence of the wrong length");
+    }
+    return status;
+}
+
+static PyObject *py_imu_sample(PyObject *self, PyObject *args) {
+    double stamp, offset, reset_after, period, gravity, tolerance, max_rate, max_acceleration;
+    PyObject *orientation, *rate_sequence, *acceleration, *last_row, *state_object, *bias_object;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "dOOOOdddddddOO", &stamp, &orientation, &rate_sequence, &acceleration, &last_row,
+                          &offset, &reset_after, &period, &gravity, &tolerance, &max_rate, &max_acceleration,
+                          &state_object, &bias_object)) {
+        return NULL;
+    }
+    double q[4], g[3], a[3], last[13];
+    if (read_numbers(orientation, q, 4) < 0 || read_numbers(rate_sequence, g, 3) < 0 ||
+        read_numbers(acceleration, a, 3) < 0) {
+        return NULL;
+    }
+    const int has_last = last_row != Py_None;
+    if (has_last && read_numbers(last_row, last, 13) < 0) {
+        return NULL;
+    }
+    /* The checks of ImuBuffer.add, in its order; any failing one: None (the Python code says why). */
+    int finite = isfinite(stamp);
+    for (int i = 0; i < 4; ++i) {
+        finite = finite && isfinite(q[i]);
+    }
+    for (int i = 0; i < 3; ++i) {
+        finite = finite && isfinite(g[i]) && isfinite(a[i]);
+    }
+    if (!finite) {
+        Py_RETURN_NONE;
+    }
+    double scale = fabs(q[0]);
+    for (int i = 1; i < 4; ++i) {
+        scale = fabs(q[i]) > scale ? fabs(q[i]) : scale;
+    }
+    /* Python's x ** 2 is libm's pow(x, 2.0), which may differ from x * x in the last bit: the exponent is read
+     * through a volatile so that the compiler does not turn the call into that product. */
+    volatile double two = 2.0;
+    const double norm = scale > 0 ? scale * sqrt(pow(q[0] / scale, two) + pow(q[1] / scale, two) +
+                                                 pow(q[2] / scale, two) + pow(q[3] / scale, two))
+                                   : 0.0;
+    double largest_rate = fabs(g[0]), largest_acceleration = fabs(a[0]);
+    for (int i = 1; i < 3; ++i) {
+        largest_rate = fabs(g[i]) > largest_rate ? fabs(g[i]) : largest_rate;
+        largest_acceleration = fabs(a[i]) > largest_acceleration ? fabs(a[i]) : largest_acceleration;
+    }
+    if (norm < 1e-6 || fabs(norm - 1.0) > tolerance || largest_rate > max_rate ||
+        largest_acceleration > max_acceleration) {
+        Py_RETURN_NONE;
+    }
+    if (offset != 0.0) {
+        stamp -= offset;
+    }
+    if (has_last && (stamp < last[0] - reset_after || stamp <= last[0])) {
+        Py_RETURN_NONE;
+    }
+    Py_buffer state = {0}, bias = {0};
+    if (state_object != Py_None) {
+        if (PyObject_GetBuffer(state_object, &state, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS) < 0) {
+            return NULL;
+        }
+        if (PyObject_GetBuffer(bias_object, &bias, PyBUF_C_CONTIGUOUS) < 0) {
+            PyBuffer_Release(&state);
+            return NULL;
+        }
+        if (state.len != 13 * (Py_ssize_t)sizeof(double) || bias.len != 3 * (Py_ssize_t)sizeof(double)) {
+            PyBuffer_Release(&state);
+            PyBuffer_Release(&bias);
+            PyErr_SetString(PyExc_ValueError, "imu_sample: the gyro state holds 13 float64, its bias 3");
+            return NULL;
+        }
+    }
+    const double qx = q[0] / norm, qy = q[1] / norm, qz = q[2] / norm, qw = q[3] / norm;
+    const double roll = atan2(2.0 * (qw * qx + qy * qz), 1.0 - 2.0 * (qx * qx + qy * qy));
+    const double pitch = asin(clamp_unit(2.0 * (qw * qy - qz * qx)));
+    const double yaw = atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz));
+    double attitude[3] = {roll, pitch, yaw};
+    const int following = has_last && stamp - last[0] < period;
+    if (state.buf != NULL) { /* GyroAttitude.update */
+        double *st = state.buf;
+        const double *b = bias.buf;
+        const double rx = g[0] - b[0], ry = g[1] - b[1], rz = g[2] - b[2];
+        double matrix[9];
+        if (!following || st[12] == 0.0) {
+            matrix_of_rpy(roll, pitch, yaw, matrix);
+        } else {
+            const double dt = stamp - last[0];
+            double step[9];
+            rotation_of_vector(0.5 * (st[9] + rx) * dt, 0.5 * (st[10] + ry) * dt, 0.5 * (st[11] + rz) * dt, step);
+            product3(st, step, matrix);
+        }
+        memcpy(st, matrix, sizeof(matrix));
+        st[9] = rx;
+        st[10] = ry;
+        st[11] = rz;
+        st[12] = 1.0;
+        attitude[0] = atan2(matrix[7], matrix[8]);
+        attitude[1] = asin(clamp_unit(-matrix[6]));
+        attitude[2] = atan2(matrix[3], matrix[0]);
+        PyBuffer_Release(&state);
+        PyBuffer_Release(&bias);
+    }
+    /* Gravity-free acceleration in the body frame, in camera axes, then in the world (ImuBuffer.add). */
+    const double cr = cos(roll), sr = sin(roll), cp = cos(pitch), sp = sin(pitch), cy = cos(yaw), sy = sin(yaw);
+    const double bx = a[1] - sr * cp * gravity, by = a[2] - cr * cp * gravity, bz = a[0] + sp * gravity;
+    const double world[3] = {
+        (cy * cr + sy * sp * sr) * bx + (-cy * sr + sy * sp * cr) * by + sy * cp * bz,
+        cp * sr * bx + cp * cr * by - sp * bz,
+        (-sy * cr + cy * sp * sr) * bx + (sy * sr + cy * sp * cr) * by + cy * cp * bz,
+    };
+    double row[13] = {stamp, attitude[0], attitude[1], attitude[2], 0, 0, 0, 0, 0, 0, 0, 0, 0};
+    if (following) {
+        const double dt = stamp - last[0];
+        for (int k = 0; k < 3; ++k) {
+            row[4 + k] = last[4 + k] + world[k] * dt;
+            row[7 + k] = last[7 + k] + last[4 + k] * dt + world[k] * dt * dt / 2;
+            row[10 + k] = last[10 + k] + g[k] * dt;
+        }
+    } else if (has_last) { /* after a gap: the velocity starts again from 0, the integrals carry on */
+        for (int k = 0; k < 3; ++k) {
+            row[7 + k] = last[7 + k];
+            row[10 + k] = last[10 + k];
+        }
+    }
+    PyObject *result = PyTuple_New(13);
+    if (result == NULL) {
+        return NULL;
+    }
+    for (int i = 0; i < 13; ++i) {
+        PyObject *value = PyFloat_FromDouble(row[i]);
+        if (value == NULL) {
+            Py_DECREF(result);
+            return NULL;
+        }
+        PyTuple_SET_ITEM(result, i, value);
+    }
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"select_features", py_select_features, METH_VARARGS,
      "The greedy edge and flat selection of every sub-region (see the file)."},
@@ -683,6 +895,7 @@ static PyMethodDef methods[] = {
     {"euler_rotate", py_euler_rotate, METH_VARARGS, "rotate_by_euler after its sines and cosines."},
     {"imu_lerp", py_imu_lerp, METH_VARARGS, "The IMU attitude interpolated at given times."},
     {"occluded", py_occluded, METH_VARARGS, "features.occluded_mask in one pass."},
+    {"imu_sample", py_imu_sample, METH_VARARGS, "ImuBuffer.add's common case (see the file)."},
     {NULL, NULL, 0, NULL},
 };
 
