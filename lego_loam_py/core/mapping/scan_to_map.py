@@ -170,6 +170,7 @@ def register_scan_to_map(
     counts = RegistrationCounts()
     pose = np.asarray(initial, dtype=float).copy()
     corner_tree, surf_tree = map_trees(corner_map, surf_map, mo.knn_max_sq_dist) if trees is None else trees
+    last_rows = None  # (rows, weighted residuals, point-to-line count) of the last iteration that had them
     for iteration in range(mo.max_iterations):
         counts.iterations = iteration + 1
         world = pose6_to_matrix(pose)
@@ -183,7 +184,7 @@ def register_scan_to_map(
         if len(coeff) < mo.min_correspondences:
             break  # nothing would change in the next iterations
         a = map_jacobian_rows(points, coeff, pose)
-        counts.information = registration_information(a, coeff[:, 3].astype(np.float64), len(cc))
+        last_rows = a, coeff, len(cc)
         x = degeneracy.step(a, -coeff[:, 3], iteration == 0, mo.degeneracy_threshold)
         counts.degenerate = degeneracy.degenerate
         counts.condition = degeneracy.smallest_eigenvalue
@@ -194,4 +195,7 @@ def register_scan_to_map(
         delta_t = math.sqrt(float(((x[3:] * 100.0) ** 2).sum()))
         if delta_r < mo.convergence_rotation and delta_t < mo.convergence_translation:
             break
+    if last_rows is not None:  # (only the last iteration's information is kept: computed once, here)
+        a, coeff, corners = last_rows
+        counts.information = registration_information(a, coeff[:, 3].astype(np.float64), corners)
     return pose, counts
