@@ -484,7 +484,7 @@ class SweepStartOdometry(LaserOdometry):
         iterations of a block (:meth:`_iterate`'s inner loop) in C, ``theta`` updated in place and ``degeneracy``
         (its first iteration when ``first``) as the loop leaves them; None without the extension or for terms it
         does not take (see native/odometry_kernels.c)."""
-        if _odometry_kernels is None:
+        if _odometry_kernels is None or not 1 <= len(terms) <= 4:
             return None
         packed = []
         for term in terms:
@@ -497,7 +497,9 @@ class SweepStartOdometry(LaserOdometry):
             else:
                 return None
             arrays = (term.xyz, term.s, term.weight, first, second, term.coefficients)
-            if any(not a.flags.c_contiguous for a in arrays) or term.coefficients.dtype != np.float64:
+            if any(not a.flags.c_contiguous for a in arrays) or any(
+                a.dtype != np.float64 for a in (term.xyz, term.s, term.weight, term.coefficients)
+            ):
                 return None
             packed.append((kind, *arrays))
         fa = self.params.feature_association
