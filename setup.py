@@ -45,9 +45,10 @@ def _native(module: str, source: str, vectorised: bool = False, headers: tuple[s
 EXT_MODULES = [
     # libm's atan2f on arrays, and the range-image columns decided mostly without it (parity/)
     _native('_libm_compat', 'libm_compat.c', vectorised=True),
-    _native('_feature_kernels', 'feature_kernels.c'),  # featureAssociation's inner loops (odometry/, imu/buffer.py)
+    # featureAssociation's inner loops (odometry/, imu/buffer.py)
+    _native('_feature_kernels', 'feature_kernels.c', headers=('sweep_jacobian.h',)),
     # the sweep-start odometry's Gauss-Newton blocks (odometry/laser_odometry.py; its own 3x3 linear algebra)
-    _native('_odometry_kernels', 'odometry_kernels.c'),
+    _native('_odometry_kernels', 'odometry_kernels.c', headers=('sweep_jacobian.h',)),
     _native('_voxel_kernels', 'voxel_kernels.c', headers=('radix_sort.h',)),  # the voxel filter in one pass (voxel.py)
     # segment components, ground walk, the laser order's passes (projection/)
     _native('_projection_kernels', 'projection_kernels.c', vectorised=True),

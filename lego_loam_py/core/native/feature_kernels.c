@@ -75,6 +75,8 @@
 #include <math.h>
 #include <string.h>
 
+#include "sweep_jacobian.h"
+
 #if defined(__SSE2__)
 #include <emmintrin.h>
 #endif
@@ -424,39 +426,9 @@ static PyObject *py_sweep_rows(PyObject *self, PyObject *args) {
         const double ux = v[10 * n + i], uy = v[11 * n + i], vz = v[12 * n + i];
         for (Py_ssize_t c = 0; c < m; ++c) {
             const double *row = a + 3 * (i * m + c);
-            const double ax = row[0], ay = row[1], az = row[2];
-            /* coeff^T Ry, then coeff^T Ry Rx (see SweepStartFrame.rows). */
-            const double bx = ax * cy + az * sy, by = ay, bz = -ax * sy + az * cy;
-            const double cx_ = bx, cy_ = by * cx - bz * sx;
             for (Py_ssize_t j = 0; j < k; ++j) {
-                double value, f1, f2;
-                switch (active[j]) {
-                    case 0:
-                        f1 = -sx * uy + cx * qz;
-                        f2 = -cx * uy - sx * qz;
-                        value = by * f1 + bz * f2;
-                        break;
-                    case 1:
-                        f1 = -sy * ux - cy * vz;
-                        f2 = cy * ux - sy * vz;
-                        value = ax * f1 + az * f2;
-                        break;
-                    case 2:
-                        f1 = -sz * qx + cz * qy;
-                        f2 = -cz * qx - sz * qy;
-                        value = cx_ * f1 + cy_ * f2;
-                        break;
-                    case 3:
-                        value = -(cx_ * cz - cy_ * sz);
-                        break;
-                    case 4:
-                        value = -(cx_ * sz + cy_ * cz);
-                        break;
-                    default:
-                        value = -(by * sx + bz * cx);
-                        break;
-                }
-                o[j * stride + i * m + c] = value * s;
+                o[j * stride + i * m + c] = sweep_jacobian_entry((int)active[j], row[0], row[1], row[2], cx, sx, cy, sy,
+                                                                 cz, sz, s, qx, qy, qz, ux, uy, vz);
             }
         }
     }

@@ -33,6 +33,8 @@
 #include <math.h>
 #include <string.h>
 
+#include "sweep_jacobian.h"
+
 #define MAX_TERMS 4
 #define TRIG_SLOTS 2
 
@@ -85,37 +87,6 @@ static const double *term_trig(Term *t, int k, double angle) {
     return out;
 }
 
-/* One Jacobian entry of SweepStartFrame.rows for coefficient row (ax, ay, az) and parameter p (see sweep.c's
- * sweep_rows: the same expressions). */
-static inline double jacobian_entry(int p, double ax, double ay, double az, double cx, double sx, double cy, double sy,
-                                    double cz, double sz, double s, double qx, double qy, double qz, double ux,
-                                    double uy, double vz) {
-    const double bx = ax * cy + az * sy, by = ay, bz = -ax * sy + az * cy;
-    const double cx_ = bx, cy_ = by * cx - bz * sx;
-    double value;
-    switch (p) {
-        case 0:
-            value = by * (-sx * uy + cx * qz) + bz * (-cx * uy - sx * qz);
-            break;
-        case 1:
-            value = ax * (-sy * ux - cy * vz) + az * (cy * ux - sy * vz);
-            break;
-        case 2:
-            value = cx_ * (-sz * qx + cz * qy) + cy_ * (-cz * qx - sz * qy);
-            break;
-        case 3:
-            value = -(cx_ * cz - cy_ * sz);
-            break;
-        case 4:
-            value = -(cx_ * sz + cy_ * cz);
-            break;
-        default:
-            value = -(by * sx + bz * cx);
-            break;
-    }
-    return value * s;
-}
-
 /* The block's cost (sum of squared weighted residuals, the prior's included) at theta; with ata and atb, also the
  * normal equations of its Jacobian over the active parameters (ata row-major 3x3, atb = J^T (-r)). */
 static double evaluate(Term *terms, int n_terms, const double *theta, const int64_t *active, double prior_weight,
@@ -166,7 +137,7 @@ static double evaluate(Term *terms, int n_terms, const double *theta, const int6
                 const double *row = t->coeff + 3 * (i * m + c);
                 double j[3];
                 for (int k = 0; k < 3; ++k) {
-                    j[k] = jacobian_entry((int)active[k], row[0], row[1], row[2], cx, sx, cy, sy, cz, sz, s, qx, qy,
+                    j[k] = sweep_jacobian_entry((int)active[k], row[0], row[1], row[2], cx, sx, cy, sy, cz, sz, s, qx, qy,
                                           qz, ux, uy, vz);
                 }
                 for (int a = 0; a < 3; ++a) {
