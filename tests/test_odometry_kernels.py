@@ -186,3 +186,48 @@ def test_inconsistent_inputs_are_refused():
         _run(np.zeros(6), [])
     with pytest.raises(ValueError, match='term buffer sizes'):
         _run(np.zeros(6), [(3,) + term[1:]])
+
+
+def _term_fields(term):
+    return None if term is None else (term.xyz, term.s, term.weight, term.first, term.second, term.coefficients)
+
+
+@pytest.mark.skipif(
+    not hasattr(laser_odometry._feature_kernels, 'line_term'), reason='the C extension is not built here'
+)
+@pytest.mark.parametrize('seed', range(12))
+def test_line_terms_equal_numpy_bit_for_bit(seed):
+    """The line terms made in C (feature_kernels.c line_term) against _term's NumPy code, bit for bit: sharp points
+    near the lines of a last cloud of 16 rings (some points duplicated, so that a line has no direction; some far
+    off, so that their weight falls below the minimum), weighted or not, from a small estimated motion."""
+    from lego_loam_py.core.odometry.correspondences import LastCloud
+
+    rng = np.random.default_rng(seed)
+    m = 400
+    rings = np.sort(rng.integers(0, 16, m))
+    last = np.empty((m, 4), dtype=np.float32)
+    last[:, :3] = rng.uniform(-20, 20, (m, 3))
+    last[:, 3] = rings + 0.05
+    duplicated = rng.random(m) < 0.1
+    last[1:][duplicated[1:], :3] = last[:-1][duplicated[1:], :3]
+    n = 150
+    source = rng.integers(0, m, n)
+    points = last[source].copy()
+    points[:, :3] += rng.normal(0.0, 0.05, (n, 3)).astype(np.float32) * rng.choice([1.0, 20.0], (n, 1), p=[0.8, 0.2])
+    points[:, 3] = rings[source] + 0.1 * rng.random(n).astype(np.float32)
+    odometry = SweepStartOdometry(Params())
+    odometry.transform_cur = rng.normal(0.0, 0.01, 6)
+    cloud = LastCloud(last, 16)
+    for weighted in (False, True):
+        made = []
+        for native in (False, True):
+            odometry.native = native
+            odometry._prepared_points = {}
+            made.append(_term_fields(odometry._term('corner', points, cloud, weighted, len(points))))
+        numpy_term, native_term = made
+        assert (numpy_term is None) == (native_term is None)
+        if numpy_term is not None:
+            assert len(numpy_term[2]) >= 10
+            for reference, value in zip(numpy_term, native_term):
+                assert reference.shape == value.shape and reference.dtype == value.dtype
+                np.testing.assert_array_equal(value.view(np.int64), reference.view(np.int64))

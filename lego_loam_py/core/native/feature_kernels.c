@@ -63,6 +63,17 @@
  *   float64, or None and None for the orientation field's attitude. The same operations as ImuBuffer.add and
  *   GyroAttitude.update, in their order, with libm's functions (Python's math module calls the same ones).
  *
+ * line_term(start, last, index1, index2, weighted, weight_gain, min_weight, chosen, anchor, along, weight, coeff)
+ *   -> number kept
+ *   The sweep-start odometry's line correspondences made into its residual terms (SweepStartOdometry._term,
+ *   'corner'): for each point i of start (n, >= 3 columns) float32 with index2[i] >= 0 (int64; index1 and index2
+ *   the points of last (m, >= 3) float32 spanning its line), the line's anchor a = last[index1] and unit direction
+ *   (a - b) / |a - b| in float64, the point's perpendicular distance to it, the weight 1 - weight_gain * distance
+ *   (1 unless weighted), and, where that weight exceeds min_weight and the distance and direction are finite,
+ *   writes the point's index to chosen (n,) int64 and, at the same row, anchor and along (n, 3), weight (n,) and
+ *   the weighted projector rows (I - u u^T) w to coeff (n, 3, 3), all float64. NumPy's operations in its order:
+ *   the norms' sums from the first component on, the offsets' dot product as np.einsum's ((x0 + x2) + x1).
+ *
  * occluded(ranges, columns, half_window, column_gap, depth_jump, parallel_ratio, picked)
  *   features.occluded_mask in one pass: ranges (n,) float32, columns (n,) int64; marks picked (n,) bool (zeroed
  *   by the caller) where the NumPy version does, with its dtypes (differences of float32 ranges in float64
@@ -655,6 +666,74 @@ done:
     return result;
 }
 
+static PyObject *py_line_term(PyObject *self, PyObject *args) {
+    Py_buffer b[11];
+    int weighted;
+    double gain, min_weight;
+    long long start_columns, last_columns;
+    (void)self;
+    memset(b, 0, sizeof(b));
+    if (!PyArg_ParseTuple(args, "y*Ly*Ly*y*pddw*w*w*w*w*", &b[0], &start_columns, &b[1], &last_columns, &b[2], &b[3],
+                          &weighted, &gain, &min_weight, &b[4], &b[5], &b[6], &b[7], &b[8])) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    const Py_ssize_t n = b[2].len / 8, f = (Py_ssize_t)sizeof(float), d = (Py_ssize_t)sizeof(double);
+    const Py_ssize_t m = last_columns >= 3 ? b[1].len / (last_columns * f) : -1;
+    if (start_columns < 3 || last_columns < 3 || b[0].len != n * start_columns * f ||
+        b[1].len != m * last_columns * f || b[2].len != n * 8 || b[3].len != n * 8 || b[4].len != n * 8 ||
+        b[5].len != 3 * n * d || b[6].len != 3 * n * d || b[7].len != n * d || b[8].len != 9 * n * d) {
+        PyErr_SetString(PyExc_ValueError, "line_term: inconsistent buffer sizes");
+        goto done;
+    }
+    const float *start = b[0].buf, *last = b[1].buf;
+    const int64_t *index1 = b[2].buf, *index2 = b[3].buf;
+    int64_t *chosen = b[4].buf;
+    double *anchor = b[5].buf, *along = b[6].buf, *weight = b[7].buf, *coeff = b[8].buf;
+    Py_ssize_t kept = 0;
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        if (index2[i] < 0) {
+            continue;
+        }
+        if (index1[i] < 0 || index1[i] >= m || index2[i] >= m) {
+            PyErr_SetString(PyExc_IndexError, "line_term: a line point outside the last cloud");
+            goto done;
+        }
+        const float *pa = last + index1[i] * last_columns, *pb = last + index2[i] * last_columns;
+        const float *p = start + i * start_columns;
+        const double a[3] = {pa[0], pa[1], pa[2]};
+        const double diff[3] = {a[0] - (double)pb[0], a[1] - (double)pb[1], a[2] - (double)pb[2]};
+        const double length = sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2]);
+        const double u[3] = {diff[0] / length, diff[1] / length, diff[2] / length};
+        const double q[3] = {(double)p[0] - a[0], (double)p[1] - a[1], (double)p[2] - a[2]};
+        const double dot = (q[0] * u[0] + q[2] * u[2]) + q[1] * u[1];
+        const double off[3] = {q[0] - dot * u[0], q[1] - dot * u[1], q[2] - dot * u[2]};
+        const double distance = sqrt(off[0] * off[0] + off[1] * off[1] + off[2] * off[2]);
+        const double w = weighted ? 1.0 - gain * fabs(distance) / 1.0 : 1.0;
+        if (!(w > min_weight) || !isfinite(distance) || !isfinite(u[0]) || !isfinite(u[1]) || !isfinite(u[2])) {
+            continue;
+        }
+        chosen[kept] = i;
+        weight[kept] = w;
+        for (int r = 0; r < 3; ++r) {
+            anchor[3 * kept + r] = a[r];
+            along[3 * kept + r] = u[r];
+            for (int c = 0; c < 3; ++c) {
+                coeff[9 * kept + 3 * r + c] = ((r == c ? 1.0 : 0.0) - u[r] * u[c]) * w;
+            }
+        }
+        ++kept;
+    }
+    result = PyLong_FromSsize_t(kept);
+done:
+    for (int i = 0; i < 9; ++i) {
+        if (b[i].obj != NULL) {
+            PyBuffer_Release(&b[i]);
+        }
+    }
+    return result;
+}
+
 /* out = a @ b for row-major 3x3 matrices, each entry summed over k = 0, 1, 2 in that order (gyro.py's _product). */
 static void product3(const double *a, const double *b, double *out) {
     for (int i = 0; i < 3; ++i) {
@@ -868,6 +947,7 @@ static PyMethodDef methods[] = {
     {"imu_lerp", py_imu_lerp, METH_VARARGS, "The IMU attitude interpolated at given times."},
     {"occluded", py_occluded, METH_VARARGS, "features.occluded_mask in one pass."},
     {"imu_sample", py_imu_sample, METH_VARARGS, "ImuBuffer.add's common case (see the file)."},
+    {"line_term", py_line_term, METH_VARARGS, "The sweep-start odometry's line terms (see the file)."},
     {NULL, NULL, 0, NULL},
 };
 

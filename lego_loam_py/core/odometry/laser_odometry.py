@@ -66,6 +66,10 @@ try:  # a block's Gauss-Newton iterations in one call (native/odometry_kernels.c
     from lego_loam_py.core import _odometry_kernels
 except ImportError:
     _odometry_kernels = None
+try:  # the line terms in one pass (native/feature_kernels.c); optional, NumPy gives the same
+    from lego_loam_py.core import _feature_kernels
+except ImportError:
+    _feature_kernels = None
 
 __all__ = ['LaserOdometry', 'OriginalOdometry', 'SweepStartOdometry', 'make_laser_odometry', 'OdometryStats']
 
@@ -570,6 +574,9 @@ class SweepStartOdometry(LaserOdometry):
             anchors = (normal, offset)
         else:
             match = find_corner_correspondences(start, last, self.params, bound)
+            if self.native and hasattr(_feature_kernels, 'line_term'):
+                made = self._line_terms(start, last, match, weighted)
+                return None if made is None else self._made_term(kind, xyz, s, *made)
             usable = np.flatnonzero(match.index2 >= 0)
             a = xyz_columns(select_rows(last.points, match.index1[usable]))
             b = xyz_columns(select_rows(last.points, match.index2[usable]))
@@ -592,6 +599,11 @@ class SweepStartOdometry(LaserOdometry):
         else:
             # Rows of the projector I - u u^T, weighted: the coefficients of the three residual components.
             coefficients = (np.eye(3)[None, :, :] - second[:, :, None] * second[:, None, :]) * weight[:, None, None]
+        return self._made_term(kind, xyz, s, chosen, first, second, weight, coefficients)
+
+    @staticmethod
+    def _made_term(kind, xyz, s, chosen, first, second, weight, coefficients) -> _Term:
+        """The term of the points ``chosen`` among the stage's (their coordinates ``xyz`` (3, n) and times ``s``)."""
         s = s[chosen]
         return _Term(
             'surf' if kind == 'wall' else kind,
@@ -604,6 +616,35 @@ class SweepStartOdometry(LaserOdometry):
             kind == 'wall',
             SweepTrig(s),
         )
+
+    def _line_terms(self, start: np.ndarray, last: LastCloud, match, weighted: bool):
+        """:meth:`_term`'s lines from the correspondences ``match`` in one pass (native/feature_kernels.c
+        ``line_term``, NumPy's operations in its order): (chosen, anchors, directions, weights, coefficients), or
+        None when no line is usable."""
+        fa = self.params.feature_association
+        n = len(start)
+        chosen, weight = np.empty(n, dtype=np.int64), np.empty(n)
+        anchor, along, coefficients = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3, 3))
+        points = np.ascontiguousarray(last.points)
+        kept = _feature_kernels.line_term(
+            start,
+            start.shape[1],
+            points,
+            points.shape[1],
+            np.ascontiguousarray(match.index1, dtype=np.int64),
+            np.ascontiguousarray(match.index2, dtype=np.int64),
+            weighted,
+            float(fa.weight_gain),
+            float(fa.min_weight),
+            chosen,
+            anchor,
+            along,
+            weight,
+            coefficients,
+        )
+        if not kept:
+            return None
+        return chosen[:kept], anchor[:kept], along[:kept], weight[:kept], coefficients[:kept]
 
     def _prepared(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, SweepTrig]:
         """(xyz (3, n) float64, relative times s (n,) float64, their :class:`SweepTrig`) of a stage's points, as
