@@ -667,7 +667,7 @@ done:
 }
 
 static PyObject *py_line_term(PyObject *self, PyObject *args) {
-    Py_buffer b[11];
+    Py_buffer b[9];
     int weighted;
     double gain, min_weight;
     long long start_columns, last_columns;
@@ -709,7 +709,7 @@ static PyObject *py_line_term(PyObject *self, PyObject *args) {
         const double dot = (q[0] * u[0] + q[2] * u[2]) + q[1] * u[1];
         const double off[3] = {q[0] - dot * u[0], q[1] - dot * u[1], q[2] - dot * u[2]};
         const double distance = sqrt(off[0] * off[0] + off[1] * off[1] + off[2] * off[2]);
-        const double w = weighted ? 1.0 - gain * fabs(distance) / 1.0 : 1.0;
+        const double w = weighted ? 1.0 - gain * fabs(distance) / 1.0 : 1.0; /* (/ 1.0: _term's scale of lines) */
         if (!(w > min_weight) || !isfinite(distance) || !isfinite(u[0]) || !isfinite(u[1]) || !isfinite(u[2])) {
             continue;
         }

@@ -392,7 +392,7 @@ class SweepStartOdometry(LaserOdometry):
         setattr(stats, f'{kind}_correspondences', residual.points)
         if residual.points < self.params.feature_association.min_correspondences:
             return 1, first
-        if self.native and residual.block is not None:
+        if residual.block is not None:
             done, smallest = residual.block(self.transform_cur, count, first, stage.degeneracy)
         else:
             done, smallest = self._numpy_block(stage, residual, count, first)
@@ -480,7 +480,7 @@ class SweepStartOdometry(LaserOdometry):
         residual.points = sum(term.points for term in terms)
         residual.walls = any(term.wall for term in terms)
         residual.information = information
-        residual.block = self._native_block(terms, active)
+        residual.block = self._native_block(terms, active) if self.native else None
         return residual
 
     def _native_block(self, terms: list[_Term], active: list[int]):
