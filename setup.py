@@ -48,11 +48,12 @@ EXT_MODULES = [
     # featureAssociation's inner loops (odometry/, imu/buffer.py)
     _native('_feature_kernels', 'feature_kernels.c', headers=('sweep_jacobian.h',)),
     # the sweep-start odometry's Gauss-Newton blocks (odometry/laser_odometry.py; its own 3x3 linear algebra)
-    _native('_odometry_kernels', 'odometry_kernels.c', headers=('sweep_jacobian.h',)),
+    _native('_odometry_kernels', 'odometry_kernels.c', headers=('sweep_jacobian.h', 'symmetric_eigen.h')),
     _native('_voxel_kernels', 'voxel_kernels.c', headers=('radix_sort.h',)),  # the voxel filter in one pass (voxel.py)
     # segment components, ground walk, the laser order's passes (projection/)
     _native('_projection_kernels', 'projection_kernels.c', vectorised=True),
-    _native('_geometry_kernels', 'geometry_kernels.c'),  # plane fits through neighbourhoods (geometry.py)
+    # plane and line fits through neighbourhoods, the grid's neighbour searches (geometry.py)
+    _native('_geometry_kernels', 'geometry_kernels.c', headers=('symmetric_eigen.h',)),
     # the occupancy grid's disk update and a keyframe's classification (mapping/occupancy_grid.py, occupancy_ground.py)
     _native('_occupancy_kernels', 'occupancy_kernels.c', vectorised=True, headers=('radix_sort.h',)),
 ]

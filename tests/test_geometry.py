@@ -1,6 +1,6 @@
 """The closed-form affine least squares the ground fits use (core.geometry.affine_fit) against NumPy's lstsq; the
-plane fits through neighbourhoods in C (fit_planes_at, native/geometry_kernels.c) against their NumPy version, and
-the grid search for neighbours (GridNeighbours) against cKDTree."""
+plane and line fits through neighbourhoods in C (fit_planes_at, line_fits_at, native/geometry_kernels.c) against
+their NumPy versions, and the grid search for neighbours (GridNeighbours) against cKDTree."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from lego_loam_py.core.geometry import (
     affine_fit,
     fit_planes,
     fit_planes_at,
+    line_fits_at,
     nearest_within,
     pairs_within,
     squared_lengths,
@@ -146,6 +147,63 @@ def test_a_distance_at_the_bound_is_decided_as_numpy_decides_it():
         assert _same_bits(fit_planes_at(points, index, bound), fit_planes(neighbours, bound))
     assert rows[7] in fit_planes_at(points, index, distances[7])[0]
     assert rows[7] not in fit_planes_at(points, index, np.nextafter(distances[7], 0.0))[0]
+
+
+@pytest.mark.parametrize('native', [True, False], ids=['c_kernel', 'numpy'])
+def test_points_along_a_line_give_its_direction_and_centroid(native):
+    """Five points on the line through (10, -4, 1) along (1, 2, 2) / 3, two metres apart: a line, its centroid the
+    middle point, its direction that of the line (either sign); a cross of five points 2 m apart along that line and
+    across it spreads as much across as along (no line); one point repeated has no direction (no line)."""
+    if native and geometry._geometry_kernels is None:
+        pytest.skip('the C extension is not built here')
+    along = np.array([1.0, 2.0, 2.0]) / 3.0
+    line = np.array([10.0, -4.0, 1.0]) + np.outer([-4.0, -2.0, 0.0, 2.0, 4.0], along)
+    across = np.array([2.0, -2.0, 1.0]) / 3.0  # (perpendicular to along)
+    cross = line[2] + np.array([[0.0, 0.0], [2.0, 0.0], [-2.0, 0.0], [0.0, 2.0], [0.0, -2.0]]) @ [along, across]
+    points = np.concatenate([line, cross, np.ones((5, 3))])
+    points = np.concatenate([points, np.full((len(points), 1), 7.0)], axis=1).astype(np.float32)
+    index = np.arange(15).reshape(3, 5)
+    rows, centroid, direction = line_fits_at(points, index, 3.0, native=native)
+    assert rows.tolist() == [0]
+    assert centroid[0] == pytest.approx(points[2, :3], abs=1e-6)
+    assert np.abs(direction[0] @ along) == pytest.approx(1.0, abs=1e-12)
+    assert np.linalg.norm(direction[0]) == pytest.approx(1.0, abs=1e-12)
+
+
+@needs_kernel
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(2, 8), st.sampled_from([0.01, 0.3, 5.0]), st.sampled_from([1.0, 3.0]))
+def test_the_line_kernel_equals_numpy(seed, k, spread, eigen_ratio):
+    """Lines, planes and blobs 60 m from the origin, repeated points, a fourth column: the same neighbourhoods
+    found to lie along a line, the centroids bit for bit, the directions LAPACK's to 1e-12 (either sign)."""
+    rng = np.random.default_rng(seed)
+    n = 400
+    points = rng.standard_normal((n, 4)) * spread + np.append(rng.uniform(-60, 60, 3), 0.0)
+    linear = rng.random(n) < 0.5
+    points[linear, 1:3] = points[linear, :1] * [0.3, -0.2] + rng.standard_normal((linear.sum(), 2)) * 0.01 * spread
+    points = points.astype(np.float32)
+    index = rng.integers(0, n, (300, k))
+    index[:10] = index[:10, :1]  # one point repeated: no spread at all
+    index[10:150] = np.flatnonzero(linear)[rng.integers(0, linear.sum(), (140, k))]  # along a line
+    rows, centroid, direction = line_fits_at(points, index, eigen_ratio)
+    expected_rows, expected_centroid, expected_direction = line_fits_at(points, index, eigen_ratio, native=False)
+    centred = points[index, :3].astype(np.float64)
+    centred -= centred.mean(axis=1)[:, None]
+    values = np.linalg.eigvalsh(np.einsum('mki,mkj->mij', centred, centred) / k)
+    differing = np.setxor1d(rows, expected_rows)  # only where the ratio ties, to rounding
+    assert (np.abs(values[differing, 2] - eigen_ratio * values[differing, 1]) <= 1e-9 * values[differing, 2]).all()
+    _, mine, theirs = np.intersect1d(rows, expected_rows, return_indices=True)
+    assert np.array_equal(centroid[mine], expected_centroid[theirs])
+    cosines = np.abs(np.einsum('ij,ij->i', direction[mine], expected_direction[theirs]))
+    assert (1.0 - cosines).max(initial=0.0) < 1e-12
+    assert len(rows) > 0
+
+
+@needs_kernel
+def test_the_line_kernel_refuses_an_index_out_of_range():
+    points = np.zeros((4, 3), np.float32)
+    with pytest.raises(IndexError):
+        line_fits_at(points, np.array([[0, 1, 4]]), 3.0)
 
 
 @needs_kernel

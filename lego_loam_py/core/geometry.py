@@ -26,6 +26,7 @@ __all__ = [
     'pairs_within',
     'fit_planes',
     'fit_planes_at',
+    'line_fits_at',
     'principal_spreads',
     'line_offsets',
     'cross_rows',
@@ -306,6 +307,46 @@ def fit_planes_at(
         along, across = _principal_spreads(select_rows(moments, rows)[:, 6:] / k, xx, yy, zz, xy, xz, yz)
         rows = rows[across >= min_aspect * along]
     return rows, select_rows(normal, rows), offset[rows]
+
+
+def line_fits_at(points: np.ndarray, index: np.ndarray, eigen_ratio: float, native: bool = True):
+    """The neighbourhoods ``points[index, :3]`` ((n, >= 3) points [m], (m, k) indices into them) that lie along a
+    line: (their indices (j,), centroids (j, 3) [m], unit directions (j, 3), each with an arbitrary sign), a
+    neighbourhood's largest covariance eigenvalue exceeding ``eigen_ratio`` times its middle one.
+
+    In one C pass over the neighbours (``native/geometry_kernels.c``, its own 3x3 eigen decomposition) when it is
+    built and the points are float32, without the (m, k, 3) float64 copy: the centroids bit for bit, the
+    directions LAPACK's to rounding; else with NumPy (``np.linalg.eigh``, some 1.2 us a neighbourhood)."""
+    index = np.asarray(index)
+    if not (
+        native
+        and _geometry_kernels is not None
+        and points.dtype == _F32
+        and points.ndim == 2
+        and points.shape[1] >= 3
+        and index.ndim == 2
+        and len(index)
+    ):
+        neighbours = select_rows(points, index)[..., :3].astype(np.float64)
+        centroid = neighbours.mean(axis=1)
+        centred = neighbours - centroid[:, None, :]
+        values, vectors = np.linalg.eigh(np.einsum('mki,mkj->mij', centred, centred) / index.shape[1])  # ascending
+        rows = np.flatnonzero(values[:, 2] > eigen_ratio * values[:, 1])
+        return rows, centroid[rows], vectors[rows, :, 2]
+    m, k = index.shape
+    centroid, direction, status = np.empty((m, 3)), np.empty((m, 3)), np.empty(m, dtype=np.uint8)
+    _geometry_kernels.line_fits(
+        np.ascontiguousarray(points),
+        points.shape[1],
+        np.ascontiguousarray(index, dtype=np.int64),
+        k,
+        float(eigen_ratio),
+        centroid,
+        direction,
+        status,
+    )
+    rows = np.flatnonzero(status)
+    return rows, select_rows(centroid, rows), select_rows(direction, rows)
 
 
 def principal_spreads(neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -31,7 +31,7 @@ from lego_loam_py.core.frames import (
     transform_points,
 )
 from lego_loam_py.core.gauss_newton import DegeneracyProjection, residual_information
-from lego_loam_py.core.geometry import GridNeighbours, fit_planes_at, line_coefficients
+from lego_loam_py.core.geometry import GridNeighbours, fit_planes_at, line_coefficients, line_fits_at
 from lego_loam_py.core.indexing import select_rows, xyz_columns
 from lego_loam_py.core.params.types import Params
 
@@ -63,25 +63,14 @@ def map_jacobian_rows(points: np.ndarray, coeff: np.ndarray, pose6: np.ndarray) 
     return rows
 
 
-def _neighbourhoods(points_world: np.ndarray, tree: GridNeighbours, map_points: np.ndarray, mo):
-    """(indices of the points whose ``knn`` nearest map points all lie within the gate, those neighbours
-    (m, k, 3) float64), see :func:`~lego_loam_py.core.geometry.nearest_within`."""
-    used, index = tree.nearest_within(points_world, mo.knn, mo.knn_max_sq_dist)
-    return used, select_rows(map_points, index)[..., :3].astype(np.float64)
-
-
 def edge_correspondences(points_world: np.ndarray, tree: GridNeighbours, map_points: np.ndarray, params: Params):
     """Point-to-line coefficients: (index of used points, coeff (m, 4) = s·gradient, s·distance)."""
     mo = params.map_optimization
     if len(points_world) == 0 or tree is None:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 4))
-    used, neighbours = _neighbourhoods(points_world, tree, map_points, mo)
-    centroid = neighbours.mean(axis=1)
-    centred = neighbours - centroid[:, None, :]
-    covariance = np.einsum('mki,mkj->mij', centred, centred) / mo.knn
-    values, vectors = np.linalg.eigh(covariance)  # ascending
-    is_line = values[:, 2] > mo.edge_eigen_ratio * values[:, 1]
-    used, centroid, direction = used[is_line], centroid[is_line], vectors[is_line, :, 2]
+    used, index = tree.nearest_within(points_world, mo.knn, mo.knn_max_sq_dist)
+    lines, centroid, direction = line_fits_at(map_points, index, mo.edge_eigen_ratio)
+    used = used[lines]
     a = centroid + mo.line_half_length * direction
     b = centroid - mo.line_half_length * direction
     gradient, dist = line_coefficients(select_rows(points_world, used), a.astype(_F32), b.astype(_F32))

@@ -18,6 +18,14 @@
  *   SIMD build, so the caller decides those few with NumPy itself. Returns None; raises IndexError for an index
  *   out of range (nothing usable written). Runs without the GIL.
  *
+ * line_fits(points, columns, index, k, eigen_ratio, centroids, directions, status)
+ *   points and index as for plane_fits. For each neighbourhood, with its points taken as float64: the centroid (the
+ *   coordinates summed neighbour by neighbour, divided by k, as NumPy's mean over axis 1), the covariance of the
+ *   centred points (divided by k) and its eigen decomposition (symmetric_eigen.h; LAPACK's to rounding, not bit for
+ *   bit). Writes centroids (m, 3) and directions (m, 3) float64 (the unit eigenvector of the largest eigenvalue;
+ *   its sign is arbitrary) and status (m,) uint8: 1 when the largest eigenvalue exceeds eigen_ratio times the
+ *   middle one (the neighbours lie along a line), else 0. Returns None; raises IndexError for an index out of
+ *   range. Runs without the GIL.
  * grid_extent(points, columns, cell) -> ((i0, j0, k0), (i1, j1, k1)) or None
  *   The lowest and highest cubic cell of side `cell` [m] of the points (n, columns >= 3) float32, a cell being
  *   floor(coordinate / cell) per axis in float64; None when a coordinate is not finite or absurdly far.
@@ -53,6 +61,8 @@
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
+
+#include "symmetric_eigen.h"
 
 #define UNDECIDED_M 1e-9 /* a residual this close to the bound [m] is decided by the caller */
 
@@ -173,6 +183,98 @@ done:
     PyBuffer_Release(&normals);
     PyBuffer_Release(&offsets);
     PyBuffer_Release(&moments);
+    PyBuffer_Release(&status);
+    return result;
+}
+
+static int line_fit(const float *points, Py_ssize_t columns, Py_ssize_t n, const int64_t *index, Py_ssize_t m,
+                    Py_ssize_t k, double eigen_ratio, double *centroids, double *directions, uint8_t *status) {
+    for (Py_ssize_t row = 0; row < m; ++row) {
+        const int64_t *neighbours = index + row * k;
+        for (Py_ssize_t j = 0; j < k; ++j) {
+            if (neighbours[j] < 0 || neighbours[j] >= n) return -1;
+        }
+        double sx = 0.0, sy = 0.0, sz = 0.0;
+        for (Py_ssize_t j = 0; j < k; ++j) {
+            const float *p = points + neighbours[j] * columns;
+            if (j == 0) {
+                sx = (double)p[0];
+                sy = (double)p[1];
+                sz = (double)p[2];
+            } else {
+                sx += (double)p[0];
+                sy += (double)p[1];
+                sz += (double)p[2];
+            }
+        }
+        const double cx = sx / (double)k, cy = sy / (double)k, cz = sz / (double)k;
+        double covariance[9] = {0.0};
+        for (Py_ssize_t j = 0; j < k; ++j) {
+            const float *p = points + neighbours[j] * columns;
+            const double dx = (double)p[0] - cx, dy = (double)p[1] - cy, dz = (double)p[2] - cz;
+            covariance[0] += dx * dx;
+            covariance[1] += dx * dy;
+            covariance[2] += dx * dz;
+            covariance[4] += dy * dy;
+            covariance[5] += dy * dz;
+            covariance[8] += dz * dz;
+        }
+        for (int i = 0; i < 9; ++i) covariance[i] /= (double)k;
+        covariance[3] = covariance[1];
+        covariance[6] = covariance[2];
+        covariance[7] = covariance[5];
+        double values[3], vectors[9];
+        symmetric_eigen(covariance, values, vectors);
+        double *centroid = centroids + row * 3, *direction = directions + row * 3;
+        centroid[0] = cx;
+        centroid[1] = cy;
+        centroid[2] = cz;
+        direction[0] = vectors[2];
+        direction[1] = vectors[5];
+        direction[2] = vectors[8];
+        status[row] = values[2] > eigen_ratio * values[1];
+    }
+    return 0;
+}
+
+static PyObject *py_line_fits(PyObject *self, PyObject *args) {
+    Py_buffer points, index, centroids, directions, status;
+    Py_ssize_t columns, k;
+    double eigen_ratio;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*ny*ndw*w*w*", &points, &columns, &index, &k, &eigen_ratio, &centroids,
+                          &directions, &status)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    const Py_ssize_t row_bytes = columns * (Py_ssize_t)sizeof(float);
+    if (columns < 3 || k < 1 || points.len % row_bytes != 0 || index.len % (k * (Py_ssize_t)sizeof(int64_t)) != 0) {
+        PyErr_SetString(PyExc_ValueError, "line_fits: points must be (n, columns >= 3) float32, index (m, k) int64");
+        goto done;
+    }
+    const Py_ssize_t n = points.len / row_bytes;
+    const Py_ssize_t m = index.len / (k * (Py_ssize_t)sizeof(int64_t));
+    if (centroids.len != m * 3 * (Py_ssize_t)sizeof(double) || directions.len != m * 3 * (Py_ssize_t)sizeof(double) ||
+        status.len != m) {
+        PyErr_SetString(PyExc_ValueError, "line_fits: outputs must be (m, 3), (m, 3) float64 and (m,) uint8");
+        goto done;
+    }
+    int code;
+    Py_BEGIN_ALLOW_THREADS
+    code = line_fit((const float *)points.buf, columns, n, (const int64_t *)index.buf, m, k, eigen_ratio,
+                    (double *)centroids.buf, (double *)directions.buf, (uint8_t *)status.buf);
+    Py_END_ALLOW_THREADS
+    if (code != 0) {
+        PyErr_SetString(PyExc_IndexError, "line_fits: a neighbour index is out of range");
+        goto done;
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyBuffer_Release(&points);
+    PyBuffer_Release(&index);
+    PyBuffer_Release(&centroids);
+    PyBuffer_Release(&directions);
     PyBuffer_Release(&status);
     return result;
 }
@@ -650,6 +752,7 @@ done:
 
 static PyMethodDef methods[] = {
     {"plane_fits", py_plane_fits, METH_VARARGS, "Least-squares planes through neighbourhoods (see the file)."},
+    {"line_fits", py_line_fits, METH_VARARGS, "Principal directions of neighbourhoods (see the file)."},
     {"grid_extent", py_grid_extent, METH_VARARGS, "The cells a point set spans (see the file)."},
     {"grid_fill", py_grid_fill, METH_VARARGS, "Sorts points by cell (see the file)."},
     {"grid_nearest", py_grid_nearest, METH_VARARGS, "k nearest points of each query (see the file)."},
