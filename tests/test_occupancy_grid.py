@@ -170,6 +170,32 @@ def test_the_map_frame_is_camera_init_in_rep103_axes():
     assert np.allclose(occupied[:, 1], WALL_X) and np.abs(occupied[:, 0]).max() < WALL_HALF
 
 
+def test_a_keyframes_points_are_its_three_clouds_in_lidar_axes_without_the_non_finite_ones():
+    """Corner, surf and outlier points (camera axes, an intensity column) in that order, in lidar axes (x = camera
+    z, y = camera x, z = camera y); a point with NaN or inf in any coordinate is left out, the others kept."""
+    corner = np.array([[1.0, 2.0, 3.0, 0.5]], np.float32)
+    surf = np.array([[4.0, 5.0, 6.0, 0.5], [np.nan, 0.0, 1.0, 0.5], [7.0, 8.0, 9.0, 0.5]], np.float32)
+    outlier = np.array([[1.0, np.inf, 1.0, 0.5], [-1.0, -2.0, -3.0, np.nan]], np.float32)
+    frame = type('Keyframe', (), {'corner': corner, 'surf': surf, 'outlier': outlier})
+    points = grid_module.keyframe_points(frame)
+    assert points.dtype == np.float32 and points.flags.c_contiguous
+    assert points.tolist() == [[3.0, 1.0, 2.0], [6.0, 4.0, 5.0], [9.0, 7.0, 8.0], [-3.0, -1.0, -2.0]]
+    frame.outlier = outlier[1:]
+    assert grid_module.keyframe_points(frame).tolist() == [
+        [3.0, 1.0, 2.0],
+        [6.0, 4.0, 5.0],
+        [9.0, 7.0, 8.0],
+        [-3.0, -1.0, -2.0],
+    ]
+    frame.surf = surf[::2]  # all finite
+    assert grid_module.keyframe_points(frame).tolist() == [
+        [3.0, 1.0, 2.0],
+        [6.0, 4.0, 5.0],
+        [9.0, 7.0, 8.0],
+        [-3.0, -1.0, -2.0],
+    ]
+
+
 def test_a_keyframe_without_a_finite_pose_or_too_far_is_refused_and_the_grid_kept(two_views):
     grid = OccupancyGrid(OccupancyGridParams(max_cells=2_000_000))
     grid.add_keyframe(two_views[0])

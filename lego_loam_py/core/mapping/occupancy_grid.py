@@ -145,7 +145,10 @@ def keyframe_points(keyframe) -> np.ndarray:
             [c[:, :3] for c in clouds if c.ndim == 2 and c.shape[1] >= 3 and len(c)] or [np.zeros((0, 3), np.float32)]
         )
     )
-    return np.ascontiguousarray(points[np.isfinite(points).all(axis=1)])
+    if np.isfinite(points).all():  # (the usual case, in one pass: a row-wise test over (n, 3) costs 30 times more)
+        return np.ascontiguousarray(points)
+    finite = np.isfinite(points[:, 0]) & np.isfinite(points[:, 1]) & np.isfinite(points[:, 2])
+    return np.ascontiguousarray(points[finite])
 
 
 def _logit(p: float) -> float:
@@ -395,7 +398,7 @@ class OccupancyGrid:
         size = 2 * disk.reach + 1
         hit = np.zeros(disk.ranges.shape, bool)
         cells = np.floor(obstacles / p.resolution).astype(np.int64) - self._corner - (x0, y0)
-        inside = ((cells >= 0) & (cells < size)).all(axis=1)
+        inside = (cells[:, 0] >= 0) & (cells[:, 0] < size) & (cells[:, 1] >= 0) & (cells[:, 1] < size)
         hit[cells[inside, 1], cells[inside, 0]] = True
         _update_window(self._log_odds, self._observed, (x0, y0), disk, free_range, hit, p, self.native)
         self.keyframes_added += 1
