@@ -271,7 +271,8 @@ def test_native_imu_rotation_equals_rotate_by_euler(data):
 @given(st.data())
 def test_native_imu_attitude_equals_numpy(data):
     """ImuBuffer.attitude's C interpolation against the NumPy bracketing and interpolation, bit for bit: repeated
-    stamps, yaw across +-pi, times before, between, on and beyond the samples (carried on), NaN."""
+    stamps, yaw across +-pi, times before, between, on and beyond the samples (carried on at the newest rates,
+    again after newer samples came), in any order and ascending, NaN."""
     from lego_loam_py.core.imu.buffer import ImuBuffer
 
     rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
@@ -283,13 +284,21 @@ def test_native_imu_attitude_equals_numpy(data):
     rows[:, 3] = rng.uniform(-np.pi, np.pi, m)
     rows[rng.random(m) < 0.2, 1] = 0.0
     buffer._rows.extend(tuple(row) for row in rows.tolist())
-    times = 100.0 + rng.uniform(-0.02, 0.2, int(rng.integers(0, 30)))
-    exact = rng.random(len(times)) < 0.2
-    times[exact] = stamps[rng.integers(0, m, int(exact.sum()))]
-    times[rng.random(len(times)) < 0.05] = np.nan
-    native = np.array(buffer.attitude(times))
-    reference = np.array(buffer.attitude(times, native=False))
-    np.testing.assert_array_equal(native.view(np.int64), reference.view(np.int64))
+    for _ in range(2):  # (then with newer samples: the newest rates the carrying on uses change)
+        times = 100.0 + rng.uniform(-0.02, 0.2, int(rng.integers(0, 30)))
+        exact = rng.random(len(times)) < 0.2
+        times[exact] = stamps[rng.integers(0, m, int(exact.sum()))]
+        if rng.random() < 0.5:  # ascending, as a sweep's times mostly are (each bracket tried from the last)
+            times.sort()
+        times[rng.random(len(times)) < 0.05] = np.nan
+        native = np.array(buffer.attitude(times))
+        reference = np.array(buffer.attitude(times, native=False))
+        np.testing.assert_array_equal(native.view(np.int64), reference.view(np.int64))
+        newer = rng.normal(0.0, 1.0, (3, 13))
+        newer[:, 0] = stamps[-1] + np.sort(rng.uniform(0.0, 0.05, 3))
+        buffer._rows.extend(tuple(row) for row in newer.tolist())
+        buffer._appended += 3
+        stamps = np.concatenate([stamps, newer[:, 0]])
 
 
 @pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')

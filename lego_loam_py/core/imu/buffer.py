@@ -225,6 +225,7 @@ class ImuBuffer:
         self._rows: deque[tuple[float, ...]] = deque(maxlen=self.capacity)
         self._arrays: np.ndarray | None = None
         self._appended = 0  # rows appended since _arrays was built
+        self._rate, self._rate_table = None, None  # _newest_rate() of the table _rate_table (see attitude)
         self._behind: list[float] = []  # stamps of the samples rejected in a row as older than the newest
         self.rejected: dict[str, int] = {}
         self.accepted = 0  # samples taken since the buffer was made (a clear keeps the count)
@@ -504,13 +505,16 @@ class ImuBuffer:
 
     def attitude(self, times: np.ndarray, native: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(roll, pitch, yaw) of :meth:`interpolate`, without the other quantities (deskewing needs only these). The
-        bracketing and interpolation in C when the extension is built (one pass instead of some thirty NumPy calls,
-        several times a scan); ``native=False`` runs the NumPy version (the tests compare the two)."""
+        bracketing, interpolation and carrying on in C when the extension is built (one pass instead of some
+        thirty NumPy calls, several times a scan); ``native=False`` runs the NumPy version (the tests compare the
+        two)."""
         times = np.atleast_1d(np.asarray(times, dtype=float))
         if native and hasattr(_feature_kernels, 'imu_lerp') and times.ndim == 1 and len(self._rows):
             rpy = np.empty((len(times), 3))
-            _feature_kernels.imu_lerp(self._table(), np.ascontiguousarray(times), rpy)
-            self._carry_on(rpy, times)
+            table = self._table()
+            if self._rate_table is not table:  # (the newest samples' rates: once per table, for a scan's calls)
+                self._rate, self._rate_table = self._newest_rate(), table
+            _feature_kernels.imu_lerp(table, np.ascontiguousarray(times), rpy, MAX_REACH, STAMP_ROUNDING, self._rate)
         else:
             rpy = self._lerp_attitude(*self._bracket(times), times)
         return rpy[:, 0], rpy[:, 1], rpy[:, 2]

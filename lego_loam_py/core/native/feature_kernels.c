@@ -47,11 +47,14 @@
  *   (left @ Ry Rx Rz) @ p in rotate_by_euler's order (the entries of Ry Rx Rz, left @ them summed j = 0, 1, 2,
  *   then (x + z) + y + 0.0).
  *
- * imu_lerp(table, times, out)
- *   ImuBuffer._bracket and _lerp_attitude (without the carrying on beyond the newest sample) in one pass: table
- *   (m >= 1, 13) float64 the buffer's rows (time, roll, pitch, yaw, ...), times (n,) float64; writes out (n, 3)
- *   float64 roll, pitch, yaw. NumPy's semantics throughout: searchsorted's order puts NaN last, clip keeps NaN
- *   and -0.0, the yaw unwrapped as the where()s do.
+ * imu_lerp(table, times, out, max_reach, stamp_rounding, rate)
+ *   ImuBuffer._bracket, _lerp_attitude and _carry_on in one pass: table (m >= 1, 13) float64 the buffer's rows
+ *   (time, roll, pitch, yaw, ...), times (n,) float64, rate (3,) float64 the newest rates of roll, pitch and yaw;
+ *   writes out (n, 3) float64 roll, pitch, yaw. NumPy's semantics throughout: searchsorted's order puts NaN last
+ *   (each time's bracket tried first where the previous one's ended: times mostly ascend), clip keeps NaN and
+ *   -0.0, the yaw unwrapped as the where()s do; when a time lies more than stamp_rounding beyond the newest
+ *   sample, every row gets rate times its reach beyond it (at most max_reach; 0 for the others) added, as
+ *   _carry_on's arrays do.
  *
  * imu_sample(stamp, orientation, rate, acceleration, last, time_offset, reset_after, scan_period, gravity,
  *            quaternion_tolerance, max_rate, max_acceleration, gyro_state, gyro_bias)
@@ -564,34 +567,55 @@ done:
 /* NumPy's sort order for searchsorted: a < b, and NaN after every number. */
 static inline int numpy_less(double a, double b) { return a < b || (b != b && a == a); }
 
+/* np.minimum(t - newest, max_reach): NaN stays NaN. */
+static inline double reach_beyond(double t, double newest, double max_reach) {
+    const double ahead = t - newest;
+    return ahead != ahead || ahead < max_reach ? ahead : max_reach;
+}
+
+/* searchsorted(side='left') of t in the table's times: the first row not before t. */
+static inline int left_of(const double *rows, Py_ssize_t m, Py_ssize_t at, double t) {
+    return (at == 0 || numpy_less(rows[13 * (at - 1)], t)) && (at == m || !numpy_less(rows[13 * at], t));
+}
+
 static PyObject *py_imu_lerp(PyObject *self, PyObject *args) {
-    Py_buffer table, times_buffer, out;
+    Py_buffer table, times_buffer, out, rate_buffer;
+    double max_reach, stamp_rounding;
     (void)self;
-    if (!PyArg_ParseTuple(args, "y*y*w*", &table, &times_buffer, &out)) {
+    if (!PyArg_ParseTuple(args, "y*y*w*ddy*", &table, &times_buffer, &out, &max_reach, &stamp_rounding,
+                          &rate_buffer)) {
         return NULL;
     }
     PyObject *result = NULL;
     Py_ssize_t m = table.len / (13 * (Py_ssize_t)sizeof(double));
     Py_ssize_t n = times_buffer.len / (Py_ssize_t)sizeof(double);
     if (m < 1 || table.len != m * 13 * (Py_ssize_t)sizeof(double) ||
-        times_buffer.len != n * (Py_ssize_t)sizeof(double) || out.len != n * 3 * (Py_ssize_t)sizeof(double)) {
+        times_buffer.len != n * (Py_ssize_t)sizeof(double) || out.len != n * 3 * (Py_ssize_t)sizeof(double) ||
+        rate_buffer.len != 3 * (Py_ssize_t)sizeof(double)) {
         PyErr_SetString(PyExc_ValueError, "imu_lerp: inconsistent buffer sizes");
         goto done;
     }
-    const double *rows = table.buf, *times = times_buffer.buf;
+    const double *rows = table.buf, *times = times_buffer.buf, *rate = rate_buffer.buf;
     double *o = out.buf;
     const double pi = 3.141592653589793, two_pi = 2 * 3.141592653589793;
     const double newest = rows[13 * (m - 1)];
+    int carried = 0;
+    Py_ssize_t low = 0;
     for (Py_ssize_t i = 0; i < n; ++i) {
         const double t = times[i];
-        Py_ssize_t low = 0, high = m; /* searchsorted(side='left') */
-        while (low < high) {
-            Py_ssize_t middle = low + (high - low) / 2;
-            if (numpy_less(rows[13 * middle], t)) {
-                low = middle + 1;
-            } else {
-                high = middle;
+        if (!left_of(rows, m, low, t) && !(low < m && left_of(rows, m, low + 1, t))) {
+            Py_ssize_t high = m;
+            low = 0;
+            while (low < high) {
+                Py_ssize_t middle = low + (high - low) / 2;
+                if (numpy_less(rows[13 * middle], t)) {
+                    low = middle + 1;
+                } else {
+                    high = middle;
+                }
             }
+        } else if (!left_of(rows, m, low, t)) {
+            ++low;
         }
         Py_ssize_t front = low > m - 1 ? m - 1 : low;
         Py_ssize_t back = front - 1 > 0 ? front - 1 : 0;
@@ -610,6 +634,16 @@ static PyObject *py_imu_lerp(PyObject *self, PyObject *args) {
         const double jump = rf[3] - rb[3];
         const double unwrapped = rb[3] + (jump > pi ? two_pi : (jump < -pi ? -two_pi : 0.0));
         o[3 * i + 2] = unwrapped + (rf[3] - unwrapped) * ratio;
+        carried |= reach_beyond(t, newest, max_reach) > stamp_rounding;
+    }
+    if (carried) { /* rpy += where(ahead > rounding, ahead, 0.0)[:, None] * rate[None, :], every row */
+        for (Py_ssize_t i = 0; i < n; ++i) {
+            const double ahead = reach_beyond(times[i], newest, max_reach);
+            const double factor = ahead > stamp_rounding ? ahead : 0.0;
+            for (int c = 0; c < 3; ++c) {
+                o[3 * i + c] += factor * rate[c];
+            }
+        }
     }
     result = Py_None;
     Py_INCREF(result);
@@ -617,6 +651,7 @@ done:
     PyBuffer_Release(&table);
     PyBuffer_Release(&times_buffer);
     PyBuffer_Release(&out);
+    PyBuffer_Release(&rate_buffer);
     return result;
 }
 
