@@ -272,15 +272,7 @@ def fit_planes_at(
     them), the same values bit for bit: in one C pass over the neighbours (``native/geometry_kernels.c``) when
     it is built and the points are float32, without the (m, k, 3) float64 copy; else by :func:`fit_planes`."""
     index = np.asarray(index)
-    if not (
-        native
-        and _geometry_kernels is not None
-        and points.dtype == _F32
-        and points.ndim == 2
-        and points.shape[1] >= 3
-        and index.ndim == 2
-        and len(index)
-    ):
+    if not _neighbourhoods_in_c(points, index, native):
         return fit_planes(points[index, :3].astype(np.float64), max_residual, min_aspect)
     m, k = index.shape
     normal, offset = np.empty((m, 3)), np.empty(m)
@@ -318,15 +310,7 @@ def line_fits_at(points: np.ndarray, index: np.ndarray, eigen_ratio: float, nati
     built and the points are float32, without the (m, k, 3) float64 copy: the centroids bit for bit, the
     directions LAPACK's to rounding; else with NumPy (``np.linalg.eigh``, some 1.2 us a neighbourhood)."""
     index = np.asarray(index)
-    if not (
-        native
-        and _geometry_kernels is not None
-        and points.dtype == _F32
-        and points.ndim == 2
-        and points.shape[1] >= 3
-        and index.ndim == 2
-        and len(index)
-    ):
+    if not _neighbourhoods_in_c(points, index, native):
         neighbours = select_rows(points, index)[..., :3].astype(np.float64)
         centroid = neighbours.mean(axis=1)
         centred = neighbours - centroid[:, None, :]
@@ -347,6 +331,20 @@ def line_fits_at(points: np.ndarray, index: np.ndarray, eigen_ratio: float, nati
     )
     rows = np.flatnonzero(status)
     return rows, select_rows(centroid, rows), select_rows(direction, rows)
+
+
+def _neighbourhoods_in_c(points: np.ndarray, index: np.ndarray, native: bool) -> bool:
+    """Whether the C kernels of :func:`fit_planes_at` and :func:`line_fits_at` take these neighbourhoods: the
+    extension is built (and asked for), the points are (n, >= 3) float32 and there is at least one (m, k) row."""
+    return (
+        native
+        and _geometry_kernels is not None
+        and points.dtype == _F32
+        and points.ndim == 2
+        and points.shape[1] >= 3
+        and index.ndim == 2
+        and len(index) > 0
+    )
 
 
 def principal_spreads(neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

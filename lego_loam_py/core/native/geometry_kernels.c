@@ -144,6 +144,20 @@ static int fit(const float *points, Py_ssize_t columns, Py_ssize_t n, const int6
     return 0;
 }
 
+/* The n points (n, columns >= 3) float32 and the m neighbourhoods (m, k) int64 of plane_fits and line_fits: 1, or
+ * 0 with a ValueError naming the function. */
+static int neighbourhood_sizes(const Py_buffer *points, Py_ssize_t columns, const Py_buffer *index, Py_ssize_t k,
+                               const char *function, Py_ssize_t *n, Py_ssize_t *m) {
+    const Py_ssize_t row_bytes = columns * (Py_ssize_t)sizeof(float);
+    if (columns < 3 || k < 1 || points->len % row_bytes != 0 || index->len % (k * (Py_ssize_t)sizeof(int64_t)) != 0) {
+        PyErr_Format(PyExc_ValueError, "%s: points must be (n, columns >= 3) float32, index (m, k) int64", function);
+        return 0;
+    }
+    *n = points->len / row_bytes;
+    *m = index->len / (k * (Py_ssize_t)sizeof(int64_t));
+    return 1;
+}
+
 static PyObject *py_plane_fits(PyObject *self, PyObject *args) {
     Py_buffer points, index, normals, offsets, moments, status;
     Py_ssize_t columns, k;
@@ -154,13 +168,8 @@ static PyObject *py_plane_fits(PyObject *self, PyObject *args) {
         return NULL;
     }
     PyObject *result = NULL;
-    const Py_ssize_t row_bytes = columns * (Py_ssize_t)sizeof(float);
-    if (columns < 3 || k < 1 || points.len % row_bytes != 0 || index.len % (k * (Py_ssize_t)sizeof(int64_t)) != 0) {
-        PyErr_SetString(PyExc_ValueError, "plane_fits: points must be (n, columns >= 3) float32, index (m, k) int64");
-        goto done;
-    }
-    const Py_ssize_t n = points.len / row_bytes;
-    const Py_ssize_t m = index.len / (k * (Py_ssize_t)sizeof(int64_t));
+    Py_ssize_t n, m;
+    if (!neighbourhood_sizes(&points, columns, &index, k, "plane_fits", &n, &m)) goto done;
     if (normals.len != m * 3 * (Py_ssize_t)sizeof(double) || offsets.len != m * (Py_ssize_t)sizeof(double) ||
         moments.len != m * 9 * (Py_ssize_t)sizeof(double) || status.len != m) {
         PyErr_SetString(PyExc_ValueError, "plane_fits: outputs must be (m, 3), (m,), (m, 9) float64 and (m,) uint8");
@@ -247,13 +256,8 @@ static PyObject *py_line_fits(PyObject *self, PyObject *args) {
         return NULL;
     }
     PyObject *result = NULL;
-    const Py_ssize_t row_bytes = columns * (Py_ssize_t)sizeof(float);
-    if (columns < 3 || k < 1 || points.len % row_bytes != 0 || index.len % (k * (Py_ssize_t)sizeof(int64_t)) != 0) {
-        PyErr_SetString(PyExc_ValueError, "line_fits: points must be (n, columns >= 3) float32, index (m, k) int64");
-        goto done;
-    }
-    const Py_ssize_t n = points.len / row_bytes;
-    const Py_ssize_t m = index.len / (k * (Py_ssize_t)sizeof(int64_t));
+    Py_ssize_t n, m;
+    if (!neighbourhood_sizes(&points, columns, &index, k, "line_fits", &n, &m)) goto done;
     if (centroids.len != m * 3 * (Py_ssize_t)sizeof(double) || directions.len != m * 3 * (Py_ssize_t)sizeof(double) ||
         status.len != m) {
         PyErr_SetString(PyExc_ValueError, "line_fits: outputs must be (m, 3), (m, 3) float64 and (m,) uint8");
