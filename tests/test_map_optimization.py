@@ -10,6 +10,7 @@ import pytest
 
 from lego_loam_py.core.frames import matrix_to_quaternion, pose6_to_matrix, transform_cloud, transform_points
 from lego_loam_py.core.geometry import GridNeighbours
+from lego_loam_py.core.mapping import scan_to_map
 from lego_loam_py.core.mapping.map_optimization import MapOptimization
 from lego_loam_py.core.mapping.scan_to_map import edge_correspondences, map_jacobian_rows, plane_correspondences
 from lego_loam_py.core.odometry.feature_association import FeatureAssociation, ScanInput
@@ -32,12 +33,13 @@ def search(points: np.ndarray) -> GridNeighbours:
     return GridNeighbours(points, PARAMS.map_optimization.knn_max_sq_dist)
 
 
-def test_edge_fit_by_hand():
+@pytest.mark.parametrize('native', [True, False], ids=['c_kernel', 'numpy'])
+def test_edge_fit_by_hand(native):
     """Map points on the vertical line x = 1, z = 2 (camera axes): a query 0.3 m off it gets distance 0.3 and
     the unit gradient pointing away from the line."""
     line = cloud([[1.0, y, 2.0] for y in np.linspace(-0.4, 0.4, 9)])
     query = cloud([[1.3, 0.05, 2.0]])
-    index, coeff = edge_correspondences(query, search(line), line, PARAMS)
+    index, coeff = edge_correspondences(query, search(line), line, PARAMS, native=native)
     assert list(index) == [0]
     weight = 1 - 0.9 * 0.3
     assert coeff[0, 3] == pytest.approx(weight * 0.3, rel=1e-4)
@@ -45,14 +47,15 @@ def test_edge_fit_by_hand():
     # A square grid of points on a plane is not a line: rejected by the eigenvalue test.
     grid = np.stack(np.meshgrid(np.linspace(-0.3, 0.3, 7), np.linspace(-0.3, 0.3, 7)), -1).reshape(-1, 2)
     plane = cloud(np.column_stack([1.0 + grid[:, 0], grid[:, 1], np.full(len(grid), 2.0)]))
-    assert len(edge_correspondences(cloud([[1.0, 0.0, 2.1]]), search(plane), plane, PARAMS)[0]) == 0
+    assert len(edge_correspondences(cloud([[1.0, 0.0, 2.1]]), search(plane), plane, PARAMS, native=native)[0]) == 0
 
 
-def test_plane_fit_by_hand():
+@pytest.mark.parametrize('native', [True, False], ids=['c_kernel', 'numpy'])
+def test_plane_fit_by_hand(native):
     rng = np.random.default_rng(1)
     floor = cloud(np.column_stack([rng.uniform(-0.5, 0.5, 50), np.full(50, -1.5), rng.uniform(4, 5, 50)]))
     query = cloud([[0.0, -1.2, 4.5]])
-    index, coeff = plane_correspondences(query, search(floor), floor, PARAMS)
+    index, coeff = plane_correspondences(query, search(floor), floor, PARAMS, native=native)
     assert list(index) == [0]
     distance = coeff[0, 3] / (1 - 0.9 * 0.3 / math.sqrt(np.linalg.norm([0, -1.2, 4.5])))
     assert abs(distance) == pytest.approx(0.3, rel=1e-3)
@@ -61,7 +64,41 @@ def test_plane_fit_by_hand():
     grid = np.stack(np.meshgrid(np.arange(-3, 4) * 0.3, np.arange(-3, 4) * 0.3), -1).reshape(-1, 2)
     level = np.where((np.round(grid[:, 0] / 0.3) + np.round(grid[:, 1] / 0.3)) % 2 == 0, -1.5, -1.0)
     bumpy = cloud(np.column_stack([grid[:, 0], level, 4.5 + grid[:, 1]]))
-    assert len(plane_correspondences(cloud([[0.0, -1.25, 4.5]]), search(bumpy), bumpy, PARAMS)[0]) == 0
+    assert len(plane_correspondences(cloud([[0.0, -1.25, 4.5]]), search(bumpy), bumpy, PARAMS, native=native)[0]) == 0
+
+
+@pytest.mark.skipif(not hasattr(scan_to_map._geometry_kernels, 'plane_terms'), reason='the C extension is not built')
+@pytest.mark.parametrize('seed', range(8))
+def test_the_terms_kernels_equal_numpy_bit_for_bit(seed):
+    """Edges (ten vertical poles) and planes (a tilted floor and two walls) 40-60 m from the origin, 0-2 cm of
+    noise, queries near them and far off, some exactly on a pole (zero distance: no gradient), one column of
+    intensities: the same rows and coefficients, bit for bit, as the NumPy code after the fits."""
+    rng = np.random.default_rng(seed)
+    noise = (0.0, 0.005, 0.02)[seed % 3]
+    poles = np.concatenate(
+        [
+            np.column_stack([np.full(30, x), np.linspace(-1.0, 2.0, 30), np.full(30, z)])
+            for x, z in rng.uniform(-3, 3, (10, 2))
+        ]
+    )
+    floor = np.column_stack([rng.uniform(-4, 4, 800), np.zeros(800), rng.uniform(-4, 4, 800)])
+    floor[:, 1] = -1.5 + 0.05 * floor[:, 0] - 0.02 * floor[:, 2]
+    walls = np.column_stack([np.full(400, 4.0), rng.uniform(-1.5, 2.0, 400), rng.uniform(-4, 4, 400)])
+    walls = np.concatenate([walls, walls[:, [2, 1, 0]]])
+    offset = np.append(rng.uniform(40.0, 60.0, 3) * rng.choice([-1.0, 1.0], 3), 0.0)
+    world = np.concatenate([poles, floor, walls])
+    world += rng.normal(0.0, noise, world.shape)
+    world = (np.column_stack([world, rng.uniform(0, 16, len(world))]) + offset).astype(np.float32)
+    queries = world[rng.integers(0, len(world), 600)] + np.append(rng.normal(0.0, 0.2, 3), 0.0).astype(np.float32)
+    queries[:20, :3] = world[:20, :3]  # on a pole
+    queries = np.ascontiguousarray(queries, dtype=np.float32)
+    tree = search(world)
+    for correspondences in (edge_correspondences, plane_correspondences):
+        native, reference = (correspondences(queries, tree, world, PARAMS, native=flag) for flag in (True, False))
+        assert len(reference[0]) > 10
+        assert np.array_equal(native[0], reference[0])
+        assert native[1].shape == reference[1].shape
+        assert np.array_equal(native[1].view(np.int64), reference[1].view(np.int64))
 
 
 def test_a_plane_needs_neighbours_that_span_one_not_a_ring_of_points_along_a_line():

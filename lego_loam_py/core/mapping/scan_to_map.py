@@ -35,6 +35,11 @@ from lego_loam_py.core.geometry import GridNeighbours, fit_planes_at, line_coeff
 from lego_loam_py.core.indexing import select_rows, xyz_columns
 from lego_loam_py.core.params.types import Params
 
+try:  # (the C kernels of the correspondences' terms; NumPy without them)
+    from lego_loam_py.core import _geometry_kernels
+except ImportError:
+    _geometry_kernels = None
+
 __all__ = [
     'map_jacobian_rows',
     'edge_correspondences',
@@ -63,14 +68,33 @@ def map_jacobian_rows(points: np.ndarray, coeff: np.ndarray, pose6: np.ndarray) 
     return rows
 
 
-def edge_correspondences(points_world: np.ndarray, tree: GridNeighbours, map_points: np.ndarray, params: Params):
-    """Point-to-line coefficients: (index of used points, coeff (m, 4) = s·gradient, s·distance)."""
+def edge_correspondences(
+    points_world: np.ndarray, tree: GridNeighbours, map_points: np.ndarray, params: Params, native: bool = True
+):
+    """Point-to-line coefficients: (index of used points, coeff (m, 4) = s·gradient, s·distance). The terms after
+    the line fits in one C pass when the extension is built (``_geometry_kernels.line_terms``, NumPy's float32
+    and float64 operations in its order); ``native=False``: NumPy (the tests compare the two)."""
     mo = params.map_optimization
     if len(points_world) == 0 or tree is None:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 4))
     used, index = tree.nearest_within(points_world, mo.knn, mo.knn_max_sq_dist)
     lines, centroid, direction = line_fits_at(map_points, index, mo.edge_eigen_ratio)
     used = used[lines]
+    if _terms_in_c(points_world, native):
+        kept, coeff = np.empty(len(used), dtype=np.int64), np.empty((len(used), 4))
+        count = _geometry_kernels.line_terms(
+            np.ascontiguousarray(points_world),
+            points_world.shape[1],
+            np.ascontiguousarray(used, dtype=np.int64),
+            np.ascontiguousarray(centroid),
+            np.ascontiguousarray(direction),
+            float(mo.line_half_length),
+            float(mo.weight_gain),
+            float(mo.min_weight),
+            kept,
+            coeff,
+        )
+        return kept[:count], coeff[:count]
     a = centroid + mo.line_half_length * direction
     b = centroid - mo.line_half_length * direction
     gradient, dist = line_coefficients(select_rows(points_world, used), a.astype(_F32), b.astype(_F32))
@@ -82,14 +106,32 @@ def edge_correspondences(points_world: np.ndarray, tree: GridNeighbours, map_poi
     return used[keep], coeff
 
 
-def plane_correspondences(points_world: np.ndarray, tree: GridNeighbours, map_points: np.ndarray, params: Params):
-    """Point-to-plane coefficients: (index of used points, coeff (m, 4) = s·normal, s·distance)."""
+def plane_correspondences(
+    points_world: np.ndarray, tree: GridNeighbours, map_points: np.ndarray, params: Params, native: bool = True
+):
+    """Point-to-plane coefficients: (index of used points, coeff (m, 4) = s·normal, s·distance). The terms after
+    the plane fits in one C pass when the extension is built (``_geometry_kernels.plane_terms``, NumPy's
+    operations in its order); ``native=False``: NumPy (the tests compare the two)."""
     mo = params.map_optimization
     if len(points_world) == 0 or tree is None:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 4))
     used, index = tree.nearest_within(points_world, mo.knn, mo.knn_max_sq_dist)
     planar, normal, offset = fit_planes_at(map_points, index, mo.plane_max_residual, mo.plane_min_aspect)
     used = used[planar]
+    if _terms_in_c(points_world, native):
+        kept, coeff = np.empty(len(used), dtype=np.int64), np.empty((len(used), 4))
+        count = _geometry_kernels.plane_terms(
+            np.ascontiguousarray(points_world),
+            points_world.shape[1],
+            np.ascontiguousarray(used, dtype=np.int64),
+            np.ascontiguousarray(normal),
+            np.ascontiguousarray(offset),
+            float(mo.weight_gain),
+            float(mo.min_weight),
+            kept,
+            coeff,
+        )
+        return kept[:count], coeff[:count]
     p = xyz_columns(select_rows(points_world, used))
     dist = np.einsum('mi,mi->m', p, normal) + offset
     weight = 1.0 - mo.weight_gain * np.abs(dist) / np.sqrt(np.linalg.norm(p, axis=1))
@@ -98,6 +140,17 @@ def plane_correspondences(points_world: np.ndarray, tree: GridNeighbours, map_po
         [select_rows(normal, keep) * weight[keep, None], (weight[keep] * dist[keep])[:, None]], axis=1
     )
     return used[keep], coeff
+
+
+def _terms_in_c(points_world: np.ndarray, native: bool) -> bool:
+    """Whether the C kernels make the correspondences' terms: built (and asked for), float32 (n, >= 3) points."""
+    return (
+        native
+        and hasattr(_geometry_kernels, 'plane_terms')  # (None, or an extension built before them)
+        and points_world.dtype == _F32
+        and points_world.ndim == 2
+        and points_world.shape[1] >= 3
+    )
 
 
 @dataclass

@@ -26,6 +26,20 @@
  *   its sign is arbitrary) and status (m,) uint8: 1 when the largest eigenvalue exceeds eigen_ratio times the
  *   middle one (the neighbours lie along a line), else 0. Returns None; raises IndexError for an index out of
  *   range. Runs without the GIL.
+ * plane_terms(points, columns, used, normals, offsets, weight_gain, min_weight, kept, coefficients) -> count
+ *   scan_to_map.plane_correspondences after its plane fits, NumPy's operations in its order: for the points
+ *   used (j,) int64 rows of points (n, columns >= 3) float32 and their planes (normals (j, 3), offsets (j,)
+ *   float64), the signed distance (the point's float64 coordinates dotted with the normal as NumPy's einsum sums
+ *   three products, plus the offset), the weight 1 - weight_gain |distance| / sqrt(|p|) (|p| = sqrt((x² + y²) +
+ *   z²)), kept when above min_weight: their rows written to kept (j,) int64 and (normal * weight, weight *
+ *   distance) to coefficients (j, 4) float64, in order. Returns how many were kept. Runs without the GIL.
+ * line_terms(points, columns, used, centroids, directions, half_length, weight_gain, min_weight, kept,
+ *            coefficients) -> count
+ *   scan_to_map.edge_correspondences after its line fits: the line ends a, b = centroid +- half_length *
+ *   direction (float64, then float32) and geometry.line_coefficients in float32 (the cross product of p - a and
+ *   p - b, its norm and that of a - b summed (x² + y²) + z²), the weight 1 - weight_gain |distance|, kept when
+ *   above min_weight with a finite distance and gradient: rows to kept, (gradient * weight, weight * distance)
+ *   to coefficients (j, 4) float64. Returns how many were kept. Runs without the GIL.
  * grid_extent(points, columns, cell) -> ((i0, j0, k0), (i1, j1, k1)) or None
  *   The lowest and highest cubic cell of side `cell` [m] of the points (n, columns >= 3) float32, a cell being
  *   floor(coordinate / cell) per axis in float64; None when a coordinate is not finite or absurdly far.
@@ -61,6 +75,7 @@
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
+#include <string.h>
 
 #include "symmetric_eigen.h"
 
@@ -280,6 +295,140 @@ done:
     PyBuffer_Release(&centroids);
     PyBuffer_Release(&directions);
     PyBuffer_Release(&status);
+    return result;
+}
+
+static Py_ssize_t plane_term(const float *points, Py_ssize_t columns, Py_ssize_t n, const int64_t *used, Py_ssize_t j,
+                             const double *normals, const double *offsets, double gain, double min_weight,
+                             int64_t *kept, double *coefficients) {
+    Py_ssize_t count = 0;
+    for (Py_ssize_t r = 0; r < j; ++r) {
+        if (used[r] < 0 || used[r] >= n) return -1;
+        const float *p = points + used[r] * columns;
+        const double x = (double)p[0], y = (double)p[1], z = (double)p[2];
+        const double *normal = normals + 3 * r;
+        /* NumPy's baseline SSE2 einsum: lanes (x n0 + z n2, y n1), then their sum */
+        const double distance = (((0.0 + x * normal[0]) + z * normal[2]) + (0.0 + y * normal[1])) + offsets[r];
+        const double length = sqrt((x * x + y * y) + z * z);
+        const double weight = 1.0 - gain * fabs(distance) / sqrt(length);
+        if (!(weight > min_weight)) continue;
+        kept[count] = used[r];
+        double *row = coefficients + 4 * count;
+        row[0] = normal[0] * weight;
+        row[1] = normal[1] * weight;
+        row[2] = normal[2] * weight;
+        row[3] = weight * distance;
+        ++count;
+    }
+    return count;
+}
+
+static Py_ssize_t line_term(const float *points, Py_ssize_t columns, Py_ssize_t n, const int64_t *used, Py_ssize_t j,
+                            const double *centroids, const double *directions, double half_length, double gain,
+                            double min_weight, int64_t *kept, double *coefficients) {
+    Py_ssize_t count = 0;
+    for (Py_ssize_t r = 0; r < j; ++r) {
+        if (used[r] < 0 || used[r] >= n) return -1;
+        const float *p = points + used[r] * columns;
+        const double *c = centroids + 3 * r, *d = directions + 3 * r;
+        float a[3], b[3], pa[3], pb[3], ab[3];
+        for (int i = 0; i < 3; ++i) {
+            a[i] = (float)(c[i] + half_length * d[i]);
+            b[i] = (float)(c[i] - half_length * d[i]);
+            pa[i] = p[i] - a[i];
+            pb[i] = p[i] - b[i];
+            ab[i] = a[i] - b[i];
+        }
+        const float cross[3] = {pa[1] * pb[2] - pa[2] * pb[1], pa[2] * pb[0] - pa[0] * pb[2],
+                                pa[0] * pb[1] - pa[1] * pb[0]};
+        const float area = sqrtf((cross[0] * cross[0] + cross[1] * cross[1]) + cross[2] * cross[2]);
+        const float length = sqrtf((ab[0] * ab[0] + ab[1] * ab[1]) + ab[2] * ab[2]);
+        const float scale = area * length;
+        const float gradient[3] = {(ab[1] * cross[2] - ab[2] * cross[1]) / scale,
+                                   (ab[2] * cross[0] - ab[0] * cross[2]) / scale,
+                                   (ab[0] * cross[1] - ab[1] * cross[0]) / scale};
+        const float distance = area / length;
+        const double weight = 1.0 - gain * fabs((double)distance);
+        if (!(weight > min_weight) || !isfinite(distance) || !isfinite(gradient[0]) || !isfinite(gradient[1]) ||
+            !isfinite(gradient[2])) {
+            continue;
+        }
+        kept[count] = used[r];
+        double *row = coefficients + 4 * count;
+        row[0] = (double)gradient[0] * weight;
+        row[1] = (double)gradient[1] * weight;
+        row[2] = (double)gradient[2] * weight;
+        row[3] = weight * (double)distance;
+        ++count;
+    }
+    return count;
+}
+
+static PyObject *py_plane_terms(PyObject *self, PyObject *args) {
+    Py_buffer b[6];
+    Py_ssize_t columns;
+    double gain, min_weight;
+    (void)self;
+    memset(b, 0, sizeof(b));
+    if (!PyArg_ParseTuple(args, "y*ny*y*y*ddw*w*", &b[0], &columns, &b[1], &b[2], &b[3], &gain, &min_weight, &b[4],
+                          &b[5])) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    const Py_ssize_t row_bytes = columns * (Py_ssize_t)sizeof(float), j = b[1].len / (Py_ssize_t)sizeof(int64_t);
+    if (columns < 3 || b[0].len % row_bytes != 0 || b[1].len != j * 8 || b[2].len != 3 * j * 8 || b[3].len != j * 8 ||
+        b[4].len != j * 8 || b[5].len != 4 * j * 8) {
+        PyErr_SetString(PyExc_ValueError, "plane_terms: inconsistent buffer sizes");
+        goto done;
+    }
+    Py_ssize_t count;
+    Py_BEGIN_ALLOW_THREADS
+    count = plane_term(b[0].buf, columns, b[0].len / row_bytes, b[1].buf, j, b[2].buf, b[3].buf, gain, min_weight,
+                       b[4].buf, b[5].buf);
+    Py_END_ALLOW_THREADS
+    if (count < 0) {
+        PyErr_SetString(PyExc_IndexError, "plane_terms: a row out of range");
+        goto done;
+    }
+    result = PyLong_FromSsize_t(count);
+done:
+    for (int i = 0; i < 6; ++i) {
+        if (b[i].obj != NULL) PyBuffer_Release(&b[i]);
+    }
+    return result;
+}
+
+static PyObject *py_line_terms(PyObject *self, PyObject *args) {
+    Py_buffer b[6];
+    Py_ssize_t columns;
+    double half_length, gain, min_weight;
+    (void)self;
+    memset(b, 0, sizeof(b));
+    if (!PyArg_ParseTuple(args, "y*ny*y*y*dddw*w*", &b[0], &columns, &b[1], &b[2], &b[3], &half_length, &gain,
+                          &min_weight, &b[4], &b[5])) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    const Py_ssize_t row_bytes = columns * (Py_ssize_t)sizeof(float), j = b[1].len / (Py_ssize_t)sizeof(int64_t);
+    if (columns < 3 || b[0].len % row_bytes != 0 || b[1].len != j * 8 || b[2].len != 3 * j * 8 ||
+        b[3].len != 3 * j * 8 || b[4].len != j * 8 || b[5].len != 4 * j * 8) {
+        PyErr_SetString(PyExc_ValueError, "line_terms: inconsistent buffer sizes");
+        goto done;
+    }
+    Py_ssize_t count;
+    Py_BEGIN_ALLOW_THREADS
+    count = line_term(b[0].buf, columns, b[0].len / row_bytes, b[1].buf, j, b[2].buf, b[3].buf, half_length, gain,
+                      min_weight, b[4].buf, b[5].buf);
+    Py_END_ALLOW_THREADS
+    if (count < 0) {
+        PyErr_SetString(PyExc_IndexError, "line_terms: a row out of range");
+        goto done;
+    }
+    result = PyLong_FromSsize_t(count);
+done:
+    for (int i = 0; i < 6; ++i) {
+        if (b[i].obj != NULL) PyBuffer_Release(&b[i]);
+    }
     return result;
 }
 
@@ -757,6 +906,8 @@ done:
 static PyMethodDef methods[] = {
     {"plane_fits", py_plane_fits, METH_VARARGS, "Least-squares planes through neighbourhoods (see the file)."},
     {"line_fits", py_line_fits, METH_VARARGS, "Principal directions of neighbourhoods (see the file)."},
+    {"plane_terms", py_plane_terms, METH_VARARGS, "Point-to-plane terms of the mapping (see the file)."},
+    {"line_terms", py_line_terms, METH_VARARGS, "Point-to-line terms of the mapping (see the file)."},
     {"grid_extent", py_grid_extent, METH_VARARGS, "The cells a point set spans (see the file)."},
     {"grid_fill", py_grid_fill, METH_VARARGS, "Sorts points by cell (see the file)."},
     {"grid_nearest", py_grid_nearest, METH_VARARGS, "k nearest points of each query (see the file)."},
