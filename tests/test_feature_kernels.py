@@ -304,6 +304,37 @@ def test_native_imu_attitude_equals_numpy(data):
 @pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
 @settings(max_examples=200, deadline=None)
 @given(st.data())
+def test_native_rotation_at_imu_times_equals_numpy(data):
+    """ImuBuffer.rotate_at in one C pass against NumPy's attitude and rotate_by_euler, bit for bit: times between,
+    on and beyond the samples (carried on), ascending or not, some NaN, points of three or four columns, the left
+    rotation or its transpose."""
+    from lego_loam_py.core.frames import euler_to_matrix
+    from lego_loam_py.core.imu.buffer import ImuBuffer
+
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    buffer = ImuBuffer(200)
+    m = int(rng.integers(1, 30))
+    rows = rng.normal(0.0, 0.3, (m, 13))
+    rows[:, 0] = 100.0 + np.sort(rng.random(m) * 0.1)
+    rows[:, 3] = rng.uniform(-np.pi, np.pi, m)
+    buffer._rows.extend(tuple(row) for row in rows.tolist())
+    n = int(rng.integers(0, 400))
+    times = 100.0 + rng.uniform(-0.01, 0.15, n)
+    if rng.random() < 0.5:
+        times.sort()
+    times[rng.random(n) < 0.02] = np.nan
+    points = (rng.normal(0.0, 20.0, (n, int(rng.integers(3, 5))))).astype(np.float32)
+    left = euler_to_matrix(*rng.uniform(-3.0, 3.0, 3))
+    left = left.T if rng.random() < 0.5 else left
+    native = buffer.rotate_at(times, left, points)
+    reference = buffer.rotate_at(times, left, points, native=False)
+    assert native.shape == reference.shape == (n, 3)
+    np.testing.assert_array_equal(native, reference)  # (NaN where the time is NaN and there are two samples)
+
+
+@pytest.mark.skipif(features._feature_kernels is None, reason='the C extension is not built here')
+@settings(max_examples=200, deadline=None)
+@given(st.data())
 def test_native_imu_samples_equal_python(data):
     """ImuBuffer.add's common case in C against its Python code, bit for bit, on a stream of unit quaternions
     (some not: rejected), rates and accelerations near and beyond the bounds, NaN, stamps out of order, far

@@ -247,6 +247,14 @@ class ImuBuffer:
             and self._lever_arm is None
         )
 
+    def _table_and_rate(self) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_table` and the newest samples' rates of it (:meth:`_newest_rate`), computed once per table: the
+        attitudes of a scan's calls carry on at the same rates."""
+        table = self._table()
+        if self._rate_table is not table:
+            self._rate, self._rate_table = self._newest_rate(), table
+        return table, self._rate
+
     def _table(self) -> np.ndarray:
         if self._arrays is None or self._appended >= len(self._rows):
             self._arrays = np.array(self._rows, dtype=float).reshape(-1, 13)
@@ -511,13 +519,44 @@ class ImuBuffer:
         times = np.atleast_1d(np.asarray(times, dtype=float))
         if native and hasattr(_feature_kernels, 'imu_lerp') and times.ndim == 1 and len(self._rows):
             rpy = np.empty((len(times), 3))
-            table = self._table()
-            if self._rate_table is not table:  # (the newest samples' rates: once per table, for a scan's calls)
-                self._rate, self._rate_table = self._newest_rate(), table
-            _feature_kernels.imu_lerp(table, np.ascontiguousarray(times), rpy, MAX_REACH, STAMP_ROUNDING, self._rate)
+            table, rate = self._table_and_rate()
+            _feature_kernels.imu_lerp(table, np.ascontiguousarray(times), rpy, MAX_REACH, STAMP_ROUNDING, rate)
         else:
             rpy = self._lerp_attitude(*self._bracket(times), times)
         return rpy[:, 0], rpy[:, 1], rpy[:, 2]
+
+    def rotate_at(self, times: np.ndarray, left: np.ndarray, xyz: np.ndarray, native: bool = True) -> np.ndarray:
+        """(n, 3) float64 ``imu_rotate(left, *self.attitude(times), xyz)``: the (n, >= 3) points ``xyz`` turned by
+        the IMU attitude at their ``times`` [s] and then by ``left`` (3x3). For float32 points in one C pass when
+        the extension is built (the attitudes, their sines and cosines and the products, bit for bit);
+        ``native=False``: attitude and imu_rotate in NumPy (the tests compare the two)."""
+        times = np.atleast_1d(np.asarray(times, dtype=float))
+        if (
+            native
+            and hasattr(_feature_kernels, 'imu_rotate_at')
+            and len(self._rows)
+            and times.ndim == 1
+            and isinstance(xyz, np.ndarray)
+            and xyz.dtype == np.float32
+            and xyz.ndim == 2
+            and xyz.shape[1] >= 3
+            and xyz.flags.c_contiguous
+            and len(xyz) == len(times)
+        ):
+            table, rate = self._table_and_rate()
+            out = np.empty((3, len(times)))
+            _feature_kernels.imu_rotate_at(
+                table,
+                np.ascontiguousarray(times),
+                MAX_REACH,
+                STAMP_ROUNDING,
+                rate,
+                np.ascontiguousarray(left, dtype=np.float64),
+                xyz,
+                out,
+            )
+            return out.T
+        return imu_rotate(left, *self.attitude(times, native), xyz, native)
 
     def _bracket(self, times: np.ndarray):
         """(sample before, sample after, fraction between them) of each time."""

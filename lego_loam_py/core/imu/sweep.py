@@ -38,7 +38,7 @@ def rotate_at_points(
     """(n, 3) float64 ``left @ R @ p`` of the ``cloud`` points, R the IMU attitude at the time of the prepared point
     ``index`` each comes from (only the features need them)."""
     times = attitude.t_start + attitude.rel[index] * period
-    return imu_rotate(left, *imu.attitude(times), cloud)
+    return imu.rotate_at(times, left, cloud)
 
 
 def deskew_with_imu(

@@ -56,6 +56,10 @@
  *   sample, every row gets rate times its reach beyond it (at most max_reach; 0 for the others) added, as
  *   _carry_on's arrays do.
  *
+ * imu_rotate_at(table, times, max_reach, stamp_rounding, rate, left, xyz, out)
+ *   imu_rotate(left, *ImuBuffer.attitude(times), xyz) in one pass: imu_lerp's attitudes, libm's cosines and sines
+ *   of (pitch, yaw, roll) (NumPy's np.cos and np.sin of float64 are libm's), then euler_rotate's products; out
+ *   (3, n) float64. Runs without the GIL.
  * imu_sample(stamp, orientation, rate, acceleration, last, time_offset, reset_after, scan_period, gravity,
  *            quaternion_tolerance, max_rate, max_acceleration, gyro_state, gyro_bias)
  *   ImuBuffer.add's common case, its row (a 13-tuple: time, roll, pitch, yaw, velocity, shift, angle) or None for
@@ -87,6 +91,7 @@
 #include <Python.h>
 #include <stdint.h>
 #include <math.h>
+#include <stdlib.h>
 #include <string.h>
 
 #include "sweep_jacobian.h"
@@ -513,6 +518,31 @@ done:
     return result;
 }
 
+/* One point of euler_rotate: left @ (Ry Rx Rz) @ p from the cosines and sines of (rx, ry, rz), written to out[0],
+ * out[stride], out[2 * stride]. */
+static inline void euler_point(const double *l, double cx, double cy, double cz, double sx, double sy, double sz,
+                               const float *p, double *out, Py_ssize_t stride) {
+    const double sy_sx = sy * sx, cy_sx = cy * sx;
+    double e[3][3];
+    e[0][0] = cy * cz + sy_sx * sz;
+    e[0][1] = -cy * sz + sy_sx * cz;
+    e[0][2] = sy * cx;
+    e[1][0] = cx * sz;
+    e[1][1] = cx * cz;
+    e[1][2] = -sx;
+    e[2][0] = -sy * cz + cy_sx * sz;
+    e[2][1] = sy * sz + cy_sx * cz;
+    e[2][2] = cy * cx;
+    const double x = (double)p[0], y = (double)p[1], z = (double)p[2];
+    for (int r = 0; r < 3; ++r) {
+        double m[3];
+        for (int k = 0; k < 3; ++k) {
+            m[k] = l[3 * r] * e[0][k] + l[3 * r + 1] * e[1][k] + l[3 * r + 2] * e[2][k];
+        }
+        out[r * stride] = (m[0] * x + m[2] * z) + m[1] * y + 0.0;
+    }
+}
+
 static PyObject *py_euler_rotate(PyObject *self, PyObject *args) {
     Py_buffer left_buffer, cos_buffer, sin_buffer, xyz, out;
     (void)self;
@@ -532,26 +562,7 @@ static PyObject *py_euler_rotate(PyObject *self, PyObject *args) {
     const float *p = xyz.buf;
     double *o = out.buf;
     for (Py_ssize_t i = 0; i < n; ++i) {
-        const double cx = c[i], cy = c[n + i], cz = c[2 * n + i], sx = sn[i], sy = sn[n + i], sz = sn[2 * n + i];
-        const double sy_sx = sy * sx, cy_sx = cy * sx;
-        double e[3][3];
-        e[0][0] = cy * cz + sy_sx * sz;
-        e[0][1] = -cy * sz + sy_sx * cz;
-        e[0][2] = sy * cx;
-        e[1][0] = cx * sz;
-        e[1][1] = cx * cz;
-        e[1][2] = -sx;
-        e[2][0] = -sy * cz + cy_sx * sz;
-        e[2][1] = sy * sz + cy_sx * cz;
-        e[2][2] = cy * cx;
-        const double x = (double)p[columns * i], y = (double)p[columns * i + 1], z = (double)p[columns * i + 2];
-        for (int r = 0; r < 3; ++r) {
-            double m[3];
-            for (int k = 0; k < 3; ++k) {
-                m[k] = l[3 * r] * e[0][k] + l[3 * r + 1] * e[1][k] + l[3 * r + 2] * e[2][k];
-            }
-            o[r * n + i] = (m[0] * x + m[2] * z) + m[1] * y + 0.0;
-        }
+        euler_point(l, c[i], c[n + i], c[2 * n + i], sn[i], sn[n + i], sn[2 * n + i], p + columns * i, o + i, n);
     }
     result = Py_None;
     Py_INCREF(result);
@@ -578,25 +589,9 @@ static inline int left_of(const double *rows, Py_ssize_t m, Py_ssize_t at, doubl
     return (at == 0 || numpy_less(rows[13 * (at - 1)], t)) && (at == m || !numpy_less(rows[13 * at], t));
 }
 
-static PyObject *py_imu_lerp(PyObject *self, PyObject *args) {
-    Py_buffer table, times_buffer, out, rate_buffer;
-    double max_reach, stamp_rounding;
-    (void)self;
-    if (!PyArg_ParseTuple(args, "y*y*w*ddy*", &table, &times_buffer, &out, &max_reach, &stamp_rounding,
-                          &rate_buffer)) {
-        return NULL;
-    }
-    PyObject *result = NULL;
-    Py_ssize_t m = table.len / (13 * (Py_ssize_t)sizeof(double));
-    Py_ssize_t n = times_buffer.len / (Py_ssize_t)sizeof(double);
-    if (m < 1 || table.len != m * 13 * (Py_ssize_t)sizeof(double) ||
-        times_buffer.len != n * (Py_ssize_t)sizeof(double) || out.len != n * 3 * (Py_ssize_t)sizeof(double) ||
-        rate_buffer.len != 3 * (Py_ssize_t)sizeof(double)) {
-        PyErr_SetString(PyExc_ValueError, "imu_lerp: inconsistent buffer sizes");
-        goto done;
-    }
-    const double *rows = table.buf, *times = times_buffer.buf, *rate = rate_buffer.buf;
-    double *o = out.buf;
+/* The body of imu_lerp (see the file): roll, pitch and yaw (n, 3) of the times from the table's m rows. */
+static void lerp_attitudes(const double *rows, Py_ssize_t m, const double *times, Py_ssize_t n, double max_reach,
+                           double stamp_rounding, const double *rate, double *o) {
     const double pi = 3.141592653589793, two_pi = 2 * 3.141592653589793;
     const double newest = rows[13 * (m - 1)];
     int carried = 0;
@@ -645,6 +640,26 @@ static PyObject *py_imu_lerp(PyObject *self, PyObject *args) {
             }
         }
     }
+}
+
+static PyObject *py_imu_lerp(PyObject *self, PyObject *args) {
+    Py_buffer table, times_buffer, out, rate_buffer;
+    double max_reach, stamp_rounding;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*w*ddy*", &table, &times_buffer, &out, &max_reach, &stamp_rounding,
+                          &rate_buffer)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    Py_ssize_t m = table.len / (13 * (Py_ssize_t)sizeof(double));
+    Py_ssize_t n = times_buffer.len / (Py_ssize_t)sizeof(double);
+    if (m < 1 || table.len != m * 13 * (Py_ssize_t)sizeof(double) ||
+        times_buffer.len != n * (Py_ssize_t)sizeof(double) || out.len != n * 3 * (Py_ssize_t)sizeof(double) ||
+        rate_buffer.len != 3 * (Py_ssize_t)sizeof(double)) {
+        PyErr_SetString(PyExc_ValueError, "imu_lerp: inconsistent buffer sizes");
+        goto done;
+    }
+    lerp_attitudes(table.buf, m, times_buffer.buf, n, max_reach, stamp_rounding, rate_buffer.buf, out.buf);
     result = Py_None;
     Py_INCREF(result);
 done:
@@ -652,6 +667,54 @@ done:
     PyBuffer_Release(&times_buffer);
     PyBuffer_Release(&out);
     PyBuffer_Release(&rate_buffer);
+    return result;
+}
+
+static PyObject *py_imu_rotate_at(PyObject *self, PyObject *args) {
+    Py_buffer table, times_buffer, rate_buffer, left_buffer, xyz, out;
+    double max_reach, stamp_rounding;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "y*y*ddy*y*y*w*", &table, &times_buffer, &max_reach, &stamp_rounding, &rate_buffer,
+                          &left_buffer, &xyz, &out)) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    double *rpy = NULL;
+    const Py_ssize_t m = table.len / (13 * (Py_ssize_t)sizeof(double));
+    const Py_ssize_t n = times_buffer.len / (Py_ssize_t)sizeof(double);
+    const Py_ssize_t columns = n > 0 ? xyz.len / (n * (Py_ssize_t)sizeof(float)) : 3;
+    if (m < 1 || table.len != m * 13 * (Py_ssize_t)sizeof(double) ||
+        times_buffer.len != n * (Py_ssize_t)sizeof(double) || rate_buffer.len != 3 * (Py_ssize_t)sizeof(double) ||
+        left_buffer.len != 9 * (Py_ssize_t)sizeof(double) || columns < 3 ||
+        xyz.len != n * columns * (Py_ssize_t)sizeof(float) || out.len != 3 * n * (Py_ssize_t)sizeof(double)) {
+        PyErr_SetString(PyExc_ValueError, "imu_rotate_at: inconsistent buffer sizes");
+        goto done;
+    }
+    rpy = malloc((size_t)(n > 0 ? n : 1) * 3 * sizeof(double));
+    if (rpy == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    const double *l = left_buffer.buf;
+    const float *p = xyz.buf;
+    double *o = out.buf;
+    Py_BEGIN_ALLOW_THREADS
+    lerp_attitudes(table.buf, m, times_buffer.buf, n, max_reach, stamp_rounding, rate_buffer.buf, rpy);
+    for (Py_ssize_t i = 0; i < n; ++i) { /* imu_rotate's angles (rx, ry, rz) = (pitch, yaw, roll) */
+        const double pitch = rpy[3 * i + 1], yaw = rpy[3 * i + 2], roll = rpy[3 * i];
+        euler_point(l, cos(pitch), cos(yaw), cos(roll), sin(pitch), sin(yaw), sin(roll), p + columns * i, o + i, n);
+    }
+    Py_END_ALLOW_THREADS
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    free(rpy);
+    PyBuffer_Release(&table);
+    PyBuffer_Release(&times_buffer);
+    PyBuffer_Release(&rate_buffer);
+    PyBuffer_Release(&left_buffer);
+    PyBuffer_Release(&xyz);
+    PyBuffer_Release(&out);
     return result;
 }
 
@@ -982,6 +1045,7 @@ static PyMethodDef methods[] = {
     {"imu_lerp", py_imu_lerp, METH_VARARGS, "The IMU attitude interpolated at given times."},
     {"occluded", py_occluded, METH_VARARGS, "features.occluded_mask in one pass."},
     {"imu_sample", py_imu_sample, METH_VARARGS, "ImuBuffer.add's common case (see the file)."},
+    {"imu_rotate_at", py_imu_rotate_at, METH_VARARGS, "imu_rotate at the IMU attitude of each time (see the file)."},
     {"line_term", py_line_term, METH_VARARGS, "The sweep-start odometry's line terms (see the file)."},
     {NULL, NULL, 0, NULL},
 };

@@ -37,14 +37,7 @@ from lego_loam_py.core.frames import (
     matrix_to_pose6,
 )
 from lego_loam_py.core.imu.agreement import ImuAgreement
-from lego_loam_py.core.imu.buffer import (
-    ImuBuffer,
-    ImuSweep,
-    SweepAttitude,
-    imu_mounting,
-    imu_rotate,
-    imu_world_rotation,
-)
+from lego_loam_py.core.imu.buffer import ImuBuffer, ImuSweep, SweepAttitude, imu_mounting, imu_world_rotation
 from lego_loam_py.core.imu.monitor import SweepImuCheck
 from lego_loam_py.core.imu.sweep import deskew_with_imu, rotate_at_points, sweep_attitude
 from lego_loam_py.core.indexing import copy_columns
@@ -494,7 +487,7 @@ class FeatureAssociation:
             rotated = rotate_at_points(self.imu, attitude.r_start.T, attitude, index, cloud, self._period)
         else:  # voxel centroids (less-flat): attitude at each point's own time
             times = attitude.t_start + s * self.params.sensor.scan_period
-            rotated = imu_rotate(attitude.r_start.T, *self.imu.attitude(times), cloud)
+            rotated = self.imu.rotate_at(times, attitude.r_start.T, cloud)
         copy_columns(out, rotated + s[:, None] * motion[:3, 3][None, :])
         return out
 
