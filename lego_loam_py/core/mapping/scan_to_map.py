@@ -81,20 +81,8 @@ def edge_correspondences(
     lines, centroid, direction = line_fits_at(map_points, index, mo.edge_eigen_ratio)
     used = used[lines]
     if _terms_in_c(points_world, native):
-        kept, coeff = np.empty(len(used), dtype=np.int64), np.empty((len(used), 4))
-        count = _geometry_kernels.line_terms(
-            np.ascontiguousarray(points_world),
-            points_world.shape[1],
-            np.ascontiguousarray(used, dtype=np.int64),
-            np.ascontiguousarray(centroid),
-            np.ascontiguousarray(direction),
-            float(mo.line_half_length),
-            float(mo.weight_gain),
-            float(mo.min_weight),
-            kept,
-            coeff,
-        )
-        return kept[:count], coeff[:count]
+        line = (np.ascontiguousarray(centroid), np.ascontiguousarray(direction), float(mo.line_half_length))
+        return _kernel_terms(_geometry_kernels.line_terms, points_world, used, *line, mo=mo)
     a = centroid + mo.line_half_length * direction
     b = centroid - mo.line_half_length * direction
     gradient, dist = line_coefficients(select_rows(points_world, used), a.astype(_F32), b.astype(_F32))
@@ -119,19 +107,8 @@ def plane_correspondences(
     planar, normal, offset = fit_planes_at(map_points, index, mo.plane_max_residual, mo.plane_min_aspect)
     used = used[planar]
     if _terms_in_c(points_world, native):
-        kept, coeff = np.empty(len(used), dtype=np.int64), np.empty((len(used), 4))
-        count = _geometry_kernels.plane_terms(
-            np.ascontiguousarray(points_world),
-            points_world.shape[1],
-            np.ascontiguousarray(used, dtype=np.int64),
-            np.ascontiguousarray(normal),
-            np.ascontiguousarray(offset),
-            float(mo.weight_gain),
-            float(mo.min_weight),
-            kept,
-            coeff,
-        )
-        return kept[:count], coeff[:count]
+        plane = (np.ascontiguousarray(normal), np.ascontiguousarray(offset))
+        return _kernel_terms(_geometry_kernels.plane_terms, points_world, used, *plane, mo=mo)
     p = xyz_columns(select_rows(points_world, used))
     dist = np.einsum('mi,mi->m', p, normal) + offset
     weight = 1.0 - mo.weight_gain * np.abs(dist) / np.sqrt(np.linalg.norm(p, axis=1))
@@ -140,6 +117,23 @@ def plane_correspondences(
         [select_rows(normal, keep) * weight[keep, None], (weight[keep] * dist[keep])[:, None]], axis=1
     )
     return used[keep], coeff
+
+
+def _kernel_terms(kernel, points_world: np.ndarray, used: np.ndarray, *fits, mo) -> tuple[np.ndarray, np.ndarray]:
+    """(rows kept, coefficients (m, 4)) of the ``used`` rows of ``points_world`` by a terms kernel of
+    ``native/geometry_kernels.c`` (``line_terms`` or ``plane_terms``) given the fits' arrays and parameters."""
+    kept, coeff = np.empty(len(used), dtype=np.int64), np.empty((len(used), 4))
+    count = kernel(
+        np.ascontiguousarray(points_world),
+        points_world.shape[1],
+        np.ascontiguousarray(used, dtype=np.int64),
+        *fits,
+        float(mo.weight_gain),
+        float(mo.min_weight),
+        kept,
+        coeff,
+    )
+    return kept[:count], coeff[:count]
 
 
 def _terms_in_c(points_world: np.ndarray, native: bool) -> bool:

@@ -173,6 +173,15 @@ static int neighbourhood_sizes(const Py_buffer *points, Py_ssize_t columns, cons
     return 1;
 }
 
+/* What plane_fits and line_fits return: None, or an IndexError when a neighbour index was out of range. */
+static PyObject *fitted(int code, const char *function) {
+    if (code != 0) {
+        PyErr_Format(PyExc_IndexError, "%s: a neighbour index is out of range", function);
+        return NULL;
+    }
+    Py_RETURN_NONE;
+}
+
 static PyObject *py_plane_fits(PyObject *self, PyObject *args) {
     Py_buffer points, index, normals, offsets, moments, status;
     Py_ssize_t columns, k;
@@ -195,12 +204,7 @@ static PyObject *py_plane_fits(PyObject *self, PyObject *args) {
     code = fit((const float *)points.buf, columns, n, (const int64_t *)index.buf, m, k, max_residual,
                (double *)normals.buf, (double *)offsets.buf, (double *)moments.buf, (uint8_t *)status.buf);
     Py_END_ALLOW_THREADS
-    if (code != 0) {
-        PyErr_SetString(PyExc_IndexError, "plane_fits: a neighbour index is out of range");
-        goto done;
-    }
-    result = Py_None;
-    Py_INCREF(result);
+    result = fitted(code, "plane_fits");
 done:
     PyBuffer_Release(&points);
     PyBuffer_Release(&index);
@@ -283,12 +287,7 @@ static PyObject *py_line_fits(PyObject *self, PyObject *args) {
     code = line_fit((const float *)points.buf, columns, n, (const int64_t *)index.buf, m, k, eigen_ratio,
                     (double *)centroids.buf, (double *)directions.buf, (uint8_t *)status.buf);
     Py_END_ALLOW_THREADS
-    if (code != 0) {
-        PyErr_SetString(PyExc_IndexError, "line_fits: a neighbour index is out of range");
-        goto done;
-    }
-    result = Py_None;
-    Py_INCREF(result);
+    result = fitted(code, "line_fits");
 done:
     PyBuffer_Release(&points);
     PyBuffer_Release(&index);
@@ -364,9 +363,39 @@ static Py_ssize_t line_term(const float *points, Py_ssize_t columns, Py_ssize_t 
     return count;
 }
 
+/* The used rows j of plane_terms and line_terms from their buffers (points, used, the fits' two arrays of 3 and
+ * second_columns per row, kept, coefficients): 1, or 0 with a ValueError naming the function. */
+static int terms_rows(const Py_buffer *b, Py_ssize_t columns, Py_ssize_t second_columns, const char *function,
+                      Py_ssize_t *j) {
+    const Py_ssize_t row_bytes = columns * (Py_ssize_t)sizeof(float);
+    *j = b[1].len / (Py_ssize_t)sizeof(int64_t);
+    if (columns < 3 || b[0].len % row_bytes != 0 || b[1].len != *j * 8 || b[2].len != 3 * *j * 8 ||
+        b[3].len != second_columns * *j * 8 || b[4].len != *j * 8 || b[5].len != 4 * *j * 8) {
+        PyErr_Format(PyExc_ValueError, "%s: inconsistent buffer sizes", function);
+        return 0;
+    }
+    return 1;
+}
+
+/* What plane_terms and line_terms return (the rows kept, or an IndexError for a row out of range), their six
+ * buffers released. */
+static PyObject *terms_result(Py_ssize_t count, Py_buffer *b, const char *function) {
+    PyObject *result = NULL;
+    if (count == -2) { /* (the buffers were refused: the error is set) */
+    } else if (count < 0) {
+        PyErr_Format(PyExc_IndexError, "%s: a row out of range", function);
+    } else {
+        result = PyLong_FromSsize_t(count);
+    }
+    for (int i = 0; i < 6; ++i) {
+        if (b[i].obj != NULL) PyBuffer_Release(&b[i]);
+    }
+    return result;
+}
+
 static PyObject *py_plane_terms(PyObject *self, PyObject *args) {
     Py_buffer b[6];
-    Py_ssize_t columns;
+    Py_ssize_t columns, j, count = -2;
     double gain, min_weight;
     (void)self;
     memset(b, 0, sizeof(b));
@@ -374,33 +403,18 @@ static PyObject *py_plane_terms(PyObject *self, PyObject *args) {
                           &b[5])) {
         return NULL;
     }
-    PyObject *result = NULL;
-    const Py_ssize_t row_bytes = columns * (Py_ssize_t)sizeof(float), j = b[1].len / (Py_ssize_t)sizeof(int64_t);
-    if (columns < 3 || b[0].len % row_bytes != 0 || b[1].len != j * 8 || b[2].len != 3 * j * 8 || b[3].len != j * 8 ||
-        b[4].len != j * 8 || b[5].len != 4 * j * 8) {
-        PyErr_SetString(PyExc_ValueError, "plane_terms: inconsistent buffer sizes");
-        goto done;
+    if (terms_rows(b, columns, 1, "plane_terms", &j)) {
+        Py_BEGIN_ALLOW_THREADS
+        count = plane_term(b[0].buf, columns, b[0].len / (columns * (Py_ssize_t)sizeof(float)), b[1].buf, j, b[2].buf,
+                           b[3].buf, gain, min_weight, b[4].buf, b[5].buf);
+        Py_END_ALLOW_THREADS
     }
-    Py_ssize_t count;
-    Py_BEGIN_ALLOW_THREADS
-    count = plane_term(b[0].buf, columns, b[0].len / row_bytes, b[1].buf, j, b[2].buf, b[3].buf, gain, min_weight,
-                       b[4].buf, b[5].buf);
-    Py_END_ALLOW_THREADS
-    if (count < 0) {
-        PyErr_SetString(PyExc_IndexError, "plane_terms: a row out of range");
-        goto done;
-    }
-    result = PyLong_FromSsize_t(count);
-done:
-    for (int i = 0; i < 6; ++i) {
-        if (b[i].obj != NULL) PyBuffer_Release(&b[i]);
-    }
-    return result;
+    return terms_result(count, b, "plane_terms");
 }
 
 static PyObject *py_line_terms(PyObject *self, PyObject *args) {
     Py_buffer b[6];
-    Py_ssize_t columns;
+    Py_ssize_t columns, j, count = -2;
     double half_length, gain, min_weight;
     (void)self;
     memset(b, 0, sizeof(b));
@@ -408,28 +422,13 @@ static PyObject *py_line_terms(PyObject *self, PyObject *args) {
                           &min_weight, &b[4], &b[5])) {
         return NULL;
     }
-    PyObject *result = NULL;
-    const Py_ssize_t row_bytes = columns * (Py_ssize_t)sizeof(float), j = b[1].len / (Py_ssize_t)sizeof(int64_t);
-    if (columns < 3 || b[0].len % row_bytes != 0 || b[1].len != j * 8 || b[2].len != 3 * j * 8 ||
-        b[3].len != 3 * j * 8 || b[4].len != j * 8 || b[5].len != 4 * j * 8) {
-        PyErr_SetString(PyExc_ValueError, "line_terms: inconsistent buffer sizes");
-        goto done;
+    if (terms_rows(b, columns, 3, "line_terms", &j)) {
+        Py_BEGIN_ALLOW_THREADS
+        count = line_term(b[0].buf, columns, b[0].len / (columns * (Py_ssize_t)sizeof(float)), b[1].buf, j, b[2].buf,
+                          b[3].buf, half_length, gain, min_weight, b[4].buf, b[5].buf);
+        Py_END_ALLOW_THREADS
     }
-    Py_ssize_t count;
-    Py_BEGIN_ALLOW_THREADS
-    count = line_term(b[0].buf, columns, b[0].len / row_bytes, b[1].buf, j, b[2].buf, b[3].buf, half_length, gain,
-                      min_weight, b[4].buf, b[5].buf);
-    Py_END_ALLOW_THREADS
-    if (count < 0) {
-        PyErr_SetString(PyExc_IndexError, "line_terms: a row out of range");
-        goto done;
-    }
-    result = PyLong_FromSsize_t(count);
-done:
-    for (int i = 0; i < 6; ++i) {
-        if (b[i].obj != NULL) PyBuffer_Release(&b[i]);
-    }
-    return result;
+    return terms_result(count, b, "line_terms");
 }
 
 #define GRID_MAX_INDEX 1e15 /* cell indices beyond this (far points, NaN): no grid */
