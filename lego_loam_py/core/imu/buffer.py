@@ -126,15 +126,7 @@ def imu_rotate(
     the products after the sines and cosines run in C when the extension is built, the same operations in one
     pass instead of some twenty NumPy calls over (3, 3, n) arrays; ``native=False``: always rotate_by_euler (the
     tests compare the two)."""
-    if (
-        native
-        and hasattr(_feature_kernels, 'euler_rotate')
-        and isinstance(xyz, np.ndarray)
-        and xyz.dtype == np.float32
-        and xyz.ndim == 2
-        and xyz.shape[1] >= 3
-        and xyz.flags.c_contiguous
-    ):
+    if native and hasattr(_feature_kernels, 'euler_rotate') and _rotatable_in_c(xyz):
         angles = np.array([np.asarray(a, dtype=float).reshape(-1) for a in (pitch, yaw, roll)])  # as rotate_by_euler
         if angles.shape[1] == len(xyz):
             out = np.empty(angles.shape)
@@ -143,6 +135,18 @@ def imu_rotate(
             )
             return out.T
     return rotate_by_euler(left, pitch, yaw, roll, xyz)
+
+
+def _rotatable_in_c(xyz) -> bool:
+    """Whether the C rotations (:func:`imu_rotate`, :meth:`ImuBuffer.rotate_at`) take these points: (n, >= 3)
+    float32, C-contiguous."""
+    return (
+        isinstance(xyz, np.ndarray)
+        and xyz.dtype == np.float32
+        and xyz.ndim == 2
+        and xyz.shape[1] >= 3
+        and xyz.flags.c_contiguous
+    )
 
 
 def _quaternion_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
@@ -536,11 +540,7 @@ class ImuBuffer:
             and hasattr(_feature_kernels, 'imu_rotate_at')
             and len(self._rows)
             and times.ndim == 1
-            and isinstance(xyz, np.ndarray)
-            and xyz.dtype == np.float32
-            and xyz.ndim == 2
-            and xyz.shape[1] >= 3
-            and xyz.flags.c_contiguous
+            and _rotatable_in_c(xyz)
             and len(xyz) == len(times)
         ):
             table, rate = self._table_and_rate()

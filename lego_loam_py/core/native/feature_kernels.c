@@ -91,7 +91,6 @@
 #include <Python.h>
 #include <stdint.h>
 #include <math.h>
-#include <stdlib.h>
 #include <string.h>
 
 #include "sweep_jacobian.h"
@@ -589,57 +588,72 @@ static inline int left_of(const double *rows, Py_ssize_t m, Py_ssize_t at, doubl
     return (at == 0 || numpy_less(rows[13 * (at - 1)], t)) && (at == m || !numpy_less(rows[13 * at], t));
 }
 
-/* The body of imu_lerp (see the file): roll, pitch and yaw (n, 3) of the times from the table's m rows. */
-static void lerp_attitudes(const double *rows, Py_ssize_t m, const double *times, Py_ssize_t n, double max_reach,
-                           double stamp_rounding, const double *rate, double *o) {
+/* Whether imu_lerp carries the attitudes on: some time lies more than stamp_rounding beyond the newest sample. */
+static int carries_on(const double *times, Py_ssize_t n, double newest, double max_reach, double stamp_rounding) {
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        if (reach_beyond(times[i], newest, max_reach) > stamp_rounding) return 1;
+    }
+    return 0;
+}
+
+/* One time's roll, pitch and yaw (imu_lerp, see the file) into o[0..2]; *low is the bracket of the previous time,
+ * tried first. With carried, the attitude is carried on as _carry_on's arrays do (to every row, zeros included). */
+static inline void lerp_attitude(const double *rows, Py_ssize_t m, Py_ssize_t *low, double t, double max_reach,
+                                 double stamp_rounding, int carried, const double *rate, double *o) {
     const double pi = 3.141592653589793, two_pi = 2 * 3.141592653589793;
     const double newest = rows[13 * (m - 1)];
-    int carried = 0;
-    Py_ssize_t low = 0;
-    for (Py_ssize_t i = 0; i < n; ++i) {
-        const double t = times[i];
-        if (!left_of(rows, m, low, t) && !(low < m && left_of(rows, m, low + 1, t))) {
-            Py_ssize_t high = m;
-            low = 0;
-            while (low < high) {
-                Py_ssize_t middle = low + (high - low) / 2;
-                if (numpy_less(rows[13 * middle], t)) {
-                    low = middle + 1;
-                } else {
-                    high = middle;
-                }
-            }
-        } else if (!left_of(rows, m, low, t)) {
-            ++low;
-        }
-        Py_ssize_t front = low > m - 1 ? m - 1 : low;
-        Py_ssize_t back = front - 1 > 0 ? front - 1 : 0;
-        const double *rb = rows + 13 * back, *rf = rows + 13 * front;
-        const double span = rf[0] - rb[0];
-        double ratio = span > 0 ? (t - rb[0]) / span : 1.0;
-        if (ratio == ratio) { /* clip to [0, 1] as NumPy does: NaN stays NaN, -0.0 stays -0.0 */
-            ratio = 0.0 > ratio ? 0.0 : ratio;
-            ratio = ratio > 1.0 ? 1.0 : ratio;
-        }
-        if (t >= newest) {
-            ratio = 1.0;
-        }
-        o[3 * i] = rb[1] + (rf[1] - rb[1]) * ratio;
-        o[3 * i + 1] = rb[2] + (rf[2] - rb[2]) * ratio;
-        const double jump = rf[3] - rb[3];
-        const double unwrapped = rb[3] + (jump > pi ? two_pi : (jump < -pi ? -two_pi : 0.0));
-        o[3 * i + 2] = unwrapped + (rf[3] - unwrapped) * ratio;
-        carried |= reach_beyond(t, newest, max_reach) > stamp_rounding;
-    }
-    if (carried) { /* rpy += where(ahead > rounding, ahead, 0.0)[:, None] * rate[None, :], every row */
-        for (Py_ssize_t i = 0; i < n; ++i) {
-            const double ahead = reach_beyond(times[i], newest, max_reach);
-            const double factor = ahead > stamp_rounding ? ahead : 0.0;
-            for (int c = 0; c < 3; ++c) {
-                o[3 * i + c] += factor * rate[c];
+    if (!left_of(rows, m, *low, t) && !(*low < m && left_of(rows, m, *low + 1, t))) {
+        Py_ssize_t lo = 0, high = m;
+        while (lo < high) {
+            Py_ssize_t middle = lo + (high - lo) / 2;
+            if (numpy_less(rows[13 * middle], t)) {
+                lo = middle + 1;
+            } else {
+                high = middle;
             }
         }
+        *low = lo;
+    } else if (!left_of(rows, m, *low, t)) {
+        ++*low;
     }
+    Py_ssize_t front = *low > m - 1 ? m - 1 : *low;
+    Py_ssize_t back = front - 1 > 0 ? front - 1 : 0;
+    const double *rb = rows + 13 * back, *rf = rows + 13 * front;
+    const double span = rf[0] - rb[0];
+    double ratio = span > 0 ? (t - rb[0]) / span : 1.0;
+    if (ratio == ratio) { /* clip to [0, 1] as NumPy does: NaN stays NaN, -0.0 stays -0.0 */
+        ratio = 0.0 > ratio ? 0.0 : ratio;
+        ratio = ratio > 1.0 ? 1.0 : ratio;
+    }
+    if (t >= newest) {
+        ratio = 1.0;
+    }
+    o[0] = rb[1] + (rf[1] - rb[1]) * ratio;
+    o[1] = rb[2] + (rf[2] - rb[2]) * ratio;
+    const double jump = rf[3] - rb[3];
+    const double unwrapped = rb[3] + (jump > pi ? two_pi : (jump < -pi ? -two_pi : 0.0));
+    o[2] = unwrapped + (rf[3] - unwrapped) * ratio;
+    if (carried) { /* rpy += where(ahead > rounding, ahead, 0.0)[:, None] * rate[None, :] */
+        const double ahead = reach_beyond(t, newest, max_reach);
+        const double factor = ahead > stamp_rounding ? ahead : 0.0;
+        for (int c = 0; c < 3; ++c) {
+            o[c] += factor * rate[c];
+        }
+    }
+}
+
+/* The rows m of imu_lerp's and imu_rotate_at's table and the times n, their buffers checked with the rate's: 1, or
+ * 0 with a ValueError naming the function. */
+static int attitude_sizes(const Py_buffer *table, const Py_buffer *times, const Py_buffer *rate, const char *function,
+                          Py_ssize_t *m, Py_ssize_t *n) {
+    *m = table->len / (13 * (Py_ssize_t)sizeof(double));
+    *n = times->len / (Py_ssize_t)sizeof(double);
+    if (*m < 1 || table->len != *m * 13 * (Py_ssize_t)sizeof(double) || times->len != *n * (Py_ssize_t)sizeof(double) ||
+        rate->len != 3 * (Py_ssize_t)sizeof(double)) {
+        PyErr_Format(PyExc_ValueError, "%s: inconsistent buffer sizes", function);
+        return 0;
+    }
+    return 1;
 }
 
 static PyObject *py_imu_lerp(PyObject *self, PyObject *args) {
@@ -651,15 +665,19 @@ static PyObject *py_imu_lerp(PyObject *self, PyObject *args) {
         return NULL;
     }
     PyObject *result = NULL;
-    Py_ssize_t m = table.len / (13 * (Py_ssize_t)sizeof(double));
-    Py_ssize_t n = times_buffer.len / (Py_ssize_t)sizeof(double);
-    if (m < 1 || table.len != m * 13 * (Py_ssize_t)sizeof(double) ||
-        times_buffer.len != n * (Py_ssize_t)sizeof(double) || out.len != n * 3 * (Py_ssize_t)sizeof(double) ||
-        rate_buffer.len != 3 * (Py_ssize_t)sizeof(double)) {
+    Py_ssize_t m, n;
+    if (!attitude_sizes(&table, &times_buffer, &rate_buffer, "imu_lerp", &m, &n)) goto done;
+    if (out.len != n * 3 * (Py_ssize_t)sizeof(double)) {
         PyErr_SetString(PyExc_ValueError, "imu_lerp: inconsistent buffer sizes");
         goto done;
     }
-    lerp_attitudes(table.buf, m, times_buffer.buf, n, max_reach, stamp_rounding, rate_buffer.buf, out.buf);
+    const double *rows = table.buf, *times = times_buffer.buf;
+    const int carried = carries_on(times, n, rows[13 * (m - 1)], max_reach, stamp_rounding);
+    Py_ssize_t low = 0;
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        lerp_attitude(rows, m, &low, times[i], max_reach, stamp_rounding, carried, rate_buffer.buf,
+                      (double *)out.buf + 3 * i);
+    }
     result = Py_None;
     Py_INCREF(result);
 done:
@@ -679,36 +697,30 @@ static PyObject *py_imu_rotate_at(PyObject *self, PyObject *args) {
         return NULL;
     }
     PyObject *result = NULL;
-    double *rpy = NULL;
-    const Py_ssize_t m = table.len / (13 * (Py_ssize_t)sizeof(double));
-    const Py_ssize_t n = times_buffer.len / (Py_ssize_t)sizeof(double);
+    Py_ssize_t m, n;
+    if (!attitude_sizes(&table, &times_buffer, &rate_buffer, "imu_rotate_at", &m, &n)) goto done;
     const Py_ssize_t columns = n > 0 ? xyz.len / (n * (Py_ssize_t)sizeof(float)) : 3;
-    if (m < 1 || table.len != m * 13 * (Py_ssize_t)sizeof(double) ||
-        times_buffer.len != n * (Py_ssize_t)sizeof(double) || rate_buffer.len != 3 * (Py_ssize_t)sizeof(double) ||
-        left_buffer.len != 9 * (Py_ssize_t)sizeof(double) || columns < 3 ||
+    if (left_buffer.len != 9 * (Py_ssize_t)sizeof(double) || columns < 3 ||
         xyz.len != n * columns * (Py_ssize_t)sizeof(float) || out.len != 3 * n * (Py_ssize_t)sizeof(double)) {
         PyErr_SetString(PyExc_ValueError, "imu_rotate_at: inconsistent buffer sizes");
         goto done;
     }
-    rpy = malloc((size_t)(n > 0 ? n : 1) * 3 * sizeof(double));
-    if (rpy == NULL) {
-        PyErr_NoMemory();
-        goto done;
-    }
-    const double *l = left_buffer.buf;
+    const double *rows = table.buf, *times = times_buffer.buf, *rate = rate_buffer.buf, *l = left_buffer.buf;
     const float *p = xyz.buf;
     double *o = out.buf;
     Py_BEGIN_ALLOW_THREADS
-    lerp_attitudes(table.buf, m, times_buffer.buf, n, max_reach, stamp_rounding, rate_buffer.buf, rpy);
+    const int carried = carries_on(times, n, rows[13 * (m - 1)], max_reach, stamp_rounding);
+    Py_ssize_t low = 0;
     for (Py_ssize_t i = 0; i < n; ++i) { /* imu_rotate's angles (rx, ry, rz) = (pitch, yaw, roll) */
-        const double pitch = rpy[3 * i + 1], yaw = rpy[3 * i + 2], roll = rpy[3 * i];
-        euler_point(l, cos(pitch), cos(yaw), cos(roll), sin(pitch), sin(yaw), sin(roll), p + columns * i, o + i, n);
+        double rpy[3];
+        lerp_attitude(rows, m, &low, times[i], max_reach, stamp_rounding, carried, rate, rpy);
+        euler_point(l, cos(rpy[1]), cos(rpy[2]), cos(rpy[0]), sin(rpy[1]), sin(rpy[2]), sin(rpy[0]), p + columns * i,
+                    o + i, n);
     }
     Py_END_ALLOW_THREADS
     result = Py_None;
     Py_INCREF(result);
 done:
-    free(rpy);
     PyBuffer_Release(&table);
     PyBuffer_Release(&times_buffer);
     PyBuffer_Release(&rate_buffer);
