@@ -67,19 +67,25 @@ def test_plane_fit_by_hand(native):
     assert len(plane_correspondences(cloud([[0.0, -1.25, 4.5]]), search(bumpy), bumpy, PARAMS, native=native)[0]) == 0
 
 
-@pytest.mark.skipif(not hasattr(scan_to_map._geometry_kernels, 'plane_terms'), reason='the C extension is not built')
+@pytest.mark.skipif(
+    not hasattr(scan_to_map._geometry_kernels, 'map_plane_terms'), reason='the C extension is not built'
+)
 def test_the_terms_kernels_refuse_rows_out_of_range_and_buffers_that_do_not_match():
     kernels = scan_to_map._geometry_kernels
     points, kept, coeff = np.zeros((4, 3), np.float32), np.empty(1, np.int64), np.empty((1, 4))
-    with pytest.raises(IndexError, match='plane_terms'):
-        kernels.plane_terms(points, 3, np.array([4]), np.zeros((1, 3)), np.zeros(1), 0.9, 0.1, kept, coeff)
-    with pytest.raises(IndexError, match='line_terms'):
-        kernels.line_terms(points, 3, np.array([-1]), np.zeros((1, 3)), np.zeros((1, 3)), 0.1, 0.9, 0.1, kept, coeff)
-    with pytest.raises(ValueError, match='line_terms'):  # (directions of one column)
-        kernels.line_terms(points, 3, np.array([0]), np.zeros((1, 3)), np.zeros(1), 0.1, 0.9, 0.1, kept, coeff)
+    with pytest.raises(IndexError, match='map_plane_terms'):
+        kernels.map_plane_terms(points, 3, np.array([4]), np.zeros((1, 3)), np.zeros(1), 0.9, 0.1, kept, coeff)
+    with pytest.raises(IndexError, match='map_line_terms'):
+        kernels.map_line_terms(
+            points, 3, np.array([-1]), np.zeros((1, 3)), np.zeros((1, 3)), 0.1, 0.9, 0.1, kept, coeff
+        )
+    with pytest.raises(ValueError, match='map_line_terms'):  # (directions of one column)
+        kernels.map_line_terms(points, 3, np.array([0]), np.zeros((1, 3)), np.zeros(1), 0.1, 0.9, 0.1, kept, coeff)
 
 
-@pytest.mark.skipif(not hasattr(scan_to_map._geometry_kernels, 'plane_terms'), reason='the C extension is not built')
+@pytest.mark.skipif(
+    not hasattr(scan_to_map._geometry_kernels, 'map_plane_terms'), reason='the C extension is not built'
+)
 @pytest.mark.parametrize('seed', range(8))
 def test_the_terms_kernels_equal_numpy_bit_for_bit(seed):
     """Edges (ten vertical poles) and planes (a tilted floor and two walls) 40-60 m from the origin, 0-2 cm of

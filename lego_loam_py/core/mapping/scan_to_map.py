@@ -72,7 +72,7 @@ def edge_correspondences(
     points_world: np.ndarray, tree: GridNeighbours, map_points: np.ndarray, params: Params, native: bool = True
 ):
     """Point-to-line coefficients: (index of used points, coeff (m, 4) = s·gradient, s·distance). The terms after
-    the line fits in one C pass when the extension is built (``_geometry_kernels.line_terms``, NumPy's float32
+    the line fits in one C pass when the extension is built (``_geometry_kernels.map_line_terms``, NumPy's float32
     and float64 operations in its order); ``native=False``: NumPy (the tests compare the two)."""
     mo = params.map_optimization
     if len(points_world) == 0 or tree is None:
@@ -82,7 +82,7 @@ def edge_correspondences(
     used = used[lines]
     if _terms_in_c(points_world, native):
         line = (np.ascontiguousarray(centroid), np.ascontiguousarray(direction), float(mo.line_half_length))
-        return _kernel_terms(_geometry_kernels.line_terms, points_world, used, *line, mo=mo)
+        return _kernel_terms(_geometry_kernels.map_line_terms, points_world, used, *line, mo=mo)
     a = centroid + mo.line_half_length * direction
     b = centroid - mo.line_half_length * direction
     gradient, dist = line_coefficients(select_rows(points_world, used), a.astype(_F32), b.astype(_F32))
@@ -98,7 +98,7 @@ def plane_correspondences(
     points_world: np.ndarray, tree: GridNeighbours, map_points: np.ndarray, params: Params, native: bool = True
 ):
     """Point-to-plane coefficients: (index of used points, coeff (m, 4) = s·normal, s·distance). The terms after
-    the plane fits in one C pass when the extension is built (``_geometry_kernels.plane_terms``, NumPy's
+    the plane fits in one C pass when the extension is built (``_geometry_kernels.map_plane_terms``, NumPy's
     operations in its order); ``native=False``: NumPy (the tests compare the two)."""
     mo = params.map_optimization
     if len(points_world) == 0 or tree is None:
@@ -108,7 +108,7 @@ def plane_correspondences(
     used = used[planar]
     if _terms_in_c(points_world, native):
         plane = (np.ascontiguousarray(normal), np.ascontiguousarray(offset))
-        return _kernel_terms(_geometry_kernels.plane_terms, points_world, used, *plane, mo=mo)
+        return _kernel_terms(_geometry_kernels.map_plane_terms, points_world, used, *plane, mo=mo)
     p = xyz_columns(select_rows(points_world, used))
     dist = np.einsum('mi,mi->m', p, normal) + offset
     weight = 1.0 - mo.weight_gain * np.abs(dist) / np.sqrt(np.linalg.norm(p, axis=1))
@@ -121,7 +121,7 @@ def plane_correspondences(
 
 def _kernel_terms(kernel, points_world: np.ndarray, used: np.ndarray, *fits, mo) -> tuple[np.ndarray, np.ndarray]:
     """(rows kept, coefficients (m, 4)) of the ``used`` rows of ``points_world`` by a terms kernel of
-    ``native/geometry_kernels.c`` (``line_terms`` or ``plane_terms``) given the fits' arrays and parameters."""
+    ``native/geometry_kernels.c`` (``map_line_terms`` or ``map_plane_terms``) given the fits' arrays and parameters."""
     kept, coeff = np.empty(len(used), dtype=np.int64), np.empty((len(used), 4))
     count = kernel(
         np.ascontiguousarray(points_world),
@@ -140,7 +140,7 @@ def _terms_in_c(points_world: np.ndarray, native: bool) -> bool:
     """Whether the C kernels make the correspondences' terms: built (and asked for), float32 (n, >= 3) points."""
     return (
         native
-        and hasattr(_geometry_kernels, 'plane_terms')  # (None, or an extension built before them)
+        and hasattr(_geometry_kernels, 'map_plane_terms')  # (None, or an extension built before them)
         and points_world.dtype == _F32
         and points_world.ndim == 2
         and points_world.shape[1] >= 3

@@ -26,15 +26,15 @@
  *   its sign is arbitrary) and status (m,) uint8: 1 when the largest eigenvalue exceeds eigen_ratio times the
  *   middle one (the neighbours lie along a line), else 0. Returns None; raises IndexError for an index out of
  *   range. Runs without the GIL.
- * plane_terms(points, columns, used, normals, offsets, weight_gain, min_weight, kept, coefficients) -> count
+ * map_plane_terms(points, columns, used, normals, offsets, weight_gain, min_weight, kept, coefficients) -> count
  *   scan_to_map.plane_correspondences after its plane fits, NumPy's operations in its order: for the points
  *   used (j,) int64 rows of points (n, columns >= 3) float32 and their planes (normals (j, 3), offsets (j,)
  *   float64), the signed distance (the point's float64 coordinates dotted with the normal as NumPy's einsum sums
  *   three products, plus the offset), the weight 1 - weight_gain |distance| / sqrt(|p|) (|p| = sqrt((x² + y²) +
  *   z²)), kept when above min_weight: their rows written to kept (j,) int64 and (normal * weight, weight *
  *   distance) to coefficients (j, 4) float64, in order. Returns how many were kept. Runs without the GIL.
- * line_terms(points, columns, used, centroids, directions, half_length, weight_gain, min_weight, kept,
- *            coefficients) -> count
+ * map_line_terms(points, columns, used, centroids, directions, half_length, weight_gain, min_weight, kept,
+ *                coefficients) -> count
  *   scan_to_map.edge_correspondences after its line fits: the line ends a, b = centroid +- half_length *
  *   direction (float64, then float32) and geometry.line_coefficients in float32 (the cross product of p - a and
  *   p - b, its norm and that of a - b summed (x² + y²) + z²), the weight 1 - weight_gain |distance|, kept when
@@ -297,9 +297,9 @@ done:
     return result;
 }
 
-static Py_ssize_t plane_term(const float *points, Py_ssize_t columns, Py_ssize_t n, const int64_t *used, Py_ssize_t j,
-                             const double *normals, const double *offsets, double gain, double min_weight,
-                             int64_t *kept, double *coefficients) {
+static Py_ssize_t map_plane_term(const float *points, Py_ssize_t columns, Py_ssize_t n, const int64_t *used,
+                                 Py_ssize_t j, const double *normals, const double *offsets, double gain,
+                                 double min_weight, int64_t *kept, double *coefficients) {
     Py_ssize_t count = 0;
     for (Py_ssize_t r = 0; r < j; ++r) {
         if (used[r] < 0 || used[r] >= n) return -1;
@@ -322,9 +322,9 @@ static Py_ssize_t plane_term(const float *points, Py_ssize_t columns, Py_ssize_t
     return count;
 }
 
-static Py_ssize_t line_term(const float *points, Py_ssize_t columns, Py_ssize_t n, const int64_t *used, Py_ssize_t j,
-                            const double *centroids, const double *directions, double half_length, double gain,
-                            double min_weight, int64_t *kept, double *coefficients) {
+static Py_ssize_t map_line_term(const float *points, Py_ssize_t columns, Py_ssize_t n, const int64_t *used,
+                                Py_ssize_t j, const double *centroids, const double *directions, double half_length,
+                                double gain, double min_weight, int64_t *kept, double *coefficients) {
     Py_ssize_t count = 0;
     for (Py_ssize_t r = 0; r < j; ++r) {
         if (used[r] < 0 || used[r] >= n) return -1;
@@ -363,8 +363,8 @@ static Py_ssize_t line_term(const float *points, Py_ssize_t columns, Py_ssize_t 
     return count;
 }
 
-/* The used rows j of plane_terms and line_terms from their buffers (points, used, the fits' two arrays of 3 and
- * second_columns per row, kept, coefficients): 1, or 0 with a ValueError naming the function. */
+/* The used rows j of map_plane_terms and map_line_terms from their buffers (points, used, the fits' two arrays of
+ * 3 and second_columns per row, kept, coefficients): 1, or 0 with a ValueError naming the function. */
 static int terms_rows(const Py_buffer *b, Py_ssize_t columns, Py_ssize_t second_columns, const char *function,
                       Py_ssize_t *j) {
     const Py_ssize_t row_bytes = columns * (Py_ssize_t)sizeof(float);
@@ -377,8 +377,8 @@ static int terms_rows(const Py_buffer *b, Py_ssize_t columns, Py_ssize_t second_
     return 1;
 }
 
-/* What plane_terms and line_terms return (the rows kept, or an IndexError for a row out of range), their six
- * buffers released. */
+/* What map_plane_terms and map_line_terms return (the rows kept, or an IndexError for a row out of range), their
+ * six buffers released. */
 static PyObject *terms_result(Py_ssize_t count, Py_buffer *b, const char *function) {
     PyObject *result = NULL;
     if (count == -2) { /* (the buffers were refused: the error is set) */
@@ -393,7 +393,7 @@ static PyObject *terms_result(Py_ssize_t count, Py_buffer *b, const char *functi
     return result;
 }
 
-static PyObject *py_plane_terms(PyObject *self, PyObject *args) {
+static PyObject *py_map_plane_terms(PyObject *self, PyObject *args) {
     Py_buffer b[6];
     Py_ssize_t columns, j, count = -2;
     double gain, min_weight;
@@ -403,16 +403,16 @@ static PyObject *py_plane_terms(PyObject *self, PyObject *args) {
                           &b[5])) {
         return NULL;
     }
-    if (terms_rows(b, columns, 1, "plane_terms", &j)) {
+    if (terms_rows(b, columns, 1, "map_plane_terms", &j)) {
         Py_BEGIN_ALLOW_THREADS
-        count = plane_term(b[0].buf, columns, b[0].len / (columns * (Py_ssize_t)sizeof(float)), b[1].buf, j, b[2].buf,
-                           b[3].buf, gain, min_weight, b[4].buf, b[5].buf);
+        count = map_plane_term(b[0].buf, columns, b[0].len / (columns * (Py_ssize_t)sizeof(float)), b[1].buf, j,
+                               b[2].buf, b[3].buf, gain, min_weight, b[4].buf, b[5].buf);
         Py_END_ALLOW_THREADS
     }
-    return terms_result(count, b, "plane_terms");
+    return terms_result(count, b, "map_plane_terms");
 }
 
-static PyObject *py_line_terms(PyObject *self, PyObject *args) {
+static PyObject *py_map_line_terms(PyObject *self, PyObject *args) {
     Py_buffer b[6];
     Py_ssize_t columns, j, count = -2;
     double half_length, gain, min_weight;
@@ -422,13 +422,13 @@ static PyObject *py_line_terms(PyObject *self, PyObject *args) {
                           &min_weight, &b[4], &b[5])) {
         return NULL;
     }
-    if (terms_rows(b, columns, 3, "line_terms", &j)) {
+    if (terms_rows(b, columns, 3, "map_line_terms", &j)) {
         Py_BEGIN_ALLOW_THREADS
-        count = line_term(b[0].buf, columns, b[0].len / (columns * (Py_ssize_t)sizeof(float)), b[1].buf, j, b[2].buf,
-                          b[3].buf, half_length, gain, min_weight, b[4].buf, b[5].buf);
+        count = map_line_term(b[0].buf, columns, b[0].len / (columns * (Py_ssize_t)sizeof(float)), b[1].buf, j,
+                              b[2].buf, b[3].buf, half_length, gain, min_weight, b[4].buf, b[5].buf);
         Py_END_ALLOW_THREADS
     }
-    return terms_result(count, b, "line_terms");
+    return terms_result(count, b, "map_line_terms");
 }
 
 #define GRID_MAX_INDEX 1e15 /* cell indices beyond this (far points, NaN): no grid */
@@ -905,8 +905,8 @@ done:
 static PyMethodDef methods[] = {
     {"plane_fits", py_plane_fits, METH_VARARGS, "Least-squares planes through neighbourhoods (see the file)."},
     {"line_fits", py_line_fits, METH_VARARGS, "Principal directions of neighbourhoods (see the file)."},
-    {"plane_terms", py_plane_terms, METH_VARARGS, "Point-to-plane terms of the mapping (see the file)."},
-    {"line_terms", py_line_terms, METH_VARARGS, "Point-to-line terms of the mapping (see the file)."},
+    {"map_plane_terms", py_map_plane_terms, METH_VARARGS, "Point-to-plane terms of the mapping (see the file)."},
+    {"map_line_terms", py_map_line_terms, METH_VARARGS, "Point-to-line terms of the mapping (see the file)."},
     {"grid_extent", py_grid_extent, METH_VARARGS, "The cells a point set spans (see the file)."},
     {"grid_fill", py_grid_fill, METH_VARARGS, "Sorts points by cell (see the file)."},
     {"grid_nearest", py_grid_nearest, METH_VARARGS, "k nearest points of each query (see the file)."},
