@@ -96,6 +96,7 @@ def make_header(stamp: Time | int, frame_id: str) -> Header:
 # covariance (9), angular velocity (3), its covariance (9), linear acceleration (3), its covariance (9).
 _IMU_DOUBLES = 37
 _XCDR1 = {b'\x00\x00': '>', b'\x00\x01': '<'}  # encapsulation id -> byte order
+_CDR_ENCAPSULATION = b'\x00\x01\x00\x00'  # what the messages written here start with: XCDR1, little endian
 _XCDR2 = frozenset(bytes((0, k)) for k in range(6, 12))  # plain, delimited, parameter list; big, little endian
 
 
@@ -219,7 +220,7 @@ class _CdrWriter:
     bytes are zero (rclpy leaves them undefined; readers skip them)."""
 
     def __init__(self):
-        self._parts: list = [b'\x00\x01\x00\x00']
+        self._parts: list = [_CDR_ENCAPSULATION]
         self._size = 0
 
     def _put(self, data, size: int) -> None:
@@ -585,7 +586,6 @@ def serialized_odometry(
     return _CDR_ENCAPSULATION + odometry, _CDR_ENCAPSULATION + transforms
 
 
-_CDR_ENCAPSULATION = b'\x00\x01\x00\x00'  # (XCDR1 little endian, as _CdrWriter starts)
 _ZERO_COVARIANCE = (0.0,) * 36
 
 
